@@ -1,0 +1,73 @@
+"""The ``framegate`` command line: a thin shell over the library.
+
+Each command lives in its own module here and exposes ``register(subparsers)``, which adds
+its parser and sets ``func`` to a function ``(args) -> int``. Commands catch only
+``FramegateError``, print ``error: ...`` on stderr and return a non-zero exit code.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from collections.abc import Sequence
+
+from middleware import FramegateError
+
+# Command modules, in the order `framegate --help` lists them.
+_COMMANDS = (
+    "demo",
+    "launch",
+    "run",
+    "ls",
+    "info",
+    "query",
+    "watch",
+    "hz",
+    "record",
+    "play",
+    "router",
+    "simulate",
+    "experiment",
+    "bench",
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The top-level parser with every available command registered."""
+    parser = argparse.ArgumentParser(
+        prog="framegate",
+        description="Named, flow-controlled camera/gyro buffers over Zenoh, and the "
+        "blur-aware mediator that keeps blurred frames away from vision code.",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in _COMMANDS:
+        try:
+            module = importlib.import_module(f"services.cli.{name}")
+        except ModuleNotFoundError as exc:
+            # A command whose module is not written yet is simply not offered.
+            if exc.name == f"services.cli.{name}":
+                continue
+            raise
+        module.register(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``framegate`` console script."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args.func(args))
+    except FramegateError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
