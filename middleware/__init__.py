@@ -1,8 +1,12 @@
 """framegate middleware: named, timestamp-keyed buffers over Eclipse Zenoh.
 
-(Temporary front door while the core lands; grows with the transport layer.)
+A service offers named buffers (time series of payload + XML metadata keyed by int
+nanoseconds); clients query them by time and subscribe to availability notifications with
+a queue size of their choice. While a flow-controlled subscriber's queue is full the
+producer is refused (paper §4.1). See the README's *Wire format* for the protocol.
 """
 
+from ._config import NetworkConfig, add_network_arguments, check_name, network_from_args
 from ._errors import (
     ConfigError,
     CoverageError,
@@ -15,22 +19,54 @@ from ._errors import (
     SchemaError,
     TransportError,
 )
+from ._node import Node, split_target
+from ._producer import Producer
+from ._records import (
+    BufferInfo,
+    DataObject,
+    Notification,
+    Retention,
+    ServiceInfo,
+    SubscriptionInfo,
+    SubscriptionMode,
+)
+from ._subscription import Subscription
+from ._timerange import TimeRange, parse_duration_ns, parse_time_ns, parse_time_range
 from ._xml import XmlLimits, field_text, make_metadata, parse_untrusted, validate_metadata
 
 __all__ = [
+    "BufferInfo",
     "ConfigError",
     "CoverageError",
+    "DataObject",
     "DuplicateTimestampError",
     "FlowControlRefused",
     "FramegateError",
+    "NetworkConfig",
+    "Node",
     "NotFoundError",
+    "Notification",
     "PayloadTooLargeError",
+    "Producer",
     "QueryError",
+    "Retention",
     "SchemaError",
+    "ServiceInfo",
+    "Subscription",
+    "SubscriptionInfo",
+    "SubscriptionMode",
+    "TimeRange",
     "TransportError",
     "XmlLimits",
+    "add_network_arguments",
+    "check_name",
     "field_text",
     "make_metadata",
+    "network_from_args",
+    "parse_duration_ns",
+    "parse_time_ns",
+    "parse_time_range",
     "parse_untrusted",
+    "split_target",
     "validate_metadata",
 ]

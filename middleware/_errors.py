@@ -26,7 +26,7 @@ class ConfigError(FramegateError):
 
 
 class SchemaError(FramegateError):
-    """Metadata is not well-formed XML, is hostile (DTD, entities, too big or deep) or fails its XSD."""
+    """Metadata is malformed, hostile (DTD, entities, too big or deep) or fails its XSD."""
 
 
 class QueryError(FramegateError):

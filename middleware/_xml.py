@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import threading
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cache
 from typing import Any
 
 from lxml import etree
@@ -78,9 +78,7 @@ def parse_untrusted(data: bytes | str, limits: XmlLimits = DEFAULT_LIMITS) -> An
         raise SchemaError(f"metadata is not well-formed XML: {exc}") from exc
     if root.getroottree().docinfo.internalDTD is not None:
         raise SchemaError("metadata contains a DTD, which is not allowed")
-    count = 0
-    for element in root.iter():
-        count += 1
+    for count, _element in enumerate(root.iter(), start=1):
         if count > limits.max_elements:
             raise SchemaError(f"metadata has more than {limits.max_elements} elements")
     _check_depth(root, limits.max_depth)
@@ -96,7 +94,7 @@ def _check_depth(root: Any, max_depth: int) -> None:
         stack.extend((child, depth + 1) for child in element)
 
 
-@lru_cache(maxsize=None)
+@cache
 def _schema(name: str) -> etree.XMLSchema:
     path = schemas.SCHEMA_DIR / f"{name}.xsd"
     if not path.is_file():
@@ -117,10 +115,8 @@ def _validate(name: str, root: Any) -> None:
     with _schema_lock:
         ok = schema.validate(root)
         if not ok:
-            error = schema.error_log.last_error
-            raise SchemaError(
-                f"metadata fails {name}.xsd at line {error.line}: {error.message}"
-            )
+            error = schema.error_log.last_error  # type: ignore[attr-defined]
+            raise SchemaError(f"metadata fails {name}.xsd at line {error.line}: {error.message}")
 
 
 def validate_metadata(
@@ -132,9 +128,7 @@ def validate_metadata(
     """
     root = parse_untrusted(data, limits)
     if root.tag != _NS + "metadata":
-        raise SchemaError(
-            f"metadata root must be <metadata xmlns={NAMESPACE!r}>, got {root.tag!r}"
-        )
+        raise SchemaError(f"metadata root must be <metadata xmlns={NAMESPACE!r}>, got {root.tag!r}")
     _validate("envelope", root)
     declared = root.get("kind")
     if kind is not None and declared != kind:
@@ -154,7 +148,7 @@ def make_metadata(kind: str, timestamp_ns: int, fields: dict[str, Any] | None = 
     Values that are dicts become nested elements; lists become space-separated text.
     The result is not validated here; ``validate_metadata`` does that.
     """
-    root = etree.Element(_NS + "metadata", nsmap={None: NAMESPACE})
+    root = etree.Element(_NS + "metadata", nsmap={None: NAMESPACE})  # type: ignore[dict-item]
     root.set("kind", kind)
     root.set("timestamp_ns", str(int(timestamp_ns)))
     _add_fields(root, fields or {})

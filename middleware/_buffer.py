@@ -1,0 +1,132 @@
+"""The in-memory time series behind a named buffer.
+
+Timestamps only grow, so the series is two parallel append-only lists searched with
+``bisect`` (O(log n) to find, O(k) to read k elements); eviction advances a head index and
+compacts now and then, so eviction is amortised O(1) and nothing is copied per lookup.
+"""
+
+from __future__ import annotations
+
+import threading
+from bisect import bisect_left, bisect_right
+
+from ._errors import DuplicateTimestampError, PayloadTooLargeError
+from ._records import DataObject, Retention
+
+# Compact the lists when this many evicted slots sit at the front and they are most of it.
+_COMPACT_MIN = 1024
+
+
+class TimeSeries:
+    """A bounded, strictly increasing series of DataObjects. Thread-safe."""
+
+    def __init__(self, retention: Retention) -> None:
+        self.retention = retention
+        self._lock = threading.Lock()
+        self._keys: list[int] = []
+        self._items: list[DataObject | None] = []
+        self._head = 0
+        self._bytes = 0
+
+    def __len__(self) -> int:
+        return len(self._keys) - self._head
+
+    @property
+    def total_bytes(self) -> int:
+        """Payload and metadata bytes held."""
+        return self._bytes
+
+    @property
+    def oldest_ns(self) -> int | None:
+        with self._lock:
+            return self._keys[self._head] if len(self) else None
+
+    @property
+    def newest_ns(self) -> int | None:
+        with self._lock:
+            return self._keys[-1] if len(self) else None
+
+    def check_put(self, timestamp_ns: int, payload_bytes: int) -> None:
+        """Raise if an element with this key and size could not be appended now."""
+        limit = self.retention.max_payload_bytes
+        if payload_bytes > limit:
+            raise PayloadTooLargeError(
+                f"payload of {payload_bytes} bytes exceeds this buffer's limit of {limit} bytes"
+            )
+        newest = self._keys[-1] if len(self) else None
+        if newest is not None and timestamp_ns <= newest:
+            what = "duplicates" if timestamp_ns == newest else "is older than"
+            raise DuplicateTimestampError(
+                f"timestamp {timestamp_ns} {what} the newest element ({newest}); "
+                "timestamps must strictly increase"
+            )
+
+    def append(self, element: DataObject) -> list[DataObject]:
+        """Append and evict by retention; return what was evicted (oldest first)."""
+        with self._lock:
+            self.check_put(element.timestamp_ns, len(element.payload))
+            self._keys.append(element.timestamp_ns)
+            self._items.append(element)
+            self._bytes += element.size_bytes
+            return self._evict()
+
+    def _evict(self) -> list[DataObject]:
+        r = self.retention
+        evicted: list[DataObject] = []
+        newest = self._keys[-1]
+        # Always keep the newest element, whatever the limits say.
+        while len(self) > 1:
+            over_count = r.max_count is not None and len(self) > r.max_count
+            over_bytes = r.max_bytes is not None and self._bytes > r.max_bytes
+            over_age = r.max_age_ns is not None and newest - self._keys[self._head] > r.max_age_ns
+            if not (over_count or over_bytes or over_age):
+                break
+            item = self._items[self._head]
+            assert item is not None
+            self._items[self._head] = None
+            self._head += 1
+            self._bytes -= item.size_bytes
+            evicted.append(item)
+        if self._head >= _COMPACT_MIN and self._head * 2 >= len(self._keys):
+            del self._keys[: self._head]
+            del self._items[: self._head]
+            self._head = 0
+        return evicted
+
+    def _at(self, index: int) -> DataObject:
+        item = self._items[index]
+        assert item is not None
+        return item
+
+    def exact(self, timestamp_ns: int) -> DataObject | None:
+        """The element with exactly this timestamp, or None."""
+        with self._lock:
+            i = bisect_left(self._keys, timestamp_ns, self._head)
+            if i < len(self._keys) and self._keys[i] == timestamp_ns:
+                return self._at(i)
+            return None
+
+    def nearest(self, timestamp_ns: int) -> DataObject | None:
+        """The element whose timestamp is closest (the older one on a tie), or None."""
+        with self._lock:
+            if not len(self):
+                return None
+            i = bisect_left(self._keys, timestamp_ns, self._head)
+            candidates = [j for j in (i - 1, i) if self._head <= j < len(self._keys)]
+            best = min(candidates, key=lambda j: (abs(self._keys[j] - timestamp_ns), j))
+            return self._at(best)
+
+    def range(
+        self, start_ns: int | None = None, end_ns: int | None = None, last: int | None = None
+    ) -> list[DataObject]:
+        """Elements with start <= t <= end in timestamp order; with ``last``, only the newest N."""
+        with self._lock:
+            lo = self._head if start_ns is None else bisect_left(self._keys, start_ns, self._head)
+            hi = len(self._keys) if end_ns is None else bisect_right(self._keys, end_ns, self._head)
+            if last is not None:
+                lo = max(lo, hi - last)
+            return [self._at(i) for i in range(lo, hi)]
+
+    def latest(self, n: int) -> list[DataObject]:
+        """The newest ``n`` elements in timestamp order."""
+        return self.range(last=n)

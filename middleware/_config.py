@@ -1,0 +1,213 @@
+"""Network configuration: defaults → deploy/config file → environment → flags.
+
+The embedded default needs no router and no multicast: the first framegate process on a
+host listens on ``tcp/127.0.0.1:<local_port>`` (7447), later ones listen on a free loopback
+port and connect to it; Zenoh's gossip then meshes them, so the first one may exit.
+If a Zenoh router already holds that port, everyone simply connects to it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import zenoh
+
+from ._errors import ConfigError
+
+_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.\-]*$")
+DEFAULT_NAMESPACE = "framegate"
+DEFAULT_LOCAL_PORT = 7447
+
+
+def check_name(value: str, what: str) -> str:
+    """A service, buffer or namespace name must be one plain key-expression chunk."""
+    if not _NAME.match(value):
+        raise ConfigError(
+            f"bad {what} name {value!r}: use letters, digits, '_', '.', '-' "
+            "(no '/', '*', '$', '@', '?', '#', spaces)"
+        )
+    return value
+
+
+@dataclass(frozen=True, slots=True)
+class NetworkConfig:
+    """How a process meets the others.
+
+    With no ``connect``, ``listen`` or ``config_file`` the local rendezvous default is used.
+    ``lease_ms`` bounds how long a silent peer (stopped process, cut link) is believed alive.
+    """
+
+    connect: tuple[str, ...] = ()
+    listen: tuple[str, ...] = ()
+    config_file: Path | None = None
+    namespace: str = DEFAULT_NAMESPACE
+    mode: str = "peer"
+    multicast: bool = False
+    lease_ms: int = 1000
+    shared_memory: bool = True
+    local_port: int = DEFAULT_LOCAL_PORT
+    extra: tuple[tuple[str, str], ...] = field(default=())
+
+    def __post_init__(self) -> None:
+        check_name(self.namespace, "namespace")
+        if self.mode not in ("peer", "client", "router"):
+            raise ConfigError(f"bad mode {self.mode!r}: use peer, client or router")
+        if self.lease_ms < 100:
+            raise ConfigError(f"lease_ms {self.lease_ms} is too small; use >= 100")
+
+    @property
+    def uses_local_default(self) -> bool:
+        """True when nothing says where to meet, so the loopback rendezvous is used."""
+        return not (self.connect or self.listen or self.config_file)
+
+    def with_env(self, environ: dict[str, str] | None = None) -> NetworkConfig:
+        """Apply FRAMEGATE_CONNECT / _LISTEN (comma-separated), _CONFIG, _NAMESPACE, _LOCAL_PORT."""
+        env = os.environ if environ is None else environ
+        changes: dict[str, Any] = {}
+        if env.get("FRAMEGATE_CONNECT"):
+            changes["connect"] = _split(env["FRAMEGATE_CONNECT"])
+        if env.get("FRAMEGATE_LISTEN"):
+            changes["listen"] = _split(env["FRAMEGATE_LISTEN"])
+        if env.get("FRAMEGATE_CONFIG"):
+            changes["config_file"] = Path(env["FRAMEGATE_CONFIG"])
+        if env.get("FRAMEGATE_NAMESPACE"):
+            changes["namespace"] = env["FRAMEGATE_NAMESPACE"]
+        if env.get("FRAMEGATE_LOCAL_PORT"):
+            changes["local_port"] = _int(env["FRAMEGATE_LOCAL_PORT"], "FRAMEGATE_LOCAL_PORT")
+        return replace(self, **changes) if changes else self
+
+    def with_args(self, args: argparse.Namespace) -> NetworkConfig:
+        """Apply the shared connection flags (see ``add_network_arguments``)."""
+        changes: dict[str, Any] = {}
+        if getattr(args, "connect", None):
+            changes["connect"] = tuple(args.connect)
+        if getattr(args, "listen", None):
+            changes["listen"] = tuple(args.listen)
+        if getattr(args, "config", None):
+            changes["config_file"] = Path(args.config)
+        if getattr(args, "namespace", None):
+            changes["namespace"] = args.namespace
+        if getattr(args, "no_shm", False):
+            changes["shared_memory"] = False
+        return replace(self, **changes) if changes else self
+
+    def to_args(self) -> list[str]:
+        """The flags that reproduce this config in a child process."""
+        out: list[str] = []
+        for endpoint in self.connect:
+            out += ["--connect", endpoint]
+        for endpoint in self.listen:
+            out += ["--listen", endpoint]
+        if self.config_file:
+            out += ["--config", str(self.config_file)]
+        if self.namespace != DEFAULT_NAMESPACE:
+            out += ["--namespace", self.namespace]
+        if not self.shared_memory:
+            out += ["--no-shm"]
+        return out
+
+    def zenoh_configs(self) -> list[zenoh.Config]:
+        """Configs to try in order (the rendezvous default has two: hub, then spoke)."""
+        if self.uses_local_default:
+            hub = [f"tcp/127.0.0.1:{self.local_port}"]
+            return [
+                self._build(listen=hub, connect=[]),
+                self._build(listen=["tcp/127.0.0.1:0"], connect=hub),
+            ]
+        return [self._build(listen=list(self.listen), connect=list(self.connect))]
+
+    def _build(self, *, listen: list[str], connect: list[str]) -> zenoh.Config:
+        try:
+            conf = (
+                zenoh.Config.from_file(str(self.config_file))
+                if self.config_file
+                else zenoh.Config()
+            )
+        except zenoh.ZError as exc:
+            raise ConfigError(f"cannot read Zenoh config {self.config_file}: {exc}") from exc
+        except OSError as exc:
+            raise ConfigError(f"cannot read Zenoh config {self.config_file}: {exc}") from exc
+        settings: list[tuple[str, Any]] = []
+        if not self.config_file:
+            settings += [
+                ("mode", self.mode),
+                ("scouting/multicast/enabled", self.multicast),
+                ("transport/link/tx/lease", self.lease_ms),
+                ("transport/shared_memory/enabled", self.shared_memory),
+                (
+                    "connect/retry",
+                    {"period_init_ms": 100, "period_max_ms": 1000, "period_increase_factor": 2},
+                ),
+            ]
+        elif not self.shared_memory:
+            settings.append(("transport/shared_memory/enabled", False))
+        if listen:
+            settings.append(("listen/endpoints", listen))
+        if connect:
+            settings.append(("connect/endpoints", connect))
+        for key, value in settings:
+            _insert(conf, key, value)
+        for key, raw in self.extra:
+            _insert_raw(conf, key, raw)
+        return conf
+
+
+def _insert(conf: zenoh.Config, key: str, value: Any) -> None:
+    _insert_raw(conf, key, json.dumps(value))
+
+
+def _insert_raw(conf: zenoh.Config, key: str, raw: str) -> None:
+    try:
+        conf.insert_json5(key, raw)
+    except zenoh.ZError as exc:
+        raise ConfigError(f"bad Zenoh setting {key} = {raw}: {exc}") from exc
+
+
+def _split(value: str) -> tuple[str, ...]:
+    return tuple(part.strip() for part in value.split(",") if part.strip())
+
+
+def _int(value: str, what: str) -> int:
+    try:
+        return int(value)
+    except ValueError as exc:
+        raise ConfigError(f"{what} must be an integer, got {value!r}") from exc
+
+
+def add_network_arguments(parser: argparse.ArgumentParser) -> None:
+    """The connection flags every framegate command accepts."""
+    group = parser.add_argument_group("network")
+    group.add_argument(
+        "--connect",
+        "-e",
+        action="append",
+        metavar="ENDPOINT",
+        help="Zenoh endpoint to connect to, e.g. tcp/10.0.0.2:7447 (repeatable)",
+    )
+    group.add_argument(
+        "--listen",
+        "-l",
+        action="append",
+        metavar="ENDPOINT",
+        help="Zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable)",
+    )
+    group.add_argument("--config", "-c", metavar="FILE", help="Zenoh JSON5 configuration file")
+    group.add_argument(
+        "--namespace",
+        metavar="NAME",
+        help=f"key prefix of all buffers (default {DEFAULT_NAMESPACE})",
+    )
+    group.add_argument(
+        "--no-shm", action="store_true", help="disable Zenoh's shared-memory transport"
+    )
+
+
+def network_from_args(args: argparse.Namespace, base: NetworkConfig | None = None) -> NetworkConfig:
+    """defaults (or ``base`` from a deploy file) → environment → flags."""
+    return (base or NetworkConfig()).with_env().with_args(args)

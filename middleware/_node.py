@@ -1,0 +1,371 @@
+"""A Node owns one Zenoh session: it offers buffers (as a named service) and is a client.
+
+with Node("camera") as node:                    # a service
+    images = node.offer("images", kind="frame")
+    images.put(t_ns, payload, metadata)
+
+with Node() as node:                            # a client
+    sub = node.subscribe("camera/images", queue_size=2)
+    note = sub.take(timeout_s=1.0)
+    frame = sub.fetch(note)
+    recent = node.query("camera/images", time="[now(-2s)..]")
+"""
+
+from __future__ import annotations
+
+import difflib
+import json
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager, suppress
+from typing import Any
+
+import zenoh
+
+from ._config import NetworkConfig, check_name
+from ._errors import (
+    ConfigError,
+    FramegateError,
+    NotFoundError,
+    QueryError,
+    TransportError,
+)
+from ._producer import Producer
+from ._records import (
+    BufferInfo,
+    DataObject,
+    Retention,
+    ServiceInfo,
+    SubscriptionInfo,
+    SubscriptionMode,
+)
+from ._service import ServiceEndpoint
+from ._subscription import Subscription
+from ._timerange import TimeRange
+from ._wire import ERR_NOT_FOUND, Keys, decode_element
+from ._xml import DEFAULT_LIMITS, XmlLimits
+
+_DEFAULT_INLINE_BYTES = 64 * 1024
+
+
+@contextmanager
+def zenoh_errors(action: str) -> Iterator[None]:
+    """The one place where zenoh.ZError becomes a framegate error."""
+    try:
+        yield
+    except zenoh.ZError as exc:
+        raise TransportError(f"{action} failed in Zenoh: {exc}") from exc
+
+
+def split_target(target: str) -> tuple[str, str]:
+    """``service/buffer`` → (service, buffer), with a message that says what is wrong."""
+    parts = target.strip("/").split("/")
+    if len(parts) != 2:
+        raise QueryError(f"bad buffer name {target!r}: write SERVICE/BUFFER, e.g. camera/images")
+    try:
+        return check_name(parts[0], "service"), check_name(parts[1], "buffer")
+    except ConfigError as exc:
+        raise QueryError(str(exc)) from exc
+
+
+class Node:
+    """A process's presence on the framegate network. Use as a context manager."""
+
+    def __init__(self, name: str | None = None, network: NetworkConfig | None = None) -> None:
+        self.network = network or NetworkConfig()
+        self.name = check_name(name, "service") if name else None
+        self.keys = Keys(self.network.namespace)
+        self._session = _open(self.network)
+        self._endpoint: ServiceEndpoint | None = None
+        self._subscriptions: list[Subscription] = []
+        self._lock = threading.Lock()
+        self._closed = False
+
+    # -- service side ----------------------------------------------------------------------
+    def offer(
+        self,
+        buffer: str,
+        *,
+        kind: str = "generic",
+        retention: Retention | None = None,
+        inline_max_bytes: int = _DEFAULT_INLINE_BYTES,
+        xml_limits: XmlLimits = DEFAULT_LIMITS,
+    ) -> Producer:
+        """Offer a named buffer ``<node name>/<buffer>`` holding metadata of ``kind``."""
+        if self.name is None:
+            raise ConfigError("only a named Node can offer buffers: Node('camera', ...)")
+        check_name(buffer, "buffer")
+        from ._xml import _schema  # a missing kind should fail here, not at the first put
+
+        _schema(kind)
+        with zenoh_errors(f"offering {self.name}/{buffer}"), self._lock:
+            if self._endpoint is None:
+                self._endpoint = ServiceEndpoint(self._session, self.keys, self.name)
+            producer = Producer(
+                self._session,
+                self.keys,
+                self.name,
+                buffer,
+                kind=kind,
+                retention=retention or Retention(),
+                inline_max_bytes=inline_max_bytes,
+                xml_limits=xml_limits,
+            )
+            self._endpoint.add(producer)
+        return producer
+
+    # -- client side ------------------------------------------------------------------------
+    def subscribe(
+        self,
+        target: str,
+        *,
+        queue_size: int = 2,
+        mode: SubscriptionMode = SubscriptionMode.DEFAULT,
+        wait_s: float = 2.0,
+    ) -> Subscription:
+        """Subscribe to ``service/buffer`` notifications with a queue of ``queue_size``.
+
+        Waits up to ``wait_s`` for a live producer to register the subscription; if the
+        service is not up yet, returns anyway (it registers when the service appears).
+        """
+        service, buffer = split_target(target)
+        with zenoh_errors(f"subscribing to {target}"):
+            sub = Subscription(
+                self._session,
+                self.keys,
+                service,
+                buffer,
+                queue_size=queue_size,
+                mode=mode,
+                fetch=self._fetch_exact,
+            )
+        with self._lock:
+            self._subscriptions.append(sub)
+        if wait_s > 0:
+            self._wait_registered(sub, wait_s)
+        return sub
+
+    def _wait_registered(self, sub: Subscription, wait_s: float) -> None:
+        deadline = time.monotonic() + wait_s
+        while time.monotonic() < deadline:
+            if sub.service not in self.live_services(timeout_s=min(1.0, wait_s)):
+                return
+            try:
+                infos = self.buffer_info(sub.name, timeout_s=1.0).subscriptions
+            except FramegateError:
+                infos = ()
+            if any(s.subscription_id == sub.subscription_id for s in infos):
+                return
+            time.sleep(0.02)
+
+    def query(
+        self,
+        target: str,
+        *,
+        time_range: TimeRange | str | None = None,
+        last: int | None = None,
+        timeout_s: float = 5.0,
+    ) -> list[DataObject]:
+        """Elements of ``service/buffer`` in a time range (``TimeRange`` or a ``_time`` string
+        such as ``[now(-2s)..]``) and/or the newest ``last``, in timestamp order."""
+        params: dict[str, str] = {}
+        if time_range is not None:
+            params["_time"] = (
+                time_range.to_selector_value() if isinstance(time_range, TimeRange) else time_range
+            )
+        if last is not None:
+            params["last"] = str(last)
+        return self._get(target, params, timeout_s)
+
+    def get(self, target: str, timestamp_ns: int, *, timeout_s: float = 5.0) -> DataObject:
+        """The element with exactly this timestamp; NotFoundError if there is none."""
+        found = self._get(target, {"ts": str(timestamp_ns)}, timeout_s)
+        if not found:
+            raise NotFoundError(f"{target} has no element with timestamp {timestamp_ns}")
+        return found[0]
+
+    def nearest(self, target: str, timestamp_ns: int, *, timeout_s: float = 5.0) -> DataObject:
+        """The element closest in time; NotFoundError if the buffer is empty."""
+        found = self._get(target, {"at": str(timestamp_ns)}, timeout_s)
+        if not found:
+            raise NotFoundError(f"{target} is empty")
+        return found[0]
+
+    def latest(self, target: str, n: int = 1, *, timeout_s: float = 5.0) -> list[DataObject]:
+        """The newest ``n`` elements, oldest first."""
+        return self._get(target, {"last": str(n)}, timeout_s)
+
+    def _fetch_exact(self, target: str, timestamp_ns: int, timeout_s: float) -> DataObject:
+        return self.get(target, timestamp_ns, timeout_s=timeout_s)
+
+    def _get(self, target: str, params: dict[str, str], timeout_s: float) -> list[DataObject]:
+        service, buffer = split_target(target)
+        selector = zenoh.Selector(self.keys.data(service, buffer), params)
+        elements: list[DataObject] = []
+        with zenoh_errors(f"querying {target}"):
+            replies = self._session.get(
+                selector,
+                consolidation=zenoh.ConsolidationMode.NONE,
+                timeout=timeout_s,
+            )
+            for reply in replies:
+                if reply.ok is not None:
+                    sample = reply.ok
+                    attachment = sample.attachment
+                    elements.append(
+                        decode_element(
+                            sample.payload.to_bytes(),
+                            attachment.to_bytes() if attachment is not None else None,
+                        )
+                    )
+                else:
+                    assert reply.err is not None
+                    raise _error_from_reply(target, reply.err.payload.to_string())
+        if not elements:
+            self._require_service(service)
+        elements.sort(key=lambda e: e.timestamp_ns)
+        return elements
+
+    # -- discovery -----------------------------------------------------------------------------
+    def live_services(self, timeout_s: float = 1.0) -> list[str]:
+        """Names of services whose liveliness token is visible now."""
+        prefix = self.keys.service_token("")
+        with zenoh_errors("listing live services"):
+            replies = self._session.liveliness().get(
+                self.keys.service_token("*"), timeout=timeout_s
+            )
+            names = [str(r.ok.key_expr)[len(prefix) :] for r in replies if r.ok is not None]
+        return sorted(set(names))
+
+    def _require_service(self, service: str) -> None:
+        live = self.live_services()
+        if service not in live:
+            hint = difflib.get_close_matches(service, live, n=1)
+            did_you_mean = f" (did you mean {hint[0]!r}?)" if hint else ""
+            listing = ", ".join(live) if live else "none"
+            raise NotFoundError(
+                f"no live service named {service!r}{did_you_mean}; live services: {listing}"
+            )
+
+    def services(self, timeout_s: float = 2.0) -> list[ServiceInfo]:
+        """Every live service with its buffers, clock offset and round trip."""
+        out: list[ServiceInfo] = []
+        start = time.time_ns()
+        with zenoh_errors("describing services"):
+            replies = list(
+                self._session.get(
+                    self.keys.info("*"),
+                    consolidation=zenoh.ConsolidationMode.NONE,
+                    timeout=timeout_s,
+                )
+            )
+        end = time.time_ns()
+        for reply in replies:
+            if reply.ok is None:
+                continue
+            try:
+                out.append(_service_info(json.loads(reply.ok.payload.to_bytes()), start, end))
+            except (ValueError, KeyError, TypeError):
+                continue  # a peer that answers garbage is left out, not fatal
+        return sorted(out, key=lambda s: s.service)
+
+    def service_info(self, service: str, timeout_s: float = 2.0) -> ServiceInfo:
+        """One live service's description; NotFoundError if it is not live."""
+        start = time.time_ns()
+        with zenoh_errors(f"describing {service}"):
+            replies = list(self._session.get(self.keys.info(service), timeout=timeout_s))
+        end = time.time_ns()
+        for reply in replies:
+            if reply.ok is not None:
+                return _service_info(json.loads(reply.ok.payload.to_bytes()), start, end)
+        self._require_service(service)
+        raise NotFoundError(f"service {service!r} did not answer within {timeout_s} s")
+
+    def buffer_info(self, target: str, timeout_s: float = 2.0) -> BufferInfo:
+        """One buffer's description (retention, size, rate, subscriptions, counters)."""
+        service, buffer = split_target(target)
+        info = self.service_info(service, timeout_s)
+        for candidate in info.buffers:
+            if candidate.buffer == buffer:
+                return candidate
+        offered = ", ".join(b.buffer for b in info.buffers) or "none"
+        raise NotFoundError(f"service {service!r} has no buffer {buffer!r} (it offers: {offered})")
+
+    # -- lifetime ---------------------------------------------------------------------------------
+    def close(self) -> None:
+        """Withdraw everything and close the Zenoh session (always do this: see ZENOH_NOTES)."""
+        if self._closed:
+            return
+        self._closed = True
+        for sub in self._subscriptions:
+            sub.close()
+        if self._endpoint is not None:
+            self._endpoint.close()
+        with suppress(zenoh.ZError):
+            self._session.close()
+
+    def __enter__(self) -> Node:
+        return self
+
+    def __exit__(self, *_exc: Any) -> None:
+        self.close()
+
+
+def _open(network: NetworkConfig) -> zenoh.Session:
+    configs = network.zenoh_configs()
+    last: Exception | None = None
+    for conf in configs:
+        try:
+            return zenoh.open(conf)
+        except zenoh.ZError as exc:
+            last = exc
+    where = ", ".join(network.connect or network.listen) or f"local port {network.local_port}"
+    raise TransportError(f"cannot open a Zenoh session ({where}): {last}") from last
+
+
+def _error_from_reply(target: str, text: str) -> QueryError:
+    if text.startswith(ERR_NOT_FOUND + ":"):
+        return NotFoundError(text.split(":", 1)[1].strip())
+    if text == "Timeout":
+        return QueryError(f"query of {target} timed out; is the service overloaded or unreachable?")
+    return QueryError(f"{target}: {text.split(':', 1)[1].strip() if ':' in text else text}")
+
+
+def _service_info(body: dict[str, Any], start_ns: int, end_ns: int) -> ServiceInfo:
+    buffers = []
+    for b in body["buffers"]:
+        subs = tuple(
+            SubscriptionInfo(
+                s["id"], SubscriptionMode(s["mode"]), int(s["queue_size"]), int(s["queued"])
+            )
+            for s in b["subscriptions"]
+        )
+        buffers.append(
+            BufferInfo(
+                service=b["service"],
+                buffer=b["buffer"],
+                kind=b["kind"],
+                retention=Retention(**b["retention"]),
+                count=b["count"],
+                payload_bytes=b["payload_bytes"],
+                oldest_ns=b["oldest_ns"],
+                newest_ns=b["newest_ns"],
+                rate_hz=b["rate_hz"],
+                puts=b["puts"],
+                refused=b["refused"],
+                rejected=b["rejected"],
+                subscriptions=subs,
+            )
+        )
+    # NTP-style: the service read its clock somewhere in our [start, end] window.
+    offset = int(body["clock_ns"]) - (start_ns + end_ns) // 2
+    return ServiceInfo(
+        service=body["service"],
+        host=body["host"],
+        pid=int(body["pid"]),
+        clock_ns=int(body["clock_ns"]),
+        buffers=tuple(buffers),
+        clock_offset_ns=offset,
+        round_trip_ns=end_ns - start_ns,
+    )

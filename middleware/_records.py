@@ -1,0 +1,130 @@
+"""Typed records that cross the middleware's public edge."""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+
+
+@dataclass(frozen=True, slots=True)
+class DataObject:
+    """One element of a buffer: its key, a binary payload and XML metadata.
+
+    ``payload`` is held by reference, never copied by the buffer.
+    """
+
+    timestamp_ns: int
+    payload: bytes
+    metadata: bytes
+
+    @property
+    def size_bytes(self) -> int:
+        """Payload plus metadata bytes: what retention by size counts."""
+        return len(self.payload) + len(self.metadata)
+
+
+@dataclass(frozen=True, slots=True)
+class Retention:
+    """How much a buffer keeps; the oldest elements are evicted first.
+
+    ``max_age_ns`` is measured back from the newest element, so a paused producer keeps its
+    history. ``max_payload_bytes`` refuses a single oversized element outright.
+    """
+
+    max_count: int | None = 1000
+    max_bytes: int | None = 512 * 1024 * 1024
+    max_age_ns: int | None = None
+    max_payload_bytes: int = 64 * 1024 * 1024
+
+    def __post_init__(self) -> None:
+        for name in ("max_count", "max_bytes", "max_age_ns"):
+            value = getattr(self, name)
+            if value is not None and value < 1:
+                raise ValueError(f"Retention.{name} must be >= 1 or None, got {value}")
+        if self.max_payload_bytes < 1:
+            raise ValueError(
+                f"Retention.max_payload_bytes must be >= 1, got {self.max_payload_bytes}"
+            )
+
+
+class SubscriptionMode(enum.Enum):
+    """How a subscription relates to the producer.
+
+    FLOW: takes part in flow control; while its queue is full the producer is refused
+    (the paper's rule). OBSERVE: never holds the producer back; when its queue is full it
+    misses notifications and counts them (for tools inspecting a running robot).
+    """
+
+    FLOW = "flow"
+    OBSERVE = "observe"
+    DEFAULT = FLOW
+
+
+@dataclass(frozen=True, slots=True)
+class Notification:
+    """An availability notification: a new element exists in ``service/buffer``.
+
+    ``element`` is filled when the producer sent the element inline (small payloads);
+    otherwise fetch it with ``Subscription.fetch``. ``missed`` counts notifications this
+    subscription lost before this one (observers only; always 0 for flow control).
+    """
+
+    service: str
+    buffer: str
+    timestamp_ns: int
+    seq: int
+    metadata: bytes | None = None
+    element: DataObject | None = None
+    missed: int = 0
+
+
+@dataclass(frozen=True, slots=True)
+class SubscriptionInfo:
+    """A subscription as its producer sees it."""
+
+    subscription_id: str
+    mode: SubscriptionMode
+    queue_size: int
+    queued: int
+
+    @property
+    def fill(self) -> float:
+        """queued / queue_size in [0, 1]: the paper's load indicator."""
+        return min(1.0, self.queued / self.queue_size)
+
+
+@dataclass(frozen=True, slots=True)
+class BufferInfo:
+    """What ``info`` reports of one buffer."""
+
+    service: str
+    buffer: str
+    kind: str
+    retention: Retention
+    count: int
+    payload_bytes: int
+    oldest_ns: int | None
+    newest_ns: int | None
+    rate_hz: float
+    puts: int
+    refused: int
+    rejected: int
+    subscriptions: tuple[SubscriptionInfo, ...] = field(default=())
+
+    @property
+    def name(self) -> str:
+        """``service/buffer``."""
+        return f"{self.service}/{self.buffer}"
+
+
+@dataclass(frozen=True, slots=True)
+class ServiceInfo:
+    """A live service: its buffers, where it runs and its clock when it answered."""
+
+    service: str
+    host: str
+    pid: int
+    clock_ns: int
+    buffers: tuple[BufferInfo, ...]
+    clock_offset_ns: int | None = None
+    round_trip_ns: int | None = None

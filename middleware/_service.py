@@ -1,0 +1,183 @@
+"""Serving a process's buffers: one queryable for elements, one for the service description.
+
+Queries run on a worker thread fed by a bounded Zenoh channel, so a long range reply never
+runs on Zenoh's own threads. Every malformed query gets an error reply (``code: message``)
+and the worker keeps serving.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import os
+import socket
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import asdict
+from typing import Any, cast
+
+import zenoh
+
+from ._errors import FramegateError, NotFoundError, QueryError
+from ._producer import Producer
+from ._records import BufferInfo, DataObject
+from ._timerange import parse_time_range
+from ._wire import ERR_BAD_QUERY, ERR_NOT_FOUND, Keys, encode_element_attachment, error_text
+
+log = logging.getLogger("framegate.middleware")
+
+# Selector parameters a data query may use.
+_PARAMS = {"_time", "last", "at", "ts"}
+
+
+def answer(series_for: Producer, parameters: dict[str, str]) -> list[DataObject]:
+    """The elements a data query asks for. QueryError names what is malformed."""
+    unknown = set(parameters) - _PARAMS
+    if unknown:
+        raise QueryError(
+            f"unknown query parameter(s) {', '.join(sorted(unknown))}; "
+            "use _time=[a..b], last=N, at=<ns> (nearest) or ts=<ns> (exact)"
+        )
+    series = series_for.series
+    if "at" in parameters or "ts" in parameters:
+        if len(parameters) != 1:
+            raise QueryError("at= and ts= stand alone; do not combine them with other parameters")
+        name = "at" if "at" in parameters else "ts"
+        timestamp = _int_param(parameters, name)
+        found = series.nearest(timestamp) if name == "at" else series.exact(timestamp)
+        return [found] if found is not None else []
+    last = _int_param(parameters, "last") if "last" in parameters else None
+    if last is not None and last < 1:
+        raise QueryError(f"last={last}: ask for at least 1 element")
+    if "_time" in parameters:
+        rng = parse_time_range(parameters["_time"])
+        return series.range(rng.start_ns, rng.end_ns, last=last)
+    return series.range(last=last if last is not None else None)
+
+
+def _int_param(parameters: dict[str, str], name: str) -> int:
+    raw = parameters[name]
+    try:
+        return int(raw)
+    except ValueError as exc:
+        raise QueryError(f"{name}={raw!r} is not an integer") from exc
+
+
+def buffer_info_json(info: BufferInfo) -> dict[str, Any]:
+    data = asdict(info)
+    data["subscriptions"] = [
+        {
+            "id": s.subscription_id,
+            "mode": s.mode.value,
+            "queue_size": s.queue_size,
+            "queued": s.queued,
+            "fill": s.fill,
+        }
+        for s in info.subscriptions
+    ]
+    return data
+
+
+class ServiceEndpoint:
+    """The Zenoh face of a named service: token, data queryable and info queryable."""
+
+    def __init__(self, session: zenoh.Session, keys: Keys, service: str) -> None:
+        self.service = service
+        self._keys = keys
+        self._producers: dict[str, Producer] = {}
+        self._lock = threading.Lock()
+        self._token = session.liveliness().declare_token(keys.service_token(service))
+        self._data = session.declare_queryable(
+            keys.service_data(service), zenoh.handlers.FifoChannel(256)
+        )
+        self._info = session.declare_queryable(keys.info(service), zenoh.handlers.FifoChannel(64))
+        self._threads = [
+            threading.Thread(
+                target=self._serve,
+                args=(self._data, self._on_data),
+                daemon=True,
+                name=f"fg-query-{service}",
+            ),
+            threading.Thread(
+                target=self._serve,
+                args=(self._info, self._on_info),
+                daemon=True,
+                name=f"fg-info-{service}",
+            ),
+        ]
+        for thread in self._threads:
+            thread.start()
+
+    def add(self, producer: Producer) -> None:
+        with self._lock:
+            if producer.buffer in self._producers:
+                raise FramegateError(
+                    f"buffer {self.service}/{producer.buffer} is already offered by this process"
+                )
+            self._producers[producer.buffer] = producer
+
+    def producers(self) -> list[Producer]:
+        with self._lock:
+            return list(self._producers.values())
+
+    def _serve(self, queryable: Any, handle: Callable[[zenoh.Query], None]) -> None:
+        # Iteration ends when the queryable is undeclared.
+        for query in queryable:
+            with query:
+                try:
+                    handle(query)
+                except NotFoundError as exc:
+                    _reply_err(query, error_text(ERR_NOT_FOUND, str(exc)))
+                except FramegateError as exc:
+                    _reply_err(query, error_text(ERR_BAD_QUERY, str(exc)))
+                except Exception as exc:  # never let one query kill the service
+                    log.exception("%s: query %s failed", self.service, query.selector)
+                    _reply_err(query, error_text(ERR_BAD_QUERY, f"internal error: {exc}"))
+
+    def _on_data(self, query: zenoh.Query) -> None:
+        key = zenoh.KeyExpr(str(query.key_expr))
+        matches = [
+            p for p in self.producers() if key.intersects(self._keys.data(self.service, p.buffer))
+        ]
+        if not matches:
+            offered = ", ".join(sorted(p.buffer for p in self.producers())) or "none"
+            raise NotFoundError(
+                f"service {self.service!r} has no buffer matching "
+                f"{str(query.key_expr).split('/', 1)[-1]!r} (it offers: {offered})"
+            )
+        # The stub types Parameters.__iter__ oddly; it yields (key, value) pairs.
+        parameters = dict(cast(Any, query.parameters))
+        for producer in matches:
+            reply_key = self._keys.data(self.service, producer.buffer)
+            for element in answer(producer, parameters):
+                query.reply(
+                    reply_key, element.payload, attachment=encode_element_attachment(element)
+                )
+
+    def _on_info(self, query: zenoh.Query) -> None:
+        body = {
+            "service": self.service,
+            "host": socket.gethostname(),
+            "pid": os.getpid(),
+            "clock_ns": time.time_ns(),
+            "buffers": [buffer_info_json(p.info()) for p in self.producers()],
+        }
+        query.reply(self._keys.info(self.service), json.dumps(body).encode("utf-8"))
+
+    def close(self) -> None:
+        for producer in self.producers():
+            producer.close()
+        for entity in (self._data, self._info, self._token):
+            with contextlib.suppress(zenoh.ZError):
+                entity.undeclare()
+        for thread in self._threads:
+            thread.join(timeout=2.0)
+
+
+def _reply_err(query: zenoh.Query, text: str) -> None:
+    try:
+        query.reply_err(text.encode("utf-8"))
+    except zenoh.ZError:
+        log.warning("could not send error reply: %s", text)

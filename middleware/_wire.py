@@ -1,0 +1,137 @@
+"""Key expressions and message encodings: the protocol a client in any language speaks.
+
+Keys (``ns`` is the namespace, ``framegate`` by default):
+
+    ns/<service>/<buffer>                         queryable: the elements
+    ns/@info/<service>                            queryable: JSON description of the service
+    ns/@svc/<service>                             liveliness token of a live service
+    ns/@sub/<service>/<buffer>/<id>/<mode>/<N>    liveliness token of a subscription
+    ns/@notify/<service>/<buffer>/<id>            notifications to one subscription
+    ns/@ack/<service>/<buffer>/<id>               the subscription's "taken" acknowledgements
+
+``@`` chunks are verbatim in Zenoh: wildcards never match them, so ``ns/**`` sees data only.
+Element replies carry the raw payload; the attachment is msgpack ``{"t": int, "m": str}``
+(timestamp_ns, metadata XML). Notifications and acks are msgpack maps (see below).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import msgpack
+
+from ._errors import QueryError
+from ._records import DataObject, SubscriptionMode
+
+# Error replies start with one of these codes, then ": " and the message.
+ERR_BAD_QUERY = "bad-query"
+ERR_NOT_FOUND = "not-found"
+
+
+@dataclass(frozen=True, slots=True)
+class Keys:
+    """Builds the key expressions of one namespace."""
+
+    namespace: str
+
+    def data(self, service: str, buffer: str) -> str:
+        return f"{self.namespace}/{service}/{buffer}"
+
+    def service_data(self, service: str) -> str:
+        return f"{self.namespace}/{service}/*"
+
+    def info(self, service: str) -> str:
+        return f"{self.namespace}/@info/{service}"
+
+    def service_token(self, service: str) -> str:
+        return f"{self.namespace}/@svc/{service}"
+
+    def subscription_token(
+        self, service: str, buffer: str, sub_id: str, mode: SubscriptionMode, queue_size: int
+    ) -> str:
+        return f"{self.namespace}/@sub/{service}/{buffer}/{sub_id}/{mode.value}/{queue_size}"
+
+    def subscription_tokens(self, service: str, buffer: str) -> str:
+        return f"{self.namespace}/@sub/{service}/{buffer}/*/*/*"
+
+    def notify(self, service: str, buffer: str, sub_id: str) -> str:
+        return f"{self.namespace}/@notify/{service}/{buffer}/{sub_id}"
+
+    def ack(self, service: str, buffer: str, sub_id: str) -> str:
+        return f"{self.namespace}/@ack/{service}/{buffer}/{sub_id}"
+
+    def acks(self, service: str, buffer: str) -> str:
+        return f"{self.namespace}/@ack/{service}/{buffer}/*"
+
+
+def parse_subscription_token(key: str) -> tuple[str, SubscriptionMode, int]:
+    """(id, mode, queue size) from a subscription token key; ValueError if malformed."""
+    parts = key.split("/")
+    sub_id, mode, size = parts[-3], parts[-2], parts[-1]
+    queue_size = int(size)
+    if queue_size < 1:
+        raise ValueError(f"queue size {queue_size} < 1")
+    return sub_id, SubscriptionMode(mode), queue_size
+
+
+def encode_element_attachment(element: DataObject) -> bytes:
+    return bytes(msgpack.packb({"t": element.timestamp_ns, "m": element.metadata.decode("utf-8")}))
+
+
+def decode_element(payload: bytes, attachment: bytes | None) -> DataObject:
+    """Rebuild a DataObject from a reply; QueryError if the attachment is not ours."""
+    if attachment is None:
+        raise QueryError("reply has no attachment: not a framegate element")
+    try:
+        head = msgpack.unpackb(attachment)
+        return DataObject(int(head["t"]), payload, str(head["m"]).encode("utf-8"))
+    except (ValueError, KeyError, TypeError, msgpack.UnpackException) as exc:
+        raise QueryError(f"reply attachment is not a framegate element header: {exc}") from exc
+
+
+def encode_notification(
+    epoch: str, seq: int, element: DataObject, *, with_metadata: bool, with_payload: bool
+) -> bytes:
+    """Notification: {"e": producer epoch, "s": seq (1, 2, ... per subscription and epoch),
+    "t": timestamp_ns, "m": metadata (optional), "p": payload (optional, small elements)}."""
+    body: dict[str, Any] = {"e": epoch, "s": seq, "t": element.timestamp_ns}
+    if with_metadata:
+        body["m"] = element.metadata
+    if with_payload:
+        body["p"] = element.payload
+    return bytes(msgpack.packb(body, use_bin_type=True))
+
+
+def decode_notification(raw: bytes) -> dict[str, Any]:
+    """Decode and type-check a notification; ValueError if it is garbage."""
+    body = msgpack.unpackb(raw, raw=False)
+    if not isinstance(body, dict):
+        raise ValueError("notification is not a map")
+    if not isinstance(body.get("e"), str) or not isinstance(body.get("s"), int):
+        raise ValueError("notification lacks epoch or seq")
+    if not isinstance(body.get("t"), int):
+        raise ValueError("notification lacks timestamp")
+    for key in ("m", "p"):
+        if key in body and not isinstance(body[key], bytes):
+            raise ValueError(f"notification field {key!r} is not bytes")
+    return body
+
+
+def encode_ack(epoch: str, seq: int) -> bytes:
+    """Ack: {"e": producer epoch, "s": highest seq taken} (cumulative, so a lost ack heals)."""
+    return bytes(msgpack.packb({"e": epoch, "s": seq}))
+
+
+def decode_ack(raw: bytes) -> tuple[str, int]:
+    body = msgpack.unpackb(raw, raw=False)
+    if not isinstance(body, dict):
+        raise ValueError("ack is not a map")
+    epoch, seq = body.get("e"), body.get("s")
+    if not isinstance(epoch, str) or not isinstance(seq, int) or isinstance(seq, bool):
+        raise ValueError("ack lacks epoch or integer seq")
+    return epoch, seq
+
+
+def error_text(code: str, message: str) -> str:
+    return f"{code}: {message}"

@@ -1,0 +1,64 @@
+"""Pieces every command shares: connection flags, JSON output, signals, time formatting."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+from datetime import UTC, datetime
+from types import FrameType
+from typing import Any
+
+from middleware import NetworkConfig, add_network_arguments, network_from_args
+
+
+def command_parser(
+    subparsers: Any, name: str, help_text: str, *, network: bool = True, json_flag: bool = False
+) -> argparse.ArgumentParser:
+    """A subcommand parser with the shared flags already added."""
+    parser: argparse.ArgumentParser = subparsers.add_parser(
+        name, help=help_text, description=help_text
+    )
+    if network:
+        add_network_arguments(parser)
+    if json_flag:
+        parser.add_argument("--json", action="store_true", help="print machine-readable JSON")
+    return parser
+
+
+def network(args: argparse.Namespace, base: NetworkConfig | None = None) -> NetworkConfig:
+    """defaults → deploy file (``base``) → environment → flags."""
+    return network_from_args(args, base)
+
+
+def print_json(data: Any) -> None:
+    json.dump(data, sys.stdout, indent=2, default=str)
+    sys.stdout.write("\n")
+    sys.stdout.flush()
+
+
+def exit_on_sigterm() -> None:
+    """Turn SIGTERM into KeyboardInterrupt so ``with`` blocks close Zenoh sessions cleanly."""
+
+    def handler(_signum: int, _frame: FrameType | None) -> None:
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, handler)
+
+
+def format_ns(timestamp_ns: int | None) -> str:
+    """RFC 3339 with microseconds, UTC; '-' for None."""
+    if timestamp_ns is None:
+        return "-"
+    moment = datetime.fromtimestamp(timestamp_ns / 1e9, tz=UTC)
+    return moment.strftime("%Y-%m-%dT%H:%M:%S.%fZ")
+
+
+def format_bytes(count: int) -> str:
+    value = float(count)
+    for unit in ("B", "KiB", "MiB", "GiB"):
+        if value < 1024 or unit == "GiB":
+            return f"{value:.0f} {unit}" if unit == "B" else f"{value:.1f} {unit}"
+        value /= 1024
+    return f"{value:.1f} GiB"

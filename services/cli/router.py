@@ -1,0 +1,33 @@
+"""``framegate router``: a Zenoh router (a hub where peers cannot reach each other directly)."""
+
+from __future__ import annotations
+
+import argparse
+import threading
+from dataclasses import replace
+from typing import Any
+
+from middleware import Node
+
+from ._common import command_parser, exit_on_sigterm, network
+
+
+def register(subparsers: Any) -> None:
+    parser = command_parser(subparsers, "router", "run a Zenoh router until Ctrl-C")
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    config = network(args)
+    if not config.listen and not config.config_file:
+        config = replace(config, listen=("tcp/[::]:7447",))
+    config = replace(config, mode="router")
+    exit_on_sigterm()
+    endpoints = ", ".join(config.listen) or f"per {config.config_file}"
+    try:
+        with Node(network=config):
+            print(f"router listening on {endpoints}", flush=True)
+            threading.Event().wait()
+    except KeyboardInterrupt:
+        pass
+    return 0

@@ -1,0 +1,122 @@
+"""Shared fixtures: free loopback ports, multicast off, and real node processes."""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from middleware import NetworkConfig
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that nobody listens on right now."""
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+@pytest.fixture
+def endpoint() -> str:
+    """A fresh loopback endpoint for this test (multicast scouting is off by default)."""
+    return f"tcp/127.0.0.1:{free_port()}"
+
+
+@pytest.fixture
+def listen_net(endpoint: str) -> NetworkConfig:
+    return NetworkConfig(listen=(endpoint,))
+
+
+@pytest.fixture
+def connect_net(endpoint: str) -> NetworkConfig:
+    return NetworkConfig(connect=(endpoint,))
+
+
+def wait_until(predicate: Callable[[], Any], timeout_s: float, what: str) -> Any:
+    """Poll ``predicate`` until it returns something truthy; fail with ``what`` on timeout."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        value = predicate()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
+        time.sleep(0.02)
+
+
+def child_env() -> dict[str, str]:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
+    env.setdefault("PYTHONUNBUFFERED", "1")
+    return env
+
+
+class NodeProcess:
+    """A framegate node in a separate OS process, driven over stdin/stdout."""
+
+    def __init__(self, name: str | None, net_args: list[str]) -> None:
+        cmd = [sys.executable, "-m", "tests.helpers.node_driver"]
+        if name:
+            cmd.append(name)
+        self.proc = subprocess.Popen(
+            cmd + net_args,
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+            cwd=REPO,
+            env=child_env(),
+        )
+        ready = self._read()
+        assert ready.get("ready"), ready
+
+    def _read(self) -> dict[str, Any]:
+        assert self.proc.stdout is not None
+        line = self.proc.stdout.readline()
+        if not line:
+            raise AssertionError(f"node process exited with {self.proc.wait()}")
+        result: dict[str, Any] = json.loads(line)
+        return result
+
+    def call(self, op: str, **kwargs: Any) -> dict[str, Any]:
+        assert self.proc.stdin is not None
+        self.proc.stdin.write(json.dumps({"op": op, **kwargs}) + "\n")
+        self.proc.stdin.flush()
+        return self._read()
+
+    def kill(self) -> None:
+        self.proc.kill()
+        self.proc.wait()
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            try:
+                self.call("exit")
+                self.proc.wait(timeout=5)
+            except (OSError, AssertionError, subprocess.TimeoutExpired, ValueError):
+                self.proc.kill()
+                self.proc.wait()
+
+
+@pytest.fixture
+def node_process() -> Iterator[Callable[..., NodeProcess]]:
+    """Factory: ``node_process(name, "--connect", ep)``; every process is stopped after."""
+    started: list[NodeProcess] = []
+
+    def start(name: str | None, *net_args: str) -> NodeProcess:
+        proc = NodeProcess(name, list(net_args))
+        started.append(proc)
+        return proc
+
+    yield start
+    for proc in started:
+        proc.close()

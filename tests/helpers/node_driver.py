@@ -1,0 +1,123 @@
+"""A real framegate node in its own process, driven by JSON lines on stdin.
+
+Tests start it with ``python -m tests.helpers.node_driver NAME [--connect/--listen ...]``
+and send one JSON command per line; it answers one JSON line each:
+{"ok": true, ...} or {"ok": false, "error": "<ExceptionClass>", "message": "..."}.
+"""
+
+from __future__ import annotations
+
+import argparse
+import base64
+import json
+import sys
+from typing import Any
+
+from middleware import (
+    FramegateError,
+    Node,
+    Producer,
+    Retention,
+    Subscription,
+    SubscriptionMode,
+    add_network_arguments,
+    make_metadata,
+    network_from_args,
+)
+
+
+def _element_json(element: Any) -> dict[str, Any]:
+    return {
+        "t": element.timestamp_ns,
+        "payload": base64.b64encode(element.payload).decode(),
+        "metadata": element.metadata.decode(),
+    }
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("name", nargs="?")
+    add_network_arguments(parser)
+    args = parser.parse_args()
+    producers: dict[str, Producer] = {}
+    subs: dict[str, Subscription] = {}
+    with Node(args.name or None, network_from_args(args)) as node:
+        print(json.dumps({"ok": True, "ready": True}), flush=True)
+        for line in sys.stdin:
+            cmd = json.loads(line)
+            op = cmd.pop("op")
+            try:
+                result = _do(node, producers, subs, op, cmd)
+                reply = {"ok": True, **result}
+            except FramegateError as exc:
+                reply = {"ok": False, "error": type(exc).__name__, "message": str(exc)}
+            print(json.dumps(reply), flush=True)
+            if op == "exit":
+                break
+    return 0
+
+
+def _do(
+    node: Node,
+    producers: dict[str, Producer],
+    subs: dict[str, Subscription],
+    op: str,
+    cmd: dict[str, Any],
+) -> dict[str, Any]:
+    if op == "offer":
+        retention = Retention(**cmd.get("retention", {}))
+        producers[cmd["buffer"]] = node.offer(
+            cmd["buffer"], kind=cmd.get("kind", "generic"), retention=retention
+        )
+        return {}
+    if op == "put":
+        producer = producers[cmd["buffer"]]
+        t = int(cmd["t"])
+        payload = base64.b64decode(cmd.get("payload", "")) if "payload" in cmd else b"p%d" % t
+        metadata = cmd.get("metadata") or make_metadata(producer.kind, t)
+        producer.put(t, payload, metadata, wait_s=float(cmd.get("wait_s", 0)))
+        return {}
+    if op == "fill":
+        producer = producers[cmd["buffer"]]
+        return {
+            "fill": producer.fill(),
+            "subscriptions": [
+                {"id": s.subscription_id, "mode": s.mode.value, "queued": s.queued}
+                for s in producer.subscriptions()
+            ],
+        }
+    if op == "wait_subscribers":
+        ok = producers[cmd["buffer"]].wait_for_subscribers(int(cmd["count"]), cmd["timeout"])
+        return {"registered": ok}
+    if op == "subscribe":
+        sub = node.subscribe(
+            cmd["target"],
+            queue_size=int(cmd["queue"]),
+            mode=SubscriptionMode(cmd.get("mode", "flow")),
+        )
+        subs[cmd["target"]] = sub
+        return {"id": sub.subscription_id}
+    if op == "take":
+        sub = subs[cmd["target"]]
+        note = sub.take(timeout_s=float(cmd.get("timeout", 2.0)))
+        if note is None:
+            return {"notification": None, "missed_total": sub.missed_total}
+        element = sub.fetch(note)
+        return {
+            "notification": {"t": note.timestamp_ns, "missed": note.missed},
+            "element": _element_json(element),
+            "missed_total": sub.missed_total,
+        }
+    if op == "stats":
+        sub = subs[cmd["target"]]
+        return {"pending": sub.pending, "missed_total": sub.missed_total}
+    if op == "query":
+        elements = node.query(cmd["target"], time_range=cmd.get("time_range"), last=cmd.get("last"))
+        return {"elements": [_element_json(e) for e in elements]}
+    if op == "exit":
+        return {}
+    raise FramegateError(f"unknown op {op!r}")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,100 @@
+from __future__ import annotations
+
+import sys
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from middleware import DataObject, DuplicateTimestampError, PayloadTooLargeError, Retention
+from middleware._buffer import TimeSeries
+
+
+def _series(timestamps: list[int], retention: Retention | None = None) -> TimeSeries:
+    series = TimeSeries(retention or Retention(max_count=None, max_bytes=None))
+    for t in timestamps:
+        series.append(DataObject(t, b"p", b"m"))
+    return series
+
+
+def test_duplicate_timestamp_is_refused_not_overwritten() -> None:
+    series = _series([10, 20])
+    with pytest.raises(DuplicateTimestampError, match="20 duplicates the newest"):
+        series.append(DataObject(20, b"new", b"m"))
+    assert series.exact(20) == DataObject(20, b"p", b"m")
+
+
+def test_older_than_newest_is_refused() -> None:
+    with pytest.raises(DuplicateTimestampError, match="older than the newest"):
+        _series([10, 20]).append(DataObject(15, b"", b""))
+
+
+def test_oversized_payload_is_refused() -> None:
+    series = TimeSeries(Retention(max_payload_bytes=4))
+    with pytest.raises(PayloadTooLargeError, match="5 bytes exceeds this buffer's limit of 4"):
+        series.append(DataObject(1, b"12345", b""))
+    assert len(series) == 0
+
+
+def test_retention_by_count_evicts_oldest() -> None:
+    series = _series(list(range(10)), Retention(max_count=3, max_bytes=None))
+    assert [e.timestamp_ns for e in series.range()] == [7, 8, 9]
+
+
+def test_retention_by_bytes_evicts_oldest() -> None:
+    series = TimeSeries(Retention(max_count=None, max_bytes=25))
+    for t in range(5):
+        series.append(DataObject(t, b"x" * 9, b"m"))  # 10 bytes each
+    assert [e.timestamp_ns for e in series.range()] == [3, 4]
+    assert series.total_bytes == 20
+
+
+def test_retention_by_age_is_measured_from_the_newest() -> None:
+    series = _series([0, 5, 10, 15], Retention(max_count=None, max_bytes=None, max_age_ns=6))
+    assert [e.timestamp_ns for e in series.range()] == [10, 15]
+
+
+def test_nearest_prefers_closest_then_older() -> None:
+    series = _series([10, 20, 30])
+    assert series.nearest(24).timestamp_ns == 20  # type: ignore[union-attr]
+    assert series.nearest(25).timestamp_ns == 20  # type: ignore[union-attr]
+    assert series.nearest(26).timestamp_ns == 30  # type: ignore[union-attr]
+    assert series.nearest(-5).timestamp_ns == 10  # type: ignore[union-attr]
+    assert _series([]).nearest(5) is None
+
+
+def test_payload_is_held_by_reference_not_copied() -> None:
+    payload = bytes(1_000_000)
+    series = _series([])
+    before = sys.getrefcount(payload)
+    series.append(DataObject(1, payload, b"m"))
+    assert sys.getrefcount(payload) == before + 1
+    assert series.exact(1).payload is payload  # type: ignore[union-attr]
+
+
+def test_compaction_keeps_lookups_right() -> None:
+    series = _series(list(range(5000)), Retention(max_count=100, max_bytes=None))
+    assert len(series) == 100
+    assert [e.timestamp_ns for e in series.latest(3)] == [4997, 4998, 4999]
+    assert series.exact(4900) is not None and series.exact(4899) is None
+
+
+@given(
+    st.lists(st.integers(0, 10_000), unique=True, max_size=60),
+    st.integers(-10, 10_010),
+    st.integers(-10, 10_010),
+    st.one_of(st.none(), st.integers(1, 20)),
+    st.integers(1, 80),
+)
+def test_range_matches_brute_force(
+    keys: list[int], a: int, b: int, last: int | None, max_count: int
+) -> None:
+    keys.sort()
+    series = _series(keys, Retention(max_count=max_count, max_bytes=None))
+    kept = keys[-max_count:] if keys else []
+    lo, hi = min(a, b), max(a, b)
+    expected = [k for k in kept if lo <= k <= hi]
+    if last is not None:
+        expected = expected[-last:]
+    assert [e.timestamp_ns for e in series.range(lo, hi, last=last)] == expected
+    assert [e.timestamp_ns for e in series.latest(5)] == kept[-5:]

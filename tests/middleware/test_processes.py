@@ -1,0 +1,256 @@
+"""Producer and consumer in separate OS processes over real Zenoh on loopback."""
+
+from __future__ import annotations
+
+import base64
+import time
+from collections.abc import Callable
+from typing import Any
+
+import pytest
+
+from middleware import (
+    FlowControlRefused,
+    NetworkConfig,
+    Node,
+    NotFoundError,
+    QueryError,
+    SubscriptionMode,
+    make_metadata,
+)
+from tests.conftest import NodeProcess, wait_until
+
+pytestmark = pytest.mark.integration
+
+MS = 1_000_000
+
+
+def _start_producer(
+    node_process: Callable[..., NodeProcess], endpoint: str, count: int = 0
+) -> NodeProcess:
+    producer = node_process("cam", "--listen", endpoint)
+    assert producer.call("offer", buffer="images")["ok"]
+    for i in range(1, count + 1):
+        assert producer.call("put", buffer="images", t=i * MS)["ok"]
+    return producer
+
+
+def test_queries_return_exactly_the_right_elements_in_order(
+    node_process: Callable[..., NodeProcess], endpoint: str, connect_net: NetworkConfig
+) -> None:
+    _start_producer(node_process, endpoint, count=20)
+    with Node(network=connect_net) as client:
+        wait_until(lambda: "cam" in client.live_services(), 5, "the producer service")
+        in_range = client.query("cam/images", time_range=f"[{5 * MS}..{9 * MS}]")
+        assert [e.timestamp_ns for e in in_range] == [5 * MS, 6 * MS, 7 * MS, 8 * MS, 9 * MS]
+        assert in_range[0].payload == b"p%d" % (5 * MS)
+        assert b'timestamp_ns="5000000"' in in_range[0].metadata
+        exclusive = client.query("cam/images", time_range=f"]{5 * MS}..{9 * MS}[")
+        assert [e.timestamp_ns for e in exclusive] == [6 * MS, 7 * MS, 8 * MS]
+        assert [e.timestamp_ns for e in client.latest("cam/images", 3)] == [
+            18 * MS,
+            19 * MS,
+            20 * MS,
+        ]
+        assert client.nearest("cam/images", 7 * MS + 400_000).timestamp_ns == 7 * MS
+        assert client.nearest("cam/images", 7 * MS + 600_000).timestamp_ns == 8 * MS
+        assert client.get("cam/images", 12 * MS).payload == b"p%d" % (12 * MS)
+        with pytest.raises(NotFoundError, match="no element with timestamp 12000001"):
+            client.get("cam/images", 12 * MS + 1)
+        # Relative ranges: everything is from 1970, so the last two seconds hold nothing.
+        assert client.query("cam/images", time_range="[now(-2s)..]") == []
+        last_in_range = client.query("cam/images", time_range=f"[..{10 * MS}]", last=2)
+        assert [e.timestamp_ns for e in last_in_range] == [9 * MS, 10 * MS]
+
+
+def _consumer(
+    node_process: Callable[..., NodeProcess], endpoint: str, queue: int, mode: str = "flow"
+) -> NodeProcess:
+    consumer = node_process(None, "--connect", endpoint)
+    assert consumer.call("subscribe", target="cam/images", queue=queue, mode=mode)["ok"]
+    return consumer
+
+
+def _put(producer: Any, t: int) -> None:
+    producer.put(t, b"x", make_metadata("generic", t))
+
+
+def test_full_queue_refuses_put(
+    node_process: Callable[..., NodeProcess], endpoint: str, listen_net: NetworkConfig
+) -> None:
+    with Node("cam", listen_net) as node:
+        images = node.offer("images")
+        _consumer(node_process, endpoint, queue=2)
+        assert images.wait_for_subscribers(1, 5)
+        _put(images, 1)
+        assert images.fill() == pytest.approx(0.5)
+        _put(images, 2)
+        assert images.fill() == pytest.approx(1.0)
+        with pytest.raises(FlowControlRefused, match="has 2/2 notifications queued"):
+            _put(images, 3)
+        # Refused means not stored.
+        assert images.series.exact(3) is None
+        assert images.info().refused == 1
+
+
+def test_taking_a_notification_frees_one_slot(
+    node_process: Callable[..., NodeProcess], endpoint: str, listen_net: NetworkConfig
+) -> None:
+    with Node("cam", listen_net) as node:
+        images = node.offer("images")
+        consumer = _consumer(node_process, endpoint, queue=2)
+        assert images.wait_for_subscribers(1, 5)
+        _put(images, 1)
+        _put(images, 2)
+        took = consumer.call("take", target="cam/images")
+        assert took["notification"]["t"] == 1
+        assert base64.b64decode(took["element"]["payload"]) == b"x"
+        wait_until(lambda: images.fill() == pytest.approx(0.5), 5, "the ack to arrive")
+        _put(images, 3)
+
+
+def test_consumer_that_keeps_up_causes_no_refusal(
+    node_process: Callable[..., NodeProcess], endpoint: str, listen_net: NetworkConfig
+) -> None:
+    with Node("cam", listen_net) as node:
+        images = node.offer("images")
+        consumer = _consumer(node_process, endpoint, queue=1)
+        assert images.wait_for_subscribers(1, 5)
+        for t in range(1, 31):
+            # A lossless producer waits for credit; a consumer that keeps up grants it.
+            images.put(t, b"x", make_metadata("generic", t), wait_s=5.0)
+            took = consumer.call("take", target="cam/images")
+            assert took["notification"]["t"] == t
+        assert images.info().refused == 0
+
+
+def test_observer_never_refuses_and_reports_missed(
+    node_process: Callable[..., NodeProcess], endpoint: str, listen_net: NetworkConfig
+) -> None:
+    with Node("cam", listen_net) as node:
+        images = node.offer("images")
+        observer = _consumer(node_process, endpoint, queue=2, mode="observe")
+        assert images.wait_for_subscribers(1, 5)
+        for t in range(1, 11):
+            _put(images, t)
+        assert images.fill() == 0.0  # observers are not load
+        assert images.info().refused == 0
+        assert images.subscriptions()[0].queued == 10
+        stats = wait_until(
+            lambda: (r := observer.call("stats", target="cam/images"))["missed_total"] == 8 and r,
+            5,
+            "the observer to receive all 10 notifications",
+        )
+        assert stats["pending"] == 2
+        first = observer.call("take", target="cam/images")
+        second = observer.call("take", target="cam/images")
+        assert [first["notification"]["t"], second["notification"]["t"]] == [1, 2]
+        _put(images, 11)
+        third = wait_until(
+            lambda: observer.call("take", target="cam/images", timeout=0.2)["notification"],
+            5,
+            "notification 11",
+        )
+        assert third["t"] == 11
+        assert third["missed"] == 8  # 3..10 overflowed the queue of 2
+
+
+def test_killed_consumer_frees_producer_within_two_seconds(
+    node_process: Callable[..., NodeProcess], endpoint: str, listen_net: NetworkConfig
+) -> None:
+    with Node("cam", listen_net) as node:
+        images = node.offer("images")
+        consumer = _consumer(node_process, endpoint, queue=1)
+        assert images.wait_for_subscribers(1, 5)
+        _put(images, 1)
+        with pytest.raises(FlowControlRefused):
+            _put(images, 2)
+        consumer.kill()
+        started = time.monotonic()
+        # A waiting put returns as soon as the dead subscriber's liveliness token goes.
+        images.put(2, b"x", make_metadata("generic", 2), wait_s=5.0)
+        assert time.monotonic() - started < 2.0
+        assert images.subscriptions() == []
+
+
+def test_bad_input_gets_an_error_and_the_service_keeps_answering(
+    node_process: Callable[..., NodeProcess], endpoint: str, connect_net: NetworkConfig
+) -> None:
+    producer = _start_producer(node_process, endpoint, count=3)
+    xxe = (
+        '<?xml version="1.0"?><!DOCTYPE m [<!ENTITY x SYSTEM "file:///etc/passwd">]>'
+        '<metadata xmlns="urn:framegate:1" kind="generic" timestamp_ns="4000000">&x;</metadata>'
+    )
+    laughs = (
+        '<?xml version="1.0"?><!DOCTYPE l [<!ENTITY a "aaaaaaaaaa"><!ENTITY b "&a;&a;&a;&a;">]>'
+        '<metadata xmlns="urn:framegate:1" kind="generic" timestamp_ns="4000000">&b;</metadata>'
+    )
+    cases = [
+        ({"metadata": xxe}, "SchemaError", "DTD or entity"),
+        ({"metadata": laughs}, "SchemaError", "DTD or entity"),
+        ({"metadata": make_metadata("frame", 4 * MS).decode()}, "SchemaError", "kind 'frame'"),
+        ({"metadata": "<metadata"}, "SchemaError", "not well-formed"),
+        ({"t": 3 * MS}, "DuplicateTimestampError", "duplicates the newest"),
+    ]
+    for extra, error, message in cases:
+        reply = producer.call("put", buffer="images", **{"t": 4 * MS, **extra})
+        assert not reply["ok"] and reply["error"] == error and message in reply["message"]
+    with Node(network=connect_net) as client:
+        wait_until(lambda: "cam" in client.live_services(), 5, "the producer service")
+        for params, message in [
+            ({"time_range": "[now(-2x)..]"}, "bad duration"),
+            ({"time_range": "garbage"}, "bad time range"),
+            ({"time_range": "[5..1]"}, "ends before it starts"),
+        ]:
+            with pytest.raises(QueryError, match=message):
+                client.query("cam/images", **params)
+        with pytest.raises(QueryError, match="unknown query parameter"):
+            client._get("cam/images", {"bogus": "1"}, 5.0)
+        with pytest.raises(QueryError, match="last='x' is not an integer"):
+            client._get("cam/images", {"last": "x"}, 5.0)
+        with pytest.raises(NotFoundError, match="no buffer matching 'cam/imgs'"):
+            client.query("cam/imgs")
+        with pytest.raises(
+            NotFoundError, match=r"no live service named 'camm' \(did you mean 'cam'"
+        ):
+            client.query("camm/images")
+        # Nothing accepted was lost or changed, and the service still answers.
+        elements = client.query("cam/images")
+        assert [(e.timestamp_ns, e.payload) for e in elements] == [
+            (t * MS, b"p%d" % (t * MS)) for t in (1, 2, 3)
+        ]
+    assert producer.call("put", buffer="images", t=4 * MS)["ok"]
+
+
+def test_client_resubscribes_when_its_service_restarts(
+    node_process: Callable[..., NodeProcess], endpoint: str, connect_net: NetworkConfig
+) -> None:
+    first = _start_producer(node_process, endpoint)
+    with Node(network=connect_net) as client:
+        wait_until(lambda: "cam" in client.live_services(), 5, "the producer service")
+        sub = client.subscribe("cam/images", queue_size=2)
+        assert first.call("put", buffer="images", t=1)["ok"]
+        assert sub.take(timeout_s=5).timestamp_ns == 1  # type: ignore[union-attr]
+        first.kill()
+        second = _start_producer(node_process, endpoint)
+        assert second.call("wait_subscribers", buffer="images", count=1, timeout=5)["registered"]
+        assert second.call("put", buffer="images", t=5)["ok"]
+        note = sub.take(timeout_s=5)
+        assert note is not None and note.timestamp_ns == 5
+        assert sub.fetch(note).payload == b"p5"
+
+
+def test_local_default_needs_no_configuration(monkeypatch: pytest.MonkeyPatch) -> None:
+    from tests.conftest import free_port
+
+    monkeypatch.setenv("FRAMEGATE_LOCAL_PORT", str(free_port()))
+    net = NetworkConfig().with_env()
+    assert net.uses_local_default
+    with Node("cam", net) as first, Node("det", net) as second, Node(network=net) as third:
+        first.offer("images")
+        second.offer("detections")
+        wait_until(
+            lambda: third.live_services() == ["cam", "det"], 5, "both services via the rendezvous"
+        )
+        sub = third.subscribe("cam/images", queue_size=1, mode=SubscriptionMode.OBSERVE)
+        assert sub.subscription_id

@@ -1,0 +1,52 @@
+"""A client that uses only the zenoh package reads a buffer per the README's Wire format."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+
+import msgpack
+import pytest
+import zenoh
+
+from tests.conftest import NodeProcess, wait_until
+
+pytestmark = pytest.mark.integration
+
+
+def test_raw_zenoh_client_reads_a_time_range(
+    node_process: Callable[..., NodeProcess], endpoint: str
+) -> None:
+    producer = node_process("cam", "--listen", endpoint)
+    assert producer.call("offer", buffer="images")["ok"]
+    for t in (100, 200, 300, 400):
+        assert producer.call("put", buffer="images", t=t)["ok"]
+
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    with zenoh.open(conf) as session:
+
+        def read() -> list[tuple[int, str, bytes]]:
+            out = []
+            for reply in session.get(
+                "framegate/cam/images?_time=[200..400]",
+                consolidation=zenoh.ConsolidationMode.NONE,
+                timeout=2,
+            ):
+                if reply.ok is not None:
+                    head = msgpack.unpackb(reply.ok.attachment.to_bytes())
+                    out.append((head["t"], head["m"], reply.ok.payload.to_bytes()))
+            return out
+
+        elements = wait_until(read, 5, "replies from the producer")
+        assert [(t, p) for t, _, p in elements] == [(200, b"p200"), (300, b"p300"), (400, b"p400")]
+        assert all(f'timestamp_ns="{t}"' in m for t, m, _ in elements)
+
+        errors = [
+            r.err.payload.to_string()
+            for r in session.get("framegate/cam/images?last=zero", timeout=2)
+            if r.err is not None
+        ]
+        assert errors == ["bad-query: last='zero' is not an integer"]
