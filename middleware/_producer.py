@@ -248,6 +248,21 @@ class Producer:
                 self._cond.wait(remaining)
             return True
 
+    def wait_fill_below(self, limit: float, timeout_s: float) -> bool:
+        """Wait until ``fill()`` < ``limit`` (e.g. a consumer took a notification)."""
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while True:
+                fills = [
+                    s.info().fill for s in self._subs.values() if s.mode is SubscriptionMode.FLOW
+                ]
+                if max(fills, default=0.0) < limit:
+                    return True
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    return False
+                self._cond.wait(remaining)
+
     def info(self) -> BufferInfo:
         """Retention, size, span, rate, counters and subscriptions."""
         c = self._counters

@@ -160,6 +160,11 @@ def _add_fields(parent: Any, fields: dict[str, Any]) -> None:
         if name.startswith("@"):
             parent.set(name[1:], str(value))
             continue
+        if isinstance(value, list | tuple) and all(isinstance(v, dict) for v in value):
+            # A list of dicts is a repeated element (none for an empty list).
+            for item in value:
+                _add_fields(etree.SubElement(parent, _NS + name), item)
+            continue
         child = etree.SubElement(parent, _NS + name)
         if isinstance(value, dict):
             _add_fields(child, value)

@@ -1,0 +1,252 @@
+"""Deploy files: which services run on which host, with what arguments.
+
+    version: 1
+    network: {connect: [...], listen: [...], namespace: framegate}   # every process
+    hosts:                                                            # optional
+      robot: {address: 10.0.0.2, network: {listen: [tcp/10.0.0.2:7447]}}
+    services:
+      camera: {type: camera, host: robot, restart: true, args: {source: sim}}
+
+Errors name the file, the line and the bad key. ``args`` become the service's command-line
+flags (``seed: 1`` → ``--seed 1``, ``true`` → ``--flag``), checked against its parser.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from middleware import ConfigError, NetworkConfig, check_name
+
+LOCAL_HOST = "local"
+SERVICE_TYPES = ("camera", "gyro", "mediator", "detector", "router")
+_TOP_KEYS = {"version", "network", "hosts", "services"}
+_HOST_KEYS = {"address", "role", "network"}
+_SERVICE_KEYS = {"type", "host", "restart", "args", "network"}
+_NETWORK_KEYS = {"connect", "listen", "namespace", "config"}
+
+
+@dataclass(frozen=True, slots=True)
+class HostSpec:
+    """A machine of the deployment."""
+
+    name: str
+    address: str | None = None
+    role: str | None = None
+    network: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True, slots=True)
+class ServiceSpec:
+    """One service process: its type, host, flags and restart policy."""
+
+    name: str
+    type: str
+    host: str
+    args: tuple[str, ...]
+    restart: bool = True
+    network: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True, slots=True)
+class Deployment:
+    """A parsed, validated deploy file."""
+
+    path: str
+    network: dict[str, Any]
+    hosts: dict[str, HostSpec]
+    services: tuple[ServiceSpec, ...]
+
+    def for_host(self, host: str | None) -> list[ServiceSpec]:
+        """Services assigned to ``host`` (None: the only host, or every service)."""
+        if host is None:
+            if len(self.hosts) > 1:
+                names = ", ".join(sorted(self.hosts))
+                raise ConfigError(
+                    f"{self.path} names several hosts ({names}); pick one with --host"
+                )
+            return list(self.services)
+        if host not in self.hosts:
+            known = ", ".join(sorted(self.hosts))
+            raise ConfigError(f"{self.path} has no host {host!r}; its hosts are: {known}")
+        return [s for s in self.services if s.host == host]
+
+    def network_for(self, spec: ServiceSpec, base: NetworkConfig | None = None) -> NetworkConfig:
+        """Deployment network, then the host's, then the service's, over ``base``."""
+        merged: dict[str, Any] = {}
+        for layer in (self.network, self.hosts[spec.host].network, spec.network):
+            merged.update(layer)
+        config = base or NetworkConfig()
+        return NetworkConfig(
+            connect=tuple(merged.get("connect", config.connect)),
+            listen=tuple(merged.get("listen", config.listen)),
+            config_file=Path(merged["config"]) if "config" in merged else config.config_file,
+            namespace=merged.get("namespace", config.namespace),
+            shared_memory=config.shared_memory,
+            local_port=config.local_port,
+        )
+
+
+def load_deployment(path: str | Path) -> Deployment:
+    """Read and validate a deploy file; ConfigError names the line of any problem."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise ConfigError(f"cannot read deploy file {path}: {exc.strerror}") from exc
+    return parse_deployment(text, str(path))
+
+
+def parse_deployment(text: str, name: str = "<deploy>") -> Deployment:
+    """Parse deploy-file text (see the module docstring)."""
+    try:
+        root = yaml.compose(text, Loader=yaml.SafeLoader)
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{name}: not valid YAML: {exc}") from exc
+    if root is None:
+        raise ConfigError(f"{name}: the deploy file is empty; it needs a 'services' mapping")
+    top = _mapping(root, name, "the top level", _TOP_KEYS)
+    if "version" in top and _scalar(top["version"][1]) not in (1, "1"):
+        raise ConfigError(f"{name}:{_line(top['version'][1])}: unsupported version; use 1")
+    network = _network(top["network"][1], name) if "network" in top else {}
+    hosts: dict[str, HostSpec] = {}
+    if "hosts" in top:
+        for host_name, (key_node, node) in _mapping(top["hosts"][1], name, "hosts").items():
+            _check_name(host_name, "host", name, key_node)
+            fields = _mapping(node, name, f"host {host_name!r}", _HOST_KEYS)
+            hosts[host_name] = HostSpec(
+                host_name,
+                address=_opt_str(fields, "address"),
+                role=_opt_str(fields, "role"),
+                network=_network(fields["network"][1], name) if "network" in fields else {},
+            )
+    if not hosts:
+        hosts[LOCAL_HOST] = HostSpec(LOCAL_HOST)
+    if "services" not in top:
+        raise ConfigError(f"{name}: no 'services' mapping; list the services to start")
+    services = []
+    for svc_name, (key_node, node) in _mapping(top["services"][1], name, "services").items():
+        _check_name(svc_name, "service", name, key_node)
+        fields = (
+            _mapping(node, name, f"service {svc_name!r}", _SERVICE_KEYS) if _is_map(node) else {}
+        )
+        kind = str(_scalar(fields["type"][1])) if "type" in fields else svc_name
+        if kind not in SERVICE_TYPES:
+            where = _line(fields["type"][1]) if "type" in fields else _line(key_node)
+            raise ConfigError(
+                f"{name}:{where}: service {svc_name!r} has unknown type {kind!r}; "
+                f"use one of: {', '.join(SERVICE_TYPES)}"
+            )
+        if "host" in fields:
+            host = str(_scalar(fields["host"][1]))
+            if host not in hosts:
+                raise ConfigError(
+                    f"{name}:{_line(fields['host'][1])}: service {svc_name!r} names host "
+                    f"{host!r}, which is not under 'hosts' ({', '.join(sorted(hosts))})"
+                )
+        elif len(hosts) == 1:
+            host = next(iter(hosts))
+        else:
+            raise ConfigError(
+                f"{name}:{_line(key_node)}: service {svc_name!r} needs a 'host' "
+                f"(one of {', '.join(sorted(hosts))})"
+            )
+        args = _args(fields["args"][1], name, svc_name) if "args" in fields else ()
+        restart = bool(_scalar(fields["restart"][1])) if "restart" in fields else True
+        net = _network(fields["network"][1], name) if "network" in fields else {}
+        services.append(ServiceSpec(svc_name, kind, host, args, restart, net))
+    return Deployment(name, network, hosts, tuple(services))
+
+
+def _is_map(node: yaml.Node) -> bool:
+    return isinstance(node, yaml.MappingNode)
+
+
+def _line(node: yaml.Node) -> int:
+    return int(node.start_mark.line) + 1
+
+
+def _mapping(
+    node: yaml.Node, name: str, where: str, allowed: set[str] | None = None
+) -> dict[str, tuple[yaml.Node, yaml.Node]]:
+    if not _is_map(node):
+        raise ConfigError(f"{name}:{_line(node)}: {where} must be a mapping (key: value)")
+    out: dict[str, tuple[yaml.Node, yaml.Node]] = {}
+    for key_node, value_node in node.value:
+        key = str(key_node.value)
+        if allowed is not None and key not in allowed:
+            raise ConfigError(
+                f"{name}:{_line(key_node)}: unknown key {key!r} in {where}; "
+                f"expected one of: {', '.join(sorted(allowed))}"
+            )
+        if key in out:
+            raise ConfigError(f"{name}:{_line(key_node)}: key {key!r} appears twice in {where}")
+        out[key] = (key_node, value_node)
+    return out
+
+
+def _scalar(node: yaml.Node) -> Any:
+    if not isinstance(node, yaml.ScalarNode):
+        raise ConfigError(f"line {_line(node)}: expected a single value")
+    return yaml.safe_load(yaml.serialize(node))
+
+
+def _opt_str(fields: dict[str, tuple[yaml.Node, yaml.Node]], key: str) -> str | None:
+    return str(_scalar(fields[key][1])) if key in fields else None
+
+
+def _check_name(value: str, what: str, name: str, node: yaml.Node) -> None:
+    try:
+        check_name(value, what)
+    except ConfigError as exc:
+        raise ConfigError(f"{name}:{_line(node)}: {exc}") from exc
+
+
+def _network(node: yaml.Node, name: str) -> dict[str, Any]:
+    fields = _mapping(node, name, "network", _NETWORK_KEYS)
+    out: dict[str, Any] = {}
+    for key, (_key_node, value) in fields.items():
+        if key in ("connect", "listen"):
+            if isinstance(value, yaml.SequenceNode):
+                out[key] = [str(_scalar(v)) for v in value.value]
+            else:
+                out[key] = [str(_scalar(value))]
+        else:
+            out[key] = str(_scalar(value))
+    return out
+
+
+def _args(node: yaml.Node, name: str, service: str) -> tuple[str, ...]:
+    argv: list[str] = []
+    for key, (_key_node, value) in _mapping(node, name, f"args of {service!r}").items():
+        flag = "--" + key.replace("_", "-")
+        if isinstance(value, yaml.SequenceNode):
+            items = [str(_scalar(v)) for v in value.value]
+            argv += [flag, *items]
+            continue
+        scalar = _scalar(value)
+        if scalar is True:
+            argv.append(flag)
+        elif scalar is False or scalar is None:
+            continue
+        else:
+            argv += [flag, str(scalar)]
+    return tuple(argv)
+
+
+def arg_lines(text: str, service: str) -> dict[str, int]:
+    """Line of each ``args`` key of one service, for error messages after parsing."""
+    root: Any = yaml.compose(text, Loader=yaml.SafeLoader)
+    lines: dict[str, int] = {}
+    try:
+        services = {k.value: v for k, v in root.value if k.value == "services"}["services"]
+        entry = {k.value: v for k, v in services.value}[service]
+        args = {k.value: v for k, v in entry.value}["args"]
+        for key_node, _value in args.value:
+            lines["--" + str(key_node.value).replace("_", "-")] = _line(key_node)
+    except (KeyError, AttributeError, TypeError):
+        pass
+    return lines

@@ -1,0 +1,85 @@
+"""Turn a deployment into the processes to start on one host."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+import time
+from dataclasses import replace
+
+from middleware import ConfigError, NetworkConfig
+
+from ._deploy import Deployment, ServiceSpec, arg_lines
+from ._supervisor import ProcessSpec
+
+# Replays on every process of one launch start at the same wall-clock instant.
+START_DELAY_S = 2.0
+
+
+def _check_args(spec: ServiceSpec, deployment: Deployment, text: str | None) -> None:
+    """Parse a service's args with its own parser; name the deploy-file line on error."""
+    if spec.type == "router":
+        if spec.args:
+            raise ConfigError(f"{deployment.path}: router {spec.name!r} takes no args")
+        return
+    from services.cli.run import SERVICES
+
+    module = importlib.import_module(SERVICES[spec.type])
+    parser = argparse.ArgumentParser(prog=spec.name, exit_on_error=False, add_help=False)
+    module.add_arguments(parser)
+    lines = arg_lines(text, spec.name) if text else {}
+    try:
+        _args, unknown = parser.parse_known_args(list(spec.args))
+    except (argparse.ArgumentError, SystemExit) as exc:
+        raise ConfigError(f"{deployment.path}: service {spec.name!r}: bad args: {exc}") from exc
+    flags = [u for u in unknown if u.startswith("--")]
+    if flags:
+        flag = flags[0]
+        where = f":{lines[flag]}" if flag in lines else ""
+        key = flag[2:].replace("-", "_")
+        raise ConfigError(
+            f"{deployment.path}{where}: service {spec.name!r} has no option {key!r} "
+            f"(see 'framegate run {spec.type} --help')"
+        )
+
+
+def process_specs(
+    deployment: Deployment,
+    host: str | None,
+    base: NetworkConfig,
+    *,
+    text: str | None = None,
+    start_at_ns: int | None = None,
+) -> list[ProcessSpec]:
+    """The processes of ``host``'s share, each with its network flags and a shared start."""
+    start = start_at_ns if start_at_ns is not None else time.time_ns() + int(START_DELAY_S * 1e9)
+    out = []
+    for spec in deployment.for_host(host):
+        _check_args(spec, deployment, text)
+        net = deployment.network_for(spec, base)
+        if spec.type == "router":
+            if not net.listen:
+                net = replace(net, listen=("tcp/[::]:7447",))
+            argv = [sys.executable, "-m", "services.cli", "router", *net.to_args()]
+        else:
+            argv = [
+                sys.executable,
+                "-m",
+                "services.cli",
+                "run",
+                spec.type,
+                "--name",
+                spec.name,
+                *spec.args,
+                *net.to_args(),
+            ]
+        out.append(
+            ProcessSpec(
+                spec.name,
+                tuple(argv),
+                restart=spec.restart,
+                env=(("FRAMEGATE_START_AT_NS", str(start)),),
+            )
+        )
+    return out

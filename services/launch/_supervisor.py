@@ -1,0 +1,165 @@
+"""Start service processes, prefix and colour their logs, restart crashes, stop cleanly.
+
+Each service is its own OS process (``python -m services.cli run TYPE ...``). A process
+that exits while it should run is restarted with exponential backoff (0.5 s doubling to
+10 s; reset after 30 s of uptime). ``stop`` sends SIGTERM, waits, then SIGKILLs.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import IO
+
+_COLOURS = ("36", "33", "35", "32", "34", "31", "96", "93")
+_BACKOFF_START_S = 0.5
+_BACKOFF_MAX_S = 10.0
+_HEALTHY_AFTER_S = 30.0
+
+
+@dataclass(frozen=True, slots=True)
+class ProcessSpec:
+    """A process to keep running."""
+
+    name: str
+    argv: tuple[str, ...]
+    restart: bool = True
+    env: tuple[tuple[str, str], ...] = ()
+
+
+@dataclass
+class _Running:
+    spec: ProcessSpec
+    colour: str
+    proc: subprocess.Popen[bytes] | None = None
+    started_at: float = 0.0
+    restarts: int = 0
+    backoff_s: float = _BACKOFF_START_S
+    next_start: float = 0.0
+    exit_codes: list[int] = field(default_factory=list)
+
+
+class Supervisor:
+    """Keeps a set of processes running until ``stop``."""
+
+    def __init__(
+        self,
+        specs: list[ProcessSpec],
+        *,
+        colour: bool | None = None,
+        out: Callable[[str], None] | None = None,
+        quiet: bool = False,
+    ) -> None:
+        use_colour = sys.stdout.isatty() if colour is None else colour
+        self._running = [
+            _Running(spec, _COLOURS[i % len(_COLOURS)] if use_colour else "")
+            for i, spec in enumerate(specs)
+        ]
+        self._out = out or (lambda line: print(line, flush=True))
+        self._quiet = quiet
+        self._lock = threading.Lock()
+        self._stopping = False
+        self._width = max((len(s.name) for s in specs), default=4)
+
+    def _emit(self, running: _Running, text: str) -> None:
+        prefix = f"[{running.spec.name:<{self._width}}]"
+        if running.colour:
+            prefix = f"\033[{running.colour}m{prefix}\033[0m"
+        with self._lock:
+            self._out(f"{prefix} {text}")
+
+    def _pump(self, running: _Running, stream: IO[bytes]) -> None:
+        for raw in iter(stream.readline, b""):
+            if not self._quiet:
+                self._emit(running, raw.decode("utf-8", "replace").rstrip())
+        stream.close()
+
+    def _start(self, running: _Running) -> None:
+        env = dict(os.environ)
+        env.update(dict(running.spec.env))
+        env.setdefault("PYTHONUNBUFFERED", "1")
+        running.proc = subprocess.Popen(
+            list(running.spec.argv),
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            env=env,
+            start_new_session=True,  # Ctrl-C reaches us; we decide how children stop
+        )
+        running.started_at = time.monotonic()
+        assert running.proc.stdout is not None
+        threading.Thread(
+            target=self._pump, args=(running, running.proc.stdout), daemon=True
+        ).start()
+
+    def start(self) -> None:
+        """Start every process."""
+        for running in self._running:
+            self._start(running)
+
+    def poll(self) -> None:
+        """Restart what crashed (called periodically by ``run``)."""
+        now = time.monotonic()
+        for running in self._running:
+            proc = running.proc
+            if proc is None:
+                if not self._stopping and now >= running.next_start:
+                    running.restarts += 1
+                    self._emit(running, f"restarting (restart {running.restarts})")
+                    self._start(running)
+                continue
+            code = proc.poll()
+            if code is None or self._stopping:
+                continue
+            running.exit_codes.append(code)
+            running.proc = None
+            if not running.spec.restart:
+                self._emit(running, f"exited with {code}; not restarting")
+                continue
+            if now - running.started_at > _HEALTHY_AFTER_S:
+                running.backoff_s = _BACKOFF_START_S
+            running.next_start = now + running.backoff_s
+            self._emit(running, f"exited with {code}; restarting in {running.backoff_s:.1f} s")
+            running.backoff_s = min(_BACKOFF_MAX_S, running.backoff_s * 2)
+
+    def run(
+        self, duration_s: float | None = None, on_tick: Callable[[], None] | None = None
+    ) -> None:
+        """Supervise until ``duration_s`` passes or KeyboardInterrupt; then stop."""
+        deadline = None if duration_s is None else time.monotonic() + duration_s
+        try:
+            while deadline is None or time.monotonic() < deadline:
+                self.poll()
+                if on_tick is not None:
+                    on_tick()
+                time.sleep(0.1)
+        finally:
+            self.stop()
+
+    def pids(self) -> dict[str, int | None]:
+        """Current pid of every process (None while waiting to restart)."""
+        return {r.spec.name: (r.proc.pid if r.proc else None) for r in self._running}
+
+    def restarts(self) -> dict[str, int]:
+        return {r.spec.name: r.restarts for r in self._running}
+
+    def stop(self, timeout_s: float = 5.0) -> None:
+        """SIGTERM every process, wait up to ``timeout_s``, then SIGKILL what is left."""
+        self._stopping = True
+        procs = [r.proc for r in self._running if r.proc is not None and r.proc.poll() is None]
+        for proc in procs:
+            with contextlib.suppress(ProcessLookupError):
+                proc.send_signal(signal.SIGTERM)
+        deadline = time.monotonic() + timeout_s
+        for proc in procs:
+            try:
+                proc.wait(timeout=max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()

@@ -1,0 +1,187 @@
+"""The metadata of the services' buffers: build it, read it back (schemas/*.xsd).
+
+camera/images and mediator/images hold ``frame`` elements (key = exposure start), gyro/rates
+``gyro`` batches (key = last sample), mediator/decisions ``decision`` records (key = decision
+time), detector/detections ``detections`` (key = the frame's timestamp).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from middleware import SchemaError, field_text, make_metadata, validate_metadata
+from services.camera_model import CameraModel
+from services.quality import Exposure, GyroSamples
+
+_CHANNELS = {"mono8": 1, "bgr8": 3, "rgb8": 3}
+
+
+@dataclass(frozen=True, slots=True)
+class FrameMeta:
+    """What a frame's metadata says."""
+
+    timestamp_ns: int
+    frame_id: int
+    exposure: Exposure
+    encoding: str
+    width_px: int
+    height_px: int
+    camera: CameraModel | None
+
+
+def frame_metadata(
+    frame_id: int,
+    exposure: Exposure,
+    image: npt.NDArray[np.uint8],
+    camera: CameraModel | None,
+) -> bytes:
+    """``frame`` metadata for an image exposed over ``exposure`` (key = exposure start)."""
+    encoding = "mono8" if image.ndim == 2 else "bgr8"
+    fields: dict[str, Any] = {
+        "frame_id": frame_id,
+        "exposure_start_ns": exposure.start_ns,
+        "exposure_ns": exposure.duration_ns,
+        "encoding": encoding,
+        "width_px": int(image.shape[1]),
+        "height_px": int(image.shape[0]),
+    }
+    if camera is not None:
+        fields["camera"] = camera.camera_fields()
+    return make_metadata("frame", exposure.start_ns, fields)
+
+
+def read_frame_metadata(metadata: bytes) -> FrameMeta:
+    """Validate and read ``frame`` metadata."""
+    root = validate_metadata(metadata, "frame")
+    camera = (
+        CameraModel.from_element(root) if root.find("{urn:framegate:1}camera") is not None else None
+    )
+    return FrameMeta(
+        timestamp_ns=int(root.get("timestamp_ns")),
+        frame_id=int(field_text(root, "frame_id") or 0),
+        exposure=Exposure(
+            int(field_text(root, "exposure_start_ns") or 0),
+            int(field_text(root, "exposure_ns") or 0),
+        ),
+        encoding=str(field_text(root, "encoding")),
+        width_px=int(field_text(root, "width_px") or 0),
+        height_px=int(field_text(root, "height_px") or 0),
+        camera=camera,
+    )
+
+
+def decode_image(payload: bytes, meta: FrameMeta) -> npt.NDArray[np.uint8]:
+    """The image as a read-only array view of the payload (no copy)."""
+    channels = _CHANNELS[meta.encoding]
+    expected = meta.width_px * meta.height_px * channels
+    if len(payload) != expected:
+        raise SchemaError(
+            f"frame {meta.frame_id}: payload is {len(payload)} bytes, metadata says "
+            f"{meta.width_px}x{meta.height_px} {meta.encoding} = {expected}"
+        )
+    shape = (meta.height_px, meta.width_px) if channels == 1 else (meta.height_px, meta.width_px, 3)
+    return np.frombuffer(payload, dtype=np.uint8).reshape(shape)
+
+
+def gyro_metadata(samples: GyroSamples) -> bytes:
+    """``gyro`` metadata for a batch (key = last sample time)."""
+    first, last = int(samples.t_ns[0]), int(samples.t_ns[-1])
+    rate = 1e9 / samples.period_ns if samples.period_ns else 1.0
+    return make_metadata(
+        "gyro",
+        last,
+        {
+            "count": len(samples),
+            "first_ns": first,
+            "last_ns": last,
+            "rate_hz": float(rate),
+            "layout": "i8,f8,f8,f8",
+        },
+    )
+
+
+def detections_metadata(
+    timestamp_ns: int,
+    frame_id: int,
+    source: str,
+    processing_ns: int,
+    markers: list[tuple[int, list[float]]],
+) -> bytes:
+    """``detections`` metadata: the marker ids and corners found in one frame."""
+    return make_metadata(
+        "detections",
+        timestamp_ns,
+        {
+            "frame_id": frame_id,
+            "source": source,
+            "processing_ns": processing_ns,
+            "marker": [{"id": i, "corners_px": corners} for i, corners in markers],
+        },
+    )
+
+
+def read_detections(metadata: bytes) -> tuple[int, list[int]]:
+    """(frame_id, marker ids) of ``detections`` metadata."""
+    root = validate_metadata(metadata, "detections")
+    ids = [int(m.findtext("{urn:framegate:1}id")) for m in root.iter("{urn:framegate:1}marker")]
+    return int(field_text(root, "frame_id") or 0), ids
+
+
+@dataclass(frozen=True, slots=True)
+class DecisionRecord:
+    """One mediator decision as stored in mediator/decisions."""
+
+    frame_timestamp_ns: int
+    frame_id: int
+    blur_px: float | None
+    quality: float | None
+    load: float
+    accepted: bool
+    reason: str
+    policy: str
+    b0_px: float
+    latency_ns: int
+
+    def metadata(self, key_ns: int) -> bytes:
+        fields: dict[str, Any] = {
+            "frame_timestamp_ns": self.frame_timestamp_ns,
+            "frame_id": self.frame_id,
+        }
+        if self.blur_px is not None and np.isfinite(self.blur_px):
+            fields["blur_px"] = float(self.blur_px)
+        if self.quality is not None:
+            fields["quality"] = float(self.quality)
+        fields |= {
+            "load": float(min(1.0, max(0.0, self.load))),
+            "accepted": bool(self.accepted),
+            "reason": self.reason,
+            "policy": self.policy,
+            "b0_px": float(self.b0_px),
+            "latency_ns": max(0, int(self.latency_ns)),
+        }
+        return make_metadata("decision", key_ns, fields)
+
+    @classmethod
+    def from_metadata(cls, metadata: bytes) -> DecisionRecord:
+        root = validate_metadata(metadata, "decision")
+
+        def opt(name: str) -> float | None:
+            text = field_text(root, name)
+            return float(text) if text else None
+
+        return cls(
+            frame_timestamp_ns=int(field_text(root, "frame_timestamp_ns") or 0),
+            frame_id=int(field_text(root, "frame_id") or 0),
+            blur_px=opt("blur_px"),
+            quality=opt("quality"),
+            load=float(field_text(root, "load") or 0),
+            accepted=field_text(root, "accepted") in ("true", "1"),
+            reason=str(field_text(root, "reason")),
+            policy=str(field_text(root, "policy")),
+            b0_px=float(field_text(root, "b0_px") or 0),
+            latency_ns=int(field_text(root, "latency_ns") or 0),
+        )

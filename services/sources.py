@@ -1,0 +1,291 @@
+"""Where the camera and gyro services get their data: simulator, dataset replay, device.
+
+Simulated and replayed sources give times relative to a dataset epoch (camera clock for
+frames, gyro clock for gyro samples); the services map them onto the wall clock from a
+shared start instant, divided by ``--rate``. A device gives wall-clock times directly.
+"""
+
+from __future__ import annotations
+
+import argparse
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from middleware import ConfigError
+from services.camera_model import CameraModel
+
+
+@dataclass(frozen=True, slots=True)
+class SourceSpec:
+    """Which source, and how to play it."""
+
+    kind: str = "sim"
+    path: str | None = None
+    seed: int = 1
+    rate: float = 1.0
+    loop: bool = False
+    frames: int | None = None
+    start_at_ns: int | None = None
+    exit_when_done: bool = False
+    exposure_ms: float = 30.0
+    camera_xml: str | None = None
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("sim", "replay", "device"):
+            raise ConfigError(f"unknown source {self.kind!r}: use sim, replay DIR or device N|URL")
+        if self.kind in ("replay", "device") and not self.path:
+            raise ConfigError(f"source {self.kind} needs a path (--path)")
+        if self.rate <= 0:
+            raise ConfigError(f"--rate must be > 0, got {self.rate}")
+
+
+@dataclass(frozen=True, slots=True)
+class SourceFrame:
+    """One frame and when it was exposed (relative to the source's epoch, or wall clock).
+
+    ``load()`` renders or reads the image; a camera that is already too late for the frame
+    skips it without paying for that.
+    """
+
+    frame_id: int
+    exposure_start_ns: int
+    exposure_ns: int
+    load: Callable[[], npt.NDArray[np.uint8]]
+
+
+class _Timeline:
+    """Common to replayed sources: the loop period and the rate scaling."""
+
+    relative = True
+
+    def __init__(self, spec: SourceSpec, period_ns: int, count: int) -> None:
+        self.spec = spec
+        self.frame_period_ns = period_ns
+        self.count = count if spec.frames is None else min(count, spec.frames)
+        self.loop_ns = self.count * period_ns
+
+    def scale(self, t_rel_ns: int) -> int:
+        """Relative dataset time → relative wall time at ``--rate``."""
+        return int(t_rel_ns / self.spec.rate)
+
+    def loops(self, stop: threading.Event) -> Iterator[int]:
+        k = 0
+        while not stop.is_set():
+            yield k * self.loop_ns
+            k += 1
+            if not self.spec.loop:
+                return
+
+
+class FrameSource(_Timeline):
+    """Frames of the simulator or a dataset on disk."""
+
+    def __init__(self, spec: SourceSpec) -> None:
+        if spec.kind == "sim":
+            from services.sim import Scenario, ScenarioConfig
+
+            self._scenario: Any = Scenario(ScenarioConfig(seed=spec.seed))
+            self.camera: CameraModel = self._scenario.camera
+            infos = [self._scenario.frame_info(i) for i in range(self._scenario.frame_count)]
+            self.description = f"simulated approach, seed {spec.seed}"
+        else:
+            from services.sim import read_dataset
+
+            self._scenario = read_dataset(Path(str(spec.path)))
+            self.camera = self._scenario.camera
+            infos = list(self._scenario.frames)
+            self.description = f"replay of {spec.path}"
+        if not infos:
+            raise ConfigError(f"{self.description} has no frames")
+        self._infos = infos
+        period = (
+            int(np.median(np.diff([i.exposure_start_ns for i in infos])))
+            if len(infos) > 1
+            else 66_666_667
+        )
+        super().__init__(spec, period, len(infos))
+        self.exposure_ns = int(infos[0].exposure_ns)
+        if spec.rate != 1.0:
+            self.description += f" at {spec.rate}x"
+
+    def _image(self, index: int) -> npt.NDArray[np.uint8]:
+        if self.spec.kind == "sim":
+            return np.asarray(self._scenario.render(index), dtype=np.uint8)
+        return np.asarray(self._scenario.image(index), dtype=np.uint8)
+
+    def frames(self, stop: threading.Event) -> Iterator[SourceFrame]:
+        frame_id = 0
+        for offset in self.loops(stop):
+            for index in range(self.count):
+                if stop.is_set():
+                    return
+                info = self._infos[index]
+                yield SourceFrame(
+                    frame_id,
+                    offset + int(info.exposure_start_ns),
+                    int(info.exposure_ns),
+                    partial(self._image, index),
+                )
+                frame_id += 1
+
+
+class GyroSource(_Timeline):
+    """Gyro samples of the simulator or a dataset, on the gyro clock."""
+
+    def __init__(self, spec: SourceSpec) -> None:
+        if spec.kind == "sim":
+            from services.sim import Scenario, ScenarioConfig
+
+            scenario: Any = Scenario(ScenarioConfig(seed=spec.seed))
+            trace = scenario.gyro_samples()
+            period, count = scenario.config.frame_period_ns, scenario.frame_count
+            self.description = f"simulated gyro, seed {spec.seed}"
+        elif spec.kind == "replay":
+            from services.sim import read_dataset
+
+            dataset: Any = read_dataset(Path(str(spec.path)))
+            trace = dataset.gyro
+            starts = [f.exposure_start_ns for f in dataset.frames]
+            period = int(np.median(np.diff(starts))) if len(starts) > 1 else 66_666_667
+            count = len(starts)
+            self.description = f"replay of {spec.path}"
+        else:
+            raise ConfigError("the gyro service has no device source; use sim or replay DIR")
+        super().__init__(spec, period, count)
+        self._t = np.asarray(trace.t_ns, dtype=np.int64)
+        self._w = np.asarray(trace.rate_rad_s, dtype=np.float64)
+        self.period_ns = int(np.median(np.diff(self._t))) if len(self._t) > 1 else 2_000_000
+
+    def batches(
+        self, size: int, stop: threading.Event
+    ) -> Iterator[tuple[npt.NDArray[np.int64], npt.NDArray[np.float64]]]:
+        """(t_rel_ns, rates) batches; a loop repeats the samples of [0, loop) shifted."""
+        for offset in self.loops(stop):
+            if self.spec.loop:
+                # Only one loop period per pass, so looped times keep increasing.
+                keep = (self._t >= 0) & (self._t < self.loop_ns)
+                t, w = self._t[keep], self._w[keep]
+            else:
+                t, w = self._t, self._w
+            for i in range(0, len(t), size):
+                if stop.is_set():
+                    return
+                yield t[i : i + size] + offset, w[i : i + size]
+
+
+class DeviceSource:
+    """A cv2.VideoCapture (camera index or URL); wall-clock times."""
+
+    relative = False
+
+    def __init__(self, spec: SourceSpec) -> None:
+        import cv2
+
+        target: int | str = int(str(spec.path)) if str(spec.path).isdigit() else str(spec.path)
+        self._capture = cv2.VideoCapture(target)
+        if not self._capture.isOpened():
+            raise ConfigError(f"cannot open video device {spec.path!r}")
+        self.spec = spec
+        self.exposure_ns = int(spec.exposure_ms * 1e6)
+        fps = float(self._capture.get(cv2.CAP_PROP_FPS) or 0) or 15.0
+        self.frame_period_ns = int(1e9 / fps)
+        ok, first = self._capture.read()
+        if not ok:
+            raise ConfigError(f"video device {spec.path!r} delivered no image")
+        self._first = self._gray(first)
+        height, width = self._first.shape
+        self.camera = (
+            CameraModel.from_xml(Path(spec.camera_xml).read_bytes())
+            if spec.camera_xml
+            else CameraModel(width, height, float(width), float(width), width / 2, height / 2)
+        )
+        self.description = f"device {spec.path}"
+
+    @staticmethod
+    def _gray(image: Any) -> npt.NDArray[np.uint8]:
+        import cv2
+
+        array = np.asarray(image)
+        if array.ndim == 3:
+            array = cv2.cvtColor(array, cv2.COLOR_BGR2GRAY)
+        return np.ascontiguousarray(array, dtype=np.uint8)
+
+    def scale(self, t_ns: int) -> int:
+        return t_ns
+
+    def frames(self, stop: threading.Event) -> Iterator[SourceFrame]:
+        frame_id = 0
+        image: npt.NDArray[np.uint8] | None = self._first
+        while not stop.is_set():
+            if image is None:
+                ok, raw = self._capture.read()
+                if not ok:
+                    return
+                image = self._gray(raw)
+            # Read time is the end of exposure (the driver gives no better clock here).
+            start = time.time_ns() - self.exposure_ns
+            yield SourceFrame(frame_id, start, self.exposure_ns, partial(_same, image))
+            image = None
+            frame_id += 1
+
+
+def _same(image: npt.NDArray[np.uint8]) -> npt.NDArray[np.uint8]:
+    return image
+
+
+def open_frame_source(spec: SourceSpec) -> FrameSource | DeviceSource:
+    """The frame source a spec names."""
+    return DeviceSource(spec) if spec.kind == "device" else FrameSource(spec)
+
+
+def open_gyro_source(spec: SourceSpec) -> GyroSource:
+    """The gyro source a spec names."""
+    return GyroSource(spec)
+
+
+def add_source_arguments(parser: argparse.ArgumentParser, *, device: bool) -> None:
+    """--source and how to play it, shared by camera and gyro."""
+    kinds = ["sim", "replay", "device"] if device else ["sim", "replay"]
+    parser.add_argument("--source", choices=kinds, default="sim", help="where data comes from")
+    parser.add_argument(
+        "--path", help="dataset directory (replay)" + (" or device index/URL" if device else "")
+    )
+    parser.add_argument("--seed", type=int, default=1, help="simulator seed (sim)")
+    parser.add_argument("--rate", type=float, default=1.0, help="replay speed factor")
+    parser.add_argument("--loop", action="store_true", help="start over at the end")
+    parser.add_argument("--frames", type=int, help="play only the first N frames")
+    parser.add_argument(
+        "--start-at",
+        type=int,
+        dest="start_at_ns",
+        help="wall-clock ns of replay time zero (default: $FRAMEGATE_START_AT_NS or now)",
+    )
+    parser.add_argument("--exit-when-done", action="store_true", help="exit after the last element")
+    if device:
+        parser.add_argument(
+            "--exposure-ms", type=float, default=30.0, help="exposure time of a device camera"
+        )
+        parser.add_argument("--camera-xml", help="camera description (camera metadata XML)")
+
+
+def source_from_args(args: argparse.Namespace) -> SourceSpec:
+    return SourceSpec(
+        kind=args.source,
+        path=args.path,
+        seed=args.seed,
+        rate=args.rate,
+        loop=args.loop,
+        frames=args.frames,
+        start_at_ns=args.start_at_ns,
+        exit_when_done=args.exit_when_done,
+        exposure_ms=getattr(args, "exposure_ms", 30.0),
+        camera_xml=getattr(args, "camera_xml", None),
+    )
