@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import threading
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -21,6 +22,9 @@ from services._runtime import setup_logging, sleep_until_ns, start_at_ns
 from services.messages import gyro_metadata
 from services.quality import GyroSamples
 from services.sources import SourceSpec, open_gyro_source
+
+# Batches older than this when their time comes are skipped, not sent.
+_STALE_NS = 500_000_000
 
 
 @dataclass(frozen=True, slots=True)
@@ -53,6 +57,9 @@ def run(config: GyroConfig, network: NetworkConfig, stop: threading.Event | None
         try:
             for t_rel, w in source.batches(config.batch, stop):
                 t_wall = t0_wall + np.asarray([source.scale(int(t)) for t in t_rel], np.int64)
+                # A sensor cannot deliver the past: a restarted or stalled gyro resumes now.
+                if time.time_ns() - int(t_wall[-1]) > _STALE_NS:
+                    continue
                 if not sleep_until_ns(int(t_wall[-1]), stop):
                     break
                 batch = GyroSamples(t_wall, w, period_ns=source.scale(source.period_ns))

@@ -1,0 +1,71 @@
+"""Run a deploy file with ``framegate launch`` in a subprocess, isolated on its own port."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+from pathlib import Path
+from typing import Any
+
+from middleware import FramegateError, NetworkConfig, Node
+from tests.conftest import REPO, child_env, free_port
+
+
+class Pipeline:
+    """``framegate launch FILE`` plus a client Node on the same private rendezvous port."""
+
+    def __init__(self, tmp_path: Path, deploy_yaml: str) -> None:
+        self.port = free_port()
+        self.deploy = tmp_path / "deploy.yaml"
+        self.deploy.write_text(deploy_yaml)
+        env = child_env()
+        env["FRAMEGATE_LOCAL_PORT"] = str(self.port)
+        self.lines: list[str] = []
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "services.cli", "launch", str(self.deploy), "--no-colour"],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            cwd=REPO,
+            env=env,
+        )
+        threading.Thread(target=self._pump, daemon=True).start()
+        self.network = NetworkConfig(local_port=self.port)
+        self.node = Node(network=self.network)
+
+    def _pump(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            self.lines.append(line.rstrip())
+
+    def info(self, target: str) -> Any:
+        return self.node.buffer_info(target, timeout_s=2.0)
+
+    def pid(self, service: str) -> int | None:
+        """The service's pid, or None while it is not live (e.g. restarting)."""
+        try:
+            return self.node.service_info(service, timeout_s=2.0).pid
+        except FramegateError:
+            return None
+
+    def kill(self, service: str) -> int:
+        pid = self.pid(service)
+        assert pid is not None, f"{service} is not live"
+        os.kill(pid, signal.SIGKILL)
+        return pid
+
+    def log(self) -> str:
+        return "\n".join(self.lines[-80:])
+
+    def close(self) -> None:
+        self.node.close()
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(timeout=15)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
