@@ -1,0 +1,37 @@
+"""Motion-blur quality of frames from gyro rates (paper §4.2-4.3), and what goes beyond it.
+
+The mediator calls ``estimate_blur`` for every frame, maps the blur to a quality with
+``quality`` and applies the acceptance test ``accept`` (or ``decide`` for a record).
+"""
+
+from ._accept import DEFAULT_B0_PX, Decision, accept, decide, quality, queue_load
+from ._bench import bench_quality
+from ._blur import BlurEstimate, BlurMode, BlurOptions, Roi, estimate_blur
+from ._calibrate import CalibrationError, derive_b0
+from ._exposure import Exposure
+from ._gyro import GYRO_DTYPE, GyroSamples
+from ._offset import OffsetEstimate, estimate_time_offset, laplacian_variance, rank_correlation
+
+__all__ = [
+    "DEFAULT_B0_PX",
+    "GYRO_DTYPE",
+    "BlurEstimate",
+    "BlurMode",
+    "BlurOptions",
+    "CalibrationError",
+    "Decision",
+    "Exposure",
+    "GyroSamples",
+    "OffsetEstimate",
+    "Roi",
+    "accept",
+    "bench_quality",
+    "decide",
+    "derive_b0",
+    "estimate_blur",
+    "estimate_time_offset",
+    "laplacian_variance",
+    "quality",
+    "queue_load",
+    "rank_correlation",
+]

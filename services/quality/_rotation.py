@@ -1,0 +1,158 @@
+"""Vectorised integration of gyro rates into camera rotations.
+
+The rates are taken as piecewise linear between samples, so the rotation vector gained over
+any sub-interval is exact by the trapezoid rule, and an exposure boundary falling between two
+samples is handled by interpolation, never by rounding to a sample.
+
+Composing the per-interval rotations exactly needs a sequential product (a Python loop per
+frame). Instead the rotation since the first knot is kept as one rotation vector, summed with
+the second-order Baker-Campbell-Hausdorff term:
+
+    theta_{k+1} = theta_k + delta_k + 1/2 theta_k x delta_k
+
+with theta_k inside the cross product replaced by the plain running sum. This is exact
+whenever the rotation axis is fixed (all analytic cases: constant yaw, pitch, roll, or a fixed
+oblique axis, at any angle); when the axis wanders the error is third order in the total
+angle, about |theta|^3 / 12 rad: 0.2 rad of shake (3.3 rad/s over 60 ms) gives <= 7e-4 rad,
+0.4 px at f = 558 px on a blur of ~110 px.
+
+Arrays are laid out component-first, (3, K), so each component is a contiguous row. Rates and
+increments carry five rows, x y z x y (``DUPLICATED_ROWS``), so a cross product is two
+products of slices instead of six of rows: per-call numpy overhead, not arithmetic, is what
+costs here.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import numpy.typing as npt
+
+Floats = npt.NDArray[np.float64]
+Ints = npt.NDArray[np.int64]
+
+DUPLICATED_ROWS = (0, 1, 2, 0, 1)
+"""Rows of a rotation applied to rates so they come out as x y z x y."""
+
+_ONES3 = np.ones(3)
+
+# Keeps |theta| > 0 so sin(a)/a needs no branch; far below any real angle squared.
+_TINY_ANGLE2 = 1e-300
+
+
+def window_increments(t_ns: Ints, rates: Floats, start_ns: int, end_ns: int) -> Floats:
+    """Rotation-vector increments over one window inside the samples.
+
+    ``t_ns`` (M,) must start at or before ``start_ns`` and end at or after ``end_ns``, with
+    every other sample strictly inside (the slice ``covering`` returns). ``rates`` (R, M),
+    any number of rows. The knots are the window ends and the samples between them;
+    returns d (R, M-1), the increment over each knot interval.
+    """
+    t0, t1, t_before, t_last = t_ns[[0, 1, -2, -1]].tolist()
+    # Fractions of the end points inside their sample intervals.
+    f_start = (start_ns - t0) / (t1 - t0)
+    f_end = (end_ns - t_before) / (t_last - t_before)
+    right = (t_ns[1:] - t_ns[:-1]) * 5e-10
+    left = right.copy()
+    if right.size == 1:
+        # Both ends inside one sample interval.
+        length = (end_ns - start_ns) * 5e-10
+        left[0] = (2.0 - f_start - f_end) * length
+        right[0] = (f_start + f_end) * length
+    else:
+        # Trapezoids with the interpolated end rates, written as weights on the samples.
+        first = (t1 - start_ns) * 5e-10
+        last = (end_ns - t_before) * 5e-10
+        left[0] = (1.0 - f_start) * first
+        right[0] = (1.0 + f_start) * first
+        left[-1] = (2.0 - f_end) * last
+        right[-1] = f_end * last
+    increments: Floats = rates[:, :-1] * left + rates[:, 1:] * right
+    return increments
+
+
+def knot_increments(t_ns: Ints, rates: Floats, knots: Ints) -> Floats:
+    """Rotation-vector increments between sorted ``knots`` (K,) inside the samples.
+
+    Every sample strictly inside the knots' span must itself be a knot, so each knot
+    interval lies inside one sample interval. ``rates`` (R, M); returns (R, K-1).
+    """
+    seg = np.searchsorted(t_ns, knots[:-1], side="right") - 1
+    t0 = t_ns[seg]
+    step = (t_ns[seg + 1] - t0).astype(np.float64)
+    fa = (knots[:-1] - t0) / step
+    fb = (knots[1:] - t0) / step
+    half_s = (knots[1:] - knots[:-1]) * 5e-10
+    left: Floats = (2.0 - fa - fb) * half_s
+    right: Floats = (fa + fb) * half_s
+    return rates[:, seg] * left + rates[:, seg + 1] * right
+
+
+def cumulative_rotation(d5: Floats) -> Floats:
+    """Rotation vectors (3, K) at each knot since the first, from x y z x y increments (5, K-1)."""
+    running = np.zeros((5, d5.shape[1] + 1))
+    d5.cumsum(axis=1, out=running[:, 1:])
+    # BCH term: theta_{k+1} gains 1/2 sum_{j<=k} theta_j x d_j (theta_0 = 0 adds nothing).
+    prev = running[:, 1:-1]
+    nxt = d5[:, 1:]
+    cross = prev[1:4] * nxt[2:5] - prev[2:5] * nxt[1:4]
+    cross *= 0.5
+    running[:3, 2:] += cross.cumsum(axis=1)
+    return running[:3]
+
+
+def _terms(theta: Floats) -> tuple[Floats, Floats, Floats]:
+    """cos|t|, sin|t|/|t| and (1 - cos|t|)/|t|^2 for Rodrigues' formula, branch-free."""
+    angle2 = np.dot(_ONES3, theta * theta) + _TINY_ANGLE2
+    angle = np.sqrt(angle2)
+    cos = np.cos(angle)
+    # 1 - cos loses relative precision for tiny angles, but the term it scales is then
+    # below 1e-16 of the result, so this stays accurate to rounding.
+    return cos, np.sin(angle) / angle, (1.0 - cos) / angle2
+
+
+def inverse_rotation_matrices(theta: Floats) -> Floats:
+    """Exp(-theta_k) as (3, 3, K): maps a direction fixed at knot 0 into the frame at knot k."""
+    cos, sinc, h = _terms(theta)
+    ht = h * theta
+    m = ht[:, None, :] * theta[None, :, :]
+    st = sinc * theta
+    m[0, 0] += cos
+    m[1, 1] += cos
+    m[2, 2] += cos
+    m[0, 1] += st[2]
+    m[1, 0] -= st[2]
+    m[0, 2] -= st[1]
+    m[2, 0] += st[1]
+    m[1, 2] += st[0]
+    m[2, 1] -= st[0]
+    return m
+
+
+def axis_projection(fx_px: float, fy_px: float) -> tuple[Floats, Floats]:
+    """The constants ``project_optical_axis`` needs for a camera, computed once per camera."""
+    half_focal = np.array([[0.5 * fx_px], [0.5 * fy_px]])
+    return half_focal, 2.0 * half_focal * _PERP
+
+
+def project_optical_axis(theta: Floats, projection: tuple[Floats, Floats]) -> tuple[Floats, Floats]:
+    """Where the ray through the principal point at knot 0 is seen at each knot.
+
+    Returns its image offsets from the principal point, (2, K) in pixels, and a depth (K,)
+    whose sign is that of the ray's z (it is behind the camera when <= 0). ``projection``
+    comes from ``axis_projection``. With the Gibbs vector g = tan(|t|/2) t/|t|,
+    Exp(-theta) (0, 0, 1) is proportional to (2 (gx gz - gy), 2 (gy gz + gx),
+    1 - gx^2 - gy^2 + gz^2): one trigonometric call instead of three. Below, h = 2 g.
+    """
+    half_focal, focal_perp = projection
+    half_angle = np.sqrt(np.dot(_QUARTERS, theta * theta) + _TINY_ANGLE2)
+    h = theta * (np.tan(half_angle) / half_angle)
+    depth = np.dot(_DEPTH_SIGNS, h * h) + 1.0
+    offsets = (half_focal * h[2]) * h[:2] + np.dot(focal_perp, h)
+    offsets /= depth
+    return offsets, depth
+
+
+# |theta|^2 / 4 as a dot product; (-gy, gx) as a matrix; signs of gx^2, gy^2, gz^2 (h = 2 g).
+_QUARTERS = np.full(3, 0.25)
+_PERP = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0]])
+_DEPTH_SIGNS = np.array([-0.25, -0.25, 0.25])
