@@ -305,7 +305,12 @@ def _estimate(
     (xx, xy), (_, yy) = moments.tolist()
     energy = xx + yy
     if energy > 0.0 and math.isfinite(blur_px):
-        direction = 0.5 * math.atan2(2.0 * xy, xx - yy) % math.pi
+        direction = 0.5 * math.atan2(2.0 * xy, xx - yy)
+        if direction < 0.0:
+            direction += math.pi
+        if direction >= math.pi:
+            # -1e-17 + pi rounds to pi: that axis is the x axis.
+            direction = 0.0
         anisotropy = min(math.hypot(xx - yy, 2.0 * xy) / energy, 1.0)
     else:
         direction, anisotropy = 0.0, 0.0
