@@ -1,0 +1,288 @@
+"""framegate worker roles: the same jobs as ``_raw``, through the public ``middleware`` API.
+
+Producers put with ``wait_s`` (the lossless rule: a replay source waits rather than drops),
+so throughput is the sustainable rate with flow control on. Consumers take each notification
+and fetch its element (inline for small payloads, one query for frames): the
+notify-then-fetch design as an application uses it.
+"""
+
+from __future__ import annotations
+
+import gc
+import threading
+import time
+from typing import Any
+
+import psutil
+
+from middleware import (
+    FlowControlRefused,
+    FramegateError,
+    NetworkConfig,
+    Node,
+    Retention,
+    Subscription,
+    make_metadata,
+)
+
+from ._worker import Counter, paced, profiled, reply, round_trips, serve, sleep_until
+
+SERVICE = "bench"
+# Query-scaling elements sit this many ns apart, so a range of k elements is easy to write.
+STEP_NS = 1000
+
+
+class Stamper:
+    """Generic metadata for a timestamp, by formatting one template (not the cost we measure)."""
+
+    def __init__(self) -> None:
+        probe = 123_456_789
+        template = make_metadata("generic", probe)
+        marker = f'"{probe}"'.encode()
+        if template.count(marker) != 1:
+            raise RuntimeError(f"cannot find the timestamp in {template!r}")
+        self._format = template.replace(marker, b'"%d"')
+        if self(42) != make_metadata("generic", 42):
+            raise RuntimeError("metadata template does not reproduce make_metadata")
+
+    def __call__(self, timestamp_ns: int) -> bytes:
+        return self._format % timestamp_ns
+
+
+def _network(params: dict[str, Any]) -> NetworkConfig:
+    return NetworkConfig(
+        listen=(params["listen"],) if params.get("listen") else (),
+        connect=(params["connect"],) if params.get("connect") else (),
+        shared_memory=bool(params.get("shm", True)),
+    )
+
+
+def fg_pub(params: dict[str, Any]) -> None:
+    """Puts ``size``-byte elements with ``wait_s`` as fast as the subscriber takes them."""
+    payload = bytes(int(params["size"]))
+    stamp = Stamper()
+    clock = {"t": time.time_ns()}
+    with Node(SERVICE, _network(params)) as node:
+        producer = node.offer(
+            params["buffer"], retention=Retention(max_count=int(params.get("retain", 256)))
+        )
+
+        def produce(command: dict[str, Any]) -> dict[str, Any]:
+            if not producer.wait_for_subscribers(1, 10.0):
+                raise RuntimeError("no subscription registered within 10 s")
+            end = time.monotonic() + float(command["seconds"])
+            sent = refused = 0
+            t = clock["t"]
+            put = producer.put
+            while time.monotonic() < end:
+                for _ in range(8):
+                    t += 1
+                    try:
+                        put(t, payload, stamp(t), wait_s=5.0)
+                    except FlowControlRefused:
+                        refused += 1
+                sent += 8
+            clock["t"] = t
+            return {"sent": sent - refused, "refused": refused}
+
+        reply(ready=True)
+        serve({"produce": produce})
+
+
+def _consume(sub: Subscription, stop: threading.Event, on_element: Any) -> None:
+    with profiled(f"fg-consume-{sub.buffer}"):
+        while not stop.is_set():
+            note = sub.take(timeout_s=0.2)
+            if note is None:
+                continue
+            try:
+                element = sub.fetch(note)
+            except FramegateError:
+                on_element(None, note.timestamp_ns)
+            else:
+                on_element(element.payload, note.timestamp_ns)
+
+
+def fg_sub(params: dict[str, Any]) -> None:
+    """Takes each notification and fetches its element, counting payload bytes."""
+    counter = Counter()
+    stop = threading.Event()
+
+    def on_element(payload: bytes | None, _timestamp_ns: int) -> None:
+        if payload is None:
+            counter.errors += 1
+            return
+        counter.count += 1
+        counter.bytes += len(payload)
+
+    with Node(network=_network(params)) as node:
+        sub = node.subscribe(
+            f"{SERVICE}/{params['buffer']}", queue_size=int(params["queue_size"]), wait_s=5.0
+        )
+        thread = threading.Thread(target=_consume, args=(sub, stop, on_element), daemon=True)
+        thread.start()
+        reply(ready=True)
+        try:
+            serve({"mark": counter.mark})
+        finally:
+            stop.set()
+            thread.join(timeout=2.0)
+
+
+def fg_lat_pub(params: dict[str, Any]) -> None:
+    """Puts one element every ``interval_s``; its key is the monotonic clock at the put."""
+    stamp = Stamper()
+    with Node(SERVICE, _network(params)) as node:
+        producers = {
+            int(size): node.offer(f"lat{int(size)}", retention=Retention(max_count=64))
+            for size in params["sizes"]
+        }
+
+        def latency(command: dict[str, Any]) -> dict[str, Any]:
+            size = int(command["size"])
+            producer, payload = producers[size], bytes(size)
+            if not producer.wait_for_subscribers(1, 10.0):
+                raise RuntimeError("no subscription registered within 10 s")
+            sent = 0
+            for tick in paced(float(command["seconds"]), float(command["interval_s"])):
+                sleep_until(tick)
+                t = time.monotonic_ns()
+                producer.put(t, payload, stamp(t), wait_s=1.0)
+                sent += 1
+            return {"sent": sent}
+
+        reply(ready=True)
+        serve({"latency": latency})
+
+
+def fg_lat_sub(params: dict[str, Any]) -> None:
+    """One consuming thread per size; latency = monotonic now − the element's key."""
+    stop = threading.Event()
+    cond = threading.Condition()
+    latencies: dict[int, list[float]] = {int(size): [] for size in params["sizes"]}
+
+    def recorder(size: int) -> Any:
+        def on_element(payload: bytes | None, timestamp_ns: int) -> None:
+            now = time.monotonic_ns()
+            if payload is None or len(payload) != size:
+                return
+            with cond:
+                latencies[size].append((now - timestamp_ns) / 1000)
+                cond.notify_all()
+
+        return on_element
+
+    def collect(command: dict[str, Any]) -> dict[str, Any]:
+        size, expect = int(command["size"]), int(command["expect"])
+        deadline = time.monotonic() + float(command.get("wait_s", 10.0))
+        with cond:
+            while len(latencies[size]) < expect and time.monotonic() < deadline:
+                cond.wait(0.05)
+            out, latencies[size] = latencies[size], []
+        return {"latencies_us": out}
+
+    with Node(network=_network(params)) as node:
+        threads = []
+        for size in latencies:
+            sub = node.subscribe(f"{SERVICE}/lat{size}", queue_size=2, wait_s=5.0)
+            thread = threading.Thread(
+                target=_consume, args=(sub, stop, recorder(size)), daemon=True
+            )
+            thread.start()
+            threads.append(thread)
+        reply(ready=True)
+        try:
+            serve({"collect": collect})
+        finally:
+            stop.set()
+            for thread in threads:
+                thread.join(timeout=2.0)
+
+
+def fg_query_server(params: dict[str, Any]) -> None:
+    """Offers ``n<count>`` buffers of ``count`` small elements, keys STEP_NS apart."""
+    stamp = Stamper()
+    payload = bytes(int(params.get("size", 64)))
+    with Node(SERVICE, _network(params)) as node:
+        started = time.monotonic()
+        for count in params["counts"]:
+            producer = node.offer(
+                f"n{int(count)}", retention=Retention(max_count=None, max_bytes=None)
+            )
+            for i in range(1, int(count) + 1):
+                producer.put(i * STEP_NS, payload, stamp(i * STEP_NS))
+        reply(ready=True, fill_s=time.monotonic() - started)
+        serve({})
+
+
+def fg_query_client(params: dict[str, Any]) -> None:
+    """Range queries returning exactly k elements from the middle of an n-element buffer."""
+    with Node(network=_network(params)) as node:
+
+        def latency(command: dict[str, Any]) -> dict[str, Any]:
+            n, k = int(command["n"]), int(command["k"])
+            first = max(1, n // 2 - k // 2)
+            time_range = f"[{first * STEP_NS}..{(first + k - 1) * STEP_NS}]"
+            target = f"{SERVICE}/n{n}"
+
+            def ask() -> None:
+                got = node.query(target, time_range=time_range)
+                if len(got) != k:
+                    raise RuntimeError(f"{target} {time_range}: expected {k}, got {len(got)}")
+
+            deadline = time.monotonic() + 10.0
+            while True:  # the service may not be visible yet
+                try:
+                    ask()
+                    break
+                except FramegateError:
+                    if time.monotonic() > deadline:
+                        raise
+                    time.sleep(0.05)
+            latencies = round_trips(
+                ask,
+                float(command["seconds"]),
+                float(command.get("interval_s", 0.0)),
+                int(command.get("max_count", 1_000_000)),
+            )
+            return {"latencies_us": latencies}
+
+        reply(ready=True)
+        serve({"latency": latency})
+
+
+def fg_memory(params: dict[str, Any]) -> None:
+    """RSS of a service process before and after holding ``count`` × ``size`` bytes."""
+    count, size = int(params["count"]), int(params["size"])
+    stamp = Stamper()
+    template = bytearray(size)
+    with Node(SERVICE, _network(params)) as node:
+        producer = node.offer("frames", retention=Retention(max_count=None, max_bytes=None))
+        gc.collect()
+        before = psutil.Process().memory_info().rss
+        t0 = time.time_ns()
+        for i in range(count):
+            template[:8] = i.to_bytes(8, "little")
+            producer.put(t0 + i, bytes(template), stamp(t0 + i))
+        gc.collect()
+        after = psutil.Process().memory_info().rss
+        held = producer.info().payload_bytes
+        reply(
+            ready=True,
+            rss_before=before,
+            rss_after=after,
+            payload_bytes=count * size,
+            buffer_bytes=held,
+        )
+        serve({})
+
+
+ROLES = {
+    "fg-lat-pub": fg_lat_pub,
+    "fg-lat-sub": fg_lat_sub,
+    "fg-memory": fg_memory,
+    "fg-pub": fg_pub,
+    "fg-query-client": fg_query_client,
+    "fg-query-server": fg_query_server,
+    "fg-sub": fg_sub,
+}

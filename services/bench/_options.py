@@ -1,0 +1,86 @@
+"""What a benchmark run was asked to do."""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from ._procs import BenchError
+
+SCENARIO_NAMES = ("frames", "small", "latency", "query-scaling", "memory", "quality")
+
+# Measured window per sample (s) and runs per side, unless the command line says otherwise.
+FULL_DURATION_S = 4.0
+FULL_PAIRS = 3
+QUICK_DURATION_S = 0.5
+QUICK_PAIRS = 1
+
+
+def _stderr(message: str) -> None:
+    print(message, file=sys.stderr, flush=True)
+
+
+@dataclass(frozen=True, slots=True)
+class BenchOptions:
+    """Scenarios to run, the measured window per sample, and raw/framegate pairs per row.
+
+    Each sample measures ``duration_s`` (query-scaling: a quarter of it per (n, k));
+    ``quick`` also shrinks sizes (memory, query-scaling) for a CI smoke test.
+    """
+
+    scenarios: tuple[str, ...] = SCENARIO_NAMES
+    duration_s: float = FULL_DURATION_S
+    pairs: int = FULL_PAIRS
+    quick: bool = False
+    progress: Callable[[str], None] = field(default=_stderr, compare=False)
+
+    def __post_init__(self) -> None:
+        unknown = [s for s in self.scenarios if s not in SCENARIO_NAMES]
+        if unknown:
+            raise BenchError(
+                f"unknown scenario(s) {', '.join(unknown)}; choose from {', '.join(SCENARIO_NAMES)}"
+            )
+        if self.duration_s <= 0:
+            raise BenchError(f"duration {self.duration_s} s must be > 0")
+        if self.pairs < 1:
+            raise BenchError(f"pairs {self.pairs} must be >= 1")
+        if self.pairs < 3 and not self.quick:
+            raise BenchError(
+                f"{self.pairs} pair(s) is too few to compare: use --pairs 3 or more, "
+                "or --quick for a smoke test"
+            )
+
+    @classmethod
+    def create(
+        cls,
+        scenarios: tuple[str, ...] = (),
+        *,
+        duration_s: float | None = None,
+        pairs: int | None = None,
+        quick: bool = False,
+        progress: Callable[[str], None] = _stderr,
+    ) -> BenchOptions:
+        """Fill unset values with the quick or full defaults."""
+        return cls(
+            scenarios=scenarios or SCENARIO_NAMES,
+            duration_s=duration_s or (QUICK_DURATION_S if quick else FULL_DURATION_S),
+            pairs=pairs or (QUICK_PAIRS if quick else FULL_PAIRS),
+            quick=quick,
+            progress=progress,
+        )
+
+    @property
+    def warmup_s(self) -> float:
+        """Unmeasured running before each throughput window."""
+        return 0.3 if self.quick else 0.5
+
+    def as_json(self) -> dict[str, Any]:
+        return {
+            "scenarios": list(self.scenarios),
+            "duration_s": self.duration_s,
+            "pairs": self.pairs,
+            "quick": self.quick,
+            "warmup_s": self.warmup_s,
+        }

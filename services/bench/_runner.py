@@ -1,0 +1,95 @@
+"""Running the chosen scenarios and collecting one JSON-ready report.
+
+Report keys (``SCHEMA`` = ``framegate-bench/1``): ``schema``, ``created_utc``,
+``elapsed_s``, ``machine`` (cpu_count, physical_cores, memory_bytes, load_average_start/end,
+platform, python, zenoh, numpy, msgpack, psutil), ``options`` (scenarios, duration_s,
+pairs, quick, warmup_s), ``scenarios`` (name → status, reason, params, elapsed_s, rows) and
+``goals`` (scenario, row, text, limit, comparison, measured, passed). Each row holds
+``raw`` and ``framegate`` (samples, median, min, max, count, cpu_pct), ``ratio``
+(framegate/raw medians), ``goal`` and ``note``.
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import sys
+import time
+import traceback
+from collections.abc import Callable
+from datetime import UTC, datetime
+from importlib import metadata
+from typing import Any
+
+import psutil
+
+from ._latency import run_latency
+from ._memory import run_memory
+from ._options import BenchOptions
+from ._quality import run_quality
+from ._query_scaling import run_query_scaling
+from ._records import ScenarioResult
+from ._throughput import run_frames, run_small
+
+SCHEMA = "framegate-bench/1"
+
+SCENARIOS: dict[str, Callable[[BenchOptions], ScenarioResult]] = {
+    "frames": run_frames,
+    "small": run_small,
+    "latency": run_latency,
+    "query-scaling": run_query_scaling,
+    "memory": run_memory,
+    "quality": run_quality,
+}
+
+
+def _version(distribution: str) -> str | None:
+    try:
+        return metadata.version(distribution)
+    except metadata.PackageNotFoundError:
+        return None
+
+
+def machine_info() -> dict[str, Any]:
+    """Cores, memory, load and the versions that decide the numbers."""
+    return {
+        "cpu_count": os.cpu_count(),
+        "physical_cores": psutil.cpu_count(logical=False),
+        "memory_bytes": psutil.virtual_memory().total,
+        "load_average_start": list(os.getloadavg()),
+        "platform": platform.platform(),
+        "python": sys.version.split()[0],
+        "zenoh": _version("eclipse-zenoh"),
+        "numpy": _version("numpy"),
+        "msgpack": _version("msgpack"),
+        "psutil": _version("psutil"),
+    }
+
+
+def run_bench(options: BenchOptions) -> dict[str, Any]:
+    """Run ``options.scenarios`` in order; a failing scenario is reported, not raised."""
+    started = time.monotonic()
+    report: dict[str, Any] = {
+        "schema": SCHEMA,
+        "created_utc": datetime.now(UTC).isoformat(timespec="seconds"),
+        "machine": machine_info(),
+        "options": options.as_json(),
+        "scenarios": {},
+        "goals": [],
+    }
+    for name in options.scenarios:
+        began = time.monotonic()
+        options.progress(f"== {name}")
+        try:
+            result = SCENARIOS[name](options)
+        except Exception as exc:  # one broken scenario must not hide the others' numbers
+            options.progress("".join(traceback.format_exception(exc)).rstrip())
+            result = ScenarioResult(name, status="error", reason=f"{type(exc).__name__}: {exc}")
+        result.elapsed_s = time.monotonic() - began
+        report["scenarios"][name] = result.as_json()
+        for row in result.rows:
+            if row.goal is not None:
+                report["goals"].append({"scenario": name, "row": row.name, **row.goal.as_json()})
+    report["machine"]["load_average_end"] = list(os.getloadavg())
+    report["elapsed_s"] = round(time.monotonic() - started, 3)
+    return report

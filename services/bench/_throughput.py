@@ -1,0 +1,160 @@
+"""Throughput scenarios: ``frames`` (1280×1024 mono8, SHM and TCP, and an inline size) and
+``small`` (64 B), framegate's notify-then-fetch against raw pub/sub of the same payload.
+
+Each mode starts a raw pair and a framegate pair of processes once, then alternates runs
+(raw, framegate, raw, framegate, ...). In a run the producer puts as fast as it may (raw:
+BLOCK congestion control; framegate: ``put(..., wait_s=5)``, never refused) while the parent
+marks the consumer's count at the start and end of the measured window; the rate comes from
+the consumer's own clock. CPU is each process's user+system time over the same window.
+Between runs the consumer drains everything, so the runs never overlap.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any
+
+from ._options import BenchOptions
+from ._procs import BenchError, Worker, WorkerGroup, free_endpoint
+from ._records import Row, ScenarioResult, ratio_goal
+
+FRAME_BYTES = 1280 * 1024  # one mono8 frame
+INLINE_BYTES = 64 * 1024  # the largest payload the middleware sends inline by default
+SMALL_BYTES = 64
+
+FRAMES_GOAL = 0.9
+SMALL_GOAL = 0.5
+
+
+@dataclass(frozen=True, slots=True)
+class Mode:
+    """One throughput row: payload size, transport and the subscriber's queue size."""
+
+    name: str
+    size: int
+    shared_memory: bool
+    queue_size: int
+
+    def as_json(self) -> dict[str, Any]:
+        return {
+            "name": self.name,
+            "payload_bytes": self.size,
+            "shared_memory": self.shared_memory,
+            "queue_size": self.queue_size,
+        }
+
+
+FRAME_MODES = (
+    Mode("1280x1024 mono8, shm", FRAME_BYTES, True, 8),
+    Mode("1280x1024 mono8, tcp", FRAME_BYTES, False, 8),
+    Mode("64 KiB inline, shm", INLINE_BYTES, True, 8),
+)
+SMALL_MODES = (Mode("64 B", SMALL_BYTES, True, 8),)
+
+
+def run_frames(options: BenchOptions) -> ScenarioResult:
+    return _run("frames", FRAME_MODES, FRAMES_GOAL, options)
+
+
+def run_small(options: BenchOptions) -> ScenarioResult:
+    return _run("small", SMALL_MODES, SMALL_GOAL, options)
+
+
+def _run(
+    scenario: str, modes: tuple[Mode, ...], goal: float, options: BenchOptions
+) -> ScenarioResult:
+    result = ScenarioResult(
+        scenario,
+        params={
+            "modes": [m.as_json() for m in modes],
+            "warmup_s": options.warmup_s,
+            "window_s": options.duration_s,
+            "raw": "publisher CongestionControl.BLOCK -> default FIFO subscriber, to_bytes()",
+            "framegate": "put(wait_s=5) -> subscribe(queue_size) take() + fetch()",
+        },
+    )
+    for mode in modes:
+        row = Row(mode.name, "throughput", "msg/s", higher_is_better=True)
+        _run_mode(scenario, mode, row, options)
+        row.goal = ratio_goal(row, goal, at_least=True, what="throughput")
+        result.rows.append(row)
+    return result
+
+
+def _run_mode(scenario: str, mode: Mode, row: Row, options: BenchOptions) -> None:
+    raw_at, fg_at = free_endpoint(), free_endpoint()
+    common = {"shm": mode.shared_memory, "size": mode.size}
+    with WorkerGroup() as group:
+        sides = {
+            "raw": (
+                group.start("raw-pub", {**common, "listen": raw_at}),
+                group.start("raw-sub", {**common, "connect": raw_at}),
+            ),
+            "framegate": (
+                group.start("fg-pub", {**common, "listen": fg_at, "buffer": "data"}),
+                group.start(
+                    "fg-sub",
+                    {**common, "connect": fg_at, "buffer": "data", "queue_size": mode.queue_size},
+                ),
+            ),
+        }
+        group.wait_ready()
+        for pair in range(options.pairs):
+            for side in ("raw", "framegate"):
+                producer, consumer = sides[side]
+                sample = measure(producer, consumer, options.warmup_s, options.duration_s)
+                sample["pair"] = pair
+                row.samples("raw" if side == "raw" else "framegate").append(sample)
+                options.progress(
+                    f"{scenario} {mode.name} pair {pair + 1}/{options.pairs} {side}: "
+                    f"{sample['value']:,.0f} msg/s, CPU producer {sample['cpu_producer_pct']:.0f}%"
+                    f" consumer {sample['cpu_consumer_pct']:.0f}%"
+                )
+
+
+def measure(producer: Worker, consumer: Worker, warmup_s: float, window_s: float) -> dict[str, Any]:
+    """One run: produce for warm-up + window, mark the consumer around the window, drain."""
+    start = consumer.call("mark")
+    producer.send("produce", seconds=warmup_s + window_s + 0.3)
+    time.sleep(warmup_s)
+    cpu0 = (time.monotonic(), producer.cpu_s(), consumer.cpu_s())
+    first = consumer.call("mark")
+    time.sleep(window_s)
+    cpu1 = (time.monotonic(), producer.cpu_s(), consumer.cpu_s())
+    last = consumer.call("mark")
+    done = producer.recv(timeout_s=warmup_s + window_s + 30.0)
+    received = _drain(consumer, start["count"], int(done["sent"]))
+    elapsed_s = (last["t_ns"] - first["t_ns"]) / 1e9
+    wall_s = cpu1[0] - cpu0[0]
+    if elapsed_s <= 0 or wall_s <= 0:
+        raise BenchError(f"empty measuring window ({elapsed_s} s)")
+    count = last["count"] - first["count"]
+    return {
+        "value": count / elapsed_s,
+        "mb_s": (last["bytes"] - first["bytes"]) / elapsed_s / 1e6,
+        "count": count,
+        "window_s": elapsed_s,
+        "sent": int(done["sent"]),
+        "received": received,
+        "lost": int(done["sent"]) - received,
+        "errors": last["errors"] - first["errors"],
+        "cpu_producer_pct": 100.0 * (cpu1[1] - cpu0[1]) / wall_s,
+        "cpu_consumer_pct": 100.0 * (cpu1[2] - cpu0[2]) / wall_s,
+    }
+
+
+def _drain(consumer: Worker, base: int, sent: int, timeout_s: float = 10.0) -> int:
+    """Wait until the consumer has everything the producer sent (or stops receiving)."""
+    deadline = time.monotonic() + timeout_s
+    previous, still_since = -1, time.monotonic()
+    while True:
+        received = int(consumer.call("mark")["count"]) - base
+        now = time.monotonic()
+        if received >= sent or now > deadline:
+            return received
+        if received != previous:
+            previous, still_since = received, now
+        elif now - still_since > 1.0:  # nothing more is coming: report the loss
+            return received
+        time.sleep(0.02)
