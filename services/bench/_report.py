@@ -37,12 +37,13 @@ def _goal(goal: dict[str, Any] | None) -> str:
 
 def header(report: dict[str, Any]) -> str:
     machine, options = report["machine"], report["options"]
-    load = machine.get("load_average_start") or [float("nan")]
+    load = machine.get("load_average_start")
     return (
         f"framegate bench: {machine['cpu_count']} cores, Python {machine['python']}, "
         f"zenoh {machine['zenoh']}, numpy {machine['numpy']}; "
         f"{options['pairs']} pair(s) of {options['duration_s']:g} s windows"
-        f"{' (quick)' if options['quick'] else ''}; load average at start {load[0]:.2f}"
+        f"{' (quick)' if options['quick'] else ''}"
+        + (f"; load average at start {load[0]:.2f}" if load else "")
     )
 
 

@@ -1,0 +1,119 @@
+"""``framegate bench``: the quick run as a subprocess, and argument errors.
+
+The quick run asserts only that every scenario produced numbers and that the JSON has the
+documented keys — never a speed: this machine is shared and its speed is not ours to test.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from services.bench import SCENARIO_NAMES, SCHEMA
+from services.cli import main
+from tests.conftest import REPO, child_env
+
+REPORT_KEYS = {"schema", "created_utc", "elapsed_s", "machine", "options", "scenarios", "goals"}
+MACHINE_KEYS = {"cpu_count", "python", "zenoh", "numpy", "msgpack", "platform"}
+OPTION_KEYS = {"scenarios", "duration_s", "pairs", "quick", "warmup_s"}
+SCENARIO_KEYS = {"status", "reason", "params", "elapsed_s", "rows"}
+ROW_KEYS = {"name", "metric", "unit", "higher_is_better", "framegate", "ratio", "goal", "note"}
+SIDE_KEYS = {"samples", "median", "min", "max", "count", "cpu_pct"}
+GOAL_KEYS = {"scenario", "row", "text", "limit", "comparison", "measured", "passed"}
+
+
+def _quality_available() -> bool:
+    try:
+        from services.quality import bench_quality  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def _number(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _bench_command() -> list[str]:
+    exe = shutil.which("framegate")
+    return [exe, "bench"] if exe else [sys.executable, "-m", "services.cli", "bench"]
+
+
+@pytest.mark.integration
+@pytest.mark.slow
+def test_quick_run_gives_numbers_for_every_scenario(tmp_path: Path) -> None:
+    out = tmp_path / "bench.json"
+    done = subprocess.run(
+        [*_bench_command(), "--quick", "--json", str(out)],
+        cwd=REPO,
+        env=child_env(),
+        capture_output=True,
+        text=True,
+        timeout=240,
+    )
+    assert done.returncode == 0, done.stdout + done.stderr[-3000:]
+    report = json.loads(out.read_text())
+    assert REPORT_KEYS <= set(report)
+    assert report["schema"] == SCHEMA
+    assert MACHINE_KEYS <= set(report["machine"])
+    assert report["machine"]["cpu_count"] >= 1
+    assert OPTION_KEYS <= set(report["options"])
+    assert report["options"]["quick"] is True
+    assert list(report["scenarios"]) == list(SCENARIO_NAMES)
+    for name, scenario in report["scenarios"].items():
+        assert SCENARIO_KEYS <= set(scenario), name
+        if name == "quality" and not _quality_available():
+            assert scenario["status"] == "skipped"
+            assert scenario["reason"] == "services.quality not available"
+            continue
+        assert scenario["status"] == "ok", (name, scenario["reason"])
+        assert scenario["rows"], name
+        for row in scenario["rows"]:
+            where = f"{name}/{row['name']}"
+            assert ROW_KEYS <= set(row), where
+            sides = ["framegate"] + (["raw"] if "raw" in row else [])
+            for side in sides:
+                assert SIDE_KEYS <= set(row[side]), where
+                assert row[side]["samples"], where
+                for sample in row[side]["samples"]:
+                    assert _number(sample["value"]) and isinstance(sample["pair"], int), where
+                for key in ("median", "min", "max"):
+                    assert _number(row[side][key]), (where, side, key)
+            if "raw" in row:
+                assert _number(row["ratio"]), where
+            if row["metric"] == "throughput":
+                for side in sides:
+                    assert set(row[side]["cpu_pct"]) == {"producer", "consumer"}, where
+    for goal in report["goals"]:
+        assert GOAL_KEYS <= set(goal)
+        assert _number(goal["measured"]), goal
+        assert isinstance(goal["passed"], bool), goal
+    goal_scenarios = {g["scenario"] for g in report["goals"]}
+    expected = set(SCENARIO_NAMES) - ({"quality"} if not _quality_available() else set())
+    assert goal_scenarios == expected
+    for name in SCENARIO_NAMES:
+        assert name in done.stdout
+
+
+def test_unknown_scenario_is_an_error_naming_it(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["bench", "framez"]) == 1
+    assert "unknown scenario(s) framez" in capsys.readouterr().err
+
+
+def test_too_few_pairs_without_quick_is_refused(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["bench", "--pairs", "1", "small"]) == 1
+    assert "use --pairs 3 or more, or --quick" in capsys.readouterr().err
+
+
+def test_json_into_a_missing_directory_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["bench", "--quick", "--json", str(tmp_path / "no" / "b.json"), "small"]) == 1
+    assert "directory" in capsys.readouterr().err
