@@ -1,7 +1,7 @@
 """Start service processes, prefix and colour their logs, restart crashes, stop cleanly.
 
 Each service is its own OS process (``python -m services.cli run TYPE ...``). A process
-that exits while it should run is restarted with exponential backoff (0.5 s doubling to
+that exits while it should run is restarted with exponential backoff (0.2 s doubling to
 10 s; reset after 30 s of uptime). ``stop`` sends SIGTERM, waits, then SIGKILLs.
 """
 
@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 from typing import IO
 
 _COLOURS = ("36", "33", "35", "32", "34", "31", "96", "93")
-_BACKOFF_START_S = 0.5
+_BACKOFF_START_S = 0.2
 _BACKOFF_MAX_S = 10.0
 _HEALTHY_AFTER_S = 30.0
 
