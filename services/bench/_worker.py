@@ -142,23 +142,13 @@ def main(argv: list[str]) -> int:
         raise KeyboardInterrupt
 
     signal.signal(signal.SIGTERM, on_sigterm)
-    import os
-
-    if os.environ.get("XSWITCH"):
-        sys.setswitchinterval(float(os.environ["XSWITCH"]))
     roles = _roles()
     role, params = argv[0], json.loads(argv[1])
     if role not in roles:
         print(f"unknown role {role!r}; known roles: {', '.join(sorted(roles))}", file=sys.stderr)
         return 2
     try:
-        if os.environ.get("XPROF"):
-            import cProfile
-
-            cProfile.runctx(
-                "roles[role](params)", globals(), locals(), os.environ["XPROF"] + f"/{role}.pstats"
-            )
-        else:
+        with profiled(role):
             roles[role](params)
     except KeyboardInterrupt:
         return 130
