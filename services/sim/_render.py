@@ -58,11 +58,10 @@ class Renderer:
         self.config = config
         self.motion = motion
         self._scene = scene
-        f = config.focal_px
+        camera = config.camera_model()
         self.camera_matrix = np.array(
-            [[f, 0.0, (config.width_px - 1) / 2], [0.0, f, (config.height_px - 1) / 2],
-             [0.0, 0.0, 1.0]]
-        )  # fmt: skip
+            [[camera.fx_px, 0.0, camera.cx_px], [0.0, camera.fy_px, camera.cy_px], [0, 0, 1.0]]
+        )
         self._board_corners = board_corners_world(config)
 
     @property
