@@ -153,6 +153,11 @@ class Producer:
         """
         if self._closed:
             raise FramegateError(f"buffer {self.name} is closed")
+        try:
+            _check_types(timestamp_ns, payload, metadata)
+        except SchemaError:
+            self._counters.rejected += 1
+            raise
         meta = metadata.encode("utf-8") if isinstance(metadata, str) else bytes(metadata)
         if not isinstance(payload, bytes):
             payload = bytes(payload)
@@ -299,3 +304,17 @@ class Producer:
             if entity is not None:
                 with contextlib.suppress(zenoh.ZError):
                     entity.undeclare()
+
+
+def _check_types(timestamp_ns: object, payload: object, metadata: object) -> None:
+    """Wrong-typed arguments get a message, not a TypeError from deep inside."""
+    if not isinstance(timestamp_ns, int) or isinstance(timestamp_ns, bool):
+        raise SchemaError(
+            f"timestamp_ns must be an int (ns since the epoch), got {type(timestamp_ns).__name__}"
+        )
+    if not 0 <= timestamp_ns < 2**63:
+        raise SchemaError(f"timestamp_ns {timestamp_ns} is outside 0 .. 2**63-1")
+    if not isinstance(payload, bytes | bytearray | memoryview):
+        raise SchemaError(f"payload must be bytes, got {type(payload).__name__}")
+    if not isinstance(metadata, bytes | bytearray | str):
+        raise SchemaError(f"metadata must be XML as bytes or str, got {type(metadata).__name__}")

@@ -65,16 +65,29 @@ def _do(
     cmd: dict[str, Any],
 ) -> dict[str, Any]:
     if op == "offer":
-        retention = Retention(**cmd.get("retention", {}))
+        retention = Retention(**cmd.get("retention", {}))  # e.g. {"max_payload_bytes": 1024}
         producers[cmd["buffer"]] = node.offer(
             cmd["buffer"], kind=cmd.get("kind", "generic"), retention=retention
         )
         return {}
     if op == "put":
         producer = producers[cmd["buffer"]]
-        t = int(cmd["t"])
-        payload = base64.b64decode(cmd.get("payload", "")) if "payload" in cmd else b"p%d" % t
-        metadata = cmd.get("metadata") or make_metadata(producer.kind, t)
+        # Values pass through untouched (wrong types included): the API must say what is wrong.
+        t = cmd["t"]
+        if "payload" in cmd:
+            payload: Any = base64.b64decode(cmd["payload"])
+        elif "payload_size" in cmd:
+            payload = bytes(int(cmd["payload_size"]))
+        elif "payload_raw" in cmd:
+            payload = cmd["payload_raw"]
+        else:
+            payload = b"p%d" % t if isinstance(t, int) else b"p"
+        if "metadata_b64" in cmd:
+            metadata: Any = base64.b64decode(cmd["metadata_b64"])
+        elif "metadata" in cmd:
+            metadata = cmd["metadata"]
+        else:
+            metadata = make_metadata(producer.kind, t if isinstance(t, int) else 0)
         producer.put(t, payload, metadata, wait_s=float(cmd.get("wait_s", 0)))
         return {}
     if op == "fill":
