@@ -206,8 +206,7 @@ def estimate_blur(
     theta = cumulative_rotation(window_increments(t_ns, rates5, first, last))
     if plan.centre_only:
         return _centre(*project_optical_axis(theta, plan.projection), plan)
-    rays = np.einsum("ijk,jp->ipk", inverse_rotation_matrices(theta), plan.rays)
-    return _points(rays, plan, None, None)
+    return _points(np.matmul(inverse_rotation_matrices(theta), plan.rays), plan, None, None)
 
 
 _NO_MOTION = np.zeros((2, 2))
@@ -240,9 +239,8 @@ def _rolling(
     first = np.searchsorted(knots, starts_ns)
     last = np.searchsorted(knots, ends_ns)
     # Each pixel's ray at its own exposure start, expressed at knot 0: Exp(theta) = inverse^T.
-    world = np.einsum("jip,jp->ip", inverse[:, :, first], plan.rays)
-    rays = np.einsum("ijk,jp->ipk", inverse, world)
-    return _points(rays, plan, first, last)
+    world = (inverse[first] * plan.rays.T[:, :, None]).sum(axis=1)  # (P, 3)
+    return _points(np.matmul(inverse, world.T), plan, first, last)
 
 
 def _points(
@@ -251,41 +249,46 @@ def _points(
     first: npt.NDArray[np.intp] | None,
     last: npt.NDArray[np.intp] | None,
 ) -> BlurEstimate:
-    """Paths of tracked rays (3, P, K), each between its own knots (None: all of them)."""
-    depth = rays[2]
-    image = rays[:2] / depth  # (2, P, K)
-    steps = (image[:, :, 1:] - image[:, :, :-1]) * plan.focal_px[:, :, None]
-    points = np.arange(depth.shape[0])
+    """Paths of tracked rays (K, 3, P), each between its own knots (None: all of them)."""
+    depth = rays[:, 2, :]
+    image = rays[:, :2, :] / depth[:, None, :]  # (K, 2, P)
+    steps = (image[1:] - image[:-1]) * plan.focal_px
     if first is None or last is None:
         inside = np.ones(depth.shape, dtype=bool)
-        net = (image[:, :, -1] - image[:, :, 0]) * plan.focal_px
+        net = (image[-1] - image[0]) * plan.focal_px
     else:
-        knot = np.arange(depth.shape[1])
-        inside = (knot >= first[:, None]) & (knot <= last[:, None])
+        knot = np.arange(depth.shape[0])[:, None]
+        inside = (knot >= first) & (knot <= last)
         # where, not a product: outside a pixel's window a turned ray may project to inf.
-        steps = np.where(inside[None, :, 1:] & inside[None, :, :-1], steps, 0.0)
-        net = (image[:, points, last] - image[:, points, first]) * plan.focal_px
-    blur = np.sqrt((steps * steps).sum(axis=0)).sum(axis=1)
-    turned = ((depth <= _MIN_DEPTH) & inside).any(axis=1)
+        steps = np.where((inside[1:] & inside[:-1])[:, None, :], steps, 0.0)
+        points = np.arange(depth.shape[1])
+        net = (image[last, :, points] - image[first, :, points]).T * plan.focal_px
+    blur = np.sqrt((steps * steps).sum(axis=1)).sum(axis=0)
+    turned = ((depth <= _MIN_DEPTH) & inside).any(axis=0)
     if bool(turned.any()):
         blur[turned] = math.inf
         net[:, turned] = math.nan
     if plan.mode is BlurMode.MEAN:
-        flat = steps.reshape(2, -1)
         mean_net = net.mean(axis=1)
         x_px, y_px = plan.anchor_px
-        value = float(blur.mean())
+        moments = np.tensordot(steps, steps, axes=([0, 2], [0, 2]))
         return _estimate(
-            value, float(mean_net[0]), float(mean_net[1]), flat @ flat.T, x_px, y_px, plan.mode
+            float(blur.mean()),
+            float(mean_net[0]),
+            float(mean_net[1]),
+            moments,
+            x_px,
+            y_px,
+            plan.mode,
         )
     # POINT has one point; MAX reports its worst one.
     index = int(np.argmax(blur))
-    one = steps[:, index, :]
+    one = steps[:, :, index]
     return _estimate(
         float(blur[index]),
         float(net[0, index]),
         float(net[1, index]),
-        one @ one.T,
+        one.T @ one,
         float(plan.points_px[0, index]),
         float(plan.points_px[1, index]),
         plan.mode,

@@ -47,7 +47,8 @@ def window_increments(t_ns: Ints, rates: Floats, start_ns: int, end_ns: int) -> 
     any number of rows. The knots are the window ends and the samples between them;
     returns d (R, M-1), the increment over each knot interval.
     """
-    t0, t1, t_before, t_last = t_ns[[0, 1, -2, -1]].tolist()
+    times = t_ns.tolist()
+    t0, t1, t_before, t_last = times[0], times[1], times[-2], times[-1]
     # Fractions of the end points inside their sample intervals.
     f_start = (start_ns - t0) / (t1 - t0)
     f_end = (end_ns - t_before) / (t_last - t_before)
@@ -105,13 +106,13 @@ def _terms(theta: Floats) -> tuple[Floats, Floats, Floats]:
     angle2 = np.dot(_ONES3, theta * theta) + _TINY_ANGLE2
     angle = np.sqrt(angle2)
     cos = np.cos(angle)
-    # 1 - cos loses relative precision for tiny angles, but the term it scales is then
-    # below 1e-16 of the result, so this stays accurate to rounding.
+    # 1 - cos loses relative precision for tiny angles, but the term it scales is then of
+    # order |t|^2, so the absolute error of the rotation stays at rounding level.
     return cos, np.sin(angle) / angle, (1.0 - cos) / angle2
 
 
 def inverse_rotation_matrices(theta: Floats) -> Floats:
-    """Exp(-theta_k) as (3, 3, K): maps a direction fixed at knot 0 into the frame at knot k."""
+    """Exp(-theta_k) as (K, 3, 3): maps a direction fixed at knot 0 into the frame at knot k."""
     cos, sinc, h = _terms(theta)
     ht = h * theta
     m = ht[:, None, :] * theta[None, :, :]
@@ -125,7 +126,8 @@ def inverse_rotation_matrices(theta: Floats) -> Floats:
     m[2, 0] += st[1]
     m[1, 2] += st[0]
     m[2, 1] -= st[0]
-    return m
+    # Knot-first so np.matmul treats it as a stack of matrices (much faster than einsum).
+    return np.ascontiguousarray(m.transpose(2, 0, 1))
 
 
 def axis_projection(fx_px: float, fy_px: float) -> tuple[Floats, Floats]:

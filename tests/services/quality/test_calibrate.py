@@ -36,7 +36,7 @@ def test_ties_in_blur_are_pooled() -> None:
 
 
 def test_too_few_frames_cannot_determine_b0() -> None:
-    with pytest.raises(CalibrationError, match="5 frames are too few.*at least 20"):
+    with pytest.raises(CalibrationError, match=r"5 frames are too few.*at least 20"):
         derive_b0([0, 1, 2, 3, 4], [True] * 5)
 
 
@@ -47,7 +47,7 @@ def test_no_recognised_sharp_frame_cannot_determine_b0() -> None:
 
 def test_recognition_that_never_halves_cannot_determine_b0() -> None:
     blur, _ = _frames(200, 5.0, seed=2)
-    with pytest.raises(CalibrationError, match="never falls to half.*record frames with more"):
+    with pytest.raises(CalibrationError, match=r"never falls to half.*record frames with more"):
         derive_b0(blur / 10, blur < 100)
 
 
