@@ -40,3 +40,14 @@ def test_quick_start_has_exactly_two_command_lines() -> None:
     assert len(lines) == 2
     ci = (REPO / ".ci" / "run").read_text()
     assert lines[1] in ci  # CI runs the README's test command
+
+
+def test_deploy_file_example_parses() -> None:
+    from services.launch import parse_deployment
+
+    text = (REPO / "README.md").read_text()
+    blocks = re.findall(r"```yaml\n(.*?)```", text, flags=re.S)
+    assert blocks
+    for block in blocks:
+        deployment = parse_deployment(block, "README.md")
+        assert deployment.services

@@ -1,0 +1,115 @@
+"""Deploy files and the supervisor."""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from middleware import ConfigError, NetworkConfig
+from services.launch import (
+    ProcessSpec,
+    Supervisor,
+    load_deployment,
+    parse_deployment,
+    process_specs,
+)
+from tests.conftest import REPO, wait_until
+
+
+def test_shipped_deploy_files_parse_and_plan() -> None:
+    for path in (REPO / "deploy").glob("*.yaml"):
+        deployment = load_deployment(path)
+        for host in deployment.hosts:
+            specs = process_specs(deployment, host, NetworkConfig(), text=path.read_text())
+            assert all(spec.argv for spec in specs), path
+
+
+def test_local_deploy_matches_the_paper_pipeline() -> None:
+    deployment = load_deployment(REPO / "deploy" / "local.yaml")
+    assert [s.type for s in deployment.services] == ["camera", "gyro", "mediator", "detector"]
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("services:\n  camera:\n    tpye: camera\n", r"x\.yaml:3: unknown key 'tpye'"),
+        ("sevices: {}\n", r"x\.yaml:1: unknown key 'sevices' in the top level"),
+        ("services:\n  cam: {type: camra}\n", r"x\.yaml:2: .*unknown type 'camra'"),
+        ("hosts: {a: {}, b: {}}\nservices:\n  camera: {}\n", r"x\.yaml:3: .*needs a 'host'"),
+        ("services:\n  camera: {host: nowhere}\n", r"x\.yaml:2: .*host 'nowhere'"),
+        ("version: 2\nservices: {}\n", r"x\.yaml:1: unsupported version"),
+        ("services: [1, 2]\n", r"x\.yaml:1: services must be a mapping"),
+        ("services:\n  camera: {args: {source: sim}\n", r"x\.yaml: not valid YAML"),
+        ("", "empty"),
+        ("services:\n  bad/name: {type: camera}\n", "bad service name"),
+    ],
+)
+def test_deploy_mistakes_name_the_line_and_key(text: str, message: str) -> None:
+    with pytest.raises(ConfigError, match=message):
+        parse_deployment(text, "x.yaml")
+
+
+def test_unknown_service_option_names_its_line() -> None:
+    text = "services:\n  camera:\n    args:\n      source: sim\n      sede: 3\n"
+    deployment = parse_deployment(text, "x.yaml")
+    with pytest.raises(ConfigError, match=r"x\.yaml:5: service 'camera' has no option 'sede'"):
+        process_specs(deployment, None, NetworkConfig(), text=text)
+
+
+def test_host_selection_and_network_layers() -> None:
+    text = """
+network: {connect: [tcp/10.0.0.1:7447]}
+hosts:
+  robot: {address: 10.0.0.2, network: {listen: [tcp/10.0.0.2:7447]}}
+  base: {address: 10.0.0.1}
+services:
+  camera: {host: robot}
+  detector: {host: base, network: {namespace: lab}}
+"""
+    deployment = parse_deployment(text, "x.yaml")
+    with pytest.raises(ConfigError, match="names several hosts"):
+        deployment.for_host(None)
+    with pytest.raises(ConfigError, match="no host 'moon'"):
+        deployment.for_host("moon")
+    (camera,) = deployment.for_host("robot")
+    net = deployment.network_for(camera)
+    assert net.connect == ("tcp/10.0.0.1:7447",) and net.listen == ("tcp/10.0.0.2:7447",)
+    (detector,) = deployment.for_host("base")
+    assert deployment.network_for(detector).namespace == "lab"
+    argv = process_specs(deployment, "base", NetworkConfig(), text=text)[0].argv
+    assert "--namespace" in argv and "lab" in argv
+
+
+def test_supervisor_restarts_a_crashing_process_and_stops_cleanly(tmp_path: Path) -> None:
+    marker = tmp_path / "runs"
+    script = (
+        "import pathlib, sys, time\n"
+        f"p = pathlib.Path({str(marker)!r})\n"
+        "p.write_text(p.read_text() + 'x' if p.exists() else 'x')\n"
+        "print('started', flush=True)\n"
+        "sys.exit(3) if len(p.read_text()) < 3 else time.sleep(60)\n"
+    )
+    lines: list[str] = []
+    supervisor = Supervisor(
+        [ProcessSpec("crashy", (sys.executable, "-c", script))], colour=False, out=lines.append
+    )
+    supervisor.start()
+    try:
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline and supervisor.restarts()["crashy"] < 2:
+            supervisor.poll()
+            time.sleep(0.05)
+        assert supervisor.restarts()["crashy"] == 2
+        wait_until(lambda: any("exited with 3" in line for line in lines), 5, "the exit log")
+        assert all(line.startswith("[crashy]") for line in lines)
+        pid = wait_until(lambda: supervisor.pids()["crashy"], 5, "the third run")
+    finally:
+        started = time.monotonic()
+        supervisor.stop()
+    assert time.monotonic() - started < 5.5
+    with pytest.raises(ProcessLookupError):
+        os.kill(pid, 0)
