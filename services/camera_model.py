@@ -65,7 +65,10 @@ class CameraModel:
         }
 
     def to_xml(
-        self, timestamp_ns: int = 0, *, exposure_ns: int | None = None,
+        self,
+        timestamp_ns: int = 0,
+        *,
+        exposure_ns: int | None = None,
         frame_period_ns: int | None = None,
     ) -> bytes:
         """A standalone ``camera`` metadata document (e.g. a dataset's camera.xml)."""
