@@ -132,7 +132,7 @@ class _Plan:
     anchor_px: tuple[float, float]  # reported position for MEAN
     rotation5: Floats  # gyro-to-camera rows x y z x y, see DUPLICATED_ROWS
     focal_px: Floats  # (2, 1): fx, fy as a column
-    projection: tuple[Floats, Floats]  # constants of project_optical_axis
+    projection: Floats  # the constant of project_optical_axis
     mode: BlurMode
 
 
@@ -215,10 +215,11 @@ _NO_MOTION = np.zeros((2, 2))
 def _centre(offsets_px: Floats, depth: Floats, plan: _Plan) -> BlurEstimate:
     """The paper's estimate: length of the optical axis' path (2, K) in the image, eq. 2."""
     x_px, y_px = plan.anchor_px
-    if np.minimum.reduce(depth) <= _MIN_DEPTH:
+    # Python's min over a short list beats a numpy reduction's fixed cost.
+    if min(depth.tolist()) <= _MIN_DEPTH:
         return _estimate(math.inf, math.nan, math.nan, _NO_MOTION, x_px, y_px, plan.mode)
     steps = offsets_px[:, 1:] - offsets_px[:, :-1]
-    blur = float(np.add.reduce(np.hypot(steps[0], steps[1])))
+    blur = float(sum(np.hypot(steps[0], steps[1]).tolist()))
     # Knot 0 is the principal point itself, so the last offset is the net displacement.
     dx_px, dy_px = offsets_px[:, -1].tolist()
     return _estimate(blur, dx_px, dy_px, np.dot(steps, steps.T), x_px, y_px, plan.mode)
