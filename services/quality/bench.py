@@ -13,7 +13,7 @@ from ._bench import bench_quality
 def main(argv: Sequence[str] | None = None) -> int:
     """Print the timing of every blur mode; ``--json`` for machines."""
     parser = argparse.ArgumentParser(prog="python -m services.quality.bench", description=__doc__)
-    parser.add_argument("--frames", type=int, default=2000, help="frames per mode (2000)")
+    parser.add_argument("--frames", type=int, default=500, help="frames per mode (500)")
     parser.add_argument("--exposure-ms", type=float, default=60.0, help="exposure (60 ms)")
     parser.add_argument("--gyro-hz", type=float, default=500.0, help="gyro rate (500 Hz)")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
