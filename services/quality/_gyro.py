@@ -95,7 +95,7 @@ class GyroSamples:
 
         Raises SchemaError when the payload does not match that layout.
         """
-        size = len(memoryview(payload).cast("B"))
+        size = memoryview(payload).nbytes
         if size % GYRO_DTYPE.itemsize:
             raise SchemaError(
                 f"gyro payload is {size} bytes, not a multiple of the "
