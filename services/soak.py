@@ -1,0 +1,470 @@
+"""Soak: the whole pipeline at full speed for minutes, watching memory and lost elements.
+
+Camera and gyro (simulator), mediator and a detector with no emulated load (it takes the
+next frame as soon as it is done) run as separate processes on a private loopback
+rendezvous port, started like ``framegate demo``. The simulated camera produces as fast as
+it can render (frames it is too late for are skipped, as a real camera would); ``rate``
+speeds up the scenario clock of camera and gyro.
+
+Measured:
+- resident memory (RSS) of every service process every ``sample_s``; growth after the
+  warm-up, from the mean of the first three samples to the mean of the last three
+  (goal: <= 5 %);
+- accepted elements lost (goal: 0), audited every ``check_s`` while everything runs:
+  every camera frame older than the newest decision has a decision; every frame the
+  mediator accepted that is still within mediator/images' retention is there and
+  byte-identical (payload and metadata) to the camera's copy; nothing is in
+  mediator/images that the mediator did not accept; every accepted frame older than the
+  newest detection has a detection; decisions and detections stored are all queryable;
+- refusals and drops: camera/images and gyro/rates refused by flow control, frames the
+  camera skipped late, the mediator's decisions by reason.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import re
+import socket
+import statistics
+import time
+from collections import Counter
+from dataclasses import asdict, dataclass, field, replace
+from typing import Any
+
+import psutil
+
+from middleware import BufferInfo, FramegateError, NetworkConfig, Node
+from services.launch import Deployment, HostSpec, ServiceSpec, Supervisor, process_specs
+from services.messages import DecisionRecord
+
+MIB = 2**20
+_CAMERA_LOG = re.compile(r"camera: (\d+) frames stored, (\d+) dropped .*, (\d+) skipped late")
+_GYRO_LOG = re.compile(r"gyro: (\d+) batches stored, (\d+) dropped")
+# gyro/rates keeps 30 s of batches (services/gyro.py).
+_GYRO_RETENTION_S = 30.0
+_PIPELINE = {
+    "camera/images",
+    "gyro/rates",
+    "mediator/images",
+    "mediator/decisions",
+    "detector/detections",
+}
+
+
+@dataclass(frozen=True, slots=True)
+class SoakConfig:
+    """What the soak runs and how it measures."""
+
+    duration_s: float = 600.0
+    warmup_s: float | None = None  # None: a quarter of the run, at most 60 s
+    sample_s: float = 5.0
+    check_s: float = 10.0
+    rate: float = 1.0
+    seed: int = 1
+    service_factor: float | None = None  # detector's emulated load; None: none at all
+    growth_goal: float = 0.05
+    port: int | None = None  # private rendezvous port; None: a free one
+    show_logs: bool = False
+
+    @property
+    def warmup(self) -> float:
+        if self.warmup_s is not None:
+            return self.warmup_s
+        return min(60.0, self.duration_s / 4)
+
+
+def soak_deployment(config: SoakConfig) -> Deployment:
+    """The four services of deploy/local.yaml, the detector without emulated load."""
+    source = ("--source", "sim", "--seed", str(config.seed), "--loop", "--rate", str(config.rate))
+    detector = ["--input", "mediator/images", "--queue", "2"]
+    if config.service_factor is not None:
+        detector += ["--service-factor", str(config.service_factor)]
+    services = (
+        ServiceSpec("camera", "camera", "local", source),
+        ServiceSpec("gyro", "gyro", "local", source),
+        ServiceSpec("mediator", "mediator", "local", ("--policy", "paper")),
+        ServiceSpec("detector", "detector", "local", tuple(detector)),
+    )
+    return Deployment("soak", {}, {"local": HostSpec("local")}, services)
+
+
+# -- memory ------------------------------------------------------------------------------
+
+
+@dataclass
+class MemorySeries:
+    """RSS samples of one service: (seconds since start, pid, bytes)."""
+
+    samples: list[tuple[float, int, int]] = field(default_factory=list)
+
+    def summary(self, warmup_s: float, goal: float) -> dict[str, Any]:
+        pids = [pid for _t, pid, _rss in self.samples]
+        last_pid = pids[-1] if pids else None
+        after = [(t, rss) for t, pid, rss in self.samples if t >= warmup_s and pid == last_pid]
+        out: dict[str, Any] = {"pid": last_pid, "samples": len(self.samples)}
+        if len(after) < 2:
+            return out | {"growth": None, "ok": None}
+        k = min(3, len(after) // 2)
+        start = statistics.fmean(rss for _t, rss in after[:k])
+        end = statistics.fmean(rss for _t, rss in after[-k:])
+        span_min = (after[-1][0] - after[0][0]) / 60
+        slope = _slope([t for t, _ in after], [rss for _, rss in after]) * 60
+        growth = (end - start) / start
+        return out | {
+            "rss_after_warmup_mib": round(start / MIB, 1),
+            "rss_end_mib": round(end / MIB, 1),
+            "rss_peak_mib": round(max(rss for _t, _pid, rss in self.samples) / MIB, 1),
+            "growth": round(growth, 4),
+            "slope_mib_per_min": round(slope / MIB, 3),
+            "measured_min": round(span_min, 1),
+            "ok": growth <= goal,
+        }
+
+
+def _slope(xs: list[float], ys: list[int]) -> float:
+    mean_x, mean_y = statistics.fmean(xs), statistics.fmean(ys)
+    var = sum((x - mean_x) ** 2 for x in xs)
+    return (
+        sum((x - mean_x) * (y - mean_y) for x, y in zip(xs, ys, strict=True)) / var if var else 0.0
+    )
+
+
+def rss_bytes(pid: int | None) -> int | None:
+    """Resident memory of a process, None if it is gone."""
+    if pid is None:
+        return None
+    try:
+        return int(psutil.Process(pid).memory_info().rss)
+    except (psutil.NoSuchProcess, psutil.AccessDenied):
+        return None
+
+
+# -- lost elements -------------------------------------------------------------------------
+
+
+def _digest(payload: bytes, metadata: bytes) -> bytes:
+    return hashlib.sha256(len(payload).to_bytes(8, "little") + payload + metadata).digest()
+
+
+@dataclass
+class Audit:
+    """Accepted elements that went missing, found by querying the services as any client.
+
+    Each check reads only what is new since the last one (cursors), so the soak client
+    stays small; camera frames are remembered by digest until the mediator's copy is seen.
+    """
+
+    camera_digest: dict[int, bytes] = field(default_factory=dict)
+    camera_seen: set[int] = field(default_factory=set)
+    decided: dict[int, bool] = field(default_factory=dict)  # frame ts -> accepted
+    reasons: Counter[str] = field(default_factory=Counter)
+    in_mediator: set[int] = field(default_factory=set)
+    detected: set[int] = field(default_factory=set)
+    compared: int = 0
+    lost: dict[str, set[int]] = field(
+        default_factory=lambda: {
+            "frames_without_decision": set(),
+            "accepted_not_in_mediator": set(),
+            "accepted_not_identical": set(),
+            "mediator_not_accepted": set(),
+            "accepted_without_detection": set(),
+        }
+    )
+    checks: int = 0
+    _cursor: dict[str, int] = field(default_factory=dict)
+
+    def _new(self, node: Node, target: str, key: str | None = None) -> list[Any]:
+        start = self._cursor.get(key or target, 0)
+        found = node.query(target, time_range=f"[{start}..]", timeout_s=20.0)
+        if found:
+            self._cursor[key or target] = found[-1].timestamp_ns + 1
+        return found
+
+    def check(self, node: Node) -> None:
+        """One pass; the order of the queries is what makes the conclusions safe."""
+        for frame in self._new(node, "camera/images"):
+            self.camera_seen.add(frame.timestamp_ns)
+            self.camera_digest[frame.timestamp_ns] = _digest(frame.payload, frame.metadata)
+        accepted_frames = self._new(node, "mediator/images")
+        # After the query: whatever is at least as new as this was still held during it.
+        oldest = node.buffer_info("mediator/images").oldest_ns or 0
+        for element in self._new(node, "mediator/decisions"):
+            record = DecisionRecord.from_metadata(element.metadata)
+            ts = record.frame_timestamp_ns
+            self.decided[ts] = self.decided.get(ts, False) or record.accepted
+            self.reasons[record.reason] += 1
+        for element in self._new(node, "detector/detections"):
+            self.detected.add(element.timestamp_ns)
+        self.checks += 1
+        oldest_decided = min(self.decided, default=0)
+        newest_decided = max(self.decided, default=0)
+        # The mediator decides in camera order: a frame between its first decision (frames
+        # before it were stored before it subscribed) and its newest one without a decision
+        # was lost.
+        for ts in self.camera_seen:
+            if oldest_decided <= ts <= newest_decided and ts not in self.decided:
+                self.lost["frames_without_decision"].add(ts)
+        for element in accepted_frames:
+            ts = element.timestamp_ns
+            self.in_mediator.add(ts)
+            if ts <= newest_decided and not self.decided.get(ts, False):
+                self.lost["mediator_not_accepted"].add(ts)
+            copy = self.camera_digest.get(ts)
+            if copy is not None:
+                self.compared += 1
+                if copy != _digest(element.payload, element.metadata):
+                    self.lost["accepted_not_identical"].add(ts)
+        if accepted_frames:
+            newest = accepted_frames[-1].timestamp_ns
+            for ts, accepted in self.decided.items():
+                if accepted and oldest <= ts <= newest and ts not in self.in_mediator:
+                    self.lost["accepted_not_in_mediator"].add(ts)
+        newest_detected = max(self.detected, default=0)
+        for ts, accepted in self.decided.items():
+            if accepted and ts <= newest_detected and ts not in self.detected:
+                self.lost["accepted_without_detection"].add(ts)
+        # Frames the mediator has seen need no digest any more.
+        horizon = min(newest_decided, self._cursor.get("mediator/images", 0))
+        for ts in [t for t in self.camera_digest if t < horizon]:
+            del self.camera_digest[ts]
+
+    def summary(self) -> dict[str, Any]:
+        accepted = sum(1 for a in self.decided.values() if a)
+        return {
+            "checks": self.checks,
+            "camera_frames_seen": len(self.camera_seen),
+            "frames_decided": len(self.decided),
+            "accepted": accepted,
+            "accepted_seen_in_mediator": len(self.in_mediator),
+            "compared_with_camera": self.compared,
+            "detected": len(self.detected),
+            "decision_reasons": dict(self.reasons.most_common()),
+            "lost": {name: len(found) for name, found in self.lost.items()},
+            "lost_examples": {name: sorted(found)[:5] for name, found in self.lost.items()},
+        }
+
+
+# -- the run -------------------------------------------------------------------------------
+
+
+def free_port() -> int:
+    """A loopback TCP port nobody listens on right now."""
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+def _full(buffers: dict[str, BufferInfo]) -> bool:
+    """True once the count-limited image buffers hold as many elements as they keep."""
+    for name in ("camera/images", "mediator/images"):
+        info = buffers[name]
+        if info.retention.max_count is not None and info.count < info.retention.max_count:
+            return False
+    return True
+
+
+def _buffers(node: Node) -> dict[str, BufferInfo]:
+    try:
+        return {b.name: b for s in node.services(timeout_s=2.0) for b in s.buffers}
+    except FramegateError:
+        return {}
+
+
+def _elements(buffers: dict[str, BufferInfo], logs: list[str], elapsed_s: float) -> dict[str, Any]:
+    def counters(name: str) -> dict[str, Any]:
+        info = buffers.get(name)
+        if info is None:
+            return {"puts": None}
+        return {
+            "puts": info.puts,
+            "refused": info.refused,
+            "rejected": info.rejected,
+            "count": info.count,
+            "per_s": round(info.puts / elapsed_s, 2) if elapsed_s > 0 else 0.0,
+        }
+
+    out = {name: counters(name) for name in sorted(buffers)}
+    for line in logs:
+        if match := _CAMERA_LOG.search(line):
+            out.setdefault("camera/images", {})["skipped_late"] = int(match.group(3))
+        if match := _GYRO_LOG.search(line):
+            out.setdefault("gyro/rates", {})["dropped_after_wait"] = int(match.group(2))
+    return out
+
+
+def run_soak(config: SoakConfig) -> dict[str, Any]:
+    """Run the pipeline for ``duration_s``; return the report (see ``format_report``)."""
+    port = config.port or free_port()
+    network = NetworkConfig(local_port=port)
+    # The children find the private rendezvous through the environment, as under launch.
+    specs = [
+        replace(spec, env=(*spec.env, ("FRAMEGATE_LOCAL_PORT", str(port))))
+        for spec in process_specs(soak_deployment(config), None, network)
+    ]
+    logs: list[str] = []
+
+    def keep(line: str) -> None:
+        logs.append(line)
+        if config.show_logs:
+            print(line, flush=True)
+
+    supervisor = Supervisor(specs, colour=False, out=keep)
+    memory = {spec.name: MemorySeries() for spec in specs}
+    audit = Audit()
+    started = time.monotonic()
+    due = {"sample": 0.0, "check": config.warmup / 2}
+    buffers: dict[str, BufferInfo] = {}
+    # Memory grows until the count-limited image buffers hold their retention: the warm-up
+    # lasts at least until then (at a slow frame rate that is longer than warmup_s).
+    filled_at: float | None = None
+    load_before = os.getloadavg()
+    check_errors: list[str] = []
+    with Node(network=network) as node:
+        supervisor.start()
+
+        def tick() -> None:
+            nonlocal buffers, filled_at
+            elapsed = time.monotonic() - started
+            if elapsed >= due["sample"]:
+                due["sample"] += config.sample_s
+                for name, pid in supervisor.pids().items():
+                    rss = rss_bytes(pid)
+                    if pid is not None and rss is not None:
+                        memory[name].samples.append((round(elapsed, 2), pid, rss))
+            if elapsed >= due["check"]:
+                due["check"] = elapsed + config.check_s
+                buffers = _buffers(node) or buffers
+                if not set(buffers) >= _PIPELINE:
+                    return  # not everything is up yet
+                if filled_at is None and elapsed >= _GYRO_RETENTION_S and _full(buffers):
+                    filled_at = elapsed
+                try:
+                    audit.check(node)
+                except FramegateError as exc:
+                    # A service that is restarting: the next check catches up.
+                    check_errors.append(f"{elapsed:.0f}s: {exc}")
+
+        try:
+            supervisor.run(config.duration_s, on_tick=tick)
+        except KeyboardInterrupt:
+            supervisor.stop()
+        elapsed = time.monotonic() - started
+    time.sleep(0.5)  # the last log lines (camera/gyro totals) arrive after SIGTERM
+    audit_summary = audit.summary()
+    unqueryable = {
+        name: max(0, (info.puts - info.count))
+        for name, info in buffers.items()
+        if name in ("mediator/decisions", "detector/detections")
+        and info.retention.max_count is not None
+        and info.puts <= info.retention.max_count
+    }
+    warmup = max(config.warmup, filled_at) if filled_at is not None else config.warmup
+    processes = {
+        name: series.summary(warmup, config.growth_goal) for name, series in memory.items()
+    }
+    lost_total = sum(audit_summary["lost"].values()) + sum(unqueryable.values())
+    restarts = supervisor.restarts()
+    memory_ok = all(p.get("ok") is not False for p in processes.values())
+    return {
+        "config": asdict(config) | {"port": port, "warmup_s": config.warmup},
+        "warmup_s": round(warmup, 1),
+        "retention_filled_at_s": None if filled_at is None else round(filled_at, 1),
+        "host": {
+            "cpus": os.cpu_count(),
+            "hostname": socket.gethostname(),
+            "loadavg_before": [round(x, 2) for x in load_before],
+            "loadavg_after": [round(x, 2) for x in os.getloadavg()],
+        },
+        "duration_s": round(elapsed, 1),
+        "processes": processes,
+        "memory_samples": {name: s.samples for name, s in memory.items()},
+        "elements": _elements(buffers, logs, elapsed),
+        "audit": audit_summary,
+        "unqueryable": unqueryable,
+        "lost_total": lost_total,
+        "restarts": restarts,
+        "check_errors": check_errors,
+        "goals": {
+            "memory_growth_at_most": config.growth_goal,
+            "memory_ok": memory_ok,
+            "lost_ok": lost_total == 0,
+            "no_restarts": not any(restarts.values()),
+        },
+    }
+
+
+def format_report(report: dict[str, Any]) -> str:
+    """The report as a plain-text table."""
+    cfg = report["config"]
+    lines = [
+        f"soak: {report['duration_s']} s, scenario rate {cfg['rate']}x, "
+        f"{report['host']['cpus']} CPUs (load {report['host']['loadavg_before'][0]} before, "
+        f"{report['host']['loadavg_after'][0]} after), port {cfg['port']}",
+        f"memory counts after a warm-up of {report['warmup_s']:.0f} s "
+        + (
+            f"(image buffers full of retained frames at {report['retention_filled_at_s']:.0f} s)"
+            if report["retention_filled_at_s"] is not None
+            else "(image buffers still filling: growth includes filling them)"
+        ),
+        "",
+        f"{'process':<10} {'pid':>7} {'RSS after warm-up':>18} {'RSS at end':>11} "
+        f"{'peak':>9} {'growth':>8} {'MiB/min':>8}  goal <= {cfg['growth_goal']:.0%}",
+    ]
+    for name, p in report["processes"].items():
+        if p.get("growth") is None:
+            lines.append(f"{name:<10} {p.get('pid') or '-':>7}  too few samples after warm-up")
+            continue
+        lines.append(
+            f"{name:<10} {p['pid']:>7} {p['rss_after_warmup_mib']:>14.1f} MiB "
+            f"{p['rss_end_mib']:>7.1f} MiB {p['rss_peak_mib']:>5.1f} MiB "
+            f"{p['growth']:>+7.1%} {p['slope_mib_per_min']:>+8.2f}  {'ok' if p['ok'] else 'MISSED'}"
+        )
+    el, audit = report["elements"], report["audit"]
+    cam, gyro = el.get("camera/images", {}), el.get("gyro/rates", {})
+    med, det = el.get("mediator/images", {}), el.get("detector/detections", {})
+    reasons = ", ".join(f"{k} {v}" for k, v in audit["decision_reasons"].items()) or "-"
+    lines += [
+        "",
+        "elements",
+        f"  camera/images      {cam.get('puts')} stored ({cam.get('per_s')}/s), "
+        f"{cam.get('refused')} refused by flow control, "
+        f"{cam.get('skipped_late', '?')} skipped late",
+        f"  gyro/rates         {gyro.get('puts')} stored ({gyro.get('per_s')}/s), "
+        f"{gyro.get('refused')} refused, "
+        f"{gyro.get('dropped_after_wait', '?')} dropped after waiting",
+        f"  mediator           {audit['frames_decided']} frames decided: {reasons}",
+        f"  mediator/images    {med.get('puts')} stored, {med.get('refused')} refused "
+        "(detector's queue full)",
+        f"  detector           {det.get('puts')} detections ({det.get('per_s')}/s)",
+        "",
+        f"lost (goal 0), {audit['checks']} audits while running",
+    ]
+    labels = {
+        "frames_without_decision": "camera frames without a decision "
+        f"(of {audit['camera_frames_seen']} seen)",
+        "accepted_not_in_mediator": "accepted frames missing from mediator/images "
+        f"(of {audit['accepted']})",
+        "accepted_not_identical": "accepted frames not byte-identical "
+        f"(of {audit['compared_with_camera']} compared)",
+        "mediator_not_accepted": "frames in mediator/images never accepted",
+        "accepted_without_detection": "accepted frames without a detection "
+        f"(of {audit['detected']} detected)",
+    }
+    for key, label in labels.items():
+        lines.append(f"  {label:<62} {audit['lost'][key]}")
+    for name, count in report["unqueryable"].items():
+        lines.append(f"  {'stored in ' + name + ' but not queryable':<62} {count}")
+    lines.append(f"  {'total':<62} {report['lost_total']}")
+    restarts = {k: v for k, v in report["restarts"].items() if v}
+    goals = report["goals"]
+    lines += [
+        "",
+        f"restarts: {restarts or 'none'}",
+        f"goals: memory {'ok' if goals['memory_ok'] else 'MISSED'}, "
+        f"lost {'ok' if goals['lost_ok'] else 'MISSED'}, "
+        f"restarts {'ok' if goals['no_restarts'] else 'MISSED'}",
+    ]
+    if report["check_errors"]:
+        lines.append(f"audit errors: {len(report['check_errors'])} ({report['check_errors'][0]})")
+    return "\n".join(lines)

@@ -1,0 +1,151 @@
+"""The soak's lost-element audit, fed by a fake pipeline (no processes)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from middleware import DataObject, Retention
+from services.messages import DecisionRecord
+from services.soak import Audit, MemorySeries
+
+MS = 1_000_000
+
+
+def _decision(frame_ts: int, accepted: bool) -> DecisionRecord:
+    return DecisionRecord(
+        frame_timestamp_ns=frame_ts,
+        frame_id=frame_ts // MS,
+        blur_px=1.0,
+        quality=0.8,
+        load=0.0,
+        accepted=accepted,
+        reason="quality>load" if accepted else "quality<=load",
+        policy="paper",
+        b0_px=5.0,
+        latency_ns=1,
+    )
+
+
+@dataclass
+class _Info:
+    oldest_ns: int | None
+    retention: Retention = field(default_factory=Retention)
+
+
+class FakePipeline:
+    """Answers the audit's queries from plain dicts, as the services' buffers would."""
+
+    def __init__(self) -> None:
+        self.buffers: dict[str, dict[int, DataObject]] = {
+            name: {}
+            for name in (
+                "camera/images",
+                "mediator/images",
+                "mediator/decisions",
+                "detector/detections",
+            )
+        }
+
+    def frame(self, ts: int, payload: bytes = b"image") -> None:
+        self.buffers["camera/images"][ts] = DataObject(ts, payload + b"%d" % ts, b"<m/>")
+
+    def decide(self, ts: int, accepted: bool, *, forward: bool = True, detect: bool = True) -> None:
+        key = 10**12 + ts
+        record = _decision(ts, accepted)
+        self.buffers["mediator/decisions"][key] = DataObject(key, b"", record.metadata(key))
+        if accepted and forward:
+            self.buffers["mediator/images"][ts] = self.buffers["camera/images"][ts]
+        if accepted and detect:
+            self.buffers["detector/detections"][ts] = DataObject(ts, b"", b"<d/>")
+
+    def query(self, target: str, *, time_range: str, timeout_s: float) -> list[DataObject]:
+        start = int(time_range.strip("[]").split("..")[0])
+        found = self.buffers[target]
+        return [found[t] for t in sorted(found) if t >= start]
+
+    def buffer_info(self, target: str) -> _Info:
+        held = self.buffers[target]
+        return _Info(min(held) if held else None)
+
+
+def _audit(pipe: FakePipeline) -> Audit:
+    audit = Audit()
+    audit.check(pipe)  # type: ignore[arg-type]
+    return audit
+
+
+def test_a_healthy_pipeline_loses_nothing() -> None:
+    pipe = FakePipeline()
+    for i in range(1, 11):
+        pipe.frame(i * MS)
+        pipe.decide(i * MS, accepted=i % 3 != 0)
+    audit = _audit(pipe)
+    summary = audit.summary()
+    assert summary["lost"] == dict.fromkeys(summary["lost"], 0)
+    assert summary["accepted"] == 7
+    assert summary["compared_with_camera"] == 7
+
+
+def test_frames_before_the_mediator_s_first_decision_are_not_counted() -> None:
+    pipe = FakePipeline()
+    for i in range(1, 6):
+        pipe.frame(i * MS)
+    for i in range(3, 6):
+        pipe.decide(i * MS, accepted=True)
+    assert _audit(pipe).summary()["lost"]["frames_without_decision"] == 0
+
+
+def test_a_skipped_frame_an_unforwarded_accept_and_a_missing_detection_are_lost() -> None:
+    pipe = FakePipeline()
+    for i in range(1, 8):
+        pipe.frame(i * MS)
+    pipe.decide(1 * MS, True)
+    pipe.decide(3 * MS, True)  # frame 2 got no decision
+    pipe.decide(4 * MS, True, forward=False, detect=False)  # accepted, never forwarded
+    pipe.decide(5 * MS, True, detect=False)  # no detection, though 6 was detected
+    pipe.decide(6 * MS, True)
+    lost = _audit(pipe).lost
+    assert lost["frames_without_decision"] == {2 * MS}
+    assert lost["accepted_not_in_mediator"] == {4 * MS}
+    assert lost["accepted_without_detection"] == {4 * MS, 5 * MS}
+
+
+def test_an_altered_frame_in_mediator_images_is_not_identical() -> None:
+    pipe = FakePipeline()
+    for i in range(1, 4):
+        pipe.frame(i * MS)
+        pipe.decide(i * MS, True)
+    pipe.buffers["mediator/images"][2 * MS] = DataObject(2 * MS, b"tampered", b"<m/>")
+    pipe.frame(9 * MS)
+    pipe.decide(9 * MS, False)  # rejected, yet it shows up in mediator/images
+    pipe.buffers["mediator/images"][9 * MS] = pipe.buffers["camera/images"][9 * MS]
+    lost = _audit(pipe).lost
+    assert lost["accepted_not_identical"] == {2 * MS}
+    assert lost["mediator_not_accepted"] == {9 * MS}
+
+
+def test_later_audits_read_only_what_is_new_and_keep_counting() -> None:
+    pipe = FakePipeline()
+    audit = Audit()
+    pipe.frame(1 * MS)
+    pipe.decide(1 * MS, True)
+    audit.check(pipe)  # type: ignore[arg-type]
+    pipe.frame(2 * MS)
+    pipe.frame(3 * MS)
+    pipe.decide(3 * MS, True)
+    audit.check(pipe)  # type: ignore[arg-type]
+    assert audit.summary()["checks"] == 2
+    assert audit.lost["frames_without_decision"] == {2 * MS}
+    assert audit.compared == 2
+
+
+def test_memory_growth_is_measured_after_the_warm_up_on_the_last_pid() -> None:
+    series = MemorySeries()
+    for t in range(0, 100, 5):
+        series.samples.append((float(t), 1, (50 if t < 20 else 100) * 2**20))
+    series.samples[-1] = (95.0, 1, 104 * 2**20)
+    summary = series.summary(warmup_s=20, goal=0.05)
+    assert summary["rss_after_warmup_mib"] == 100.0
+    assert summary["ok"] is True
+    assert 0 < summary["growth"] < 0.02
+    assert series.summary(warmup_s=0, goal=0.05)["ok"] is False
