@@ -1,0 +1,47 @@
+"""Recording framegate buffers to MCAP and reading them back (``record`` / ``play``).
+
+The file layout is described in ``services.bag._format``: one lossless ``framegate.Element``
+channel per buffer (msgpack of timestamp, payload and metadata XML, with the buffer's kind
+and retention in the channel metadata) and, for raw camera frames, a ``foxglove.RawImage``
+channel that Foxglove shows as images.
+"""
+
+from ._format import (
+    ELEMENT_MESSAGE_ENCODING,
+    ELEMENT_SCHEMA_ENCODING,
+    ELEMENT_SCHEMA_NAME,
+    IMAGE_MESSAGE_ENCODING,
+    IMAGE_SCHEMA_NAME,
+    BagError,
+    decode_element,
+    element_topic,
+    encode_element,
+    image_topic,
+)
+from ._frames import FrameLayout, frame_layout, metadata_kind
+from ._reader import Bag, RecordedBuffer, open_bag
+from ._retime import shift_element, timestamp_fields
+from ._writer import COMPRESSIONS, BagWriter
+
+__all__ = [
+    "COMPRESSIONS",
+    "ELEMENT_MESSAGE_ENCODING",
+    "ELEMENT_SCHEMA_ENCODING",
+    "ELEMENT_SCHEMA_NAME",
+    "IMAGE_MESSAGE_ENCODING",
+    "IMAGE_SCHEMA_NAME",
+    "Bag",
+    "BagError",
+    "BagWriter",
+    "FrameLayout",
+    "RecordedBuffer",
+    "decode_element",
+    "element_topic",
+    "encode_element",
+    "frame_layout",
+    "image_topic",
+    "metadata_kind",
+    "open_bag",
+    "shift_element",
+    "timestamp_fields",
+]

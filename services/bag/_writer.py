@@ -1,0 +1,176 @@
+"""Writing buffers to an MCAP file that ``play`` re-offers and Foxglove opens."""
+
+from __future__ import annotations
+
+import json
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+from typing import IO, Any
+
+from mcap.writer import CompressionType, Writer
+
+from middleware import DataObject, Retention
+
+from ._format import (
+    ELEMENT_MESSAGE_ENCODING,
+    ELEMENT_SCHEMA_ENCODING,
+    ELEMENT_SCHEMA_NAME,
+    ELEMENT_SCHEMA_TEXT,
+    IMAGE_MESSAGE_ENCODING,
+    IMAGE_SCHEMA,
+    IMAGE_SCHEMA_ENCODING,
+    IMAGE_SCHEMA_NAME,
+    KEY_ROLE,
+    KEY_SOURCE,
+    PROFILE,
+    BagError,
+    channel_metadata,
+    element_topic,
+    encode_element,
+    encode_raw_image,
+    image_topic,
+)
+from ._frames import frame_layout
+
+COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": None}
+
+
+@dataclass
+class _Channels:
+    service: str
+    element_id: int
+    image_id: int | None = None
+    messages: int = 0
+    images: int = 0
+
+
+class BagWriter:
+    """Records elements of several buffers into one MCAP file. Thread-safe.
+
+    Use as a context manager, or call ``close``: only a closed file has the summary
+    section readers use to find channels and messages quickly.
+    """
+
+    def __init__(
+        self,
+        path: Path,
+        *,
+        images: bool = True,
+        compression: str = "zstd",
+        overwrite: bool = False,
+        library: str = "framegate",
+    ) -> None:
+        if compression not in COMPRESSIONS:
+            raise BagError(f"unknown compression {compression!r}; use zstd, lz4 or none")
+        if path.exists() and not overwrite:
+            raise BagError(f"{path} exists; choose another file or remove it first")
+        self.path = path
+        self._images = images
+        try:
+            self._stream: IO[bytes] = open(path, "wb")  # noqa: SIM115 - closed in close()
+        except OSError as exc:
+            raise BagError(f"cannot write {path}: {exc.strerror}") from exc
+        chosen = COMPRESSIONS[compression]
+        self._writer = Writer(
+            self._stream,
+            compression=chosen if chosen is not None else CompressionType.NONE,
+            use_chunking=True,
+        )
+        self._writer.start(profile=PROFILE, library=library)
+        self._lock = threading.Lock()
+        self._element_schema = self._writer.register_schema(
+            ELEMENT_SCHEMA_NAME, ELEMENT_SCHEMA_ENCODING, ELEMENT_SCHEMA_TEXT.encode("utf-8")
+        )
+        self._image_schema: int | None = None
+        self._channels: dict[str, _Channels] = {}
+        self._closed = False
+
+    def add_buffer(self, service: str, buffer: str, *, kind: str, retention: Retention) -> None:
+        """Declare a buffer before writing its elements (its kind is what ``play`` offers)."""
+        with self._lock:
+            name = f"{service}/{buffer}"
+            if name in self._channels:
+                return
+            element_id = self._writer.register_channel(
+                element_topic(service, buffer),
+                ELEMENT_MESSAGE_ENCODING,
+                self._element_schema,
+                channel_metadata(service, buffer, kind, retention),
+            )
+            channels = _Channels(service, element_id)
+            if self._images and kind == "frame":
+                if self._image_schema is None:
+                    self._image_schema = self._writer.register_schema(
+                        IMAGE_SCHEMA_NAME,
+                        IMAGE_SCHEMA_ENCODING,
+                        json.dumps(IMAGE_SCHEMA).encode("utf-8"),
+                    )
+                channels.image_id = self._writer.register_channel(
+                    image_topic(service, buffer),
+                    IMAGE_MESSAGE_ENCODING,
+                    self._image_schema,
+                    {KEY_ROLE: "image", KEY_SOURCE: element_topic(service, buffer)},
+                )
+            self._channels[name] = channels
+
+    def write(self, name: str, element: DataObject) -> None:
+        """Append one element of ``service/buffer`` (declared with ``add_buffer``)."""
+        # Encoding outside the lock: base64 of a large frame takes a while.
+        data = encode_element(element)
+        channels = self._channels.get(name)
+        if channels is None:
+            raise BagError(f"buffer {name!r} was not declared with add_buffer")
+        image: bytes | None = None
+        if channels.image_id is not None:
+            layout = frame_layout(element.metadata, len(element.payload))
+            if layout is not None:
+                image = encode_raw_image(element, layout, frame_id=channels.service)
+        t = element.timestamp_ns
+        with self._lock:
+            if self._closed:
+                raise BagError(f"{self.path} is closed")
+            channels.messages += 1
+            self._writer.add_message(
+                channels.element_id,
+                log_time=t,
+                data=data,
+                publish_time=t,
+                sequence=channels.messages & 0xFFFFFFFF,
+            )
+            if image is not None and channels.image_id is not None:
+                channels.images += 1
+                self._writer.add_message(
+                    channels.image_id,
+                    log_time=t,
+                    data=image,
+                    publish_time=t,
+                    sequence=channels.images & 0xFFFFFFFF,
+                )
+
+    def add_metadata(self, name: str, data: dict[str, str]) -> None:
+        """A named MCAP metadata record (e.g. where and when the recording was made)."""
+        with self._lock:
+            self._writer.add_metadata(name, data)
+
+    def counts(self) -> dict[str, tuple[int, int]]:
+        """``service/buffer`` → (element messages, image messages) written so far."""
+        with self._lock:
+            return {name: (c.messages, c.images) for name, c in self._channels.items()}
+
+    def close(self) -> None:
+        """Write the summary and close the file."""
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            try:
+                self._writer.finish()
+            finally:
+                self._stream.close()
+
+    def __enter__(self) -> BagWriter:
+        return self
+
+    def __exit__(self, *_exc: Any) -> None:
+        self.close()

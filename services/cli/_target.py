@@ -1,0 +1,97 @@
+"""Finding the ``SERVICE/BUFFER`` a command names on the live network, or saying why not.
+
+(Also the one-line JSON output that the streaming commands share: ``watch``, ``hz``, ``play``.)
+
+A peer whose ``--connect`` endpoint is unreachable still opens (Zenoh retries in the
+background), so "nothing answers" must be detected here: wait a bounded time for the
+service's liveliness token, then name the endpoint that was tried and what is live.
+"""
+
+from __future__ import annotations
+
+import argparse
+import difflib
+import json
+import sys
+import time
+from typing import Any
+
+from middleware import (
+    BufferInfo,
+    NetworkConfig,
+    Node,
+    NotFoundError,
+    ServiceInfo,
+    split_target,
+)
+
+DEFAULT_TIMEOUT_S = 3.0
+
+
+def add_timeout_argument(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--timeout",
+        type=float,
+        default=DEFAULT_TIMEOUT_S,
+        metavar="S",
+        help=f"seconds to wait for the service to answer (default {DEFAULT_TIMEOUT_S:g})",
+    )
+
+
+def where(net: NetworkConfig) -> str:
+    """The endpoints this process tried, for error messages."""
+    if net.connect:
+        return "via " + ", ".join(net.connect)
+    if net.config_file:
+        return f"with the Zenoh config {net.config_file}"
+    if net.listen:
+        return "listening on " + ", ".join(net.listen) + " (nobody connected)"
+    return f"via the local rendezvous tcp/127.0.0.1:{net.local_port}"
+
+
+def _did_you_mean(name: str, candidates: list[str]) -> str:
+    hint = difflib.get_close_matches(name, candidates, n=1)
+    return f" (did you mean {hint[0]!r}?)" if hint else ""
+
+
+def wait_for_service(node: Node, service: str, timeout_s: float) -> None:
+    """Return once ``service`` is live; NotFoundError naming the endpoint otherwise."""
+    deadline = time.monotonic() + timeout_s
+    live: list[str] = []
+    while True:
+        live = node.live_services(timeout_s=max(0.1, min(1.0, timeout_s)))
+        if service in live:
+            return
+        if time.monotonic() >= deadline:
+            break
+        time.sleep(0.05)
+    if not live:
+        raise NotFoundError(
+            f"no live services reachable {where(node.network)} (waited {timeout_s:g} s); "
+            "is the service running and is --connect right?"
+        )
+    raise NotFoundError(
+        f"no live service named {service!r}{_did_you_mean(service, live)}; "
+        f"live services: {', '.join(live)}"
+    )
+
+
+def resolve(node: Node, target: str, timeout_s: float) -> tuple[ServiceInfo, BufferInfo]:
+    """The live service and buffer ``target`` (``SERVICE/BUFFER``) names."""
+    service, buffer = split_target(target)
+    wait_for_service(node, service, timeout_s)
+    info = node.service_info(service, timeout_s=timeout_s)
+    for candidate in info.buffers:
+        if candidate.buffer == buffer:
+            return info, candidate
+    offered = [b.buffer for b in info.buffers]
+    raise NotFoundError(
+        f"service {service!r} has no buffer {buffer!r}{_did_you_mean(buffer, offered)}; "
+        f"it offers: {', '.join(offered) or 'none'}"
+    )
+
+
+def print_json_line(data: Any) -> None:
+    """One JSON object per line (JSON Lines): what streaming commands print with --json."""
+    sys.stdout.write(json.dumps(data, default=str) + "\n")
+    sys.stdout.flush()

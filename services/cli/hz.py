@@ -1,0 +1,175 @@
+"""``framegate hz``: a buffer's rate, interval jitter and bandwidth, like ``ros2 topic hz/bw``.
+
+Buffering rule: hz only observes (``SubscriptionMode.OBSERVE``), so measuring never slows
+the producer. Missed notifications do not bias the numbers: the rate counts sequence
+numbers (every stored element gets one) over element timestamps, and jitter uses only
+intervals between consecutive elements.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+from collections import deque
+from dataclasses import dataclass
+from itertools import pairwise
+from typing import Any
+
+from middleware import ConfigError, FramegateError, Node, SubscriptionMode
+
+from ._common import command_parser, exit_on_sigterm, format_bytes, network
+from ._target import add_timeout_argument, print_json_line, resolve
+
+DEFAULT_WINDOW = 100
+
+
+@dataclass(frozen=True, slots=True)
+class Sample:
+    seq: int
+    timestamp_ns: int
+    arrival_ns: int
+    payload_bytes: int | None
+
+
+def register(subparsers: Any) -> None:
+    parser = command_parser(
+        subparsers,
+        "hz",
+        "measure a buffer's rate, jitter and bandwidth (as an observer)",
+        json_flag=True,
+    )
+    parser.add_argument("target", metavar="SERVICE/BUFFER", help="the buffer, e.g. camera/images")
+    parser.add_argument(
+        "--window",
+        type=int,
+        default=DEFAULT_WINDOW,
+        metavar="N",
+        help=f"statistics over the last N elements (default {DEFAULT_WINDOW})",
+    )
+    parser.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+    parser.add_argument(
+        "--interval", type=float, default=1.0, metavar="S", help="report every S seconds"
+    )
+    parser.add_argument(
+        "--queue", type=int, default=100, metavar="N", help="observer queue size (default 100)"
+    )
+    add_timeout_argument(parser)
+    parser.epilog = (
+        "Rate and jitter come from the elements' timestamps (the source's clock); "
+        "receive_rate_hz from arrival times here. --json prints JSON Lines: one report per "
+        "interval, the last one with event=summary."
+    )
+    parser.set_defaults(func=run)
+
+
+def window_stats(samples: list[Sample]) -> dict[str, Any]:
+    """Rate, interval statistics and bandwidth of a window of samples."""
+    out: dict[str, Any] = {
+        "window": len(samples),
+        "rate_hz": None,
+        "receive_rate_hz": None,
+        "min_s": None,
+        "max_s": None,
+        "mean_s": None,
+        "std_s": None,
+        "mean_bytes": None,
+        "bandwidth_bytes_s": None,
+    }
+    if len(samples) >= 2:
+        first, last = samples[0], samples[-1]
+        elements = last.seq - first.seq
+        span_s = (last.timestamp_ns - first.timestamp_ns) / 1e9
+        arrival_s = (last.arrival_ns - first.arrival_ns) / 1e9
+        out["rate_hz"] = elements / span_s if span_s > 0 else None
+        out["receive_rate_hz"] = elements / arrival_s if arrival_s > 0 else None
+        intervals = [
+            (b.timestamp_ns - a.timestamp_ns) / 1e9
+            for a, b in pairwise(samples)
+            if b.seq == a.seq + 1
+        ]
+        if intervals:
+            mean = sum(intervals) / len(intervals)
+            out["min_s"], out["max_s"], out["mean_s"] = min(intervals), max(intervals), mean
+            out["std_s"] = math.sqrt(sum((x - mean) ** 2 for x in intervals) / len(intervals))
+    sizes = [s.payload_bytes for s in samples if s.payload_bytes is not None]
+    if sizes:
+        out["mean_bytes"] = sum(sizes) / len(sizes)
+        if out["rate_hz"] is not None:
+            out["bandwidth_bytes_s"] = out["mean_bytes"] * out["rate_hz"]
+    return out
+
+
+def _print_report(stats: dict[str, Any], missed: int) -> None:
+    if stats["rate_hz"] is None:
+        print(f"not enough elements yet (window {stats['window']}, missed {missed})", flush=True)
+        return
+    print(f"average rate: {stats['rate_hz']:.3f} Hz", flush=True)
+    if stats["mean_s"] is not None:
+        print(
+            f"\tmin: {stats['min_s']:.4f}s max: {stats['max_s']:.4f}s "
+            f"std dev: {stats['std_s']:.5f}s window: {stats['window']}"
+        )
+    if stats["bandwidth_bytes_s"] is not None:
+        print(
+            f"\tbandwidth: {format_bytes(int(stats['bandwidth_bytes_s']))}/s "
+            f"(mean {format_bytes(int(stats['mean_bytes']))})  missed: {missed}",
+            flush=True,
+        )
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.window < 2:
+        raise ConfigError(f"--window {args.window}: needs at least 2 elements")
+    if args.queue < 1:
+        raise ConfigError(f"--queue {args.queue}: must be >= 1")
+    if args.interval <= 0 or (args.duration is not None and args.duration <= 0):
+        raise ConfigError("--interval and --duration must be > 0 seconds")
+    exit_on_sigterm()
+    samples: deque[Sample] = deque(maxlen=args.window)
+    with Node(network=network(args)) as node:
+        resolve(node, args.target, args.timeout)
+        sub = node.subscribe(
+            args.target,
+            queue_size=args.queue,
+            mode=SubscriptionMode.OBSERVE,
+            wait_s=max(2.0, args.timeout),
+        )
+        deadline = None if args.duration is None else time.monotonic() + args.duration
+        next_report = time.monotonic() + args.interval
+        try:
+            while deadline is None or time.monotonic() < deadline:
+                now = time.monotonic()
+                if now >= next_report:
+                    next_report = now + args.interval
+                    _report(args, "report", list(samples), sub.missed_total)
+                wait_s = max(0.0, next_report - now)
+                if deadline is not None:
+                    wait_s = min(wait_s, max(0.0, deadline - now))
+                note = sub.take(timeout_s=wait_s)
+                if note is None:
+                    continue
+                if samples and note.seq <= samples[-1].seq:
+                    samples.clear()  # the producer restarted: a new epoch counts from 1
+                size: int | None = None
+                if note.element is not None:
+                    size = len(note.element.payload)
+                else:
+                    try:  # large elements are not inline: fetch, as `ros2 topic bw` receives
+                        size = len(sub.fetch(note).payload)
+                    except FramegateError:
+                        size = None  # evicted already; the rate does not need it
+                samples.append(Sample(note.seq, note.timestamp_ns, time.monotonic_ns(), size))
+        except KeyboardInterrupt:
+            pass
+        missed = sub.missed_total
+    _report(args, "summary", list(samples), missed)
+    return 0
+
+
+def _report(args: argparse.Namespace, event: str, samples: list[Sample], missed: int) -> None:
+    stats = window_stats(samples)
+    if args.json:
+        print_json_line({"event": event, "target": args.target, "missed": missed, **stats})
+    else:
+        _print_report(stats, missed)

@@ -1,0 +1,116 @@
+"""``framegate info``: one buffer's retention, size, span, rate, subscriptions and counters."""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import asdict
+from typing import Any
+
+from middleware import BufferInfo, Node, ServiceInfo, check_name
+
+from ._common import command_parser, format_bytes, format_ns, network, print_json
+from ._target import add_timeout_argument, resolve, wait_for_service
+
+
+def register(subparsers: Any) -> None:
+    parser = command_parser(
+        subparsers,
+        "info",
+        "describe a buffer: retention, size, span, rate, subscriptions, producer counters",
+        json_flag=True,
+    )
+    parser.add_argument(
+        "target", metavar="SERVICE/BUFFER", help="the buffer, or just SERVICE for all its buffers"
+    )
+    add_timeout_argument(parser)
+    parser.set_defaults(func=run)
+
+
+def buffer_json(b: BufferInfo) -> dict[str, Any]:
+    """A buffer as ``ls --json`` shows it, plus readable times."""
+    data = asdict(b)
+    data["name"] = b.name
+    data["oldest"] = format_ns(b.oldest_ns) if b.oldest_ns is not None else None
+    data["newest"] = format_ns(b.newest_ns) if b.newest_ns is not None else None
+    data["subscriptions"] = [
+        {
+            "subscription_id": s.subscription_id,
+            "mode": s.mode.value,
+            "queue_size": s.queue_size,
+            "queued": s.queued,
+            "fill": s.fill,
+        }
+        for s in b.subscriptions
+    ]
+    return data
+
+
+def service_json(info: ServiceInfo) -> dict[str, Any]:
+    return {
+        "service": info.service,
+        "host": info.host,
+        "pid": info.pid,
+        "clock_offset_ns": info.clock_offset_ns,
+        "round_trip_ns": info.round_trip_ns,
+    }
+
+
+def run(args: argparse.Namespace) -> int:
+    whole_service = "/" not in args.target.strip("/")
+    with Node(network=network(args)) as node:
+        if whole_service:
+            name = check_name(args.target.strip("/"), "service")
+            wait_for_service(node, name, args.timeout)
+            service = node.service_info(name, timeout_s=args.timeout)
+            buffers = list(service.buffers)
+        else:
+            service, buffer = resolve(node, args.target, args.timeout)
+            buffers = [buffer]
+    if args.json:
+        if whole_service:
+            print_json({**service_json(service), "buffers": [buffer_json(b) for b in buffers]})
+        else:
+            print_json({**service_json(service), **buffer_json(buffers[0])})
+        return 0
+    for b in buffers:
+        _print_buffer(service, b)
+    if not buffers:
+        print(f"{service.service} offers no buffers")
+    return 0
+
+
+def _limit(value: int | None, fmt: Any = str) -> str:
+    return "unlimited" if value is None else str(fmt(value))
+
+
+def _print_buffer(service: ServiceInfo, b: BufferInfo) -> None:
+    offset_ms = (service.clock_offset_ns or 0) / 1e6
+    rtt_ms = (service.round_trip_ns or 0) / 1e6
+    r = b.retention
+    age = _limit(r.max_age_ns, lambda ns: f"{ns / 1e9:g} s")
+    span = ""
+    if b.oldest_ns is not None and b.newest_ns is not None:
+        span = f" ({(b.newest_ns - b.oldest_ns) / 1e9:.3f} s)"
+    print(f"{b.name}  (kind {b.kind})")
+    print(
+        f"  service        host {service.host}, pid {service.pid}, "
+        f"clock offset {offset_ms:+.1f} ms (round trip {rtt_ms:.1f} ms)"
+    )
+    print(
+        f"  retention      max {_limit(r.max_count)} elements, "
+        f"{_limit(r.max_bytes, format_bytes)}, age {age}, "
+        f"element payload <= {format_bytes(r.max_payload_bytes)}"
+    )
+    print(f"  size           {b.count} elements, {format_bytes(b.payload_bytes)}")
+    print(f"  span           {format_ns(b.oldest_ns)} .. {format_ns(b.newest_ns)}{span}")
+    print(f"  rate           {b.rate_hz:.1f} Hz")
+    print(f"  producer       puts {b.puts}, refused {b.refused}, rejected {b.rejected}")
+    if not b.subscriptions:
+        print("  subscriptions  none")
+        return
+    print("  subscriptions")
+    for s in b.subscriptions:
+        print(
+            f"    {s.subscription_id}  {s.mode.value:<8} queue {s.queue_size:<4}"
+            f" queued {s.queued:<4} fill {s.fill:.0%}"
+        )

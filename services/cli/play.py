@@ -1,0 +1,269 @@
+"""``framegate play``: offer recorded buffers again, at the recorded pace, then keep serving.
+
+Buffering rule: play is a lossless source, so it waits (``put(..., wait_s=...)``) while a
+flow-controlled subscriber's queue is full instead of dropping elements; after such a wait
+it keeps the recorded spacing from there rather than bursting to catch up.
+"""
+
+from __future__ import annotations
+
+import argparse
+import threading
+import time
+from contextlib import ExitStack
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from middleware import (
+    ConfigError,
+    DataObject,
+    FlowControlRefused,
+    NetworkConfig,
+    Node,
+    Producer,
+    Retention,
+    check_name,
+)
+
+from ._common import command_parser, exit_on_sigterm, network
+from ._target import print_json_line
+
+if TYPE_CHECKING:
+    from services.bag import Bag, RecordedBuffer
+
+# How long one put waits for a flow-controlled subscriber before trying again (so Ctrl-C
+# is honoured); each retry shows up once in the buffer's `refused` counter.
+PUT_WAIT_S = 1.0
+# Later than this behind schedule after a put, the schedule moves instead of bursting.
+REANCHOR_S = 0.05
+
+
+def register(subparsers: Any) -> None:
+    parser = command_parser(
+        subparsers,
+        "play",
+        "offer the buffers of an MCAP recording again, then keep answering queries",
+        json_flag=True,
+    )
+    parser.add_argument("file", type=Path, metavar="FILE.mcap", help="made by `framegate record`")
+    parser.add_argument(
+        "--rate",
+        type=float,
+        default=1.0,
+        metavar="R",
+        help="pace factor (default 1: as recorded; 0: as fast as flow control allows)",
+    )
+    parser.add_argument("--fast", action="store_true", help="same as --rate 0")
+    parser.add_argument("--loop", action="store_true", help="play again and again (shifted)")
+    parser.add_argument(
+        "--as-service",
+        metavar="NAME",
+        help="offer every buffer under this service name instead of the recorded one",
+    )
+    parser.add_argument(
+        "--rebase",
+        action="store_true",
+        help="shift timestamps so the first element is now (metadata timestamps move along)",
+    )
+    parser.add_argument(
+        "--only",
+        action="append",
+        metavar="SERVICE/BUFFER",
+        help="play only this recorded buffer (repeatable)",
+    )
+    parser.add_argument(
+        "--keep-all",
+        action="store_true",
+        help="keep every element (default: the retention the buffer had when recorded)",
+    )
+    parser.add_argument(
+        "--start-delay",
+        type=float,
+        default=0.5,
+        metavar="S",
+        help="seconds between offering and the first element, for subscribers to register",
+    )
+    parser.add_argument(
+        "--exit-when-done",
+        action="store_true",
+        help="exit after the last element instead of serving queries until Ctrl-C",
+    )
+    parser.epilog = (
+        "--json prints JSON Lines: an 'offered' event, then a 'done' event. Looping shifts "
+        "each pass by the recording's span plus one mean interval, so timestamps keep rising."
+    )
+    parser.set_defaults(func=run)
+
+
+@dataclass
+class _Played:
+    recorded: RecordedBuffer
+    service: str
+    buffer: str
+    producer: Producer | None = None
+
+    @property
+    def name(self) -> str:
+        return f"{self.service}/{self.buffer}"
+
+
+def _select(bag: Bag, args: argparse.Namespace) -> list[_Played]:
+    chosen = list(bag.buffers)
+    if args.only:
+        names = {b.name: b for b in bag.buffers}
+        missing = [n for n in args.only if n.strip("/") not in names]
+        if missing:
+            raise ConfigError(
+                f"{args.file} has no buffer {missing[0]!r}; it holds: {', '.join(names)}"
+            )
+        chosen = [names[n.strip("/")] for n in dict.fromkeys(args.only)]
+    service = check_name(args.as_service, "service") if args.as_service else None
+    played = [_Played(b, service or b.service, b.buffer) for b in chosen]
+    seen: set[str] = set()
+    for p in played:
+        if p.name in seen:
+            raise ConfigError(
+                f"two recorded buffers would both be offered as {p.name}; "
+                "drop --as-service or pick buffers with --only"
+            )
+        seen.add(p.name)
+    return played
+
+
+def _retention(recorded: RecordedBuffer, keep_all: bool) -> Retention:
+    if not keep_all:
+        return recorded.retention
+    return replace(recorded.retention, max_count=None, max_bytes=None, max_age_ns=None)
+
+
+def _offer(stack: ExitStack, net: NetworkConfig, played: list[_Played], keep_all: bool) -> None:
+    nodes: dict[str, Node] = {}
+    for p in played:
+        if p.service not in nodes:
+            node = stack.enter_context(Node(p.service, net))
+            if p.service in node.live_services(timeout_s=0.5):
+                raise ConfigError(
+                    f"a service named {p.service!r} is already live; stop it, "
+                    "or play under another name with --as-service NAME"
+                )
+            nodes[p.service] = node
+        p.producer = nodes[p.service].offer(
+            p.buffer, kind=p.recorded.kind, retention=_retention(p.recorded, keep_all)
+        )
+
+
+def _put(producer: Producer, element: DataObject) -> None:
+    while True:
+        try:
+            producer.put(element.timestamp_ns, element.payload, element.metadata, wait_s=PUT_WAIT_S)
+            return
+        except FlowControlRefused:
+            continue  # a flow-controlled subscriber is still busy: a lossless source waits
+
+
+def _play(bag: Bag, played: list[_Played], rate: float, args: argparse.Namespace) -> int:
+    """Put every element (forever with --loop); return how many were put."""
+    from services.bag import shift_element
+
+    by_channel = {p.recorded.channel_id: p for p in played}
+    count = 0
+    t0: int | None = None
+    wall0 = 0.0
+    rebase_ns = 0
+    period_ns = 0
+    passes = 0
+    while True:
+        first = last = None
+        n = 0
+        for recorded, element in bag.elements([p.recorded for p in played]):
+            if t0 is None:
+                t0, wall0 = element.timestamp_ns, time.monotonic()
+                rebase_ns = time.time_ns() - t0 if args.rebase else 0
+            first = element.timestamp_ns if first is None else first
+            last, n = element.timestamp_ns, n + 1
+            loop_ns = passes * period_ns
+            due = 0.0
+            if rate > 0:
+                due = wall0 + (element.timestamp_ns + loop_ns - t0) / 1e9 / rate
+                _sleep_until(due)
+            p = by_channel[recorded.channel_id]
+            assert p.producer is not None
+            _put(p.producer, shift_element(element, recorded.kind, rebase_ns + loop_ns))
+            count += 1
+            late = time.monotonic() - due
+            if rate > 0 and late > REANCHOR_S:
+                wall0 += late
+        passes += 1
+        if not args.loop or first is None or last is None:
+            return count
+        if passes == 1:
+            # Each pass is shifted by the span plus one mean interval, so timestamps rise.
+            gap = (last - first) // (n - 1) if n > 1 else 1_000_000
+            period_ns = (last - first) + max(gap, 1)
+
+
+def _sleep_until(due: float) -> None:
+    while (remaining := due - time.monotonic()) > 0:
+        time.sleep(min(remaining, 0.2))
+
+
+def run(args: argparse.Namespace) -> int:
+    from services.bag import open_bag  # imported here: only record and play need MCAP
+
+    rate = 0.0 if args.fast else args.rate
+    if rate < 0:
+        raise ConfigError(
+            f"--rate {args.rate}: use a positive factor, or 0 for as fast as possible"
+        )
+    exit_on_sigterm()
+    started = time.monotonic()
+    with open_bag(args.file) as bag, ExitStack() as stack:
+        played = _select(bag, args)
+        _offer(stack, network(args), played, args.keep_all)
+        _event(
+            args,
+            {
+                "event": "offered",
+                "file": str(args.file),
+                "buffers": [
+                    {
+                        "name": p.name,
+                        "recorded_as": p.recorded.name,
+                        "kind": p.recorded.kind,
+                        "elements": p.recorded.count,
+                    }
+                    for p in played
+                ],
+            },
+        )
+        try:
+            _sleep_until(time.monotonic() + max(0.0, args.start_delay))
+            count = _play(bag, played, rate, args)
+            _event(
+                args,
+                {
+                    "event": "done",
+                    "played": count,
+                    "elapsed_s": round(time.monotonic() - started, 3),
+                    "serving": not args.exit_when_done,
+                },
+            )
+            if not args.exit_when_done:
+                threading.Event().wait()
+        except KeyboardInterrupt:
+            pass
+    return 0
+
+
+def _event(args: argparse.Namespace, event: dict[str, Any]) -> None:
+    if args.json:
+        print_json_line(event)
+        return
+    if event["event"] == "offered":
+        for b in event["buffers"]:
+            print(f"offering {b['name']} ({b['kind']}, {b['elements']} elements) from {args.file}")
+    elif event["event"] == "done":
+        then = "serving queries until Ctrl-C" if event["serving"] else "exiting"
+        print(f"played {event['played']} elements in {event['elapsed_s']:.1f} s; {then}")
+    print(end="", flush=True)

@@ -1,0 +1,224 @@
+"""``framegate query``: elements of a buffer by time range, newest N, or nearest to a time."""
+
+from __future__ import annotations
+
+import argparse
+import base64
+import re
+import time
+from pathlib import Path
+from typing import Any
+
+from middleware import (
+    DataObject,
+    FramegateError,
+    Node,
+    QueryError,
+    TimeRange,
+    parse_duration_ns,
+    parse_time_ns,
+    parse_untrusted,
+)
+
+from ._common import command_parser, format_bytes, format_ns, network, print_json
+from ._target import add_timeout_argument, resolve
+
+# With no selection at all, a query returns this many of the newest elements: a camera
+# buffer can hold gigabytes, and nobody wants them all by accident.
+DEFAULT_LAST = 10
+# Metadata fields shown per row of the table.
+TABLE_FIELDS = 3
+
+_TIME_HELP = "now, -5s (relative), 2026-11-22T14:00:00.5Z (RFC 3339) or integer ns"
+_RELATIVE = re.compile(r"^[+-]\s*(\d|\.\d)")
+_NEGATIVE_TIME = re.compile(r"^-(\d+\.?\d*|\.\d+)(ns|us|u|ms|s|m|h|d|w)?$")
+
+
+def register(subparsers: Any) -> None:
+    parser = command_parser(
+        subparsers,
+        "query",
+        "print (or save) the elements of a buffer in a time range",
+        json_flag=True,
+    )
+    parser.add_argument("target", metavar="SERVICE/BUFFER", help="the buffer, e.g. camera/images")
+    parser.add_argument("--from", dest="start", metavar="TIME", help=f"first time: {_TIME_HELP}")
+    parser.add_argument("--to", dest="end", metavar="TIME", help=f"last time: {_TIME_HELP}")
+    parser.add_argument(
+        "--last",
+        type=int,
+        metavar="N",
+        help=f"only the newest N (of the range, if given); default {DEFAULT_LAST} with no range",
+    )
+    parser.add_argument("--at", metavar="TIME", help="the one element nearest to TIME")
+    parser.add_argument(
+        "--save",
+        metavar="DIR",
+        type=Path,
+        help="write payloads (raw frames as PNG, else .bin) and metadata (.xml) to DIR",
+    )
+    parser.add_argument(
+        "--with-payload", action="store_true", help="with --json: include payloads as base64"
+    )
+    add_timeout_argument(parser)
+    # Let `--from -5s` mean a relative time, not an unknown option: argparse only takes
+    # values that look like negative numbers, and asks this (private) matcher which do.
+    parser._negative_number_matcher = _NEGATIVE_TIME
+    parser.epilog = "Relative times count back from the service's clock, not this host's."
+    parser.set_defaults(func=run)
+
+
+def parse_cli_time(text: str, flag: str) -> tuple[int, bool]:
+    """(nanoseconds, relative): relative values are offsets from "now"."""
+    value = text.strip()
+    try:
+        if value == "now":
+            return 0, True
+        if value.startswith("now("):
+            return parse_time_ns(value, now_ns=0), True
+        if _RELATIVE.match(value) and not re.fullmatch(r"[+-]?\d+", value):
+            return parse_duration_ns(value.lstrip("+")), True
+        return parse_time_ns(value), False
+    except QueryError as exc:
+        raise QueryError(f"bad time {text!r} for {flag}: write {_TIME_HELP}") from exc
+
+
+def _resolve_time(spec: tuple[int, bool] | None, now_ns: int) -> int | None:
+    if spec is None:
+        return None
+    value, relative = spec
+    return now_ns + value if relative else value
+
+
+def run(args: argparse.Namespace) -> int:
+    # Check every flag before touching the network: a typo should fail at once.
+    start = parse_cli_time(args.start, "--from") if args.start is not None else None
+    end = parse_cli_time(args.end, "--to") if args.end is not None else None
+    at = parse_cli_time(args.at, "--at") if args.at is not None else None
+    if at is not None and (start is not None or end is not None or args.last is not None):
+        raise QueryError("--at stands alone: do not combine it with --from, --to or --last")
+    if args.last is not None and args.last < 1:
+        raise QueryError(f"--last {args.last}: ask for at least 1 element")
+    if args.with_payload and not args.json:
+        raise QueryError("--with-payload only applies to --json output")
+    with Node(network=network(args)) as node:
+        service, _buffer = resolve(node, args.target, args.timeout)
+        now_ns = time.time_ns() + (service.clock_offset_ns or 0)
+        timeout_s = max(5.0, args.timeout)
+        if at is not None:
+            at_ns = _resolve_time(at, now_ns)
+            assert at_ns is not None
+            elements = [node.nearest(args.target, at_ns, timeout_s=timeout_s)]
+        else:
+            rng = None
+            if start is not None or end is not None:
+                rng = TimeRange(_resolve_time(start, now_ns), _resolve_time(end, now_ns))
+                if (
+                    rng.start_ns is not None
+                    and rng.end_ns is not None
+                    and rng.start_ns > rng.end_ns
+                ):
+                    raise QueryError(f"--from {args.start} is after --to {args.end}")
+            last = args.last if args.last is not None or rng is not None else DEFAULT_LAST
+            elements = node.query(args.target, time_range=rng, last=last, timeout_s=timeout_s)
+    saved = _save_all(args.save, elements) if args.save is not None else {}
+    if args.json:
+        rows = [_element_json(e, saved.get(e.timestamp_ns), args.with_payload) for e in elements]
+        print_json({"target": args.target, "count": len(elements), "elements": rows})
+        return 0
+    _print_table(elements)
+    if args.save is not None:
+        print(f"saved {len(elements)} elements to {args.save}")
+    return 0
+
+
+def summarize(metadata: bytes) -> tuple[str, dict[str, str]]:
+    """The kind and the leaf fields directly under the metadata root."""
+    try:
+        root = parse_untrusted(metadata)
+    except FramegateError:
+        return "?", {}
+    fields: dict[str, str] = {}
+    for child in root:
+        if not isinstance(child.tag, str) or len(child):
+            continue
+        fields[str(child.tag).rsplit("}", 1)[-1]] = (child.text or "").strip()
+    return str(root.get("kind", "?")), fields
+
+
+def _element_json(
+    element: DataObject, files: list[str] | None, with_payload: bool
+) -> dict[str, Any]:
+    kind, fields = summarize(element.metadata)
+    row: dict[str, Any] = {
+        "timestamp_ns": element.timestamp_ns,
+        "time": format_ns(element.timestamp_ns),
+        "kind": kind,
+        "payload_bytes": len(element.payload),
+        "fields": fields,
+        "metadata": element.metadata.decode("utf-8", errors="replace"),
+    }
+    if with_payload:
+        row["payload_base64"] = base64.b64encode(element.payload).decode("ascii")
+    if files is not None:
+        row["files"] = files
+    return row
+
+
+def _print_table(elements: list[DataObject]) -> None:
+    if not elements:
+        print("no elements")
+        return
+    print(f"{'TIME':<28} {'TIMESTAMP_NS':>20}  {'KIND':<10} {'SIZE':>10}  FIELDS")
+    for e in elements:
+        kind, fields = summarize(e.metadata)
+        shown = " ".join(
+            f"{k}={v if len(v) <= 24 else v[:21] + '...'}"
+            for k, v in list(fields.items())[:TABLE_FIELDS]
+        )
+        print(
+            f"{format_ns(e.timestamp_ns):<28} {e.timestamp_ns:>20}  {kind:<10}"
+            f" {format_bytes(len(e.payload)):>10}  {shown}"
+        )
+    print(f"{len(elements)} elements")
+
+
+def _save_all(directory: Path, elements: list[DataObject]) -> dict[int, list[str]]:
+    """Write each element as <timestamp_ns>.png|.bin plus <timestamp_ns>.xml."""
+    from services.bag import frame_layout  # imported here: only --save needs it
+
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise FramegateError(f"cannot create --save directory {directory}: {exc.strerror}") from exc
+    saved: dict[int, list[str]] = {}
+    for element in elements:
+        stem = directory / str(element.timestamp_ns)
+        layout = frame_layout(element.metadata, len(element.payload))
+        payload_path = stem.with_suffix(".png") if layout is not None else stem.with_suffix(".bin")
+        try:
+            if layout is not None:
+                _write_png(payload_path, element.payload, layout)
+            else:
+                payload_path.write_bytes(element.payload)
+            stem.with_suffix(".xml").write_bytes(element.metadata)
+        except OSError as exc:
+            raise FramegateError(f"cannot write {payload_path}: {exc.strerror}") from exc
+        saved[element.timestamp_ns] = [str(payload_path), str(stem.with_suffix(".xml"))]
+    return saved
+
+
+def _write_png(path: Path, payload: bytes, layout: Any) -> None:
+    import cv2  # imported here: OpenCV is slow to load and only PNGs need it
+    import numpy as np
+
+    pixels = np.frombuffer(payload, dtype=np.uint8)
+    image: Any
+    if layout.channels == 1:
+        image = pixels.reshape(layout.height_px, layout.width_px)
+    else:
+        image = pixels.reshape(layout.height_px, layout.width_px, layout.channels)
+        if layout.encoding == "rgb8":
+            image = image[:, :, ::-1]  # OpenCV writes BGR
+    if not cv2.imwrite(str(path), image):
+        raise FramegateError(f"cannot write {path}: OpenCV refused the image")

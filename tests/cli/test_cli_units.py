@@ -1,0 +1,128 @@
+"""The CLI's pure parts: time flags, hz statistics, and the MCAP layout (no network)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import pytest
+from mcap.reader import make_reader
+
+from middleware import DataObject, QueryError, Retention, make_metadata, validate_metadata
+from services.bag import BagError, BagWriter, frame_layout, open_bag, shift_element
+from services.cli import query
+from services.cli.hz import Sample, window_stats
+from tests.cli.conftest import HEIGHT, MS, WIDTH, frame_metadata, frame_payload
+
+SECOND = 1_000_000_000
+
+
+@pytest.mark.parametrize(
+    ("text", "expected"),
+    [
+        ("now", (0, True)),
+        ("-5s", (-5 * SECOND, True)),
+        ("-1.5m", (-90 * SECOND, True)),
+        ("now(-2s)", (-2 * SECOND, True)),
+        ("1763820000000000000", (1763820000000000000, False)),
+        ("2026-11-22T14:00:00.5Z", (1795356000 * SECOND + SECOND // 2, False)),
+    ],
+)
+def test_cli_times_are_absolute_or_relative(text: str, expected: tuple[int, bool]) -> None:
+    assert query.parse_cli_time(text, "--from") == expected
+
+
+def test_a_bad_time_names_the_flag_and_the_accepted_forms() -> None:
+    with pytest.raises(QueryError, match=r"bad time 'yesterday' for --to: write now, -5s"):
+        query.parse_cli_time("yesterday", "--to")
+
+
+def test_negative_relative_times_parse_as_values_not_options() -> None:
+    parser = argparse.ArgumentParser()
+    query.register(parser.add_subparsers())
+    args = parser.parse_args(["query", "cam/images", "--from", "-5s", "--to", "now"])
+    assert (args.start, args.end) == ("-5s", "now")
+
+
+def test_hz_statistics_skip_intervals_across_missed_elements() -> None:
+    samples = [
+        Sample(seq=1, timestamp_ns=0, arrival_ns=0, payload_bytes=100),
+        Sample(seq=2, timestamp_ns=10 * MS, arrival_ns=10 * MS, payload_bytes=300),
+        # seq 3 was missed: the 20 ms gap is not an interval, but it counts for the rate
+        Sample(seq=4, timestamp_ns=30 * MS, arrival_ns=31 * MS, payload_bytes=None),
+        Sample(seq=5, timestamp_ns=42 * MS, arrival_ns=41 * MS, payload_bytes=200),
+    ]
+    stats = window_stats(samples)
+    assert stats["rate_hz"] == pytest.approx(4 / 0.042)
+    assert (stats["min_s"], stats["max_s"]) == (pytest.approx(0.010), pytest.approx(0.012))
+    assert stats["std_s"] == pytest.approx(0.001)
+    assert stats["mean_bytes"] == 200
+    assert stats["bandwidth_bytes_s"] == pytest.approx(200 * 4 / 0.042)
+    assert window_stats(samples[:1])["rate_hz"] is None
+
+
+def _write_bag(path: Path) -> list[DataObject]:
+    frames = [DataObject(t, frame_payload(i), frame_metadata(t, i)) for i, t in enumerate((5, 9))]
+    with BagWriter(path) as writer:
+        writer.add_buffer("cam", "images", kind="frame", retention=Retention(max_count=7))
+        writer.add_buffer("imu", "gyro", kind="generic", retention=Retention())
+        writer.write("imu/gyro", DataObject(7, b"g", make_metadata("generic", 7)))
+        for frame in frames:
+            writer.write("cam/images", frame)
+        # A frame whose payload does not match its layout gets no image message.
+        writer.write("cam/images", DataObject(11, b"short", frame_metadata(11, 2)))
+    return frames
+
+
+def test_a_recording_reads_back_in_time_order_with_kinds_and_retention(tmp_path: Path) -> None:
+    path = tmp_path / "a.mcap"
+    frames = _write_bag(path)
+    with open_bag(path) as bag:
+        assert [(b.name, b.kind, b.count) for b in bag.buffers] == [
+            ("cam/images", "frame", 3),
+            ("imu/gyro", "generic", 1),
+        ]
+        assert bag.buffers[0].retention == Retention(max_count=7)
+        order = [(b.name, e.timestamp_ns) for b, e in bag.elements()]
+        assert order == [("cam/images", 5), ("imu/gyro", 7), ("cam/images", 9), ("cam/images", 11)]
+        assert [e for b, e in bag.elements([bag.buffers[0]])][:2] == frames
+    with path.open("rb") as stream:
+        summary = make_reader(stream).get_summary()
+    assert summary is not None and summary.statistics is not None
+    counts = {
+        summary.channels[c].topic: n for c, n in summary.statistics.channel_message_counts.items()
+    }
+    assert counts == {"/cam/images": 3, "/cam/images/image": 2, "/imu/gyro": 1}
+
+
+def test_bad_files_are_named_in_the_error(tmp_path: Path) -> None:
+    with pytest.raises(BagError, match=r"cannot read .*missing\.mcap"):
+        open_bag(tmp_path / "missing.mcap")
+    text = tmp_path / "text.mcap"
+    text.write_text("not a recording")
+    with pytest.raises(BagError, match="is not an MCAP file"):
+        open_bag(text)
+    whole = tmp_path / "whole.mcap"
+    _write_bag(whole)
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(whole.read_bytes()[:200])
+    with pytest.raises(BagError, match="not a complete MCAP file"):
+        open_bag(cut)
+    with pytest.raises(BagError, match="exists"):
+        BagWriter(whole)
+
+
+def test_shifting_moves_timestamps_but_not_durations() -> None:
+    element = DataObject(5 * SECOND, frame_payload(1), frame_metadata(5 * SECOND, 1))
+    shifted = shift_element(element, "frame", 3 * SECOND)
+    assert shifted.timestamp_ns == 8 * SECOND and shifted.payload == element.payload
+    assert shifted.metadata == frame_metadata(8 * SECOND, 1)  # exposure_ns stays 2 ms
+    validate_metadata(shifted.metadata, "frame")
+    assert shift_element(element, "frame", 0) is element
+
+
+def test_frame_layout_needs_a_raw_encoding_and_a_matching_payload() -> None:
+    layout = frame_layout(frame_metadata(1, 1), WIDTH * HEIGHT)
+    assert layout is not None and (layout.step_bytes, layout.size_bytes) == (WIDTH, WIDTH * HEIGHT)
+    assert frame_layout(frame_metadata(1, 1), 3) is None
+    assert frame_layout(make_metadata("generic", 1)) is None
