@@ -63,9 +63,11 @@ def fg_pub(params: dict[str, Any]) -> None:
     stamp = Stamper()
     clock = {"t": time.time_ns()}
     with Node(SERVICE, _network(params)) as node:
-        producer = node.offer(
-            params["buffer"], retention=Retention(max_count=int(params.get("retain", 256)))
-        )
+        inline: dict[str, Any] = {}
+        if params.get("inline_max_bytes") is not None:
+            inline["inline_max_bytes"] = int(params["inline_max_bytes"])
+        retention = Retention(max_count=int(params.get("retain", 256)))
+        producer = node.offer(params["buffer"], retention=retention, **inline)
 
         def produce(command: dict[str, Any]) -> dict[str, Any]:
             if not producer.wait_for_subscribers(1, 10.0):
@@ -106,27 +108,35 @@ def _consume(sub: Subscription, stop: threading.Event, on_element: Any) -> None:
 def fg_sub(params: dict[str, Any]) -> None:
     """Takes each notification and fetches its element, counting payload bytes."""
     counter = Counter()
+    lock = threading.Lock()
     stop = threading.Event()
 
     def on_element(payload: bytes | None, _timestamp_ns: int) -> None:
-        if payload is None:
-            counter.errors += 1
-            return
-        counter.count += 1
-        counter.bytes += len(payload)
+        with lock:  # several consuming threads may count at once
+            if payload is None:
+                counter.errors += 1
+                return
+            counter.count += 1
+            counter.bytes += len(payload)
 
     with Node(network=_network(params)) as node:
         sub = node.subscribe(
             f"{SERVICE}/{params['buffer']}", queue_size=int(params["queue_size"]), wait_s=5.0
         )
-        thread = threading.Thread(target=_consume, args=(sub, stop, on_element), daemon=True)
-        thread.start()
+        # Several consuming threads keep several fetches in flight (take() is thread-safe).
+        threads = [
+            threading.Thread(target=_consume, args=(sub, stop, on_element), daemon=True)
+            for _ in range(int(params.get("fetchers", 1)))
+        ]
+        for thread in threads:
+            thread.start()
         reply(ready=True)
         try:
             serve({"mark": counter.mark})
         finally:
             stop.set()
-            thread.join(timeout=2.0)
+            for thread in threads:
+                thread.join(timeout=2.0)
 
 
 def fg_lat_pub(params: dict[str, Any]) -> None:

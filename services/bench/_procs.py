@@ -58,6 +58,7 @@ class Worker:
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,
+            cwd=str(_REPO),  # ``-m`` puts the cwd first on sys.path: make it this checkout
             env=_env(),
         )
         self._ps = psutil.Process(self.proc.pid)

@@ -78,6 +78,11 @@ class Row:
         """framegate median / raw median."""
         return ratio(self.median("framegate"), self.median("raw"))
 
+    def pair_ratios(self) -> list[float | None]:
+        """framegate/raw of each pair (the run after each raw run), in pair order."""
+        raw = {s["pair"]: float(s["value"]) for s in self.samples("raw")}
+        return [ratio(float(s["value"]), raw.get(s["pair"])) for s in self.framegate if raw]
+
     def cpu(self, side: Side) -> dict[str, float] | None:
         """Median CPU % of one core per process role, when the samples carry it."""
         out: dict[str, float] = {}
@@ -109,6 +114,7 @@ class Row:
             "higher_is_better": self.higher_is_better,
             **sides,
             "ratio": self.ratio,
+            "pair_ratios": self.pair_ratios(),
             "goal": self.goal.as_json() if self.goal else None,
             "note": self.note,
         }

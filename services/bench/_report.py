@@ -76,6 +76,8 @@ def format_table(report: dict[str, Any]) -> str:
                 for i, (cell, width) in enumerate(zip(row, widths, strict=True))
             ]
             lines.append("  " + "  ".join(cells).rstrip())
+        for note in dict.fromkeys(r["note"] for r in rows if r.get("note")):
+            lines.append(f"  note: {note}")
         lines.append("")
     goals = report.get("goals", [])
     if goals:

@@ -24,7 +24,17 @@ REPORT_KEYS = {"schema", "created_utc", "elapsed_s", "machine", "options", "scen
 MACHINE_KEYS = {"cpu_count", "python", "zenoh", "numpy", "msgpack", "platform"}
 OPTION_KEYS = {"scenarios", "duration_s", "pairs", "quick", "warmup_s"}
 SCENARIO_KEYS = {"status", "reason", "params", "elapsed_s", "rows"}
-ROW_KEYS = {"name", "metric", "unit", "higher_is_better", "framegate", "ratio", "goal", "note"}
+ROW_KEYS = {
+    "name",
+    "metric",
+    "unit",
+    "higher_is_better",
+    "framegate",
+    "ratio",
+    "pair_ratios",
+    "goal",
+    "note",
+}
 SIDE_KEYS = {"samples", "median", "min", "max", "count", "cpu_pct"}
 GOAL_KEYS = {"scenario", "row", "text", "limit", "comparison", "measured", "passed"}
 
@@ -88,6 +98,7 @@ def test_quick_run_gives_numbers_for_every_scenario(tmp_path: Path) -> None:
                     assert _number(row[side][key]), (where, side, key)
             if "raw" in row:
                 assert _number(row["ratio"]), where
+                assert all(_number(r) for r in row["pair_ratios"]), where
             if row["metric"] == "throughput":
                 for side in sides:
                     assert set(row[side]["cpu_pct"]) == {"producer", "consumer"}, where

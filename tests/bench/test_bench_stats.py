@@ -89,6 +89,7 @@ def test_row_ratio_divides_the_medians() -> None:
     assert row.median("raw") == 100.0
     assert row.median("framegate") == 50.0
     assert row.ratio == pytest.approx(0.5)
+    assert row.pair_ratios() == pytest.approx([0.6, 1 / 3, 0.625])
     assert row.cpu("framegate") == {"producer": 70.0, "consumer": 30.0}
     goal = ratio_goal(row, 0.5, at_least=True, what="throughput")
     assert goal.passed is True
