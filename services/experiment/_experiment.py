@@ -1,0 +1,250 @@
+"""The whole experiment: datasets per seed, the four runs each, statistics, table, figures."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from collections.abc import Callable
+from dataclasses import asdict, replace
+from pathlib import Path
+from typing import Any
+
+from services.sim import Dataset
+
+from ._config import MARKER_NAMES, PAPER_TABLE1, ExperimentConfig, RunKind
+from ._datasets import cached_dataset, scenario_for
+from ._metrics import blur_pairs, recognized_frames
+from ._pipeline import RunSettings, run_configuration
+from ._plots import plot_gyro_exposures, plot_quality_vs_blur, plot_timeline
+from ._records import RunRecord
+from ._stats import correlations, improvement_pct, mean_ci95
+from ._table import format_table
+
+RESULTS_FILE = "results.json"
+TABLE_FILE = "table.md"
+FIG7_FILE = "fig7_gyro.png"
+FIG8_FILE = "fig8_quality_vs_blur.png"
+TIMELINE_FILE = "timeline.png"
+OUTPUT_FILES = (RESULTS_FILE, TABLE_FILE, FIG7_FILE, FIG8_FILE, TIMELINE_FILE)
+
+_COUNT_KEYS = ("all", "uncontrolled", "filtered", "beyond")
+# (key, base run, compared run) of the improvements reported per marker.
+_IMPROVEMENTS = (
+    ("improvement_pct", "uncontrolled", "filtered"),
+    ("beyond_improvement_pct", "uncontrolled", "beyond"),
+    ("beyond_vs_filtered_pct", "filtered", "beyond"),
+)
+_TIMED = (RunKind.UNCONTROLLED, RunKind.FILTERED, RunKind.BEYOND)
+
+
+def run_order(runs: tuple[RunKind, ...], seed_index: int) -> list[RunKind]:
+    """``all`` first, then the timed runs rotated by seed, so that no configuration always
+    runs last (when the machine's background load has drifted most)."""
+    timed = [kind for kind in _TIMED if kind in runs]
+    shift = seed_index % len(timed) if timed else 0
+    return [RunKind.ALL, *timed[shift:], *timed[:shift]]
+
+
+def seed_markers(counts: dict[str, dict[str, int]]) -> dict[str, dict[str, Any]]:
+    """Per marker: the runs' recognized counts and the improvements between them.
+
+    ``counts`` maps a run kind's value to {marker: count}; missing runs give None.
+    """
+    out: dict[str, dict[str, Any]] = {}
+    for name in MARKER_NAMES:
+        row: dict[str, Any] = {key: counts.get(key, {}).get(name) for key in _COUNT_KEYS}
+        for key, base, new in _IMPROVEMENTS:
+            row[key] = (
+                improvement_pct(row[base], row[new])
+                if row[base] is not None and row[new] is not None
+                else None
+            )
+        out[name] = row
+    return out
+
+
+def aggregate_markers(seeds: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """Mean and 95 % CI half-width over seeds of every per-seed marker value."""
+    out: dict[str, dict[str, Any]] = {}
+    for name in MARKER_NAMES:
+        row: dict[str, Any] = {}
+        for key in (*_COUNT_KEYS, *(k for k, _b, _n in _IMPROVEMENTS)):
+            estimate = mean_ci95([seed["markers"][name].get(key) for seed in seeds])
+            row[key] = estimate.mean
+            row[f"{key}_ci95"] = estimate.ci95
+        # The issue's name for the filtered improvement's interval.
+        row["improvement_ci95"] = row["improvement_pct_ci95"]
+        row["paper"] = dict(PAPER_TABLE1[name])
+        out[name] = row
+    return out
+
+
+def _clean(value: Any) -> Any:
+    """JSON-safe: nan and inf become None (no interval for one seed, no rate for zero)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {str(k): _clean(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_clean(v) for v in value]
+    return value
+
+
+def _write_run(path: Path, record: RunRecord, recognized: dict[str, list[int]]) -> None:
+    data = {
+        "kind": record.kind.value,
+        "seed": record.seed,
+        "summary": record.summary(),
+        "processed": record.processed_ids,
+        "recognized": recognized,
+        "detections": [asdict(d) for d in record.detections],
+        "decisions": [asdict(d) for d in record.decisions],
+    }
+    path.write_text(json.dumps(_clean(data)) + "\n", encoding="utf-8")
+
+
+def run_experiment(
+    config: ExperimentConfig, *, log: Callable[[str], None] | None = None
+) -> dict[str, Any]:
+    """Run every seed's configurations through the real pipeline; write the outputs to
+    ``config.out`` (results.json, table.md, the figures, runs/ and logs/) and return the
+    results mapping."""
+    say = log or (lambda text: print(text, flush=True))
+    out = config.out
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "runs").mkdir(exist_ok=True)
+    settings = RunSettings(
+        queue=config.queue,
+        service_factor=config.service_factor,
+        b0_px=config.b0_px,
+        startup_s=config.startup_s,
+        progress=config.progress,
+        log_dir=out / "logs",
+    )
+    started = time.monotonic()
+    load_before = os.getloadavg()
+    seeds: list[dict[str, Any]] = []
+    blur_series: dict[str, tuple[list[float], list[float], list[float]]] = {}
+    first: tuple[Dataset, dict[RunKind, RunRecord]] | None = None
+    for index, seed in enumerate(config.seeds):
+        dataset = cached_dataset(
+            scenario_for(seed, config.frame_count), config.dataset_cache, progress=config.progress
+        )
+        assert dataset.truth is not None  # cached_dataset guarantees it
+        records: dict[RunKind, RunRecord] = {}
+        recognized: dict[str, dict[str, list[int]]] = {}
+        for kind in run_order(config.runs, index):
+            record = run_configuration(kind, dataset, seed, settings)
+            # A busy machine needed more start-up time: keep it for the runs that follow.
+            settings = replace(settings, startup_s=max(settings.startup_s, record.startup_s))
+            records[kind] = record
+            recognized[kind.value] = recognized_frames(record.detections, dataset.truth)
+            _write_run(
+                out / "runs" / f"seed{seed}-{kind.value}.json", record, recognized[kind.value]
+            )
+            say(
+                f"seed {seed} {kind.value:<12} processed {len(record.detections):3d}, "
+                f"dropped at camera {record.dropped:3d}, late {record.skipped_late}; recognized "
+                + ", ".join(f"{n} {len(ids)}" for n, ids in recognized[kind.value].items())
+            )
+        counts = {k: {n: len(ids) for n, ids in v.items()} for k, v in recognized.items()}
+        seed_result: dict[str, Any] = {
+            "seed": seed,
+            "frames": len(dataset),
+            "dataset": str(dataset.root),
+            "markers": seed_markers(counts),
+            "runs": {kind.value: records[kind].summary() for kind in config.runs},
+        }
+        if RunKind.FILTERED in records:
+            estimated, true = blur_pairs(records[RunKind.FILTERED], dataset.truth)
+            q = [
+                d.quality
+                for d in records[RunKind.FILTERED].decisions
+                if d.blur_px is not None and math.isfinite(d.blur_px) and d.quality is not None
+            ]
+            pearson, spearman = correlations(estimated, true)
+            seed_result["quality_vs_blur"] = {
+                "pearson": pearson,
+                "spearman": spearman,
+                "frames": len(true),
+            }
+            if len(q) == len(true):
+                blur_series[f"seed {seed}"] = (estimated, q, true)
+        seeds.append(seed_result)
+        if first is None:
+            first = (dataset, records)
+    results = _results(config, seeds, blur_series, started, load_before)
+    _write_outputs(config, results, blur_series, first)
+    return results
+
+
+def _results(
+    config: ExperimentConfig, seeds: list[dict[str, Any]],
+    blur_series: dict[str, tuple[list[float], list[float], list[float]]], started: float,
+    load_before: tuple[float, float, float],
+) -> dict[str, Any]:  # fmt: skip
+    estimated = [v for series in blur_series.values() for v in series[0]]
+    true = [v for series in blur_series.values() for v in series[2]]
+    pearson, spearman = correlations(estimated, true)
+    per_seed_r = mean_ci95([s.get("quality_vs_blur", {}).get("pearson") for s in seeds])
+    drops = {
+        kind.value: [s["runs"][kind.value]["dropped_at_camera"] for s in seeds]
+        for kind in config.runs
+    }
+    results: dict[str, Any] = _clean(
+        {
+            "markers": aggregate_markers(seeds),
+            "quality_vs_blur": {
+                "pearson": pearson,
+                "spearman": spearman,
+                "frames": len(true),
+                "source": "mediator decisions of the filtered runs, all seeds pooled",
+                "pearson_mean_over_seeds": per_seed_r.mean,
+                "pearson_ci95_over_seeds": per_seed_r.ci95,
+            },
+            "camera_drops": drops,
+            "seeds": seeds,
+            "config": config.to_dict(),
+            "paper_table1": PAPER_TABLE1,
+            "machine": {
+                "cpus": os.cpu_count(),
+                "load_avg_before": list(load_before),
+                "load_avg_after": list(os.getloadavg()),
+            },
+            "elapsed_s": round(time.monotonic() - started, 1),
+        }
+    )
+    return results
+
+
+def _write_outputs(
+    config: ExperimentConfig, results: dict[str, Any],
+    blur_series: dict[str, tuple[list[float], list[float], list[float]]],
+    first: tuple[Dataset, dict[RunKind, RunRecord]] | None,
+) -> None:  # fmt: skip
+    out = config.out
+    (out / RESULTS_FILE).write_text(json.dumps(results, indent=1) + "\n", encoding="utf-8")
+    (out / TABLE_FILE).write_text(format_table(results), encoding="utf-8")
+    quality = results["quality_vs_blur"]
+    nan = float("nan")
+    plot_quality_vs_blur(
+        blur_series,
+        quality["pearson"] if quality["pearson"] is not None else nan,
+        quality["spearman"] if quality["spearman"] is not None else nan,
+        out / FIG8_FILE,
+        b0_px=config.b0_px,
+    )
+    if first is None:
+        return
+    dataset, records = first
+    filtered = records.get(RunKind.FILTERED)
+    decisions = filtered.decisions if filtered is not None else ()
+    title = (
+        f"seed {config.seeds[0]}, N = {config.queue}, detector {config.service_factor} × "
+        f"frame period, b0 {config.b0_px:g} px"
+    )
+    plot_gyro_exposures(dataset, decisions, out / FIG7_FILE, title=title)
+    processed = {kind.value: records[kind].processed_ids for kind in records}
+    plot_timeline(dataset, decisions, processed, out / TIMELINE_FILE, title=title)

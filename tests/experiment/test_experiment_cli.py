@@ -1,0 +1,96 @@
+"""``framegate experiment --quick`` as a user runs it: real processes, every output file."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from services.experiment import MARKER_NAMES, OUTPUT_FILES
+from tests.conftest import REPO, child_env
+
+_PNG = b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.mark.integration
+@pytest.mark.slow
+@pytest.mark.timeout(280)
+def test_quick_experiment_writes_every_output(tmp_path: Path) -> None:
+    out = tmp_path / "exp"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "services.cli", "experiment", "--quick", "--out", str(out),
+         "--no-progress"],
+        cwd=REPO, env=child_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        stdout, stderr = proc.communicate(timeout=240)
+    except subprocess.TimeoutExpired:
+        # SIGTERM first: the experiment then stops the service processes it started.
+        proc.terminate()
+        stdout, stderr = proc.communicate(timeout=30)
+        pytest.fail(f"experiment --quick took over 240 s\n{stdout[-2000:]}{stderr[-2000:]}")
+    assert proc.returncode == 0, stdout[-3000:] + stderr[-3000:]
+    for name in OUTPUT_FILES:
+        assert (out / name).is_file(), name
+    for name in ("fig7_gyro.png", "fig8_quality_vs_blur.png", "timeline.png"):
+        assert (out / name).read_bytes()[:8] == _PNG, name
+
+    results = json.loads((out / "results.json").read_text())
+    assert set(results["markers"]) == set(MARKER_NAMES)
+    for row in results["markers"].values():
+        for key in ("all", "uncontrolled", "filtered", "beyond", "improvement_pct",
+                    "improvement_ci95"):  # fmt: skip
+            assert key in row
+        assert isinstance(row["all"], float)
+    assert set(results["quality_vs_blur"]) >= {"pearson", "spearman"}
+    assert results["quality_vs_blur"]["pearson"] > 0.8  # gyro and truth agree at all
+    assert [s["seed"] for s in results["seeds"]] == [1]
+    assert results["config"]["quick"] is True and results["config"]["queue"] == 2
+    assert set(results["camera_drops"]) == {"all", "uncontrolled", "filtered", "beyond"}
+
+    seed = results["seeds"][0]
+    runs = seed["runs"]
+    frames = seed["frames"]
+    assert frames == 60
+    # `all` processes every frame; the camera refuses none of them.
+    assert runs["all"]["processed"] == frames - runs["all"]["skipped_late"]
+    assert runs["all"]["dropped_at_camera"] == 0
+    # Every frame the camera handled was stored or refused; the detector drained its input.
+    for name in ("uncontrolled", "filtered", "beyond"):
+        run = runs[name]
+        assert run["stored"] + run["dropped_at_camera"] + run["skipped_late"] == frames
+        assert run["processed"] == (run["forwarded"] if run["forwarded"] is not None
+                                    else run["stored"])  # fmt: skip
+    # With a mediator in front the camera never has to drop: it discards by quality instead.
+    assert runs["filtered"]["dropped_at_camera"] == 0
+    assert runs["filtered"]["accepted"] == runs["filtered"]["forwarded"]
+    assert seed["markers"]["large"]["all"] >= seed["markers"]["large"]["uncontrolled"]
+
+    table = (out / "table.md").read_text()
+    assert "| large | paper (quoted) | 246 | 154 | 161 | +4.5 |" in table
+    assert "| large | framegate |" in table
+    assert (out / "runs" / "seed1-filtered.json").is_file()
+    assert "wrote" in stdout
+
+
+def test_experiment_command_is_registered() -> None:
+    result = subprocess.run(
+        [sys.executable, "-m", "services.cli", "experiment", "--help"],
+        cwd=REPO, env=child_env(), capture_output=True, text=True, timeout=60, check=False,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    for flag in ("--seeds", "--out", "--queue", "--service-factor", "--b0", "--quick"):
+        assert flag in result.stdout
+
+
+def test_bad_flag_value_is_one_error_line(tmp_path: Path) -> None:
+    result = subprocess.run(
+        [sys.executable, "-m", "services.cli", "experiment", "--out", str(tmp_path), "--queue",
+         "0"],
+        cwd=REPO, env=child_env(), capture_output=True, text=True, timeout=60, check=False,
+    )  # fmt: skip
+    assert result.returncode == 1
+    assert result.stderr.strip() == "error: --queue must be >= 1, got 0"
