@@ -147,6 +147,7 @@ class GyroSource(_Timeline):
             scenario: Any = Scenario(ScenarioConfig(seed=spec.seed))
             trace = scenario.gyro_samples()
             period, count = scenario.config.frame_period_ns, scenario.frame_count
+            first_frame_ns = scenario.frame_info(0).exposure_start_ns
             self.description = f"simulated gyro, seed {spec.seed}"
         elif spec.kind == "replay":
             from services.sim import read_dataset
@@ -156,10 +157,14 @@ class GyroSource(_Timeline):
             starts = [f.exposure_start_ns for f in dataset.frames]
             period = int(np.median(np.diff(starts))) if len(starts) > 1 else 66_666_667
             count = len(starts)
+            first_frame_ns = starts[0] if starts else 0
             self.description = f"replay of {spec.path}"
         else:
             raise ConfigError("the gyro service has no device source; use sim or replay DIR")
         super().__init__(spec, period, count)
+        # A loop repeats the span of the frames (which need not start at zero), so each
+        # pass carries the gyro samples of exactly that span.
+        self._first_ns = int(first_frame_ns) - period // 2
         self._t = np.asarray(trace.t_ns, dtype=np.int64)
         self._w = np.asarray(trace.rate_rad_s, dtype=np.float64)
         self.period_ns = int(np.median(np.diff(self._t))) if len(self._t) > 1 else 2_000_000
@@ -171,7 +176,7 @@ class GyroSource(_Timeline):
         for offset in self.loops(stop):
             if self.spec.loop:
                 # Only one loop period per pass, so looped times keep increasing.
-                keep = (self._t >= 0) & (self._t < self.loop_ns)
+                keep = (self._t >= self._first_ns) & (self._t < self._first_ns + self.loop_ns)
                 t, w = self._t[keep], self._w[keep]
             else:
                 t, w = self._t, self._w

@@ -44,6 +44,20 @@ class Pipeline:
     def info(self, target: str) -> Any:
         return self.node.buffer_info(target, timeout_s=2.0)
 
+    def counter(self, target: str, name: str = "puts") -> int:
+        """A producer counter (puts, refused, ...) of a buffer; 0 while it is not live."""
+        try:
+            return int(getattr(self.info(target), name))
+        except FramegateError:
+            return 0
+
+    def subscriber_count(self, target: str) -> int:
+        """Subscriptions a buffer's producer counts; -1 while it is not live."""
+        try:
+            return len(self.info(target).subscriptions)
+        except FramegateError:
+            return -1
+
     def pid(self, service: str) -> int | None:
         """The service's pid, or None while it is not live (e.g. restarting)."""
         try:

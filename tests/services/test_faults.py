@@ -50,34 +50,22 @@ def _snapshot(pipe: Pipeline, target: str) -> dict[int, DataObject]:
         return {}
 
 
-def _detections(pipe: Pipeline) -> int:
-    try:
-        return int(pipe.info("detector/detections").puts)
-    except FramegateError:
-        return 0
-
-
-def _subscriber_count(pipe: Pipeline, target: str) -> int:
-    try:
-        return len(pipe.info(target).subscriptions)
-    except FramegateError:
-        return -1
-
-
 def test_each_service_killed_in_turn_recovers_and_survivors_lose_nothing(pipe: Pipeline) -> None:
-    wait_until(lambda: _detections(pipe) >= 10, 60, "the pipeline to run\n" + pipe.log())
+    wait_until(
+        lambda: pipe.counter("detector/detections") >= 10, 60, "the pipeline to run\n" + pipe.log()
+    )
     timings: dict[str, dict[str, float]] = {}
     for victim in ["detector", "mediator", "gyro", "camera"]:
         survivors = [s for s in BUFFERS if s != victim]
         pids = {s: pipe.pid(s) for s in survivors}
         before = {t: _snapshot(pipe, t) for s in survivors for t in BUFFERS[s]}
-        detections_before = _detections(pipe)
+        detections_before = pipe.counter("detector/detections")
         old_pid = pipe.kill(victim)
         killed_at = time.monotonic()
         # A producer the victim subscribed to is free within about a second.
         for target in SUBSCRIBED.get(victim, []):
             wait_until(
-                lambda t=target: _subscriber_count(pipe, t) == 0,
+                lambda t=target: pipe.subscriber_count(t) == 0,
                 1.5,
                 f"{target} to drop the dead {victim}'s subscription",
             )
@@ -89,7 +77,7 @@ def test_each_service_killed_in_turn_recovers_and_survivors_lose_nothing(pipe: P
         )
         restarted_s = time.monotonic() - killed_at
         wait_until(
-            lambda d=detections_before: _detections(pipe) > d + 2,
+            lambda d=detections_before: pipe.counter("detector/detections") > d + 2,
             30,
             f"detections after restarting {victim}\n" + pipe.log(),
         )
@@ -112,7 +100,9 @@ def test_each_service_killed_in_turn_recovers_and_survivors_lose_nothing(pipe: P
 
 
 def test_stopped_subscriber_fills_its_queue_and_resumes_on_sigcont(pipe: Pipeline) -> None:
-    wait_until(lambda: _detections(pipe) >= 5, 60, "the pipeline to run\n" + pipe.log())
+    wait_until(
+        lambda: pipe.counter("detector/detections") >= 5, 60, "the pipeline to run\n" + pipe.log()
+    )
     detector = pipe.pid("detector")
     assert detector is not None
     refused_before = pipe.info("mediator/images").refused
@@ -128,7 +118,11 @@ def test_stopped_subscriber_fills_its_queue_and_resumes_on_sigcont(pipe: Pipelin
         assert decisions
     finally:
         os.kill(detector, signal.SIGCONT)
-    count = _detections(pipe)
-    wait_until(lambda: _detections(pipe) > count + 2, 30, "the detector to resume\n" + pipe.log())
+    count = pipe.counter("detector/detections")
+    wait_until(
+        lambda: pipe.counter("detector/detections") > count + 2,
+        30,
+        "the detector to resume\n" + pipe.log(),
+    )
     # The mediator refuses nothing by design: a full queue means load 1, so q > load fails first.
     assert pipe.info("mediator/images").refused == refused_before
