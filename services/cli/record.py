@@ -40,6 +40,8 @@ if TYPE_CHECKING:
     from services.bag import BagWriter
 
 DEFAULT_QUEUE = 64
+# After this long without a notification, check the buffer for elements we never heard of.
+IDLE_PROBE_S = 1.0
 
 
 def register(subparsers: Any) -> None:
@@ -127,6 +129,7 @@ class _Recorder:
         self._anchor_seq = 0
         self._since_anchor: list[int] = []
         self._accounted_misses = 0
+        self._idle_since = time.monotonic()
         self.thread = threading.Thread(target=self._run, name=f"record-{sub.name}", daemon=True)
 
     def _full(self) -> bool:
@@ -137,12 +140,13 @@ class _Recorder:
             while not self.stop.is_set() and not self._full():
                 note = self.sub.take(timeout_s=0.2)
                 if note is not None:
+                    self._idle_since = time.monotonic()
                     self._on_notification(note)
-                elif self._unaccounted_misses():
+                elif self._unaccounted_misses() or self._buffer_is_ahead():
                     # Misses are only reported by the next notification; a burst that has
                     # ended brings none, so catch up from the buffer while it is quiet.
                     self._backfill(None)
-            if not self._full() and self._unaccounted_misses():
+            if not self._full() and (self._unaccounted_misses() or self._buffer_is_ahead(True)):
                 self._backfill(None)  # the tail missed just before the stop
         except BaseException as exc:  # a failing file must stop the recording, not hang it
             self.error = exc
@@ -150,6 +154,23 @@ class _Recorder:
 
     def _unaccounted_misses(self) -> bool:
         return self.sub.missed_total > self._accounted_misses
+
+    def _buffer_is_ahead(self, now: bool = False) -> bool:
+        """After a quiet second, whether the buffer holds newer elements than we wrote.
+
+        Observer notifications travel with congestion control DROP, so the last ones of a
+        burst can vanish without a later one to reveal the gap; the buffer's description
+        (no payloads) tells.
+        """
+        last_ns = self.progress.last_ns
+        if last_ns is None or (not now and time.monotonic() - self._idle_since < IDLE_PROBE_S):
+            return False
+        self._idle_since = time.monotonic()
+        try:
+            newest = self.node.buffer_info(self.sub.name).newest_ns
+        except FramegateError:
+            return False
+        return newest is not None and newest > last_ns
 
     def _on_notification(self, note: Notification) -> None:
         p = self.progress
