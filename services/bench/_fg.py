@@ -11,6 +11,7 @@ from __future__ import annotations
 import gc
 import threading
 import time
+from collections.abc import Callable
 from typing import Any
 
 import psutil
@@ -25,7 +26,7 @@ from middleware import (
     make_metadata,
 )
 
-from ._worker import Counter, paced, profiled, reply, round_trips, serve, sleep_until
+from ._worker import Counter, paced, profiled, reply, serve, sleep_until
 
 SERVICE = "bench"
 # Query-scaling elements sit this many ns apart, so a range of k elements is easy to write.
@@ -226,11 +227,14 @@ def fg_query_server(params: dict[str, Any]) -> None:
 
 
 def fg_query_client(params: dict[str, Any]) -> None:
-    """Range queries returning exactly k elements from the middle of an n-element buffer."""
+    """Range queries returning exactly k elements from the middle of n-element buffers.
+
+    The buffers of all requested n are queried in turn (n1, n2, n3, n1, ...), so every n
+    sees the same machine: only then is "flat in n" a fair comparison on a shared host.
+    """
     with Node(network=_network(params)) as node:
 
-        def latency(command: dict[str, Any]) -> dict[str, Any]:
-            n, k = int(command["n"]), int(command["k"])
+        def asker(n: int, k: int) -> Callable[[], None]:
             first = max(1, n // 2 - k // 2)
             time_range = f"[{first * STEP_NS}..{(first + k - 1) * STEP_NS}]"
             target = f"{SERVICE}/n{n}"
@@ -240,22 +244,30 @@ def fg_query_client(params: dict[str, Any]) -> None:
                 if len(got) != k:
                     raise RuntimeError(f"{target} {time_range}: expected {k}, got {len(got)}")
 
+            return ask
+
+        def latency(command: dict[str, Any]) -> dict[str, Any]:
+            k, ns = int(command["k"]), [int(n) for n in command["ns"]]
+            askers = [asker(n, k) for n in ns]
             deadline = time.monotonic() + 10.0
             while True:  # the service may not be visible yet
                 try:
-                    ask()
+                    for ask in askers:
+                        ask()
                     break
                 except FramegateError:
                     if time.monotonic() > deadline:
                         raise
                     time.sleep(0.05)
-            latencies = round_trips(
-                ask,
-                float(command["seconds"]),
-                float(command.get("interval_s", 0.0)),
-                int(command.get("max_count", 1_000_000)),
-            )
-            return {"latencies_us": latencies}
+            latencies: list[list[float]] = [[] for _ in ns]
+            end = time.monotonic() + float(command["seconds"])
+            max_count = int(command.get("max_count", 1_000_000))
+            while time.monotonic() < end and len(latencies[-1]) < max_count:
+                for ask, out in zip(askers, latencies, strict=True):
+                    began = time.perf_counter_ns()
+                    ask()
+                    out.append((time.perf_counter_ns() - began) / 1000)
+            return {"latencies_us": {str(n): out for n, out in zip(ns, latencies, strict=True)}}
 
         reply(ready=True)
         serve({"latency": latency})

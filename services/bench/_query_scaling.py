@@ -3,13 +3,15 @@
 framegate: ``Node.query(target, time_range="[a..b]")`` selecting exactly k elements from the
 middle of a buffer of n small elements (the series is bisected, so the latency must not grow
 with n). raw: ``session.get`` answered by a callback queryable with k replies of the same
-size. Latency is the median of back-to-back queries in a window per (n, k).
+size. Latency is the median of back-to-back queries; for each k, the raw run comes first,
+then one framegate run that queries the buffers of every n in turn, so all n share the same
+moment of a shared machine.
 """
 
 from __future__ import annotations
 
 from ._options import BenchOptions
-from ._procs import Worker, WorkerGroup, free_endpoint
+from ._procs import WorkerGroup, free_endpoint
 from ._records import Goal, Row, ScenarioResult
 from ._stats import percentile, ratio
 
@@ -40,7 +42,8 @@ def run_query_scaling(options: BenchOptions) -> ScenarioResult:
             "element_bytes": ELEMENT_BYTES,
             "window_s_per_combination": window_s,
             "raw": "session.get -> k replies from a callback queryable (no buffer, so no n)",
-            "framegate": "Node.query(time_range=[a..b]) selecting k elements mid-buffer",
+            "framegate": "Node.query(time_range=[a..b]) selecting k elements mid-buffer, "
+            "the n buffers queried in turn",
         },
     )
     rows = {
@@ -58,18 +61,36 @@ def run_query_scaling(options: BenchOptions) -> ScenarioResult:
         group.wait_ready(timeout_s=300.0)
         result.params["fill_s"] = server.ready.get("fill_s")
         for pair in range(options.pairs):
-            raw_samples = {
-                k: _sample(raw_client, pair, window_s, size=ELEMENT_BYTES, k=k) for k in ks
-            }
-            for (n, k), row in rows.items():
-                assert row.raw is not None
-                row.raw.append(raw_samples[k])
-                row.framegate.append(_sample(fg_client, pair, window_s, n=n, k=k))
-                options.progress(
-                    f"query-scaling {row.name} pair {pair + 1}/{options.pairs}: "
-                    f"raw {raw_samples[k]['value']:.0f} us, "
-                    f"framegate {row.framegate[-1]['value']:.0f} us"
+            for k in ks:
+                sizes = [n for n in counts if k <= n]
+                raw = _summary(
+                    raw_client.call(
+                        "latency",
+                        timeout_s=window_s + 60,
+                        seconds=window_s,
+                        size=ELEMENT_BYTES,
+                        k=k,
+                        max_count=MAX_QUERIES,
+                    )["latencies_us"],
+                    pair,
                 )
+                answer = fg_client.call(
+                    "latency",
+                    timeout_s=window_s * len(sizes) + 60,
+                    seconds=window_s * len(sizes),
+                    ns=sizes,
+                    k=k,
+                    max_count=MAX_QUERIES,
+                )
+                for n in sizes:
+                    row = rows[(n, k)]
+                    assert row.raw is not None
+                    row.raw.append(raw)
+                    row.framegate.append(_summary(answer["latencies_us"][str(n)], pair))
+                    options.progress(
+                        f"query-scaling {row.name} pair {pair + 1}/{options.pairs}: "
+                        f"raw {raw['value']:.0f} us, framegate {row.framegate[-1]['value']:.0f} us"
+                    )
     for row in rows.values():
         row.note = "raw has no buffer: each n shows the same raw samples of its k"
     smallest, largest = rows.get((counts[0], GOAL_K)), rows.get((counts[-1], GOAL_K))
@@ -84,14 +105,10 @@ def run_query_scaling(options: BenchOptions) -> ScenarioResult:
     return result
 
 
-def _sample(client: Worker, pair: int, window_s: float, **query: int) -> dict[str, float]:
-    answer = client.call(
-        "latency", timeout_s=window_s + 60, seconds=window_s, max_count=MAX_QUERIES, **query
-    )
-    latencies = [float(v) for v in answer["latencies_us"]]
+def _summary(latencies_us: list[float], pair: int) -> dict[str, float]:
     return {
         "pair": pair,
-        "value": percentile(latencies, 50),
-        "p99": percentile(latencies, 99),
-        "count": len(latencies),
+        "value": percentile(latencies_us, 50),
+        "p99": percentile(latencies_us, 99),
+        "count": len(latencies_us),
     }
