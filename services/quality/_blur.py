@@ -173,6 +173,21 @@ def _plan(camera: CameraModel, options: BlurOptions) -> _Plan:
     )
 
 
+# The mediator passes the same camera and options for every frame: an identity check is
+# cheaper than hashing both for the cache. One tuple, replaced whole, so threads are safe.
+_LAST_PLAN: tuple[CameraModel, BlurOptions, _Plan] | None = None
+
+
+def _plan_for(camera: CameraModel, options: BlurOptions) -> _Plan:
+    global _LAST_PLAN
+    last = _LAST_PLAN
+    if last is not None and last[0] is camera and last[1] is options:
+        return last[2]
+    plan = _plan(camera, options)
+    _LAST_PLAN = (camera, options, plan)
+    return plan
+
+
 def estimate_blur(
     gyro: GyroSamples,
     exposure: Exposure,
@@ -185,7 +200,7 @@ def estimate_blur(
     clock by ``camera.gyro_time_offset_ns``. ``blur_px`` is inf if the camera turned
     about 90 degrees or more during the exposure.
     """
-    plan = _plan(camera, options)
+    plan = _plan_for(camera, options)
     offset_ns = camera.gyro_time_offset_ns
     start_ns = exposure.start_ns + offset_ns
     duration_ns = exposure.duration_ns
@@ -200,7 +215,7 @@ def estimate_blur(
         return _estimate(0.0, 0.0, 0.0, _NO_MOTION, float(x_px), float(y_px), plan.mode)
     t_ns = gyro.t_ns[span]
     # Rates in the camera frame, component-first: (5, M), rows x y z x y.
-    rates5 = np.dot(plan.rotation5, gyro.rates_rad_s[span].T)
+    rates5 = plan.rotation5.dot(gyro.rates_rad_s[span].T)
     if plan.rolling:
         return _rolling(t_ns, rates5, starts, duration_ns, plan)
     theta = cumulative_rotation(window_increments(t_ns, rates5, first, last))
@@ -222,7 +237,7 @@ def _centre(offsets_px: Floats, depth: Floats, plan: _Plan) -> BlurEstimate:
     blur = float(sum(np.hypot(steps[0], steps[1]).tolist()))
     # Knot 0 is the principal point itself, so the last offset is the net displacement.
     dx_px, dy_px = offsets_px[:, -1].tolist()
-    return _estimate(blur, dx_px, dy_px, np.dot(steps, steps.T), x_px, y_px, plan.mode)
+    return _estimate(blur, dx_px, dy_px, steps.dot(steps.T), x_px, y_px, plan.mode)
 
 
 def _rolling(
