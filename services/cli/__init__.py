@@ -28,6 +28,7 @@ _COMMANDS = (
     "play",
     "router",
     "simulate",
+    "calibrate",
     "experiment",
     "bench",
 )
