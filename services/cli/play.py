@@ -262,8 +262,12 @@ def _event(args: argparse.Namespace, event: dict[str, Any]) -> None:
         return
     if event["event"] == "offered":
         for b in event["buffers"]:
-            print(f"offering {b['name']} ({b['kind']}, {b['elements']} elements) from {args.file}")
+            print(
+                f"offering {b['name']} ({b['kind']}, {b['elements']} elements) from {args.file}",
+                flush=True,
+            )
     elif event["event"] == "done":
         then = "serving queries until Ctrl-C" if event["serving"] else "exiting"
-        print(f"played {event['played']} elements in {event['elapsed_s']:.1f} s; {then}")
-    print(end="", flush=True)
+        print(
+            f"played {event['played']} elements in {event['elapsed_s']:.1f} s; {then}", flush=True
+        )

@@ -21,6 +21,8 @@ WIDTH, HEIGHT = 8, 6
 MS = 1_000_000
 # Generous: a CLI process imports every command module, which takes seconds on a loaded host.
 TIMEOUT_S = 180.0
+# How long a command may wait to discover the service (3 s by default) on a loaded host.
+DISCOVERY_TIMEOUT_S = 20.0
 
 
 def frame_metadata(t: int, frame_id: int) -> bytes:
@@ -80,6 +82,8 @@ class Cli:
         out = list(args)
         if "--connect" not in out and "--listen" not in out:
             out += ["--connect", self.endpoint]
+        if out[0] != "play" and "--timeout" not in out:
+            out += ["--timeout", str(DISCOVERY_TIMEOUT_S)]
         return out
 
     def run(self, *args: str, timeout_s: float = TIMEOUT_S) -> Result:

@@ -156,7 +156,10 @@ def test_user_mistakes_give_one_line_errors(service: Node, cli: Cli, tmp_path: P
     not_mcap.write_text("hello")
     cases = [
         (("info", "cam/imgs"), "no buffer 'imgs' (did you mean 'images'?)"),
-        (("query", "camra/images"), "no live service named 'camra' (did you mean 'cam'?)"),
+        (
+            ("query", "camra/images", "--timeout", "5"),
+            "no live service named 'camra' (did you mean 'cam'?)",
+        ),
         (("query", "cam/images", "--from", "yesterday"), "bad time 'yesterday' for --from"),
         (("watch", "cam/images/extra"), "bad buffer name 'cam/images/extra'"),
         (
