@@ -30,7 +30,7 @@ from ._records import (
     SubscriptionInfo,
     SubscriptionMode,
 )
-from ._subscription import Subscription
+from ._subscription import PUSH_ALL, Subscription
 from ._timerange import TimeRange, parse_duration_ns, parse_time_ns, parse_time_range
 from ._xml import XmlLimits, field_text, make_metadata, parse_untrusted, validate_metadata
 
@@ -46,6 +46,7 @@ __all__ = [
     "Node",
     "NotFoundError",
     "Notification",
+    "PUSH_ALL",
     "PayloadTooLargeError",
     "Producer",
     "QueryError",

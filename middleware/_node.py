@@ -123,9 +123,14 @@ class Node:
         queue_size: int = 2,
         mode: SubscriptionMode = SubscriptionMode.DEFAULT,
         wait_s: float = 2.0,
+        push_max_bytes: int | None = None,
     ) -> Subscription:
         """Subscribe to ``service/buffer`` notifications with a queue of ``queue_size``.
 
+        Payloads up to ``push_max_bytes`` arrive with their notification (None: the
+        producer's ``inline_max_bytes``, 64 KiB by default); larger ones are fetched by
+        ``Subscription.fetch`` with one query. A consumer that takes every element (a
+        detector) asks for everything pushed; one that picks some (an inspector) does not.
         Waits up to ``wait_s`` for a live producer to register the subscription; if the
         service is not up yet, returns anyway (it registers when the service appears).
         """
@@ -139,6 +144,7 @@ class Node:
                 queue_size=queue_size,
                 mode=mode,
                 fetch=self._fetch_exact,
+                push_max_bytes=-1 if push_max_bytes is None else max(0, push_max_bytes),
             )
         with self._lock:
             self._subscriptions.append(sub)

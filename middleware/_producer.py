@@ -27,7 +27,7 @@ import zenoh
 from ._buffer import TimeSeries
 from ._errors import FlowControlRefused, FramegateError, SchemaError
 from ._records import BufferInfo, DataObject, Retention, SubscriptionInfo, SubscriptionMode
-from ._wire import Keys, decode_ack, encode_notification, parse_subscription_token
+from ._wire import Keys, decode_ack, encode_notification_header, parse_subscription_token
 from ._xml import XmlLimits, metadata_timestamp_ns, validate_metadata
 
 log = logging.getLogger("framegate.middleware")
@@ -43,6 +43,7 @@ class _Sub:
     sub_id: str
     mode: SubscriptionMode
     queue_size: int
+    push_max_bytes: int
     sent: int = 0
     acked: int = 0
     publisher: Any = None
@@ -111,13 +112,13 @@ class Producer:
     def _on_token(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
         try:
-            sub_id, mode, queue_size = parse_subscription_token(key)
+            sub_id, mode, queue_size, push_max_bytes = parse_subscription_token(key)
         except ValueError:
             self._counters.bad_messages += 1
             return
         with self._cond:
             if sample.kind == zenoh.SampleKind.PUT:
-                self._subs.setdefault(sub_id, _Sub(sub_id, mode, queue_size))
+                self._subs.setdefault(sub_id, _Sub(sub_id, mode, queue_size, push_max_bytes))
             else:
                 gone = self._subs.pop(sub_id, None)
                 if gone is not None:
@@ -209,15 +210,19 @@ class Producer:
                 self._keys.notify(self.service, self.buffer, sub.sub_id),
                 congestion_control=congestion,
             )
-        message = encode_notification(
+        limit = self.inline_max_bytes if sub.push_max_bytes < 0 else sub.push_max_bytes
+        pushed = len(element.payload) <= limit
+        header = encode_notification_header(
             self.epoch,
             sub.sent,
             element,
             with_metadata=len(element.metadata) <= _INLINE_METADATA_MAX,
-            with_payload=len(element.payload) <= self.inline_max_bytes,
+            pushed=pushed,
         )
         try:
-            sub.publisher.put(message)
+            # The payload travels as the Zenoh payload itself: no extra copy into msgpack,
+            # and large ones go through Zenoh's shared memory on one host.
+            sub.publisher.put(element.payload if pushed else b"", attachment=header)
         except zenoh.ZError as exc:
             log.warning("%s: notification to %s failed: %s", self.name, sub.sub_id, exc)
 

@@ -19,7 +19,10 @@ import zenoh
 
 from ._errors import FramegateError
 from ._records import DataObject, Notification, SubscriptionMode
-from ._wire import Keys, decode_notification, encode_ack
+from ._wire import Keys, decode_notification_header, encode_ack
+
+# A push limit larger than any payload: everything travels with its notification.
+PUSH_ALL = 2**31 - 1
 
 
 class Subscription:
@@ -39,6 +42,7 @@ class Subscription:
         queue_size: int,
         mode: SubscriptionMode,
         fetch: Callable[[str, int, float], DataObject],
+        push_max_bytes: int = -1,
     ) -> None:
         if queue_size < 1:
             raise FramegateError(f"queue_size must be >= 1, got {queue_size}")
@@ -68,7 +72,9 @@ class Subscription:
         )
         # Declared last: once the producer sees it, notifications may flow.
         self._token = session.liveliness().declare_token(
-            keys.subscription_token(service, buffer, self.subscription_id, mode, queue_size)
+            keys.subscription_token(
+                service, buffer, self.subscription_id, mode, queue_size, push_max_bytes
+            )
         )
 
     @property
@@ -77,16 +83,18 @@ class Subscription:
 
     def _on_notification(self, sample: zenoh.Sample) -> None:
         try:
-            body = decode_notification(sample.payload.to_bytes())
+            attachment = sample.attachment
+            if attachment is None:
+                raise ValueError("notification without a header")
+            body = decode_notification_header(attachment.to_bytes())
         except Exception:  # garbage on our key is counted, never raised into Zenoh
             self.garbage += 1
             return
         epoch, seq, timestamp = body["e"], body["s"], body["t"]
         metadata = body.get("m")
-        payload = body.get("p")
         element = (
-            DataObject(timestamp, payload, metadata)
-            if payload is not None and metadata is not None
+            DataObject(timestamp, sample.payload.to_bytes(), metadata)
+            if body["p"] and metadata is not None
             else None
         )
         with self._cond:

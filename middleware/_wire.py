@@ -5,13 +5,14 @@ Keys (``ns`` is the namespace, ``framegate`` by default):
     ns/<service>/<buffer>                         queryable: the elements
     ns/@info/<service>                            queryable: JSON description of the service
     ns/@svc/<service>                             liveliness token of a live service
-    ns/@sub/<service>/<buffer>/<id>/<mode>/<N>    liveliness token of a subscription
+    ns/@sub/<service>/<buffer>/<id>/<mode>/<N>/<push>   liveliness token of a subscription
     ns/@notify/<service>/<buffer>/<id>            notifications to one subscription
     ns/@ack/<service>/<buffer>/<id>               the subscription's "taken" acknowledgements
 
 ``@`` chunks are verbatim in Zenoh: wildcards never match them, so ``ns/**`` sees data only.
 Element replies carry the raw payload; the attachment is msgpack ``{"t": int, "m": str}``
-(timestamp_ns, metadata XML). Notifications and acks are msgpack maps (see below).
+(timestamp_ns, metadata XML). A notification's Zenoh payload is the element's payload when it
+is pushed (else empty) and its attachment a msgpack header; acks are msgpack maps.
 """
 
 from __future__ import annotations
@@ -48,12 +49,21 @@ class Keys:
         return f"{self.namespace}/@svc/{service}"
 
     def subscription_token(
-        self, service: str, buffer: str, sub_id: str, mode: SubscriptionMode, queue_size: int
+        self,
+        service: str,
+        buffer: str,
+        sub_id: str,
+        mode: SubscriptionMode,
+        queue_size: int,
+        push_max_bytes: int,
     ) -> str:
-        return f"{self.namespace}/@sub/{service}/{buffer}/{sub_id}/{mode.value}/{queue_size}"
+        return (
+            f"{self.namespace}/@sub/{service}/{buffer}/{sub_id}/{mode.value}/{queue_size}"
+            f"/{push_max_bytes}"
+        )
 
     def subscription_tokens(self, service: str, buffer: str) -> str:
-        return f"{self.namespace}/@sub/{service}/{buffer}/*/*/*"
+        return f"{self.namespace}/@sub/{service}/{buffer}/*/*/*/*"
 
     def notify(self, service: str, buffer: str, sub_id: str) -> str:
         return f"{self.namespace}/@notify/{service}/{buffer}/{sub_id}"
@@ -65,14 +75,20 @@ class Keys:
         return f"{self.namespace}/@ack/{service}/{buffer}/*"
 
 
-def parse_subscription_token(key: str) -> tuple[str, SubscriptionMode, int]:
-    """(id, mode, queue size) from a subscription token key; ValueError if malformed."""
+def parse_subscription_token(key: str) -> tuple[str, SubscriptionMode, int, int]:
+    """(id, mode, queue size, push limit) from a subscription token; ValueError if malformed.
+
+    The push limit is the largest payload the subscriber wants pushed with its notifications
+    (-1: the producer's default).
+    """
     parts = key.split("/")
-    sub_id, mode, size = parts[-3], parts[-2], parts[-1]
-    queue_size = int(size)
+    sub_id, mode, size, push = parts[-4], parts[-3], parts[-2], parts[-1]
+    queue_size, push_max_bytes = int(size), int(push)
     if queue_size < 1:
         raise ValueError(f"queue size {queue_size} < 1")
-    return sub_id, SubscriptionMode(mode), queue_size
+    if push_max_bytes < -1:
+        raise ValueError(f"push limit {push_max_bytes} < -1")
+    return sub_id, SubscriptionMode(mode), queue_size, push_max_bytes
 
 
 def encode_element_attachment(element: DataObject) -> bytes:
@@ -90,31 +106,29 @@ def decode_element(payload: bytes, attachment: bytes | None) -> DataObject:
         raise QueryError(f"reply attachment is not a framegate element header: {exc}") from exc
 
 
-def encode_notification(
-    epoch: str, seq: int, element: DataObject, *, with_metadata: bool, with_payload: bool
+def encode_notification_header(
+    epoch: str, seq: int, element: DataObject, *, with_metadata: bool, pushed: bool
 ) -> bytes:
-    """Notification: {"e": producer epoch, "s": seq (1, 2, ... per subscription and epoch),
-    "t": timestamp_ns, "m": metadata (optional), "p": payload (optional, small elements)}."""
-    body: dict[str, Any] = {"e": epoch, "s": seq, "t": element.timestamp_ns}
+    """The attachment of a notification: {"e": producer epoch, "s": seq (1, 2, ... per
+    subscription and epoch), "t": timestamp_ns, "m": metadata (bytes, optional), "p": true
+    when the Zenoh payload is the element's payload (pushed), false when it is empty}."""
+    body: dict[str, Any] = {"e": epoch, "s": seq, "t": element.timestamp_ns, "p": pushed}
     if with_metadata:
         body["m"] = element.metadata
-    if with_payload:
-        body["p"] = element.payload
     return bytes(msgpack.packb(body, use_bin_type=True))
 
 
-def decode_notification(raw: bytes) -> dict[str, Any]:
-    """Decode and type-check a notification; ValueError if it is garbage."""
+def decode_notification_header(raw: bytes) -> dict[str, Any]:
+    """Decode and type-check a notification header; ValueError if it is garbage."""
     body = msgpack.unpackb(raw, raw=False)
     if not isinstance(body, dict):
-        raise ValueError("notification is not a map")
+        raise ValueError("notification header is not a map")
     if not isinstance(body.get("e"), str) or not isinstance(body.get("s"), int):
         raise ValueError("notification lacks epoch or seq")
-    if not isinstance(body.get("t"), int):
-        raise ValueError("notification lacks timestamp")
-    for key in ("m", "p"):
-        if key in body and not isinstance(body[key], bytes):
-            raise ValueError(f"notification field {key!r} is not bytes")
+    if not isinstance(body.get("t"), int) or not isinstance(body.get("p"), bool):
+        raise ValueError("notification lacks timestamp or push flag")
+    if "m" in body and not isinstance(body["m"], bytes):
+        raise ValueError("notification metadata is not bytes")
     return body
 
 

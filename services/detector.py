@@ -14,7 +14,7 @@ import threading
 import time
 from dataclasses import dataclass
 
-from middleware import FramegateError, NetworkConfig, Node, Retention
+from middleware import PUSH_ALL, FramegateError, NetworkConfig, Node, Retention
 from services._runtime import setup_logging
 from services.markers import detect_markers
 from services.messages import decode_image, detections_metadata, read_frame_metadata
@@ -47,7 +47,10 @@ def run(config: DetectorConfig, network: NetworkConfig, stop: threading.Event | 
         detections = node.offer(
             "detections", kind="detections", retention=Retention(max_count=100_000)
         )
-        frames = node.subscribe(config.input, queue_size=config.queue, wait_s=0)
+        # Every frame given to the detector is processed: have it pushed, not fetched.
+        frames = node.subscribe(
+            config.input, queue_size=config.queue, wait_s=0, push_max_bytes=PUSH_ALL
+        )
         log.info(
             "detector: %s (queue %d, processing >= %.0f ms)",
             config.input,

@@ -27,6 +27,7 @@ import time
 from dataclasses import dataclass
 
 from middleware import (
+    PUSH_ALL,
     CoverageError,
     FlowControlRefused,
     FramegateError,
@@ -172,7 +173,10 @@ class Mediator:
         self.decisions: Producer = node.offer(
             "decisions", kind="decision", retention=Retention(max_count=100_000)
         )
-        self._camera = node.subscribe(config.camera, queue_size=config.camera_queue, wait_s=0)
+        # Every frame is taken and assessed, so frames come pushed with their notification.
+        self._camera = node.subscribe(
+            config.camera, queue_size=config.camera_queue, wait_s=0, push_max_bytes=PUSH_ALL
+        )
         self._gyro = GyroCache(node.subscribe(config.gyro, queue_size=256, wait_s=0))
         self._options = BlurOptions(mode=config.blur_mode)
         self._keys = Monotonic()

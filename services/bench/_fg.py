@@ -17,6 +17,7 @@ from typing import Any
 import psutil
 
 from middleware import (
+    PUSH_ALL,
     FlowControlRefused,
     FramegateError,
     NetworkConfig,
@@ -122,7 +123,10 @@ def fg_sub(params: dict[str, Any]) -> None:
 
     with Node(network=_network(params)) as node:
         sub = node.subscribe(
-            f"{SERVICE}/{params['buffer']}", queue_size=int(params["queue_size"]), wait_s=5.0
+            f"{SERVICE}/{params['buffer']}",
+            queue_size=int(params["queue_size"]),
+            wait_s=5.0,
+            push_max_bytes=PUSH_ALL if params.get("push") else None,
         )
         # Several consuming threads keep several fetches in flight (take() is thread-safe).
         threads = [

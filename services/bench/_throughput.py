@@ -35,6 +35,8 @@ class Mode:
     size: int
     shared_memory: bool
     queue_size: int
+    # Framegate side: payloads pushed with their notification instead of fetched.
+    push: bool = False
 
     def as_json(self) -> dict[str, Any]:
         return {
@@ -42,12 +44,15 @@ class Mode:
             "payload_bytes": self.size,
             "shared_memory": self.shared_memory,
             "queue_size": self.queue_size,
+            "push": self.push,
         }
 
 
 FRAME_MODES = (
     Mode("1280x1024 mono8, shm", FRAME_BYTES, True, 8),
+    Mode("1280x1024 mono8, shm, pushed", FRAME_BYTES, True, 8, push=True),
     Mode("1280x1024 mono8, tcp", FRAME_BYTES, False, 8),
+    Mode("1280x1024 mono8, tcp, pushed", FRAME_BYTES, False, 8, push=True),
     Mode("64 KiB inline, shm", INLINE_BYTES, True, 8),
 )
 SMALL_MODES = (Mode("64 B", SMALL_BYTES, True, 8),)
@@ -71,7 +76,8 @@ def _run(
             "warmup_s": options.warmup_s,
             "window_s": options.duration_s,
             "raw": "publisher CongestionControl.BLOCK -> default FIFO subscriber, to_bytes()",
-            "framegate": "put(wait_s=5) -> subscribe(queue_size) take() + fetch()",
+            "framegate": "put(wait_s=5) -> subscribe(queue_size) take() + fetch() "
+            "(pushed: the payload comes with the notification)",
         },
     )
     for mode in modes:
@@ -95,7 +101,13 @@ def _run_mode(scenario: str, mode: Mode, row: Row, options: BenchOptions) -> Non
                 group.start("fg-pub", {**common, "listen": fg_at, "buffer": "data"}),
                 group.start(
                     "fg-sub",
-                    {**common, "connect": fg_at, "buffer": "data", "queue_size": mode.queue_size},
+                    {
+                        **common,
+                        "connect": fg_at,
+                        "buffer": "data",
+                        "queue_size": mode.queue_size,
+                        "push": mode.push,
+                    },
                 ),
             ),
         }

@@ -254,3 +254,28 @@ def test_local_default_needs_no_configuration(monkeypatch: pytest.MonkeyPatch) -
         )
         sub = third.subscribe("cam/images", queue_size=1, mode=SubscriptionMode.OBSERVE)
         assert sub.subscription_id
+
+
+def test_payloads_are_pushed_up_to_the_subscription_limit(
+    node_process: Callable[..., NodeProcess], endpoint: str, connect_net: NetworkConfig
+) -> None:
+    from middleware import PUSH_ALL
+
+    producer = _start_producer(node_process, endpoint)
+    big = bytes(range(256)) * 4096  # 1 MiB: over the producer's 64 KiB default
+    with Node(network=connect_net) as client:
+        wait_until(lambda: "cam" in client.live_services(), 5, "the producer service")
+        pushed = client.subscribe("cam/images", queue_size=4, push_max_bytes=PUSH_ALL)
+        fetched = client.subscribe("cam/images", queue_size=4)
+        for t, payload in ((1, b"small"), (2, big)):
+            reply = producer.call(
+                "put", buffer="images", t=t, payload=base64.b64encode(payload).decode()
+            )
+            assert reply["ok"], reply
+        small_pushed, big_pushed = pushed.take(timeout_s=5), pushed.take(timeout_s=5)
+        small_fetched, big_fetched = fetched.take(timeout_s=5), fetched.take(timeout_s=5)
+        assert small_pushed and big_pushed and small_fetched and big_fetched
+        assert big_pushed.element is not None and big_pushed.element.payload == big
+        assert small_fetched.element is not None  # small ones ride along by default
+        assert big_fetched.element is None  # large ones are fetched on demand
+        assert fetched.fetch(big_fetched).payload == big
