@@ -35,6 +35,7 @@ from ._timerange import TimeRange, parse_duration_ns, parse_time_ns, parse_time_
 from ._xml import XmlLimits, field_text, make_metadata, parse_untrusted, validate_metadata
 
 __all__ = [
+    "PUSH_ALL",
     "BufferInfo",
     "ConfigError",
     "CoverageError",
@@ -46,7 +47,6 @@ __all__ = [
     "Node",
     "NotFoundError",
     "Notification",
-    "PUSH_ALL",
     "PayloadTooLargeError",
     "Producer",
     "QueryError",
