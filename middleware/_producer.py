@@ -44,6 +44,9 @@ class _Sub:
     mode: SubscriptionMode
     queue_size: int
     push_max_bytes: int
+    # Each registration counts from 1 under its own epoch: a token that drops and returns
+    # (a lapsed lease) must not look like a replay of the old sequence to the subscriber.
+    epoch: str = ""
     sent: int = 0
     acked: int = 0
     publisher: Any = None
@@ -92,6 +95,7 @@ class Producer:
         self.epoch = secrets.token_hex(6)
         self._cond = threading.Condition()
         self._subs: dict[str, _Sub] = {}
+        self._registrations = 0
         self._counters = _Counters()
         self._closed = False
         # Callbacks run on Zenoh's thread (indirect=False): short, and they never block.
@@ -118,7 +122,15 @@ class Producer:
             return
         with self._cond:
             if sample.kind == zenoh.SampleKind.PUT:
-                self._subs.setdefault(sub_id, _Sub(sub_id, mode, queue_size, push_max_bytes))
+                if sub_id not in self._subs:
+                    self._registrations += 1
+                    self._subs[sub_id] = _Sub(
+                        sub_id,
+                        mode,
+                        queue_size,
+                        push_max_bytes,
+                        epoch=f"{self.epoch}.{self._registrations}",
+                    )
             else:
                 gone = self._subs.pop(sub_id, None)
                 if gone is not None:
@@ -136,7 +148,7 @@ class Producer:
             return
         with self._cond:
             sub = self._subs.get(sub_id)
-            if sub is None or epoch != self.epoch:
+            if sub is None or epoch != sub.epoch:
                 return
             # Cumulative and clamped: duplicates, reordering and lies cannot push it past sent.
             sub.acked = max(sub.acked, min(seq, sub.sent))
@@ -213,7 +225,7 @@ class Producer:
         limit = self.inline_max_bytes if sub.push_max_bytes < 0 else sub.push_max_bytes
         pushed = len(element.payload) <= limit
         header = encode_notification_header(
-            self.epoch,
+            sub.epoch,
             sub.sent,
             element,
             with_metadata=len(element.metadata) <= _INLINE_METADATA_MAX,

@@ -131,22 +131,29 @@ class BagWriter:
             if self._closed:
                 raise BagError(f"{self.path} is closed")
             channels.messages += 1
+            try:
+                self._add(channels, t, data, image)
+            except OSError as exc:
+                raise BagError(f"cannot write {self.path}: {exc.strerror or exc}") from exc
+
+    def _add(self, channels: _Channels, t: int, data: bytes, image: bytes | None) -> None:
+        """Write the element message and its image message (called under the lock)."""
+        self._writer.add_message(
+            channels.element_id,
+            log_time=t,
+            data=data,
+            publish_time=t,
+            sequence=channels.messages & 0xFFFFFFFF,
+        )
+        if image is not None and channels.image_id is not None:
+            channels.images += 1
             self._writer.add_message(
-                channels.element_id,
+                channels.image_id,
                 log_time=t,
-                data=data,
+                data=image,
                 publish_time=t,
-                sequence=channels.messages & 0xFFFFFFFF,
+                sequence=channels.images & 0xFFFFFFFF,
             )
-            if image is not None and channels.image_id is not None:
-                channels.images += 1
-                self._writer.add_message(
-                    channels.image_id,
-                    log_time=t,
-                    data=image,
-                    publish_time=t,
-                    sequence=channels.images & 0xFFFFFFFF,
-                )
 
     def add_metadata(self, name: str, data: dict[str, str]) -> None:
         """A named MCAP metadata record (e.g. where and when the recording was made)."""
@@ -165,9 +172,13 @@ class BagWriter:
                 return
             self._closed = True
             try:
-                self._writer.finish()
-            finally:
-                self._stream.close()
+                try:
+                    self._writer.finish()
+                finally:
+                    self._stream.close()
+            except OSError as exc:
+                # A full disk (ENOSPC) or a vanished mount: say so, naming the file.
+                raise BagError(f"cannot finish {self.path}: {exc.strerror or exc}") from exc
 
     def __enter__(self) -> BagWriter:
         return self
