@@ -11,13 +11,16 @@ Measured:
   warm-up, from the mean of the first three samples to the mean of the last three
   (goal: <= 5 %);
 - accepted elements lost (goal: 0), audited every ``check_s`` while everything runs:
-  every camera frame older than the newest decision has a decision; every frame the
+  every camera frame older than the newest decision (or than 30 s) has a decision;
+  every frame the
   mediator accepted that is still within mediator/images' retention is there and
   byte-identical (payload and metadata) to the camera's copy; nothing is in
   mediator/images that the mediator did not accept; every accepted frame older than the
   newest detection has a detection; decisions and detections stored are all queryable;
 - refusals and drops: camera/images and gyro/rates refused by flow control, frames the
-  camera skipped late, the mediator's decisions by reason.
+  camera skipped late, the mediator's decisions by reason;
+- stalls (goal: none): a stage whose input keeps coming while its output stands still for
+  30 s; the timeline of counters and queue fills and the services' logs go into the report.
 """
 
 from __future__ import annotations
@@ -25,8 +28,10 @@ from __future__ import annotations
 import hashlib
 import os
 import re
+import shutil
 import socket
 import statistics
+import subprocess
 import time
 from collections import Counter
 from dataclasses import asdict, dataclass, field, replace
@@ -41,15 +46,22 @@ from services.messages import DecisionRecord
 MIB = 2**20
 _CAMERA_LOG = re.compile(r"camera: (\d+) frames stored, (\d+) dropped .*, (\d+) skipped late")
 _GYRO_LOG = re.compile(r"gyro: (\d+) batches stored, (\d+) dropped")
+# A producer saw a subscription's liveliness token go (a dead, stopped or starved client).
+_GONE_LOG = re.compile(r"(\S+/\S+): subscription \S+ gone")
+# A camera frame still undecided this long after it was exposed counts as lost.
+_UNDECIDED_AFTER_NS = 30_000_000_000
+# A stage whose input grows while its output stands still this long is stalled.
+_STALL_S = 30.0
+# (stage, its input buffers (stored + refused), its output buffer)
+_STAGES = (
+    ("mediator", "camera/images", "mediator/decisions"),
+    ("detector", "mediator/images", "detector/detections"),
+)
 # gyro/rates keeps 30 s of batches (services/gyro.py).
 _GYRO_RETENTION_S = 30.0
-_PIPELINE = {
-    "camera/images",
-    "gyro/rates",
-    "mediator/images",
-    "mediator/decisions",
-    "detector/detections",
-}
+_PIPELINE = frozenset(
+    ["camera/images", "gyro/rates", "mediator/images", "mediator/decisions", "detector/detections"]
+)
 
 
 @dataclass(frozen=True, slots=True)
@@ -109,25 +121,17 @@ class MemorySeries:
         start = statistics.fmean(rss for _t, rss in after[:k])
         end = statistics.fmean(rss for _t, rss in after[-k:])
         span_min = (after[-1][0] - after[0][0]) / 60
-        slope = _slope([t for t, _ in after], [rss for _, rss in after]) * 60
+        slope = statistics.linear_regression([t for t, _ in after], [r for _, r in after]).slope
         growth = (end - start) / start
         return out | {
             "rss_after_warmup_mib": round(start / MIB, 1),
             "rss_end_mib": round(end / MIB, 1),
             "rss_peak_mib": round(max(rss for _t, _pid, rss in self.samples) / MIB, 1),
             "growth": round(growth, 4),
-            "slope_mib_per_min": round(slope / MIB, 3),
+            "slope_mib_per_min": round(slope * 60 / MIB, 3),
             "measured_min": round(span_min, 1),
             "ok": growth <= goal,
         }
-
-
-def _slope(xs: list[float], ys: list[int]) -> float:
-    mean_x, mean_y = statistics.fmean(xs), statistics.fmean(ys)
-    var = sum((x - mean_x) ** 2 for x in xs)
-    return (
-        sum((x - mean_x) * (y - mean_y) for x, y in zip(xs, ys, strict=True)) / var if var else 0.0
-    )
 
 
 def rss_bytes(pid: int | None) -> int | None:
@@ -181,8 +185,11 @@ class Audit:
             self._cursor[key or target] = found[-1].timestamp_ns + 1
         return found
 
-    def check(self, node: Node) -> None:
-        """One pass; the order of the queries is what makes the conclusions safe."""
+    def check(self, node: Node, now_ns: int | None = None) -> None:
+        """One pass; the order of the queries is what makes the conclusions safe.
+
+        ``now_ns``: the wall clock (frame timestamps are wall-clock exposure starts).
+        """
         for frame in self._new(node, "camera/images"):
             self.camera_seen.add(frame.timestamp_ns)
             self.camera_digest[frame.timestamp_ns] = _digest(frame.payload, frame.metadata)
@@ -199,12 +206,17 @@ class Audit:
         self.checks += 1
         oldest_decided = min(self.decided, default=0)
         newest_decided = max(self.decided, default=0)
-        # The mediator decides in camera order: a frame between its first decision (frames
-        # before it were stored before it subscribed) and its newest one without a decision
-        # was lost.
+        overdue = (time.time_ns() if now_ns is None else now_ns) - _UNDECIDED_AFTER_NS
+        # The mediator decides in camera order, so a frame after its first decision (earlier
+        # ones were stored before it subscribed) was lost if a newer frame was decided, or
+        # if it is still undecided long after: a stalled mediator loses every frame.
+        undecided = self.lost["frames_without_decision"]
+        undecided.difference_update(self.decided)
         for ts in self.camera_seen:
-            if oldest_decided <= ts <= newest_decided and ts not in self.decided:
-                self.lost["frames_without_decision"].add(ts)
+            if ts < oldest_decided or ts in self.decided:
+                continue
+            if ts <= newest_decided or ts < overdue:
+                undecided.add(ts)
         for element in accepted_frames:
             ts = element.timestamp_ns
             self.in_mediator.add(ts)
@@ -264,6 +276,61 @@ def _full(buffers: dict[str, BufferInfo]) -> bool:
     return True
 
 
+def _progress(elapsed_s: float, buffers: dict[str, BufferInfo]) -> dict[str, Any]:
+    """One timeline point: stored/refused per buffer, queued/size per subscription."""
+    return {
+        "t": round(elapsed_s, 1),
+        "buffers": {n: [b.puts, b.refused] for n, b in buffers.items()},
+        "queued": {
+            n: [f"{s.mode.value} {s.queued}/{s.queue_size}" for s in b.subscriptions]
+            for n, b in buffers.items()
+            if b.subscriptions
+        },
+    }
+
+
+def find_stalls(timeline: list[dict[str, Any]], stall_s: float = _STALL_S) -> list[dict[str, Any]]:
+    """Intervals in which a stage's input kept arriving but its output did not grow."""
+    stalls: list[dict[str, Any]] = []
+    for stage, source, output in _STAGES:
+        since: tuple[float, int, int] | None = None  # (t, input, output) at last output change
+        current: dict[str, Any] | None = None
+        for point in timeline:
+            counts = point["buffers"]
+            if source not in counts or output not in counts:
+                continue
+            seen, done = sum(counts[source]), counts[output][0]
+            if since is None or done != since[2]:
+                since, current = (point["t"], seen, done), None
+                continue
+            if seen > since[1] and point["t"] - since[0] >= stall_s:
+                if current is None:
+                    current = {"stage": stage, "from_s": since[0], "to_s": point["t"]}
+                    stalls.append(current)
+                current["to_s"] = point["t"]
+                current["input_meanwhile"] = seen - since[1]
+    return stalls
+
+
+def dump_stacks(pids: dict[str, int | None]) -> dict[str, str]:
+    """Every thread's Python stack of each process (py-spy), to see where a stall sits."""
+    spy = shutil.which("py-spy")
+    if spy is None:
+        return {"note": "install py-spy to get the stacks of stalled processes"}
+    out = {}
+    for name, pid in pids.items():
+        if pid is None:
+            continue
+        try:
+            done = subprocess.run(
+                [spy, "dump", "--pid", str(pid)], capture_output=True, text=True, timeout=60
+            )
+            out[name] = done.stdout + done.stderr
+        except (OSError, subprocess.TimeoutExpired) as exc:
+            out[name] = f"py-spy failed: {exc}"
+    return out
+
+
 def _buffers(node: Node) -> dict[str, BufferInfo]:
     try:
         return {b.name: b for s in node.services(timeout_s=2.0) for b in s.buffers}
@@ -271,7 +338,11 @@ def _buffers(node: Node) -> dict[str, BufferInfo]:
         return {}
 
 
-def _elements(buffers: dict[str, BufferInfo], logs: list[str], elapsed_s: float) -> dict[str, Any]:
+def _elements(
+    buffers: dict[str, BufferInfo], logs: list[str], running: int, elapsed_s: float
+) -> dict[str, Any]:
+    """Counters per buffer, with what only the logs say (``logs[:running]``: before stop)."""
+
     def counters(name: str) -> dict[str, Any]:
         info = buffers.get(name)
         if info is None:
@@ -285,16 +356,19 @@ def _elements(buffers: dict[str, BufferInfo], logs: list[str], elapsed_s: float)
         }
 
     out = {name: counters(name) for name in sorted(buffers)}
-    for line in logs:
+    for index, line in enumerate(logs):
         if match := _CAMERA_LOG.search(line):
             out.setdefault("camera/images", {})["skipped_late"] = int(match.group(3))
         if match := _GYRO_LOG.search(line):
             out.setdefault("gyro/rates", {})["dropped_after_wait"] = int(match.group(2))
+        if index < running and (match := _GONE_LOG.search(line)):
+            buffer = out.setdefault(match.group(1), {})
+            buffer["subscriptions_gone"] = buffer.get("subscriptions_gone", 0) + 1
     return out
 
 
 def run_soak(config: SoakConfig) -> dict[str, Any]:
-    """Run the pipeline for ``duration_s``; return the report (see ``format_report``)."""
+    """Run the pipeline for ``duration_s``; return the report (JSON-ready; the CLI prints it)."""
     port = config.port or free_port()
     network = NetworkConfig(local_port=port)
     # The children find the private rendezvous through the environment, as under launch.
@@ -320,11 +394,15 @@ def run_soak(config: SoakConfig) -> dict[str, Any]:
     filled_at: float | None = None
     load_before = os.getloadavg()
     check_errors: list[str] = []
+    timeline: list[dict[str, Any]] = []
+    stall_stacks: dict[str, str] = {}  # at the first stall, where every process is
+    running = 0
     with Node(network=network) as node:
         supervisor.start()
 
         def tick() -> None:
-            nonlocal buffers, filled_at
+            nonlocal buffers, filled_at, running
+            running = len(logs)  # lines after the last tick come from stopping
             elapsed = time.monotonic() - started
             if elapsed >= due["sample"]:
                 due["sample"] += config.sample_s
@@ -335,6 +413,7 @@ def run_soak(config: SoakConfig) -> dict[str, Any]:
             if elapsed >= due["check"]:
                 due["check"] = elapsed + config.check_s
                 buffers = _buffers(node) or buffers
+                timeline.append(_progress(elapsed, buffers))
                 if not set(buffers) >= _PIPELINE:
                     return  # not everything is up yet
                 if filled_at is None and elapsed >= _GYRO_RETENTION_S and _full(buffers):
@@ -344,6 +423,8 @@ def run_soak(config: SoakConfig) -> dict[str, Any]:
                 except FramegateError as exc:
                     # A service that is restarting: the next check catches up.
                     check_errors.append(f"{elapsed:.0f}s: {exc}")
+                if not stall_stacks and find_stalls(timeline):
+                    stall_stacks.update(dump_stacks(supervisor.pids()))
 
         try:
             supervisor.run(config.duration_s, on_tick=tick)
@@ -366,6 +447,7 @@ def run_soak(config: SoakConfig) -> dict[str, Any]:
     lost_total = sum(audit_summary["lost"].values()) + sum(unqueryable.values())
     restarts = supervisor.restarts()
     memory_ok = all(p.get("ok") is not False for p in processes.values())
+    stalls = find_stalls(timeline)
     return {
         "config": asdict(config) | {"port": port, "warmup_s": config.warmup},
         "warmup_s": round(warmup, 1),
@@ -379,92 +461,21 @@ def run_soak(config: SoakConfig) -> dict[str, Any]:
         "duration_s": round(elapsed, 1),
         "processes": processes,
         "memory_samples": {name: s.samples for name, s in memory.items()},
-        "elements": _elements(buffers, logs, elapsed),
+        "elements": _elements(buffers, logs, running, elapsed),
         "audit": audit_summary,
         "unqueryable": unqueryable,
         "lost_total": lost_total,
         "restarts": restarts,
+        "stalls": stalls,
+        "stall_stacks": stall_stacks,
         "check_errors": check_errors,
         "goals": {
             "memory_growth_at_most": config.growth_goal,
             "memory_ok": memory_ok,
             "lost_ok": lost_total == 0,
             "no_restarts": not any(restarts.values()),
+            "no_stalls": not stalls,
         },
+        "timeline": timeline,
+        "logs": logs[-5000:],
     }
-
-
-def format_report(report: dict[str, Any]) -> str:
-    """The report as a plain-text table."""
-    cfg = report["config"]
-    lines = [
-        f"soak: {report['duration_s']} s, scenario rate {cfg['rate']}x, "
-        f"{report['host']['cpus']} CPUs (load {report['host']['loadavg_before'][0]} before, "
-        f"{report['host']['loadavg_after'][0]} after), port {cfg['port']}",
-        f"memory counts after a warm-up of {report['warmup_s']:.0f} s "
-        + (
-            f"(image buffers full of retained frames at {report['retention_filled_at_s']:.0f} s)"
-            if report["retention_filled_at_s"] is not None
-            else "(image buffers still filling: growth includes filling them)"
-        ),
-        "",
-        f"{'process':<10} {'pid':>7} {'RSS after warm-up':>18} {'RSS at end':>11} "
-        f"{'peak':>9} {'growth':>8} {'MiB/min':>8}  goal <= {cfg['growth_goal']:.0%}",
-    ]
-    for name, p in report["processes"].items():
-        if p.get("growth") is None:
-            lines.append(f"{name:<10} {p.get('pid') or '-':>7}  too few samples after warm-up")
-            continue
-        lines.append(
-            f"{name:<10} {p['pid']:>7} {p['rss_after_warmup_mib']:>14.1f} MiB "
-            f"{p['rss_end_mib']:>7.1f} MiB {p['rss_peak_mib']:>5.1f} MiB "
-            f"{p['growth']:>+7.1%} {p['slope_mib_per_min']:>+8.2f}  {'ok' if p['ok'] else 'MISSED'}"
-        )
-    el, audit = report["elements"], report["audit"]
-    cam, gyro = el.get("camera/images", {}), el.get("gyro/rates", {})
-    med, det = el.get("mediator/images", {}), el.get("detector/detections", {})
-    reasons = ", ".join(f"{k} {v}" for k, v in audit["decision_reasons"].items()) or "-"
-    lines += [
-        "",
-        "elements",
-        f"  camera/images      {cam.get('puts')} stored ({cam.get('per_s')}/s), "
-        f"{cam.get('refused')} refused by flow control, "
-        f"{cam.get('skipped_late', '?')} skipped late",
-        f"  gyro/rates         {gyro.get('puts')} stored ({gyro.get('per_s')}/s), "
-        f"{gyro.get('refused')} refused, "
-        f"{gyro.get('dropped_after_wait', '?')} dropped after waiting",
-        f"  mediator           {audit['frames_decided']} frames decided: {reasons}",
-        f"  mediator/images    {med.get('puts')} stored, {med.get('refused')} refused "
-        "(detector's queue full)",
-        f"  detector           {det.get('puts')} detections ({det.get('per_s')}/s)",
-        "",
-        f"lost (goal 0), {audit['checks']} audits while running",
-    ]
-    labels = {
-        "frames_without_decision": "camera frames without a decision "
-        f"(of {audit['camera_frames_seen']} seen)",
-        "accepted_not_in_mediator": "accepted frames missing from mediator/images "
-        f"(of {audit['accepted']})",
-        "accepted_not_identical": "accepted frames not byte-identical "
-        f"(of {audit['compared_with_camera']} compared)",
-        "mediator_not_accepted": "frames in mediator/images never accepted",
-        "accepted_without_detection": "accepted frames without a detection "
-        f"(of {audit['detected']} detected)",
-    }
-    for key, label in labels.items():
-        lines.append(f"  {label:<62} {audit['lost'][key]}")
-    for name, count in report["unqueryable"].items():
-        lines.append(f"  {'stored in ' + name + ' but not queryable':<62} {count}")
-    lines.append(f"  {'total':<62} {report['lost_total']}")
-    restarts = {k: v for k, v in report["restarts"].items() if v}
-    goals = report["goals"]
-    lines += [
-        "",
-        f"restarts: {restarts or 'none'}",
-        f"goals: memory {'ok' if goals['memory_ok'] else 'MISSED'}, "
-        f"lost {'ok' if goals['lost_ok'] else 'MISSED'}, "
-        f"restarts {'ok' if goals['no_restarts'] else 'MISSED'}",
-    ]
-    if report["check_errors"]:
-        lines.append(f"audit errors: {len(report['check_errors'])} ({report['check_errors'][0]})")
-    return "\n".join(lines)

@@ -23,7 +23,7 @@ import pytest
 import yaml
 import zenoh
 
-from middleware import FramegateError, Node, make_metadata
+from middleware import FramegateError, Node, SubscriptionMode, make_metadata
 from tests.conftest import REPO, NodeProcess, child_env, wait_until
 from tests.security.conftest import SecureRouter
 
@@ -120,6 +120,23 @@ def test_reads_allowed_to_cli_still_work(camera: NodeProcess, secure_router: Sec
         assert cli.get("camera/images", 2 * MS).payload == REAL[2 * MS]
         info = cli.buffer_info("camera/images")
         assert (info.count, info.puts) == (len(REAL), len(REAL))
+
+
+def test_cli_may_observe_but_not_hold_the_camera_back(
+    camera: NodeProcess, secure_router: SecureRouter
+) -> None:
+    with Node(network=secure_router.net("cli")) as cli:
+        observer = cli.subscribe("camera/images", queue_size=4, mode=SubscriptionMode.OBSERVE)
+        # A flow-controlled subscription would let an operator stall the camera: its token
+        # is dropped at the router, so the camera never counts it.
+        cli.subscribe("camera/images", queue_size=1, wait_s=1.0)
+        assert camera.call("wait_subscribers", buffer="images", count=1, timeout=5)["registered"]
+        for t in (6 * MS, 7 * MS, 8 * MS):
+            assert camera.call("put", buffer="images", t=t)["ok"]
+        modes = [s["mode"] for s in camera.call("fill", buffer="images")["subscriptions"]]
+        assert modes == ["observe"]
+        note = observer.take(timeout_s=5)
+        assert note is not None and note.timestamp_ns == 6 * MS
 
 
 def _forged_notification(t: int, payload: bytes) -> bytes:

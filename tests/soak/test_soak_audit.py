@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 from middleware import DataObject, Retention
 from services.messages import DecisionRecord
-from services.soak import Audit, MemorySeries
+from services.soak import Audit, MemorySeries, find_stalls
 
 MS = 1_000_000
 
@@ -68,9 +69,13 @@ class FakePipeline:
         return _Info(min(held) if held else None)
 
 
-def _audit(pipe: FakePipeline) -> Audit:
+# Frame timestamps here are ms after the epoch; "now" is a minute later.
+NOW = 60_000 * MS
+
+
+def _audit(pipe: FakePipeline, now_ns: int = NOW) -> Audit:
     audit = Audit()
-    audit.check(pipe)  # type: ignore[arg-type]
+    audit.check(pipe, now_ns)  # type: ignore[arg-type]
     return audit
 
 
@@ -104,7 +109,7 @@ def test_a_skipped_frame_an_unforwarded_accept_and_a_missing_detection_are_lost(
     pipe.decide(4 * MS, True, forward=False, detect=False)  # accepted, never forwarded
     pipe.decide(5 * MS, True, detect=False)  # no detection, though 6 was detected
     pipe.decide(6 * MS, True)
-    lost = _audit(pipe).lost
+    lost = _audit(pipe, now_ns=8 * MS).lost  # frame 7 may still be decided
     assert lost["frames_without_decision"] == {2 * MS}
     assert lost["accepted_not_in_mediator"] == {4 * MS}
     assert lost["accepted_without_detection"] == {4 * MS, 5 * MS}
@@ -129,11 +134,11 @@ def test_later_audits_read_only_what_is_new_and_keep_counting() -> None:
     audit = Audit()
     pipe.frame(1 * MS)
     pipe.decide(1 * MS, True)
-    audit.check(pipe)  # type: ignore[arg-type]
+    audit.check(pipe, NOW)  # type: ignore[arg-type]
     pipe.frame(2 * MS)
     pipe.frame(3 * MS)
     pipe.decide(3 * MS, True)
-    audit.check(pipe)  # type: ignore[arg-type]
+    audit.check(pipe, NOW)  # type: ignore[arg-type]
     assert audit.summary()["checks"] == 2
     assert audit.lost["frames_without_decision"] == {2 * MS}
     assert audit.compared == 2
@@ -149,3 +154,40 @@ def test_memory_growth_is_measured_after_the_warm_up_on_the_last_pid() -> None:
     assert summary["ok"] is True
     assert 0 < summary["growth"] < 0.02
     assert series.summary(warmup_s=0, goal=0.05)["ok"] is False
+
+
+def test_frames_left_undecided_by_a_stalled_mediator_are_lost() -> None:
+    pipe = FakePipeline()
+    for i in range(1, 4):
+        pipe.frame(i * MS)
+        pipe.decide(i * MS, True)
+    audit = Audit()
+    # The mediator stops deciding; the camera stores a few more frames, then nothing.
+    for i in range(4, 45):
+        pipe.frame(i * 1000 * MS)
+    audit.check(pipe, 44_000 * MS)  # type: ignore[arg-type]
+    assert audit.lost["frames_without_decision"] == {i * 1000 * MS for i in range(4, 14)}
+    audit.check(pipe, NOW)  # type: ignore[arg-type]
+    assert audit.lost["frames_without_decision"] == {i * 1000 * MS for i in range(4, 30)}
+    # A decision that comes late after all takes its frame off the list.
+    pipe.decide(4000 * MS, True)
+    audit.check(pipe, 44_000 * MS)  # type: ignore[arg-type]
+    assert 4000 * MS not in audit.lost["frames_without_decision"]
+
+
+def _point(t: float, camera: tuple[int, int], decisions: int) -> dict[str, Any]:
+    return {
+        "t": t,
+        "buffers": {"camera/images": list(camera), "mediator/decisions": [decisions, 0]},
+    }
+
+
+def test_a_stage_whose_output_stands_still_while_input_arrives_is_stalled() -> None:
+    timeline = [_point(t, (t, 0), t) for t in range(0, 50, 10)]
+    timeline += [_point(t, (50, t - 50), 50) for t in range(50, 120, 10)]
+    timeline += [_point(t, (50 + t - 120, 70), 50 + t - 120) for t in range(120, 150, 10)]
+    assert find_stalls(timeline) == [
+        {"stage": "mediator", "from_s": 50, "to_s": 120, "input_meanwhile": 70}
+    ]
+    # Nothing arriving is not a stall.
+    assert find_stalls([_point(t, (5, 0), 5) for t in range(0, 100, 10)]) == []
