@@ -1,11 +1,10 @@
-"""What the soak found, as small reproductions (strict xfail until the middleware is fixed).
+"""What the soak found, kept as small reproductions.
 
-A 10-minute soak on a loaded 2-CPU host stalled the mediator for good: the camera kept
-refusing frames (its notification queue to the mediator full) while the mediator got no
-notification. Cause: a liveliness flap. When a subscriber's token disappears and comes
-back (a process stopped or starved longer than the 1 s lease, or a cut link), the producer
-re-registers the subscription with fresh counters (seq from 1) under the *same* epoch, and
-the subscriber drops seq <= its last seq as stale. Nothing is ever taken or acked again.
+A liveliness flap: when a subscriber's token disappears and comes back (a process stopped
+or starved longer than the 1 s lease, or a cut link), the producer re-registers the
+subscription with fresh counters. Under the producer's single epoch the subscriber dropped
+the new sequence numbers as stale, never took or acked again, and the producer refused
+for good (a soak on a loaded host stalled this way). Fixed by per-registration epochs.
 """
 
 from __future__ import annotations
@@ -24,11 +23,6 @@ pytestmark = pytest.mark.integration
 MS = 1_000_000
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="middleware: a re-registered subscription keeps its producer epoch, so the "
-    "subscriber drops its notifications as stale (fix: a fresh epoch per registration)",
-)
 def test_subscription_survives_a_liveliness_flap(
     node_process: Callable[..., NodeProcess], endpoint: str
 ) -> None:
