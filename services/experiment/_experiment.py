@@ -125,6 +125,12 @@ def run_experiment(
     )
     started = time.monotonic()
     load_before = os.getloadavg()
+    cpus = os.cpu_count() or 1
+    if load_before[0] > cpus:
+        say(
+            f"warning: load average {load_before[0]:.1f} on {cpus} CPUs; real-time runs will "
+            "be disturbed (slower detector, late frames): measure on a quiet machine"
+        )
     seeds: list[dict[str, Any]] = []
     blur_series: dict[str, tuple[list[float], list[float], list[float]]] = {}
     first: tuple[Dataset, dict[RunKind, RunRecord]] | None = None

@@ -244,7 +244,7 @@ def _attempt(
             last_end_ns = dataset.frames[-1].exposure_start_ns + dataset.frames[-1].exposure_ns
             replay_end_ns = start_at_ns + int(last_end_ns / rate)
             buffers = _replay(watch, frames, replay_end_ns, settings.progress, what)
-            buffers = _drain(watch, kind, buffers)
+            buffers, drained = _drain(watch, kind, buffers)
             record = _collect(node, watch, kind, seed, frames, buffers)
             cpu_s = _cpu_seconds([consumers, producers])
         finally:
@@ -261,6 +261,7 @@ def _attempt(
         wall_s=time.monotonic() - started,
         attempts=attempt,
         startup_s=startup_s,
+        drained=drained,
         load_avg=(load_before, os.getloadavg()[0]),
         cpu_busy_pct=psutil.cpu_percent(interval=None),
         cpu_s=cpu_s,
@@ -317,9 +318,11 @@ def _replay(
         return _wait(watch, done, stalled)
 
 
-def _drain(watch: _Watch, kind: RunKind, buffers: dict[str, BufferInfo]) -> dict[str, BufferInfo]:
+def _drain(
+    watch: _Watch, kind: RunKind, buffers: dict[str, BufferInfo]
+) -> tuple[dict[str, BufferInfo], bool]:
     """Wait until the detector has processed everything it was given (and, with a mediator,
-    every stored frame has a final decision)."""
+    every stored frame has a final decision); False if it stalled instead."""
     source = "camera/images" if kind.policy is None else "mediator/images"
     seen = {"n": -1, "since": time.monotonic()}
 
@@ -342,7 +345,8 @@ def _drain(watch: _Watch, kind: RunKind, buffers: dict[str, BufferInfo]) -> dict
             d.reason == "held" for d in decisions
         )
 
-    return _wait(watch, drained, lambda: time.monotonic() - seen["since"] > _STALL_S)
+    buffers = _wait(watch, drained, lambda: time.monotonic() - seen["since"] > _STALL_S)
+    return buffers, drained(buffers)
 
 
 def _collect(
@@ -372,6 +376,7 @@ def _collect(
         wall_s=0.0,
         attempts=1,
         startup_s=0.0,
+        drained=True,
         load_avg=(0.0, 0.0),
         cpu_busy_pct=0.0,
         cpu_s={},

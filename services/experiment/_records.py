@@ -49,7 +49,9 @@ class RunRecord:
     frames the camera neither stored nor refused (it fell a frame period behind, e.g. under
     CPU load). ``forwarded`` is mediator/images puts (None without a mediator).
     ``decisions`` holds the final decision per frame. ``attempts`` and ``startup_s``: how
-    many starts it took and the start-up time that worked. ``cpu_s`` is CPU time per service
+    many starts it took and the start-up time that worked; ``drained`` False when the
+    detector stopped making progress before it had processed all it was given (collected
+    anyway). ``cpu_s`` is CPU time per service
     process; ``load_avg`` the 1-minute load average before and after the run;
     ``cpu_busy_pct`` the machine's CPU use over the run.
     """
@@ -68,6 +70,7 @@ class RunRecord:
     wall_s: float
     attempts: int
     startup_s: float
+    drained: bool
     load_avg: tuple[float, float]
     cpu_busy_pct: float
     cpu_s: dict[str, float]
@@ -100,6 +103,7 @@ class RunRecord:
             "wall_s": round(self.wall_s, 2),
             "attempts": self.attempts,
             "startup_s": self.startup_s,
+            "drained": self.drained,
             "load_avg_1min": [round(v, 2) for v in self.load_avg],
             "cpu_busy_pct": round(self.cpu_busy_pct, 1),
             "cpu_s": {k: round(v, 2) for k, v in self.cpu_s.items()},
