@@ -26,9 +26,10 @@ def register(subparsers: Any) -> None:
 def run(args: argparse.Namespace) -> int:
     deployment = load_deployment(args.file)
     text = Path(args.file).read_text()
-    # Flags and environment override what the deploy file says (applied per process).
-    base = network(args, NetworkConfig())
-    specs = process_specs(deployment, args.host, base, text=text)
+    # defaults -> deploy file -> environment -> flags, for every process.
+    specs = process_specs(
+        deployment, args.host, NetworkConfig(), text=text, override=lambda net: network(args, net)
+    )
     exit_on_sigterm()
     supervisor = Supervisor(specs, colour=False if args.no_colour else None)
     names = ", ".join(s.name for s in specs)

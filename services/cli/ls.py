@@ -3,15 +3,14 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from dataclasses import asdict
 from typing import Any
 
 from middleware import Node, ServiceInfo
+from services.clock import CLOCK_WARN_NS, ClockEstimate, clock_warning, estimate_clocks
 
 from ._common import command_parser, format_bytes, format_ns, network, print_json
-
-# Warn when a host's clock differs from ours by more than this (a fraction of an exposure).
-CLOCK_WARN_NS = 2_000_000
 
 
 def register(subparsers: Any) -> None:
@@ -19,11 +18,21 @@ def register(subparsers: Any) -> None:
         subparsers, "ls", "list live services and their buffers", json_flag=True
     )
     parser.add_argument("--timeout", type=float, default=2.0, help="seconds to wait for answers")
+    parser.add_argument(
+        "--clock-samples",
+        type=int,
+        default=5,
+        help="round trips per service for its clock offset; the shortest counts (default 5)",
+    )
     parser.set_defaults(func=run)
 
 
-def service_json(info: ServiceInfo) -> dict[str, Any]:
+def service_json(info: ServiceInfo, clock: ClockEstimate | None = None) -> dict[str, Any]:
     data = asdict(info)
+    if clock is not None:  # the best of several round trips, not the one listing query
+        data["clock_offset_ns"] = clock.offset_ns
+        data["round_trip_ns"] = clock.round_trip_ns
+    data["clock_error_ns"] = None if clock is None else clock.error_ns
     for buffer in data["buffers"]:
         for sub in buffer["subscriptions"]:
             sub["mode"] = sub["mode"].value
@@ -34,17 +43,33 @@ def service_json(info: ServiceInfo) -> dict[str, Any]:
 def run(args: argparse.Namespace) -> int:
     with Node(network=network(args)) as node:
         infos = node.services(timeout_s=args.timeout)
+        # One query for every service shares one long round trip: ask each one again.
+        clocks = {
+            c.service: c
+            for c in estimate_clocks(
+                node,
+                [i.service for i in infos],
+                samples=max(1, args.clock_samples),
+                timeout_s=args.timeout,
+            )
+        }
     if args.json:
-        print_json({"services": [service_json(i) for i in infos]})
+        print_json({"services": [service_json(i, clocks.get(i.service)) for i in infos]})
         return 0
     if not infos:
         print("no live services")
         return 0
+    warnings = []
     for info in infos:
-        offset_ms = (info.clock_offset_ns or 0) / 1e6
-        warn = "  CLOCK OFFSET!" if abs(info.clock_offset_ns or 0) > CLOCK_WARN_NS else ""
+        clock = clocks.get(info.service)
+        offset_ns = clock.offset_ns if clock else info.clock_offset_ns or 0
+        error_ns = clock.error_ns if clock else (info.round_trip_ns or 0) // 2
+        warn = "  CLOCK OFFSET!" if abs(offset_ns) > CLOCK_WARN_NS else ""
+        if clock is not None and (text := clock_warning(clock)) is not None:
+            warnings.append(text)
         print(
-            f"{info.service}  (host {info.host}, pid {info.pid}, clock {offset_ms:+.1f} ms){warn}"
+            f"{info.service}  (host {info.host}, pid {info.pid}, "
+            f"clock {offset_ns / 1e6:+.1f} ms ±{error_ns / 1e6:.1f}){warn}"
         )
         for b in info.buffers:
             subs = (
@@ -60,4 +85,6 @@ def run(args: argparse.Namespace) -> int:
                 f"  {b.rate_hz:6.1f} Hz  {format_ns(b.oldest_ns)} .. {format_ns(b.newest_ns)}"
                 f"  [{subs}]"
             )
+    for text in warnings:
+        print(f"warning: {text}", file=sys.stderr)
     return 0

@@ -6,6 +6,7 @@ import argparse
 import importlib
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import replace
 
 from middleware import ConfigError, NetworkConfig
@@ -51,13 +52,19 @@ def process_specs(
     *,
     text: str | None = None,
     start_at_ns: int | None = None,
+    override: Callable[[NetworkConfig], NetworkConfig] | None = None,
 ) -> list[ProcessSpec]:
-    """The processes of ``host``'s share, each with its network flags and a shared start."""
+    """The processes of ``host``'s share, each with its network flags and a shared start.
+
+    ``override`` applies what outranks the deploy file (environment, then flags).
+    """
     start = start_at_ns if start_at_ns is not None else time.time_ns() + int(START_DELAY_S * 1e9)
     out = []
     for spec in deployment.for_host(host):
         _check_args(spec, deployment, text)
         net = deployment.network_for(spec, base)
+        if override is not None:
+            net = override(net)
         if spec.type == "router":
             if not net.listen:
                 net = replace(net, listen=("tcp/[::]:7447",))

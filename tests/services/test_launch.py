@@ -113,3 +113,16 @@ def test_supervisor_restarts_a_crashing_process_and_stops_cleanly(tmp_path: Path
     assert time.monotonic() - started < 5.5
     with pytest.raises(ProcessLookupError):
         os.kill(pid, 0)
+
+
+def test_flags_outrank_the_deploy_file() -> None:
+    from dataclasses import replace
+
+    text = "network: {connect: [tcp/10.0.0.1:7447]}\nservices:\n  camera: {}\n"
+    deployment = parse_deployment(text, "x.yaml")
+    specs = process_specs(
+        deployment, None, NetworkConfig(),
+        override=lambda net: replace(net, connect=("tcp/127.0.0.1:9000",)),
+    )  # fmt: skip
+    argv = specs[0].argv
+    assert "tcp/127.0.0.1:9000" in argv and "tcp/10.0.0.1:7447" not in argv
