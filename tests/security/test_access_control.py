@@ -139,10 +139,11 @@ def test_cli_may_observe_but_not_hold_the_camera_back(
         assert note is not None and note.timestamp_ns == 6 * MS
 
 
-def _forged_notification(t: int, payload: bytes) -> bytes:
-    # The wire format of README.md "Notifications": epoch, seq, timestamp, metadata, payload.
-    body = {"e": "forged", "s": 1, "t": t, "m": make_metadata("generic", t), "p": payload}
-    return bytes(msgpack.packb(body, use_bin_type=True))
+def _forged_notification(t: int) -> bytes:
+    """The header of a notification (README "Notifications"): it rides as the attachment,
+    and with "p" true the Zenoh payload is taken for the element's payload."""
+    header = {"e": "forged", "s": 1, "t": t, "p": True, "m": make_metadata("generic", t)}
+    return bytes(msgpack.packb(header, use_bin_type=True))
 
 
 def test_intruder_cannot_send_the_camera_s_notifications(
@@ -154,10 +155,10 @@ def test_intruder_cannot_send_the_camera_s_notifications(
     mediator = node_process(None, *secure_router.args("mediator"))
     sub_id = mediator.call("subscribe", target="camera/images", queue=4)["id"]
     notify_key = f"framegate/@notify/camera/images/{sub_id}"
-    forged = _forged_notification(999 * MS, b"forged inline element")
+    forged = _forged_notification(999 * MS)
 
     for who in ("intruder", "detector", "cli", "mediator"):
-        raw_session(who).put(notify_key, forged)
+        raw_session(who).put(notify_key, b"forged element", attachment=forged)
     taken = mediator.call("take", target="camera/images", timeout=1.5)
     assert taken["notification"] is None, taken
 
@@ -168,9 +169,10 @@ def test_intruder_cannot_send_the_camera_s_notifications(
 
     # Control: the same message from the camera's certificate does arrive, so it is the
     # access control, not a malformed message, that stopped the others.
-    raw_session("camera").put(notify_key, forged)
+    raw_session("camera").put(notify_key, b"forged element", attachment=forged)
     taken = mediator.call("take", target="camera/images", timeout=5)
     assert taken["notification"]["t"] == 999 * MS
+    assert base64.b64decode(taken["element"]["payload"]) == b"forged element"
 
 
 def test_intruder_cannot_ack_for_the_camera_s_subscriber(
@@ -187,7 +189,8 @@ def test_intruder_cannot_ack_for_the_camera_s_subscriber(
     seen = threading.Event()
 
     def on_notification(sample: zenoh.Sample) -> None:
-        epochs.append(msgpack.unpackb(sample.payload.to_bytes())["e"])
+        assert sample.attachment is not None
+        epochs.append(msgpack.unpackb(sample.attachment.to_bytes())["e"])
         seen.set()
 
     spy = raw_session("mediator").declare_subscriber(
