@@ -17,7 +17,8 @@ from middleware import SchemaError, field_text, make_metadata, validate_metadata
 from services.camera_model import CameraModel
 from services.quality import Exposure, GyroSamples
 
-_CHANNELS = {"mono8": 1, "bgr8": 3, "rgb8": 3}
+# Bytes per pixel of the raw encodings frame.xsd allows.
+FRAME_CHANNELS = {"mono8": 1, "bgr8": 3, "rgb8": 3}
 
 
 @dataclass(frozen=True, slots=True)
@@ -76,7 +77,7 @@ def read_frame_metadata(metadata: bytes) -> FrameMeta:
 
 def decode_image(payload: bytes, meta: FrameMeta) -> npt.NDArray[np.uint8]:
     """The image as a read-only array view of the payload (no copy)."""
-    channels = _CHANNELS[meta.encoding]
+    channels = FRAME_CHANNELS[meta.encoding]
     expected = meta.width_px * meta.height_px * channels
     if len(payload) != expected:
         raise SchemaError(

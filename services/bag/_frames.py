@@ -5,9 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from middleware import FramegateError, field_text, parse_untrusted
-
-# Bytes per pixel of the raw encodings frame.xsd allows.
-CHANNELS = {"mono8": 1, "bgr8": 3, "rgb8": 3}
+from services.messages import FRAME_CHANNELS as CHANNELS
 
 
 @dataclass(frozen=True, slots=True)
