@@ -145,8 +145,12 @@ class NetworkConfig:
                     {"period_init_ms": 100, "period_max_ms": 1000, "period_increase_factor": 2},
                 ),
             ]
-        elif not self.shared_memory:
-            settings.append(("transport/shared_memory/enabled", False))
+        else:
+            # A file decides, except what the command itself stands for (a router is a router).
+            if self.mode != "peer":
+                settings.append(("mode", self.mode))
+            if not self.shared_memory:
+                settings.append(("transport/shared_memory/enabled", False))
         if listen:
             settings.append(("listen/endpoints", listen))
         if connect:

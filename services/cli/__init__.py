@@ -31,6 +31,7 @@ _COMMANDS = (
     "calibrate",
     "experiment",
     "bench",
+    "soak",
 )
 
 
