@@ -30,10 +30,11 @@ def _frame_times_s(dataset: Dataset) -> np.ndarray:
 
 
 def _busiest_window(decisions: Mapping[int, DecisionRecord], frames: int) -> int:
-    """First frame of the window with the most rejected frames (some accepted too)."""
+    """First frame of the window where quality decided most often: the most frames rejected
+    while the detector still had room (load < 1), where q <= load did the rejecting."""
     rejected = np.zeros(frames)
     for frame_id, decision in decisions.items():
-        if 0 <= frame_id < frames and not decision.accepted:
+        if 0 <= frame_id < frames and not decision.accepted and decision.load < 1.0:
             rejected[frame_id] = 1.0
     width = min(_WINDOW_FRAMES, frames)
     sums = np.convolve(rejected, np.ones(width), mode="valid")
@@ -58,7 +59,7 @@ def plot_gyro_exposures(
     rates_deg_s = np.degrees(gyro.rate_rad_s @ rotation.T)
     t_s = (gyro.t_ns - offset_ns - epoch_ns) / 1e9
 
-    fig = Figure(figsize=(11, 4.8), layout="constrained")
+    fig = Figure(figsize=(11, 5.2), layout="constrained")
     ax = fig.add_subplot()
     for index in range(first, last + 1):
         info = dataset.frames[index]
@@ -67,14 +68,15 @@ def plot_gyro_exposures(
         colour = _DROPPED if decision is None else _ACCEPTED if decision.accepted else _REJECTED
         ax.axvspan(start, start + info.exposure_ns / 1e9, color=colour, alpha=0.22, lw=0)
         if decision is not None and decision.quality is not None:
-            ax.text(start + info.exposure_ns / 2e9, 0.98, f"{decision.quality:.2f}",
+            label = f"q {decision.quality:.2f} L {decision.load:.1f}"
+            ax.text(start + info.exposure_ns / 2e9, 0.98, label,
                     transform=ax.get_xaxis_transform(), ha="center", va="top",
                     fontsize=7, rotation=90)  # fmt: skip
     ax.plot(t_s, rates_deg_s[:, 0], lw=1.0, color="#1f77b4", label="about camera x (pitch)")
     ax.plot(t_s, rates_deg_s[:, 1], lw=1.0, color="#ff7f0e", label="about camera y (yaw)")
     ax.axhline(0.0, color="black", lw=0.5)
     low, high = ax.get_ylim()
-    ax.set_ylim(low, high + 0.15 * (high - low))  # room for the q labels
+    ax.set_ylim(low, high + 0.3 * (high - low))  # room for the q and load labels
     ax.set_xlabel(f"time since frame {first}'s exposure start (s)")
     ax.set_ylabel("angular rate (deg/s)")
     handles, _labels = ax.get_legend_handles_labels()
@@ -83,10 +85,11 @@ def plot_gyro_exposures(
         Patch(color=_REJECTED, alpha=0.4, label="exposure, rejected"),
         Patch(color=_DROPPED, alpha=0.4, label="exposure, no decision"),
     ]
-    ax.legend(handles=handles, loc="lower right", fontsize=8, ncol=2)
+    fig.legend(handles=handles, loc="outside lower center", fontsize=8, ncol=5)
     ax.set_title(
         (title + "\n" if title else "")
-        + f"Fig. 7: gyro rates during exposure, frames {first}-{last} (q above each)",
+        + f"Fig. 7: gyro rates during exposure, frames {first}-{last} "
+        "(quality q and detector load L of each frame at the top)",
         fontsize=10,
     )
     fig.savefig(out, dpi=120)
