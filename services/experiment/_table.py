@@ -93,6 +93,14 @@ def format_table(results: Mapping[str, Any]) -> str:
                 f"{_cell(row.get('beyond_improvement_pct'), 1, signed=True)} |"
             )
     lines += _runs_section(seeds)
+    machine = results.get("machine")
+    if machine:
+        before = machine.get("load_avg_before") or [None]
+        after = machine.get("load_avg_after") or [None]
+        lines.append(
+            f"Machine: {machine.get('cpus')} CPUs, 1-minute load average {_cell(before[0], 2)} "
+            f"before and {_cell(after[0], 2)} after the experiment."
+        )
     lines += _correlation_section(results.get("quality_vs_blur", {}))
     return "\n".join(lines) + "\n"
 
@@ -122,6 +130,25 @@ def _runs_section(seeds: list[Mapping[str, Any]]) -> list[str]:
                 text += f" (fwd {run['forwarded']})"
             cells.append(text)
         lines.append(f"| {seed['seed']} | " + " | ".join(cells) + " |")
+    disturbed = [
+        f"seed {seed['seed']} {kind}"
+        + (f" ({run['skipped_late']} frames late)" if run.get("skipped_late") else "")
+        + ("" if run.get("drained", True) else " (detector did not drain)")
+        for seed in seeds
+        for kind, run in seed["runs"].items()
+        if run.get("skipped_late") or not run.get("drained", True)
+    ]
+    lines.append("")
+    if disturbed:
+        lines.append(
+            "Disturbed runs (the machine could not keep real time; compare with care): "
+            + ", ".join(disturbed)
+            + "."
+        )
+    else:
+        lines.append(
+            "Every run kept real time: no frame late at the camera, every detector drained."
+        )
     return lines
 
 

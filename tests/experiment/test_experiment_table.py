@@ -14,7 +14,10 @@ def _seed(seed: int, all_: int, unc: int, filt: int, beyond: int) -> dict[str, A
         "filtered": {"large": filt, "medium": filt + 10, "small": 5},
         "beyond": {"large": beyond, "medium": beyond, "small": 6},
     }
-    run = {"processed": 200, "dropped_at_camera": 119, "skipped_late": 0, "forwarded": None}
+    run = {
+        "processed": 200, "dropped_at_camera": 119, "skipped_late": 0, "forwarded": None,
+        "drained": True,
+    }  # fmt: skip
     return {
         "seed": seed,
         "frames": 319,
@@ -64,3 +67,22 @@ def test_table_of_one_seed_says_there_is_no_interval() -> None:
     text = format_table(_results(_seed(7, 240, 150, 156, 160)))
     assert "one seed, so no confidence interval" in text
     assert "| large | framegate | 240.0 | 150.0 | 156.0 | +4.0 | 160.0 | +6.7 | +2.6 |" in text
+
+
+def test_table_names_runs_that_could_not_keep_real_time() -> None:
+    seed = _seed(3, 240, 150, 156, 160)
+    seed["runs"]["filtered"] = {**seed["runs"]["filtered"], "skipped_late": 16}
+    seed["runs"]["uncontrolled"] = {**seed["runs"]["uncontrolled"], "drained": False}
+    text = format_table(_results(seed, _seed(4, 250, 160, 168, 170)))
+    assert (
+        "Disturbed runs (the machine could not keep real time; compare with care): "
+        "seed 3 uncontrolled (detector did not drain), seed 3 filtered (16 frames late)."
+    ) in text
+
+
+def test_table_says_when_every_run_kept_real_time() -> None:
+    results = _results(_seed(1, 240, 150, 156, 160))
+    results["machine"] = {"cpus": 2, "load_avg_before": [0.7, 1.9, 3.9], "load_avg_after": [0.9]}
+    text = format_table(results)
+    assert "Every run kept real time" in text
+    assert "Machine: 2 CPUs, 1-minute load average 0.70 before and 0.90 after" in text
