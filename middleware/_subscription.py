@@ -23,6 +23,8 @@ from ._wire import Keys, decode_notification_header, encode_ack
 
 # A push limit larger than any payload: everything travels with its notification.
 PUSH_ALL = 2**31 - 1
+# An idle subscriber repeats its last ack this often, so a lost final ack heals.
+_REACK_S = 0.5
 
 
 class Subscription:
@@ -59,6 +61,8 @@ class Subscription:
         self._epoch: str | None = None
         self._last_seq = 0
         self._missed_unreported = 0
+        self._last_ack: tuple[str, int] | None = None
+        self._reacked_at = 0.0
         self.missed_total = 0
         self.garbage = 0
         self._closed = False
@@ -142,13 +146,26 @@ class Subscription:
                     return None
                 remaining = None if deadline is None else deadline - time.monotonic()
                 if remaining is not None and remaining <= 0:
+                    self._reack()
                     return None
-                self._cond.wait(remaining if remaining is not None else 0.5)
+                if not self._cond.wait(min(remaining, _REACK_S) if remaining else _REACK_S):
+                    self._reack()
             epoch, note = self._queue.popleft()
-        # A lost ack heals itself: the next one is cumulative.
+            self._last_ack = (epoch, note.seq)
+        # A lost ack heals itself: the next one is cumulative, and an idle subscriber
+        # repeats its last one (``_reack``) so the producer's count cannot stay high.
         with contextlib.suppress(zenoh.ZError):
             self._ack_publisher.put(encode_ack(epoch, note.seq))
         return note
+
+    def _reack(self) -> None:
+        """Repeat the last ack while waiting idle (at most every ``_REACK_S``)."""
+        now = time.monotonic()
+        if self._last_ack is None or now - self._reacked_at < _REACK_S:
+            return
+        self._reacked_at = now
+        with contextlib.suppress(zenoh.ZError):
+            self._ack_publisher.put(encode_ack(*self._last_ack))
 
     def __iter__(self) -> Iterator[Notification]:
         """Notifications until the subscription is closed."""
