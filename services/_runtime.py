@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import threading
@@ -57,3 +58,9 @@ class Monotonic:
         with self._lock:
             self._last = max(self._last + 1, time.time_ns())
             return self._last
+
+
+def serve_until_stopped(stop: threading.Event) -> None:
+    """Keep a finished source's buffers answering queries until stopped (or Ctrl-C)."""
+    with contextlib.suppress(KeyboardInterrupt):
+        stop.wait()

@@ -12,13 +12,12 @@ plays a dataset at real-time pace (``--rate``) with timestamps rebased onto the 
 from __future__ import annotations
 
 import argparse
-import contextlib
 import threading
 import time
 from dataclasses import dataclass
 
 from middleware import FlowControlRefused, FramegateError, NetworkConfig, Node, Retention
-from services._runtime import setup_logging, sleep_until_ns, start_at_ns
+from services._runtime import serve_until_stopped, setup_logging, sleep_until_ns, start_at_ns
 from services.messages import frame_metadata
 from services.quality import Exposure
 from services.sources import SourceSpec, open_frame_source
@@ -99,8 +98,7 @@ def run(config: CameraConfig, network: NetworkConfig, stop: threading.Event | No
         )
         # A finished replay keeps serving its buffers until stopped.
         if config.source.kind != "device" and not config.source.exit_when_done:
-            with contextlib.suppress(KeyboardInterrupt):
-                stop.wait()
+            serve_until_stopped(stop)
     return 0
 
 

@@ -10,7 +10,6 @@ too), then drops the batch and counts it.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import threading
 import time
 from dataclasses import dataclass
@@ -18,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from middleware import FlowControlRefused, FramegateError, NetworkConfig, Node, Retention
-from services._runtime import setup_logging, sleep_until_ns, start_at_ns
+from services._runtime import serve_until_stopped, setup_logging, sleep_until_ns, start_at_ns
 from services.messages import gyro_metadata
 from services.quality import GyroSamples
 from services.sources import SourceSpec, open_gyro_source
@@ -79,8 +78,7 @@ def run(config: GyroConfig, network: NetworkConfig, stop: threading.Event | None
             pass
         log.info("gyro: %d batches stored, %d dropped", stored, dropped)
         if not config.source.exit_when_done:
-            with contextlib.suppress(KeyboardInterrupt):
-                stop.wait()
+            serve_until_stopped(stop)
     return 0
 
 

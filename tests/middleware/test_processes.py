@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import base64
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from typing import Any
 
 import pytest
@@ -14,6 +15,7 @@ from middleware import (
     NetworkConfig,
     Node,
     NotFoundError,
+    Producer,
     QueryError,
     SubscriptionMode,
     make_metadata,
@@ -71,6 +73,22 @@ def _consumer(
     return consumer
 
 
+@contextmanager
+def _offered_with_consumer(
+    node_process: Callable[..., NodeProcess],
+    endpoint: str,
+    listen_net: NetworkConfig,
+    queue: int,
+    mode: str = "flow",
+) -> Iterator[tuple[Producer, NodeProcess]]:
+    """cam/images offered here, subscribed by a consumer process, registered."""
+    with Node("cam", listen_net) as node:
+        images = node.offer("images")
+        consumer = _consumer(node_process, endpoint, queue=queue, mode=mode)
+        assert images.wait_for_subscribers(1, 5)
+        yield images, consumer
+
+
 def _put(producer: Any, t: int) -> None:
     producer.put(t, b"x", make_metadata("generic", t))
 
@@ -78,10 +96,10 @@ def _put(producer: Any, t: int) -> None:
 def test_full_queue_refuses_put(
     node_process: Callable[..., NodeProcess], endpoint: str, listen_net: NetworkConfig
 ) -> None:
-    with Node("cam", listen_net) as node:
-        images = node.offer("images")
-        _consumer(node_process, endpoint, queue=2)
-        assert images.wait_for_subscribers(1, 5)
+    with _offered_with_consumer(node_process, endpoint, listen_net, queue=2) as (
+        images,
+        _consumer_proc,
+    ):
         _put(images, 1)
         assert images.fill() == pytest.approx(0.5)
         _put(images, 2)
@@ -96,10 +114,7 @@ def test_full_queue_refuses_put(
 def test_taking_a_notification_frees_one_slot(
     node_process: Callable[..., NodeProcess], endpoint: str, listen_net: NetworkConfig
 ) -> None:
-    with Node("cam", listen_net) as node:
-        images = node.offer("images")
-        consumer = _consumer(node_process, endpoint, queue=2)
-        assert images.wait_for_subscribers(1, 5)
+    with _offered_with_consumer(node_process, endpoint, listen_net, queue=2) as (images, consumer):
         _put(images, 1)
         _put(images, 2)
         took = consumer.call("take", target="cam/images")
@@ -112,10 +127,7 @@ def test_taking_a_notification_frees_one_slot(
 def test_consumer_that_keeps_up_causes_no_refusal(
     node_process: Callable[..., NodeProcess], endpoint: str, listen_net: NetworkConfig
 ) -> None:
-    with Node("cam", listen_net) as node:
-        images = node.offer("images")
-        consumer = _consumer(node_process, endpoint, queue=1)
-        assert images.wait_for_subscribers(1, 5)
+    with _offered_with_consumer(node_process, endpoint, listen_net, queue=1) as (images, consumer):
         for t in range(1, 31):
             # A lossless producer waits for credit; a consumer that keeps up grants it.
             images.put(t, b"x", make_metadata("generic", t), wait_s=5.0)
@@ -127,10 +139,10 @@ def test_consumer_that_keeps_up_causes_no_refusal(
 def test_observer_never_refuses_and_reports_missed(
     node_process: Callable[..., NodeProcess], endpoint: str, listen_net: NetworkConfig
 ) -> None:
-    with Node("cam", listen_net) as node:
-        images = node.offer("images")
-        observer = _consumer(node_process, endpoint, queue=2, mode="observe")
-        assert images.wait_for_subscribers(1, 5)
+    with _offered_with_consumer(node_process, endpoint, listen_net, queue=2, mode="observe") as (
+        images,
+        observer,
+    ):
         for t in range(1, 11):
             _put(images, t)
         assert images.fill() == 0.0  # observers are not load
@@ -158,10 +170,7 @@ def test_observer_never_refuses_and_reports_missed(
 def test_killed_consumer_frees_producer_within_two_seconds(
     node_process: Callable[..., NodeProcess], endpoint: str, listen_net: NetworkConfig
 ) -> None:
-    with Node("cam", listen_net) as node:
-        images = node.offer("images")
-        consumer = _consumer(node_process, endpoint, queue=1)
-        assert images.wait_for_subscribers(1, 5)
+    with _offered_with_consumer(node_process, endpoint, listen_net, queue=1) as (images, consumer):
         _put(images, 1)
         with pytest.raises(FlowControlRefused):
             _put(images, 2)
