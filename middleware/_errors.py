@@ -9,7 +9,7 @@
     ├── DuplicateTimestampError    a put's timestamp is not newer than the newest element
     ├── PayloadTooLargeError       a payload exceeds the buffer's configured limit
     ├── CoverageError              gyro samples do not cover a frame's exposure
-    ├── CalibrationError           (services.quality) recorded data cannot determine b0/offset
+    ├── CalibrationError           (services.lib.quality) recorded data cannot determine b0/offset
     └── TransportError             Zenoh failed underneath us (every zenoh.ZError maps here)
 
 Messages name the bad value and say what to do.

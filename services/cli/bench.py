@@ -12,7 +12,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from services.bench import SCENARIO_NAMES, BenchError, BenchOptions, format_table, run_bench
+from services.tools.bench import SCENARIO_NAMES, BenchError, BenchOptions, format_table, run_bench
 
 from ._common import command_parser
 

@@ -24,7 +24,7 @@ def register(subparsers: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from services.calibrate import calibrate_b0
+    from services.lib.calibrate import calibrate_b0
 
     result = calibrate_b0(Path(args.dataset), progress=not args.no_progress)
     if args.json:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from services.demo import DemoConfig, print_summary, run_demo
+from services.tools.demo import DemoConfig, print_summary, run_demo
 
 from ._common import command_parser, exit_on_sigterm, network, print_json
 

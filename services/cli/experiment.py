@@ -14,11 +14,11 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from services.quality import DEFAULT_B0_PX
+from services.lib.quality import DEFAULT_B0_PX
 
 from ._common import exit_on_sigterm
 
-# services.experiment is imported when the command runs, not here: it pulls in scipy and
+# services.tools.experiment is imported when the command runs, not here: it pulls in scipy and
 # matplotlib (seconds on a busy machine), and every framegate command, including each
 # service process, builds the parser that registers this module.
 
@@ -65,7 +65,7 @@ def register(subparsers: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run the experiment and print the table (or the results as JSON)."""
-    from services.experiment import OUTPUT_FILES, ExperimentConfig, run_experiment
+    from services.tools.experiment import OUTPUT_FILES, ExperimentConfig, run_experiment
 
     # SIGTERM unwinds like Ctrl-C, so every service process of the current run is stopped.
     exit_on_sigterm()

@@ -8,7 +8,7 @@ from dataclasses import asdict
 from typing import Any
 
 from middleware import Node, ServiceInfo
-from services.clock import CLOCK_WARN_NS, ClockEstimate, clock_warning, estimate_clocks
+from services.lib.clock import CLOCK_WARN_NS, ClockEstimate, clock_warning, estimate_clocks
 
 from ._common import command_parser, format_bytes, format_ns, network, print_json
 

@@ -30,7 +30,7 @@ from ._common import command_parser, exit_on_sigterm, network
 from ._target import print_json_line
 
 if TYPE_CHECKING:
-    from services.bag import Bag, RecordedBuffer
+    from services.tools.bag import Bag, RecordedBuffer
 
 # How long one put waits for a flow-controlled subscriber before trying again (so Ctrl-C
 # is honoured); each retry shows up once in the buffer's `refused` counter.
@@ -164,7 +164,7 @@ def _put(producer: Producer, element: DataObject) -> None:
 
 def _play(bag: Bag, played: list[_Played], rate: float, args: argparse.Namespace) -> int:
     """Put every element (forever with --loop); return how many were put."""
-    from services.bag import shift_element
+    from services.tools.bag import shift_element
 
     by_channel = {p.recorded.channel_id: p for p in played}
     count = 0
@@ -209,7 +209,7 @@ def _sleep_until(due: float) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from services.bag import open_bag  # imported here: only record and play need MCAP
+    from services.tools.bag import open_bag  # imported here: only record and play need MCAP
 
     rate = 0.0 if args.fast else args.rate
     if rate < 0:

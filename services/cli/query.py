@@ -185,7 +185,7 @@ def _print_table(elements: list[DataObject]) -> None:
 
 def _save_all(directory: Path, elements: list[DataObject]) -> dict[int, list[str]]:
     """Write each element as <timestamp_ns>.png|.bin plus <timestamp_ns>.xml."""
-    from services.bag import frame_layout  # imported here: only --save needs it
+    from services.tools.bag import frame_layout  # imported here: only --save needs it
 
     try:
         directory.mkdir(parents=True, exist_ok=True)

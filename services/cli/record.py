@@ -37,7 +37,7 @@ from ._common import command_parser, exit_on_sigterm, format_bytes, network, pri
 from ._target import add_timeout_argument, resolve
 
 if TYPE_CHECKING:
-    from services.bag import BagWriter
+    from services.tools.bag import BagWriter
 
 DEFAULT_QUEUE = 64
 # After this long without a notification, check the buffer for elements we never heard of.
@@ -243,7 +243,7 @@ def _check(args: argparse.Namespace) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from services.bag import BagWriter  # imported here: only record and play need MCAP
+    from services.tools.bag import BagWriter  # imported here: only record and play need MCAP
 
     _check(args)
     exit_on_sigterm()

@@ -10,10 +10,10 @@ from ._common import command_parser, exit_on_sigterm, network
 
 # Service type -> module with add_arguments, config_from_args and run(config, network).
 SERVICES = {
-    "camera": "services.camera",
-    "gyro": "services.gyro",
-    "mediator": "services.mediator",
-    "detector": "services.detector",
+    "camera": "services.nodes.camera",
+    "gyro": "services.nodes.gyro",
+    "mediator": "services.nodes.mediator",
+    "detector": "services.nodes.detector",
 }
 
 

@@ -11,7 +11,7 @@ from typing import Any
 from tqdm import tqdm
 
 from middleware import ConfigError
-from services.sim import (
+from services.lib.sim import (
     ScenarioConfig,
     read_dataset,
     recognition_report,
@@ -26,7 +26,7 @@ def register(subparsers: Any) -> None:
         "simulate",
         help="render the bumpy-approach scenario (frames, gyro, truth) into a dataset",
         description="Render the paper's marker-approach scenario: motion-blurred mono8 frames, "
-        "the gyro stream and per-frame ground truth, in the layout of services/sim/DATASET.md. "
+        "the gyro stream and per-frame ground truth, in the layout of services/lib/sim/DATASET.md. "
         "Parameters: defaults, then --config, then --set, then the named flags.",
     )
     parser.add_argument("--out", type=Path, required=True, help="dataset directory to write")

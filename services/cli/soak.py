@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from services.soak import SoakConfig, run_soak
+from services.tools.soak import SoakConfig, run_soak
 
 from ._common import command_parser, exit_on_sigterm
 

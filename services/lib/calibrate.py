@@ -3,7 +3,7 @@
 For every frame of a dataset: the gyro-estimated blur at the image centre (the mediator's
 own estimate) and whether the target was recognized (the detector's own ArUco detection).
 b0 is the blur at which recognition halves relative to sharp frames
-(``services.quality.derive_b0``). With ground truth (simulated datasets) each marker that
+(``services.lib.quality.derive_b0``). With ground truth (simulated datasets) each marker that
 was recognizable in a blur-free render counts as one trial; without it, a frame counts as
 recognized when any marker is detected.
 """
@@ -17,8 +17,8 @@ import numpy as np
 from tqdm import tqdm
 
 from middleware import CoverageError
-from services.markers import detect_markers
-from services.quality import (
+from services.lib.markers import detect_markers
+from services.lib.quality import (
     CalibrationError,
     Exposure,
     GyroSamples,
@@ -40,7 +40,7 @@ class Calibration:
 
 def calibrate_b0(dataset_dir: Path, *, progress: bool = True) -> Calibration:
     """Estimate blur and detect markers on every frame of ``dataset_dir``; derive b0."""
-    from services.sim import read_dataset
+    from services.lib.sim import read_dataset
 
     dataset = read_dataset(dataset_dir)
     gyro = GyroSamples(dataset.gyro.t_ns, dataset.gyro.rate_rad_s)

@@ -14,8 +14,8 @@ import numpy as np
 import numpy.typing as npt
 
 from middleware import SchemaError, field_text, make_metadata, validate_metadata
-from services.camera_model import CameraModel
-from services.quality import Exposure, GyroSamples
+from services.lib.camera_model import CameraModel
+from services.lib.quality import Exposure, GyroSamples
 
 # Bytes per pixel of the raw encodings frame.xsd allows.
 FRAME_CHANNELS = {"mono8": 1, "bgr8": 3, "rgb8": 3}

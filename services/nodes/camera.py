@@ -4,7 +4,7 @@ Buffering rule (the paper's): when flow control refuses a frame, the camera drop
 source and counts it ("prevented from generating new data"); the producer's ``refused``
 counter is that count. ``--lossless`` waits for credit instead (the experiment's `all` run).
 
-Sources (services/sources.py): ``sim`` renders live from the simulator, ``replay DIR``
+Sources (services/nodes/sources.py): ``sim`` renders live from the simulator, ``replay DIR``
 plays a dataset at real-time pace (``--rate``) with timestamps rebased onto the wall clock,
 ``device N|URL`` reads a cv2.VideoCapture.
 """
@@ -17,10 +17,10 @@ import time
 from dataclasses import dataclass
 
 from middleware import FlowControlRefused, FramegateError, NetworkConfig, Node, Retention
-from services._runtime import serve_until_stopped, setup_logging, sleep_until_ns, start_at_ns
-from services.messages import frame_metadata
-from services.quality import Exposure
-from services.sources import SourceSpec, open_frame_source
+from services.lib.messages import frame_metadata
+from services.lib.quality import Exposure
+from services.nodes._runtime import serve_until_stopped, setup_logging, sleep_until_ns, start_at_ns
+from services.nodes.sources import SourceSpec, open_frame_source
 
 
 @dataclass(frozen=True, slots=True)
@@ -104,7 +104,7 @@ def run(config: CameraConfig, network: NetworkConfig, stop: threading.Event | No
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The camera's flags (``framegate run camera --help``)."""
-    from services.sources import add_source_arguments
+    from services.nodes.sources import add_source_arguments
 
     parser.add_argument("--name", default="camera", help="service name (default %(default)s)")
     add_source_arguments(parser, device=True)
@@ -119,7 +119,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def config_from_args(args: argparse.Namespace) -> CameraConfig:
-    from services.sources import source_from_args
+    from services.nodes.sources import source_from_args
 
     return CameraConfig(
         source=source_from_args(args),

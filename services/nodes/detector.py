@@ -15,9 +15,9 @@ import time
 from dataclasses import dataclass
 
 from middleware import PUSH_ALL, FramegateError, NetworkConfig, Node, Retention
-from services._runtime import setup_logging
-from services.markers import detect_markers
-from services.messages import decode_image, detections_metadata, read_frame_metadata
+from services.lib.markers import detect_markers
+from services.lib.messages import decode_image, detections_metadata, read_frame_metadata
+from services.nodes._runtime import setup_logging
 
 
 @dataclass(frozen=True, slots=True)

@@ -17,10 +17,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from middleware import FlowControlRefused, FramegateError, NetworkConfig, Node, Retention
-from services._runtime import serve_until_stopped, setup_logging, sleep_until_ns, start_at_ns
-from services.messages import gyro_metadata
-from services.quality import GyroSamples
-from services.sources import SourceSpec, open_gyro_source
+from services.lib.messages import gyro_metadata
+from services.lib.quality import GyroSamples
+from services.nodes._runtime import serve_until_stopped, setup_logging, sleep_until_ns, start_at_ns
+from services.nodes.sources import SourceSpec, open_gyro_source
 
 # Batches older than this when their time comes are skipped, not sent.
 _STALE_NS = 500_000_000
@@ -84,7 +84,7 @@ def run(config: GyroConfig, network: NetworkConfig, stop: threading.Event | None
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The gyro's flags (``framegate run gyro --help``)."""
-    from services.sources import add_source_arguments
+    from services.nodes.sources import add_source_arguments
 
     parser.add_argument("--name", default="gyro", help="service name (default %(default)s)")
     add_source_arguments(parser, device=False)
@@ -98,7 +98,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def config_from_args(args: argparse.Namespace) -> GyroConfig:
-    from services.sources import source_from_args
+    from services.nodes.sources import source_from_args
 
     return GyroConfig(
         source=source_from_args(args), name=args.name, batch=args.batch, wait_ms=args.wait_ms

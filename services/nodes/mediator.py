@@ -37,10 +37,9 @@ from middleware import (
     Retention,
     Subscription,
 )
-from services._runtime import Monotonic, setup_logging
-from services.camera_model import CameraModel
-from services.messages import DecisionRecord, FrameMeta, read_frame_metadata
-from services.quality import (
+from services.lib.camera_model import CameraModel
+from services.lib.messages import DecisionRecord, FrameMeta, read_frame_metadata
+from services.lib.quality import (
     DEFAULT_B0_PX,
     BlurMode,
     BlurOptions,
@@ -49,6 +48,7 @@ from services.quality import (
     estimate_blur,
     quality,
 )
+from services.nodes._runtime import Monotonic, setup_logging
 
 
 class Policy(enum.Enum):

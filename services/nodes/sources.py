@@ -20,7 +20,7 @@ import numpy as np
 import numpy.typing as npt
 
 from middleware import ConfigError
-from services.camera_model import CameraModel
+from services.lib.camera_model import CameraModel
 
 
 @dataclass(frozen=True, slots=True)
@@ -90,14 +90,14 @@ class FrameSource(_Timeline):
 
     def __init__(self, spec: SourceSpec) -> None:
         if spec.kind == "sim":
-            from services.sim import Scenario, ScenarioConfig
+            from services.lib.sim import Scenario, ScenarioConfig
 
             self._scenario: Any = Scenario(ScenarioConfig(seed=spec.seed))
             self.camera: CameraModel = self._scenario.camera
             infos = [self._scenario.frame_info(i) for i in range(self._scenario.frame_count)]
             self.description = f"simulated approach, seed {spec.seed}"
         else:
-            from services.sim import read_dataset
+            from services.lib.sim import read_dataset
 
             self._scenario = read_dataset(Path(str(spec.path)))
             self.camera = self._scenario.camera
@@ -142,7 +142,7 @@ class GyroSource(_Timeline):
 
     def __init__(self, spec: SourceSpec) -> None:
         if spec.kind == "sim":
-            from services.sim import Scenario, ScenarioConfig
+            from services.lib.sim import Scenario, ScenarioConfig
 
             scenario: Any = Scenario(ScenarioConfig(seed=spec.seed))
             trace = scenario.gyro_samples()
@@ -150,7 +150,7 @@ class GyroSource(_Timeline):
             first_frame_ns = scenario.frame_info(0).exposure_start_ns
             self.description = f"simulated gyro, seed {spec.seed}"
         elif spec.kind == "replay":
-            from services.sim import read_dataset
+            from services.lib.sim import read_dataset
 
             dataset: Any = read_dataset(Path(str(spec.path)))
             trace = dataset.gyro

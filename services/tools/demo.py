@@ -16,8 +16,8 @@ from typing import Any
 
 from middleware import BufferInfo, FramegateError, NetworkConfig, Node
 from services.launch import Deployment, HostSpec, ServiceSpec, Supervisor, process_specs
-from services.markers import BOARD_MARKERS
-from services.messages import read_detections
+from services.lib.markers import BOARD_MARKERS
+from services.lib.messages import read_detections
 
 
 @dataclass(frozen=True, slots=True)

@@ -41,7 +41,7 @@ import psutil
 
 from middleware import BufferInfo, FramegateError, NetworkConfig, Node
 from services.launch import Deployment, HostSpec, ServiceSpec, Supervisor, process_specs
-from services.messages import DecisionRecord
+from services.lib.messages import DecisionRecord
 
 MIB = 2**20
 _CAMERA_LOG = re.compile(r"camera: (\d+) frames stored, (\d+) dropped .*, (\d+) skipped late")
@@ -57,7 +57,7 @@ _STAGES = (
     ("mediator", "camera/images", "mediator/decisions"),
     ("detector", "mediator/images", "detector/detections"),
 )
-# gyro/rates keeps 30 s of batches (services/gyro.py).
+# gyro/rates keeps 30 s of batches (services/nodes/gyro.py).
 _GYRO_RETENTION_S = 30.0
 _PIPELINE = frozenset(
     ["camera/images", "gyro/rates", "mediator/images", "mediator/decisions", "detector/detections"]

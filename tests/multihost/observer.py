@@ -6,7 +6,7 @@
 Each line: ``{"t_ns": <our wall clock>, "services": {NAME: null | {"pid", "offset_ns",
 "round_trip_ns", "buffers": {BUFFER: {"puts", "refused", "subscriptions",
 "queued" (the fullest subscription's)}}}}}``; with ``--clock``
-the first line is ``{"clock": [ClockEstimate as a dict, ...]}`` from ``services.clock``.
+the first line is ``{"clock": [ClockEstimate as a dict, ...]}`` from ``services.lib.clock``.
 An unreachable service is ``null`` (asked with a short timeout, so polls stay frequent).
 """
 
@@ -30,7 +30,7 @@ from middleware import (
     add_network_arguments,
     network_from_args,
 )
-from services.clock import estimate_clocks
+from services.lib.clock import estimate_clocks
 
 
 def _describe(info: ServiceInfo) -> dict[str, Any]:

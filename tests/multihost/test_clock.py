@@ -1,4 +1,4 @@
-"""services.clock: NTP-style offsets from @info round trips, with a fake network and clock."""
+"""services.lib.clock: NTP-style offsets from @info round trips, with a fake network and clock."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from middleware import NotFoundError, ServiceInfo
-from services.clock import (
+from services.lib.clock import (
     CLOCK_WARN_NS,
     ClockEstimate,
     ClockSample,

@@ -23,8 +23,8 @@ from typing import Any
 
 import pytest
 
-from services.clock import CLOCK_WARN_NS
 from services.launch import load_deployment
+from services.lib.clock import CLOCK_WARN_NS
 from tests.conftest import REPO, wait_until
 from tests.multihost.netns import Host, Lab
 
@@ -40,7 +40,7 @@ RESUME_S = 20.0
 SKEW_MS = 40.0
 RESUMED_FRAMES = 10
 RESUMED_DETECTIONS = 3
-MEDIATOR_QUEUE = 8  # the mediator's queue on camera/images (services/mediator.py)
+MEDIATOR_QUEUE = 8  # the mediator's queue on camera/images (services/nodes/mediator.py)
 STALE_SEQUENCE = (
     "the mediator is live, yet its subscription on camera/images stays full and the camera "
     "stores nothing: the re-registered subscription's notifications are taken for stale "

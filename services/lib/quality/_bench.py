@@ -1,4 +1,4 @@
-"""Timing the blur estimate per frame, for ``python -m services.quality.bench``."""
+"""Timing the blur estimate per frame, for ``python -m services.lib.quality.bench``."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import time
 
 import numpy as np
 
-from services.camera_model import CameraModel
+from services.lib.camera_model import CameraModel
 
 from ._blur import BlurMode, BlurOptions, Roi, estimate_blur
 from ._exposure import Exposure

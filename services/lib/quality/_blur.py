@@ -17,7 +17,7 @@ from functools import lru_cache
 import numpy as np
 import numpy.typing as npt
 
-from services.camera_model import CameraModel
+from services.lib.camera_model import CameraModel
 
 from ._coverage import covering
 from ._exposure import Exposure

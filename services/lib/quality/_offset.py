@@ -17,7 +17,7 @@ import numpy as np
 import numpy.typing as npt
 
 from middleware import CoverageError
-from services.camera_model import CameraModel
+from services.lib.camera_model import CameraModel
 
 from ._blur import DEFAULT_OPTIONS, BlurOptions, estimate_blur
 from ._calibrate import CalibrationError

@@ -1,4 +1,4 @@
-"""``python -m services.quality.bench``: microseconds per frame of each blur mode."""
+"""``python -m services.lib.quality.bench``: microseconds per frame of each blur mode."""
 
 from __future__ import annotations
 
@@ -12,7 +12,9 @@ from ._bench import bench_quality
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Print the timing of every blur mode; ``--json`` for machines."""
-    parser = argparse.ArgumentParser(prog="python -m services.quality.bench", description=__doc__)
+    parser = argparse.ArgumentParser(
+        prog="python -m services.lib.quality.bench", description=__doc__
+    )
     parser.add_argument("--frames", type=int, default=500, help="frames per mode (500)")
     parser.add_argument("--exposure-ms", type=float, default=60.0, help="exposure (60 ms)")
     parser.add_argument("--gyro-hz", type=float, default=500.0, help="gyro rate (500 Hz)")

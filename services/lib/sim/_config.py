@@ -10,7 +10,7 @@ from typing import Any, Literal
 import numpy as np
 
 from middleware import ConfigError
-from services.camera_model import CameraModel
+from services.lib.camera_model import CameraModel
 
 Track = Literal["left", "right", "both"]
 _TRACKS = ("left", "right", "both")

@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 
 from middleware import FramegateError, SchemaError
-from services.camera_model import CameraModel
+from services.lib.camera_model import CameraModel
 
 from ._config import ScenarioConfig
 from ._records import FrameInfo, FrameTruth, GyroTrace

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from middleware import FramegateError
-from services.markers import BOARD_MARKERS, MarkerDetection, detect_markers
+from services.lib.markers import BOARD_MARKERS, MarkerDetection, detect_markers
 
 from ._dataset import Dataset
 from ._records import FrameTruth

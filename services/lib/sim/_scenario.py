@@ -10,8 +10,8 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from services.camera_model import CameraModel
-from services.markers import BOARD_MARKERS, detect_markers
+from services.lib.camera_model import CameraModel
+from services.lib.markers import BOARD_MARKERS, detect_markers
 
 from ._config import Bump, ScenarioConfig
 from ._motion import Motion, gyro_trace

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from services.markers import (
+from services.lib.markers import (
     BOARD_HEIGHT_M,
     BOARD_MARKERS,
     BOARD_REFLECTANCE,

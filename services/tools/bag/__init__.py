@@ -1,6 +1,6 @@
 """Recording framegate buffers to MCAP and reading them back (``record`` / ``play``).
 
-The file layout is described in ``services.bag._format``: one lossless ``framegate.Element``
+The file layout is described in ``services.tools.bag._format``: one lossless ``framegate.Element``
 channel per buffer (msgpack of timestamp, payload and metadata XML, with the buffer's kind
 and retention in the channel metadata) and, for raw camera frames, a ``foxglove.RawImage``
 channel that Foxglove shows as images.

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from middleware import FramegateError, field_text, parse_untrusted
-from services.messages import FRAME_CHANNELS as CHANNELS
+from services.lib.messages import FRAME_CHANNELS as CHANNELS
 
 
 @dataclass(frozen=True, slots=True)

@@ -1,9 +1,9 @@
-"""``quality``: microseconds per frame of the blur estimate (``services.quality``).
+"""``quality``: microseconds per frame of the blur estimate (``services.lib.quality``).
 
 There is no raw counterpart: the goal is on the centre estimate itself. ``bench_quality``
 times wall clock, so each sample also records ``cpu_share``, the fraction of that wall time
 this thread was on a CPU: well below 1 means the machine was busy and the figure is high.
-The scenario is skipped, not failed, when ``services.quality.bench_quality`` cannot be
+The scenario is skipped, not failed, when ``services.lib.quality.bench_quality`` cannot be
 imported.
 """
 
@@ -26,7 +26,7 @@ _CENTRE_KEYS = ("center", "centre")
 
 def _load() -> Callable[..., dict[str, float]] | None:
     try:
-        module = importlib.import_module("services.quality")
+        module = importlib.import_module("services.lib.quality")
     except ImportError:
         return None
     found = getattr(module, "bench_quality", None)
@@ -36,7 +36,9 @@ def _load() -> Callable[..., dict[str, float]] | None:
 def run_quality(options: BenchOptions) -> ScenarioResult:
     bench_quality = _load()
     if bench_quality is None:
-        return ScenarioResult("quality", status="skipped", reason="services.quality not available")
+        return ScenarioResult(
+            "quality", status="skipped", reason="services.lib.quality not available"
+        )
     frames = QUICK_FRAMES if options.quick else FULL_FRAMES
     kwargs: dict[str, Any] = {}
     if "frames" in inspect.signature(bench_quality).parameters:

@@ -1,4 +1,4 @@
-"""Entry point of a benchmark worker process: ``python -m services.bench._worker ROLE PARAMS``.
+"""A benchmark worker process: ``python -m services.tools.bench._worker ROLE PARAMS``.
 
 A worker opens its own Zenoh session (raw or through ``middleware``), prints one JSON line
 ``{"ready": true, ...}`` and then answers JSON-line commands from stdin, one JSON line each,
@@ -135,7 +135,7 @@ def _roles() -> dict[str, Callable[[dict[str, Any]], None]]:
 
 def main(argv: list[str]) -> int:
     if len(argv) != 2:
-        print("usage: python -m services.bench._worker ROLE PARAMS_JSON", file=sys.stderr)
+        print("usage: python -m services.tools.bench._worker ROLE PARAMS_JSON", file=sys.stderr)
         return 2
 
     def on_sigterm(_signum: int, _frame: FrameType | None) -> None:

@@ -8,8 +8,8 @@ from pathlib import Path
 from typing import Any
 
 from middleware import ConfigError, FramegateError
-from services.markers import BOARD_MARKERS
-from services.quality import DEFAULT_B0_PX
+from services.lib.markers import BOARD_MARKERS
+from services.lib.quality import DEFAULT_B0_PX
 
 MARKER_NAMES: tuple[str, ...] = tuple(m.name for m in BOARD_MARKERS)
 

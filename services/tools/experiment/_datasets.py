@@ -7,7 +7,7 @@ import json
 import shutil
 from pathlib import Path
 
-from services.sim import Dataset, DatasetError, ScenarioConfig, read_dataset, simulate
+from services.lib.sim import Dataset, DatasetError, ScenarioConfig, read_dataset, simulate
 
 from ._config import ExperimentError
 

@@ -11,7 +11,7 @@ from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
 
-from services.sim import Dataset
+from services.lib.sim import Dataset
 
 from ._config import MARKER_NAMES, PAPER_TABLE1, ExperimentConfig, RunKind
 from ._datasets import cached_dataset, scenario_for

@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
-from services.sim import FrameTruth
+from services.lib.sim import FrameTruth
 
 from ._config import MARKER_NAMES
 from ._records import FrameDetections, RunRecord

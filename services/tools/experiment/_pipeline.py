@@ -27,8 +27,8 @@ from services.launch import (
     Supervisor,
     process_specs,
 )
-from services.messages import DecisionRecord
-from services.sim import Dataset
+from services.lib.messages import DecisionRecord
+from services.lib.sim import Dataset
 
 from ._config import ExperimentError, RunKind
 from ._records import FrameDetections, RunRecord

@@ -14,8 +14,8 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.patches import Patch
 
-from services.messages import DecisionRecord
-from services.sim import Dataset
+from services.lib.messages import DecisionRecord
+from services.lib.sim import Dataset
 
 _ACCEPTED = "#2ca02c"
 _REJECTED = "#d62728"

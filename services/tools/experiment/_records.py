@@ -6,7 +6,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from middleware import field_text, validate_metadata
-from services.messages import DecisionRecord
+from services.lib.messages import DecisionRecord
 
 from ._config import RunKind
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from services.sim import Bump, ScenarioConfig, simulate
+from services.lib.sim import Bump, ScenarioConfig, simulate
 from tests.conftest import REPO, child_env
 
 

@@ -13,8 +13,9 @@ import pytest
 from mcap.reader import make_reader
 
 from middleware import DataObject, NetworkConfig, Node, Retention, make_metadata
-from services.bag import BagWriter
-from tests.cli.conftest import (
+from services.tools.bag import BagWriter
+from tests.conftest import free_port, wait_until
+from tests.services.cli.conftest import (
     HEIGHT,
     MS,
     TIMEOUT_S,
@@ -25,7 +26,6 @@ from tests.cli.conftest import (
     frame_payload,
     put_frame,
 )
-from tests.conftest import free_port, wait_until
 
 pytestmark = pytest.mark.integration
 

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from middleware import NetworkConfig, Node, Retention, make_metadata
-from tests.cli.conftest import TIMEOUT_S, Cli
+from tests.services.cli.conftest import TIMEOUT_S, Cli
 
 pytestmark = pytest.mark.integration
 

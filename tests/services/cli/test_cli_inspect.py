@@ -21,8 +21,16 @@ from middleware import (
     SubscriptionMode,
     make_metadata,
 )
-from tests.cli.conftest import HEIGHT, MS, WIDTH, Cli, frame_metadata, frame_payload, put_frame
 from tests.conftest import free_port
+from tests.services.cli.conftest import (
+    HEIGHT,
+    MS,
+    WIDTH,
+    Cli,
+    frame_metadata,
+    frame_payload,
+    put_frame,
+)
 
 pytestmark = pytest.mark.integration
 

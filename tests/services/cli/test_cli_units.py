@@ -9,10 +9,10 @@ import pytest
 from mcap.reader import make_reader
 
 from middleware import DataObject, QueryError, Retention, make_metadata, validate_metadata
-from services.bag import BagError, BagWriter, frame_layout, open_bag, shift_element
 from services.cli import query
 from services.cli.hz import Sample, window_stats
-from tests.cli.conftest import HEIGHT, MS, WIDTH, frame_metadata, frame_payload
+from services.tools.bag import BagError, BagWriter, frame_layout, open_bag, shift_element
+from tests.services.cli.conftest import HEIGHT, MS, WIDTH, frame_metadata, frame_payload
 
 SECOND = 1_000_000_000
 

@@ -12,7 +12,7 @@ import pytest
 
 from middleware import DataObject, FramegateError
 from tests.conftest import wait_until
-from tests.services.pipeline import Pipeline
+from tests.services.nodes.pipeline import Pipeline
 
 pytestmark = pytest.mark.integration
 

@@ -7,9 +7,9 @@ from pathlib import Path
 
 import pytest
 
-from services.messages import DecisionRecord
+from services.lib.messages import DecisionRecord
 from tests.conftest import wait_until
-from tests.services.pipeline import Pipeline
+from tests.services.nodes.pipeline import Pipeline
 
 pytestmark = pytest.mark.integration
 

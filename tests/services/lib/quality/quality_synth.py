@@ -7,8 +7,8 @@ from collections.abc import Callable
 import numpy as np
 import numpy.typing as npt
 
-from services.camera_model import CameraModel
-from services.quality import GyroSamples
+from services.lib.camera_model import CameraModel
+from services.lib.quality import GyroSamples
 
 PERIOD_NS = 2_000_000  # 500 Hz
 

@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from services.quality import DEFAULT_B0_PX, Decision, accept, decide, quality, queue_load
+from services.lib.quality import DEFAULT_B0_PX, Decision, accept, decide, quality, queue_load
 
 
 def test_quality_is_exp_of_minus_blur_over_b0() -> None:

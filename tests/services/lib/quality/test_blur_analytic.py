@@ -6,9 +6,15 @@ import math
 
 import numpy as np
 import pytest
-from quality_synth import camera, constant, reference_blur, sampled, shaky
 
-from services.quality import BlurMode, BlurOptions, Exposure, estimate_blur
+from services.lib.quality import BlurMode, BlurOptions, Exposure, estimate_blur
+from tests.services.lib.quality.quality_synth import (
+    camera,
+    constant,
+    reference_blur,
+    sampled,
+    shaky,
+)
 
 T_NS = 60_000_000
 T_S = T_NS * 1e-9

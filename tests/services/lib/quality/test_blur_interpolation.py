@@ -6,9 +6,9 @@ import math
 
 import numpy as np
 import pytest
-from quality_synth import camera, constant, sampled
 
-from services.quality import Exposure, estimate_blur
+from services.lib.quality import Exposure, estimate_blur
+from tests.services.lib.quality.quality_synth import camera, constant, sampled
 
 
 def _yaw_step(t: np.ndarray) -> np.ndarray:
@@ -37,7 +37,7 @@ def test_an_exposure_inside_one_sample_interval_uses_the_interpolated_rates() ->
 
 def test_a_ramp_inside_one_sample_interval_is_integrated_exactly() -> None:
     # Two samples: 0 rad/s at 0 ms and 4 rad/s at 2 ms; the exposure is [0.5, 1.5] ms.
-    from services.quality import GyroSamples
+    from services.lib.quality import GyroSamples
 
     gyro = GyroSamples(
         np.array([0, 2_000_000]), np.array([[0.0, 0.0, 0.0], [0.0, 4.0, 0.0]]), 2_000_000

@@ -6,9 +6,9 @@ import math
 
 import numpy as np
 import pytest
-from quality_synth import camera, constant, sampled, shaky
 
-from services.quality import BlurMode, BlurOptions, Exposure, Roi, estimate_blur
+from services.lib.quality import BlurMode, BlurOptions, Exposure, Roi, estimate_blur
+from tests.services.lib.quality.quality_synth import camera, constant, sampled, shaky
 
 EXPOSURE = Exposure(100_000_000, 40_000_000)
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.quality import CalibrationError, derive_b0
+from services.lib.quality import CalibrationError, derive_b0
 
 
 def _frames(count: int, halving_px: float, seed: int) -> tuple[np.ndarray, np.ndarray]:

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from quality_synth import camera, constant
 
 from middleware import CoverageError
-from services.quality import BlurMode, BlurOptions, Exposure, GyroSamples, estimate_blur
+from services.lib.quality import BlurMode, BlurOptions, Exposure, GyroSamples, estimate_blur
+from tests.services.lib.quality.quality_synth import camera, constant
 
 EXPOSURE = Exposure(100_000_000, 60_000_000)
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from middleware import SchemaError
-from services.quality import GYRO_DTYPE, GyroSamples
+from services.lib.quality import GYRO_DTYPE, GyroSamples
 
 
 def _batch(start_ns: int, count: int, period_ns: int = 2_000_000) -> GyroSamples:

@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import pytest
-from quality_synth import camera, constant
 
 from middleware import SchemaError, make_metadata
-from services.camera_model import CameraModel
-from services.quality import Exposure, estimate_blur
+from services.lib.camera_model import CameraModel
+from services.lib.quality import Exposure, estimate_blur
+from tests.services.lib.quality.quality_synth import camera, constant
 
 
 def _frame_xml(cam: CameraModel) -> bytes:

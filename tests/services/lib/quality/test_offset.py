@@ -5,9 +5,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
-from quality_synth import camera, sampled, shaky
 
-from services.quality import (
+from services.lib.quality import (
     CalibrationError,
     Exposure,
     GyroSamples,
@@ -16,6 +15,7 @@ from services.quality import (
     laplacian_variance,
     rank_correlation,
 )
+from tests.services.lib.quality.quality_synth import camera, sampled, shaky
 
 
 def test_laplacian_variance_falls_as_an_image_blurs() -> None:

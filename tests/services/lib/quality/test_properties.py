@@ -6,9 +6,9 @@ import math
 
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from quality_synth import camera, constant
 
-from services.quality import BlurMode, BlurOptions, Exposure, accept, estimate_blur, quality
+from services.lib.quality import BlurMode, BlurOptions, Exposure, accept, estimate_blur, quality
+from tests.services.lib.quality.quality_synth import camera, constant
 
 rates = st.tuples(*[st.floats(-6.0, 6.0)] * 3)
 starts = st.integers(20_000_000, 200_000_000)

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import json
 
-import services.quality as quality
-from services.quality import bench, bench_quality
+import services.lib.quality as quality
+from services.lib.quality import bench, bench_quality
 
 
 def test_all_is_complete_and_sorted_like_ruff_sorts_it() -> None:

@@ -7,7 +7,7 @@ from typing import Any
 
 import pytest
 
-from services.sim import ScenarioConfig
+from services.lib.sim import ScenarioConfig
 
 
 @pytest.fixture

@@ -1,16 +1,16 @@
-"""The rendered board is the board ``services.markers`` describes."""
+"""The rendered board is the board ``services.lib.markers`` describes."""
 
 from __future__ import annotations
 
 import numpy as np
 
-import services.sim
-from services.markers import BOARD_MARKERS, detect_markers
-from services.sim import Scenario, ScenarioConfig
+import services.lib.sim
+from services.lib.markers import BOARD_MARKERS, detect_markers
+from services.lib.sim import Scenario, ScenarioConfig
 
 
 def test_front_door_lists_a_sorted_all() -> None:
-    assert services.sim.__all__ == sorted(services.sim.__all__)
+    assert services.lib.sim.__all__ == sorted(services.lib.sim.__all__)
 
 
 def test_markers_decode_where_the_truth_puts_them_when_close() -> None:

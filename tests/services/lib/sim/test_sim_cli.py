@@ -7,9 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-from services.sim import read_dataset
-
-REPO = Path(__file__).resolve().parents[3]
+from services.lib.sim import read_dataset
+from tests.conftest import REPO
 
 
 def _simulate(*args: str) -> subprocess.CompletedProcess[str]:

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from middleware import ConfigError
-from services.sim import Bump, ScenarioConfig
+from services.lib.sim import Bump, ScenarioConfig
 
 
 def test_defaults_follow_the_paper() -> None:

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from middleware import validate_metadata
-from services.sim import (
+from services.lib.sim import (
     DatasetError,
     FrameInfo,
     Scenario,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from services.sim import Bump, Scenario, ScenarioConfig
+from services.lib.sim import Bump, Scenario, ScenarioConfig
 
 NO_BUMPS = ScenarioConfig(bumps=(), frame_count=40)
 

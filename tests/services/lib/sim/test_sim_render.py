@@ -7,7 +7,14 @@ from pathlib import Path
 
 import numpy as np
 
-from services.sim import Bump, Scenario, ScenarioConfig, read_dataset, recognition_report, simulate
+from services.lib.sim import (
+    Bump,
+    Scenario,
+    ScenarioConfig,
+    read_dataset,
+    recognition_report,
+    simulate,
+)
 
 SmallConfig = Callable[..., ScenarioConfig]
 

@@ -16,8 +16,8 @@ from typing import Any
 
 import pytest
 
-from services.bench import SCENARIO_NAMES, SCHEMA
 from services.cli import main
+from services.tools.bench import SCENARIO_NAMES, SCHEMA
 from tests.conftest import REPO, child_env
 
 REPORT_KEYS = {"schema", "created_utc", "elapsed_s", "machine", "options", "scenarios", "goals"}
@@ -41,7 +41,7 @@ GOAL_KEYS = {"scenario", "row", "text", "limit", "comparison", "measured", "pass
 
 def _quality_available() -> bool:
     try:
-        from services.quality import bench_quality  # noqa: F401
+        from services.lib.quality import bench_quality  # noqa: F401
     except ImportError:
         return False
     return True
@@ -81,7 +81,7 @@ def test_quick_run_gives_numbers_for_every_scenario(tmp_path: Path) -> None:
         assert set(scenario) >= SCENARIO_KEYS, name
         if name == "quality" and not _quality_available():
             assert scenario["status"] == "skipped"
-            assert scenario["reason"] == "services.quality not available"
+            assert scenario["reason"] == "services.lib.quality not available"
             continue
         assert scenario["status"] == "ok", (name, scenario["reason"])
         assert scenario["rows"], name

@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from services.bench import (
+from services.tools.bench import (
     SCENARIO_NAMES,
     BenchError,
     BenchOptions,
@@ -19,7 +19,7 @@ from services.bench import (
     ratio,
     summarize,
 )
-from services.bench._records import ratio_goal
+from services.tools.bench._records import ratio_goal
 
 
 def test_median_of_odd_count_is_the_middle_value() -> None:
@@ -109,7 +109,9 @@ def test_table_shows_each_scenario_ratio_goal_and_skips() -> None:
     row = _throughput_row()
     row.goal = ratio_goal(row, 0.9, at_least=True, what="throughput")
     ok = ScenarioResult("small", rows=[row])
-    skipped = ScenarioResult("quality", status="skipped", reason="services.quality not available")
+    skipped = ScenarioResult(
+        "quality", status="skipped", reason="services.lib.quality not available"
+    )
     report = {
         "machine": {"cpu_count": 2, "python": "3.11", "zenoh": "1.10.2", "numpy": "2"},
         "options": {"pairs": 3, "duration_s": 4.0, "quick": False},
@@ -120,7 +122,7 @@ def test_table_shows_each_scenario_ratio_goal_and_skips() -> None:
     assert "100 [80.0..120]" in table
     assert "0.500" in table
     assert "MISS throughput >= 0.9x raw" in table
-    assert "quality: skipped: services.quality not available" in table
+    assert "quality: skipped: services.lib.quality not available" in table
     assert "goals: 0/1 passed" in table
 
 

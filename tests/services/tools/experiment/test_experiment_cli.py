@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from services.experiment import MARKER_NAMES, OUTPUT_FILES
+from services.tools.experiment import MARKER_NAMES, OUTPUT_FILES
 from tests.conftest import REPO, child_env
 
 _PNG = b"\x89PNG\r\n\x1a\n"

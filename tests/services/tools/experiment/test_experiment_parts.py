@@ -8,8 +8,10 @@ import numpy as np
 import pytest
 
 from middleware import ConfigError
-from services.camera_model import CameraModel
-from services.experiment import (
+from services.lib.camera_model import CameraModel
+from services.lib.messages import DecisionRecord, detections_metadata
+from services.lib.sim import Dataset, FrameInfo, FrameTruth, GyroTrace, MarkerTruth
+from services.tools.experiment import (
     ExperimentConfig,
     FrameDetections,
     RunKind,
@@ -20,9 +22,11 @@ from services.experiment import (
     scenario_for,
     scenario_hash,
 )
-from services.experiment._plots import plot_gyro_exposures, plot_quality_vs_blur, plot_timeline
-from services.messages import DecisionRecord, detections_metadata
-from services.sim import Dataset, FrameInfo, FrameTruth, GyroTrace, MarkerTruth
+from services.tools.experiment._plots import (
+    plot_gyro_exposures,
+    plot_quality_vs_blur,
+    plot_timeline,
+)
 
 
 def _marker(name: str, marker_id: int, centre: tuple[float, float]) -> MarkerTruth:

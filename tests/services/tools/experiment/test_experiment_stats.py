@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from services.experiment import (
+from services.tools.experiment import (
     Estimate,
     aggregate_markers,
     correlations,

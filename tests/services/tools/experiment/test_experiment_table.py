@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from services.experiment import aggregate_markers, format_table, seed_markers
+from services.tools.experiment import aggregate_markers, format_table, seed_markers
 
 
 def _seed(seed: int, all_: int, unc: int, filt: int, beyond: int) -> dict[str, Any]:
