@@ -6,6 +6,7 @@ import argparse
 import json
 import signal
 import sys
+import threading
 from datetime import UTC, datetime
 from types import FrameType
 from typing import Any
@@ -36,6 +37,25 @@ def print_json(data: Any) -> None:
     json.dump(data, sys.stdout, indent=2, default=str)
     sys.stdout.write("\n")
     sys.stdout.flush()
+
+
+def stop_on_signals() -> threading.Event:
+    """An event that the first SIGINT or SIGTERM sets; a second one interrupts at once.
+
+    Long-running commands wait on the event (never on a bare sleep), so one Ctrl-C or
+    ``kill`` ends them within a moment and their ``with Node(...)`` blocks close the Zenoh
+    session cleanly. Call from the main thread.
+    """
+    stop = threading.Event()
+
+    def handler(_signum: int, _frame: FrameType | None) -> None:
+        if stop.is_set():
+            raise KeyboardInterrupt
+        stop.set()
+
+    signal.signal(signal.SIGINT, handler)
+    signal.signal(signal.SIGTERM, handler)
+    return stop
 
 
 def exit_on_sigterm() -> None:

@@ -3,37 +3,41 @@
 from __future__ import annotations
 
 import argparse
-import importlib
 from typing import Any
 
-from ._common import command_parser, exit_on_sigterm, network
+from middleware import add_network_arguments
+from services.nodes import SERVICES, describe, service
 
-# Service type -> module with add_arguments, config_from_args and run(config, network).
-SERVICES = {
-    "camera": "services.nodes.camera",
-    "gyro": "services.nodes.gyro",
-    "mediator": "services.nodes.mediator",
-    "detector": "services.nodes.detector",
-}
+from ._common import command_parser, network, stop_on_signals
 
 
 def register(subparsers: Any) -> None:
     parser = command_parser(
         subparsers, "run", "start one service (camera, gyro, mediator, detector)", network=False
     )
-    kinds = parser.add_subparsers(dest="service", metavar="SERVICE", required=True)
-    for kind in SERVICES:
-        module = importlib.import_module(SERVICES[kind])
-        doc = (module.__doc__ or kind).strip().splitlines()[0]
-        sub = command_parser(kinds, kind, doc)
-        module.add_arguments(sub)
-        sub.set_defaults(func=run, module=module)
+    # The service's own flags are parsed in run(): registering them here would import all
+    # four services (OpenCV, SciPy) for every command and slow every restart.
+    parser.add_argument("service", choices=SERVICES, metavar="SERVICE", help=", ".join(SERVICES))
+    parser.add_argument(
+        "args",
+        nargs=argparse.REMAINDER,
+        help="the service's flags (framegate run SERVICE --help)",
+    )
+    parser.set_defaults(func=run)
+
+
+def service_parser(name: str) -> argparse.ArgumentParser:
+    """The parser of ``framegate run NAME``: the network flags plus the service's own."""
+    parser = argparse.ArgumentParser(prog=f"framegate run {name}", description=describe(name))
+    add_network_arguments(parser)
+    service(name).add_arguments(parser)
+    return parser
 
 
 def run(args: argparse.Namespace) -> int:
-    exit_on_sigterm()
-    config = args.module.config_from_args(args)
-    try:
-        return int(args.module.run(config, network(args)))
-    except KeyboardInterrupt:
-        return 0
+    svc = service(args.service)
+    parsed = service_parser(args.service).parse_args(args.args)
+    config = svc.config_from_args(parsed)
+    # One Ctrl-C or SIGTERM sets ``stop``; the service returns and closes its session.
+    stop = stop_on_signals()
+    return svc.run(config, network(parsed), stop)

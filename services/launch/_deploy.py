@@ -20,9 +20,10 @@ from typing import Any
 import yaml
 
 from middleware import ConfigError, NetworkConfig, check_name
+from services.nodes import SERVICES
 
 LOCAL_HOST = "local"
-SERVICE_TYPES = ("camera", "gyro", "mediator", "detector", "router")
+SERVICE_TYPES = (*SERVICES, "router")
 _TOP_KEYS = {"version", "network", "hosts", "services"}
 _HOST_KEYS = {"address", "role", "network"}
 _SERVICE_KEYS = {"type", "host", "restart", "args", "network"}

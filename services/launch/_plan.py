@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import argparse
-import importlib
 import sys
 import time
 from collections.abc import Callable
 from dataclasses import replace
 
 from middleware import ConfigError, NetworkConfig
+from services.nodes import service
 
 from ._deploy import Deployment, ServiceSpec, arg_lines
 from ._supervisor import ProcessSpec
@@ -24,11 +24,8 @@ def _check_args(spec: ServiceSpec, deployment: Deployment, text: str | None) -> 
         if spec.args:
             raise ConfigError(f"{deployment.path}: router {spec.name!r} takes no args")
         return
-    from services.cli.run import SERVICES
-
-    module = importlib.import_module(SERVICES[spec.type])
     parser = argparse.ArgumentParser(prog=spec.name, exit_on_error=False, add_help=False)
-    module.add_arguments(parser)
+    service(spec.type).add_arguments(parser)
     lines = arg_lines(text, spec.name) if text else {}
     try:
         _args, unknown = parser.parse_known_args(list(spec.args))

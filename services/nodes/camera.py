@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from middleware import FlowControlRefused, FramegateError, NetworkConfig, Node, Retention
 from services.lib.messages import frame_metadata
 from services.lib.quality import Exposure
+from services.nodes._contract import Service
 from services.nodes._runtime import serve_until_stopped, setup_logging, sleep_until_ns, start_at_ns
 from services.nodes.sources import SourceSpec, open_frame_source
 
@@ -127,3 +128,16 @@ def config_from_args(args: argparse.Namespace) -> CameraConfig:
         lossless=args.lossless,
         retention_frames=args.retention_frames,
     )
+
+
+class Camera:
+    """The camera as the registry sees it (the contract: services/nodes/_contract.py)."""
+
+    name = "camera"
+    config_type = CameraConfig
+    add_arguments = staticmethod(add_arguments)
+    config_from_args = staticmethod(config_from_args)
+    run = staticmethod(run)
+
+
+SERVICE: Service[CameraConfig] = Camera()
