@@ -26,6 +26,15 @@ def free_port() -> int:
         return int(sock.getsockname()[1])
 
 
+@pytest.fixture(autouse=True)
+def _no_framegate_environment(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A developer's shell (``FRAMEGATE_CONNECT``, ``FRAMEGATE_LOCAL_PORT``...) must not leak
+    into a test or the processes it starts; a test that wants one sets it itself."""
+    for name in list(os.environ):
+        if name.startswith("FRAMEGATE_"):
+            monkeypatch.delenv(name)
+
+
 @pytest.fixture
 def endpoint() -> str:
     """A fresh loopback endpoint for this test (multicast scouting is off by default)."""
