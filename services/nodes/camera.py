@@ -115,6 +115,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="wait for flow-control credit instead of dropping frames",
     )
     parser.add_argument(
+        "--lossless-wait-s",
+        type=float,
+        default=60.0,
+        help="with --lossless: how long one frame waits for credit (default %(default)s)",
+    )
+    parser.add_argument(
         "--retention-frames", type=int, default=64, help="how many frames camera/images keeps"
     )
 
@@ -126,6 +132,7 @@ def config_from_args(args: argparse.Namespace) -> CameraConfig:
         source=source_from_args(args),
         name=args.name,
         lossless=args.lossless,
+        lossless_wait_s=args.lossless_wait_s,
         retention_frames=args.retention_frames,
     )
 

@@ -96,13 +96,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=50.0,
         help="how long a refused batch waits for credit before it is dropped",
     )
+    parser.add_argument(
+        "--retention-s",
+        type=float,
+        default=30.0,
+        help="how many seconds of batches gyro/rates keeps (default %(default)s)",
+    )
 
 
 def config_from_args(args: argparse.Namespace) -> GyroConfig:
     from services.nodes.sources import source_from_args
 
     return GyroConfig(
-        source=source_from_args(args), name=args.name, batch=args.batch, wait_ms=args.wait_ms
+        source=source_from_args(args),
+        name=args.name,
+        batch=args.batch,
+        wait_ms=args.wait_ms,
+        retention_s=args.retention_s,
     )
 
 
