@@ -5,7 +5,6 @@ The mediator calls ``estimate_blur`` for every frame, maps the blur to a quality
 """
 
 from ._accept import DEFAULT_B0_PX, Decision, accept, decide, quality, queue_load
-from ._bench import bench_quality
 from ._blur import BlurEstimate, BlurMode, BlurOptions, Roi, estimate_blur
 from ._calibrate import CalibrationError, derive_b0
 from ._exposure import Exposure
@@ -25,7 +24,6 @@ __all__ = [
     "OffsetEstimate",
     "Roi",
     "accept",
-    "bench_quality",
     "decide",
     "derive_b0",
     "estimate_blur",

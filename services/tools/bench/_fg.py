@@ -27,7 +27,7 @@ from middleware import (
     make_metadata,
 )
 
-from ._worker import Counter, paced, profiled, reply, serve, sleep_until
+from ._serve import Counter, paced, profiled, reply, serve, sleep_until
 
 SERVICE = "bench"
 # Query-scaling elements sit this many ns apart, so a range of k elements is easy to write.

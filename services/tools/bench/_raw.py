@@ -19,7 +19,7 @@ from typing import Any
 import psutil
 import zenoh
 
-from ._worker import Counter, profiled, reply, round_trips, serve
+from ._serve import Counter, profiled, reply, round_trips, serve
 
 KEY = "bench/raw/data"
 ECHO_KEY = "bench/raw/echo"

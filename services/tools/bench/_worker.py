@@ -1,136 +1,24 @@
 """A benchmark worker process: ``python -m services.tools.bench._worker ROLE PARAMS``.
 
-A worker opens its own Zenoh session (raw or through ``middleware``), prints one JSON line
-``{"ready": true, ...}`` and then answers JSON-line commands from stdin, one JSON line each,
-until ``{"op": "exit"}`` or end of input. Every role owns its session through ``with``, so
-the session is always closed (see ZENOH_NOTES: an open session can keep a process alive).
-With ``FRAMEGATE_BENCH_PROFILE=DIR`` in the environment the workers' Python threads are
-profiled (see ``profiled``).
+The process runs one role of ``_raw`` (the baseline) or ``_fg`` (framegate). Every role owns
+its session through ``with``, so the session is always closed (an open Zenoh session can
+keep a process alive); SIGTERM ends the role through KeyboardInterrupt for the same reason.
 """
 
 from __future__ import annotations
 
-import cProfile
 import json
-import os
 import signal
 import sys
-import threading
-import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
-from pathlib import Path
+from collections.abc import Callable
 from types import FrameType
 from typing import Any
 
-PROFILE_ENV = "FRAMEGATE_BENCH_PROFILE"
+from ._fg import ROLES as FG_ROLES
+from ._raw import ROLES as RAW_ROLES
+from ._serve import profiled
 
-Handler = Callable[[dict[str, Any]], dict[str, Any]]
-
-
-@contextmanager
-def profiled(tag: str) -> Iterator[None]:
-    """cProfile the calling thread into ``$FRAMEGATE_BENCH_PROFILE/<tag>-<pid>-<thread>.pstats``.
-
-    Off unless that variable names a directory. cProfile sees Python threads only: time in
-    callbacks that Zenoh runs on its own threads shows up in no profile.
-    """
-    directory = os.environ.get(PROFILE_ENV)
-    if not directory:
-        yield
-        return
-    profiler = cProfile.Profile()
-    profiler.enable()
-    try:
-        yield
-    finally:
-        profiler.disable()
-        name = f"{tag}-{os.getpid()}-{threading.current_thread().name}.pstats"
-        profiler.dump_stats(str(Path(directory) / name))
-
-
-def reply(**fields: Any) -> None:
-    """One JSON line to the parent."""
-    sys.stdout.write(json.dumps(fields) + "\n")
-    sys.stdout.flush()
-
-
-def serve(handlers: dict[str, Handler]) -> None:
-    """Answer commands until ``exit`` or end of input; a failing command answers ``error``."""
-    for line in sys.stdin:
-        if not line.strip():
-            continue
-        command = json.loads(line)
-        op = command.pop("op", None)
-        if op == "exit":
-            reply(ok=True)
-            return
-        handler = handlers.get(str(op))
-        if handler is None:
-            reply(error=f"unknown command {op!r}; this worker knows {sorted(handlers)}")
-            continue
-        try:
-            result = handler(command)
-        except Exception as exc:  # the parent decides; the worker keeps serving
-            reply(error=f"{op}: {type(exc).__name__}: {exc}")
-        else:
-            reply(**result)
-
-
-def paced(seconds: float, interval_s: float) -> list[float]:
-    """Tick times (monotonic seconds) every ``interval_s`` for ``seconds``, starting soon."""
-    start = time.monotonic() + interval_s
-    count = max(1, int(seconds / interval_s))
-    return [start + i * interval_s for i in range(count)]
-
-
-def sleep_until(moment: float) -> None:
-    delay = moment - time.monotonic()
-    if delay > 0:
-        time.sleep(delay)
-
-
-class Counter:
-    """Messages and bytes received so far (written by one thread, read by another)."""
-
-    def __init__(self) -> None:
-        self.count = 0
-        self.bytes = 0
-        self.errors = 0
-
-    def mark(self, _command: dict[str, Any]) -> dict[str, Any]:
-        return {
-            "t_ns": time.monotonic_ns(),
-            "count": self.count,
-            "bytes": self.bytes,
-            "errors": self.errors,
-        }
-
-
-def round_trips(
-    ask: Callable[[], object], seconds: float, interval_s: float, max_count: int
-) -> list[float]:
-    """Microseconds per ``ask()``: paced every ``interval_s``, or back to back when 0."""
-    out: list[float] = []
-    if interval_s > 0:
-        for tick in paced(seconds, interval_s)[:max_count]:
-            sleep_until(tick)
-            start = time.perf_counter_ns()
-            ask()
-            out.append((time.perf_counter_ns() - start) / 1000)
-        return out
-    end = time.monotonic() + seconds
-    while time.monotonic() < end and len(out) < max_count:
-        start = time.perf_counter_ns()
-        ask()
-        out.append((time.perf_counter_ns() - start) / 1000)
-    return out
-
-
-def _roles() -> dict[str, Callable[[dict[str, Any]], None]]:
-    from . import _fg, _raw
-
-    return {**_raw.ROLES, **_fg.ROLES}
+ROLES: dict[str, Callable[[dict[str, Any]], None]] = {**RAW_ROLES, **FG_ROLES}
 
 
 def main(argv: list[str]) -> int:
@@ -142,14 +30,13 @@ def main(argv: list[str]) -> int:
         raise KeyboardInterrupt
 
     signal.signal(signal.SIGTERM, on_sigterm)
-    roles = _roles()
     role, params = argv[0], json.loads(argv[1])
-    if role not in roles:
-        print(f"unknown role {role!r}; known roles: {', '.join(sorted(roles))}", file=sys.stderr)
+    if role not in ROLES:
+        print(f"unknown role {role!r}; known roles: {', '.join(sorted(ROLES))}", file=sys.stderr)
         return 2
     try:
         with profiled(role):
-            roles[role](params)
+            ROLES[role](params)
     except KeyboardInterrupt:
         return 130
     return 0

@@ -39,14 +39,6 @@ SIDE_KEYS = {"samples", "median", "min", "max", "count", "cpu_pct"}
 GOAL_KEYS = {"scenario", "row", "text", "limit", "comparison", "measured", "passed"}
 
 
-def _quality_available() -> bool:
-    try:
-        from services.lib.quality import bench_quality  # noqa: F401
-    except ImportError:
-        return False
-    return True
-
-
 def _number(value: Any) -> bool:
     return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
 
@@ -79,10 +71,6 @@ def test_quick_run_gives_numbers_for_every_scenario(tmp_path: Path) -> None:
     assert list(report["scenarios"]) == list(SCENARIO_NAMES)
     for name, scenario in report["scenarios"].items():
         assert set(scenario) >= SCENARIO_KEYS, name
-        if name == "quality" and not _quality_available():
-            assert scenario["status"] == "skipped"
-            assert scenario["reason"] == "services.lib.quality not available"
-            continue
         assert scenario["status"] == "ok", (name, scenario["reason"])
         assert scenario["rows"], name
         for row in scenario["rows"]:
@@ -107,8 +95,7 @@ def test_quick_run_gives_numbers_for_every_scenario(tmp_path: Path) -> None:
         assert _number(goal["measured"]), goal
         assert isinstance(goal["passed"], bool), goal
     goal_scenarios = {g["scenario"] for g in report["goals"]}
-    expected = set(SCENARIO_NAMES) - ({"quality"} if not _quality_available() else set())
-    assert goal_scenarios == expected
+    assert goal_scenarios == set(SCENARIO_NAMES)
     for name in SCENARIO_NAMES:
         assert name in done.stdout
 
