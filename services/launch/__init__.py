@@ -1,4 +1,5 @@
-"""Deploy files, the processes they mean, and the supervisor that keeps them running."""
+"""Deploy files, the one pipeline definition, the processes they mean, and the supervisor
+that keeps them running."""
 
 from ._deploy import (
     LOCAL_HOST,
@@ -9,12 +10,15 @@ from ._deploy import (
     load_deployment,
     parse_deployment,
 )
+from ._pipeline import PIPELINE, ArgValue, pipeline, pipeline_args, pipeline_yaml
 from ._plan import process_specs
 from ._supervisor import ProcessSpec, Supervisor
 
 __all__ = [
     "LOCAL_HOST",
+    "PIPELINE",
     "SERVICE_TYPES",
+    "ArgValue",
     "Deployment",
     "HostSpec",
     "ProcessSpec",
@@ -22,5 +26,8 @@ __all__ = [
     "Supervisor",
     "load_deployment",
     "parse_deployment",
+    "pipeline",
+    "pipeline_args",
+    "pipeline_yaml",
     "process_specs",
 ]

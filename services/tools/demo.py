@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from middleware import BufferInfo, FramegateError, NetworkConfig, Node
-from services.launch import Deployment, HostSpec, ServiceSpec, Supervisor, process_specs
+from services.launch import Deployment, Supervisor, pipeline, process_specs
 from services.lib.markers import BOARD_MARKERS
 from services.lib.messages import read_detections
 
@@ -34,32 +34,16 @@ class DemoConfig:
 
 
 def demo_deployment(config: DemoConfig) -> Deployment:
-    """The same four services as deploy/local.yaml, with the demo's settings."""
-    seed = str(config.seed)
-    services = (
-        ServiceSpec("camera", "camera", "local", ("--source", "sim", "--seed", seed, "--loop")),
-        ServiceSpec("gyro", "gyro", "local", ("--source", "sim", "--seed", seed, "--loop")),
-        ServiceSpec(
-            "mediator",
-            "mediator",
-            "local",
-            ("--policy", config.policy, "--b0", str(config.b0_px)),
-        ),
-        ServiceSpec(
-            "detector",
-            "detector",
-            "local",
-            (
-                "--input",
-                "mediator/images",
-                "--queue",
-                str(config.queue),
-                "--service-factor",
-                str(config.service_factor),
-            ),
-        ),
+    """The pipeline (deploy/local.yaml) with the demo's settings."""
+    return pipeline(
+        {
+            "camera": {"seed": config.seed},
+            "gyro": {"seed": config.seed},
+            "mediator": {"policy": config.policy, "b0": config.b0_px},
+            "detector": {"queue": config.queue, "service_factor": config.service_factor},
+        },
+        name="demo",
     )
-    return Deployment("demo", {}, {"local": HostSpec("local")}, services)
 
 
 @dataclass

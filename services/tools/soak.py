@@ -40,7 +40,7 @@ from typing import Any
 import psutil
 
 from middleware import BufferInfo, FramegateError, NetworkConfig, Node
-from services.launch import Deployment, HostSpec, ServiceSpec, Supervisor, process_specs
+from services.launch import Deployment, Supervisor, pipeline, process_specs
 from services.lib.messages import DecisionRecord
 
 MIB = 2**20
@@ -87,18 +87,17 @@ class SoakConfig:
 
 
 def soak_deployment(config: SoakConfig) -> Deployment:
-    """The four services of deploy/local.yaml, the detector without emulated load."""
-    source = ("--source", "sim", "--seed", str(config.seed), "--loop", "--rate", str(config.rate))
-    detector = ["--input", "mediator/images", "--queue", "2"]
-    if config.service_factor is not None:
-        detector += ["--service-factor", str(config.service_factor)]
-    services = (
-        ServiceSpec("camera", "camera", "local", source),
-        ServiceSpec("gyro", "gyro", "local", source),
-        ServiceSpec("mediator", "mediator", "local", ("--policy", "paper")),
-        ServiceSpec("detector", "detector", "local", tuple(detector)),
+    """The pipeline (deploy/local.yaml) at the soak's rate, the detector without emulated
+    load unless asked."""
+    source = {"seed": config.seed, "rate": config.rate}
+    return pipeline(
+        {
+            "camera": source,
+            "gyro": source,
+            "detector": {"service_factor": config.service_factor},
+        },
+        name="soak",
     )
-    return Deployment("soak", {}, {"local": HostSpec("local")}, services)
 
 
 # -- memory ------------------------------------------------------------------------------

@@ -20,11 +20,11 @@ from tqdm import tqdm
 
 from middleware import BufferInfo, FramegateError, NetworkConfig, Node
 from services.launch import (
+    ArgValue,
     Deployment,
-    HostSpec,
     ProcessSpec,
-    ServiceSpec,
     Supervisor,
+    pipeline,
     process_specs,
 )
 from services.lib.messages import DecisionRecord
@@ -72,30 +72,33 @@ def _frame_period_ms(dataset: Dataset) -> float:
 
 
 def deployment_for(kind: RunKind, dataset: Dataset, settings: RunSettings) -> Deployment:
-    """The services of one configuration (see RunKind), none restarted on a crash."""
+    """The pipeline (deploy/local.yaml) replaying ``dataset`` in one configuration (see
+    RunKind), no service restarted on a crash."""
     path = str(dataset.root)
     frames = len(dataset)
-    rate = ("--rate", str(_ALL_RATE)) if kind is RunKind.ALL else ()
-    camera = ["--source", "replay", "--path", path, *rate]
-    detector = ["--frame-period-ms", f"{_frame_period_ms(dataset):.6f}"]
+    replay: dict[str, ArgValue] = {"source": "replay", "path": path, "seed": None, "loop": None}
+    camera = dict(replay)
+    detector: dict[str, ArgValue] = {"frame_period_ms": f"{_frame_period_ms(dataset):.6f}"}
     if kind is RunKind.ALL:
         # Every frame, regardless of time: the camera waits instead of dropping, the queue
         # and retention hold the whole approach, and there is no emulated load.
-        camera += ["--lossless", "--retention-frames", str(frames + 8)]
-        detector += ["--input", "camera/images", "--queue", str(frames + 8)]
+        camera |= {"rate": _ALL_RATE, "lossless": True, "retention_frames": frames + 8}
+        detector |= {"input": "camera/images", "queue": frames + 8, "service_factor": None}
     else:
         source = "camera/images" if kind is RunKind.UNCONTROLLED else "mediator/images"
-        detector += ["--input", source, "--queue", str(settings.queue)]
-        detector += ["--service-factor", str(settings.service_factor)]
-    services = [
-        ServiceSpec("camera", "camera", "local", tuple(camera), restart=False),
-        ServiceSpec("gyro", "gyro", "local", ("--source", "replay", "--path", path), restart=False),
-    ]
+        detector |= {
+            "input": source,
+            "queue": settings.queue,
+            "service_factor": settings.service_factor,
+        }
+    mediator: dict[str, ArgValue] | None = None
     if kind.policy is not None:
-        mediator = ("--policy", kind.policy, "--b0", str(settings.b0_px))
-        services.append(ServiceSpec("mediator", "mediator", "local", mediator, restart=False))
-    services.append(ServiceSpec("detector", "detector", "local", tuple(detector), restart=False))
-    return Deployment(f"experiment-{kind.value}", {}, {"local": HostSpec("local")}, tuple(services))
+        mediator = {"policy": kind.policy, "b0": settings.b0_px}
+    return pipeline(
+        {"camera": camera, "gyro": replay, "mediator": mediator, "detector": detector},
+        name=f"experiment-{kind.value}",
+        restart=False,
+    )
 
 
 def _specs(deployment: Deployment, port: int, start_at_ns: int) -> list[ProcessSpec]:

@@ -11,19 +11,13 @@ from pathlib import Path
 import pytest
 
 from middleware import DataObject, FramegateError
+from services.launch import pipeline_yaml
 from tests.conftest import wait_until
 from tests.services.nodes.pipeline import Pipeline
 
 pytestmark = pytest.mark.integration
 
-DEPLOY = """
-version: 1
-services:
-  camera: {args: {source: sim, seed: 5, loop: true}}
-  gyro: {args: {source: sim, seed: 5, loop: true}}
-  mediator: {args: {policy: paper}}
-  detector: {args: {input: mediator/images, queue: 2, service_factor: 1.6}}
-"""
+DEPLOY = pipeline_yaml({"camera": {"seed": 5}, "gyro": {"seed": 5}})
 
 # What each service offers: a survivor's buffers must keep every accepted element intact.
 BUFFERS = {

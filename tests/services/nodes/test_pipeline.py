@@ -7,20 +7,19 @@ from pathlib import Path
 
 import pytest
 
+from services.launch import pipeline_yaml
 from services.lib.messages import DecisionRecord
 from tests.conftest import wait_until
 from tests.services.nodes.pipeline import Pipeline
 
 pytestmark = pytest.mark.integration
 
-FULL = """
-version: 1
-services:
-  camera: {args: {source: sim, seed: 3, loop: true}}
-  gyro: {args: {source: sim, seed: 3, loop: true}}
-  mediator: {args: {policy: paper, b0: 5.0}}
-  detector: {args: {input: mediator/images, queue: 2, service_factor: %s}}
-"""
+SEED_3 = {"camera": {"seed": 3}, "gyro": {"seed": 3}}
+
+
+def full(service_factor: float) -> str:
+    """The pipeline (deploy/local.yaml) on seed 3 with the detector this slow."""
+    return pipeline_yaml({**SEED_3, "detector": {"service_factor": service_factor}})
 
 
 @pytest.fixture
@@ -49,7 +48,7 @@ def test_slow_detector_gets_detections_and_mediator_rejects_blurred_frames(
     pipeline_factory: type[Pipeline],
 ) -> None:
     # 3x the frame period: overloaded even if a busy machine slows the camera down.
-    pipe = pipeline_factory(FULL % "3.0")  # type: ignore[call-arg]
+    pipe = pipeline_factory(full(3.0))  # type: ignore[call-arg]
     wait_until(
         lambda: pipe.counter("detector/detections") >= 20, 60, "20 detections\n" + pipe.log()
     )
@@ -71,7 +70,7 @@ def test_slow_detector_gets_detections_and_mediator_rejects_blurred_frames(
 def test_fast_detector_is_idle_so_every_frame_is_accepted(
     pipeline_factory: type[Pipeline],
 ) -> None:
-    pipe = pipeline_factory(FULL % "0.0")  # type: ignore[call-arg]
+    pipe = pipeline_factory(full(0.0))  # type: ignore[call-arg]
     wait_until(
         lambda: pipe.counter("detector/detections") >= 30, 60, "30 detections\n" + pipe.log()
     )
@@ -84,13 +83,13 @@ def test_fast_detector_is_idle_so_every_frame_is_accepted(
 def test_uncontrolled_wiring_drops_at_the_camera_and_never_blocks(
     pipeline_factory: type[Pipeline],
 ) -> None:
-    pipe = pipeline_factory(  # type: ignore[call-arg]
-        """
-services:
-  camera: {args: {source: sim, seed: 3, loop: true}}
-  detector: {args: {input: camera/images, queue: 2, service_factor: 2.5}}
-"""
-    )
+    uncontrolled = {
+        "camera": {"seed": 3},
+        "gyro": None,
+        "mediator": None,
+        "detector": {"input": "camera/images", "service_factor": 2.5},
+    }
+    pipe = pipeline_factory(pipeline_yaml(uncontrolled))  # type: ignore[call-arg]
     wait_until(lambda: pipe.counter("camera/images", "refused") >= 5, 60, "drops\n" + pipe.log())
     first = pipe.info("camera/images")
     # The camera keeps producing (stored and dropped), never waiting on the slow detector.
@@ -105,7 +104,7 @@ services:
 
 
 def test_killed_detector_is_dropped_and_restarted(pipeline_factory: type[Pipeline]) -> None:
-    pipe = pipeline_factory(FULL % "3.0")  # type: ignore[call-arg]
+    pipe = pipeline_factory(full(3.0))  # type: ignore[call-arg]
     wait_until(lambda: pipe.counter("detector/detections") >= 3, 60, "detections\n" + pipe.log())
     wait_until(
         lambda: any(s.queued > 0 for s in pipe.info("mediator/images").subscriptions),
@@ -132,7 +131,7 @@ def test_killed_detector_is_dropped_and_restarted(pipeline_factory: type[Pipelin
 def test_gyro_outage_keeps_mediator_running_and_it_recovers(
     pipeline_factory: type[Pipeline],
 ) -> None:
-    pipe = pipeline_factory(FULL % "1.6")  # type: ignore[call-arg]
+    pipe = pipeline_factory(full(1.6))  # type: ignore[call-arg]
     wait_until(lambda: pipe.counter("mediator/decisions") >= 10, 60, "decisions\n" + pipe.log())
     mediator_pid = pipe.pid("mediator")
     pipe.kill("gyro")

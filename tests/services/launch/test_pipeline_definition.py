@@ -1,0 +1,50 @@
+"""The pipeline is defined once: deploy/local.yaml, demo, soak and the tests all agree."""
+
+from __future__ import annotations
+
+import pytest
+
+from middleware import ConfigError
+from services.launch import Deployment, load_deployment, parse_deployment, pipeline, pipeline_yaml
+from services.tools.demo import DemoConfig, demo_deployment
+from services.tools.soak import SoakConfig, soak_deployment
+from tests.conftest import REPO
+
+
+def _services(deployment: Deployment) -> dict[str, tuple[str, tuple[str, ...]]]:
+    return {s.name: (s.type, tuple(sorted(s.args))) for s in deployment.services}
+
+
+def test_local_deploy_file_mirrors_the_pipeline_definition() -> None:
+    assert _services(load_deployment(REPO / "deploy" / "local.yaml")) == _services(pipeline())
+
+
+def test_pipeline_yaml_says_what_pipeline_says() -> None:
+    overrides = {"camera": {"seed": 7}, "mediator": None}
+    parsed = parse_deployment(pipeline_yaml(overrides), "generated.yaml")
+    assert _services(parsed) == _services(pipeline(overrides))
+
+
+def test_overrides_change_drop_and_remove() -> None:
+    deployment = pipeline({"detector": {"service_factor": None, "queue": 5}, "gyro": None})
+    args = {s.name: s.args for s in deployment.services}
+    assert list(args) == ["camera", "mediator", "detector"]
+    assert "--service-factor" not in args["detector"]
+    assert args["detector"][args["detector"].index("--queue") + 1] == "5"
+    with pytest.raises(ConfigError, match="no pipeline service lidar"):
+        pipeline({"lidar": {}})
+
+
+def _without(argv: tuple[str, ...], flag: str) -> tuple[str, ...]:
+    if flag not in argv:
+        return argv
+    i = argv.index(flag)
+    return argv[:i] + argv[i + 2 :]
+
+
+def test_demo_and_soak_default_to_the_shipped_pipeline() -> None:
+    shipped = {s.name: s.args for s in pipeline().services}
+    assert {s.name: s.args for s in demo_deployment(DemoConfig()).services} == shipped
+    soak = soak_deployment(SoakConfig(service_factor=1.6))
+    # The soak adds only its replay rate.
+    assert {s.name: _without(s.args, "--rate") for s in soak.services} == shipped
