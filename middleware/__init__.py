@@ -9,7 +9,6 @@ producer is refused (paper §4.1). See the README's *Wire format* for the protoc
 from ._config import NetworkConfig, add_network_arguments, check_name, network_from_args
 from ._errors import (
     ConfigError,
-    CoverageError,
     DuplicateTimestampError,
     FlowControlRefused,
     FramegateError,
@@ -38,7 +37,6 @@ __all__ = [
     "PUSH_ALL",
     "BufferInfo",
     "ConfigError",
-    "CoverageError",
     "DataObject",
     "DuplicateTimestampError",
     "FlowControlRefused",

@@ -1,18 +1,27 @@
 """The one exception tree of framegate.
 
+The middleware defines the base and the transport-level errors; each domain library or
+tool defines its own errors next to its code, always below ``FramegateError``::
+
     FramegateError                 base: catch this to catch everything of ours
-    ├── ConfigError                a configuration or deploy file is wrong
+    ├── ConfigError                a configuration, deploy file or endpoint is wrong
     ├── SchemaError                metadata is not well-formed, hostile, or fails its XSD
     ├── QueryError                 a query is malformed or the service answered with an error
     │   └── NotFoundError          no such service, buffer or element
     ├── FlowControlRefused         a subscriber's notification queue is full; nothing was stored
     ├── DuplicateTimestampError    a put's timestamp is not newer than the newest element
     ├── PayloadTooLargeError       a payload exceeds the buffer's configured limit
-    ├── CoverageError              gyro samples do not cover a frame's exposure
-    ├── CalibrationError           (services.lib.quality) recorded data cannot determine b0/offset
-    └── TransportError             Zenoh failed underneath us (every zenoh.ZError maps here)
+    ├── TransportError             Zenoh failed underneath us (every zenoh.ZError maps here)
+    ├── CoverageError              (services.lib.quality) gyro samples do not cover an exposure
+    ├── CalibrationError           (services.lib.quality) data cannot determine b0 or an offset
+    ├── QualityInputError          (services.lib.quality) an invalid frame, gyro batch or option
+    ├── DatasetError               (services.lib.sim) a dataset directory is missing or damaged
+    ├── BagError                   (services.tools.bag) an MCAP recording cannot be read/written
+    ├── ExperimentError            (services.tools.experiment) an experiment cannot run as asked
+    └── BenchError                 (services.tools.bench) a benchmark worker failed
 
-Messages name the bad value and say what to do.
+Messages name the bad value and say what to do. ``tests/middleware/test_errors.py`` checks
+that this drawing names every subclass there is.
 """
 
 from __future__ import annotations
@@ -52,10 +61,6 @@ class DuplicateTimestampError(FramegateError):
 
 class PayloadTooLargeError(FramegateError):
     """A payload exceeds the buffer's configured ``max_payload_bytes``."""
-
-
-class CoverageError(FramegateError):
-    """Gyro samples do not cover a frame's exposure (no data, or a gap longer than allowed)."""
 
 
 class TransportError(FramegateError):

@@ -8,12 +8,13 @@ carry the same description.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from middleware import field_text, make_metadata, validate_metadata
+from middleware import ConfigError, SchemaError, field_text, make_metadata, validate_metadata
 
 _IDENTITY = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
 
@@ -39,9 +40,31 @@ class CameraModel:
     name: str = "camera"
 
     def __post_init__(self) -> None:
+        # Schema-valid is not sane: xs:double admits NaN and INF, and a peer's metadata
+        # reaches the blur estimate through here, so every number is checked once.
+        if not (self.width_px > 0 and self.height_px > 0):
+            raise ConfigError(f"camera size must be positive, got {self.width_px}x{self.height_px}")
+        for name in ("fx_px", "fy_px"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ConfigError(f"camera {name} must be finite and positive, got {value}")
+        for name in ("cx_px", "cy_px"):
+            if not math.isfinite(getattr(self, name)):
+                raise ConfigError(f"camera {name} must be finite, got {getattr(self, name)}")
+        if self.line_readout_ns < 0:
+            raise ConfigError(f"line_readout_ns must be >= 0, got {self.line_readout_ns}")
         if len(self.gyro_to_camera) != 9:
-            raise ValueError(
+            raise ConfigError(
                 f"gyro_to_camera needs 9 numbers (row-major 3x3), got {len(self.gyro_to_camera)}"
+            )
+        rotation = np.asarray(self.gyro_to_camera, dtype=float).reshape(3, 3)
+        if not (
+            np.isfinite(rotation).all()
+            and np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-3)
+            and np.linalg.det(rotation) > 0
+        ):
+            raise ConfigError(
+                f"gyro_to_camera must be a rotation matrix, got {self.gyro_to_camera}"
             )
 
     @property
@@ -86,10 +109,17 @@ class CameraModel:
         def req(name: str) -> str:
             text = field_text(root, f"{path}/{name}")
             if text is None:
-                raise ValueError(f"camera description lacks <{name}>")
+                raise SchemaError(f"camera description lacks <{name}>")
             return text
 
         camera = root.find("{urn:framegate:1}" + path)
+        try:
+            return cls._from_texts(req, root, path, camera)
+        except (ConfigError, ValueError) as exc:
+            raise SchemaError(f"metadata describes an impossible camera: {exc}") from exc
+
+    @classmethod
+    def _from_texts(cls, req: Any, root: Any, path: str, camera: Any) -> CameraModel:
         return cls(
             width_px=int(req("width_px")),
             height_px=int(req("height_px")),

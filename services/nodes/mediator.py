@@ -28,7 +28,6 @@ from dataclasses import dataclass
 
 from middleware import (
     PUSH_ALL,
-    CoverageError,
     FlowControlRefused,
     FramegateError,
     NetworkConfig,
@@ -43,6 +42,7 @@ from services.lib.quality import (
     DEFAULT_B0_PX,
     BlurMode,
     BlurOptions,
+    CoverageError,
     GyroSamples,
     accept,
     estimate_blur,

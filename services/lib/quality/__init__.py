@@ -6,7 +6,7 @@ The mediator calls ``estimate_blur`` for every frame, maps the blur to a quality
 
 from ._accept import DEFAULT_B0_PX, Decision, accept, decide, quality, queue_load
 from ._blur import BlurEstimate, BlurMode, BlurOptions, Roi, estimate_blur
-from ._calibrate import CalibrationError, derive_b0
+from ._errors import CalibrationError, CoverageError, QualityInputError
 from ._exposure import Exposure
 from ._gyro import GYRO_DTYPE, GyroSamples
 from ._offset import OffsetEstimate, estimate_time_offset, laplacian_variance, rank_correlation
@@ -18,14 +18,15 @@ __all__ = [
     "BlurMode",
     "BlurOptions",
     "CalibrationError",
+    "CoverageError",
     "Decision",
     "Exposure",
     "GyroSamples",
     "OffsetEstimate",
+    "QualityInputError",
     "Roi",
     "accept",
     "decide",
-    "derive_b0",
     "estimate_blur",
     "estimate_time_offset",
     "laplacian_variance",

@@ -20,6 +20,7 @@ import numpy.typing as npt
 from services.lib.camera_model import CameraModel
 
 from ._coverage import covering
+from ._errors import QualityInputError
 from ._exposure import Exposure
 from ._gyro import GyroSamples
 from ._rotation import (
@@ -64,7 +65,7 @@ class Roi:
 
     def __post_init__(self) -> None:
         if not (self.width_px > 0 and self.height_px > 0):
-            raise ValueError(
+            raise QualityInputError(
                 f"ROI needs a positive size, got {self.width_px} x {self.height_px} px"
             )
 
@@ -88,11 +89,11 @@ class BlurOptions:
 
     def __post_init__(self) -> None:
         if self.mode is BlurMode.POINT and self.point_px is None:
-            raise ValueError("BlurMode.POINT needs point_px=(x_px, y_px)")
+            raise QualityInputError("BlurMode.POINT needs point_px=(x_px, y_px)")
         if len(self.grid) != 2 or min(self.grid) < 1:
-            raise ValueError(f"grid must be (columns, rows), each >= 1, got {self.grid}")
+            raise QualityInputError(f"grid must be (columns, rows), each >= 1, got {self.grid}")
         if self.max_gap_ns is not None and self.max_gap_ns <= 0:
-            raise ValueError(f"max_gap_ns must be positive or None, got {self.max_gap_ns}")
+            raise QualityInputError(f"max_gap_ns must be positive or None, got {self.max_gap_ns}")
 
 
 @dataclass(frozen=True, slots=True)

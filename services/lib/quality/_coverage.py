@@ -11,8 +11,7 @@ from typing import NoReturn
 import numpy as np
 import numpy.typing as npt
 
-from middleware import CoverageError
-
+from ._errors import CoverageError
 from ._exposure import Exposure
 from ._gyro import GyroSamples
 

@@ -7,6 +7,8 @@ from typing import Any
 
 from middleware import field_text, validate_metadata
 
+from ._errors import QualityInputError
+
 
 @dataclass(frozen=True, slots=True)
 class Exposure:
@@ -21,7 +23,7 @@ class Exposure:
 
     def __post_init__(self) -> None:
         if self.duration_ns < 0:
-            raise ValueError(f"exposure duration_ns must be >= 0, got {self.duration_ns}")
+            raise QualityInputError(f"exposure duration_ns must be >= 0, got {self.duration_ns}")
 
     @property
     def end_ns(self) -> int:
@@ -34,7 +36,7 @@ class Exposure:
         start = field_text(root, "exposure_start_ns")
         duration = field_text(root, "exposure_ns")
         if start is None or duration is None:
-            raise ValueError("frame metadata lacks <exposure_start_ns> or <exposure_ns>")
+            raise QualityInputError("frame metadata lacks <exposure_start_ns> or <exposure_ns>")
         return cls(int(start), int(duration))
 
     @classmethod

@@ -11,6 +11,8 @@ import numpy.typing as npt
 
 from middleware import SchemaError
 
+from ._errors import QualityInputError
+
 GYRO_DTYPE = np.dtype([("t", "<i8"), ("w", "<f8", (3,))])
 """One wire record: int64 timestamp_ns, then x, y, z in rad/s as float64, little-endian."""
 
@@ -35,24 +37,24 @@ class GyroSamples:
         t_ns = np.array(self.t_ns, dtype=np.int64)
         rates = np.array(self.rates_rad_s, dtype=np.float64)
         if t_ns.ndim != 1:
-            raise ValueError(f"t_ns must be one-dimensional, got shape {t_ns.shape}")
+            raise QualityInputError(f"t_ns must be one-dimensional, got shape {t_ns.shape}")
         if rates.shape != (t_ns.size, 3):
-            raise ValueError(
+            raise QualityInputError(
                 f"rates_rad_s must have shape ({t_ns.size}, 3) to match t_ns, got {rates.shape}"
             )
         if t_ns.size > 1:
             steps = t_ns[1:] - t_ns[:-1]
             if not bool(np.all(steps > 0)):
                 bad = int(np.argmax(steps <= 0)) + 1
-                raise ValueError(
+                raise QualityInputError(
                     f"gyro timestamps must increase strictly; sample {bad} at "
                     f"{int(t_ns[bad])} ns follows {int(t_ns[bad - 1])} ns"
                 )
         if not bool(np.all(np.isfinite(rates))):
-            raise ValueError("gyro rates contain NaN or infinity; drop those samples first")
+            raise QualityInputError("gyro rates contain NaN or infinity; drop those samples first")
         period_ns = int(self.period_ns)
         if period_ns < 0:
-            raise ValueError(f"period_ns must be >= 0 (0 = derive), got {period_ns}")
+            raise QualityInputError(f"period_ns must be >= 0 (0 = derive), got {period_ns}")
         steps = t_ns[1:] - t_ns[:-1]
         if period_ns == 0 and t_ns.size > 1:
             period_ns = int(np.median(steps))

@@ -16,11 +16,10 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from middleware import CoverageError
 from services.lib.camera_model import CameraModel
 
 from ._blur import DEFAULT_OPTIONS, BlurOptions, estimate_blur
-from ._calibrate import CalibrationError
+from ._errors import CalibrationError, CoverageError, QualityInputError
 from ._exposure import Exposure
 from ._gyro import GyroSamples
 
@@ -38,7 +37,7 @@ def laplacian_variance(image: npt.NDArray[np.generic]) -> float:
     if array.ndim == 3 and array.shape[2] == 3:
         array = cv2.cvtColor(array.astype(np.float32), cv2.COLOR_BGR2GRAY)
     elif array.ndim != 2:
-        raise ValueError(f"expected an (H, W) or (H, W, 3) image, got shape {array.shape}")
+        raise QualityInputError(f"expected an (H, W) or (H, W, 3) image, got shape {array.shape}")
     laplacian = cv2.Laplacian(array.astype(np.float64), cv2.CV_64F)
     return float(laplacian.var())
 
@@ -61,7 +60,7 @@ def rank_correlation(a: npt.ArrayLike, b: npt.ArrayLike) -> float:
     ra = _ranks(np.asarray(a, dtype=np.float64).ravel())
     rb = _ranks(np.asarray(b, dtype=np.float64).ravel())
     if ra.size != rb.size:
-        raise ValueError(f"sequences differ in length: {ra.size} and {rb.size}")
+        raise QualityInputError(f"sequences differ in length: {ra.size} and {rb.size}")
     ra -= ra.mean()
     rb -= rb.mean()
     norm = float(np.sqrt((ra * ra).sum() * (rb * rb).sum()))
@@ -103,16 +102,18 @@ def estimate_time_offset(
     """
     sharp = np.asarray(sharpness, dtype=np.float64).ravel()
     if sharp.size != len(exposures):
-        raise ValueError(f"{len(exposures)} exposures but {sharp.size} sharpness values")
+        raise QualityInputError(f"{len(exposures)} exposures but {sharp.size} sharpness values")
     if candidates_ns is None:
         if step_ns <= 0 or search_ns < 0:
-            raise ValueError(f"need step_ns > 0 and search_ns >= 0, got {step_ns}, {search_ns}")
+            raise QualityInputError(
+                f"need step_ns > 0 and search_ns >= 0, got {step_ns}, {search_ns}"
+            )
         steps = np.arange(-(search_ns // step_ns), search_ns // step_ns + 1, dtype=np.int64)
         candidates = camera.gyro_time_offset_ns + steps * step_ns
     else:
         candidates = np.unique(np.asarray(candidates_ns, dtype=np.int64).ravel())
         if candidates.size == 0:
-            raise ValueError("candidates_ns is empty")
+            raise QualityInputError("candidates_ns is empty")
     blur = np.full((candidates.size, len(exposures)), np.nan)
     for row, offset in enumerate(candidates.tolist()):
         shifted = dataclasses.replace(camera, gyro_time_offset_ns=offset)

@@ -5,8 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from middleware import CoverageError
-from services.lib.quality import BlurMode, BlurOptions, Exposure, GyroSamples, estimate_blur
+from services.lib.quality import (
+    BlurMode,
+    BlurOptions,
+    CoverageError,
+    Exposure,
+    GyroSamples,
+    estimate_blur,
+)
 from tests.services.lib.quality.quality_synth import camera, constant
 
 EXPOSURE = Exposure(100_000_000, 60_000_000)

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.lib.quality import CalibrationError, derive_b0
+from services.lib.calibrate import derive_b0
+from services.lib.quality import CalibrationError
 
 
 def _frames(count: int, halving_px: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
