@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import base64
+import os
 import re
 import time
 from pathlib import Path
@@ -21,6 +22,7 @@ from middleware import (
 )
 
 from ._common import command_parser, format_bytes, format_ns, network, print_json
+from ._files import create_file, open_directory
 from ._target import add_timeout_argument, resolve
 
 # With no selection at all, a query returns this many of the newest elements: a camera
@@ -31,6 +33,7 @@ TABLE_FIELDS = 3
 
 _TIME_HELP = "now, -5s (relative), 2026-11-22T14:00:00.5Z (RFC 3339) or integer ns"
 _RELATIVE = re.compile(r"^[+-]\s*(\d|\.\d)")
+_NOW = re.compile(r"now\((.*)\)", re.DOTALL)
 _NEGATIVE_TIME = re.compile(r"^-(\d+\.?\d*|\.\d+)(ns|us|u|ms|s|m|h|d|w)?$")
 
 
@@ -55,7 +58,11 @@ def register(subparsers: Any) -> None:
         "--save",
         metavar="DIR",
         type=Path,
-        help="write payloads (raw frames as PNG, else .bin) and metadata (.xml) to DIR",
+        help="write payloads (raw frames as PNG, else .bin) and metadata (.xml) to DIR; "
+        "existing files and links are refused",
+    )
+    parser.add_argument(
+        "--force", action="store_true", help="with --save: replace existing files (never links)"
     )
     parser.add_argument(
         "--with-payload", action="store_true", help="with --json: include payloads as base64"
@@ -74,8 +81,10 @@ def parse_cli_time(text: str, flag: str) -> tuple[int, bool]:
     try:
         if value == "now":
             return 0, True
-        if value.startswith("now("):
-            return parse_time_ns(value, now_ns=0), True
+        now_match = _NOW.fullmatch(value)
+        if now_match:
+            inner = now_match.group(1).strip()
+            return (parse_duration_ns(inner) if inner else 0), True
         if _RELATIVE.match(value) and not re.fullmatch(r"[+-]?\d+", value):
             return parse_duration_ns(value.lstrip("+")), True
         return parse_time_ns(value), False
@@ -101,6 +110,8 @@ def run(args: argparse.Namespace) -> int:
         raise QueryError(f"--last {args.last}: ask for at least 1 element")
     if args.with_payload and not args.json:
         raise QueryError("--with-payload only applies to --json output")
+    if args.force and args.save is None:
+        raise QueryError("--force only applies to --save")
     with Node(network=network(args)) as node:
         service, _buffer = resolve(node, args.target, args.timeout)
         now_ns = time.time_ns() + (service.clock_offset_ns or 0)
@@ -108,6 +119,7 @@ def run(args: argparse.Namespace) -> int:
         if at is not None:
             at_ns = _resolve_time(at, now_ns)
             assert at_ns is not None
+            TimeRange(at_ns, None)  # refuses a time outside 0..2^63-1 with a QueryError
             elements = [node.nearest(args.target, at_ns, timeout_s=timeout_s)]
         else:
             rng = None
@@ -121,7 +133,7 @@ def run(args: argparse.Namespace) -> int:
                     raise QueryError(f"--from {args.start} is after --to {args.end}")
             last = args.last if args.last is not None or rng is not None else DEFAULT_LAST
             elements = node.query(args.target, time_range=rng, last=last, timeout_s=timeout_s)
-    saved = _save_all(args.save, elements) if args.save is not None else {}
+    saved = _save_all(args.save, elements, args.force) if args.save is not None else {}
     if args.json:
         rows = [_element_json(e, saved.get(e.timestamp_ns), args.with_payload) for e in elements]
         print_json({"target": args.target, "count": len(elements), "elements": rows})
@@ -183,32 +195,38 @@ def _print_table(elements: list[DataObject]) -> None:
     print(f"{len(elements)} elements")
 
 
-def _save_all(directory: Path, elements: list[DataObject]) -> dict[int, list[str]]:
-    """Write each element as <timestamp_ns>.png|.bin plus <timestamp_ns>.xml."""
+def _save_all(directory: Path, elements: list[DataObject], force: bool) -> dict[int, list[str]]:
+    """Write each element as <timestamp_ns>.png|.bin plus <timestamp_ns>.xml.
+
+    Files are created exclusively and never through a link (``_files``); ``force`` replaces
+    existing regular files of the same names.
+    """
     from services.tools.bag import frame_layout  # imported here: only --save needs it
 
-    try:
-        directory.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise FramegateError(f"cannot create --save directory {directory}: {exc.strerror}") from exc
+    dir_fd = open_directory(directory)
     saved: dict[int, list[str]] = {}
-    for element in elements:
-        stem = directory / str(element.timestamp_ns)
-        layout = frame_layout(element.metadata, len(element.payload))
-        payload_path = stem.with_suffix(".png") if layout is not None else stem.with_suffix(".bin")
-        try:
+    try:
+        for element in elements:
+            layout = frame_layout(element.metadata, len(element.payload))
             if layout is not None:
-                _write_png(payload_path, element.payload, layout)
+                name, content = f"{element.timestamp_ns}.png", _png(element.payload, layout)
             else:
-                payload_path.write_bytes(element.payload)
-            stem.with_suffix(".xml").write_bytes(element.metadata)
-        except OSError as exc:
-            raise FramegateError(f"cannot write {payload_path}: {exc.strerror}") from exc
-        saved[element.timestamp_ns] = [str(payload_path), str(stem.with_suffix(".xml"))]
+                name, content = f"{element.timestamp_ns}.bin", element.payload
+            names = [name, f"{element.timestamp_ns}.xml"]
+            for file_name, data in zip(names, (content, element.metadata), strict=True):
+                shown = str(directory / file_name)
+                with create_file(file_name, overwrite=force, dir_fd=dir_fd, shown=shown) as out:
+                    try:
+                        out.write(data)
+                    except OSError as exc:
+                        raise FramegateError(f"cannot write {shown}: {exc.strerror}") from exc
+            saved[element.timestamp_ns] = [str(directory / n) for n in names]
+    finally:
+        os.close(dir_fd)
     return saved
 
 
-def _write_png(path: Path, payload: bytes, layout: Any) -> None:
+def _png(payload: bytes, layout: Any) -> bytes:
     import cv2  # imported here: OpenCV is slow to load and only PNGs need it
     import numpy as np
 
@@ -220,5 +238,7 @@ def _write_png(path: Path, payload: bytes, layout: Any) -> None:
         image = pixels.reshape(layout.height_px, layout.width_px, layout.channels)
         if layout.encoding == "rgb8":
             image = image[:, :, ::-1]  # OpenCV writes BGR
-    if not cv2.imwrite(str(path), image):
-        raise FramegateError(f"cannot write {path}: OpenCV refused the image")
+    ok, encoded = cv2.imencode(".png", image)
+    if not ok:
+        raise FramegateError("cannot encode a frame as PNG: OpenCV refused the image")
+    return bytes(encoded)

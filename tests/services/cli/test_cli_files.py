@@ -1,0 +1,101 @@
+"""Files the CLI writes are created exclusively and never through a planted symlink."""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+
+import pytest
+
+from middleware import ConfigError, Node
+from services.cli._files import create_file, open_directory
+from tests.services.cli.conftest import MS, Cli, put_frame
+
+SECOND = 1_000_000_000
+
+
+def test_create_file_refuses_a_planted_symlink_and_leaves_its_target_alone(tmp_path: Path) -> None:
+    victim = tmp_path / "victim"
+    victim.write_bytes(b"precious")
+    (tmp_path / "out.bin").symlink_to(victim)
+    for overwrite in (False, True):
+        with pytest.raises(ConfigError, match="symbolic link"):
+            create_file(tmp_path / "out.bin", overwrite=overwrite)
+    assert victim.read_bytes() == b"precious"
+
+
+def test_create_file_refuses_a_dangling_symlink(tmp_path: Path) -> None:
+    (tmp_path / "out.bin").symlink_to(tmp_path / "not-yet")
+    with pytest.raises(ConfigError, match="symbolic link"):
+        create_file(tmp_path / "out.bin")
+    assert not (tmp_path / "not-yet").exists()
+
+
+def test_create_file_refuses_an_existing_file_unless_told_to_overwrite(tmp_path: Path) -> None:
+    path = tmp_path / "out.bin"
+    path.write_bytes(b"old")
+    with pytest.raises(ConfigError, match="exists; choose another name or pass --force"):
+        create_file(path)
+    assert path.read_bytes() == b"old"
+    with create_file(path, overwrite=True) as out:
+        out.write(b"new")
+    assert path.read_bytes() == b"new"
+
+
+def test_overwrite_never_replaces_a_directory(tmp_path: Path) -> None:
+    (tmp_path / "out.bin").mkdir()
+    with pytest.raises(ConfigError, match="not a regular file"):
+        create_file(tmp_path / "out.bin", overwrite=True)
+
+
+def test_open_directory_refuses_a_symlinked_directory(tmp_path: Path) -> None:
+    (tmp_path / "real").mkdir()
+    (tmp_path / "saved").symlink_to(tmp_path / "real")
+    with pytest.raises(ConfigError, match="symbolic link"):
+        open_directory(tmp_path / "saved")
+
+
+def test_open_directory_creates_missing_parents(tmp_path: Path) -> None:
+    fd = open_directory(tmp_path / "a" / "b")
+    try:
+        with create_file("x.xml", dir_fd=fd) as out:
+            out.write(b"<x/>")
+    finally:
+        os.close(fd)
+    assert (tmp_path / "a" / "b" / "x.xml").read_bytes() == b"<x/>"
+
+
+@pytest.mark.integration
+def test_query_save_and_record_refuse_planted_symlinks(
+    service: Node, cli: Cli, tmp_path: Path
+) -> None:
+    images = service.offer("images", kind="frame")
+    base = (time.time_ns() // SECOND - 60) * SECOND
+    put_frame(images, base, 1)
+    put_frame(images, base + 100 * MS, 2)
+    victim = tmp_path / "victim"
+    victim.write_bytes(b"precious")
+    saved = tmp_path / "saved"
+    saved.mkdir()
+    (saved / f"{base + 100 * MS}.xml").symlink_to(victim)  # the attacker's link
+    (tmp_path / "run.mcap").symlink_to(victim)
+    query, record = cli.run_many(
+        [
+            ("query", "cam/images", "--last", "2", "--save", str(saved), "--force"),
+            ("record", "cam/images", "-o", str(tmp_path / "run.mcap"), "--count", "1",
+             "--overwrite"),
+        ]
+    )  # fmt: skip
+    for result in (query, record):
+        assert result.returncode == 1, result.describe()
+        assert "symbolic link" in result.stderr and "Traceback" not in result.stderr
+        assert len(result.stderr.strip().splitlines()) == 1, result.describe()
+    assert victim.read_bytes() == b"precious"
+
+
+def test_query_prints_one_line_for_an_out_of_range_time(cli: Cli) -> None:
+    result = cli.run("query", "cam/images", "--from", "now(-99999999999999999999s)")
+    assert result.returncode == 1, result.describe()
+    assert result.stderr.startswith("error: bad time") and "Traceback" not in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1
