@@ -6,6 +6,7 @@ a queue size of their choice. While a flow-controlled subscriber's queue is full
 producer is refused (paper §4.1). See the README's *Wire format* for the protocol.
 """
 
+from ._clock import ClockSample
 from ._config import NetworkConfig, add_network_arguments, check_name, network_from_args
 from ._errors import (
     ConfigError,
@@ -36,6 +37,7 @@ from ._xml import XmlLimits, field_text, make_metadata, parse_untrusted, validat
 __all__ = [
     "PUSH_ALL",
     "BufferInfo",
+    "ClockSample",
     "ConfigError",
     "DataObject",
     "DuplicateTimestampError",

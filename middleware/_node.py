@@ -23,6 +23,7 @@ from typing import Any
 
 import zenoh
 
+from ._clock import ClockSample
 from ._config import NetworkConfig, check_name
 from ._errors import (
     ConfigError,
@@ -373,14 +374,13 @@ def _service_info(body: dict[str, Any], start_ns: int, end_ns: int) -> ServiceIn
                 subscriptions=subs,
             )
         )
-    # NTP-style: the service read its clock somewhere in our [start, end] window.
-    offset = int(body["clock_ns"]) - (start_ns + end_ns) // 2
+    sample = ClockSample.from_times(start_ns, int(body["clock_ns"]), end_ns)
     return ServiceInfo(
         service=body["service"],
         host=body["host"],
         pid=int(body["pid"]),
         clock_ns=int(body["clock_ns"]),
         buffers=tuple(buffers),
-        clock_offset_ns=offset,
-        round_trip_ns=end_ns - start_ns,
+        clock_offset_ns=sample.offset_ns,
+        round_trip_ns=sample.round_trip_ns,
     )

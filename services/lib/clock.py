@@ -14,25 +14,12 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
-from middleware import FramegateError, ServiceInfo
+from middleware import ClockSample, ConfigError, FramegateError, ServiceInfo
 
 # Warn above this: a fraction of a short exposure (a few ms). A larger offset shifts the gyro
 # window of a frame taken on another host by that much, and `now(-2s)` queries with it.
 CLOCK_WARN_NS = 2_000_000
 DEFAULT_SAMPLES = 5
-
-
-@dataclass(frozen=True, slots=True)
-class ClockSample:
-    """One query: the remote clock minus ours, and the round trip that bounds its error."""
-
-    offset_ns: int
-    round_trip_ns: int
-
-    @classmethod
-    def from_times(cls, sent_ns: int, remote_ns: int, received_ns: int) -> ClockSample:
-        """The NTP formula for one exchange: ``remote - midpoint(sent, received)``."""
-        return cls(remote_ns - (sent_ns + received_ns) // 2, received_ns - sent_ns)
 
 
 @dataclass(frozen=True, slots=True)
@@ -60,10 +47,10 @@ class InfoSource(Protocol):
 
 
 def best_sample(samples: Iterable[ClockSample]) -> ClockSample:
-    """The sample with the shortest round trip; ValueError if there is none."""
+    """The sample with the shortest round trip; ConfigError if there is none."""
     chosen = min(samples, key=lambda s: s.round_trip_ns, default=None)
     if chosen is None:
-        raise ValueError("no clock samples to choose from")
+        raise ConfigError("no clock samples to choose from")
     return chosen
 
 
@@ -80,7 +67,7 @@ def estimate_clocks(
     left out.
     """
     if samples < 1:
-        raise ValueError(f"samples must be >= 1, got {samples}")
+        raise ConfigError(f"samples must be >= 1, got {samples}")
     names = list(services) if services is not None else node.live_services(timeout_s=timeout_s)
     out = []
     for name in names:

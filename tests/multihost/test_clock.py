@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from middleware import NotFoundError, ServiceInfo
+from middleware import ConfigError, NotFoundError, ServiceInfo
 from services.lib.clock import (
     CLOCK_WARN_NS,
     ClockEstimate,
@@ -102,9 +102,9 @@ def test_named_services_are_asked_without_listing() -> None:
 
 
 def test_bad_sample_counts_are_refused() -> None:
-    with pytest.raises(ValueError, match="samples must be >= 1, got 0"):
+    with pytest.raises(ConfigError, match="samples must be >= 1, got 0"):
         estimate_clocks(FakeNetwork({}), samples=0)
-    with pytest.raises(ValueError, match="no clock samples"):
+    with pytest.raises(ConfigError, match="no clock samples"):
         best_sample([])
 
 
