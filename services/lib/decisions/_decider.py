@@ -1,0 +1,203 @@
+"""The decider: the mediator's decisions as a pure state machine (no I/O, no threads).
+
+The mediator feeds it (``frame`` for each assessed frame, ``tick`` while frames are held,
+``refused`` when a put to the detector is refused) and carries out the verdicts it returns.
+Time is whatever int-nanosecond clock the caller passes in: the mediator passes its monotonic
+clock, a replay passes recorded times, so a recorded sequence decides the same every time.
+
+Rules kept here for every policy, in this order:
+
+1. the processing clock: a drop of the detector's queue count below what was forwarded
+   is the detector taking frames; the time between takes while frames wait estimates its
+   service time (``View.detector``);
+2. due held frames first: the policy's ``on_tick`` runs before a new frame is decided, so
+   older frames go out before newer ones;
+3. late frames: a frame whose key is not newer than every frame seen is dropped
+   (``out-of-order``): the detector's buffer only takes increasing keys;
+4. the gyro-missing rule: a frame without a quality is forwarded only when the detector
+   is idle (``idle``, the default), always (``accept``) or never (``reject``);
+5. the minimum quality: q < q_min is dropped (``below-minimum``);
+6. the policy decides the frame (``on_frame``), then held frames again (``on_tick``);
+7. ordering: once a frame is forwarded, held frames older than it can never be, and are
+   dropped (``superseded``); a FORWARD out of time order becomes a drop (``out-of-order``);
+8. the maximum hold: a frame held ``max_hold_ns`` or longer is dropped (``stale``);
+9. a policy that breaks its contract (no verdict for the frame, a verdict on a frame it
+   does not hold, two verdicts on one frame) is repaired, never trusted: the extra verdict
+   is ignored, a forgotten frame is dropped (``no-verdict``), and ``policy_faults`` counts it.
+"""
+
+from __future__ import annotations
+
+import enum
+import statistics
+from collections import deque
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+from ._policy import Policy
+from ._records import Action, Candidate, DetectorClock, Load, Verdict, View
+
+DEFAULT_MAX_HOLD_NS = 250_000_000
+_SERVICE_SAMPLES = 16
+
+
+class GyroMissing(enum.Enum):
+    """What to do with a frame whose exposure the gyro does not cover."""
+
+    IDLE = "idle"
+    ACCEPT = "accept"
+    REJECT = "reject"
+    DEFAULT = IDLE
+
+
+@dataclass(frozen=True, slots=True)
+class Rules:
+    """The decider's settings that hold for every policy."""
+
+    q_min: float = 0.0
+    gyro_missing: GyroMissing = GyroMissing.DEFAULT
+    max_hold_ns: int = DEFAULT_MAX_HOLD_NS
+    recent_count: int = 64
+
+
+class Decider:
+    """Frames and the detector's load in, verdicts out (see the module docstring)."""
+
+    def __init__(self, policy: Policy, rules: Rules | None = None) -> None:
+        self.policy = policy
+        self.rules = rules or Rules()
+        self._held: list[Candidate] = []
+        self._recent: deque[float] = deque(maxlen=self.rules.recent_count)
+        self._newest_seen_ns: int | None = None
+        self._newest_forwarded_ns: int | None = None
+        # Processing clock: the queue count we expect if the detector took nothing.
+        self._expected_queued: int | None = None
+        self._last_take_ns: int | None = None
+        self._waiting_after_take = False
+        self._service: deque[int] = deque(maxlen=_SERVICE_SAMPLES)
+        # Inside one call: the load the caller gave plus what this call forwarded.
+        self._load = Load(0, 0)
+        self.policy_faults = 0
+
+    # -- what the caller sees ----------------------------------------------------------------
+    @property
+    def held(self) -> tuple[Candidate, ...]:
+        """Frames held for later, oldest first (their payloads stay with the caller)."""
+        return tuple(self._held)
+
+    @property
+    def detector(self) -> DetectorClock:
+        service = int(statistics.median(self._service)) if self._service else None
+        return DetectorClock(self._last_take_ns, service)
+
+    def view(self, now_ns: int) -> View:
+        """What a policy would see now."""
+        return View(
+            now_ns=now_ns,
+            load=self._load,
+            held=tuple(self._held),
+            recent_q=tuple(self._recent),
+            detector=self.detector,
+            max_hold_ns=self.rules.max_hold_ns,
+        )
+
+    # -- feeding it ------------------------------------------------------------------------
+    def frame(self, frame: Candidate, load: Load, now_ns: int) -> list[Verdict]:
+        """Decide on a newly assessed frame; returns every verdict this caused, in order."""
+        self._observe(load, now_ns)
+        out = self._apply(self.policy.on_tick(self.view(now_ns)), None)
+        out += self._decide_new(frame, now_ns)
+        out += self._apply(self.policy.on_tick(self.view(now_ns)), None)
+        out += self._expire(now_ns)
+        return out
+
+    def tick(self, load: Load, now_ns: int) -> list[Verdict]:
+        """Let time pass: held frames may be forwarded (the queue drained) or go stale."""
+        self._observe(load, now_ns)
+        out = self._apply(self.policy.on_tick(self.view(now_ns)), None)
+        out += self._expire(now_ns)
+        return out
+
+    def refused(self, frame: Candidate) -> Verdict:
+        """The detector's buffer refused a forwarded frame: it is dropped after all."""
+        self._expected_queued = max(0, (self._expected_queued or 0) - 1)
+        self._load = Load(max(0, self._load.queued - 1), self._load.capacity)
+        return Verdict(frame, Action.DROP, "refused")
+
+    # -- the rules ---------------------------------------------------------------------------
+    def _observe(self, load: Load, now_ns: int) -> None:
+        expected = self._expected_queued
+        if expected is not None and load.queued < expected:
+            if self._waiting_after_take and self._last_take_ns is not None:
+                self._service.append(now_ns - self._last_take_ns)
+            self._last_take_ns = now_ns
+            self._waiting_after_take = load.queued > 0
+        elif load.queued == 0:
+            self._waiting_after_take = False
+        self._expected_queued = load.queued
+        self._load = load
+
+    def _decide_new(self, frame: Candidate, now_ns: int) -> list[Verdict]:
+        newest = self._newest_seen_ns
+        if newest is not None and frame.timestamp_ns <= newest:
+            return [Verdict(frame, Action.DROP, "out-of-order")]
+        self._newest_seen_ns = frame.timestamp_ns
+        if frame.q is None:
+            rule = self.rules.gyro_missing
+            go = rule is GyroMissing.ACCEPT or (rule is GyroMissing.IDLE and self._load.idle)
+            action = Action.FORWARD if go else Action.DROP
+            return self._apply([Verdict(frame, action, f"gyro-missing-{rule.value}")], None)
+        if frame.q < self.rules.q_min:
+            verdicts = [Verdict(frame, Action.DROP, "below-minimum")]
+        else:
+            verdicts = self._apply(self.policy.on_frame(frame, self.view(now_ns)), frame)
+        self._recent.append(frame.q)
+        return verdicts
+
+    def _apply(self, verdicts: Iterable[Verdict], new: Candidate | None) -> list[Verdict]:
+        out: list[Verdict] = []
+        open_ = {f.timestamp_ns for f in self._held}
+        if new is not None:
+            open_.add(new.timestamp_ns)
+        for verdict in verdicts:
+            key = verdict.frame.timestamp_ns
+            if key not in open_:
+                self.policy_faults += 1  # a frame it does not hold, or a second verdict
+                continue
+            held = any(f.timestamp_ns == key for f in self._held)
+            if verdict.action is Action.HOLD:
+                if not held:
+                    self._held.append(verdict.frame)
+                    self._held.sort(key=lambda f: f.timestamp_ns)
+                out.append(verdict)
+                open_.discard(key)
+                continue
+            open_.discard(key)
+            self._held = [f for f in self._held if f.timestamp_ns != key]
+            if verdict.action is Action.FORWARD:
+                last = self._newest_forwarded_ns
+                if last is not None and key <= last:
+                    out.append(Verdict(verdict.frame, Action.DROP, "out-of-order"))
+                    continue
+                out.append(verdict)
+                out += self._forwarded(key)
+            else:
+                out.append(verdict)
+        if new is not None and new.timestamp_ns in open_:
+            self.policy_faults += 1
+            out.append(Verdict(new, Action.DROP, "no-verdict"))
+        return out
+
+    def _forwarded(self, key: int) -> list[Verdict]:
+        self._newest_forwarded_ns = key
+        self._load = Load(self._load.queued + 1, self._load.capacity)
+        self._expected_queued = (self._expected_queued or 0) + 1
+        older = [f for f in self._held if f.timestamp_ns < key]
+        self._held = [f for f in self._held if f.timestamp_ns > key]
+        return [Verdict(f, Action.DROP, "superseded") for f in older]
+
+    def _expire(self, now_ns: int) -> list[Verdict]:
+        limit = self.rules.max_hold_ns
+        stale = [f for f in self._held if now_ns - f.arrived_ns >= limit]
+        self._held = [f for f in self._held if now_ns - f.arrived_ns < limit]
+        return [Verdict(f, Action.DROP, "stale") for f in stale]

@@ -1,0 +1,29 @@
+"""Every policy by name: what ``--policy`` offers. A new policy adds one line here."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from services.lib.quality import QualityInputError
+
+from ._paper import PaperPolicy
+from ._policy import Policy
+from ._replace import ReplacePolicy
+
+POLICIES: dict[str, Callable[[], Policy]] = {
+    "paper": PaperPolicy,
+    "replace": ReplacePolicy,
+}
+"""Policy name -> a factory taking no arguments (defaults of a policy's own parameters)."""
+
+DEFAULT_POLICY = "paper"
+
+
+def make_policy(name: str) -> Policy:
+    """A fresh policy of this name (each decider needs its own: policies may keep state)."""
+    try:
+        factory = POLICIES[name]
+    except KeyError:
+        known = ", ".join(sorted(POLICIES))
+        raise QualityInputError(f"unknown policy {name!r}: use one of {known}") from None
+    return factory()
