@@ -18,7 +18,11 @@ _COMPACT_MIN = 1024
 
 
 class TimeSeries:
-    """A bounded, strictly increasing series of DataObjects. Thread-safe."""
+    """A bounded, strictly increasing series of DataObjects.
+
+    Threads: every method takes ``_lock`` (it guards all fields); it is never held while
+    calling anything outside this class.
+    """
 
     def __init__(self, retention: Retention) -> None:
         self.retention = retention
@@ -29,31 +33,40 @@ class TimeSeries:
         self._bytes = 0
 
     def __len__(self) -> int:
+        with self._lock:
+            return self._count()
+
+    def _count(self) -> int:
         return len(self._keys) - self._head
 
     @property
     def total_bytes(self) -> int:
         """Payload and metadata bytes held."""
-        return self._bytes
+        with self._lock:
+            return self._bytes
 
     @property
     def oldest_ns(self) -> int | None:
         with self._lock:
-            return self._keys[self._head] if len(self) else None
+            return self._keys[self._head] if self._count() else None
 
     @property
     def newest_ns(self) -> int | None:
         with self._lock:
-            return self._keys[-1] if len(self) else None
+            return self._keys[-1] if self._count() else None
 
     def check_put(self, timestamp_ns: int, payload_bytes: int) -> None:
         """Raise if an element with this key and size could not be appended now."""
+        with self._lock:
+            self._check_put(timestamp_ns, payload_bytes)
+
+    def _check_put(self, timestamp_ns: int, payload_bytes: int) -> None:
         limit = self.retention.max_payload_bytes
         if payload_bytes > limit:
             raise PayloadTooLargeError(
                 f"payload of {payload_bytes} bytes exceeds this buffer's limit of {limit} bytes"
             )
-        newest = self._keys[-1] if len(self) else None
+        newest = self._keys[-1] if self._count() else None
         if newest is not None and timestamp_ns <= newest:
             what = "duplicates" if timestamp_ns == newest else "is older than"
             raise DuplicateTimestampError(
@@ -64,7 +77,7 @@ class TimeSeries:
     def append(self, element: DataObject) -> list[DataObject]:
         """Append and evict by retention; return what was evicted (oldest first)."""
         with self._lock:
-            self.check_put(element.timestamp_ns, len(element.payload))
+            self._check_put(element.timestamp_ns, len(element.payload))
             self._keys.append(element.timestamp_ns)
             self._items.append(element)
             self._bytes += element.size_bytes
@@ -75,8 +88,8 @@ class TimeSeries:
         evicted: list[DataObject] = []
         newest = self._keys[-1]
         # Always keep the newest element, whatever the limits say.
-        while len(self) > 1:
-            over_count = r.max_count is not None and len(self) > r.max_count
+        while self._count() > 1:
+            over_count = r.max_count is not None and self._count() > r.max_count
             over_bytes = r.max_bytes is not None and self._bytes > r.max_bytes
             over_age = r.max_age_ns is not None and newest - self._keys[self._head] > r.max_age_ns
             if not (over_count or over_bytes or over_age):
@@ -109,7 +122,7 @@ class TimeSeries:
     def nearest(self, timestamp_ns: int) -> DataObject | None:
         """The element whose timestamp is closest (the older one on a tie), or None."""
         with self._lock:
-            if not len(self):
+            if not self._count():
                 return None
             i = bisect_left(self._keys, timestamp_ns, self._head)
             candidates = [j for j in (i - 1, i) if self._head <= j < len(self._keys)]

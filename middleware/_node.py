@@ -104,6 +104,8 @@ class Node:
         from ._xml import _schema  # a missing kind should fail here, not at the first put
 
         _schema(kind)
+        if self._endpoint is None:
+            self._settle()  # a fresh session must see the network before claiming a name
         with zenoh_errors(f"offering {self.name}/{buffer}"), self._lock:
             if self._endpoint is None:
                 self._endpoint = ServiceEndpoint(self._session, self.keys, self.name)
@@ -150,12 +152,18 @@ class Node:
                 mode=mode,
                 fetch=self._fetch_exact,
                 push_max_bytes=-1 if push_max_bytes is None else max(0, push_max_bytes),
+                on_close=self._forget,
             )
         with self._lock:
             self._subscriptions.append(sub)
         if wait_s > 0:
             self._wait_registered(sub, wait_s)
         return sub
+
+    def _forget(self, sub: Subscription) -> None:
+        with self._lock:
+            if sub in self._subscriptions:
+                self._subscriptions.remove(sub)
 
     def _wait_registered(self, sub: Subscription, wait_s: float) -> None:
         deadline = time.monotonic() + wait_s
@@ -314,7 +322,9 @@ class Node:
         if self._closed:
             return
         self._closed = True
-        for sub in self._subscriptions:
+        with self._lock:
+            subs = list(self._subscriptions)
+        for sub in subs:
             sub.close()
         if self._endpoint is not None:
             self._endpoint.close()

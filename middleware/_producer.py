@@ -8,7 +8,9 @@ stored and the producer learns at once (a camera drops the frame and counts it),
 to ``wait_s`` (a lossless replay source). Observers never hold the producer back.
 
 Flow control lives above Zenoh (credits: queued = sent - acknowledged), because a full Zenoh
-FIFO would stall the whole link, not just one subscription.
+FIFO would stall the whole link, not just one subscription. The protocol itself (which
+message does what in which state) is the pure ``ProducerLedger`` in ``_ledger_producer``;
+this module only feeds it from Zenoh and sends what it returns.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ import zenoh
 
 from ._buffer import TimeSeries
 from ._errors import FlowControlRefused, FramegateError, SchemaError
+from ._ledger_producer import ProducerLedger, Registration, RegistrationKey, Send
 from ._records import BufferInfo, DataObject, Retention, SubscriptionInfo, SubscriptionMode
 from ._wire import Keys, decode_ack, encode_notification_header, parse_subscription_token
 from ._xml import XmlLimits, metadata_timestamp_ns, validate_metadata
@@ -36,27 +39,9 @@ log = logging.getLogger("framegate.middleware")
 _INLINE_METADATA_MAX = 8 * 1024
 # Rate over the last this-many puts.
 _RATE_WINDOW = 64
-
-
-@dataclass
-class _Sub:
-    sub_id: str
-    mode: SubscriptionMode
-    queue_size: int
-    push_max_bytes: int
-    # Each registration counts from 1 under its own epoch: a token that drops and returns
-    # (a lapsed lease) must not look like a replay of the old sequence to the subscriber.
-    epoch: str = ""
-    sent: int = 0
-    acked: int = 0
-    publisher: Any = None
-
-    @property
-    def queued(self) -> int:
-        return self.sent - self.acked
-
-    def info(self) -> SubscriptionInfo:
-        return SubscriptionInfo(self.sub_id, self.mode, self.queue_size, self.queued)
+# How often outstanding notifications are checked for resending (and retired publishers
+# undeclared) when no put does it.
+_TICK_S = 0.1
 
 
 @dataclass
@@ -69,7 +54,17 @@ class _Counters:
 
 
 class Producer:
-    """A buffer offered by this process. Create with ``Node.offer``."""
+    """A buffer offered by this process. Create with ``Node.offer``.
+
+    Threads: ``_on_token`` and ``_on_ack`` run on Zenoh's threads; they parse, then take
+    ``_lock`` only to feed the ledger, and never call Zenoh. ``_lock`` (with ``_cond`` on it)
+    guards the ledger, the publishers, the counters and the rate window; nothing holds it
+    while calling Zenoh. ``_send_lock`` serialises sending (``put`` on the caller's threads
+    and the ``fg-resend`` thread, which resends outstanding notifications and undeclares the
+    publishers of withdrawn registrations): notifications of one registration leave in seq
+    order, and a ``publisher.put`` that blocks (flow control uses ``BLOCK``) holds only
+    ``_send_lock``, which no Zenoh callback takes. Lock order: ``_send_lock``, then ``_lock``.
+    """
 
     def __init__(
         self,
@@ -91,14 +86,17 @@ class Producer:
         self._xml_limits = xml_limits
         self._session = session
         self._keys = keys
-        # A new epoch per producer instance: subscribers reset their counters when it changes.
+        # A new epoch per producer instance; each registration gets "<epoch>.<n>".
         self.epoch = secrets.token_hex(6)
-        self._cond = threading.Condition()
-        self._subs: dict[str, _Sub] = {}
-        self._registrations = 0
+        self._lock = threading.Lock()
+        self._cond = threading.Condition(self._lock)
+        self._send_lock = threading.Lock()
+        self._ledger: ProducerLedger[DataObject] = ProducerLedger(self.epoch)
+        self._publishers: dict[RegistrationKey, Any] = {}
+        self._retired: list[Any] = []
         self._counters = _Counters()
         self._closed = False
-        # Callbacks run on Zenoh's thread (indirect=False): short, and they never block.
+        self._stop = threading.Event()
         self._token_sub = session.liveliness().declare_subscriber(
             keys.subscription_tokens(service, buffer),
             zenoh.handlers.Callback(self._on_token, indirect=False),
@@ -107,36 +105,29 @@ class Producer:
         self._ack_sub = session.declare_subscriber(
             keys.acks(service, buffer), zenoh.handlers.Callback(self._on_ack, indirect=False)
         )
+        self._resender = threading.Thread(
+            target=self._resend_loop, daemon=True, name=f"fg-resend-{service}/{buffer}"
+        )
+        self._resender.start()
 
     @property
     def name(self) -> str:
         return f"{self.service}/{self.buffer}"
 
-    # -- Zenoh callbacks ---------------------------------------------------------------
+    # -- Zenoh callbacks (Zenoh's threads: short, never call Zenoh) -------------------------
     def _on_token(self, sample: zenoh.Sample) -> None:
-        key = str(sample.key_expr)
         try:
-            sub_id, mode, queue_size, push_max_bytes = parse_subscription_token(key)
+            key = RegistrationKey(*parse_subscription_token(str(sample.key_expr)))
         except ValueError:
-            self._counters.bad_messages += 1
+            with self._lock:
+                self._counters.bad_messages += 1
             return
         with self._cond:
             if sample.kind == zenoh.SampleKind.PUT:
-                if sub_id not in self._subs:
-                    self._registrations += 1
-                    self._subs[sub_id] = _Sub(
-                        sub_id,
-                        mode,
-                        queue_size,
-                        push_max_bytes,
-                        epoch=f"{self.epoch}.{self._registrations}",
-                    )
-            else:
-                gone = self._subs.pop(sub_id, None)
-                if gone is not None:
-                    log.info(
-                        "%s: subscription %s gone; no longer waiting for it", self.name, sub_id
-                    )
+                self._ledger.token_put(key, time.monotonic_ns())
+            elif (gone := self._ledger.token_delete(key)) is not None:
+                self._retire(gone)
+                log.info("%s: subscription %s gone; no longer waiting for it", self.name, key)
             self._cond.notify_all()
 
     def _on_ack(self, sample: zenoh.Sample) -> None:
@@ -144,17 +135,20 @@ class Producer:
         try:
             epoch, seq = decode_ack(sample.payload.to_bytes())
         except Exception:  # garbage on our ack key must never hurt the producer
-            self._counters.bad_messages += 1
+            with self._lock:
+                self._counters.bad_messages += 1
             return
         with self._cond:
-            sub = self._subs.get(sub_id)
-            if sub is None or epoch != sub.epoch:
-                return
-            # Cumulative and clamped: duplicates, reordering and lies cannot push it past sent.
-            sub.acked = max(sub.acked, min(seq, sub.sent))
-            self._cond.notify_all()
+            if self._ledger.ack(sub_id, epoch, seq, time.monotonic_ns()):
+                self._cond.notify_all()
 
-    # -- producing -----------------------------------------------------------------------
+    def _retire(self, reg: Registration[DataObject]) -> None:
+        """(under _lock) Its publisher is undeclared by the next sender, not on Zenoh's thread."""
+        publisher = self._publishers.pop(reg.key, None)
+        if publisher is not None:
+            self._retired.append(publisher)
+
+    # -- producing -------------------------------------------------------------------------
     def put(
         self, timestamp_ns: int, payload: bytes, metadata: bytes | str, *, wait_s: float = 0.0
     ) -> None:
@@ -166,10 +160,39 @@ class Producer:
         """
         if self._closed:
             raise FramegateError(f"buffer {self.name} is closed")
+        element = self._checked(timestamp_ns, payload, metadata)
+        deadline = time.monotonic() + wait_s
+        with self._send_lock:
+            while True:
+                with self._cond:
+                    due, retired = self._ledger.tick(time.monotonic_ns()), self._drain_retired()
+                    full = self._ledger.full()
+                    if full is None:
+                        sends = self._store(element)
+                        break
+                    remaining = deadline - time.monotonic()
+                    if remaining <= 0:
+                        self._counters.refused += 1
+                        k = full.key
+                        raise FlowControlRefused(
+                            f"{self.name}: subscriber {k.sub_id} has {full.queued}/"
+                            f"{k.queue_size} notifications queued; element {timestamp_ns} "
+                            "was not stored (drop it, or put with wait_s to wait)"
+                        )
+                self._send_all(due)
+                self._undeclare(retired)
+                with self._cond:
+                    if self._ledger.full() is not None:
+                        self._cond.wait(min(remaining, _TICK_S))
+            self._send_all(due + sends)
+            self._undeclare(retired)
+
+    def _checked(self, timestamp_ns: int, payload: bytes, metadata: bytes | str) -> DataObject:
         try:
             _check_types(timestamp_ns, payload, metadata)
         except SchemaError:
-            self._counters.rejected += 1
+            with self._lock:
+                self._counters.rejected += 1
             raise
         meta = metadata.encode("utf-8") if isinstance(metadata, str) else bytes(metadata)
         if not isinstance(payload, bytes):
@@ -183,66 +206,97 @@ class Producer:
                 )
             self.series.check_put(timestamp_ns, len(payload))
         except FramegateError:
+            with self._lock:
+                self._counters.rejected += 1
+            raise
+        return DataObject(timestamp_ns, payload, meta)
+
+    def _store(self, element: DataObject) -> list[Send[DataObject]]:
+        """(under _lock) Append, count, and get the notifications to send."""
+        try:
+            self.series.append(element)
+        except FramegateError:
             self._counters.rejected += 1
             raise
-        element = DataObject(timestamp_ns, payload, meta)
-        deadline = time.monotonic() + wait_s
-        with self._cond:
-            while (full := self._full_subscription()) is not None:
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    self._counters.refused += 1
-                    raise FlowControlRefused(
-                        f"{self.name}: subscriber {full.sub_id} has {full.queued}/"
-                        f"{full.queue_size} notifications queued; element {timestamp_ns} "
-                        "was not stored (drop it, or put with wait_s to wait)"
-                    )
-                self._cond.wait(remaining)
-            try:
-                self.series.append(element)
-            except FramegateError:
-                self._counters.rejected += 1
-                raise
-            self._counters.puts += 1
-            self._counters.put_times.append(time.monotonic_ns())
-            # Sent in order under the lock; flow-control notifications are credit-limited,
-            # so BLOCK cannot pile up, and observers use DROP so they never slow us down.
-            for sub in list(self._subs.values()):
-                sub.sent += 1
-                self._notify(sub, element)
+        self._counters.puts += 1
+        now = time.monotonic_ns()
+        self._counters.put_times.append(now)
+        return self._ledger.put(element, now)
 
-    def _notify(self, sub: _Sub, element: DataObject) -> None:
-        if sub.publisher is None:
+    def _drain_retired(self) -> list[Any]:
+        retired, self._retired = self._retired, []
+        return retired
+
+    def _send_all(self, sends: list[Send[DataObject]]) -> None:
+        """(under _send_lock, not _lock) Send notifications; a failure keeps them outstanding."""
+        for send in sends:
+            try:
+                self._send(send)
+            except zenoh.ZError as exc:
+                log.warning(
+                    "%s: notification %d to %s failed (%s); it will be sent again",
+                    self.name,
+                    send.seq,
+                    send.key.sub_id,
+                    exc,
+                )
+                with self._lock:
+                    self._ledger.send_failed(send.key, send.epoch)
+
+    def _send(self, send: Send[DataObject]) -> None:
+        key = send.key
+        with self._lock:
+            publisher = self._publishers.get(key)
+            live = self._ledger.get(key) is not None
+        if not live:
+            return  # withdrawn since
+        if publisher is None:
             congestion = (
                 zenoh.CongestionControl.BLOCK
-                if sub.mode is SubscriptionMode.FLOW
+                if key.mode is SubscriptionMode.FLOW
                 else zenoh.CongestionControl.DROP
             )
-            sub.publisher = self._session.declare_publisher(
-                self._keys.notify(self.service, self.buffer, sub.sub_id),
+            publisher = self._session.declare_publisher(
+                self._keys.notify(self.service, self.buffer, key.sub_id),
                 congestion_control=congestion,
             )
-        limit = self.inline_max_bytes if sub.push_max_bytes < 0 else sub.push_max_bytes
-        pushed = len(element.payload) <= limit
+            with self._lock:
+                if self._ledger.get(key) is not None:
+                    self._publishers[key] = publisher
+                else:
+                    self._retired.append(publisher)
+        element = send.header
+        limit = self.inline_max_bytes if key.push_max_bytes < 0 else key.push_max_bytes
+        # A resent notification carries no payload: the subscriber fetches if it needs it.
+        pushed = not send.again and len(element.payload) <= limit
         header = encode_notification_header(
-            sub.epoch,
-            sub.sent,
-            element,
-            with_metadata=len(element.metadata) <= _INLINE_METADATA_MAX,
+            send.epoch,
+            send.seq,
+            element.timestamp_ns,
+            element.metadata if len(element.metadata) <= _INLINE_METADATA_MAX else None,
             pushed=pushed,
+            acked=send.acked,
+            descriptor=key.descriptor,
         )
-        try:
-            # The payload travels as the Zenoh payload itself: no extra copy into msgpack,
-            # and large ones go through Zenoh's shared memory on one host.
-            sub.publisher.put(element.payload if pushed else b"", attachment=header)
-        except zenoh.ZError as exc:
-            log.warning("%s: notification to %s failed: %s", self.name, sub.sub_id, exc)
+        # The payload travels as the Zenoh payload itself: no extra copy into msgpack,
+        # and large ones go through Zenoh's shared memory on one host.
+        publisher.put(element.payload if pushed else b"", attachment=header)
 
-    def _full_subscription(self) -> _Sub | None:
-        for sub in self._subs.values():
-            if sub.mode is SubscriptionMode.FLOW and sub.queued >= sub.queue_size:
-                return sub
-        return None
+    @staticmethod
+    def _undeclare(publishers: list[Any]) -> None:
+        for publisher in publishers:
+            with contextlib.suppress(zenoh.ZError):
+                publisher.undeclare()
+
+    def _resend_loop(self) -> None:
+        while not self._stop.wait(_TICK_S):
+            with self._send_lock:
+                if self._closed:
+                    return
+                with self._lock:
+                    due, retired = self._ledger.tick(time.monotonic_ns()), self._drain_retired()
+                self._send_all(due)
+                self._undeclare(retired)
 
     # -- reading state -------------------------------------------------------------------
     def fill(self) -> float:
@@ -250,20 +304,19 @@ class Producer:
 
         This is the paper's load indicator, read by the mediator.
         """
-        with self._cond:
-            fills = [s.info().fill for s in self._subs.values() if s.mode is SubscriptionMode.FLOW]
-        return max(fills, default=0.0)
+        with self._lock:
+            return self._ledger.fill()
 
     def subscriptions(self) -> list[SubscriptionInfo]:
-        """Every live subscription as this producer counts it."""
-        with self._cond:
-            return [s.info() for s in self._subs.values()]
+        """Every live subscription (registration) as this producer counts it."""
+        with self._lock:
+            return [r.info() for r in self._ledger.registrations()]
 
     def wait_for_subscribers(self, count: int, timeout_s: float) -> bool:
         """Wait until at least ``count`` subscriptions are registered."""
         deadline = time.monotonic() + timeout_s
         with self._cond:
-            while len(self._subs) < count:
+            while len(self._ledger.registrations()) < count:
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
                     return False
@@ -274,21 +327,20 @@ class Producer:
         """Wait until ``fill()`` < ``limit`` (e.g. a consumer took a notification)."""
         deadline = time.monotonic() + timeout_s
         with self._cond:
-            while True:
-                fills = [
-                    s.info().fill for s in self._subs.values() if s.mode is SubscriptionMode.FLOW
-                ]
-                if max(fills, default=0.0) < limit:
-                    return True
+            while self._ledger.fill() >= limit:
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
                     return False
                 self._cond.wait(remaining)
+            return True
 
     def info(self) -> BufferInfo:
         """Retention, size, span, rate, counters and subscriptions."""
-        c = self._counters
-        times = list(c.put_times)
+        with self._lock:
+            c = self._counters
+            times = list(c.put_times)
+            puts, refused, rejected = c.puts, c.refused, c.rejected
+            subs = tuple(r.info() for r in self._ledger.registrations())
         rate = (len(times) - 1) / ((times[-1] - times[0]) / 1e9) if len(times) > 1 else 0.0
         if times and time.monotonic_ns() - times[-1] > 5 * 1e9:
             rate = 0.0  # stale: nothing put for a while
@@ -302,10 +354,10 @@ class Producer:
             oldest_ns=self.series.oldest_ns,
             newest_ns=self.series.newest_ns,
             rate_hz=rate,
-            puts=c.puts,
-            refused=c.refused,
-            rejected=c.rejected,
-            subscriptions=tuple(self.subscriptions()),
+            puts=puts,
+            refused=refused,
+            rejected=rejected,
+            subscriptions=subs,
         )
 
     def close(self) -> None:
@@ -313,14 +365,17 @@ class Producer:
         if self._closed:
             return
         self._closed = True
+        self._stop.set()
         with self._cond:
-            subs = list(self._subs.values())
-            self._subs.clear()
+            gone = self._ledger.clear()
+            for reg in gone:
+                self._retire(reg)
+            retired = self._drain_retired()
             self._cond.notify_all()
-        for entity in [self._token_sub, self._ack_sub] + [s.publisher for s in subs]:
-            if entity is not None:
-                with contextlib.suppress(zenoh.ZError):
-                    entity.undeclare()
+        self._resender.join(timeout=6.0)  # a BLOCK put gives up after 5 s
+        for entity in [self._token_sub, self._ack_sub, *retired]:
+            with contextlib.suppress(zenoh.ZError):
+                entity.undeclare()
 
 
 def _check_types(timestamp_ns: object, payload: object, metadata: object) -> None:

@@ -3,6 +3,12 @@
 Queries run on a worker thread fed by a bounded Zenoh channel, so a long range reply never
 runs on Zenoh's own threads. Every malformed query gets an error reply (``code: message``)
 and the worker keeps serving.
+
+One producer per name: before declaring its token, an endpoint asks whether the service is
+live elsewhere and refuses, naming that instance's host and pid (a restarted service whose
+old instance is dead finds no token and takes over). Two instances started at the same
+moment can both pass that check; right after declaring, each asks again and the younger one
+(later ``started_ns``, then larger instance id) withdraws with the same error.
 """
 
 from __future__ import annotations
@@ -11,6 +17,7 @@ import contextlib
 import json
 import logging
 import os
+import secrets
 import socket
 import threading
 import time
@@ -20,7 +27,7 @@ from typing import Any, cast
 
 import zenoh
 
-from ._errors import FramegateError, NotFoundError, QueryError
+from ._errors import ConfigError, FramegateError, NotFoundError, QueryError
 from ._producer import Producer
 from ._records import BufferInfo, DataObject
 from ._timerange import parse_time_range
@@ -80,14 +87,54 @@ def buffer_info_json(info: BufferInfo) -> dict[str, Any]:
     return data
 
 
+# How long the checks for another live instance wait for answers.
+_CLAIM_TIMEOUT_S = 1.0
+
+
+def _instances(session: zenoh.Session, keys: Keys, service: str) -> list[dict[str, Any]]:
+    """Descriptions of every instance that answers for ``service`` (empty if none is live)."""
+    replies = list(session.liveliness().get(keys.service_token(service), timeout=_CLAIM_TIMEOUT_S))
+    if not any(r.ok is not None for r in replies):
+        return []
+    found: list[dict[str, Any]] = []
+    for reply in session.get(
+        keys.info(service), consolidation=zenoh.ConsolidationMode.NONE, timeout=_CLAIM_TIMEOUT_S
+    ):
+        if reply.ok is None:
+            continue
+        try:
+            body = json.loads(reply.ok.payload.to_bytes())
+            found.append({k: body.get(k) for k in ("host", "pid", "instance", "started_ns")})
+        except ValueError:
+            continue
+    return found or [{"host": "an unknown host", "pid": "unknown"}]
+
+
+def _taken(service: str, other: dict[str, Any]) -> ConfigError:
+    return ConfigError(
+        f"service {service!r} is already offered by pid {other.get('pid')} on host "
+        f"{other.get('host')}; stop that instance first, or choose another name"
+    )
+
+
 class ServiceEndpoint:
-    """The Zenoh face of a named service: token, data queryable and info queryable."""
+    """The Zenoh face of a named service: token, data queryable and info queryable.
+
+    Threads: two worker threads (``fg-query-*``, ``fg-info-*``) read the queryables'
+    bounded channels and answer there, never on Zenoh's threads. ``_lock`` guards the
+    producer table only; no Zenoh call is made while holding it.
+    """
 
     def __init__(self, session: zenoh.Session, keys: Keys, service: str) -> None:
         self.service = service
         self._keys = keys
         self._producers: dict[str, Producer] = {}
         self._lock = threading.Lock()
+        self.instance = secrets.token_hex(6)
+        self.started_ns = time.time_ns()
+        others = _instances(session, keys, service)
+        if others:
+            raise _taken(service, others[0])
         self._token = session.liveliness().declare_token(keys.service_token(service))
         self._data = session.declare_queryable(
             keys.service_data(service), zenoh.handlers.FifoChannel(256)
@@ -109,6 +156,14 @@ class ServiceEndpoint:
         ]
         for thread in self._threads:
             thread.start()
+        mine = (self.started_ns, self.instance)
+        for other in _instances(session, keys, service):
+            started, instance = other.get("started_ns"), other.get("instance")
+            valid = isinstance(started, int) and isinstance(instance, str)
+            # The older instance keeps the name.
+            if valid and (started, instance) != mine and (started, instance) < mine:
+                self.close()
+                raise _taken(service, other)
 
     def add(self, producer: Producer) -> None:
         with self._lock:
@@ -162,6 +217,8 @@ class ServiceEndpoint:
             "host": socket.gethostname(),
             "pid": os.getpid(),
             "clock_ns": time.time_ns(),
+            "instance": self.instance,
+            "started_ns": self.started_ns,
             "buffers": [buffer_info_json(p.info()) for p in self.producers()],
         }
         query.reply(self._keys.info(self.service), json.dumps(body).encode("utf-8"))

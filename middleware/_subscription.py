@@ -2,7 +2,10 @@
 
 The queue lives here, in the subscriber's process; the producer mirrors its fill from the
 acknowledgements (queued = sent - taken). A notification leaves the queue when ``take``
-returns it; processing the element afterwards does not count against the queue.
+returns it; processing the element afterwards does not count against the queue. The
+protocol itself (which notification is queued, which ignored, which ack is due) is the pure
+``SubscriberLedger`` in ``_ledger_subscriber``; this module only feeds it from Zenoh and
+sends the acks it returns.
 """
 
 from __future__ import annotations
@@ -11,27 +14,34 @@ import contextlib
 import secrets
 import threading
 import time
-from collections import deque
 from collections.abc import Callable, Iterator
 from typing import Any
 
 import zenoh
 
 from ._errors import FramegateError
+from ._ledger_subscriber import REACK_NS, Entry, SubscriberCounters, SubscriberLedger
 from ._records import DataObject, Notification, SubscriptionMode
 from ._wire import Keys, decode_notification_header, encode_ack
 
 # A push limit larger than any payload: everything travels with its notification.
 PUSH_ALL = 2**31 - 1
-# An idle subscriber repeats its last ack this often, so a lost final ack heals.
-_REACK_S = 0.5
+_REACK_S = REACK_NS / 1e9
+
+# What the queue holds per notification: timestamp_ns, metadata, the pushed element.
+_Item = tuple[int, bytes | None, DataObject | None]
 
 
 class Subscription:
     """Availability notifications of one buffer. Create with ``Node.subscribe``.
 
-    Survives restarts of the producing service: a new producer epoch resets the counters,
-    and the producer re-registers this subscription from its liveliness token.
+    Survives restarts of the producing service: the producer re-registers this subscription
+    from its liveliness token under a new epoch, and the ledger tracks every epoch it meets.
+
+    Threads: ``_on_notification`` runs on Zenoh's thread; it decodes, then takes ``_cond``
+    only to feed the ledger, and never calls Zenoh. ``_cond`` guards the ledger and
+    ``garbage``; acks are computed under it and sent after releasing it (``take`` on the
+    caller's thread), so a blocking ack put never holds a lock the callback needs.
     """
 
     def __init__(
@@ -45,6 +55,7 @@ class Subscription:
         mode: SubscriptionMode,
         fetch: Callable[[str, int, float], DataObject],
         push_max_bytes: int = -1,
+        on_close: Callable[[Subscription], None] | None = None,
     ) -> None:
         if queue_size < 1:
             raise FramegateError(f"queue_size must be >= 1, got {queue_size}")
@@ -56,14 +67,11 @@ class Subscription:
         self._session = session
         self._keys = keys
         self._fetch = fetch
-        self._cond = threading.Condition()
-        self._queue: deque[tuple[str, Notification]] = deque()
-        self._epoch: str | None = None
-        self._last_seq = 0
-        self._missed_unreported = 0
-        self._last_ack: tuple[str, int] | None = None
-        self._reacked_at = 0.0
-        self.missed_total = 0
+        self._on_close = on_close
+        self._cond = threading.Condition(threading.Lock())
+        self._ledger: SubscriberLedger[_Item] = SubscriberLedger(
+            mode, queue_size, f"{mode.value}/{queue_size}/{push_max_bytes}"
+        )
         self.garbage = 0
         self._closed = False
         self._ack_publisher = session.declare_publisher(
@@ -85,87 +93,88 @@ class Subscription:
     def name(self) -> str:
         return f"{self.service}/{self.buffer}"
 
+    @property
+    def missed_total(self) -> int:
+        """Notifications lost so far (observers only: flow control loses none)."""
+        with self._cond:
+            return self._ledger.missed_total
+
+    @property
+    def counters(self) -> SubscriberCounters:
+        """Notifications ignored so far, by reason (foreign, duplicate, out of order, ...)."""
+        with self._cond:
+            c = self._ledger.counters
+            return SubscriberCounters(c.foreign, c.invalid, c.out_of_order, c.duplicates, c.refused)
+
     def _on_notification(self, sample: zenoh.Sample) -> None:
         try:
             attachment = sample.attachment
             if attachment is None:
                 raise ValueError("notification without a header")
             body = decode_notification_header(attachment.to_bytes())
-        except Exception:  # garbage on our key is counted, never raised into Zenoh
-            self.garbage += 1
-            return
-        epoch, seq, timestamp = body["e"], body["s"], body["t"]
-        metadata = body.get("m")
-        element = (
-            DataObject(timestamp, sample.payload.to_bytes(), metadata)
-            if body["p"] and metadata is not None
-            else None
-        )
-        with self._cond:
-            if epoch != self._epoch:
-                # The producer restarted: its old notifications name elements that are gone.
-                self._queue.clear()
-                self._epoch = epoch
-                self._last_seq = 0
-            if seq <= self._last_seq:
-                return  # duplicate or stale
-            gap = seq - self._last_seq - 1
-            self._last_seq = seq
-            self._missed_unreported += gap
-            self.missed_total += gap
-            if self.mode is SubscriptionMode.OBSERVE and len(self._queue) >= self.queue_size:
-                self._missed_unreported += 1
-                self.missed_total += 1
-                return
-            # Misses are reported on the first notification that made it after them.
-            note = Notification(
-                self.service,
-                self.buffer,
-                timestamp,
-                seq,
-                metadata=metadata,
-                element=element,
-                missed=self._missed_unreported,
+            timestamp, metadata = body["t"], body.get("m")
+            element = (
+                DataObject(timestamp, sample.payload.to_bytes(), metadata)
+                if body["p"] and metadata is not None
+                else None
             )
-            self._missed_unreported = 0
-            self._queue.append((epoch, note))
-            self._cond.notify_all()
+        except Exception:  # garbage on our key is counted, never raised into Zenoh
+            with self._cond:
+                self.garbage += 1
+            return
+        with self._cond:
+            if self._ledger.receive(
+                body["e"],
+                body["s"],
+                (timestamp, metadata, element),
+                acked=body.get("a"),
+                descriptor=body.get("k"),
+            ):
+                self._cond.notify_all()
 
     @property
     def pending(self) -> int:
         """Notifications waiting in this process's queue."""
         with self._cond:
-            return len(self._queue)
+            return len(self._ledger)
 
     def take(self, timeout_s: float | None = None) -> Notification | None:
-        """Take the oldest notification (it leaves the queue now); None on timeout."""
-        deadline = None if timeout_s is None else time.monotonic() + timeout_s
-        with self._cond:
-            while not self._queue:
-                if self._closed:
-                    return None
-                remaining = None if deadline is None else deadline - time.monotonic()
-                if remaining is not None and remaining <= 0:
-                    self._reack()
-                    return None
-                if not self._cond.wait(min(remaining, _REACK_S) if remaining else _REACK_S):
-                    self._reack()
-            epoch, note = self._queue.popleft()
-            self._last_ack = (epoch, note.seq)
-        # A lost ack heals itself: the next one is cumulative, and an idle subscriber
-        # repeats its last one (``_reack``) so the producer's count cannot stay high.
-        with contextlib.suppress(zenoh.ZError):
-            self._ack_publisher.put(encode_ack(epoch, note.seq))
-        return note
+        """Take the oldest notification (it leaves the queue now); None on timeout.
 
-    def _reack(self) -> None:
-        """Repeat the last ack while waiting idle (at most every ``_REACK_S``)."""
-        now = time.monotonic()
-        if self._last_ack is None or now - self._reacked_at < _REACK_S:
-            return
-        self._reacked_at = now
-        with contextlib.suppress(zenoh.ZError):
-            self._ack_publisher.put(encode_ack(*self._last_ack))
+        A lost ack heals itself: acks are cumulative, and while waiting idle the subscriber
+        repeats them every 0.5 s (the producer resends what it has not seen taken).
+        """
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        while True:
+            with self._cond:
+                entry = self._ledger.take()
+                idle = entry is None
+                acks = self._ledger.acks_due(time.monotonic_ns(), idle=idle)
+                if idle and not acks:
+                    if self._closed:
+                        return None
+                    remaining = None if deadline is None else deadline - time.monotonic()
+                    if remaining is not None and remaining <= 0:
+                        return None
+                    self._cond.wait(_REACK_S if remaining is None else min(remaining, _REACK_S))
+                    continue
+            for epoch, seq in acks:
+                with contextlib.suppress(zenoh.ZError):
+                    self._ack_publisher.put(encode_ack(epoch, seq))
+            if entry is not None:
+                return self._notification(entry)
+
+    def _notification(self, entry: Entry[_Item]) -> Notification:
+        timestamp, metadata, element = entry.item
+        return Notification(
+            self.service,
+            self.buffer,
+            timestamp,
+            entry.seq,
+            metadata=metadata,
+            element=element,
+            missed=entry.missed,
+        )
 
     def __iter__(self) -> Iterator[Notification]:
         """Notifications until the subscription is closed."""
@@ -190,6 +199,8 @@ class Subscription:
         for entity in (self._token, self._subscriber, self._ack_publisher):
             with contextlib.suppress(zenoh.ZError):
                 entity.undeclare()
+        if self._on_close is not None:
+            self._on_close(self)
 
     def __enter__(self) -> Subscription:
         return self

@@ -75,6 +75,10 @@ class Keys:
         return f"{self.namespace}/@ack/{service}/{buffer}/*"
 
 
+# Largest queue size a token may ask for: bounds the subscriber's and producer's tables.
+MAX_QUEUE_SIZE = 1 << 20
+
+
 def parse_subscription_token(key: str) -> tuple[str, SubscriptionMode, int, int]:
     """(id, mode, queue size, push limit) from a subscription token; ValueError if malformed.
 
@@ -82,8 +86,16 @@ def parse_subscription_token(key: str) -> tuple[str, SubscriptionMode, int, int]
     (-1: the producer's default).
     """
     parts = key.split("/")
+    if len(parts) < 8 or parts[-7] != "@sub":
+        raise ValueError(f"not a subscription token: {key!r}")
     sub_id, mode, size, push = parts[-4], parts[-3], parts[-2], parts[-1]
+    if not sub_id:
+        raise ValueError("empty subscription id")
+    if not (size.lstrip("-").isdigit() and push.lstrip("-").isdigit()):
+        raise ValueError(f"queue size {size!r} and push limit {push!r} must be integers")
     queue_size, push_max_bytes = int(size), int(push)
+    if queue_size > MAX_QUEUE_SIZE:
+        raise ValueError(f"queue size {queue_size} > {MAX_QUEUE_SIZE}")
     if queue_size < 1:
         raise ValueError(f"queue size {queue_size} < 1")
     if push_max_bytes < -1:
@@ -107,14 +119,27 @@ def decode_element(payload: bytes, attachment: bytes | None) -> DataObject:
 
 
 def encode_notification_header(
-    epoch: str, seq: int, element: DataObject, *, with_metadata: bool, pushed: bool
+    epoch: str,
+    seq: int,
+    timestamp_ns: int,
+    metadata: bytes | None,
+    *,
+    pushed: bool,
+    acked: int | None = None,
+    descriptor: str | None = None,
 ) -> bytes:
-    """The attachment of a notification: {"e": producer epoch, "s": seq (1, 2, ... per
-    subscription and epoch), "t": timestamp_ns, "m": metadata (bytes, optional), "p": true
-    when the Zenoh payload is the element's payload (pushed), false when it is empty}."""
-    body: dict[str, Any] = {"e": epoch, "s": seq, "t": element.timestamp_ns, "p": pushed}
-    if with_metadata:
-        body["m"] = element.metadata
+    """The attachment of a notification: {"e": registration epoch, "s": seq (1, 2, ... per
+    registration), "t": timestamp_ns, "m": metadata (bytes, optional), "p": true when the
+    Zenoh payload is the element's payload (pushed), false when it is empty, "a": the
+    producer's ack count when sent (the window base), "k": the registration's
+    ``mode/N/push`` (both optional for older peers)}."""
+    body: dict[str, Any] = {"e": epoch, "s": seq, "t": timestamp_ns, "p": pushed}
+    if metadata is not None:
+        body["m"] = metadata
+    if acked is not None:
+        body["a"] = acked
+    if descriptor is not None:
+        body["k"] = descriptor
     return bytes(msgpack.packb(body, use_bin_type=True))
 
 
@@ -129,6 +154,12 @@ def decode_notification_header(raw: bytes) -> dict[str, Any]:
         raise ValueError("notification lacks timestamp or push flag")
     if "m" in body and not isinstance(body["m"], bytes):
         raise ValueError("notification metadata is not bytes")
+    if "a" in body and (not isinstance(body["a"], int) or isinstance(body["a"], bool)):
+        raise ValueError("notification window base is not an int")
+    if "k" in body and not isinstance(body["k"], str):
+        raise ValueError("notification registration descriptor is not a str")
+    if isinstance(body["s"], bool) or isinstance(body["t"], bool):
+        raise ValueError("notification seq and timestamp must be ints")
     return body
 
 

@@ -1,0 +1,249 @@
+"""The producer's half of the flow-control protocol, as a pure state machine (no Zenoh, no
+threads, no clock of its own): the Zenoh layer feeds it tokens, acks, puts and the time, and
+sends the notifications it returns.
+
+Theory of operation
+-------------------
+A *registration* is one subscription token, identified by everything the token says:
+``RegistrationKey(id, mode, queue size, push limit)``. The producer gives each registration
+its own epoch ``<producer epoch>.<n>`` (n counts registrations of this producer instance)
+and numbers its notifications 1, 2, ... under that epoch. Two tokens that share an id but
+disagree on mode, queue size or push limit are two registrations; a token's withdrawal
+removes only the registration with exactly its key; an ack counts only for the registration
+whose epoch it names *and* whose id matches the ack key.
+
+State per registration: ``sent`` (highest seq sent), ``acked`` (highest seq the subscriber
+has taken, cumulative), and, for flow control, the headers of the un-acked notifications
+(at most ``queue_size`` of them) so that they can be sent again.
+
+Messages in, and what they do in every state:
+
+``token_put(key)``
+    unknown key: register it (new epoch, sent = acked = 0), unless the table holds
+    ``MAX_REGISTRATIONS`` already (then counted in ``refused_registrations`` and ignored).
+    Known key (a repeat, e.g. history and live both delivering it): nothing.
+``token_delete(key)``
+    known key: remove the registration (its credits with it) and hand it back so that the
+    Zenoh layer can undeclare its publisher. Unknown key (never registered, or a token that
+    names another registration's id with another mode or size): nothing.
+``ack(id, epoch, seq)``
+    no registration with this epoch and id (a foreign, stale or forged epoch, or an id that
+    does not own the epoch): counted in ``foreign_acks``, nothing else. Otherwise
+    ``acked = max(acked, min(seq, sent))``: duplicates and reordering cannot move it back,
+    a seq beyond ``sent`` cannot move it past what was sent. An ack that moves nothing
+    while notifications are outstanding is an idle subscriber's repeat: the outstanding
+    ones are due again (a lost notification heals).
+``put(now)``
+    refused while a flow registration has ``sent - acked >= queue_size`` (``full()``);
+    otherwise every registration gets ``sent += 1`` and one ``Send``.
+``tick(now)``
+    flow registrations with outstanding notifications and no progress for
+    ``RETRANSMIT_NS`` get them again (``Send(..., again=True)``), oldest first.
+``send_failed(key, epoch, seq)``
+    the notification stays outstanding (its credit is not lost) and is due at the next tick.
+
+Properties (checked by tests/middleware/test_protocol_model.py after every step):
+- ``0 <= acked <= sent`` and, for flow control, ``sent - acked <= queue_size``;
+- the table holds at most ``MAX_REGISTRATIONS`` registrations and each at most
+  ``queue_size`` outstanding headers, whatever peers send;
+- only the subscriber that owns an epoch (or a peer allowed to ack for it, see the README's
+  trust profiles) can move its ``acked``.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Generic, TypeVar
+
+from ._records import SubscriptionInfo, SubscriptionMode
+
+# Registrations one producer keeps; tokens beyond it are ignored (and counted).
+MAX_REGISTRATIONS = 1024
+# Outstanding flow-control notifications are sent again after this long without progress.
+RETRANSMIT_NS = 500_000_000
+
+# What the Zenoh layer wants to resend with a notification (timestamp, metadata, ...).
+H = TypeVar("H")
+
+
+@dataclass(frozen=True, slots=True)
+class RegistrationKey:
+    """Everything a subscription token says: the identity of a registration."""
+
+    sub_id: str
+    mode: SubscriptionMode
+    queue_size: int
+    push_max_bytes: int
+
+    @property
+    def descriptor(self) -> str:
+        """``mode/N/push`` as in the token; notifications carry it so that a subscriber can
+        tell its own registration's notifications from those of a colliding token."""
+        return f"{self.mode.value}/{self.queue_size}/{self.push_max_bytes}"
+
+
+@dataclass(slots=True)
+class Registration(Generic[H]):
+    """One registered subscription as the producer counts it."""
+
+    key: RegistrationKey
+    epoch: str
+    sent: int = 0
+    acked: int = 0
+    # (seq, header) of un-acked flow-control notifications, oldest first.
+    outstanding: deque[tuple[int, H]] = field(default_factory=deque)
+    progress_ns: int = 0
+    # Set by a failed send or an idle subscriber's repeated ack: resend at the next tick.
+    resend_now: bool = False
+
+    @property
+    def queued(self) -> int:
+        return self.sent - self.acked
+
+    @property
+    def flow(self) -> bool:
+        return self.key.mode is SubscriptionMode.FLOW
+
+    def info(self) -> SubscriptionInfo:
+        k = self.key
+        return SubscriptionInfo(k.sub_id, k.mode, k.queue_size, self.queued)
+
+
+@dataclass(frozen=True, slots=True)
+class Send(Generic[H]):
+    """A notification to send: ``seq`` under ``epoch`` to ``key``'s subscriber."""
+
+    key: RegistrationKey
+    epoch: str
+    seq: int
+    acked: int
+    header: H
+    again: bool = False
+
+
+@dataclass(slots=True)
+class ProducerCounters:
+    """What the ledger refused or ignored, for ``info`` and the tests."""
+
+    foreign_acks: int = 0
+    refused_registrations: int = 0
+
+
+class ProducerLedger(Generic[H]):
+    """Registrations, credits and epochs of one buffer's producer. Not thread-safe: the
+    caller serialises every call (see ``Producer``'s Threads paragraph)."""
+
+    def __init__(self, epoch: str, *, max_registrations: int = MAX_REGISTRATIONS) -> None:
+        self.epoch = epoch
+        self._max = max_registrations
+        self._regs: dict[RegistrationKey, Registration[H]] = {}
+        self._by_epoch: dict[str, Registration[H]] = {}
+        self._count = 0
+        self.counters = ProducerCounters()
+
+    # -- tokens ----------------------------------------------------------------------------
+    def token_put(self, key: RegistrationKey, now_ns: int) -> Registration[H] | None:
+        """Register ``key``; the new registration, or None if known or the table is full."""
+        if key in self._regs:
+            return None
+        if len(self._regs) >= self._max:
+            self.counters.refused_registrations += 1
+            return None
+        self._count += 1
+        reg: Registration[H] = Registration(key, f"{self.epoch}.{self._count}", progress_ns=now_ns)
+        self._regs[key] = reg
+        self._by_epoch[reg.epoch] = reg
+        return reg
+
+    def token_delete(self, key: RegistrationKey) -> Registration[H] | None:
+        """Remove exactly ``key``'s registration; it is returned (None if there was none)."""
+        reg = self._regs.pop(key, None)
+        if reg is not None:
+            del self._by_epoch[reg.epoch]
+        return reg
+
+    # -- acks ------------------------------------------------------------------------------
+    def ack(self, sub_id: str, epoch: str, seq: int, now_ns: int) -> bool:
+        """Apply a cumulative ack; True if it freed credit."""
+        reg = self._by_epoch.get(epoch)
+        if reg is None or reg.key.sub_id != sub_id:
+            self.counters.foreign_acks += 1
+            return False
+        new = min(seq, reg.sent)
+        if new <= reg.acked:
+            if reg.flow and reg.sent > reg.acked and seq == reg.acked:
+                reg.resend_now = True  # an idle subscriber that lacks the rest
+            return False
+        reg.acked = new
+        while reg.outstanding and reg.outstanding[0][0] <= new:
+            reg.outstanding.popleft()
+        reg.progress_ns = now_ns
+        reg.resend_now = False
+        return True
+
+    # -- producing -------------------------------------------------------------------------
+    def full(self) -> Registration[H] | None:
+        """A flow registration whose queue is full (put must be refused), or None."""
+        for reg in self._regs.values():
+            if reg.flow and reg.queued >= reg.key.queue_size:
+                return reg
+        return None
+
+    def put(self, header: H, now_ns: int) -> list[Send[H]]:
+        """Count one stored element; the notifications to send. Call only when not full."""
+        if self.full() is not None:
+            raise RuntimeError("put while a flow-controlled queue is full")
+        sends: list[Send[H]] = []
+        for reg in self._regs.values():
+            reg.sent += 1
+            if reg.flow:
+                if not reg.outstanding:
+                    reg.progress_ns = now_ns  # the retransmit clock starts now
+                reg.outstanding.append((reg.sent, header))
+            sends.append(Send(reg.key, reg.epoch, reg.sent, reg.acked, header))
+        return sends
+
+    def send_failed(self, key: RegistrationKey, epoch: str) -> None:
+        """A notification did not leave: keep it outstanding and resend it at the next tick."""
+        reg = self._regs.get(key)
+        if reg is not None and reg.epoch == epoch and reg.flow:
+            reg.resend_now = True
+
+    def tick(self, now_ns: int) -> list[Send[H]]:
+        """Outstanding flow notifications that are due again, oldest first per registration."""
+        sends: list[Send[H]] = []
+        for reg in self._regs.values():
+            if not reg.outstanding:
+                continue
+            if not reg.resend_now and now_ns - reg.progress_ns < RETRANSMIT_NS:
+                continue
+            reg.resend_now = False
+            reg.progress_ns = now_ns  # at most one resend per period while nothing moves
+            sends.extend(
+                Send(reg.key, reg.epoch, seq, reg.acked, header, again=True)
+                for seq, header in reg.outstanding
+            )
+        return sends
+
+    # -- reading ---------------------------------------------------------------------------
+    def registrations(self) -> list[Registration[H]]:
+        return list(self._regs.values())
+
+    def get(self, key: RegistrationKey) -> Registration[H] | None:
+        return self._regs.get(key)
+
+    def by_epoch(self, epoch: str) -> Registration[H] | None:
+        return self._by_epoch.get(epoch)
+
+    def fill(self) -> float:
+        """The fullest flow registration's queued/N in [0, 1]; 0 with none."""
+        fills = [r.info().fill for r in self._regs.values() if r.flow]
+        return max(fills, default=0.0)
+
+    def clear(self) -> list[Registration[H]]:
+        """Forget every registration (the producer closes); they are returned."""
+        gone = list(self._regs.values())
+        self._regs.clear()
+        self._by_epoch.clear()
+        return gone

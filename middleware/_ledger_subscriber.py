@@ -1,0 +1,243 @@
+"""The subscriber's half of the flow-control protocol, as a pure state machine (no Zenoh, no
+threads, no clock of its own): the Zenoh layer feeds it decoded notifications, takes and
+the time, and sends the acks it returns.
+
+Theory of operation
+-------------------
+The subscriber owns one registration (its token ``id/mode/N/push``) but cannot know in
+advance which epoch the producer gave it, and over its life it may meet several: a producer
+restart or a token that lapsed and came back gives a new epoch, a second producer or a
+replay brings an old or foreign one, any peer in the trusted profile can forge one. So the
+ledger never trusts one "current" epoch: it tracks each epoch it has seen (a bounded table)
+and acks every queued notification under the epoch it came with. Nothing is thrown away
+because another epoch showed up; a foreign epoch's notifications are acked under that
+epoch, which no producer counts, so they cannot hold anybody's credit.
+
+State: the queue (at most N notifications, each tagged with its epoch and seq) and, per
+epoch, ``last`` (highest seq accepted) and ``taken`` (highest seq taken, what is acked).
+
+A notification ``(epoch, seq, acked, descriptor)``; ``acked`` is the producer's ack count
+when it was sent (the window base; absent in older headers: seq - 1):
+
+1. ``descriptor`` present and not this subscription's ``mode/N/push``: the notification
+   belongs to another registration with the same id (a colliding token): ignored,
+   counted in ``foreign``.
+2. Malformed numbers (seq < 1, acked < 0, acked >= seq): ignored, counted in ``invalid``.
+3. Unknown epoch: flow control adopts it only at the start of the producer's window
+   (``seq == acked + 1``; e.g. seq 1 of a new registration), observers at any seq.
+   Otherwise ignored (``out_of_order``): a real producer sends it again.
+   Adopting may evict the least recently used epoch with nothing queued when the table
+   is full (``max(MAX_EPOCHS, N + 1)`` entries); if every epoch has queued notifications
+   the newcomer is ignored.
+4. ``seq <= last``: a duplicate or stale copy: ignored (``duplicates``). If nothing of
+   that epoch is queued, the producer evidently missed our ack: it is repeated.
+5. Flow control, ``seq > last + 1`` (a gap) or ``seq > taken + N`` (beyond any window the
+   producer could have): ignored (``out_of_order``). A real producer resends the missing
+   ones in order (go-back-N); a forged far-future seq changes nothing.
+6. Flow control, queue already holds N: ignored (``refused``); the producer resends it once
+   the queue has room. Only another epoch's notifications can fill the queue this way, so
+   the queue never holds more than N and nothing of a conforming producer is lost.
+7. Observer: ``seq > last`` is accepted; a gap and a full queue count as ``missed``
+   (reported on the next notification taken), since observers use lossy delivery.
+8. Otherwise: queued, ``last = seq``.
+
+``take`` pops the oldest notification, sets ``taken`` of its epoch to its seq and makes an
+ack ``(epoch, seq)`` due (cumulative: it covers every earlier seq of that epoch). The ack
+policy decides when due acks leave: ``AckPolicy(every=1)`` sends each at once; a larger
+``every`` coalesces acks of queues > 1 (fewer messages, same credits once sent). While
+idle the subscriber repeats the acks of known epochs every ``reack_ns``, so a lost ack or
+a lost notification heals (the producer resends on a repeated ack that moves nothing).
+
+Properties (checked by tests/middleware/test_protocol_model.py after every step): the
+queue never exceeds N; the epoch table is bounded; a flow-controlled subscription never
+reports ``missed``; every notification of a conforming producer reaches ``take`` once.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict, deque
+from dataclasses import dataclass
+from typing import Generic, TypeVar
+
+from ._records import SubscriptionMode
+
+# Epochs tracked at least; more when the queue is larger (every queued epoch is tracked).
+MAX_EPOCHS = 8
+# An idle subscriber repeats its acks this often.
+REACK_NS = 500_000_000
+
+T = TypeVar("T")
+
+
+@dataclass(frozen=True, slots=True)
+class AckPolicy:
+    """When acks leave: after ``every`` takes of one epoch, or when the subscriber is idle.
+    ``every=1`` (the default) acks each take at once."""
+
+    every: int = 1
+    reack_ns: int = REACK_NS
+
+
+@dataclass(slots=True)
+class EpochTrack:
+    """What the subscriber knows of one epoch."""
+
+    last: int
+    taken: int
+    queued: int = 0
+    missed: int = 0  # observers: lost since the last notification taken
+    unacked_takes: int = 0
+    reack_due: bool = False
+
+
+@dataclass(frozen=True, slots=True)
+class Entry(Generic[T]):
+    """A queued notification."""
+
+    epoch: str
+    seq: int
+    item: T
+    missed: int
+
+
+@dataclass(slots=True)
+class SubscriberCounters:
+    """Notifications the ledger ignored, by reason."""
+
+    foreign: int = 0
+    invalid: int = 0
+    out_of_order: int = 0
+    duplicates: int = 0
+    refused: int = 0
+
+
+class SubscriberLedger(Generic[T]):
+    """Queue, seq tracking and ack policy of one subscription. Not thread-safe: the caller
+    serialises every call (see ``Subscription``'s Threads paragraph)."""
+
+    def __init__(
+        self,
+        mode: SubscriptionMode,
+        queue_size: int,
+        descriptor: str,
+        *,
+        policy: AckPolicy = AckPolicy(),
+        max_epochs: int = MAX_EPOCHS,
+    ) -> None:
+        if queue_size < 1:
+            raise ValueError(f"queue_size must be >= 1, got {queue_size}")
+        self.mode = mode
+        self.queue_size = queue_size
+        self.descriptor = descriptor
+        self.policy = policy
+        self._max_epochs = max(max_epochs, queue_size + 1)
+        self._queue: deque[Entry[T]] = deque()
+        self._epochs: OrderedDict[str, EpochTrack] = OrderedDict()
+        self._reacked_ns: int | None = None
+        self.missed_total = 0
+        self.counters = SubscriberCounters()
+
+    @property
+    def flow(self) -> bool:
+        return self.mode is SubscriptionMode.FLOW
+
+    def __len__(self) -> int:
+        return len(self._queue)
+
+    def epochs(self) -> dict[str, EpochTrack]:
+        return dict(self._epochs)
+
+    # -- notifications in ------------------------------------------------------------------
+    def receive(
+        self, epoch: str, seq: int, item: T, *, acked: int | None = None, descriptor: str | None
+    ) -> bool:
+        """Feed one decoded notification; True if it was queued."""
+        c = self.counters
+        if descriptor is not None and descriptor != self.descriptor:
+            c.foreign += 1
+            return False
+        base = seq - 1 if acked is None else acked
+        if seq < 1 or base < 0 or base >= seq:
+            c.invalid += 1
+            return False
+        track = self._epochs.get(epoch)
+        if track is None:
+            if self.flow and seq != base + 1:
+                c.out_of_order += 1
+                return False
+            if not self._make_room():
+                c.refused += 1
+                return False
+            track = EpochTrack(last=base, taken=base)
+            self._epochs[epoch] = track
+        self._epochs.move_to_end(epoch)
+        if seq <= track.last:
+            c.duplicates += 1
+            if track.queued == 0:
+                track.reack_due = True
+            return False
+        if self.flow:
+            if seq != track.last + 1 or seq > track.taken + self.queue_size:
+                c.out_of_order += 1
+                return False
+            if len(self._queue) >= self.queue_size:
+                c.refused += 1
+                return False
+        else:
+            gap = seq - track.last - 1
+            track.missed += gap
+            self.missed_total += gap
+            track.last = seq
+            if len(self._queue) >= self.queue_size:
+                track.missed += 1
+                self.missed_total += 1
+                return False
+        track.last = seq
+        track.queued += 1
+        self._queue.append(Entry(epoch, seq, item, track.missed))
+        track.missed = 0
+        return True
+
+    def _make_room(self) -> bool:
+        """Make room for one more epoch; False if every tracked epoch has queued entries."""
+        if len(self._epochs) < self._max_epochs:
+            return True
+        for name, track in self._epochs.items():  # least recently used first
+            if track.queued == 0:
+                del self._epochs[name]
+                return True
+        return False
+
+    # -- taking and acking -----------------------------------------------------------------
+    def take(self) -> Entry[T] | None:
+        """The oldest queued notification (it leaves the queue), or None."""
+        if not self._queue:
+            return None
+        entry = self._queue.popleft()
+        track = self._epochs[entry.epoch]
+        track.queued -= 1
+        track.taken = entry.seq
+        track.unacked_takes += 1
+        return entry
+
+    def acks_due(self, now_ns: int, *, idle: bool) -> list[tuple[str, int]]:
+        """The acks to send now: (epoch, seq) pairs, each cumulative for its epoch.
+
+        ``idle``: the caller is waiting for a notification; then every known epoch's ack is
+        repeated once per ``reack_ns``.
+        """
+        acks: list[tuple[str, int]] = []
+        repeat = idle and (
+            self._reacked_ns is None or now_ns - self._reacked_ns >= self.policy.reack_ns
+        )
+        if repeat:
+            self._reacked_ns = now_ns
+        for epoch, track in self._epochs.items():
+            due = track.unacked_takes >= self.policy.every or (
+                track.unacked_takes > 0 and (idle or track.queued == 0)
+            )
+            if due or track.reack_due or (repeat and track.taken > 0):
+                acks.append((epoch, track.taken))
+                track.unacked_takes = 0
+                track.reack_due = False
+        return acks
