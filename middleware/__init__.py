@@ -19,6 +19,7 @@ from ._errors import (
     SchemaError,
     TransportError,
 )
+from ._kinds import register_kind
 from ._node import Node, split_target
 from ._producer import Producer
 from ._records import (
@@ -68,6 +69,7 @@ __all__ = [
     "parse_time_ns",
     "parse_time_range",
     "parse_untrusted",
+    "register_kind",
     "split_target",
     "validate_metadata",
 ]

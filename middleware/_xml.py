@@ -3,10 +3,20 @@
 Metadata arrives from the network, so it is treated as hostile: no DTD (hence no entity
 expansion, no XXE, no billion laughs), no network access, bounded size and depth. The
 document must then pass the common envelope and its kind's XSD from ``schemas/``.
+
+Values are read the way the XSD saw them. Every field of a framegate kind is a number, a
+token or a list, whose XSD whitespace rule is *collapse* (tabs and newlines become spaces,
+runs become one, the ends are trimmed), so ``<encoding> mono8 </encoding>`` is valid and
+means ``mono8``. ``validate_metadata`` therefore collapses the text of a validated tree in
+place (except ``generic`` content, which is free-form), and ``field_text`` collapses what it
+returns. Comments and processing instructions are dropped while parsing (a comment inside a
+value joins the text around it, as the XSD saw it); prefixes are only names for the
+namespace, so ``<fg:metadata xmlns:fg="urn:framegate:1">`` reads like the default form.
 """
 
 from __future__ import annotations
 
+import re
 import threading
 from dataclasses import dataclass
 from functools import cache
@@ -20,6 +30,13 @@ from ._errors import SchemaError
 
 NAMESPACE = schemas.NAMESPACE
 _NS = "{" + NAMESPACE + "}"
+# XML Schema's whitespace: space, tab, newline, carriage return (not NBSP or other Unicode).
+_XSD_WHITESPACE = re.compile(r"[ \t\n\r]+")
+
+
+def collapse_whitespace(text: str) -> str:
+    """XSD's ``collapse`` whitespace rule: runs of XML whitespace become one space, ends trimmed."""
+    return _XSD_WHITESPACE.sub(" ", text).strip(" ")
 
 
 @dataclass(frozen=True, slots=True)
@@ -96,7 +113,7 @@ def _check_depth(root: Any, max_depth: int) -> None:
 
 @cache
 def _schema(name: str) -> etree.XMLSchema:
-    path = schemas.SCHEMA_DIR / f"{name}.xsd"
+    path = schemas.schema_path(name)
     if not path.is_file():
         raise SchemaError(
             f"unknown metadata kind {name!r}; known kinds: {', '.join(schemas.kinds())}"
@@ -130,11 +147,22 @@ def validate_metadata(
     if root.tag != _NS + "metadata":
         raise SchemaError(f"metadata root must be <metadata xmlns={NAMESPACE!r}>, got {root.tag!r}")
     _validate("envelope", root)
-    declared = root.get("kind")
+    declared = collapse_whitespace(root.get("kind") or "")
     if kind is not None and declared != kind:
         raise SchemaError(f"metadata declares kind {declared!r} but this buffer holds {kind!r}")
     _validate(declared, root)
+    if declared != "generic":
+        _collapse_tree(root)
     return root
+
+
+def _collapse_tree(root: Any) -> None:
+    """Make every attribute and leaf text of a validated tree read as the XSD saw it."""
+    for element in root.iter():
+        for name, value in element.attrib.items():
+            element.set(name, collapse_whitespace(value))
+        if len(element) == 0 and element.text is not None:
+            element.text = collapse_whitespace(element.text)
 
 
 def metadata_timestamp_ns(root: Any) -> int:
@@ -183,10 +211,13 @@ def _text(value: Any) -> str:
 
 
 def field_text(root: Any, path: str) -> str | None:
-    """Text of a child element by slash-separated local names (namespace added), or None."""
+    """Text of a child element by slash-separated local names (namespace added), or None.
+
+    The text is whitespace-collapsed as the XSD saw it (`` mono8 `` reads ``mono8``).
+    """
     element = root
     for part in path.split("/"):
         element = element.find(_NS + part)
         if element is None:
             return None
-    return str(element.text) if element.text is not None else ""
+    return collapse_whitespace(str(element.text)) if element.text is not None else ""

@@ -1,0 +1,52 @@
+"""Offer a buffer and put one element per period: ``python examples/offer.py``.
+
+The service ``example`` offers ``example/counter``. While a flow-controlled subscriber's
+queue is full the put is refused; this producer may lose nothing, so it waits (``wait_s``)
+instead of dropping, as a replayed log would. A camera would drop the frame and count it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+from middleware import (
+    FlowControlRefused,
+    NetworkConfig,
+    Node,
+    add_network_arguments,
+    make_metadata,
+    network_from_args,
+)
+
+
+def main(network: NetworkConfig, *, count: int, period_s: float, wait_s: float) -> int:
+    with Node("example", network) as node:
+        counter = node.offer("counter", kind="generic")
+        for i in range(count):
+            timestamp_ns = time.time_ns()
+            try:
+                counter.put(
+                    timestamp_ns,
+                    f"value {i}".encode(),
+                    make_metadata("generic", timestamp_ns),
+                    wait_s=wait_s,
+                )
+            except FlowControlRefused as exc:
+                print(f"refused {i}: {exc}", flush=True)
+                continue
+            print(f"put {i} at {timestamp_ns}", flush=True)
+            time.sleep(period_s)
+    return 0
+
+
+if __name__ == "__main__":
+    parser = argparse.ArgumentParser(prog="offer", description=__doc__.splitlines()[0])
+    add_network_arguments(parser)
+    parser.add_argument("--count", type=int, default=10, help="elements to put (10)")
+    parser.add_argument("--period-s", type=float, default=0.1, help="between puts (0.1 s)")
+    parser.add_argument("--wait-s", type=float, default=5.0, help="wait when refused (5 s)")
+    args = parser.parse_args()
+    raise SystemExit(
+        main(network_from_args(args), count=args.count, period_s=args.period_s, wait_s=args.wait_s)
+    )

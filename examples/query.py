@@ -1,0 +1,29 @@
+"""Query a buffer by time: ``python examples/query.py example/counter --range "[now(-10s)..]"``.
+
+The range uses Zenoh's time-range syntax (``[a..b]``, open ends, ``now(-2s)``, RFC 3339,
+or integer nanoseconds since the epoch).
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from middleware import NetworkConfig, Node, add_network_arguments, network_from_args
+
+
+def main(network: NetworkConfig, target: str, *, time_range: str) -> int:
+    with Node(network=network) as node:
+        elements = node.query(target, time_range=time_range)
+        for element in elements:
+            print(f"{element.timestamp_ns}: {element.payload.decode(errors='replace')!r}")
+        print(f"{len(elements)} elements", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    parser = argparse.ArgumentParser(prog="query", description=__doc__.splitlines()[0])
+    add_network_arguments(parser)
+    parser.add_argument("target", nargs="?", default="example/counter", help="SERVICE/BUFFER")
+    parser.add_argument("--range", default="[now(-60s)..]", help="time range ([now(-60s)..])")
+    args = parser.parse_args()
+    raise SystemExit(main(network_from_args(args), args.target, time_range=args.range))

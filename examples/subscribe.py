@@ -1,0 +1,47 @@
+"""Subscribe to a buffer with flow control: ``python examples/subscribe.py example/counter``.
+
+A notification stays in this subscriber's queue until it is taken, so a slow consumer
+(``--delay-s``) holds the producer back instead of losing elements.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+from middleware import NetworkConfig, Node, add_network_arguments, network_from_args
+
+
+def main(network: NetworkConfig, target: str, *, count: int, queue: int, delay_s: float) -> int:
+    with Node(network=network) as node:
+        sub = node.subscribe(target, queue_size=queue, wait_s=5.0)
+        taken = 0
+        while taken < count:
+            note = sub.take(timeout_s=10.0)
+            if note is None:
+                print("no notification within 10 s", flush=True)
+                return 1
+            element = sub.fetch(note)
+            print(f"took {note.timestamp_ns}: {element.payload.decode()!r}", flush=True)
+            taken += 1
+            time.sleep(delay_s)  # stands in for the work done on each element
+    return 0
+
+
+if __name__ == "__main__":
+    parser = argparse.ArgumentParser(prog="subscribe", description=__doc__.splitlines()[0])
+    add_network_arguments(parser)
+    parser.add_argument("target", nargs="?", default="example/counter", help="SERVICE/BUFFER")
+    parser.add_argument("--count", type=int, default=10, help="notifications to take (10)")
+    parser.add_argument("--queue", type=int, default=2, help="queue size N (2)")
+    parser.add_argument("--delay-s", type=float, default=0.0, help="work per element (0 s)")
+    args = parser.parse_args()
+    raise SystemExit(
+        main(
+            network_from_args(args),
+            args.target,
+            count=args.count,
+            queue=args.queue,
+            delay_s=args.delay_s,
+        )
+    )
