@@ -3,9 +3,27 @@
 The file layout is described in ``services.tools.bag._format``: one lossless ``framegate.Element``
 channel per buffer (msgpack of timestamp, payload and metadata XML, with the buffer's kind
 and retention in the channel metadata) and, for raw camera frames, a ``foxglove.RawImage``
-channel that Foxglove shows as images.
+channel that Foxglove shows as images. ``_derived`` adds the Foxglove channels a viewer draws
+and plots (verdict and detection annotations, verdict and gyro-rate plots), which ``record``
+writes and ``view`` streams live under the same topics.
 """
 
+from ._derived import (
+    DerivedMessage,
+    DerivedTopic,
+    Deriver,
+    Marker,
+    annotations_topic,
+    derived_topics,
+    detection_annotations,
+    metadata_json,
+    metadata_topic,
+    rates_topic,
+    read_markers,
+    verdict_annotations,
+    verdict_json,
+    verdict_topic,
+)
 from ._format import (
     ELEMENT_MESSAGE_ENCODING,
     ELEMENT_SCHEMA_ENCODING,
@@ -33,15 +51,29 @@ __all__ = [
     "Bag",
     "BagError",
     "BagWriter",
+    "DerivedMessage",
+    "DerivedTopic",
+    "Deriver",
     "FrameLayout",
+    "Marker",
     "RecordedBuffer",
+    "annotations_topic",
     "decode_element",
+    "derived_topics",
+    "detection_annotations",
     "element_topic",
     "encode_element",
     "frame_layout",
     "image_topic",
+    "metadata_json",
     "metadata_kind",
+    "metadata_topic",
     "open_bag",
+    "rates_topic",
+    "read_markers",
     "shift_element",
     "timestamp_fields",
+    "verdict_annotations",
+    "verdict_json",
+    "verdict_topic",
 ]

@@ -13,6 +13,9 @@ For each recorded buffer ``service/buffer``:
   ``/service/buffer/image``, message encoding ``json``, schema ``foxglove.RawImage``
   (``jsonschema``), so Foxglove's Image panel shows the frames. It is derived data
   (``framegate.role`` = ``image``); ``play`` ignores it.
+* for kinds ``decision``, ``detections`` and ``gyro``: the derived Foxglove channels of
+  ``_derived`` (``/service/buffer/annotations``, ``/verdict``, ``/rates``), with
+  ``framegate.role`` naming what they are; ``play`` ignores them too.
 
 Every message has log_time = publish_time = the element's ``timestamp_ns``.
 """

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
@@ -12,6 +12,7 @@ from mcap.writer import CompressionType, Writer
 
 from middleware import DataObject, Retention
 
+from ._derived import DerivedMessage, Deriver
 from ._format import (
     ELEMENT_MESSAGE_ENCODING,
     ELEMENT_SCHEMA_ENCODING,
@@ -40,16 +41,22 @@ COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none"
 class _Channels:
     service: str
     element_id: int
+    frame: bool = False
     image_id: int | None = None
     messages: int = 0
     images: int = 0
+    deriver: Deriver | None = None
+    derived_ids: dict[str, int] = field(default_factory=dict)
+    derived: int = 0
 
 
 class BagWriter:
     """Records elements of several buffers into one MCAP file. Thread-safe.
 
     Use as a context manager, or call ``close``: only a closed file has the summary
-    section readers use to find channels and messages quickly.
+    section readers use to find channels and messages quickly. With ``annotations`` (the
+    default) it also writes the derived Foxglove channels of ``_derived`` (verdict and
+    detection annotations, the verdict and gyro-rate plots).
     """
 
     def __init__(
@@ -57,6 +64,7 @@ class BagWriter:
         path: Path,
         *,
         images: bool = True,
+        annotations: bool = True,
         compression: str = "zstd",
         overwrite: bool = False,
         library: str = "framegate",
@@ -67,6 +75,10 @@ class BagWriter:
             raise BagError(f"{path} exists; choose another file or remove it first")
         self.path = path
         self._images = images
+        self._annotations = annotations
+        # The newest raw frame's (width, height): verdict borders are drawn to that size.
+        self._frame_size_px: tuple[int, int] | None = None
+        self._schema_ids: dict[str, int] = {}
         try:
             self._stream: IO[bytes] = open(path, "wb")  # noqa: SIM115 - closed in close()
         except OSError as exc:
@@ -98,7 +110,7 @@ class BagWriter:
                 self._element_schema,
                 channel_metadata(service, buffer, kind, retention),
             )
-            channels = _Channels(service, element_id)
+            channels = _Channels(service, element_id, frame=kind == "frame")
             if self._images and kind == "frame":
                 if self._image_schema is None:
                     self._image_schema = self._writer.register_schema(
@@ -112,7 +124,29 @@ class BagWriter:
                     self._image_schema,
                     {KEY_ROLE: "image", KEY_SOURCE: element_topic(service, buffer)},
                 )
+            if self._annotations:
+                self._add_derived(channels, service, buffer, kind)
             self._channels[name] = channels
+
+    def _add_derived(self, channels: _Channels, service: str, buffer: str, kind: str) -> None:
+        """Register the buffer's derived channels (called under the lock)."""
+        deriver = Deriver(service, buffer, kind)
+        for topic in deriver.topics:
+            schema_id = 0  # schemaless JSON
+            if topic.schema_name is not None:
+                if topic.schema_name not in self._schema_ids:
+                    self._schema_ids[topic.schema_name] = self._writer.register_schema(
+                        topic.schema_name, topic.schema_encoding, topic.schema_data
+                    )
+                schema_id = self._schema_ids[topic.schema_name]
+            channels.derived_ids[topic.topic] = self._writer.register_channel(
+                topic.topic,
+                topic.message_encoding,
+                schema_id,
+                {KEY_ROLE: topic.role, KEY_SOURCE: element_topic(service, buffer)},
+            )
+        if deriver.topics:
+            channels.deriver = deriver
 
     def write(self, name: str, element: DataObject) -> None:
         """Append one element of ``service/buffer`` (declared with ``add_buffer``)."""
@@ -122,10 +156,15 @@ class BagWriter:
         if channels is None:
             raise BagError(f"buffer {name!r} was not declared with add_buffer")
         image: bytes | None = None
-        if channels.image_id is not None:
+        if channels.frame and (channels.image_id is not None or self._annotations):
             layout = frame_layout(element.metadata, len(element.payload))
             if layout is not None:
-                image = encode_raw_image(element, layout, frame_id=channels.service)
+                self._frame_size_px = (layout.width_px, layout.height_px)
+                if channels.image_id is not None:
+                    image = encode_raw_image(element, layout, frame_id=channels.service)
+        derived: list[DerivedMessage] = []
+        if channels.deriver is not None:
+            derived = channels.deriver.derive(element, frame_size_px=self._frame_size_px)
         t = element.timestamp_ns
         with self._lock:
             if self._closed:
@@ -133,6 +172,15 @@ class BagWriter:
             channels.messages += 1
             try:
                 self._add(channels, t, data, image)
+                for message in derived:
+                    channels.derived += 1
+                    self._writer.add_message(
+                        channels.derived_ids[message.topic],
+                        log_time=message.log_time_ns,
+                        data=message.data,
+                        publish_time=message.log_time_ns,
+                        sequence=channels.derived & 0xFFFFFFFF,
+                    )
             except OSError as exc:
                 raise BagError(f"cannot write {self.path}: {exc.strerror or exc}") from exc
 
@@ -164,6 +212,11 @@ class BagWriter:
         """``service/buffer`` → (element messages, image messages) written so far."""
         with self._lock:
             return {name: (c.messages, c.images) for name, c in self._channels.items()}
+
+    def derived_counts(self) -> dict[str, int]:
+        """``service/buffer`` → derived messages (annotations, plots) written so far."""
+        with self._lock:
+            return {name: c.derived for name, c in self._channels.items()}
 
     def close(self) -> None:
         """Write the summary and close the file."""
