@@ -1,11 +1,20 @@
 from __future__ import annotations
 
+import math
+
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
 import schemas
-from middleware import SchemaError, XmlLimits, make_metadata, parse_untrusted, validate_metadata
+from middleware import (
+    SchemaError,
+    XmlLimits,
+    field_text,
+    make_metadata,
+    parse_untrusted,
+    validate_metadata,
+)
 
 NS = 'xmlns="urn:framegate:1"'
 
@@ -122,3 +131,135 @@ def test_arbitrary_bytes_parse_or_raise_schema_error(data: bytes) -> None:
         validate_metadata(data)
     except SchemaError:
         pass
+
+
+FRAME = {
+    "frame_id": 1,
+    "exposure_start_ns": 5,
+    "exposure_ns": 60_000_000,
+    "encoding": "mono8",
+    "width_px": 2,
+    "height_px": 2,
+}
+CAMERA = {
+    "width_px": 2,
+    "height_px": 2,
+    "fx_px": 500.0,
+    "fy_px": 500.0,
+    "cx_px": 1.0,
+    "cy_px": 1.0,
+    "line_readout_ns": 0,
+    "gyro_to_camera": [1, 0, 0, 0, 1, 0, 0, 0, 1],
+    "gyro_time_offset_ns": 0,
+}
+GYRO = {"count": 1, "first_ns": 1, "last_ns": 1, "rate_hz": 200.0, "layout": "i8,f8,f8,f8"}
+DECISION = {
+    "frame_timestamp_ns": 5,
+    "frame_id": 1,
+    "blur_px": 1.5,
+    "quality": 0.5,
+    "load": 0.2,
+    "accepted": True,
+    "reason": "accepted",
+    "policy": "immediate",
+    "b0_px": 2.0,
+    "latency_ns": 3,
+}
+SPACED_FRAME = (
+    '<fg:metadata xmlns:fg="urn:framegate:1" kind=" frame " timestamp_ns=" 5 ">'
+    "<fg:frame_id>\n 1\t</fg:frame_id><fg:exposure_start_ns>5</fg:exposure_start_ns>"
+    "<fg:exposure_ns>6<!-- a comment -->0</fg:exposure_ns>"
+    "<fg:encoding><![CDATA[ mono8 ]]></fg:encoding>"
+    "<fg:width_px>&#32;2</fg:width_px><fg:height_px>2<?pi x?></fg:height_px></fg:metadata>"
+)
+
+
+def test_values_read_as_the_xsd_saw_them() -> None:
+    # Whitespace, a comment inside a value, CDATA, a character reference, a prefix and a
+    # processing instruction: all valid, and every reader sees the collapsed values.
+    root = validate_metadata(SPACED_FRAME, "frame")
+    fields = {name: field_text(root, name) for name in FRAME}
+    assert fields == {**{k: str(v) for k, v in FRAME.items()}, "exposure_ns": "60"}
+    assert root.get("kind") == "frame" and root.get("timestamp_ns") == "5"
+    assert root.findtext("{urn:framegate:1}encoding") == "mono8"
+
+
+def test_field_text_collapses_an_unvalidated_tree_too() -> None:
+    root = parse_untrusted(SPACED_FRAME)
+    assert field_text(root, "encoding") == "mono8"
+    assert field_text(root, "frame_id") == "1"
+
+
+def test_non_breaking_space_is_not_xml_whitespace() -> None:
+    with pytest.raises(SchemaError, match=r"frame\.xsd.*encoding"):
+        validate_metadata(make_metadata("frame", 5, {**FRAME, "encoding": "mono8\u00a0"}))
+
+
+def test_generic_content_is_left_as_sent() -> None:
+    root = validate_metadata(make_metadata("generic", 1, {"note": "  two  spaces "}), "generic")
+    assert root.findtext("{urn:framegate:1}note") == "  two  spaces "
+
+
+@pytest.mark.parametrize("value", ["NaN", "INF", "-INF", "1e400", "-1e999"])
+@pytest.mark.parametrize(
+    ("kind", "fields", "path"),
+    [
+        ("frame", {**FRAME, "camera": CAMERA}, ("camera", "fx_px")),
+        ("frame", {**FRAME, "camera": CAMERA}, ("camera", "cy_px")),
+        ("camera", {"camera": CAMERA}, ("camera", "gyro_to_camera")),
+        ("gyro", GYRO, ("rate_hz",)),
+        ("decision", DECISION, ("blur_px",)),
+        ("decision", DECISION, ("quality",)),
+        ("decision", DECISION, ("b0_px",)),
+    ],
+)
+def test_non_finite_numbers_are_refused(
+    kind: str, fields: dict[str, object], path: tuple[str, ...], value: str
+) -> None:
+    validate_metadata(make_metadata(kind, 5, fields), kind)  # the good one passes
+    bad = _with(fields, path, value if path[-1] != "gyro_to_camera" else f"1 0 0 0 {value} 0 0 0 1")
+    with pytest.raises(SchemaError, match=rf"{kind}\.xsd.*{path[-1]}"):
+        validate_metadata(make_metadata(kind, 5, bad), kind)
+
+
+@pytest.mark.parametrize(
+    ("kind", "fields", "path", "value"),
+    [
+        ("frame", FRAME, ("exposure_ns",), 0),
+        ("frame", FRAME, ("width_px",), 0),
+        ("frame", FRAME, ("height_px",), 65_536),
+        ("frame", FRAME, ("width_px",), 10**30),
+        ("frame", {**FRAME, "camera": CAMERA}, ("camera", "fy_px"), 0.0),
+        ("frame", {**FRAME, "camera": CAMERA}, ("camera", "fx_px"), "1e-400"),
+        ("gyro", GYRO, ("count",), 10**12),
+        ("gyro", GYRO, ("rate_hz",), -200.0),
+        ("decision", DECISION, ("blur_px",), -1.0),
+        ("decision", DECISION, ("load",), 1.5),
+        ("camera", {"camera": CAMERA, "frame_period_ns": 1}, ("frame_period_ns",), 0),
+    ],
+)
+def test_sizes_exposures_and_rates_that_cannot_be_are_refused(
+    kind: str, fields: dict[str, object], path: tuple[str, ...], value: object
+) -> None:
+    validate_metadata(make_metadata(kind, 5, fields), kind)
+    with pytest.raises(SchemaError, match=rf"{kind}\.xsd.*{path[-1]}"):
+        validate_metadata(make_metadata(kind, 5, _with(fields, path, value)), kind)
+
+
+@given(st.floats(allow_nan=True, allow_infinity=True))
+def test_a_focal_length_is_valid_exactly_when_finite_and_positive(fx_px: float) -> None:
+    doc = make_metadata("camera", 5, {"camera": {**CAMERA, "fx_px": fx_px}})
+    if math.isfinite(fx_px) and fx_px > 0:
+        root = validate_metadata(doc, "camera")
+        assert float(field_text(root, "camera/fx_px") or "nan") == fx_px
+    else:
+        with pytest.raises(SchemaError, match="fx_px"):
+            validate_metadata(doc, "camera")
+
+
+def _with(fields: dict[str, object], path: tuple[str, ...], value: object) -> dict[str, object]:
+    if len(path) == 1:
+        return {**fields, path[0]: value}
+    inner = fields[path[0]]
+    assert isinstance(inner, dict)
+    return {**fields, path[0]: _with(inner, path[1:], value)}
