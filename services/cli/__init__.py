@@ -24,6 +24,7 @@ _COMMANDS = (
     "query",
     "watch",
     "hz",
+    "view",
     "record",
     "play",
     "router",

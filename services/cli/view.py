@@ -1,0 +1,113 @@
+"""``framegate view``: stream the running pipeline to Foxglove (WebSocket, ws://127.0.0.1:8765)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Any
+
+from services.tools.view import (
+    DEFAULT_BACKLOG,
+    DEFAULT_HOST,
+    DEFAULT_PORT,
+    DEFAULT_QUEUE,
+    Status,
+    ViewConfig,
+    parse_target,
+    run_view,
+)
+
+from ._common import command_parser, network, stop_on_signals
+from ._target import add_timeout_argument, print_json_line
+
+
+def register(subparsers: Any) -> None:
+    parser = command_parser(
+        subparsers,
+        "view",
+        "stream buffers live to Foxglove, with the mediator's verdicts and the detections "
+        "drawn on the frames (observing: never slows the pipeline)",
+        json_flag=True,
+    )
+    parser.add_argument(
+        "targets",
+        nargs="*",
+        metavar="SERVICE/BUFFER",
+        help="buffers (or whole services) to stream; default: every live buffer",
+    )
+    parser.add_argument("--port", type=int, default=DEFAULT_PORT, help="WebSocket port (0: any)")
+    parser.add_argument(
+        "--host",
+        default=DEFAULT_HOST,
+        help=f"address to listen on (default {DEFAULT_HOST}; 0.0.0.0 exposes the camera)",
+    )
+    parser.add_argument(
+        "--jpeg",
+        type=int,
+        metavar="QUALITY",
+        help="send frames as JPEG (foxglove.CompressedImage) of this quality, 1-100",
+    )
+    parser.add_argument(
+        "--queue", type=int, default=DEFAULT_QUEUE, metavar="N", help="observer queue per buffer"
+    )
+    parser.add_argument(
+        "--backlog",
+        type=int,
+        default=DEFAULT_BACKLOG,
+        metavar="N",
+        help="messages buffered per client before its oldest are dropped",
+    )
+    parser.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+    add_timeout_argument(parser)
+    parser.epilog = (
+        "Open Foxglove, choose 'Open connection', 'Foxglove WebSocket', ws://127.0.0.1:8765, "
+        "and import deploy/foxglove-layout.json. --json prints the status as JSON Lines."
+    )
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    for target in args.targets:
+        parse_target(target)  # a misspelt name fails now, not silently never
+    config = ViewConfig(
+        targets=tuple(args.targets),
+        host=args.host,
+        port=args.port,
+        jpeg_quality=args.jpeg,
+        queue=args.queue,
+        backlog=args.backlog,
+        duration_s=args.duration,
+        discovery_timeout_s=args.timeout,
+    )
+    stop = stop_on_signals()
+    tty = sys.stdout.isatty() and not args.json
+
+    def started(url: str) -> None:
+        if config.exposed:
+            print(
+                f"warning: listening on {config.host}: anyone who can reach this machine on "
+                f"port {url.rsplit(':', 1)[1]} can watch the camera",
+                file=sys.stderr,
+                flush=True,
+            )
+        if args.json:
+            print_json_line({"event": "listening", "url": url})
+        else:
+            print(f"serving Foxglove on {url}; Ctrl-C to stop", flush=True)
+
+    def report(status: Status) -> None:
+        if args.json:
+            print_json_line(status.json())
+        else:
+            print(("\r\x1b[K" if tty else "") + status.line(), end="" if tty else "\n", flush=True)
+
+    counters = run_view(config, network(args), stop=stop, report=report, started=started)
+    if tty:
+        print()
+    published = sum(counters.published.values())
+    missed = sum(counters.missed.values())
+    if args.json:
+        print_json_line({"event": "stopped", "published": published, "missed": missed})
+    else:
+        print(f"stopped: {published} messages published, {missed} notifications missed")
+    return 0

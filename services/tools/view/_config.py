@@ -1,0 +1,58 @@
+"""What ``framegate view`` streams, and where it listens."""
+
+from __future__ import annotations
+
+import ipaddress
+from dataclasses import dataclass
+
+from middleware import ConfigError
+
+DEFAULT_PORT = 8765
+DEFAULT_HOST = "127.0.0.1"
+# Observer queue per buffer: a viewer that falls behind misses notifications (counted)
+# rather than holding anything back; a few frames absorb a scheduling hiccup.
+DEFAULT_QUEUE = 4
+# Messages the Foxglove server buffers per client before it drops that client's oldest
+# ones. 64 is about a second of the demo's traffic, and at most ~80 MB of raw frames.
+DEFAULT_BACKLOG = 64
+
+
+@dataclass(frozen=True, slots=True)
+class ViewConfig:
+    """``targets`` empty: every buffer of every live service, including ones that come later."""
+
+    targets: tuple[str, ...] = ()
+    host: str = DEFAULT_HOST
+    port: int = DEFAULT_PORT
+    jpeg_quality: int | None = None
+    queue: int = DEFAULT_QUEUE
+    backlog: int = DEFAULT_BACKLOG
+    status_interval_s: float = 1.0
+    discover_interval_s: float = 2.0
+    duration_s: float | None = None
+    discovery_timeout_s: float = 3.0
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.port <= 65535:
+            raise ConfigError(f"--port {self.port}: must be 0..65535 (0: any free port)")
+        if self.jpeg_quality is not None and not 1 <= self.jpeg_quality <= 100:
+            raise ConfigError(f"--jpeg {self.jpeg_quality}: JPEG quality must be 1..100")
+        if self.queue < 1:
+            raise ConfigError(f"--queue {self.queue}: must be >= 1")
+        if self.backlog < 1:
+            raise ConfigError(f"--backlog {self.backlog}: must be >= 1")
+        if self.duration_s is not None and self.duration_s <= 0:
+            raise ConfigError(f"--duration {self.duration_s}: must be > 0 seconds")
+
+    @property
+    def images(self) -> str:
+        """How frames travel: ``raw`` (foxglove.RawImage) or ``jpeg`` (CompressedImage)."""
+        return "raw" if self.jpeg_quality is None else "jpeg"
+
+    @property
+    def exposed(self) -> bool:
+        """Whether the server listens beyond this machine (a warning-worthy choice)."""
+        try:
+            return not ipaddress.ip_address(self.host).is_loopback
+        except ValueError:
+            return self.host != "localhost"

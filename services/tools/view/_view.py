@@ -1,0 +1,94 @@
+"""``framegate view``: the running pipeline, live in Foxglove.
+
+The main loop finds the buffers to stream (the named ones, or every live buffer, again
+every few seconds so a pipeline started after the viewer appears too), starts one
+``BufferStream`` per buffer and reports the status once per interval, until ``stop`` is
+set. Stopping joins every stream (each wakes within 0.2 s), stops the server and closes the
+Zenoh session.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+
+from middleware import BufferInfo, FramegateError, NetworkConfig, Node, check_name, split_target
+
+from ._config import ViewConfig
+from ._server import FoxgloveServer
+from ._status import Counters, Status
+from ._stream import BufferStream, FrameSizes
+
+
+def parse_target(target: str) -> tuple[str, str | None]:
+    """``SERVICE/BUFFER`` or a bare ``SERVICE`` (all its buffers); errors name the mistake."""
+    target = target.strip("/")
+    if "/" in target:
+        return split_target(target)
+    return check_name(target, "service"), None
+
+
+def _find(node: Node, config: ViewConfig) -> list[BufferInfo]:
+    """The buffers to stream that are live now (a named one that is not yet live waits)."""
+    try:
+        services = node.services(timeout_s=1.0)
+    except FramegateError:
+        return []
+    live = {b.name: b for s in services for b in s.buffers}
+    if not config.targets:
+        return list(live.values())
+    chosen = []
+    for target in config.targets:
+        service, buffer = parse_target(target)
+        if buffer is not None:
+            if f"{service}/{buffer}" in live:
+                chosen.append(live[f"{service}/{buffer}"])
+        else:  # a bare SERVICE names all its buffers
+            chosen += [b for b in live.values() if b.service == service]
+    return chosen
+
+
+def run_view(
+    config: ViewConfig,
+    network: NetworkConfig,
+    *,
+    stop: threading.Event,
+    report: Callable[[Status], None],
+    started: Callable[[str], None] = lambda _url: None,
+) -> Counters:
+    """Serve until ``stop`` is set (or ``config.duration_s`` passes); the final counters."""
+    counters = Counters()
+    sizes = FrameSizes()
+    streams: dict[str, BufferStream] = {}
+    server = FoxgloveServer(config, counters)
+    try:
+        with Node(network=network) as node:
+            started(server.url)
+            deadline = None if config.duration_s is None else time.monotonic() + config.duration_s
+            next_find = next_status = time.monotonic()
+            counters.snapshot(server.url, next_status)  # the zero point of the first rates
+            next_status += config.status_interval_s
+            try:
+                while not stop.is_set():
+                    now = time.monotonic()
+                    if deadline is not None and now >= deadline:
+                        break
+                    if now >= next_find:
+                        for buffer in _find(node, config):
+                            if buffer.name not in streams:
+                                streams[buffer.name] = BufferStream(
+                                    node, buffer, config, server, counters, sizes, stop
+                                )
+                        next_find = time.monotonic() + config.discover_interval_s
+                    if now >= next_status:
+                        report(counters.snapshot(server.url, now))
+                        next_status += config.status_interval_s
+                    stop.wait(max(0.0, min(next_find, next_status) - time.monotonic()))
+            finally:
+                stop.set()
+                for stream in streams.values():
+                    stream.close()
+    finally:
+        server.stop()
+    return counters
