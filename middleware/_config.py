@@ -4,33 +4,48 @@ The embedded default needs no router and no multicast: the first framegate proce
 host listens on ``tcp/127.0.0.1:<local_port>`` (7447), later ones listen on a free loopback
 port and connect to it; Zenoh's gossip then meshes them, so the first one may exit.
 If a Zenoh router already holds that port, everyone simply connects to it.
+
+Listening is loopback-only unless asked for. Zenoh's own peer default is ``tcp/[::]:0``,
+every interface; a framegate process given only ``--connect`` (or a config file that names
+no listen endpoints) instead listens on ``tcp/127.0.0.1:0``: local peers still mesh through
+gossip (peers do not forward for each other, so each must be reachable), and nothing on the
+network can open a connection to it. Listening wider takes an explicit ``--listen``,
+``FRAMEGATE_LISTEN``, deploy-file ``listen`` or config-file ``listen/endpoints``.
+``listening_endpoints()`` reports what a process actually listens on (``framegate ls``).
 """
 
 from __future__ import annotations
 
 import argparse
+import ipaddress
 import json
 import os
 import re
+import socket
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+import psutil
 import zenoh
 
 from ._errors import ConfigError
 
-_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.\-]*$")
+# Matched with fullmatch: "$" alone would also accept a trailing newline ("camera\n").
+_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.\-]*")
 DEFAULT_NAMESPACE = "framegate"
 DEFAULT_LOCAL_PORT = 7447
+# Where a process listens when nothing asks for more: loopback, so no other host can reach it.
+LOOPBACK_PEER_LISTEN = "tcp/127.0.0.1:0"
+LOOPBACK_ROUTER_LISTEN = f"tcp/127.0.0.1:{DEFAULT_LOCAL_PORT}"
 
 
 def check_name(value: str, what: str) -> str:
     """A service, buffer or namespace name must be one plain key-expression chunk."""
-    if not _NAME.match(value):
+    if not _NAME.fullmatch(value):
         raise ConfigError(
             f"bad {what} name {value!r}: use letters, digits, '_', '.', '-' "
-            "(no '/', '*', '$', '@', '?', '#', spaces)"
+            "(no '/', '*', '$', '@', '?', '#', spaces or control characters)"
         )
     return value
 
@@ -153,6 +168,8 @@ class NetworkConfig:
                 settings.append(("transport/shared_memory/enabled", False))
         if listen:
             settings.append(("listen/endpoints", listen))
+        elif (default_listen := _loopback_listen(conf, self.mode)) is not None:
+            settings.append(("listen/endpoints", default_listen))
         if connect:
             settings.append(("connect/endpoints", connect))
         for key, value in settings:
@@ -160,6 +177,73 @@ class NetworkConfig:
         for key, raw in self.extra:
             _insert_raw(conf, key, raw)
         return conf
+
+
+def _loopback_listen(conf: zenoh.Config, mode: str) -> list[str] | None:
+    """Loopback endpoints to listen on when nothing asked, or None to leave ``conf`` alone.
+
+    None when a config file names its own listen endpoints (it asked) or the process is a
+    client (clients never listen). A file that allows only other protocols (e.g. TLS) gets
+    no listener at all rather than a plain-TCP one.
+    """
+    if _get(conf, "listen/endpoints") != _get(_DEFAULTS, "listen/endpoints"):
+        return None
+    effective = mode if mode != "peer" else (_get(conf, "mode") or "peer")
+    if effective == "client":
+        return None
+    protocols = _get(conf, "transport/link/protocols")
+    if isinstance(protocols, list) and "tcp" not in protocols:
+        return []
+    return [LOOPBACK_ROUTER_LISTEN if effective == "router" else LOOPBACK_PEER_LISTEN]
+
+
+_DEFAULTS = zenoh.Config()
+
+
+def _get(conf: zenoh.Config, key: str) -> Any:
+    try:
+        return json.loads(conf.get_json(key))
+    except (zenoh.ZError, ValueError):
+        return None
+
+
+def listening_endpoints() -> list[str]:
+    """What this process listens on, as Zenoh endpoints (``tcp/127.0.0.1:7447``), sorted.
+
+    Read from the operating system (every listening TCP socket and unconnected UDP socket of
+    the process), not from the configuration, so a listener nobody meant to open shows too.
+    """
+    process = psutil.Process()
+    connections = getattr(process, "net_connections", process.connections)
+    found: set[str] = set()
+    try:
+        sockets = connections(kind="inet")
+    except psutil.Error:
+        return []
+    for conn in sockets:
+        if not conn.laddr:
+            continue
+        if conn.type == socket.SOCK_STREAM and conn.status == psutil.CONN_LISTEN:
+            protocol = "tcp"
+        elif conn.type == socket.SOCK_DGRAM and not conn.raddr:
+            protocol = "udp"
+        else:
+            continue
+        host = f"[{conn.laddr.ip}]" if ":" in conn.laddr.ip else conn.laddr.ip
+        found.add(f"{protocol}/{host}:{conn.laddr.port}")
+    return sorted(found)
+
+
+def is_loopback_endpoint(endpoint: str) -> bool:
+    """Whether a ``proto/host:port`` endpoint can only be reached from this host."""
+    _, _, address = endpoint.partition("/")
+    host = address.rsplit(":", 1)[0].strip("[]")
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.split("%", 1)[0]).is_loopback
+    except ValueError:
+        return False
 
 
 def _insert(conf: zenoh.Config, key: str, value: Any) -> None:

@@ -27,6 +27,7 @@ from typing import Any, cast
 
 import zenoh
 
+from ._config import listening_endpoints
 from ._errors import ConfigError, FramegateError, NotFoundError, QueryError
 from ._producer import Producer
 from ._records import BufferInfo, DataObject
@@ -220,6 +221,7 @@ class ServiceEndpoint:
             "instance": self.instance,
             "started_ns": self.started_ns,
             "buffers": [buffer_info_json(p.info()) for p in self.producers()],
+            "listen": listening_endpoints(),  # so `framegate ls` shows a wide listener
         }
         query.reply(self._keys.info(self.service), json.dumps(body).encode("utf-8"))
 
