@@ -39,7 +39,7 @@ sharpest frames, one for each free queue slot; see ``_replace.py``).
 """
 
 from ._decider import DEFAULT_MAX_HOLD_NS, Decider, GyroMissing, Rules
-from ._paper import PaperPolicy, accept
+from ._paper import PaperPolicy
 from ._policy import Policy
 from ._records import Action, Candidate, DetectorClock, Load, Verdict, View, queue_load
 from ._registry import DEFAULT_POLICY, POLICIES, make_policy
@@ -61,7 +61,6 @@ __all__ = [
     "Rules",
     "Verdict",
     "View",
-    "accept",
     "make_policy",
     "queue_load",
 ]

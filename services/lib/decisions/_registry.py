@@ -6,6 +6,7 @@ from collections.abc import Callable
 
 from services.lib.quality import QualityInputError
 
+from ._deadline import DeadlinePolicy
 from ._paper import PaperPolicy
 from ._policy import Policy
 from ._replace import ReplacePolicy
@@ -13,6 +14,7 @@ from ._replace import ReplacePolicy
 POLICIES: dict[str, Callable[[], Policy]] = {
     "paper": PaperPolicy,
     "replace": ReplacePolicy,
+    "deadline": DeadlinePolicy,
 }
 """Policy name -> a factory taking no arguments (defaults of a policy's own parameters)."""
 

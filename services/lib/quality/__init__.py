@@ -1,10 +1,10 @@
 """Motion-blur quality of frames from gyro rates (paper §4.2-4.3), and what goes beyond it.
 
-The mediator calls ``estimate_blur`` for every frame, maps the blur to a quality with
-``quality`` and applies the acceptance test ``accept`` (or ``decide`` for a record).
+The mediator calls ``estimate_blur`` for every frame and maps the blur to a quality with
+``quality``; its policies (``services.lib.decisions``) apply the acceptance test ``accept``.
 """
 
-from ._accept import DEFAULT_B0_PX, Decision, accept, decide, quality, queue_load
+from ._accept import DEFAULT_B0_PX, accept, quality
 from ._blur import BlurEstimate, BlurMode, BlurOptions, Roi, estimate_blur
 from ._errors import CalibrationError, CoverageError, QualityInputError
 from ._exposure import Exposure
@@ -19,18 +19,15 @@ __all__ = [
     "BlurOptions",
     "CalibrationError",
     "CoverageError",
-    "Decision",
     "Exposure",
     "GyroSamples",
     "OffsetEstimate",
     "QualityInputError",
     "Roi",
     "accept",
-    "decide",
     "estimate_blur",
     "estimate_time_offset",
     "laplacian_variance",
     "quality",
-    "queue_load",
     "rank_correlation",
 ]
