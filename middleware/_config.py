@@ -17,7 +17,6 @@ network can open a connection to it. Listening wider takes an explicit ``--liste
 from __future__ import annotations
 
 import argparse
-import ipaddress
 import json
 import os
 import re
@@ -232,18 +231,6 @@ def listening_endpoints() -> list[str]:
         host = f"[{conn.laddr.ip}]" if ":" in conn.laddr.ip else conn.laddr.ip
         found.add(f"{protocol}/{host}:{conn.laddr.port}")
     return sorted(found)
-
-
-def is_loopback_endpoint(endpoint: str) -> bool:
-    """Whether a ``proto/host:port`` endpoint can only be reached from this host."""
-    _, _, address = endpoint.partition("/")
-    host = address.rsplit(":", 1)[0].strip("[]")
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host.split("%", 1)[0]).is_loopback
-    except ValueError:
-        return False
 
 
 def _insert(conf: zenoh.Config, key: str, value: Any) -> None:

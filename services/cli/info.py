@@ -10,6 +10,7 @@ from middleware import BufferInfo, Node, ServiceInfo, check_name
 
 from ._common import command_parser, format_bytes, format_ns, network, print_json
 from ._target import add_timeout_argument, resolve, wait_for_service
+from .ls import listen_of, listen_text
 
 
 def register(subparsers: Any) -> None:
@@ -52,6 +53,7 @@ def service_json(info: ServiceInfo) -> dict[str, Any]:
         "pid": info.pid,
         "clock_offset_ns": info.clock_offset_ns,
         "round_trip_ns": info.round_trip_ns,
+        "listen": list(listen_of(info)),
     }
 
 
@@ -96,6 +98,7 @@ def _print_buffer(service: ServiceInfo, b: BufferInfo) -> None:
         f"  service        host {service.host}, pid {service.pid}, "
         f"clock offset {offset_ms:+.1f} ms (round trip {rtt_ms:.1f} ms)"
     )
+    print(f"  listens on     {listen_text(listen_of(service))}")
     print(
         f"  retention      max {_limit(r.max_count)} elements, "
         f"{_limit(r.max_bytes, format_bytes)}, age {age}, "

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import ipaddress
 import sys
+from collections.abc import Sequence
 from dataclasses import asdict
 from typing import Any
 
@@ -33,11 +35,38 @@ def service_json(info: ServiceInfo, clock: ClockEstimate | None = None) -> dict[
         data["clock_offset_ns"] = clock.offset_ns
         data["round_trip_ns"] = clock.round_trip_ns
     data["clock_error_ns"] = None if clock is None else clock.error_ns
+    data["listen"] = list(listen_of(info))
     for buffer in data["buffers"]:
         for sub in buffer["subscriptions"]:
             sub["mode"] = sub["mode"].value
             sub["fill"] = min(1.0, sub["queued"] / sub["queue_size"])
     return data
+
+
+def is_loopback_endpoint(endpoint: str) -> bool:
+    """Whether a ``proto/host:port`` endpoint can only be reached from its own host."""
+    _, _, address = endpoint.partition("/")
+    host = address.rsplit(":", 1)[0].strip("[]").split("%", 1)[0]
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def listen_text(endpoints: Sequence[str]) -> str:
+    """Listen endpoints for a human; one reachable from other hosts is flagged."""
+    if not endpoints:
+        return "none"
+    return ", ".join(
+        e if is_loopback_endpoint(e) else f"{e} (reachable from the network)" for e in endpoints
+    )
+
+
+def listen_of(info: ServiceInfo) -> tuple[str, ...]:
+    """What the service's process listens on (empty from a service too old to say)."""
+    return tuple(getattr(info, "listen", ()))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -71,6 +100,8 @@ def run(args: argparse.Namespace) -> int:
             f"{info.service}  (host {info.host}, pid {info.pid}, "
             f"clock {offset_ns / 1e6:+.1f} ms ±{error_ns / 1e6:.1f}){warn}"
         )
+        if listen := listen_of(info):
+            print(f"  listens on {listen_text(listen)}")
         for b in info.buffers:
             subs = (
                 ", ".join(

@@ -1,0 +1,154 @@
+"""Network defaults: nothing listens beyond loopback unless asked; names are plain chunks."""
+
+from __future__ import annotations
+
+import base64
+import ipaddress
+import json
+import subprocess
+import sys
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import psutil
+import pytest
+import zenoh
+
+from middleware import ConfigError, NetworkConfig, Node, check_name
+from middleware._config import listening_endpoints
+from tests.conftest import REPO, NodeProcess, child_env, free_port, wait_until
+
+
+@pytest.mark.parametrize("name", ["camera\n", "camera\r\n", "cam\x00", "cam\tera", "\ncamera"])
+def test_check_name_refuses_control_characters(name: str) -> None:
+    with pytest.raises(ConfigError, match="control characters"):
+        check_name(name, "service")
+
+
+def test_check_name_accepts_plain_names() -> None:
+    assert check_name("camera-2.left_x", "service") == "camera-2.left_x"
+
+
+def _listen(config: NetworkConfig) -> object:
+    return json.loads(config.zenoh_configs()[0].get_json("listen/endpoints"))
+
+
+def test_connect_alone_listens_on_loopback_not_every_interface() -> None:
+    assert _listen(NetworkConfig(connect=("tcp/10.0.0.2:7447",))) == ["tcp/127.0.0.1:0"]
+
+
+def test_an_explicit_listen_is_kept() -> None:
+    wide = NetworkConfig(connect=("tcp/10.0.0.2:7447",), listen=("tcp/0.0.0.0:7447",))
+    assert _listen(wide) == ["tcp/0.0.0.0:7447"]
+
+
+def test_a_config_file_without_listen_endpoints_listens_on_loopback(tmp_path: Path) -> None:
+    path = tmp_path / "peer.json5"
+    path.write_text('{mode: "peer", connect: {endpoints: ["tcp/10.0.0.2:7447"]}}')
+    assert _listen(NetworkConfig(config_file=path)) == ["tcp/127.0.0.1:0"]
+    path.write_text('{mode: "router"}')
+    assert _listen(NetworkConfig(config_file=path)) == ["tcp/127.0.0.1:7447"]
+
+
+def test_a_config_file_that_names_listen_endpoints_decides(tmp_path: Path) -> None:
+    path = tmp_path / "wide.json5"
+    path.write_text('{mode: "peer", listen: {endpoints: ["tcp/0.0.0.0:0"]}}')
+    assert _listen(NetworkConfig(config_file=path)) == ["tcp/0.0.0.0:0"]
+
+
+def test_a_tls_only_config_file_gets_no_plain_tcp_listener(tmp_path: Path) -> None:
+    path = tmp_path / "tls.json5"
+    path.write_text('{mode: "peer", transport: {link: {protocols: ["tls"]}}}')
+    assert _listen(NetworkConfig(config_file=path)) == []
+
+
+def test_a_client_is_left_alone(tmp_path: Path) -> None:
+    path = tmp_path / "client.json5"
+    path.write_text('{mode: "client", connect: {endpoints: ["tcp/127.0.0.1:7447"]}}')
+    default = json.loads(zenoh.Config().get_json("listen/endpoints"))
+    assert _listen(NetworkConfig(config_file=path)) == default
+
+
+def test_listening_endpoints_reports_the_actual_socket() -> None:
+    port = free_port()
+    with Node(network=NetworkConfig(listen=(f"tcp/127.0.0.1:{port}",))):
+        assert f"tcp/127.0.0.1:{port}" in listening_endpoints()
+
+
+# -- real processes ---------------------------------------------------------------------------
+
+
+def _listeners(pid: int) -> list[str]:
+    return [
+        c.laddr.ip
+        for c in psutil.Process(pid).net_connections(kind="inet")
+        if c.status == psutil.CONN_LISTEN
+    ]
+
+
+@pytest.fixture
+def spawn() -> Iterator[Callable[..., NodeProcess]]:
+    started: list[NodeProcess] = []
+
+    def start(name: str | None, *net_args: str) -> NodeProcess:
+        process = NodeProcess(name, list(net_args))
+        started.append(process)
+        return process
+
+    yield start
+    for process in started:
+        process.close()
+
+
+@pytest.fixture
+def router() -> Iterator[str]:
+    """A ``framegate router`` on a loopback port; its endpoint."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    command = [sys.executable, "-m", "services.cli", "router", "--listen", endpoint]
+    proc = subprocess.Popen(command, cwd=REPO, env=child_env(), stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None and "router listening" in proc.stdout.readline()
+        yield endpoint
+    finally:
+        proc.terminate()
+        proc.wait(timeout=10)
+
+
+def _offer_and_find(producer: NodeProcess, consumer: NodeProcess) -> None:
+    assert producer.call("offer", buffer="data")["ok"]
+    payload = base64.b64encode(b"x").decode()
+    assert producer.call("put", buffer="data", t=1, payload=payload)["ok"]
+
+    def found() -> bool:
+        reply = consumer.call("query", target="src/data")
+        return bool(reply["ok"] and reply["elements"])
+
+    wait_until(found, 30, "the consumer to reach the producer")
+
+
+@pytest.mark.integration
+def test_a_service_given_only_connect_listens_on_loopback_only(
+    spawn: Callable[..., NodeProcess], router: str
+) -> None:
+    producer = spawn("src", "--connect", router)
+    consumer = spawn(None, "--connect", router)
+    _offer_and_find(producer, consumer)  # peers still reach each other through a router
+    listeners = _listeners(producer.proc.pid)
+    assert listeners, "a peer listens on loopback so local peers can mesh"
+    assert all(ipaddress.ip_address(ip).is_loopback for ip in listeners), listeners
+
+
+@pytest.mark.integration
+def test_peers_given_only_connect_mesh_through_a_loopback_hub(
+    spawn: Callable[..., NodeProcess],
+) -> None:
+    # No router: a hub peer, and two spokes that must connect to each other directly
+    # (peers do not forward), which they can because each listens on loopback.
+    hub_endpoint = f"tcp/127.0.0.1:{free_port()}"
+    spawn(None, "--listen", hub_endpoint)
+    producer = spawn("src", "--connect", hub_endpoint)
+    consumer = spawn(None, "--connect", hub_endpoint)
+    _offer_and_find(producer, consumer)
+    for process in (producer, consumer):
+        ips = _listeners(process.proc.pid)
+        assert ips and all(ipaddress.ip_address(ip).is_loopback for ip in ips), ips
