@@ -181,7 +181,7 @@ def test_queue_load_is_pending_over_capacity() -> None:
 
 
 def test_policies_are_made_by_name() -> None:
-    assert sorted(decisions.POLICIES) == ["paper", "replace"]
+    assert {"paper", "replace"} <= set(decisions.POLICIES)
     assert make_policy("replace").name == "replace"
     assert make_policy(decisions.DEFAULT_POLICY).name == "paper"
     with pytest.raises(QualityInputError, match="unknown policy 'best': use one of paper"):
