@@ -8,13 +8,16 @@
 # (default: camera gyro mediator detector cli). The certificate's common name is NAME:
 # the router's access control grants rights by it, so NAME must be the service name.
 # An existing CA in DIR is reused, so certificates for new services can be added later;
-# existing certificates are kept unless FORCE=1.
+# existing certificates are kept unless FORCE=1. A CA whose key is kept elsewhere (offline,
+# as it should be) is used with CA_KEY=PATH; DIR/ca.pem without a key is never replaced by a
+# new CA (that would silently cut every existing certificate off): the script stops instead.
 #
 # It also writes ready-to-use Zenoh configs with absolute paths: DIR/router.json5 (from
 # deploy/secure-router.json5) and DIR/NAME.json5 (from deploy/secure-client.json5).
 #
 # Environment: ROUTER_HOSTS (names and addresses clients use to reach the router,
-# comma-separated; default localhost,127.0.0.1), DAYS (validity, default 365), FORCE=1.
+# comma-separated; default localhost,127.0.0.1), DAYS (validity, default 365), FORCE=1,
+# CA_KEY (the CA's private key when it is not DIR/ca.key).
 # Private keys are created mode 0600. Never commit DIR (deploy/tls/certs/ is git-ignored).
 set -euo pipefail
 
@@ -54,7 +57,30 @@ new_key() {  # ECDSA P-256 in PKCS#8, which rustls (Zenoh's TLS) reads
     openssl genpkey -algorithm EC -pkeyopt ec_paramgen_curve:P-256 -out "$1" 2>/dev/null
 }
 
-if [[ ! -f $out/ca.pem || ! -f $out/ca.key ]]; then
+ca_key=${CA_KEY:-$out/ca.key}
+if [[ -n ${CA_KEY:-} ]]; then
+    [[ -f $CA_KEY ]] || { echo "error: CA_KEY=$CA_KEY: no such file" >&2; exit 1; }
+    [[ -f $out/ca.pem ]] || {
+        echo "error: CA_KEY is set but $out/ca.pem is missing: copy the CA certificate there" >&2
+        exit 1
+    }
+    ca_key=$(cd "$(dirname "$CA_KEY")" && pwd)/$(basename "$CA_KEY")
+    if [[ $(openssl pkey -in "$ca_key" -pubout 2>/dev/null) != \
+          "$(openssl x509 -in "$out/ca.pem" -noout -pubkey 2>/dev/null)" ]]; then
+        echo "error: CA_KEY=$CA_KEY is not the key of $out/ca.pem" >&2
+        exit 1
+    fi
+elif [[ -f $out/ca.pem && ! -f $out/ca.key ]]; then
+    echo "error: $out/ca.pem exists without ca.key: pass CA_KEY=PATH (the CA's key) to" \
+        "issue certificates from it; a new CA would cut off every existing certificate" >&2
+    exit 1
+elif [[ -f $out/ca.key && ! -f $out/ca.pem ]]; then
+    echo "error: $out/ca.key exists without ca.pem: restore ca.pem, or remove ca.key to" \
+        "create a new CA" >&2
+    exit 1
+fi
+
+if [[ ! -f $out/ca.pem ]]; then
     new_key "$out/ca.key"
     openssl req -x509 -new -key "$out/ca.key" -sha256 -days "$days" \
         -subj "/O=framegate/CN=framegate local CA" \
@@ -80,7 +106,7 @@ sign() {
         "extendedKeyUsage=$eku" \
         "subjectAltName=$san" >"$ext"
     openssl req -new -key "$out/$name.key" -subj "/O=framegate/CN=$name" -out "$out/$name.csr"
-    openssl x509 -req -in "$out/$name.csr" -CA "$out/ca.pem" -CAkey "$out/ca.key" \
+    openssl x509 -req -in "$out/$name.csr" -CA "$out/ca.pem" -CAkey "$ca_key" \
         -CAcreateserial -days "$days" -sha256 -extfile "$ext" -out "$out/$name.pem" 2>/dev/null
     rm -f "$ext" "$out/$name.csr"
     echo "created certificate   $out/$name.pem (CN=$name)"
