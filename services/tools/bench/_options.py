@@ -9,7 +9,17 @@ from typing import Any
 
 from ._procs import BenchError
 
-SCENARIO_NAMES = ("frames", "small", "latency", "query-scaling", "memory", "quality")
+SCENARIO_NAMES = (
+    "frames",
+    "small",
+    "batch",
+    "latency",
+    "fan-out",
+    "working-point",
+    "query-scaling",
+    "memory",
+    "quality",
+)
 
 # Measured window per sample (s) and runs per side, unless the command line says otherwise.
 FULL_DURATION_S = 4.0

@@ -3,9 +3,9 @@
 This is the one place outside ``middleware`` that imports zenoh (tests/middleware/test_api.py
 allows it). Each role does the least a competent raw-Zenoh application would do for the same
 job: a publisher with ``CongestionControl.BLOCK`` (lossless, like framegate's ``wait_s``), a
-callback subscriber that copies the payload out to ``bytes`` (framegate's consumer also ends
-with ``bytes``), and a callback queryable answering a ``session.get`` (what framegate's fetch
-and query use).
+subscriber that copies the payload out to ``bytes`` (framegate's consumer also ends with
+``bytes``), the same pair paced for one-way latency, and a callback queryable answering a
+``session.get`` (what framegate's fetch and query use).
 """
 
 from __future__ import annotations
@@ -19,7 +19,16 @@ from typing import Any
 import psutil
 import zenoh
 
-from ._serve import Counter, profiled, reply, round_trips, serve
+from ._serve import (
+    Counter,
+    LatencyLog,
+    paced,
+    profiled,
+    reply,
+    round_trips,
+    serve,
+    sleep_until,
+)
 
 KEY = "bench/raw/data"
 ECHO_KEY = "bench/raw/echo"
@@ -58,7 +67,8 @@ def _wait_matching(publisher: Any, timeout_s: float) -> bool:
 
 
 def raw_pub(params: dict[str, Any]) -> None:
-    """Publishes ``size``-byte payloads as fast as BLOCK congestion control allows."""
+    """Publishes ``size``-byte payloads as fast as BLOCK congestion control allows, or one
+    every ``interval_s`` when the ``produce`` command gives one."""
     payload = bytes(int(params["size"]))
     with zenoh.open(_config(params)) as session:
         publisher = session.declare_publisher(KEY, congestion_control=zenoh.CongestionControl.BLOCK)
@@ -69,6 +79,12 @@ def raw_pub(params: dict[str, Any]) -> None:
             end = time.monotonic() + float(command["seconds"])
             sent = 0
             put = publisher.put
+            if float(command.get("interval_s") or 0) > 0:  # paced: a sensor's rate
+                for tick in paced(float(command["seconds"]), float(command["interval_s"])):
+                    sleep_until(tick)
+                    put(payload)
+                    sent += 1
+                return {"sent": sent}
             while time.monotonic() < end:
                 for _ in range(8):
                     put(payload)
@@ -104,6 +120,71 @@ def raw_sub(params: dict[str, Any]) -> None:
         serve({"mark": counter.mark})
         subscriber.undeclare()
         thread.join(timeout=2.0)
+
+
+def _lat_key(size: int) -> str:
+    return f"bench/raw/lat/{size}"
+
+
+def raw_lat_pub(params: dict[str, Any]) -> None:
+    """One-way latency source: a put every ``interval_s``, the monotonic clock in its first
+    8 bytes (taken before the payload is handed to Zenoh, as framegate's key is)."""
+    with zenoh.open(_config(params)) as session:
+        publishers = {
+            int(size): session.declare_publisher(
+                _lat_key(int(size)), congestion_control=zenoh.CongestionControl.BLOCK
+            )
+            for size in params["sizes"]
+        }
+
+        def latency(command: dict[str, Any]) -> dict[str, Any]:
+            size = int(command["size"])
+            publisher, payload = publishers[size], bytearray(size)
+            if not _wait_matching(publisher, 10.0):
+                raise RuntimeError("no subscriber matched within 10 s")
+            sent = 0
+            for tick in paced(float(command["seconds"]), float(command["interval_s"])):
+                sleep_until(tick)
+                payload[:8] = time.monotonic_ns().to_bytes(8, "little")
+                publisher.put(payload)
+                sent += 1
+            return {"sent": sent}
+
+        reply(ready=True)
+        serve({"latency": latency})
+        for publisher in publishers.values():
+            publisher.undeclare()
+
+
+def raw_lat_sub(params: dict[str, Any]) -> None:
+    """One-way latency sink: a default-FIFO subscriber per size drained by its own thread;
+    latency = monotonic now − the clock in the payload, once the payload is ``bytes``."""
+    sizes = [int(size) for size in params["sizes"]]
+    log = LatencyLog([str(size) for size in sizes])
+    with zenoh.open(_config(params)) as session:
+        subscribers = [
+            session.declare_subscriber(_lat_key(size), zenoh.handlers.FifoChannel(256))
+            for size in sizes
+        ]
+
+        def drain(size: int, subscriber: Any) -> None:
+            for sample in subscriber:  # ends when the subscriber is undeclared
+                data = sample.payload.to_bytes()
+                now = time.monotonic_ns()
+                log.record(str(size), (now - int.from_bytes(data[:8], "little")) / 1000)
+
+        threads = [
+            threading.Thread(target=drain, args=(size, sub), daemon=True)
+            for size, sub in zip(sizes, subscribers, strict=True)
+        ]
+        for thread in threads:
+            thread.start()
+        reply(ready=True)
+        serve({"collect": log.collect})
+        for subscriber in subscribers:
+            subscriber.undeclare()
+        for thread in threads:
+            thread.join(timeout=2.0)
 
 
 def raw_queryable(params: dict[str, Any]) -> None:
@@ -188,6 +269,8 @@ def raw_memory(params: dict[str, Any]) -> None:
 
 
 ROLES = {
+    "raw-lat-pub": raw_lat_pub,
+    "raw-lat-sub": raw_lat_sub,
     "raw-memory": raw_memory,
     "raw-pub": raw_pub,
     "raw-querier": raw_querier,

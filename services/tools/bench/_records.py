@@ -46,7 +46,8 @@ class Row:
     """One measured quantity, raw and framegate side by side, one sample per run.
 
     Each sample is a dict with at least ``pair`` (run index) and ``value`` (in ``unit``);
-    throughput samples also carry ``cpu_producer_pct`` and ``cpu_consumer_pct``.
+    throughput samples also carry ``cpu_producer_pct`` and ``cpu_consumer_pct`` (% of one
+    core) and ``cpu_producer_us`` and ``cpu_consumer_us`` (CPU microseconds per element).
     ``raw`` is None where there is no raw counterpart (quality).
     """
 
@@ -77,6 +78,12 @@ class Row:
     def ratio(self) -> float | None:
         """framegate median / raw median."""
         return ratio(self.median("framegate"), self.median("raw"))
+
+    @property
+    def extra(self) -> float | None:
+        """framegate median - raw median: what framegate adds (CPU per element)."""
+        fg, raw = self.median("framegate"), self.median("raw")
+        return None if fg is None or raw is None else fg - raw
 
     def pair_ratios(self) -> list[float | None]:
         """framegate/raw of each pair (the run after each raw run), in pair order."""
@@ -114,6 +121,7 @@ class Row:
             "higher_is_better": self.higher_is_better,
             **sides,
             "ratio": self.ratio,
+            "extra": self.extra,
             "pair_ratios": self.pair_ratios(),
             "goal": self.goal.as_json() if self.goal else None,
             "note": self.note,
@@ -145,3 +153,8 @@ def ratio_goal(row: Row, limit: float, *, at_least: bool, what: str) -> Goal:
     """A goal on framegate/raw of ``row``."""
     sign = ">=" if at_least else "<="
     return Goal(f"{what} {sign} {limit:g}x raw", limit, at_least, row.ratio)
+
+
+def extra_goal(row: Row, limit: float, *, what: str) -> Goal:
+    """A goal on framegate - raw of ``row`` (at most ``limit``, in the row's unit)."""
+    return Goal(f"{what}: framegate - raw <= {limit:g} {row.unit}", limit, False, row.extra)

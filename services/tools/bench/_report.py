@@ -28,6 +28,10 @@ def _cpu(side: dict[str, Any] | None) -> str:
     return f"{cpu.get('producer', 0):.0f}/{cpu.get('consumer', 0):.0f}"
 
 
+def _is_cost(row: dict[str, Any]) -> bool:
+    return str(row["metric"]).startswith("CPU") and row.get("extra") is not None
+
+
 def _goal(goal: dict[str, Any] | None) -> str:
     if not goal:
         return ""
@@ -58,14 +62,18 @@ def format_table(report: dict[str, Any]) -> str:
         units = sorted({f"{r['metric']} ({r['unit']})" for r in rows})
         lines.append(f"{name}: {', '.join(units)}")
         has_cpu = any(_cpu(r.get("raw")) or _cpu(r.get("framegate")) for r in rows)
+        # What framegate adds matters for cost rows (CPU), not for rates or latencies.
+        has_extra = any(_is_cost(r) for r in rows)
         table = [
             ["", "raw median [min..max]", "framegate median [min..max]", "fg/raw"]
+            + (["fg-raw"] if has_extra else [])
             + (["CPU% raw p/c", "CPU% fg p/c"] if has_cpu else [])
             + ["goal"]
         ]
         for r in rows:
             table.append(
                 [r["name"], _side(r.get("raw")), _side(r.get("framegate")), _num(r["ratio"])]
+                + ([_num(r.get("extra")) if _is_cost(r) else ""] if has_extra else [])
                 + ([_cpu(r.get("raw")), _cpu(r.get("framegate"))] if has_cpu else [])
                 + [_goal(r.get("goal"))]
             )

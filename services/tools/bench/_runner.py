@@ -23,20 +23,25 @@ from typing import Any
 
 import psutil
 
+from ._fan_out import run_fan_out
 from ._latency import run_latency
 from ._memory import run_memory
 from ._options import BenchOptions
 from ._quality import run_quality
 from ._query_scaling import run_query_scaling
 from ._records import ScenarioResult
-from ._throughput import run_frames, run_small
+from ._throughput import run_batch, run_frames, run_small
+from ._working_point import run_working_point
 
 SCHEMA = "framegate-bench/1"
 
 SCENARIOS: dict[str, Callable[[BenchOptions], ScenarioResult]] = {
     "frames": run_frames,
     "small": run_small,
+    "batch": run_batch,
     "latency": run_latency,
+    "fan-out": run_fan_out,
+    "working-point": run_working_point,
     "query-scaling": run_query_scaling,
     "memory": run_memory,
     "quality": run_quality,

@@ -121,3 +121,26 @@ def round_trips(
         ask()
         out.append((time.perf_counter_ns() - start) / 1000)
     return out
+
+
+class LatencyLog:
+    """Latencies (us) per stream, appended by consuming threads and collected by command."""
+
+    def __init__(self, streams: list[str]) -> None:
+        self._cond = threading.Condition()
+        self._latencies: dict[str, list[float]] = {name: [] for name in streams}
+
+    def record(self, stream: str, latency_us: float) -> None:
+        with self._cond:
+            self._latencies[stream].append(latency_us)
+            self._cond.notify_all()
+
+    def collect(self, command: dict[str, Any]) -> dict[str, Any]:
+        """``{stream, expect, wait_s}`` → the latencies so far, once ``expect`` have come."""
+        stream, expect = str(command["stream"]), int(command["expect"])
+        deadline = time.monotonic() + float(command.get("wait_s", 10.0))
+        with self._cond:
+            while len(self._latencies[stream]) < expect and time.monotonic() < deadline:
+                self._cond.wait(0.05)
+            out, self._latencies[stream] = self._latencies[stream], []
+        return {"latencies_us": out}

@@ -15,28 +15,42 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
+from middleware import Producer, Subscription
+
 from ._options import BenchOptions
 from ._procs import BenchError, Worker, WorkerGroup, free_endpoint
-from ._records import Row, ScenarioResult, ratio_goal
+from ._records import Row, ScenarioResult, Side, extra_goal, ratio_goal
 
 FRAME_BYTES = 1280 * 1024  # one mono8 frame
 INLINE_BYTES = 64 * 1024  # the largest payload the middleware sends inline by default
 SMALL_BYTES = 64
 
+# Issue 18's targets, framegate/raw of elements per second.
 FRAMES_GOAL = 0.9
-SMALL_GOAL = 0.5
+INLINE_GOAL = 0.5
+SMALL_GOAL = 0.05
+BATCH_GOAL = 0.5
+# framegate's extra CPU per pushed 1.3 MB frame, on each side (us).
+FRAME_EXTRA_CPU_US = 50.0
+# Elements per put_many / take_many in the batch row.
+BATCH_ELEMENTS = 64
 
 
 @dataclass(frozen=True, slots=True)
 class Mode:
-    """One throughput row: payload size, transport and the subscriber's queue size."""
+    """One throughput row: payload size, transport, the subscriber's queue size, goals."""
 
     name: str
     size: int
     shared_memory: bool
     queue_size: int
+    goal: float
     # Framegate side: payloads pushed with their notification instead of fetched.
     push: bool = False
+    # Framegate side: Producer.put_many / Subscription.take_many of BATCH_ELEMENTS.
+    batch: bool = False
+    # Goal on framegate's extra CPU per element on each side (us), if any.
+    extra_cpu_us: float | None = None
 
     def as_json(self) -> dict[str, Any]:
         return {
@@ -45,30 +59,79 @@ class Mode:
             "shared_memory": self.shared_memory,
             "queue_size": self.queue_size,
             "push": self.push,
+            "batch": BATCH_ELEMENTS if self.batch else None,
         }
 
 
 FRAME_MODES = (
-    Mode("1280x1024 mono8, shm", FRAME_BYTES, True, 8),
-    Mode("1280x1024 mono8, shm, pushed", FRAME_BYTES, True, 8, push=True),
-    Mode("1280x1024 mono8, tcp", FRAME_BYTES, False, 8),
-    Mode("1280x1024 mono8, tcp, pushed", FRAME_BYTES, False, 8, push=True),
-    Mode("64 KiB inline, shm", INLINE_BYTES, True, 8),
+    Mode("1280x1024 mono8, shm", FRAME_BYTES, True, 8, FRAMES_GOAL),
+    Mode(
+        "1280x1024 mono8, shm, pushed",
+        FRAME_BYTES,
+        True,
+        8,
+        FRAMES_GOAL,
+        push=True,
+        extra_cpu_us=FRAME_EXTRA_CPU_US,
+    ),
+    Mode("1280x1024 mono8, tcp", FRAME_BYTES, False, 8, FRAMES_GOAL),
+    Mode(
+        "1280x1024 mono8, tcp, pushed",
+        FRAME_BYTES,
+        False,
+        8,
+        FRAMES_GOAL,
+        push=True,
+        extra_cpu_us=FRAME_EXTRA_CPU_US,
+    ),
+    Mode("64 KiB inline, shm", INLINE_BYTES, True, 8, INLINE_GOAL),
 )
-SMALL_MODES = (Mode("64 B", SMALL_BYTES, True, 8),)
+SMALL_MODES = (Mode("64 B", SMALL_BYTES, True, 8, SMALL_GOAL),)
+BATCH_MODES = (
+    Mode(f"64 B, batches of {BATCH_ELEMENTS}", SMALL_BYTES, True, 8, BATCH_GOAL, batch=True),
+)
 
 
 def run_frames(options: BenchOptions) -> ScenarioResult:
-    return _run("frames", FRAME_MODES, FRAMES_GOAL, options)
+    return _run("frames", FRAME_MODES, options)
 
 
 def run_small(options: BenchOptions) -> ScenarioResult:
-    return _run("small", SMALL_MODES, SMALL_GOAL, options)
+    return _run("small", SMALL_MODES, options)
 
 
-def _run(
-    scenario: str, modes: tuple[Mode, ...], goal: float, options: BenchOptions
-) -> ScenarioResult:
+def batch_api_missing() -> str | None:
+    """Why the batch row cannot run yet, or None once the middleware has the batch API.
+
+    The one place the bench asks what the middleware can do: issue 18 item 4 adds
+    ``Producer.put_many`` and ``Subscription.take_many``; until then the row is skipped.
+    """
+    missing = [
+        name
+        for cls, name in ((Producer, "put_many"), (Subscription, "take_many"))
+        if not hasattr(cls, name)
+    ]
+    if not missing:
+        return None
+    return f"middleware has no {' / '.join(missing)} yet (the batch API of issue 18 item 4)"
+
+
+def run_batch(options: BenchOptions) -> ScenarioResult:
+    missing = batch_api_missing()
+    if missing is not None:
+        return ScenarioResult("batch", status="skipped", reason=missing)
+    return _run("batch", BATCH_MODES, options)
+
+
+def cpu_rows(name: str) -> tuple[Row, Row]:
+    """Producer and consumer CPU per element of one throughput row."""
+    return (
+        Row(f"{name}: producer CPU", "CPU per element", "us", higher_is_better=False),
+        Row(f"{name}: consumer CPU", "CPU per element", "us", higher_is_better=False),
+    )
+
+
+def _run(scenario: str, modes: tuple[Mode, ...], options: BenchOptions) -> ScenarioResult:
     result = ScenarioResult(
         scenario,
         params={
@@ -77,18 +140,24 @@ def _run(
             "window_s": options.duration_s,
             "raw": "publisher CongestionControl.BLOCK -> default FIFO subscriber, to_bytes()",
             "framegate": "put(wait_s=5) -> subscribe(queue_size) take() + fetch() "
-            "(pushed: the payload comes with the notification)",
+            "(pushed: the payload comes with the notification; batch: put_many/take_many)",
+            "cpu": "user+system CPU of each process over the window / elements received",
         },
     )
     for mode in modes:
         row = Row(mode.name, "throughput", "msg/s", higher_is_better=True)
-        _run_mode(scenario, mode, row, options)
-        row.goal = ratio_goal(row, goal, at_least=True, what="throughput")
-        result.rows.append(row)
+        producer_cpu, consumer_cpu = cpu_rows(mode.name)
+        _run_mode(scenario, mode, (row, producer_cpu, consumer_cpu), options)
+        row.goal = ratio_goal(row, mode.goal, at_least=True, what="throughput")
+        if mode.extra_cpu_us is not None:
+            for cpu_row in (producer_cpu, consumer_cpu):
+                cpu_row.goal = extra_goal(cpu_row, mode.extra_cpu_us, what="CPU per frame")
+        result.rows += [row, producer_cpu, consumer_cpu]
     return result
 
 
-def _run_mode(scenario: str, mode: Mode, row: Row, options: BenchOptions) -> None:
+def _run_mode(scenario: str, mode: Mode, rows: tuple[Row, Row, Row], options: BenchOptions) -> None:
+    row, producer_cpu, consumer_cpu = rows
     raw_at, fg_at = free_endpoint(), free_endpoint()
     common = {"shm": mode.shared_memory, "size": mode.size}
     with WorkerGroup() as group:
@@ -98,7 +167,10 @@ def _run_mode(scenario: str, mode: Mode, row: Row, options: BenchOptions) -> Non
                 group.start("raw-sub", {**common, "connect": raw_at}),
             ),
             "framegate": (
-                group.start("fg-pub", {**common, "listen": fg_at, "buffer": "data"}),
+                group.start(
+                    "fg-pub",
+                    {**common, "listen": fg_at, "buffer": "data", "batch": _batch(mode)},
+                ),
                 group.start(
                     "fg-sub",
                     {
@@ -107,6 +179,7 @@ def _run_mode(scenario: str, mode: Mode, row: Row, options: BenchOptions) -> Non
                         "buffer": "data",
                         "queue_size": mode.queue_size,
                         "push": mode.push,
+                        "batch": _batch(mode),
                     },
                 ),
             ),
@@ -117,18 +190,34 @@ def _run_mode(scenario: str, mode: Mode, row: Row, options: BenchOptions) -> Non
                 producer, consumer = sides[side]
                 sample = measure(producer, consumer, options.warmup_s, options.duration_s)
                 sample["pair"] = pair
-                row.samples("raw" if side == "raw" else "framegate").append(sample)
+                which: Side = "raw" if side == "raw" else "framegate"
+                row.samples(which).append(sample)
+                for cpu_row, role in ((producer_cpu, "producer"), (consumer_cpu, "consumer")):
+                    cpu_row.samples(which).append({"pair": pair, "value": sample[f"cpu_{role}_us"]})
                 options.progress(
                     f"{scenario} {mode.name} pair {pair + 1}/{options.pairs} {side}: "
                     f"{sample['value']:,.0f} msg/s, CPU producer {sample['cpu_producer_pct']:.0f}%"
-                    f" consumer {sample['cpu_consumer_pct']:.0f}%"
+                    f" ({sample['cpu_producer_us']:.1f} us/el), consumer "
+                    f"{sample['cpu_consumer_pct']:.0f}% ({sample['cpu_consumer_us']:.1f} us/el)"
                 )
 
 
-def measure(producer: Worker, consumer: Worker, warmup_s: float, window_s: float) -> dict[str, Any]:
-    """One run: produce for warm-up + window, mark the consumer around the window, drain."""
+def _batch(mode: Mode) -> int:
+    return BATCH_ELEMENTS if mode.batch else 0
+
+
+def measure(
+    producer: Worker,
+    consumer: Worker,
+    warmup_s: float,
+    window_s: float,
+    *,
+    interval_s: float = 0.0,
+) -> dict[str, Any]:
+    """One run: produce for warm-up + window (as fast as allowed, or one element every
+    ``interval_s``), mark the consumer around the window, drain."""
     start = consumer.call("mark")
-    producer.send("produce", seconds=warmup_s + window_s + 0.3)
+    producer.send("produce", seconds=warmup_s + window_s + 0.3, interval_s=interval_s)
     time.sleep(warmup_s)
     cpu0 = (time.monotonic(), producer.cpu_s(), consumer.cpu_s())
     first = consumer.call("mark")
@@ -142,6 +231,8 @@ def measure(producer: Worker, consumer: Worker, warmup_s: float, window_s: float
     if elapsed_s <= 0 or wall_s <= 0:
         raise BenchError(f"empty measuring window ({elapsed_s} s)")
     count = last["count"] - first["count"]
+    if count <= 0:
+        raise BenchError(f"the consumer received nothing in the {elapsed_s:.2f} s window")
     return {
         "value": count / elapsed_s,
         "mb_s": (last["bytes"] - first["bytes"]) / elapsed_s / 1e6,
@@ -153,6 +244,8 @@ def measure(producer: Worker, consumer: Worker, warmup_s: float, window_s: float
         "errors": last["errors"] - first["errors"],
         "cpu_producer_pct": 100.0 * (cpu1[1] - cpu0[1]) / wall_s,
         "cpu_consumer_pct": 100.0 * (cpu1[2] - cpu0[2]) / wall_s,
+        "cpu_producer_us": 1e6 * (cpu1[1] - cpu0[1]) / count,
+        "cpu_consumer_us": 1e6 * (cpu1[2] - cpu0[2]) / count,
     }
 
 
