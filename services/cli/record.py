@@ -49,7 +49,8 @@ def register(subparsers: Any) -> None:
     parser = command_parser(
         subparsers,
         "record",
-        "record buffers to an MCAP file (lossless; Foxglove shows camera frames)",
+        "record buffers to an MCAP file (lossless; Foxglove shows camera frames with the "
+        "mediator's verdicts and the detections drawn on them)",
         json_flag=True,
     )
     parser.add_argument(
@@ -283,12 +284,13 @@ def run(args: argparse.Namespace) -> int:
                 },
             )
             counts = writer.counts()
+            derived = writer.derived_counts()
     for recorder in recorders:
         if recorder.error is not None:
             if isinstance(recorder.error, FramegateError):
                 raise recorder.error
             raise FramegateError(f"recording {recorder.sub.name} failed: {recorder.error}")
-    _summary(args, recorders, counts, (stopped_ns - started_ns) / 1e9)
+    _summary(args, recorders, counts, derived, (stopped_ns - started_ns) / 1e9)
     return 0
 
 
@@ -331,6 +333,7 @@ def _summary(
     args: argparse.Namespace,
     recorders: list[_Recorder],
     counts: dict[str, tuple[int, int]],
+    derived: dict[str, int],
     duration_s: float,
 ) -> None:
     size = args.output.stat().st_size
@@ -338,6 +341,8 @@ def _summary(
     for r in recorders:
         row = r.progress.json()
         row["image_messages"] = counts.get(r.progress.name, (0, 0))[1]
+        # Foxglove annotations and plots derived from it (services.tools.bag._derived).
+        row["derived_messages"] = derived.get(r.progress.name, 0)
         rows.append(row)
     if args.json:
         print_json(
@@ -345,7 +350,7 @@ def _summary(
                 "file": str(args.output),
                 "bytes": size,
                 "duration_s": round(duration_s, 3),
-                "messages": sum(m + i for m, i in counts.values()),
+                "messages": sum(m + i for m, i in counts.values()) + sum(derived.values()),
                 "buffers": rows,
             }
         )

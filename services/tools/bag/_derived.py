@@ -51,6 +51,7 @@ from foxglove.messages import (
 
 from middleware import DataObject, FramegateError, parse_untrusted, validate_metadata
 from services.lib.messages import DecisionRecord
+from services.lib.quality import GyroSamples
 
 from ._format import image_topic
 from ._frames import FrameLayout, frame_layout
@@ -66,8 +67,6 @@ SHADE = Color(r=0.0, g=0.0, b=0.0, a=0.6)
 BORDER_PX = 8.0
 FONT_PX = 28.0
 _NS = "{urn:framegate:1}"
-# A gyro payload record: int64 timestamp_ns, then float64 x, y, z in rad/s (schemas/gyro.xsd).
-GYRO_RECORD = np.dtype([("t", "<i8"), ("x", "<f8"), ("y", "<f8"), ("z", "<f8")])
 
 
 @dataclass(frozen=True, slots=True)
@@ -265,19 +264,15 @@ def detection_annotations(timestamp_ns: int, markers: list[Marker]) -> ImageAnno
 
 
 def gyro_rates(payload: bytes) -> list[tuple[int, dict[str, float]]]:
-    """(sample time, rates) of each sample in a gyro batch's payload."""
-    usable = len(payload) - len(payload) % GYRO_RECORD.itemsize
-    samples = np.frombuffer(payload[:usable], dtype=GYRO_RECORD)
-    out = []
-    for t, x, y, z in samples.tolist():
-        rates = {
-            "x_rad_s": x,
-            "y_rad_s": y,
-            "z_rad_s": z,
-            "norm_rad_s": math.sqrt(x * x + y * y + z * z),
-        }
-        out.append((int(t), rates))
-    return out
+    """(sample time, rates) of each sample in a gyro batch's payload; SchemaError if garbled."""
+    samples = GyroSamples.from_bytes(payload)
+    norms = np.linalg.norm(samples.rates_rad_s, axis=1) if len(samples) else np.empty(0)
+    return [
+        (t, {"x_rad_s": x, "y_rad_s": y, "z_rad_s": z, "norm_rad_s": n})
+        for t, (x, y, z), n in zip(
+            samples.t_ns.tolist(), samples.rates_rad_s.tolist(), norms.tolist(), strict=True
+        )
+    ]
 
 
 def _value(text: str) -> Any:

@@ -7,13 +7,17 @@ import json
 import signal
 import time
 from pathlib import Path
+from typing import Any
 
 import msgpack
+import numpy as np
 import pytest
 from mcap.reader import make_reader
 
 from middleware import DataObject, NetworkConfig, Node, Retention, make_metadata
-from services.tools.bag import BagWriter
+from services.lib.messages import DecisionRecord, detections_metadata, gyro_metadata
+from services.lib.quality import GyroSamples
+from services.tools.bag import BagWriter, open_bag
 from tests.conftest import free_port, wait_until
 from tests.services.cli.conftest import (
     HEIGHT,
@@ -157,3 +161,83 @@ def test_play_paces_and_rebases_onto_the_wall_clock(cli: Cli, tmp_path: Path) ->
     assert played[2].metadata == frame_metadata(recorded[2] + shift, 2)
     player.send_signal(signal.SIGTERM)
     assert player.wait(timeout=20) == 0
+
+
+def test_record_writes_verdict_and_detection_annotations_with_foxglove_schemas(
+    listen_net: NetworkConfig, cli: Cli, tmp_path: Path
+) -> None:
+    bag = tmp_path / "annotated.mcap"
+    base = time.time_ns()
+    frames = [base + i * 50 * MS for i in range(3)]
+    with Node("rig", listen_net) as rig:
+        images = rig.offer("images", kind="frame")
+        decisions = rig.offer("decisions", kind="decision")
+        detections = rig.offer("detections", kind="detections")
+        rates = rig.offer("rates", kind="gyro")
+        recorder = cli.start(
+            "record", "rig/images", "rig/decisions", "rig/detections", "rig/rates",
+            "-o", str(bag), "--count", "3", "--json",
+        )  # fmt: skip
+        for producer in (images, decisions, detections, rates):
+            assert producer.wait_for_subscribers(1, 30)
+        for i, t in enumerate(frames):
+            put_frame(images, t, i)
+            verdict = DecisionRecord(
+                t, i, 1.5 * i, 0.9 - 0.3 * i, 0.5, i == 0, "q", "paper", 5.0, 0
+            )
+            decisions.put(t + MS, b"", verdict.metadata(t + MS))
+            corners = [1.0, 1.0, 5.0, 1.0, 5.0, 4.0, 1.0, 4.0]
+            detections.put(
+                t, b"", detections_metadata(t, i, "rig/images", 1000, [(7 + i, corners)])
+            )
+            samples = GyroSamples(np.array([t - MS, t]), np.full((2, 3), 0.1 * i))
+            rates.put(t, samples.to_bytes(), gyro_metadata(samples))
+        out, err = recorder.communicate(timeout=TIMEOUT_S)
+        assert recorder.returncode == 0, err
+    derived = {b["name"]: b["derived_messages"] for b in json.loads(out)["buffers"]}
+    # Per decision an annotation and a plot point; per detection one; per gyro sample one.
+    assert derived == {"rig/images": 0, "rig/decisions": 6, "rig/detections": 3, "rig/rates": 6}
+    with bag.open("rb") as stream:
+        reader = make_reader(stream)
+        summary = reader.get_summary()
+        assert summary is not None
+        channels = {c.topic: c for c in summary.channels.values()}
+        schemas = {t: summary.schemas.get(c.schema_id) for t, c in channels.items()}
+        for topic in ("/rig/decisions/annotations", "/rig/detections/annotations"):
+            schema = schemas[topic]
+            assert schema is not None and schema.name == "foxglove.ImageAnnotations"
+            assert (schema.encoding, channels[topic].message_encoding) == ("protobuf", "protobuf")
+        assert channels["/rig/decisions/verdict"].message_encoding == "json"
+        assert channels["/rig/rates/rates"].message_encoding == "json"
+        messages = {
+            topic: [(m.log_time, m.data) for _s, _c, m in reader.iter_messages(topics=[topic])]
+            for topic in channels
+        }
+        verdict_schema = schemas["/rig/decisions/annotations"]
+        assert verdict_schema is not None
+    annotations = _protobuf_class(verdict_schema.data, verdict_schema.name)
+    drawn = [annotations.FromString(data) for _t, data in messages["/rig/decisions/annotations"]]
+    # Each verdict is stamped with its frame's timestamp: Foxglove draws it on that frame.
+    assert [a.timestamp.seconds * 10**9 + a.timestamp.nanos for a in drawn] == frames
+    assert drawn[0].texts[0].text.startswith("ACCEPT") and drawn[1].texts[0].text.startswith(
+        "REJECT"
+    )
+    assert [(p.x, p.y) for p in drawn[0].points[0].points][2] == (WIDTH - 4.0, HEIGHT - 4.0)
+    markers = [annotations.FromString(d) for _t, d in messages["/rig/detections/annotations"]]
+    assert [m.texts[0].text for m in markers] == ["id 7", "id 8", "id 9"]
+    plot = [json.loads(d) for _t, d in messages["/rig/decisions/verdict"]]
+    assert [p["accepted"] for p in plot] == [True, False, False] and plot[0]["q"] == 0.9
+    assert len(messages["/rig/rates/rates"]) == 6
+    with open_bag(bag) as recorded:  # play reads the buffers and leaves the derived channels be
+        assert [b.name for b in recorded.buffers] == [
+            "rig/decisions", "rig/detections", "rig/images", "rig/rates",
+        ]  # fmt: skip
+
+
+def _protobuf_class(file_descriptor_set: bytes, name: str) -> Any:
+    from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+
+    pool = descriptor_pool.DescriptorPool()
+    for proto in descriptor_pb2.FileDescriptorSet.FromString(file_descriptor_set).file:
+        pool.Add(proto)
+    return message_factory.GetMessageClass(pool.FindMessageTypeByName(name))
