@@ -48,6 +48,22 @@ def register(subparsers: Any) -> None:
     )  # fmt: skip
     parser.add_argument("--frames", type=int, help="frames per approach (default 319)")
     parser.add_argument(
+        "--floor", default="default", choices=("smooth", "default", "rough"),
+        help="the simulated floor's bumps (default %(default)s)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--sweep", action="store_true",
+        help="no processes: replay every --floors x --queues x --factors working point "
+        "(discrete-event, with the oracle and every policy) and print one summary table",
+    )  # fmt: skip
+    parser.add_argument("--floors", nargs="+", default=["smooth", "default", "rough"])
+    parser.add_argument("--queues", type=int, nargs="+", default=[1, 2, 3])
+    parser.add_argument("--factors", type=float, nargs="+", default=[1.3, 1.6, 2.0])
+    parser.add_argument(
+        "--policies", nargs="+", default=["paper", "replace", "deadline"],
+        help="mediator policies the sweep replays",
+    )  # fmt: skip
+    parser.add_argument(
         "--cache", type=Path,
         help="directory of rendered datasets to reuse (default OUT/datasets)",
     )  # fmt: skip
@@ -70,6 +86,8 @@ def run(args: argparse.Namespace) -> int:
     # SIGTERM unwinds like Ctrl-C, so every service process of the current run is stopped.
     exit_on_sigterm()
     seeds = args.seeds if args.seeds is not None else ([1] if args.quick else [1, 2, 3, 4, 5])
+    if args.sweep:
+        return _sweep(args, seeds)
     config = ExperimentConfig(
         out=args.out,
         seeds=tuple(seeds),
@@ -81,6 +99,7 @@ def run(args: argparse.Namespace) -> int:
         cache=args.cache,
         startup_s=args.startup_s if not args.quick or args.startup_s != 6.0 else 4.0,
         progress=not args.no_progress and not args.json,
+        floor=args.floor,
     )
     quiet = args.json
     results = run_experiment(config, log=(lambda _text: None) if quiet else None)
@@ -90,4 +109,28 @@ def run(args: argparse.Namespace) -> int:
         return 0
     print((args.out / "table.md").read_text(encoding="utf-8"))
     print("wrote " + ", ".join(str(args.out / name) for name in OUTPUT_FILES))
+    return 0
+
+
+def _sweep(args: argparse.Namespace, seeds: list[int]) -> int:
+    from services.tools.experiment import SWEEP_TABLE, SweepConfig, run_sweep
+
+    config = SweepConfig(
+        out=args.out,
+        seeds=tuple(seeds),
+        floors=tuple(args.floors),
+        queues=tuple(args.queues),
+        factors=tuple(args.factors),
+        policies=tuple(args.policies),
+        b0_px=args.b0_px,
+        frames=args.frames if args.frames is not None else (60 if args.quick else None),
+        cache=args.cache,
+        progress=not args.no_progress and not args.json,
+    )
+    results = run_sweep(config, log=(lambda _text: None) if args.json else None)
+    if args.json:
+        json.dump(results, sys.stdout, indent=1)
+        print()
+        return 0
+    print((args.out / SWEEP_TABLE).read_text(encoding="utf-8"))
     return 0

@@ -34,6 +34,10 @@ def register(subparsers: Any) -> None:
     parser.add_argument("--frames", type=int, help="number of frames (default 319)")
     parser.add_argument("--exposure-ms", type=float, help="exposure time (default 60)")
     parser.add_argument(
+        "--floor", choices=ScenarioConfig.floor_names(),
+        help="bump preset: smooth, default or rough (applied before --config and --set)",
+    )  # fmt: skip
+    parser.add_argument(
         "--config", type=Path, help="a scenario.json to start from, e.g. another dataset's"
     )
     parser.add_argument(
@@ -55,6 +59,9 @@ def register(subparsers: Any) -> None:
 def build_config(args: argparse.Namespace) -> ScenarioConfig:
     """The scenario from defaults, --config, --set and the named flags, in that order."""
     values: dict[str, Any] = {}
+    if getattr(args, "floor", None) is not None:
+        values.update(ScenarioConfig().with_floor(args.floor).to_dict())
+        values.pop("seed")
     if args.config is not None:
         try:
             values.update(json.loads(args.config.read_text(encoding="utf-8")))

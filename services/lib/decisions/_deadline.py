@@ -21,6 +21,7 @@ between takes), the policy forwards as ``replace`` does when the queue is empty.
 
 from __future__ import annotations
 
+import itertools
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -61,7 +62,7 @@ class DeadlinePolicy:
         if len(self._takes) < 3:
             return view.detector.service_ns
         takes = list(self._takes)
-        return min(b - a for a, b in zip(takes, takes[1:], strict=False))
+        return min(b - a for a, b in itertools.pairwise(takes))
 
     def _needs_at_ns(self, view: View) -> int:
         """When the detector runs out of work it has been given."""

@@ -15,6 +15,31 @@ from services.lib.camera_model import CameraModel
 Track = Literal["left", "right", "both"]
 _TRACKS = ("left", "right", "both")
 
+FLOOR_PRESETS: dict[str, dict[str, float]] = {
+    "smooth": {
+        "bump_mean_spacing_m": 0.8,
+        "bump_height_min_m": 0.001,
+        "bump_height_max_m": 0.005,
+    },
+    "default": {
+        "bump_mean_spacing_m": 0.5,
+        "bump_height_min_m": 0.003,
+        "bump_height_max_m": 0.01,
+    },
+    "rough": {
+        "bump_mean_spacing_m": 0.35,
+        "bump_height_min_m": 0.005,
+        "bump_height_max_m": 0.015,
+    },
+}
+"""Floors for :meth:`ScenarioConfig.with_floor`: bump parameters changed from the defaults.
+
+``default`` holds the defaults (3-10 mm bumps every 0.5 m on average, the paper's "bumps of
+a maximum height of 1 cm"), so its scenarios, and their cached datasets, stay what they were.
+``smooth`` has a third as many, lower bumps (1-5 mm every 0.8 m); ``rough`` more and higher
+ones (5-15 mm every 0.35 m).
+"""
+
 
 @dataclass(frozen=True, slots=True)
 class Bump:
@@ -177,6 +202,18 @@ class ScenarioConfig:
         if unknown:
             raise ConfigError(f"unknown scenario parameter(s): {', '.join(unknown)}")
         return dataclasses.replace(self, **changes)
+
+    @staticmethod
+    def floor_names() -> tuple[str, ...]:
+        """The floor presets :meth:`with_floor` knows, smoothest first."""
+        return tuple(FLOOR_PRESETS)
+
+    def with_floor(self, floor: str) -> ScenarioConfig:
+        """A copy on the named floor (``smooth``, ``default``, ``rough``): its bump
+        parameters set from the preset, everything else kept."""
+        if floor not in FLOOR_PRESETS:
+            raise ConfigError(f"unknown floor {floor!r}; choose one of {', '.join(FLOOR_PRESETS)}")
+        return self.replace(**FLOOR_PRESETS[floor])
 
     # -- derived values --
 

@@ -24,10 +24,14 @@ from ._experiment import (
     run_order,
     seed_markers,
 )
+from ._frames import FrameOutcome, frame_outcomes
 from ._metrics import blur_pairs, recognized_counts, recognized_frames
+from ._oracle import OracleSchedule, feasible, optimal_schedule
 from ._pipeline import RunSettings, deployment_for, run_configuration
 from ._records import FrameDetections, RunRecord
-from ._stats import Estimate, correlations, improvement_pct, mean_ci95
+from ._replay import QueueModel, replay_policy, replay_uncontrolled
+from ._stats import Estimate, captured_fraction, correlations, improvement_pct, mean_ci95
+from ._sweep import SWEEP_TABLE, SweepConfig, format_sweep, run_sweep
 from ._table import format_table
 
 __all__ = [
@@ -36,26 +40,39 @@ __all__ = [
     "PAPER_TABLE1",
     "QUICK_FRAMES",
     "RUN_KINDS",
+    "SWEEP_TABLE",
     "Estimate",
     "ExperimentConfig",
     "ExperimentError",
     "FrameDetections",
+    "FrameOutcome",
+    "OracleSchedule",
+    "QueueModel",
     "RunKind",
     "RunRecord",
     "RunSettings",
+    "SweepConfig",
     "aggregate_markers",
     "blur_pairs",
     "cached_dataset",
+    "captured_fraction",
     "correlations",
     "deployment_for",
+    "feasible",
+    "format_sweep",
     "format_table",
+    "frame_outcomes",
     "improvement_pct",
     "mean_ci95",
+    "optimal_schedule",
     "recognized_counts",
     "recognized_frames",
+    "replay_policy",
+    "replay_uncontrolled",
     "run_configuration",
     "run_experiment",
     "run_order",
+    "run_sweep",
     "scenario_for",
     "scenario_hash",
     "seed_markers",

@@ -72,6 +72,7 @@ class ExperimentConfig:
     runs: tuple[RunKind, ...] = RUN_KINDS
     startup_s: float = 6.0
     progress: bool = True
+    floor: str = "default"
 
     def __post_init__(self) -> None:
         if not self.seeds:
@@ -114,4 +115,5 @@ class ExperimentConfig:
             "frames": self.frame_count,
             "runs": [r.value for r in self.runs],
             "startup_s": self.startup_s,
+            "floor": self.floor,
         }

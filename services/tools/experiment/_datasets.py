@@ -12,10 +12,10 @@ from services.lib.sim import Dataset, DatasetError, ScenarioConfig, read_dataset
 from ._config import ExperimentError
 
 
-def scenario_for(seed: int, frame_count: int | None) -> ScenarioConfig:
-    """The paper's approach for one seed: simulator defaults, only the seed (and for a
-    smoke test the frame count) changed."""
-    config = ScenarioConfig(seed=seed)
+def scenario_for(seed: int, frame_count: int | None, floor: str = "default") -> ScenarioConfig:
+    """The paper's approach for one seed: simulator defaults, only the seed, the floor
+    preset (see ``ScenarioConfig.with_floor``) and for a smoke test the frame count changed."""
+    config = ScenarioConfig(seed=seed).with_floor(floor)
     return config if frame_count is None else config.replace(frame_count=frame_count)
 
 

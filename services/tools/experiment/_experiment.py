@@ -136,7 +136,9 @@ def run_experiment(
     first: tuple[Dataset, dict[RunKind, RunRecord]] | None = None
     for index, seed in enumerate(config.seeds):
         dataset = cached_dataset(
-            scenario_for(seed, config.frame_count), config.dataset_cache, progress=config.progress
+            scenario_for(seed, config.frame_count, config.floor),
+            config.dataset_cache,
+            progress=config.progress,
         )
         assert dataset.truth is not None  # cached_dataset guarantees it
         records: dict[RunKind, RunRecord] = {}

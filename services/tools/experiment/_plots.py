@@ -175,3 +175,41 @@ def plot_timeline(
     fig.suptitle((title + ": " if title else "") + "the filtered run over time", fontsize=11)
     fig.savefig(out, dpi=110)
     return out
+
+
+def plot_captured(results: Mapping[str, object], path: Path) -> None:
+    """Captured fraction of the oracle's gain (all markers summed) per policy across N, one
+    panel per floor, one line style per service factor (the sweep's figure)."""
+    config = results["config"]
+    points = results["points"]
+    assert isinstance(config, Mapping) and isinstance(points, Sequence)
+    floors = list(config["floors"])
+    policies = list(config["policies"])
+    factors = list(config["factors"])
+    figure = Figure(figsize=(4.2 * len(floors), 3.6), layout="constrained")
+    axes = figure.subplots(1, len(floors), sharey=True, squeeze=False)[0]
+    styles = ["-", "--", ":", "-."]
+    colours = ["#1f77b4", "#ff7f0e", "#2ca02c", "#9467bd", "#8c564b"]
+    for ax, floor in zip(axes, floors, strict=True):
+        for p_index, policy in enumerate(policies):
+            for f_index, factor in enumerate(factors):
+                chosen = sorted(
+                    (pt["queue"], pt["summary"][policy]["total"]["captured"]["mean"])
+                    for pt in points
+                    if pt["floor"] == floor and pt["service_factor"] == factor
+                )
+                xs = [q for q, v in chosen if v is not None]
+                ys = [100 * v for q, v in chosen if v is not None]
+                ax.plot(
+                    xs, ys, styles[f_index % len(styles)], marker="o",
+                    color=colours[p_index % len(colours)],
+                    label=f"{policy}, factor {factor:g}",
+                )  # fmt: skip
+        ax.axhline(0, color="black", linewidth=0.6)
+        ax.axhline(100, color="grey", linewidth=0.6, linestyle=":")
+        ax.set_title(f"floor: {floor}")
+        ax.set_xlabel("detector queue N")
+        ax.set_xticks(sorted({pt["queue"] for pt in points}))
+    axes[0].set_ylabel("captured of the oracle's gain (%)")
+    axes[-1].legend(fontsize=6, loc="best")
+    figure.savefig(path, dpi=120)

@@ -62,3 +62,11 @@ def correlations(estimated: Sequence[float], true: Sequence[float]) -> tuple[flo
     pearson = float(stats.pearsonr(a, b).statistic)
     spearman = float(stats.spearmanr(a, b).statistic)
     return pearson, spearman
+
+
+def captured_fraction(policy: float, uncontrolled: float, oracle: float) -> float | None:
+    """The share of the possible gain a policy reached: (policy − uncontrolled) /
+    (oracle − uncontrolled); None when the oracle gains nothing over uncontrolled."""
+    if oracle == uncontrolled:
+        return None
+    return (policy - uncontrolled) / (oracle - uncontrolled)
