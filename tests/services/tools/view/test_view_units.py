@@ -1,0 +1,83 @@
+"""The viewer's configuration, targets and status bookkeeping (no sockets)."""
+
+from __future__ import annotations
+
+import pytest
+
+from middleware import ConfigError, FramegateError
+from services.tools.view import Counters, ViewConfig, parse_target
+
+
+def test_loopback_is_private_and_anything_else_is_exposed() -> None:
+    assert not ViewConfig().exposed
+    assert not ViewConfig(host="localhost").exposed
+    assert not ViewConfig(host="::1").exposed
+    assert ViewConfig(host="0.0.0.0").exposed
+    assert ViewConfig(host="192.168.1.5").exposed
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"port": 70000}, "--port 70000"),
+        ({"jpeg_quality": 0}, "--jpeg 0: JPEG quality must be 1..100"),
+        ({"queue": 0}, "--queue 0"),
+        ({"backlog": 0}, "--backlog 0"),
+        ({"duration_s": -1.0}, "--duration -1.0"),
+    ],
+)
+def test_bad_options_are_named(kwargs: dict[str, object], message: str) -> None:
+    with pytest.raises(ConfigError, match=message):
+        ViewConfig(**kwargs)  # type: ignore[arg-type]
+
+
+def test_jpeg_quality_switches_frames_to_compressed_images() -> None:
+    assert ViewConfig().images == "raw"
+    assert ViewConfig(jpeg_quality=70).images == "jpeg"
+
+
+def test_targets_are_a_buffer_or_a_whole_service() -> None:
+    assert parse_target("camera/images") == ("camera", "images")
+    assert parse_target("/detector") == ("detector", None)
+    with pytest.raises(FramegateError, match="camera/images/x"):
+        parse_target("camera/images/x")
+
+
+def test_status_rates_are_over_the_time_since_the_last_snapshot() -> None:
+    counters = Counters()
+    counters.snapshot("ws://x", 10.0)
+    counters.count("/camera/images/image", 30)
+    counters.count("/gyro/rates/rates", 200)
+    status = counters.snapshot("ws://x", 12.0)
+    assert status.rates_hz == {"/camera/images/image": 15.0, "/gyro/rates/rates": 100.0}
+    assert counters.snapshot("ws://x", 13.0).rates_hz["/camera/images/image"] == 0.0
+    assert status.published == 230
+
+
+def test_clients_count_while_they_subscribe_to_something() -> None:
+    counters = Counters()
+    counters.subscribed(1, 10)
+    counters.subscribed(1, 11)
+    counters.subscribed(2, 10)
+    assert counters.snapshot("u", 1.0).clients == 2
+    counters.unsubscribed(1, 10)
+    assert counters.snapshot("u", 2.0).clients == 2
+    counters.unsubscribed(1, 11)
+    assert counters.snapshot("u", 3.0).clients == 1
+
+
+def test_status_line_says_what_was_missed_and_which_client_is_slow() -> None:
+    counters = Counters()
+    counters.snapshot("ws://127.0.0.1:8765", 0.0)
+    counters.count("/camera/images/image", 15)
+    counters.set_missed("camera/images", 3)
+    counters.add_lost("gyro/rates")
+    counters.slow_client("127.0.0.1:5000")
+    status = counters.snapshot("ws://127.0.0.1:8765", 1.0)
+    line = status.line()
+    assert line.startswith("ws://127.0.0.1:8765  clients 0 | /camera/images/image 15.0/s")
+    assert "missed 3 lost 1" in line
+    assert "slow client, oldest messages dropped: 127.0.0.1:5000 (1x)" in line
+    assert status.json()["slow_clients"] == {"127.0.0.1:5000": 1}
+    counters.client_gone("127.0.0.1:5000")
+    assert "slow" not in counters.snapshot("u", 2.0).line()
