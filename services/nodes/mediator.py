@@ -1,30 +1,57 @@
 """The mediator (paper §4.3, Fig. 5): forwards a frame to the detector only if its
 gyro-estimated quality beats the detector's load.
 
+This module is the thin I/O around ``services.lib.decisions``: it takes camera frames and
+gyro batches, turns each frame into a quality, feeds the pure :class:`Decider` with the
+quality, the detector's queue and the clock, and carries out the verdicts (put the frame to
+mediator/images, keep its bytes while held, record every decision). The policies (``paper``:
+q > load; ``replace``: hold the sharpest frames, one per free slot) and the gyro-missing
+rule live, and are tested, there.
+
 Buffering rules chosen here:
 - camera/images: flow-controlled with a deep queue (default 8), taken at once, so the
   mediator never is the reason a frame is dropped at the camera;
 - gyro/rates: flow-controlled, taken at once by a thread of its own (a lossless consumer:
   the gyro waits briefly rather than lose samples the blur estimate needs);
-- mediator/images: offered with the detector as a flow-controlled subscriber; its fill is
-  the load indicator. A frame is only put when the acceptance test says so, so the
-  mediator itself is never refused in normal operation.
+- mediator/images: offered with the detector as a flow-controlled subscriber; its queue is
+  the load indicator, and it is the mediator's one flow-controlled output. A frame is only
+  put when the decider says so; a refusal all the same drops that frame (``refused``).
+- mediator/decisions: bookkeeping. A record never waits and never raises out of the
+  mediator: a record refused because a subscriber flow-controls the buffer (or rejected for
+  any other reason) is counted (``decisions_dropped``, logged) and dropped. A slow watcher
+  loses records; it never slows or stops the frames.
 
-Policies: ``paper`` — accept iff q > load (and q >= q_min). ``replace`` (beyond the paper) —
-while the detector has something queued, hold the sharpest frame so far and hand it over
-the moment the queue empties; a sharper newer frame replaces the held one.
+Failure behaviour (every input a peer can produce): metadata that passes its XSD is not
+trusted. A frame is skipped, counted and recorded with a reason when its metadata cannot be
+read (``bad-metadata``), its size or exposure is zero or negative (``bad-size``,
+``bad-exposure``), its encoding is unknown (``bad-encoding``), its payload does not hold
+width x height x channels bytes (``bad-payload-size``), or its blur is not a number
+(``bad-blur``: NaN or INF in fx_px or gyro_to_camera are refused by the camera model; what
+still slips through ends here). Anything else that goes wrong with one frame is logged with
+its traceback and recorded as ``internal-error``; the mediator goes on with the next frame.
+Gyro batches that cannot be decoded or hold NaN/INF are dropped; samples not newer than the
+newest one kept (late, re-delivered or overlapping batches) are dropped; a batch far older
+than everything kept is a restarted gyro and starts the cache over. Late or out-of-order
+frames are the decider's (``out-of-order``).
+
 Gyro missing or late (no coverage ``gyro_wait_ms`` after the exposure ended): by default a
-frame is accepted only when the detector is idle (``--gyro-missing idle``); ``accept`` and
+frame is forwarded only when the detector is idle (``--gyro-missing idle``); ``accept`` and
 ``reject`` are the alternatives. Outages and recovery are logged.
+
+Threads: ``step`` runs on the caller's thread and owns the decider and the held frames'
+bytes; the gyro cache's thread takes gyro notifications and shares only the batch list,
+guarded by its condition. Zenoh's threads only feed the middleware's queues.
 """
 
 from __future__ import annotations
 
 import argparse
-import enum
+import collections
 import threading
 import time
 from dataclasses import dataclass
+
+import numpy as np
 
 from middleware import (
     PUSH_ALL,
@@ -32,45 +59,46 @@ from middleware import (
     FramegateError,
     NetworkConfig,
     Node,
+    Notification,
     Producer,
     Retention,
     Subscription,
+    SubscriptionMode,
 )
-from services.lib.camera_model import CameraModel
-from services.lib.messages import DecisionRecord, FrameMeta, read_frame_metadata
+from services.lib.decisions import (
+    DEFAULT_POLICY,
+    POLICIES,
+    Action,
+    Candidate,
+    Decider,
+    GyroMissing,
+    Load,
+    Rules,
+    Verdict,
+    make_policy,
+)
+from services.lib.messages import FRAME_CHANNELS, DecisionRecord, FrameMeta, read_frame_metadata
 from services.lib.quality import (
     DEFAULT_B0_PX,
     BlurMode,
     BlurOptions,
     CoverageError,
     GyroSamples,
-    accept,
     estimate_blur,
     quality,
 )
+from services.nodes._contract import Service
 from services.nodes._runtime import Monotonic, setup_logging
 
-
-class Policy(enum.Enum):
-    """How frames are chosen for the detector."""
-
-    PAPER = "paper"
-    REPLACE = "replace"
-    DEFAULT = PAPER
-
-
-class GyroMissing(enum.Enum):
-    """What to do with a frame whose exposure the gyro does not cover."""
-
-    IDLE = "idle"
-    ACCEPT = "accept"
-    REJECT = "reject"
-    DEFAULT = IDLE
+# A batch whose newest sample is this much older than the newest kept: the gyro restarted.
+_GYRO_RESTART_NS = 10_000_000_000
+# While frames are held, poll this often so they go out when the detector's queue drains.
+_HOLD_POLL_S = 0.005
 
 
 @dataclass(frozen=True, slots=True)
 class MediatorConfig:
-    """Everything the mediator can be told."""
+    """Everything the mediator can be told (one flag per field)."""
 
     name: str = "mediator"
     camera: str = "camera/images"
@@ -78,21 +106,60 @@ class MediatorConfig:
     camera_queue: int = 8
     b0_px: float = DEFAULT_B0_PX
     q_min: float = 0.0
-    policy: Policy = Policy.DEFAULT
+    policy: str = DEFAULT_POLICY
     gyro_missing: GyroMissing = GyroMissing.DEFAULT
     gyro_wait_ms: float = 150.0
     blur_mode: BlurMode = BlurMode.DEFAULT
     max_hold_ms: float = 250.0
 
 
-@dataclass
+@dataclass(frozen=True, slots=True)
 class _Frame:
     meta: FrameMeta
     payload: bytes
     metadata: bytes
-    blur_px: float | None
-    q: float | None
-    end_ns: int
+    candidate: Candidate
+
+
+class BadFrame(Exception):
+    """A frame the mediator skips; ``reason`` goes into its decision record."""
+
+    def __init__(self, reason: str, detail: str) -> None:
+        super().__init__(detail)
+        self.reason = reason
+
+
+def merge_batch(
+    batches: list[GyroSamples], batch: GyroSamples, keep_ns: int
+) -> tuple[list[GyroSamples], str | None]:
+    """The kept batches after ``batch`` arrives, and what was unusual about it (or None).
+
+    Only samples newer than every kept sample are kept: a late or re-delivered batch is
+    dropped (``late-batch``), an overlapping one trimmed (``overlap``). A batch ending more
+    than 10 s before the newest kept sample is a restarted gyro: the cache starts over
+    (``restart``). Batches older than ``keep_ns`` before the newest sample are forgotten.
+    """
+    if len(batch) == 0:
+        return batches, "empty-batch"
+    outcome = None
+    newest = int(batches[-1].t_ns[-1]) if batches else None
+    if newest is not None and int(batch.t_ns[-1]) < newest - _GYRO_RESTART_NS:
+        batches, outcome = [], "restart"  # start over rather than mix clocks
+    elif newest is not None and int(batch.t_ns[0]) <= newest:
+        fresh = np.asarray(batch.t_ns) > newest
+        if not fresh.any():
+            return batches, "late-batch"
+        outcome = "overlap"
+        batch = GyroSamples(
+            np.asarray(batch.t_ns)[fresh],
+            np.asarray(batch.rates_rad_s)[fresh],
+            period_ns=batch.period_ns,
+        )
+    kept = [*batches, batch]
+    horizon = int(batch.t_ns[-1]) - keep_ns
+    while kept and int(kept[0].t_ns[-1]) < horizon:
+        kept.pop(0)
+    return kept, outcome
 
 
 class GyroCache:
@@ -104,6 +171,7 @@ class GyroCache:
         self._batches: list[GyroSamples] = []
         self._cond = threading.Condition()
         self._stop = threading.Event()
+        self.dropped = collections.Counter[str]()
         self._thread = threading.Thread(target=self._run, daemon=True, name="gyro-cache")
         self._thread.start()
 
@@ -115,19 +183,18 @@ class GyroCache:
             try:
                 element = self._sub.fetch(note)
                 batch = GyroSamples.from_bytes(element.payload)
-            except (FramegateError, ValueError):
+            except (FramegateError, ValueError, OverflowError):
+                self.dropped["bad-batch"] += 1
                 continue
-            if len(batch) == 0:
-                continue
-            with self._cond:
-                if self._batches and batch.t_ns[0] <= self._batches[-1].t_ns[-1]:
-                    # Out of order or a restarted gyro: start over rather than mix clocks.
-                    self._batches = [b for b in self._batches if b.t_ns[-1] < batch.t_ns[0]]
-                self._batches.append(batch)
-                horizon = int(batch.t_ns[-1]) - self._keep_ns
-                while self._batches and self._batches[0].t_ns[-1] < horizon:
-                    self._batches.pop(0)
-                self._cond.notify_all()
+            self.add(batch)
+
+    def add(self, batch: GyroSamples) -> None:
+        """Keep what is new in ``batch`` (see ``merge_batch``)."""
+        with self._cond:
+            self._batches, outcome = merge_batch(self._batches, batch, self._keep_ns)
+            if outcome is not None:
+                self.dropped[outcome] += 1
+            self._cond.notify_all()
 
     @property
     def newest_ns(self) -> int | None:
@@ -160,13 +227,59 @@ class GyroCache:
         self._thread.join(timeout=2)
 
 
+def detector_load(producer: Producer) -> Load:
+    """The flow-controlled subscription with the fewest free slots (0/0 with none)."""
+    flows = [s for s in producer.subscriptions() if s.mode is SubscriptionMode.FLOW]
+    if not flows:
+        return Load(0, 0)
+    tightest = min(flows, key=lambda s: (s.queue_size - s.queued, -s.fill))
+    return Load(min(tightest.queued, tightest.queue_size), tightest.queue_size)
+
+
+def check_frame(meta: FrameMeta, payload_bytes: int) -> None:
+    """Raise BadFrame for a frame no detector could use, whatever its XSD allowed."""
+    if meta.width_px <= 0 or meta.height_px <= 0:
+        raise BadFrame("bad-size", f"size {meta.width_px}x{meta.height_px}")
+    if meta.exposure.duration_ns <= 0:
+        raise BadFrame("bad-exposure", f"exposure of {meta.exposure.duration_ns} ns")
+    channels = FRAME_CHANNELS.get(meta.encoding)
+    if channels is None:
+        raise BadFrame("bad-encoding", f"encoding {meta.encoding!r}")
+    expected = meta.width_px * meta.height_px * channels
+    if payload_bytes != expected:
+        raise BadFrame(
+            "bad-payload-size",
+            f"payload of {payload_bytes} bytes, {meta.width_px}x{meta.height_px} "
+            f"{meta.encoding} needs {expected}",
+        )
+
+
+def blur_quality(
+    meta: FrameMeta, samples: GyroSamples, options: BlurOptions, b0_px: float
+) -> tuple[float, float]:
+    """Blur and quality of a frame with a camera model; BadFrame when they are not numbers.
+
+    CoverageError when the samples do not cover the exposure (the gyro-missing rule).
+    """
+    assert meta.camera is not None
+    try:
+        with np.errstate(all="ignore"):  # a NaN result is checked below, not warned about
+            blur = float(estimate_blur(samples, meta.exposure, meta.camera, options).blur_px)
+    except CoverageError:
+        raise
+    except (FramegateError, ValueError, ArithmeticError) as exc:
+        raise BadFrame("bad-blur", str(exc)) from exc
+    if not blur >= 0.0:  # NaN (INF or NaN in the camera model) is not a quality
+        raise BadFrame("bad-blur", f"blur of {blur} px")
+    return blur, quality(blur, b0_px)
+
+
 class Mediator:
     """The acceptance loop; ``step`` handles one camera notification or a timeout."""
 
     def __init__(self, node: Node, config: MediatorConfig, log_name: str = "mediator") -> None:
         self.config = config
         self.log = setup_logging(log_name)
-        self._node = node
         self.images: Producer = node.offer(
             "images", kind="frame", retention=Retention(max_count=64, max_bytes=256 * 2**20)
         )
@@ -180,43 +293,71 @@ class Mediator:
         self._gyro = GyroCache(node.subscribe(config.gyro, queue_size=256, wait_s=0))
         self._options = BlurOptions(mode=config.blur_mode)
         self._keys = Monotonic()
-        self._held: _Frame | None = None
+        self.decider = Decider(
+            make_policy(config.policy),
+            Rules(
+                q_min=config.q_min,
+                gyro_missing=config.gyro_missing,
+                max_hold_ns=int(config.max_hold_ms * 1e6),
+            ),
+        )
+        self._pending: dict[int, _Frame] = {}  # frames the decider holds, by key
         self._gyro_ok = True
-        self._camera_cache: tuple[bytes, CameraModel] | None = None
+        self.skipped = collections.Counter[str]()
+        self.decisions_dropped = 0
+        self._policy_faults_logged = 0
 
     # -- one frame --------------------------------------------------------------------------
     def step(self, timeout_s: float = 0.5) -> None:
-        """Take one camera notification (or time out) and decide."""
-        wait = 0.005 if self._held is not None else timeout_s
+        """Take one camera notification (or time out) and decide. Never raises for input."""
+        wait = _HOLD_POLL_S if self.decider.held else timeout_s
         note = self._camera.take(timeout_s=wait)
-        if self._held is not None:
-            self._forward_held_if_idle()
         if note is None:
+            load = detector_load(self.images)
+            self._carry_out(self.decider.tick(load, time.monotonic_ns()), load)
             return
         try:
-            element = self._camera.fetch(note)
-            meta = read_frame_metadata(element.metadata)
-        except FramegateError as exc:
-            self.log.warning("skipping frame %d: %s", note.timestamp_ns, exc)
+            frame = self._assess(note)
+        except BadFrame as exc:
+            self._skip(note.timestamp_ns, 0, exc.reason, str(exc))
             return
-        frame = self._assess(meta, element.payload, element.metadata)
-        if self.config.policy is Policy.REPLACE and frame.q is not None:
-            self._replace(frame)
-        else:
-            self._paper(frame)
+        except Exception as exc:  # one frame must never take the mediator down
+            self.log.exception("frame %d: unexpected error; skipped", note.timestamp_ns)
+            self._skip(note.timestamp_ns, 0, "internal-error", repr(exc))
+            return
+        self._pending[frame.candidate.timestamp_ns] = frame
+        load = detector_load(self.images)
+        self._carry_out(self.decider.frame(frame.candidate, load, time.monotonic_ns()), load)
 
-    def _assess(self, meta: FrameMeta, payload: bytes, metadata: bytes) -> _Frame:
+    def _assess(self, note: Notification) -> _Frame:
+        try:
+            element = self._camera.fetch(note)
+        except FramegateError as exc:
+            raise BadFrame("unavailable", str(exc)) from exc
+        try:
+            meta = read_frame_metadata(element.metadata)
+        except (FramegateError, ValueError, TypeError) as exc:
+            raise BadFrame("bad-metadata", str(exc)) from exc
+        check_frame(meta, len(element.payload))
+        blur, q = self._quality(meta)
+        arrived = time.monotonic_ns()
+        candidate = Candidate(meta.timestamp_ns, meta.frame_id, q, arrived, blur)
+        return _Frame(meta, element.payload, element.metadata, candidate)
+
+    def _quality(self, meta: FrameMeta) -> tuple[float | None, float | None]:
+        """Blur and quality of a frame, or (None, None) when the gyro does not cover it."""
         camera = meta.camera
-        end_ns = meta.exposure.end_ns
         if camera is None:
-            return _Frame(meta, payload, metadata, None, None, end_ns)
+            return None, None
+        end_ns = meta.exposure.end_ns
         gyro_end = end_ns + camera.gyro_time_offset_ns + camera.height_px * camera.line_readout_ns
         covered = self._gyro.wait_covering(gyro_end, self.config.gyro_wait_ms / 1e3)
+        result: tuple[float, float] | None = None
         if covered:
             start = meta.exposure.start_ns + camera.gyro_time_offset_ns
             samples = self._gyro.window(start, gyro_end)
             try:
-                blur = estimate_blur(samples, meta.exposure, camera, self._options).blur_px
+                result = blur_quality(meta, samples, self._options, self.config.b0_px)
             except CoverageError as exc:
                 covered = False
                 self.log.debug("frame %d: %s", meta.frame_id, exc)
@@ -229,64 +370,33 @@ class Mediator:
                     self.config.gyro_missing.value,
                 )
             self._gyro_ok = False
-            return _Frame(meta, payload, metadata, None, None, end_ns)
+            return None, None
         if not self._gyro_ok:
             self.log.warning("gyro covers frames again from frame %d", meta.frame_id)
             self._gyro_ok = True
-        return _Frame(meta, payload, metadata, blur, quality(blur, self.config.b0_px), end_ns)
+        assert result is not None
+        return result
 
-    def _paper(self, frame: _Frame) -> None:
-        load = self.images.fill()
-        if frame.q is None:
-            policy = self.config.gyro_missing
-            ok = policy is GyroMissing.ACCEPT or (policy is GyroMissing.IDLE and load == 0.0)
-            reason = f"gyro-missing-{policy.value}"
-        else:
-            ok = accept(frame.q, load, self.config.q_min)
-            if ok:
-                reason = "quality>load"
-            elif frame.q < self.config.q_min:
-                reason = "below-minimum"
-            else:
-                reason = "quality<=load"
-        if ok and not self._put(frame):
-            ok, reason = False, "refused"
-        self._decide(frame, load, ok, reason)
-
-    def _replace(self, frame: _Frame) -> None:
-        assert frame.q is not None
-        load = self.images.fill()
-        if frame.q < self.config.q_min:
-            self._decide(frame, load, False, "below-minimum")
-            return
-        if load == 0.0:
-            # Idle: hand over the better of the held frame and this one, in time order.
-            held, self._held = self._held, None
-            best = frame if held is None or held.q is None or frame.q >= held.q else held
-            if held is not None and best is frame:
-                self._decide(held, load, False, "replaced")
-            ok = self._put(best)
-            self._decide(best, load, ok, "idle" if ok else "refused")
-            if best is held:
-                self._decide(frame, load, False, "worse-than-held")
-            return
-        held = self._held
-        stale = held is not None and (frame.end_ns - held.end_ns) > self.config.max_hold_ms * 1e6
-        if held is None or held.q is None or frame.q >= held.q or stale:
-            if held is not None:
-                self._decide(held, load, False, "stale" if stale else "replaced")
-            self._held = frame
-            self._decide(frame, load, False, "held")
-        else:
-            self._decide(frame, load, False, "worse-than-held")
-
-    def _forward_held_if_idle(self) -> None:
-        held = self._held
-        if held is None or self.images.fill() > 0.0:
-            return
-        self._held = None
-        ok = self._put(held)
-        self._decide(held, 0.0, ok, "forwarded-held" if ok else "refused")
+    # -- carrying out -------------------------------------------------------------------------
+    def _carry_out(self, verdicts: list[Verdict], load: Load) -> None:
+        """Put forwarded frames, record every verdict with the load the decider saw."""
+        for verdict in verdicts:
+            key = verdict.frame.timestamp_ns
+            frame = self._pending.get(key)
+            if verdict.action is not Action.HOLD:
+                self._pending.pop(key, None)
+            if frame is None:
+                continue
+            if verdict.action is Action.FORWARD and not self._put(frame):
+                verdict = self.decider.refused(verdict.frame)
+            self._record(frame, verdict, load)
+        if self.decider.policy_faults > self._policy_faults_logged:
+            self._policy_faults_logged = self.decider.policy_faults
+            self.log.warning(
+                "policy %s broke its contract (%d times so far)",
+                self.config.policy,
+                self.decider.policy_faults,
+            )
 
     def _put(self, frame: _Frame) -> bool:
         try:
@@ -298,28 +408,60 @@ class Mediator:
             self.log.warning("cannot forward frame %d: %s", frame.meta.frame_id, exc)
             return False
 
-    def _decide(self, frame: _Frame, load: float, accepted: bool, reason: str) -> None:
-        record = DecisionRecord(
-            frame_timestamp_ns=frame.meta.timestamp_ns,
-            frame_id=frame.meta.frame_id,
-            blur_px=frame.blur_px,
-            quality=frame.q,
-            load=load,
-            accepted=accepted,
-            reason=reason,
-            policy=self.config.policy.value,
-            b0_px=self.config.b0_px,
-            latency_ns=time.time_ns() - frame.end_ns,
+    def _record(self, frame: _Frame, verdict: Verdict, load: Load) -> None:
+        candidate = frame.candidate
+        self._write(
+            DecisionRecord(
+                frame_timestamp_ns=candidate.timestamp_ns,
+                frame_id=candidate.frame_id,
+                blur_px=candidate.blur_px,
+                quality=candidate.q,
+                load=load.fill,
+                accepted=verdict.action is Action.FORWARD,
+                reason=verdict.reason,
+                policy=self.config.policy,
+                b0_px=self.config.b0_px,
+                latency_ns=time.time_ns() - frame.meta.exposure.end_ns,
+            )
         )
+
+    def _skip(self, key_ns: int, frame_id: int, reason: str, detail: str) -> None:
+        self.skipped[reason] += 1
+        count = self.skipped[reason]
+        if count & (count - 1) == 0:  # 1, 2, 4, 8...: visible, never a flood
+            self.log.warning("skipping frame %d (%s, %d so far): %s", key_ns, reason, count, detail)
+        self._write(
+            DecisionRecord(
+                frame_timestamp_ns=key_ns,
+                frame_id=frame_id,
+                blur_px=None,
+                quality=None,
+                load=detector_load(self.images).fill,
+                accepted=False,
+                reason=reason,
+                policy=self.config.policy,
+                b0_px=self.config.b0_px,
+                latency_ns=0,
+            )
+        )
+
+    def _write(self, record: DecisionRecord) -> None:
+        """Put a decision record; a refusal or rejection is counted, never raised."""
         key = self._keys.next()
-        self.decisions.put(key, b"", record.metadata(key))
+        try:
+            self.decisions.put(key, b"", record.metadata(key))
+        except FramegateError as exc:
+            self.decisions_dropped += 1
+            n = self.decisions_dropped
+            if n & (n - 1) == 0:
+                self.log.warning("decision record dropped (%d so far): %s", n, exc)
 
     def close(self) -> None:
         self._gyro.stop()
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """The mediator's flags (``framegate run mediator --help``)."""
+    """The mediator's flags (``framegate run mediator --help``): one per config field."""
     d = MediatorConfig()
     parser.add_argument("--name", default=d.name, help="service name (default %(default)s)")
     parser.add_argument("--camera", default=d.camera, help="frames to filter (SERVICE/BUFFER)")
@@ -340,9 +482,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--q-min", type=float, default=d.q_min, help="minimum quality")
     parser.add_argument(
         "--policy",
-        choices=[p.value for p in Policy],
-        default=d.policy.value,
-        help="paper: q > load; replace: hold the sharpest frame while busy",
+        choices=sorted(POLICIES),
+        default=d.policy,
+        help="paper: q > load; replace: hold the sharpest frames, one per free slot",
     )
     parser.add_argument(
         "--gyro-missing",
@@ -358,13 +500,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--blur-mode",
-        choices=["center", "mean", "max"],
-        default="center",
+        choices=[m.value for m in BlurMode if m is not BlurMode.POINT],
+        default=d.blur_mode.value,
         help="where blur is measured (paper: center)",
+    )
+    parser.add_argument(
+        "--max-hold-ms",
+        type=float,
+        default=d.max_hold_ms,
+        help="longest a frame may be held for the detector (default %(default)s)",
     )
 
 
 def config_from_args(args: argparse.Namespace) -> MediatorConfig:
+    """The config the parsed flags describe."""
     return MediatorConfig(
         name=args.name,
         camera=args.camera,
@@ -372,10 +521,11 @@ def config_from_args(args: argparse.Namespace) -> MediatorConfig:
         camera_queue=args.camera_queue,
         b0_px=args.b0_px,
         q_min=args.q_min,
-        policy=Policy(args.policy),
+        policy=args.policy,
         gyro_missing=GyroMissing(args.gyro_missing),
         gyro_wait_ms=args.gyro_wait_ms,
         blur_mode=BlurMode(args.blur_mode),
+        max_hold_ms=args.max_hold_ms,
     )
 
 
@@ -389,7 +539,7 @@ def run(config: MediatorConfig, network: NetworkConfig, stop: threading.Event | 
             config.camera,
             config.gyro,
             config.name,
-            config.policy.value,
+            config.policy,
             config.b0_px,
         )
         try:
@@ -400,3 +550,16 @@ def run(config: MediatorConfig, network: NetworkConfig, stop: threading.Event | 
         finally:
             mediator.close()
     return 0
+
+
+class MediatorService:
+    """The mediator as the registry sees it (the contract: services/nodes/_contract.py)."""
+
+    name = "mediator"
+    config_type = MediatorConfig
+    add_arguments = staticmethod(add_arguments)
+    config_from_args = staticmethod(config_from_args)
+    run = staticmethod(run)
+
+
+SERVICE: Service[MediatorConfig] = MediatorService()
