@@ -1,0 +1,75 @@
+"""The mediator as a real process under ``framegate launch``, with a hostile consumer."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from services.launch import pipeline_yaml
+from tests.conftest import REPO, child_env, wait_until
+from tests.services.nodes.pipeline import Pipeline
+
+pytestmark = pytest.mark.integration
+
+SEED_3 = {"camera": {"seed": 3}, "gyro": {"seed": 3}}
+WATCH = ("watch", "mediator/decisions", "--flow-control", "--queue", "1", "--delay", "1")
+
+
+@pytest.fixture
+def pipe(tmp_path: Path) -> Iterator[Pipeline]:
+    pipeline = Pipeline(
+        tmp_path,
+        pipeline_yaml(
+            {"camera": {"seed": 3}, "gyro": {"seed": 3}, "detector": {"service_factor": 1.6}}
+        ),
+    )
+    yield pipeline
+    pipeline.close()
+
+
+def test_regression_slow_flow_controlled_decisions_watcher_leaves_the_mediator_forwarding(
+    pipe: Pipeline,
+) -> None:
+    # Issue 15: the README's slow-consumer pattern on mediator/decisions killed the mediator
+    # within a few frames, and the supervisor then restarted it in a loop.
+    wait_until(lambda: pipe.counter("mediator/images") >= 5, 60, "forwarding\n" + pipe.log())
+    pid = pipe.pid("mediator")
+    env = child_env()
+    env["FRAMEGATE_LOCAL_PORT"] = str(pipe.port)
+    watcher = subprocess.Popen(
+        [sys.executable, "-m", "services.cli", *WATCH],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        cwd=REPO,
+        env=env,
+    )
+    try:
+        wait_until(
+            lambda: pipe.subscriber_count("mediator/decisions") >= 1, 30, "the watcher to subscribe"
+        )
+        # The watcher's queue of one is full at once: from here on records are refused.
+        wait_until(
+            lambda: pipe.counter("mediator/decisions", "refused") >= 20,
+            60,
+            "refused decision records\n" + pipe.log(),
+        )
+        forwarded = pipe.counter("mediator/images")
+        wait_until(
+            lambda: pipe.counter("mediator/images") >= forwarded + 20,
+            60,
+            "the mediator to keep forwarding\n" + pipe.log(),
+        )
+        assert watcher.poll() is None, "the watcher ended"
+        assert pipe.pid("mediator") == pid, "the mediator restarted:\n" + pipe.log()
+    finally:
+        watcher.send_signal(signal.SIGINT)
+        try:
+            watcher.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            watcher.kill()
+            watcher.wait()
