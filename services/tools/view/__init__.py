@@ -8,6 +8,7 @@ serves live and recorded data. The viewer observes and never slows a producer.
 """
 
 from ._config import DEFAULT_BACKLOG, DEFAULT_HOST, DEFAULT_PORT, DEFAULT_QUEUE, ViewConfig
+from ._layout import foxglove_layout
 from ._server import FoxgloveServer
 from ._status import Counters, Status
 from ._view import parse_target, run_view
@@ -21,6 +22,7 @@ __all__ = [
     "FoxgloveServer",
     "Status",
     "ViewConfig",
+    "foxglove_layout",
     "parse_target",
     "run_view",
 ]

@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import re
+
 import pytest
 
 from middleware import ConfigError, FramegateError
-from services.tools.view import Counters, ViewConfig, parse_target
+from services.tools.bag import derived_topics
+from services.tools.view import Counters, ViewConfig, foxglove_layout, parse_target
+from tests.conftest import REPO
 
 
 def test_loopback_is_private_and_anything_else_is_exposed() -> None:
@@ -81,3 +85,22 @@ def test_status_line_says_what_was_missed_and_which_client_is_slow() -> None:
     assert status.json()["slow_clients"] == {"127.0.0.1:5000": 1}
     counters.client_gone("127.0.0.1:5000")
     assert "slow" not in counters.snapshot("u", 2.0).line()
+
+
+def test_the_layout_file_is_the_generated_layout_and_names_only_produced_topics() -> None:
+    committed = (REPO / "deploy" / "foxglove-layout.json").read_text()
+    assert committed == foxglove_layout(), (
+        "regenerate: python -m services.tools.view._layout > deploy/foxglove-layout.json"
+    )
+    produced = {
+        t.topic
+        for service, buffer, kind in [
+            ("camera", "images", "frame"),
+            ("mediator", "decisions", "decision"),
+            ("detector", "detections", "detections"),
+            ("gyro", "rates", "gyro"),
+        ]
+        for t in derived_topics(service, buffer, kind, images="raw")
+    }
+    named = set(re.findall(r'"(/[a-z]+/[a-z]+/[a-z]+)', committed))
+    assert named and named <= produced, named - produced
