@@ -7,7 +7,7 @@ from typing import Any
 
 from services.tools.demo import DemoConfig, print_summary, run_demo
 
-from ._common import command_parser, exit_on_sigterm, network, print_json
+from ._common import command_parser, network, print_json, stop_on_signals
 
 
 def register(subparsers: Any) -> None:
@@ -34,7 +34,7 @@ def register(subparsers: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    exit_on_sigterm()
+    stop = stop_on_signals()
     config = DemoConfig(
         duration_s=args.duration,
         seed=args.seed,
@@ -44,7 +44,7 @@ def run(args: argparse.Namespace) -> int:
         service_factor=args.service_factor,
         show_logs=args.logs,
     )
-    summary = run_demo(config, network(args))
+    summary = run_demo(config, network(args), stop)
     if args.json:
         print_json(summary)
     else:

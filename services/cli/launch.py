@@ -9,7 +9,7 @@ from typing import Any
 from middleware import NetworkConfig
 from services.launch import Supervisor, load_deployment, process_specs
 
-from ._common import command_parser, exit_on_sigterm, network
+from ._common import command_parser, network, stop_on_signals
 
 
 def register(subparsers: Any) -> None:
@@ -30,13 +30,13 @@ def run(args: argparse.Namespace) -> int:
     specs = process_specs(
         deployment, args.host, NetworkConfig(), text=text, override=lambda net: network(args, net)
     )
-    exit_on_sigterm()
+    stop = stop_on_signals()
     supervisor = Supervisor(specs, colour=False if args.no_colour else None)
     names = ", ".join(s.name for s in specs)
     print(f"launching {names} (Ctrl-C stops everything)", flush=True)
     supervisor.start()
     try:
-        supervisor.run(args.duration)
-    except KeyboardInterrupt:
-        supervisor.stop()
+        supervisor.run(args.duration, stop=stop)
+    except KeyboardInterrupt:  # a second Ctrl-C while stopping
+        supervisor.stop(timeout_s=0.0)
     return 0

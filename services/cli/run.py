@@ -7,6 +7,7 @@ from typing import Any
 
 from middleware import add_network_arguments
 from services.nodes import SERVICES, describe, service
+from services.nodes._runtime import exit_with_parent
 
 from ._common import command_parser, network, stop_on_signals
 
@@ -40,4 +41,5 @@ def run(args: argparse.Namespace) -> int:
     config = svc.config_from_args(parsed)
     # One Ctrl-C or SIGTERM sets ``stop``; the service returns and closes its session.
     stop = stop_on_signals()
+    exit_with_parent(stop)
     return svc.run(config, network(parsed), stop)

@@ -1,8 +1,17 @@
 """Start service processes, prefix and colour their logs, restart crashes, stop cleanly.
 
 Each service is its own OS process (``python -m services.cli run TYPE ...``). A process
-that exits while it should run is restarted with exponential backoff (0.2 s doubling to
-10 s; reset after 30 s of uptime). ``stop`` sends SIGTERM, waits, then SIGKILLs.
+that exits while it should run is restarted at once the first time, then with exponential
+backoff (0.2 s doubling to 10 s; back to "at once" after 30 s of uptime). ``stop`` sends
+SIGTERM, waits up to 1.5 s, then SIGKILLs.
+
+No orphans: every child gets ``FRAMEGATE_PARENT_PID`` and the read end of a pipe whose
+write end only this process holds (``FRAMEGATE_PARENT_FD``). The child
+(services/nodes/_runtime.exit_with_parent) asks Linux for SIGTERM when its parent dies and
+watches the pipe, whose end-of-file means the same anywhere; so the services end with
+their launcher however it ends, SIGKILL included. Linux sends that signal when the
+*thread* that started the child ends: start, poll and run a Supervisor from a thread that
+outlives it (the main thread).
 """
 
 from __future__ import annotations
@@ -22,6 +31,9 @@ _COLOURS = ("36", "33", "35", "32", "34", "31", "96", "93")
 _BACKOFF_START_S = 0.2
 _BACKOFF_MAX_S = 10.0
 _HEALTHY_AFTER_S = 30.0
+_POLL_S = 0.05
+PARENT_PID_ENV = "FRAMEGATE_PARENT_PID"
+PARENT_FD_ENV = "FRAMEGATE_PARENT_FD"
 
 
 @dataclass(frozen=True, slots=True)
@@ -41,9 +53,10 @@ class _Running:
     proc: subprocess.Popen[bytes] | None = None
     started_at: float = 0.0
     restarts: int = 0
-    backoff_s: float = _BACKOFF_START_S
+    backoff_s: float = 0.0  # the first crash restarts at once
     next_start: float = 0.0
     exit_codes: list[int] = field(default_factory=list)
+    pump: threading.Thread | None = None
 
 
 class Supervisor:
@@ -67,6 +80,8 @@ class Supervisor:
         self._lock = threading.Lock()
         self._stopping = False
         self._width = max((len(s.name) for s in specs), default=4)
+        # The children's lifeline: they hold the read end, only we hold the write end.
+        self._lifeline_r, self._lifeline_w = os.pipe()
 
     def _emit(self, running: _Running, text: str) -> None:
         prefix = f"[{running.spec.name:<{self._width}}]"
@@ -85,18 +100,22 @@ class Supervisor:
         env = dict(os.environ)
         env.update(dict(running.spec.env))
         env.setdefault("PYTHONUNBUFFERED", "1")
+        env[PARENT_PID_ENV] = str(os.getpid())
+        env[PARENT_FD_ENV] = str(self._lifeline_r)
         running.proc = subprocess.Popen(
             list(running.spec.argv),
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,
             env=env,
+            pass_fds=(self._lifeline_r,),
             start_new_session=True,  # Ctrl-C reaches us; we decide how children stop
         )
         running.started_at = time.monotonic()
         assert running.proc.stdout is not None
-        threading.Thread(
+        running.pump = threading.Thread(
             target=self._pump, args=(running, running.proc.stdout), daemon=True
-        ).start()
+        )
+        running.pump.start()
 
     def start(self) -> None:
         """Start every process."""
@@ -108,37 +127,46 @@ class Supervisor:
         now = time.monotonic()
         for running in self._running:
             proc = running.proc
-            if proc is None:
-                if not self._stopping and now >= running.next_start:
-                    running.restarts += 1
-                    self._emit(running, f"restarting (restart {running.restarts})")
-                    self._start(running)
-                continue
-            code = proc.poll()
-            if code is None or self._stopping:
-                continue
-            running.exit_codes.append(code)
-            running.proc = None
-            if not running.spec.restart:
-                self._emit(running, f"exited with {code}; not restarting")
-                continue
-            if now - running.started_at > _HEALTHY_AFTER_S:
-                running.backoff_s = _BACKOFF_START_S
-            running.next_start = now + running.backoff_s
-            self._emit(running, f"exited with {code}; restarting in {running.backoff_s:.1f} s")
-            running.backoff_s = min(_BACKOFF_MAX_S, running.backoff_s * 2)
+            if proc is not None:
+                code = proc.poll()
+                if code is None or self._stopping:
+                    continue
+                running.exit_codes.append(code)
+                running.proc = None
+                if not running.spec.restart:
+                    running.next_start = float("inf")
+                    self._emit(running, f"exited with {code}; not restarting")
+                    continue
+                if now - running.started_at > _HEALTHY_AFTER_S:
+                    running.backoff_s = 0.0
+                running.next_start = now + running.backoff_s
+                self._emit(running, f"exited with {code}; restarting in {running.backoff_s:.1f} s")
+                running.backoff_s = min(
+                    _BACKOFF_MAX_S, max(_BACKOFF_START_S, running.backoff_s * 2)
+                )
+            if not self._stopping and now >= running.next_start:
+                running.restarts += 1
+                self._emit(running, f"restarting (restart {running.restarts})")
+                self._start(running)
 
     def run(
-        self, duration_s: float | None = None, on_tick: Callable[[], None] | None = None
+        self,
+        duration_s: float | None = None,
+        on_tick: Callable[[], None] | None = None,
+        *,
+        stop: threading.Event | None = None,
     ) -> None:
-        """Supervise until ``duration_s`` passes or KeyboardInterrupt; then stop."""
+        """Supervise until ``duration_s`` passes, ``stop`` is set or KeyboardInterrupt; then
+        stop every process."""
+        stop = stop or threading.Event()
         deadline = None if duration_s is None else time.monotonic() + duration_s
         try:
             while deadline is None or time.monotonic() < deadline:
                 self.poll()
                 if on_tick is not None:
                     on_tick()
-                time.sleep(0.1)
+                if stop.wait(_POLL_S):
+                    break
         finally:
             self.stop()
 
@@ -149,8 +177,12 @@ class Supervisor:
     def restarts(self) -> dict[str, int]:
         return {r.spec.name: r.restarts for r in self._running}
 
-    def stop(self, timeout_s: float = 5.0) -> None:
-        """SIGTERM every process, wait up to ``timeout_s``, then SIGKILL what is left."""
+    def stop(self, timeout_s: float = 1.5) -> None:
+        """SIGTERM every process, wait up to ``timeout_s``, then SIGKILL what is left.
+
+        A service closes its Zenoh session well within the default; one that does not is
+        killed, so that the whole launch ends within 2 s of one Ctrl-C.
+        """
         self._stopping = True
         procs = [r.proc for r in self._running if r.proc is not None and r.proc.poll() is None]
         for proc in procs:
@@ -163,3 +195,10 @@ class Supervisor:
             except subprocess.TimeoutExpired:
                 proc.kill()
                 proc.wait()
+        # A stopped child's last lines (its totals) are still in the pipe: read them out.
+        for running in self._running:
+            if running.pump is not None:
+                running.pump.join(timeout=max(0.1, deadline - time.monotonic()))
+        for fd in (self._lifeline_r, self._lifeline_w):
+            with contextlib.suppress(OSError):
+                os.close(fd)

@@ -3,14 +3,26 @@
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import logging
 import os
+import signal
+import sys
 import threading
 import time
+from collections.abc import Callable
+from typing import TypeVar
 
 from middleware import ConfigError
 
 START_AT_ENV = "FRAMEGATE_START_AT_NS"
+# Set by the launch supervisor (services/launch/_supervisor.py) for each child it starts.
+PARENT_PID_ENV = "FRAMEGATE_PARENT_PID"
+PARENT_FD_ENV = "FRAMEGATE_PARENT_FD"
+_PR_SET_PDEATHSIG = 1
+T = TypeVar("T")
+# After the parent is gone, how long the service may take to stop by itself.
+_ORPHAN_GRACE_S = 1.5
 
 
 def setup_logging(name: str, level: int = logging.INFO) -> logging.Logger:
@@ -60,7 +72,72 @@ class Monotonic:
             return self._last
 
 
+def unless_stopped(work: Callable[[], T], stop: threading.Event) -> T | None:
+    """``work()``, or None as soon as ``stop`` is set while it runs.
+
+    For slow steps a stop must not wait for (the simulator's first frame takes seconds):
+    the work runs on a daemon thread, abandoned if the process stops first.
+
+    Threads: one short-lived daemon thread per call; ``work`` must not touch Zenoh.
+    """
+    result: list[T] = []
+    failure: list[BaseException] = []
+    done = threading.Event()
+
+    def target() -> None:
+        try:
+            result.append(work())
+        except BaseException as exc:  # handed back to the caller's thread
+            failure.append(exc)
+        finally:
+            done.set()
+
+    threading.Thread(target=target, name="unless-stopped", daemon=True).start()
+    while not done.wait(0.05):
+        if stop.is_set():
+            return None
+    if failure:
+        raise failure[0]
+    return result[0]
+
+
 def serve_until_stopped(stop: threading.Event) -> None:
     """Keep a finished source's buffers answering queries until stopped (or Ctrl-C)."""
     with contextlib.suppress(KeyboardInterrupt):
         stop.wait()
+
+
+def exit_with_parent(stop: threading.Event) -> None:
+    """End this process with the supervisor that started it, however the supervisor ends.
+
+    On Linux the kernel sends SIGTERM when the parent dies (the caller's signal handler
+    turns it into ``stop``); everywhere, a thread waits for end-of-file on the pipe whose
+    write end only the parent holds, then sets ``stop`` and, if the service has not ended
+    ``_ORPHAN_GRACE_S`` later, exits hard. A process started by hand (no
+    ``FRAMEGATE_PARENT_PID``) is left alone.
+
+    Threads: one daemon thread blocked on the pipe; it only sets ``stop`` or exits.
+    """
+    parent = os.environ.pop(PARENT_PID_ENV, None)
+    fd_text = os.environ.pop(PARENT_FD_ENV, None)
+    if parent is None:
+        return
+    if sys.platform == "linux":
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(_PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
+    # The parent may have died before the request above took effect.
+    if os.getppid() != int(parent):
+        stop.set()
+    if fd_text is None:
+        return
+    fd = int(fd_text)
+
+    def watch() -> None:
+        with contextlib.suppress(OSError):
+            while os.read(fd, 1):
+                pass
+        stop.set()
+        time.sleep(_ORPHAN_GRACE_S)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="parent-watchdog", daemon=True).start()

@@ -20,7 +20,13 @@ from middleware import FlowControlRefused, FramegateError, NetworkConfig, Node, 
 from services.lib.messages import frame_metadata
 from services.lib.quality import Exposure
 from services.nodes._contract import Service
-from services.nodes._runtime import serve_until_stopped, setup_logging, sleep_until_ns, start_at_ns
+from services.nodes._runtime import (
+    serve_until_stopped,
+    setup_logging,
+    sleep_until_ns,
+    start_at_ns,
+    unless_stopped,
+)
 from services.nodes.sources import SourceSpec, open_frame_source
 
 
@@ -40,6 +46,8 @@ def run(config: CameraConfig, network: NetworkConfig, stop: threading.Event | No
     stop = stop or threading.Event()
     log = setup_logging(config.name)
     source = open_frame_source(config.source)
+    if stop.is_set():  # interrupted while the source was opening
+        return 0
     with Node(config.name, network) as node:
         images = node.offer(
             "images",
@@ -70,12 +78,14 @@ def run(config: CameraConfig, network: NetworkConfig, stop: threading.Event | No
                     if time.time_ns() > exposure.end_ns + source.frame_period_ns:
                         late += 1
                         continue
-                    image = frame.load()
+                    image = unless_stopped(frame.load, stop)
                     # The image exists once its exposure has ended, not before.
-                    if not sleep_until_ns(exposure.end_ns, stop):
+                    if image is None or not sleep_until_ns(exposure.end_ns, stop):
                         break
                 else:
-                    image = frame.load()
+                    image = unless_stopped(frame.load, stop)
+                    if image is None:
+                        break
                 metadata = frame_metadata(frame.frame_id, exposure, image, source.camera)
                 try:
                     images.put(

@@ -43,6 +43,8 @@ def run(config: GyroConfig, network: NetworkConfig, stop: threading.Event | None
     stop = stop or threading.Event()
     log = setup_logging(config.name)
     source = open_gyro_source(config.source)
+    if stop.is_set():  # interrupted while the source was opening
+        return 0
     with Node(config.name, network) as node:
         rates = node.offer(
             "rates",

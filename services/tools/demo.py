@@ -9,6 +9,7 @@ same public API any client uses.
 from __future__ import annotations
 
 import sys
+import threading
 import time
 from collections import Counter
 from dataclasses import dataclass, field
@@ -115,8 +116,11 @@ class MarkerTally:
             self._after_ns = max(self._after_ns, element.timestamp_ns)
 
 
-def run_demo(config: DemoConfig, network: NetworkConfig) -> dict[str, Any]:
-    """Run the pipeline for ``duration_s`` with a status line per second; return a summary."""
+def run_demo(
+    config: DemoConfig, network: NetworkConfig, stop: threading.Event | None = None
+) -> dict[str, Any]:
+    """Run the pipeline for ``duration_s`` (or until ``stop``) with a status line per second;
+    return a summary."""
     specs = process_specs(demo_deployment(config), None, network)
     supervisor = Supervisor(specs, quiet=not config.show_logs)
     started = time.monotonic()
@@ -137,7 +141,7 @@ def run_demo(config: DemoConfig, network: NetworkConfig) -> dict[str, Any]:
             print(_line(counts, now - started), flush=True)
 
         try:
-            supervisor.run(config.duration_s, on_tick=tick)
+            supervisor.run(config.duration_s, on_tick=tick, stop=stop)
         except KeyboardInterrupt:
             supervisor.stop()
     summary = {

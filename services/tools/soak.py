@@ -32,6 +32,7 @@ import shutil
 import socket
 import statistics
 import subprocess
+import threading
 import time
 from collections import Counter
 from dataclasses import asdict, dataclass, field, replace
@@ -366,7 +367,7 @@ def _elements(
     return out
 
 
-def run_soak(config: SoakConfig) -> dict[str, Any]:
+def run_soak(config: SoakConfig, stop: threading.Event | None = None) -> dict[str, Any]:
     """Run the pipeline for ``duration_s``; return the report (JSON-ready; the CLI prints it)."""
     port = config.port or free_port()
     network = NetworkConfig(local_port=port)
@@ -426,11 +427,11 @@ def run_soak(config: SoakConfig) -> dict[str, Any]:
                     stall_stacks.update(dump_stacks(supervisor.pids()))
 
         try:
-            supervisor.run(config.duration_s, on_tick=tick)
+            # stop() also waits for the services' last log lines (camera/gyro totals).
+            supervisor.run(config.duration_s, on_tick=tick, stop=stop)
         except KeyboardInterrupt:
             supervisor.stop()
         elapsed = time.monotonic() - started
-    time.sleep(0.5)  # the last log lines (camera/gyro totals) arrive after SIGTERM
     audit_summary = audit.summary()
     unqueryable = {
         name: max(0, (info.puts - info.count))
@@ -478,3 +479,99 @@ def run_soak(config: SoakConfig) -> dict[str, Any]:
         "timeline": timeline,
         "logs": logs[-5000:],
     }
+
+
+def format_report(report: dict[str, Any]) -> str:
+    """The report as a plain-text table."""
+    cfg = report["config"]
+    lines = [
+        f"soak: {report['duration_s']} s, scenario rate {cfg['rate']}x, "
+        f"{report['host']['cpus']} CPUs (load {report['host']['loadavg_before'][0]} before, "
+        f"{report['host']['loadavg_after'][0]} after), port {cfg['port']}",
+        f"memory counts after a warm-up of {report['warmup_s']:.0f} s "
+        + (
+            f"(image buffers full of retained frames at {report['retention_filled_at_s']:.0f} s)"
+            if report["retention_filled_at_s"] is not None
+            else "(image buffers still filling: growth includes filling them)"
+        ),
+        "",
+        f"{'process':<10} {'pid':>7} {'RSS after warm-up':>18} {'RSS at end':>11} "
+        f"{'peak':>9} {'growth':>8} {'MiB/min':>8}  goal <= {cfg['growth_goal']:.0%}",
+    ]
+    for name, p in report["processes"].items():
+        if p.get("growth") is None:
+            lines.append(f"{name:<10} {p.get('pid') or '-':>7}  too few samples after warm-up")
+            continue
+        lines.append(
+            f"{name:<10} {p['pid']:>7} {p['rss_after_warmup_mib']:>14.1f} MiB "
+            f"{p['rss_end_mib']:>7.1f} MiB {p['rss_peak_mib']:>5.1f} MiB "
+            f"{p['growth']:>+7.1%} {p['slope_mib_per_min']:>+8.2f}  {'ok' if p['ok'] else 'MISSED'}"
+        )
+    el, audit = report["elements"], report["audit"]
+    cam, gyro = el.get("camera/images", {}), el.get("gyro/rates", {})
+    med, det = el.get("mediator/images", {}), el.get("detector/detections", {})
+    reasons = ", ".join(f"{k} {v}" for k, v in audit["decision_reasons"].items()) or "-"
+    lines += [
+        "",
+        "elements",
+        f"  camera/images      {cam.get('puts')} stored ({cam.get('per_s')}/s), "
+        f"{cam.get('refused')} refused by flow control, "
+        f"{cam.get('skipped_late', '?')} skipped late",
+        f"  gyro/rates         {gyro.get('puts')} stored ({gyro.get('per_s')}/s), "
+        f"{gyro.get('refused')} refused, "
+        f"{gyro.get('dropped_after_wait', '?')} dropped after waiting",
+        f"  mediator           {audit['frames_decided']} frames decided: {reasons}",
+        f"  mediator/images    {med.get('puts')} stored, {med.get('refused')} refused "
+        "(detector's queue full)",
+        f"  detector           {det.get('puts')} detections ({det.get('per_s')}/s)",
+        "",
+        f"lost (goal 0), {audit['checks']} audits while running",
+    ]
+    labels = {
+        "frames_without_decision": "camera frames without a decision "
+        f"(of {audit['camera_frames_seen']} seen)",
+        "accepted_not_in_mediator": "accepted frames missing from mediator/images "
+        f"(of {audit['accepted']})",
+        "accepted_not_identical": "accepted frames not byte-identical "
+        f"(of {audit['compared_with_camera']} compared)",
+        "mediator_not_accepted": "frames in mediator/images never accepted",
+        "accepted_without_detection": "accepted frames without a detection "
+        f"(of {audit['detected']} detected)",
+    }
+    for key, label in labels.items():
+        lines.append(f"  {label:<62} {audit['lost'][key]}")
+    for name, count in report["unqueryable"].items():
+        lines.append(f"  {'stored in ' + name + ' but not queryable':<62} {count}")
+    lines.append(f"  {'total':<62} {report['lost_total']}")
+    restarts = {k: v for k, v in report["restarts"].items() if v}
+    goals = report["goals"]
+    gone = ", ".join(
+        f"{name} {counts['subscriptions_gone']}"
+        for name, counts in el.items()
+        if counts.get("subscriptions_gone")
+    )
+    stalls = ", ".join(
+        f"{x['stage']} {x['from_s']:.0f}-{x['to_s']:.0f} s ({x['input_meanwhile']} inputs)"
+        for x in report["stalls"]
+    )
+    lines += [
+        "",
+        f"restarts: {restarts or 'none'}",
+        f"stalls: {stalls or 'none'}",
+        f"subscription tokens lost by producers (liveliness): {gone or 'none'}",
+        "goals: "
+        + ", ".join(
+            f"{name} {'ok' if goals[key] else 'MISSED'}"
+            for name, key in (
+                ("memory", "memory_ok"),
+                ("lost", "lost_ok"),
+                ("restarts", "no_restarts"),
+                ("stalls", "no_stalls"),
+            )
+        ),
+    ]
+    if report["stall_stacks"]:
+        lines.append("stacks of every process at the first stall: see stall_stacks in --json")
+    if report["check_errors"]:
+        lines.append(f"audit errors: {len(report['check_errors'])} ({report['check_errors'][0]})")
+    return "\n".join(lines)

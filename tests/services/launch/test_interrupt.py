@@ -1,0 +1,155 @@
+"""One Ctrl-C or SIGTERM ends any long-running framegate process within 2 s, and nothing a
+supervisor started outlives it, however it ends (issue 15: one interrupt, no orphans)."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import psutil
+import pytest
+
+from middleware import FramegateError, NetworkConfig, Node
+from services.launch import pipeline_yaml
+from services.nodes import SERVICES
+from tests.conftest import REPO, child_env, free_port, wait_until
+from tests.services.nodes.pipeline import Pipeline
+
+pytestmark = pytest.mark.integration
+
+STOP_WITHIN_S = 2.0
+STARTUP_S = 60.0
+
+
+def _gone(pid: int) -> bool:
+    try:
+        return psutil.Process(pid).status() == psutil.STATUS_ZOMBIE
+    except psutil.NoSuchProcess:
+        return True
+
+
+@pytest.fixture
+def port() -> int:
+    return free_port()
+
+
+@pytest.fixture
+def client(port: int) -> Iterator[Node]:
+    with Node(network=NetworkConfig(local_port=port)) as node:
+        yield node
+
+
+def _start(argv: list[str], port: int) -> subprocess.Popen[str]:
+    env = child_env()
+    env["FRAMEGATE_LOCAL_PORT"] = str(port)
+    return subprocess.Popen(
+        [sys.executable, "-m", "services.cli", *argv],
+        cwd=REPO,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+
+
+def _pid_of(node: Node, service: str) -> int | None:
+    try:
+        return node.service_info(service, timeout_s=1.0).pid
+    except FramegateError:
+        return None
+
+
+def _pids(pipe: Pipeline) -> dict[str, int]:
+    """Every service's pid once all four are live."""
+
+    def live() -> dict[str, int | None] | None:
+        pids = {s: pipe.pid(s) for s in SERVICES}
+        return pids if all(pids.values()) else None
+
+    try:
+        return wait_until(live, STARTUP_S, "all four services")  # type: ignore[no-any-return]
+    except AssertionError as exc:
+        raise AssertionError(f"{exc}\n{pipe.log()}") from None
+
+
+def _stopped_in_time(proc: subprocess.Popen[str], sig: signal.Signals) -> float:
+    sent = time.monotonic()
+    proc.send_signal(sig)
+    try:
+        proc.wait(timeout=10)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+        pytest.fail(f"still running 10 s after {sig.name}")
+    return time.monotonic() - sent
+
+
+@pytest.mark.parametrize("service", SERVICES)
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_one_signal_stops_a_service(
+    service: str, sig: signal.Signals, port: int, client: Node
+) -> None:
+    proc = _start(["run", service], port)  # camera and gyro: the simulator
+    try:
+        wait_until(lambda: _pid_of(client, service) == proc.pid, STARTUP_S, f"{service} up")
+        took_s = _stopped_in_time(proc, sig)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    output = proc.stdout.read() if proc.stdout else ""
+    assert took_s < STOP_WITHIN_S, output
+    assert proc.returncode == 0, output
+    assert "Traceback" not in output, output
+
+
+def test_one_signal_stops_launch_and_its_services(tmp_path: Path) -> None:
+    pipe = Pipeline(tmp_path, pipeline_yaml())
+    try:
+        pids = list(_pids(pipe).values())
+        took_s = _stopped_in_time(pipe.proc, signal.SIGINT)
+        assert took_s < STOP_WITHIN_S, pipe.log()
+        assert all(_gone(pid) for pid in pids), pipe.log()
+    finally:
+        pipe.close()
+
+
+def test_one_signal_stops_the_demo(port: int, client: Node) -> None:
+    proc = _start(["demo", "--duration", "120"], port)
+    try:
+        pids = [wait_until(lambda s=s: _pid_of(client, s), STARTUP_S, s) for s in SERVICES]  # type: ignore[misc]
+        took_s = _stopped_in_time(proc, signal.SIGINT)
+        assert took_s < STOP_WITHIN_S
+        assert all(_gone(pid) for pid in pids)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def test_services_end_with_a_killed_launcher_and_a_fresh_launch_starts_cleanly(
+    tmp_path: Path,
+) -> None:
+    first = Pipeline(tmp_path, pipeline_yaml())
+    try:
+        old = _pids(first)
+        first.proc.send_signal(signal.SIGKILL)
+        first.proc.wait()
+        wait_until(lambda: all(_gone(pid) for pid in old.values()), STOP_WITHIN_S, "orphans to end")
+    finally:
+        first.close()
+    second = Pipeline(tmp_path, pipeline_yaml())
+    try:
+        new = _pids(second)
+        assert not set(new.values()) & set(old.values())
+        # One gyro answers: the last five batches are five, not ten from two gyros.
+        wait_until(lambda: second.counter("gyro/rates") >= 5, 30, "gyro batches")
+        assert len(second.node.query("gyro/rates", last=5, timeout_s=3.0)) == 5
+        assert [s.service for s in second.node.services()].count("gyro") == 1
+        assert {p.pid for p in psutil.Process(second.proc.pid).children()} == set(new.values())
+    finally:
+        second.close()
