@@ -184,7 +184,7 @@ def test_policies_are_made_by_name() -> None:
     assert {"paper", "replace"} <= set(decisions.POLICIES)
     assert make_policy("replace").name == "replace"
     assert make_policy(decisions.DEFAULT_POLICY).name == "paper"
-    with pytest.raises(QualityInputError, match="unknown policy 'best': use one of .*paper"):
+    with pytest.raises(QualityInputError, match=r"unknown policy 'best': use one of .*paper"):
         make_policy("best")
 
 
