@@ -156,7 +156,7 @@ def parse_deployment(text: str, name: str = "<deploy>") -> Deployment:
                 f"(one of {', '.join(sorted(hosts))})"
             )
         args = _args(fields["args"][1], name, svc_name) if "args" in fields else ()
-        restart = bool(_scalar(fields["restart"][1])) if "restart" in fields else True
+        restart = _bool(fields["restart"][1], name, "restart") if "restart" in fields else True
         net = _network(fields["network"][1], name) if "network" in fields else {}
         services.append(ServiceSpec(svc_name, kind, host, args, restart, net))
     return Deployment(name, network, hosts, tuple(services))
@@ -195,11 +195,26 @@ def _scalar(node: yaml.Node) -> Any:
     return yaml.safe_load(yaml.serialize(node))
 
 
+def _bool(node: yaml.Node, name: str, key: str) -> bool:
+    """A YAML boolean; a quoted "false" would otherwise read as true."""
+    value = _scalar(node)
+    if not isinstance(value, bool):
+        raise ConfigError(
+            f"{name}:{_line(node)}: {key} must be true or false (unquoted), got {value!r}"
+        )
+    return value
+
+
 def _opt_str(fields: dict[str, tuple[yaml.Node, yaml.Node]], key: str) -> str | None:
     return str(_scalar(fields[key][1])) if key in fields else None
 
 
 def _check_name(value: str, what: str, name: str, node: yaml.Node) -> None:
+    # A trailing newline or other control character would look like another name in `ls`.
+    if any(ord(c) < 0x20 or ord(c) == 0x7F for c in value):
+        raise ConfigError(
+            f"{name}:{_line(node)}: {what} name {value!r} contains a control character"
+        )
     try:
         check_name(value, what)
     except ConfigError as exc:

@@ -24,21 +24,28 @@ def _check_args(spec: ServiceSpec, deployment: Deployment, text: str | None) -> 
         if spec.args:
             raise ConfigError(f"{deployment.path}: router {spec.name!r} takes no args")
         return
-    parser = argparse.ArgumentParser(prog=spec.name, exit_on_error=False, add_help=False)
+    # Exact keys only: `se: 1` must not pass as an abbreviation of --seed.
+    parser = argparse.ArgumentParser(
+        prog=spec.name, exit_on_error=False, add_help=False, allow_abbrev=False
+    )
     service(spec.type).add_arguments(parser)
     lines = arg_lines(text, spec.name) if text else {}
     try:
         _args, unknown = parser.parse_known_args(list(spec.args))
     except (argparse.ArgumentError, SystemExit) as exc:
         raise ConfigError(f"{deployment.path}: service {spec.name!r}: bad args: {exc}") from exc
-    flags = [u for u in unknown if u.startswith("--")]
-    if flags:
-        flag = flags[0]
+    # Short flags too (-e tcp/...), and stray values: whatever the service would not take.
+    if unknown:
+        flag = next((u for u in unknown if u.startswith("-")), unknown[0])
         where = f":{lines[flag]}" if flag in lines else ""
-        key = flag[2:].replace("-", "_")
+        what = (
+            f"has no option {flag.lstrip('-').replace('-', '_')!r}"
+            if flag.startswith("-")
+            else f"does not take the value {flag!r}"
+        )
         raise ConfigError(
-            f"{deployment.path}{where}: service {spec.name!r} has no option {key!r} "
-            f"(see 'framegate run {spec.type} --help')"
+            f"{deployment.path}{where}: service {spec.name!r} {what} "
+            f"(see 'framegate run {spec.type} --help'; network settings go under 'network')"
         )
 
 

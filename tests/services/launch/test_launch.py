@@ -126,3 +126,41 @@ def test_flags_outrank_the_deploy_file() -> None:
     )  # fmt: skip
     argv = specs[0].argv
     assert "tcp/127.0.0.1:9000" in argv and "tcp/10.0.0.1:7447" not in argv
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        (
+            'services:\n  camera:\n    restart: "false"\n',
+            r"x\.yaml:3: restart must be true or false",
+        ),
+        ("services:\n  camera:\n    restart: 0\n", r"x\.yaml:3: restart must be"),
+        ('services:\n  "camera\\n": {type: camera}\n', r"x\.yaml:2: .*control character"),
+        ('hosts:\n  "robot\\t": {}\nservices: {}\n', r"x\.yaml:2: .*control character"),
+    ],
+)
+def test_deploy_booleans_and_names_are_strict(text: str, message: str) -> None:
+    with pytest.raises(ConfigError, match=message):
+        parse_deployment(text, "x.yaml")
+
+
+def test_yaml_booleans_set_restart() -> None:
+    deployment = parse_deployment("services:\n  camera: {restart: false}\n", "x.yaml")
+    assert deployment.services[0].restart is False
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        ("{source: [sim, -e, tcp/10.0.0.1:7447]}", "has no option 'e'"),
+        ("{source: [sim, tcp/10.0.0.1:7447]}", "does not take the value 'tcp/10.0.0.1:7447'"),
+        ("{se: 3}", "has no option 'se'"),  # no abbreviations of --seed
+        ("{connect: tcp/10.0.0.1:7447}", "network settings go under 'network'"),
+    ],
+)
+def test_deploy_args_are_checked_short_long_and_exact(args: str, message: str) -> None:
+    text = f"services:\n  camera:\n    args: {args}\n"
+    deployment = parse_deployment(text, "x.yaml")
+    with pytest.raises(ConfigError, match=message):
+        process_specs(deployment, None, NetworkConfig(), text=text)
