@@ -48,7 +48,11 @@ def register(subparsers: Any) -> None:
         help="send frames as JPEG (foxglove.CompressedImage) of this quality, 1-100",
     )
     parser.add_argument(
-        "--queue", type=int, default=DEFAULT_QUEUE, metavar="N", help="observer queue per buffer"
+        "--queue",
+        type=int,
+        default=DEFAULT_QUEUE,
+        metavar="N",
+        help=f"observer queue per frame buffer (default {DEFAULT_QUEUE}; others hold at least 32)",
     )
     parser.add_argument(
         "--backlog",

@@ -9,9 +9,12 @@ from middleware import ConfigError
 
 DEFAULT_PORT = 8765
 DEFAULT_HOST = "127.0.0.1"
-# Observer queue per buffer: a viewer that falls behind misses notifications (counted)
-# rather than holding anything back; a few frames absorb a scheduling hiccup.
+# Observer queue per frame buffer: a viewer that falls behind misses notifications (counted)
+# rather than holding anything back. A few frames absorb a scheduling hiccup; more would
+# only show older frames. Small, frequent elements (gyro batches, verdicts) get a longer
+# queue (SMALL_QUEUE), so a busy machine does not punch holes into the plots.
 DEFAULT_QUEUE = 4
+SMALL_QUEUE = 32
 # Messages the Foxglove server buffers per client before it drops that client's oldest
 # ones. 64 is about a second of the demo's traffic, and at most ~80 MB of raw frames.
 DEFAULT_BACKLOG = 64
@@ -43,6 +46,10 @@ class ViewConfig:
             raise ConfigError(f"--backlog {self.backlog}: must be >= 1")
         if self.duration_s is not None and self.duration_s <= 0:
             raise ConfigError(f"--duration {self.duration_s}: must be > 0 seconds")
+
+    def queue_for(self, kind: str) -> int:
+        """The observer queue for a buffer of ``kind``."""
+        return self.queue if kind == "frame" else max(self.queue, SMALL_QUEUE)
 
     @property
     def images(self) -> str:

@@ -74,7 +74,7 @@ class BufferStream:
         server.declare(self._deriver.topics)
         self._sub: Subscription = node.subscribe(
             buffer.name,
-            queue_size=config.queue,
+            queue_size=config.queue_for(buffer.kind),
             mode=SubscriptionMode.OBSERVE,
             wait_s=max(2.0, config.discovery_timeout_s),
         )

@@ -40,6 +40,12 @@ def test_jpeg_quality_switches_frames_to_compressed_images() -> None:
     assert ViewConfig(jpeg_quality=70).images == "jpeg"
 
 
+def test_frames_keep_a_short_queue_and_small_elements_a_long_one() -> None:
+    assert ViewConfig(queue=2).queue_for("frame") == 2
+    assert ViewConfig(queue=2).queue_for("gyro") == 32
+    assert ViewConfig(queue=64).queue_for("decision") == 64
+
+
 def test_targets_are_a_buffer_or_a_whole_service() -> None:
     assert parse_target("camera/images") == ("camera", "images")
     assert parse_target("/detector") == ("detector", None)
