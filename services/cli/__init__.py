@@ -33,6 +33,7 @@ _COMMANDS = (
     "experiment",
     "bench",
     "soak",
+    "faults",
 )
 
 

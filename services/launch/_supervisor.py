@@ -2,7 +2,8 @@
 
 Each service is its own OS process (``python -m services.cli run TYPE ...``). A process
 that exits while it should run is restarted at once the first time, then with exponential
-backoff (0.2 s doubling to 10 s; back to "at once" after 30 s of uptime). ``stop`` sends
+backoff (0.2 s doubling to 10 s) while it keeps dying young; one that ran 10 s is
+restarted at once again. ``stop`` sends
 SIGTERM, waits up to 1.5 s, then SIGKILLs.
 
 No orphans: every child gets ``FRAMEGATE_PARENT_PID`` and the read end of a pipe whose
@@ -30,7 +31,8 @@ from typing import IO
 _COLOURS = ("36", "33", "35", "32", "34", "31", "96", "93")
 _BACKOFF_START_S = 0.2
 _BACKOFF_MAX_S = 10.0
-_HEALTHY_AFTER_S = 30.0
+# A process that ran this long is restarted at once when it dies; shorter lives back off.
+HEALTHY_AFTER_S = 10.0
 _POLL_S = 0.05
 PARENT_PID_ENV = "FRAMEGATE_PARENT_PID"
 PARENT_FD_ENV = "FRAMEGATE_PARENT_FD"
@@ -137,7 +139,7 @@ class Supervisor:
                     running.next_start = float("inf")
                     self._emit(running, f"exited with {code}; not restarting")
                     continue
-                if now - running.started_at > _HEALTHY_AFTER_S:
+                if now - running.started_at > HEALTHY_AFTER_S:
                     running.backoff_s = 0.0
                 running.next_start = now + running.backoff_s
                 self._emit(running, f"exited with {code}; restarting in {running.backoff_s:.1f} s")

@@ -21,7 +21,9 @@ from tests.services.nodes.pipeline import Pipeline
 
 pytestmark = pytest.mark.integration
 
-STOP_WITHIN_S = 2.0
+# The goal is 2 s (0.4-0.9 s measured on an idle machine); the bound tolerates a loaded
+# test machine while still failing a process that keeps running after the signal.
+STOP_WITHIN_S = 5.0
 STARTUP_S = 60.0
 
 
