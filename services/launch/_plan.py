@@ -71,7 +71,8 @@ def process_specs(
             net = override(net)
         if spec.type == "router":
             if not net.listen:
-                net = replace(net, listen=("tcp/[::]:7447",))
+                # Loopback unless the deploy file says where: no wide listener by accident.
+                net = replace(net, listen=("tcp/127.0.0.1:7447",))
             argv = [sys.executable, "-m", "services.cli", "router", *net.to_args()]
         else:
             argv = [

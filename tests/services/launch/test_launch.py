@@ -164,3 +164,22 @@ def test_deploy_args_are_checked_short_long_and_exact(args: str, message: str) -
     deployment = parse_deployment(text, "x.yaml")
     with pytest.raises(ConfigError, match=message):
         process_specs(deployment, None, NetworkConfig(), text=text)
+
+
+def test_two_host_deploy_opens_no_wide_listener() -> None:
+    path = REPO / "deploy" / "two-hosts.yaml"
+    deployment = load_deployment(path)
+    for host in deployment.hosts:
+        for spec in process_specs(deployment, host, NetworkConfig(), text=path.read_text()):
+            argv = list(spec.argv)
+            listen = [argv[i + 1] for i, a in enumerate(argv) if a == "--listen"]
+            # Each process says where it listens (else Zenoh's peer default is every
+            # interface), and none says "everywhere".
+            assert listen, spec.name
+            assert not any("0.0.0.0" in e or "[::]" in e for e in listen), (spec.name, listen)
+
+
+def test_a_router_without_listen_stays_on_loopback() -> None:
+    deployment = parse_deployment("services:\n  router: {type: router}\n", "x.yaml")
+    argv = process_specs(deployment, None, NetworkConfig())[0].argv
+    assert argv[argv.index("--listen") + 1] == "tcp/127.0.0.1:7447"
