@@ -145,3 +145,9 @@ def test_jpeg_frames_decode_back_to_the_image_size() -> None:
     start = jpeg.encode().index(b"\xff\xd8")
     decoded = cv2.imdecode(np.frombuffer(jpeg.encode()[start:], np.uint8), cv2.IMREAD_COLOR)
     assert decoded is not None and decoded.shape == (6, 8, 3)
+
+
+def test_with_jpeg_the_image_channel_carries_a_compressed_image() -> None:
+    deriver = Deriver("c", "images", "frame", images="jpeg", jpeg_quality=50)
+    (image,) = deriver.derive(_frame(1), wanted={"/c/images/image"})
+    assert image.topic == "/c/images/image" and b"\xff\xd8" in image.data and b"jpeg" in image.data
