@@ -23,9 +23,6 @@ NOT_APPLICABLE = {
 }
 # Flags that only make sense with another one (a replay needs its directory).
 COMPANIONS = {"--source": ["--path", "somewhere"]}
-# Known gaps in modules owned elsewhere: strict xfail, so fixing them turns this red until
-# the entry is removed.
-KNOWN_MISSING = {"mediator": {"max_hold_ms"}}
 
 
 def _parser(name: str) -> argparse.ArgumentParser:
@@ -91,18 +88,7 @@ def test_service_keeps_the_contract(name: str) -> None:
     assert callable(svc.run)
 
 
-@pytest.mark.parametrize(
-    "name",
-    [
-        pytest.param(
-            n,
-            marks=pytest.mark.xfail(strict=True, reason=f"{n} lacks flags: {KNOWN_MISSING[n]}"),
-        )
-        if n in KNOWN_MISSING
-        else n
-        for n in SERVICES
-    ],
-)
+@pytest.mark.parametrize("name", SERVICES)
 def test_every_config_field_has_a_flag(name: str) -> None:
     fields = set(_leaves(_config(name, []))) - NOT_APPLICABLE.get(name, set())
     missing = fields - _settable_fields(name)
