@@ -36,6 +36,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import psutil
 from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 
@@ -405,11 +406,28 @@ class PipelineFuzzer:
             raise AssertionError(
                 f"no decision recorded for good frames {sorted(missing)[:5]} "
                 f"({len(missing)} of {len(good_keys)}, {dropped} counted as dropped) in batch "
-                f"{self.tally.batches}\n{self.pipe.log()}"
+                f"{self.tally.batches}; {self._diagnosis()}"
             )
         self.tally.counts["good-frames-decided"] += len(good_keys) - len(missing)
         self.tally.counts["good-frames-decision-dropped-and-counted"] += len(missing)
         self.tally.counts["checks"] += 1
+
+    def _diagnosis(self) -> str:
+        """What the mediator was doing: its counters, CPU and log (without the churn)."""
+        parts = []
+        for target in ("mediator/decisions", "mediator/images"):
+            try:
+                info = self.pipe.info(target)
+                parts.append(f"{target}: puts {info.puts}, refused {info.refused}")
+            except FramegateError as exc:
+                parts.append(f"{target}: {exc}")
+        try:
+            cpu = psutil.Process(self.pids["mediator"]).cpu_times()
+            parts.append(f"mediator CPU user {cpu.user:.1f} s, system {cpu.system:.1f} s")
+        except psutil.Error as exc:
+            parts.append(f"mediator: {exc}")
+        log = [line for line in self.pipe.lines if "no longer waiting" not in line][-60:]
+        return "; ".join(parts) + "\n" + "\n".join(log)
 
     def _decided(self, since_ns: int) -> set[int]:
         try:
