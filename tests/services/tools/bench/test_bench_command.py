@@ -18,6 +18,7 @@ import pytest
 
 from services.cli import main
 from services.tools.bench import SCENARIO_NAMES, SCHEMA
+from services.tools.bench._throughput import batch_api_missing
 from tests.conftest import REPO, child_env
 
 REPORT_KEYS = {"schema", "created_utc", "elapsed_s", "machine", "options", "scenarios", "goals"}
@@ -31,6 +32,7 @@ ROW_KEYS = {
     "higher_is_better",
     "framegate",
     "ratio",
+    "extra",
     "pair_ratios",
     "goal",
     "note",
@@ -58,7 +60,7 @@ def test_quick_run_gives_numbers_for_every_scenario(tmp_path: Path) -> None:
         env=child_env(),
         capture_output=True,
         text=True,
-        timeout=240,
+        timeout=480,
     )
     assert done.returncode == 0, done.stdout + done.stderr[-3000:]
     report = json.loads(out.read_text())
@@ -69,8 +71,15 @@ def test_quick_run_gives_numbers_for_every_scenario(tmp_path: Path) -> None:
     assert set(report["options"]) >= OPTION_KEYS
     assert report["options"]["quick"] is True
     assert list(report["scenarios"]) == list(SCENARIO_NAMES)
+    skipped = set()
     for name, scenario in report["scenarios"].items():
         assert set(scenario) >= SCENARIO_KEYS, name
+        if name == "batch" and batch_api_missing() is not None:
+            # The one scenario allowed to skip: its middleware API does not exist yet.
+            assert scenario["status"] == "skipped"
+            assert scenario["reason"] == batch_api_missing()
+            skipped.add(name)
+            continue
         assert scenario["status"] == "ok", (name, scenario["reason"])
         assert scenario["rows"], name
         for row in scenario["rows"]:
@@ -90,12 +99,14 @@ def test_quick_run_gives_numbers_for_every_scenario(tmp_path: Path) -> None:
             if row["metric"] == "throughput":
                 for side in sides:
                     assert set(row[side]["cpu_pct"]) == {"producer", "consumer"}, where
+            if row["metric"] == "CPU per element":
+                assert _number(row["extra"]), where
     for goal in report["goals"]:
         assert set(goal) >= GOAL_KEYS
         assert _number(goal["measured"]), goal
         assert isinstance(goal["passed"], bool), goal
     goal_scenarios = {g["scenario"] for g in report["goals"]}
-    assert goal_scenarios == set(SCENARIO_NAMES)
+    assert goal_scenarios == set(SCENARIO_NAMES) - skipped
     for name in SCENARIO_NAMES:
         assert name in done.stdout
 
