@@ -114,6 +114,11 @@ class DeadlinePolicy:
             step = frame.arrived_ns - self._last_arrival_ns
             self._period_ns = step if self._period_ns is None else (7 * self._period_ns + step) // 8
         self._last_arrival_ns = frame.arrived_ns
+        if view.load.free == 0:
+            # Held and queued frames never outnumber the queue's N slots (as replace): the
+            # oracle of the experiment bounds every policy under that rule.
+            return [*(Verdict(h, Action.DROP, "queue-full") for h in view.held),
+                    Verdict(frame, Action.DROP, "queue-full")]  # fmt: skip
         best, out = self._choose([*view.held, frame], frame)
         service = self._service_ns(view)
         if service is None:
@@ -137,6 +142,8 @@ class DeadlinePolicy:
     def on_tick(self, view: View) -> Sequence[Verdict]:
         if not view.held:
             return ()
+        if view.load.free == 0:
+            return [Verdict(h, Action.DROP, "queue-full") for h in view.held]
         best, out = self._choose(view.held, None)
         service = self._service_ns(view)
         if service is None:

@@ -60,7 +60,7 @@ def feasible(
     free_ns = _IDLE
     for index in chosen:
         arrival = arrivals_ns[index]
-        if waiting_at(free_ns, arrival, service_ns) >= capacity:
+        if free_ns > arrival and waiting_at(free_ns, arrival, service_ns) >= capacity:
             return False
         free_ns = max(free_ns, arrival) + service_ns
     return True
@@ -86,7 +86,7 @@ def optimal_schedule(
         candidates = dict(front)
         if value > 0:
             for free_ns, (total, link) in front.items():
-                if waiting_at(free_ns, arrival, service_ns) >= capacity:
+                if free_ns > arrival and waiting_at(free_ns, arrival, service_ns) >= capacity:
                     continue
                 new_free = max(free_ns, arrival) + service_ns
                 new_total = total + value
