@@ -421,6 +421,12 @@ class PipelineFuzzer:
                 parts.append(f"{target}: puts {info.puts}, refused {info.refused}")
             except FramegateError as exc:
                 parts.append(f"{target}: {exc}")
+        # Is the mediator still subscribed to our frames (flow, queue 8), and is it taking?
+        subs = self.frames.info().subscriptions
+        parts.append(
+            f"{FUZZ_CAMERA} subscriptions: "
+            + (", ".join(f"{s.mode.value} {s.queued}/{s.queue_size}" for s in subs) or "none")
+        )
         try:
             cpu = psutil.Process(self.pids["mediator"]).cpu_times()
             parts.append(f"mediator CPU user {cpu.user:.1f} s, system {cpu.system:.1f} s")
