@@ -20,9 +20,9 @@ from middleware import (
     parse_time_ns,
     parse_untrusted,
 )
+from services.lib.files import create_file, open_directory
 
 from ._common import command_parser, format_bytes, format_ns, network, print_json
-from ._files import create_file, open_directory
 from ._target import add_timeout_argument, resolve
 
 # With no selection at all, a query returns this many of the newest elements: a camera

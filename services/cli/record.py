@@ -34,7 +34,6 @@ from middleware import (
 )
 
 from ._common import command_parser, exit_on_sigterm, format_bytes, network, print_json
-from ._files import create_file
 from ._target import add_timeout_argument, resolve
 
 if TYPE_CHECKING:
@@ -252,14 +251,11 @@ def run(args: argparse.Namespace) -> int:
     targets = list(dict.fromkeys(t.strip("/") for t in args.targets))
     with Node(network=network(args)) as node:
         buffers: list[BufferInfo] = [resolve(node, t, args.timeout)[1] for t in targets]
-        # Create the file ourselves, exclusively and never through a planted link (see
-        # _files); the writer then opens our own fresh file.
-        create_file(args.output, overwrite=args.overwrite, overwrite_flag="--overwrite").close()
         writer = BagWriter(
             args.output,
             images=not args.no_images,
             compression=args.compression,
-            overwrite=True,
+            overwrite=args.overwrite,
         )
         with writer:
             for b in buffers:

@@ -20,7 +20,9 @@ def register(subparsers: Any) -> None:
 def run(args: argparse.Namespace) -> int:
     config = network(args)
     if not config.listen and not config.config_file:
-        config = replace(config, listen=("tcp/[::]:7447",))
+        # Loopback unless asked: a router reachable from the network is an explicit choice
+        # (`--listen tcp/0.0.0.0:7447`, or a deploy/config file that says so).
+        config = replace(config, listen=("tcp/127.0.0.1:7447",))
     config = replace(config, mode="router")
     exit_on_sigterm()
     endpoints = ", ".join(config.listen) or f"per {config.config_file}"

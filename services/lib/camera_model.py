@@ -58,11 +58,13 @@ class CameraModel:
                 f"gyro_to_camera needs 9 numbers (row-major 3x3), got {len(self.gyro_to_camera)}"
             )
         rotation = np.asarray(self.gyro_to_camera, dtype=float).reshape(3, 3)
-        if not (
-            np.isfinite(rotation).all()
-            and np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-3)
-            and np.linalg.det(rotation) > 0
-        ):
+        with np.errstate(over="ignore", invalid="ignore"):  # 1e300 entries: refused, not logged
+            is_rotation = bool(
+                np.isfinite(rotation).all()
+                and np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-3)
+                and np.linalg.det(rotation) > 0
+            )
+        if not is_rotation:
             raise ConfigError(
                 f"gyro_to_camera must be a rotation matrix, got {self.gyro_to_camera}"
             )

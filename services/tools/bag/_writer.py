@@ -10,7 +10,8 @@ from typing import IO, Any
 
 from mcap.writer import CompressionType, Writer
 
-from middleware import DataObject, Retention
+from middleware import ConfigError, DataObject, Retention
+from services.lib.files import create_file
 
 from ._derived import DerivedMessage, Deriver
 from ._format import (
@@ -71,18 +72,18 @@ class BagWriter:
     ) -> None:
         if compression not in COMPRESSIONS:
             raise BagError(f"unknown compression {compression!r}; use zstd, lz4 or none")
-        if path.exists() and not overwrite:
-            raise BagError(f"{path} exists; choose another file or remove it first")
         self.path = path
         self._images = images
         self._annotations = annotations
         # The newest raw frame's (width, height): verdict borders are drawn to that size.
         self._frame_size_px: tuple[int, int] | None = None
         self._schema_ids: dict[str, int] = {}
-        try:
-            self._stream: IO[bytes] = open(path, "wb")  # noqa: SIM115 - closed in close()
-        except OSError as exc:
-            raise BagError(f"cannot write {path}: {exc.strerror}") from exc
+        try:  # exclusively, and never through a link another user planted
+            self._stream: IO[bytes] = create_file(
+                path, overwrite=overwrite, overwrite_flag="--overwrite"
+            )
+        except ConfigError as exc:
+            raise BagError(str(exc)) from exc
         chosen = COMPRESSIONS[compression]
         self._writer = Writer(
             self._stream,

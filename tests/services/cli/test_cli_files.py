@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from middleware import ConfigError, Node
-from services.cli._files import create_file, open_directory
+from services.lib.files import create_file, open_directory
 from tests.services.cli.conftest import MS, Cli, put_frame
 
 SECOND = 1_000_000_000
