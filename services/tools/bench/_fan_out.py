@@ -78,7 +78,7 @@ def _run_count(count: int, row: Row, cpu: Row, options: BenchOptions) -> None:
             for i in range(count)
         ]
         # Many processes start at once on a shared machine: give them time.
-        group.wait_ready(timeout_s=60.0 + 10.0 * count)
+        group.wait_ready(timeout_s=180.0 + 10.0 * count)
         sides: dict[Side, tuple[Worker, Worker]] = {
             "raw": (raw_pub, raw_subs[0]),
             "framegate": (fg_pub, fg_subs[0]),

@@ -147,8 +147,12 @@ class WorkerGroup:
         self._workers.append(worker)
         return worker
 
-    def wait_ready(self, timeout_s: float = 60.0) -> None:
-        """Wait for every started worker's ready line (they start in parallel)."""
+    def wait_ready(self, timeout_s: float = 180.0) -> None:
+        """Wait for every started worker's ready line (they start in parallel).
+
+        Generous by default: on a shared 2-core machine under load, starting Python with
+        Zenoh takes tens of seconds per process.
+        """
         deadline = time.monotonic() + timeout_s
         for worker in self._workers:
             if not worker.ready:
