@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import argparse
-import threading
 from dataclasses import replace
 from typing import Any
 
 from middleware import Node
+from services.nodes import exit_with_parent
 
-from ._common import command_parser, exit_on_sigterm, network
+from ._common import command_parser, network, stop_on_signals
 
 
 def register(subparsers: Any) -> None:
@@ -24,12 +24,10 @@ def run(args: argparse.Namespace) -> int:
         # (`--listen tcp/0.0.0.0:7447`, or a deploy/config file that says so).
         config = replace(config, listen=("tcp/127.0.0.1:7447",))
     config = replace(config, mode="router")
-    exit_on_sigterm()
+    stop = stop_on_signals()
+    exit_with_parent(stop)  # a router started by `launch` ends with it, however it ends
     endpoints = ", ".join(config.listen) or f"per {config.config_file}"
-    try:
-        with Node(network=config):
-            print(f"router listening on {endpoints}", flush=True)
-            threading.Event().wait()
-    except KeyboardInterrupt:
-        pass
+    with Node(network=config):
+        print(f"router listening on {endpoints}", flush=True)
+        stop.wait()
     return 0

@@ -6,8 +6,7 @@ import argparse
 from typing import Any
 
 from middleware import add_network_arguments
-from services.nodes import SERVICES, describe, service
-from services.nodes._runtime import exit_with_parent
+from services.nodes import SERVICES, describe, exit_with_parent, service
 
 from ._common import command_parser, network, stop_on_signals
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 import importlib
 
 from ._contract import AnyService, Service
+from ._runtime import exit_with_parent
 
 # Service type -> the module that defines its SERVICE (a _contract.Service).
 _MODULES = {
@@ -34,4 +35,4 @@ def describe(name: str) -> str:
     return (module.__doc__ or name).strip().splitlines()[0]
 
 
-__all__ = ["SERVICES", "Service", "describe", "service"]
+__all__ = ["SERVICES", "Service", "describe", "exit_with_parent", "service"]

@@ -12,7 +12,6 @@ import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 import numpy.typing as npt
 
@@ -33,6 +32,8 @@ def laplacian_variance(image: npt.NDArray[np.generic]) -> float:
 
     Takes mono (H, W) or 3-channel (H, W, 3, BGR order) images of any numeric type.
     """
+    import cv2  # here, not at import: the mediator and gyro never call this and start faster
+
     array = np.asarray(image)
     if array.ndim == 3 and array.shape[2] == 3:
         array = cv2.cvtColor(array.astype(np.float32), cv2.COLOR_BGR2GRAY)
