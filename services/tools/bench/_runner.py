@@ -6,7 +6,8 @@ platform, python, zenoh, numpy, msgpack, psutil), ``options`` (scenarios, durati
 pairs, quick, warmup_s), ``scenarios`` (name → status, reason, params, elapsed_s, rows) and
 ``goals`` (scenario, row, text, limit, comparison, measured, passed). Each row holds
 ``raw`` and ``framegate`` (samples, median, min, max, count, cpu_pct), ``ratio``
-(framegate/raw medians), ``pair_ratios`` (framegate/raw of each pair), ``goal`` and ``note``.
+(framegate/raw medians), ``extra`` (framegate - raw medians), ``pair_ratios``
+(framegate/raw of each pair), ``goal`` and ``note``.
 """
 
 from __future__ import annotations

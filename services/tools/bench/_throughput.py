@@ -1,12 +1,16 @@
-"""Throughput scenarios: ``frames`` (1280×1024 mono8, SHM and TCP, and an inline size) and
-``small`` (64 B), framegate's notify-then-fetch against raw pub/sub of the same payload.
+"""Throughput scenarios: ``frames`` (1280×1024 mono8, SHM and TCP, and an inline size),
+``small`` (64 B) and ``batch`` (64 B in batches), framegate's notify-then-fetch against raw
+pub/sub of the same payload.
 
 Each mode starts a raw pair and a framegate pair of processes once, then alternates runs
 (raw, framegate, raw, framegate, ...). In a run the producer puts as fast as it may (raw:
 BLOCK congestion control; framegate: ``put(..., wait_s=5)``, never refused) while the parent
 marks the consumer's count at the start and end of the measured window; the rate comes from
-the consumer's own clock. CPU is each process's user+system time over the same window.
-Between runs the consumer drains everything, so the runs never overlap.
+the consumer's own clock. CPU is each process's user+system time over the same window, as
+% of one core and as microseconds per element received; each throughput row is followed by
+a producer and a consumer CPU row (framegate, raw and framegate - raw side by side).
+Between runs the consumer drains everything, so the runs never overlap. ``batch`` is the
+64 B row through ``put_many``/``take_many``, skipped until the middleware has them.
 """
 
 from __future__ import annotations
