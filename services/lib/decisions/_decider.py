@@ -8,8 +8,11 @@ clock, a replay passes recorded times, so a recorded sequence decides the same e
 Rules kept here for every policy, in this order:
 
 1. the processing clock: a drop of the detector's queue count below what was forwarded
-   is the detector taking frames; the time between takes while frames wait estimates its
-   service time (``View.detector``);
+   is the detector taking frames; the time between two takes estimates its service time
+   (``View.detector``) when a frame was seen waiting in between (left queued at the first
+   take, or forwarded after it and still queued at a later look): the detector was busy
+   all along, so the second take came the moment it was free. With N = 1 only the second
+   case ever happens;
 2. due held frames first: the policy's ``on_tick`` runs before a new frame is decided, so
    older frames go out before newer ones;
 3. late frames: a frame whose key is not newer than every frame seen is dropped
@@ -132,6 +135,10 @@ class Decider:
                 self._service.append(now_ns - self._last_take_ns)
             self._last_take_ns = now_ns
             self._waiting_after_take = load.queued > 0
+        elif load.queued > 0 and expected is not None and expected > 0:
+            # A frame forwarded earlier still waits: the detector has been busy since its
+            # last take (it never idles with a frame queued).
+            self._waiting_after_take = self._last_take_ns is not None
         elif load.queued == 0:
             self._waiting_after_take = False
         self._expected_queued = load.queued

@@ -194,3 +194,18 @@ def test_all_is_complete_and_sorted_like_ruff_sorts_it() -> None:
     assert names == sorted(constants) + sorted(n for n in names if not n.isupper())
     for name in names:
         assert hasattr(decisions, name), name
+
+
+def test_the_processing_clock_measures_the_service_time_with_a_queue_of_one() -> None:
+    # N = 1: a take always empties the queue, so only a frame forwarded after a take and
+    # still seen waiting at a later look shows that the detector was busy all along.
+    decider = Decider(make_policy("paper"))
+    decider.frame(Candidate(1, 1, 0.9, 0), Load(0, 1), 0)  # forwarded to an idle detector
+    decider.tick(Load(0, 1), 10 * MS)  # taken
+    decider.frame(Candidate(2, 2, 0.9, 20 * MS), Load(0, 1), 20 * MS)  # forwarded, waits
+    decider.tick(Load(1, 1), 30 * MS)  # still waiting: the detector is busy
+    decider.tick(Load(0, 1), 60 * MS)  # taken the moment the detector was free
+    assert decider.detector.service_ns == 50 * MS
+    decider.frame(Candidate(3, 3, 0.9, 200 * MS), Load(0, 1), 200 * MS)  # idle: taken at once
+    decider.tick(Load(0, 1), 210 * MS)  # never seen waiting: not a service time
+    assert decider.detector.service_ns == 50 * MS
