@@ -16,19 +16,20 @@ epoch, which no producer counts, so they cannot hold anybody's credit.
 State: the queue (at most N notifications, each tagged with its epoch and seq) and, per
 epoch, ``last`` (highest seq accepted) and ``taken`` (highest seq taken, what is acked).
 
-A notification ``(epoch, seq, acked, descriptor)``; ``acked`` is the producer's ack count
-when it was sent (the window base; absent in older headers: seq - 1):
+A notification ``(epoch, seq, descriptor)``:
 
 1. ``descriptor`` present and not this subscription's ``mode/N/push``: the notification
    belongs to another registration with the same id (a colliding token): ignored,
    counted in ``foreign``.
-2. Malformed numbers (seq < 1, acked < 0, acked >= seq): ignored, counted in ``invalid``.
-3. Unknown epoch: flow control adopts it only at the start of the producer's window
-   (``seq == acked + 1``; e.g. seq 1 of a new registration), observers at any seq.
-   Otherwise ignored (``out_of_order``): a real producer sends it again.
-   Adopting may evict the least recently used epoch with nothing queued when the table
-   is full (``max(MAX_EPOCHS, N + 1)`` entries); if every epoch has queued notifications
-   the newcomer is ignored.
+2. seq < 1: ignored, counted in ``invalid``.
+3. Unknown epoch: one evicted from the table earlier is restored from a bounded memory of
+   evicted epochs (``FORGOTTEN_EPOCHS``). Otherwise flow control adopts it only at seq 1
+   (the first notification of a new registration), observers at any seq (the seqs before
+   it count as missed). Anything else is ignored (``out_of_order``): a forged far-future
+   seq of an epoch not met yet must not become its starting point, and a real producer
+   sends seq 1 again. Adopting evicts the least recently used epoch with nothing queued
+   when the table is full (``max(MAX_EPOCHS, N + 1)`` entries); if every epoch has
+   queued notifications the newcomer is ignored.
 4. ``seq <= last``: a duplicate or stale copy: ignored (``duplicates``). If nothing of
    that epoch is queued, the producer evidently missed our ack: it is repeated.
 5. Flow control, ``seq > last + 1`` (a gap) or ``seq > taken + N`` (beyond any window the
@@ -63,6 +64,8 @@ from ._records import SubscriptionMode
 
 # Epochs tracked at least; more when the queue is larger (every queued epoch is tracked).
 MAX_EPOCHS = 8
+# Evicted epochs remembered (last, taken), so that a live one is restored, not re-adopted.
+FORGOTTEN_EPOCHS = 256
 # An idle subscriber repeats its acks this often.
 REACK_NS = 500_000_000
 
@@ -133,6 +136,7 @@ class SubscriberLedger(Generic[T]):
         self._max_epochs = max(max_epochs, queue_size + 1)
         self._queue: deque[Entry[T]] = deque()
         self._epochs: OrderedDict[str, EpochTrack] = OrderedDict()
+        self._forgotten: OrderedDict[str, tuple[int, int]] = OrderedDict()
         self._reacked_ns: int | None = None
         self.missed_total = 0
         self.counters = SubscriberCounters()
@@ -148,27 +152,28 @@ class SubscriberLedger(Generic[T]):
         return dict(self._epochs)
 
     # -- notifications in ------------------------------------------------------------------
-    def receive(
-        self, epoch: str, seq: int, item: T, *, acked: int | None = None, descriptor: str | None
-    ) -> bool:
+    def receive(self, epoch: str, seq: int, item: T, *, descriptor: str | None) -> bool:
         """Feed one decoded notification; True if it was queued."""
         c = self.counters
         if descriptor is not None and descriptor != self.descriptor:
             c.foreign += 1
             return False
-        base = seq - 1 if acked is None else acked
-        if seq < 1 or base < 0 or base >= seq:
+        if seq < 1:
             c.invalid += 1
             return False
         track = self._epochs.get(epoch)
         if track is None:
-            if self.flow and seq != base + 1:
+            known = self._forgotten.get(epoch)
+            if known is None and self.flow and seq != 1:
                 c.out_of_order += 1
                 return False
             if not self._make_room():
                 c.refused += 1
                 return False
-            track = EpochTrack(last=base, taken=base)
+            if known is not None:
+                del self._forgotten[epoch]
+            last, taken = known if known is not None else (0, 0)
+            track = EpochTrack(last=last, taken=taken)
             self._epochs[epoch] = track
         self._epochs.move_to_end(epoch)
         if seq <= track.last:
@@ -205,6 +210,9 @@ class SubscriberLedger(Generic[T]):
         for name, track in self._epochs.items():  # least recently used first
             if track.queued == 0:
                 del self._epochs[name]
+                self._forgotten[name] = (track.last, track.taken)
+                if len(self._forgotten) > FORGOTTEN_EPOCHS:
+                    self._forgotten.popitem(last=False)
                 return True
         return False
 

@@ -127,7 +127,6 @@ class Subscription:
                 body["e"],
                 body["s"],
                 (timestamp, metadata, element),
-                acked=body.get("a"),
                 descriptor=body.get("k"),
             ):
                 self._cond.notify_all()
