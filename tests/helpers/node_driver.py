@@ -34,6 +34,35 @@ def _element_json(element: Any) -> dict[str, Any]:
     }
 
 
+class _FailingPublisher:
+    def __init__(self, inner: Any, owner: _FailingSession) -> None:
+        self._inner, self._owner = inner, owner
+
+    def put(self, *args: Any, **kwargs: Any) -> Any:
+        if self._owner.failures > 0:
+            self._owner.failures -= 1
+            import zenoh
+
+            raise zenoh.ZError("injected send failure")
+        return self._inner.put(*args, **kwargs)
+
+    def undeclare(self) -> None:
+        self._inner.undeclare()
+
+
+class _FailingSession:
+    """A session whose publishers' next ``failures`` puts raise."""
+
+    def __init__(self, inner: Any, failures: int) -> None:
+        self._inner, self.failures = inner, failures
+
+    def declare_publisher(self, *args: Any, **kwargs: Any) -> _FailingPublisher:
+        return _FailingPublisher(self._inner.declare_publisher(*args, **kwargs), self)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._inner, name)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser()
     parser.add_argument("name", nargs="?")
@@ -127,6 +156,11 @@ def _do(
     if op == "query":
         elements = node.query(cmd["target"], time_range=cmd.get("time_range"), last=cmd.get("last"))
         return {"elements": [_element_json(e) for e in elements]}
+    if op == "fail_sends":
+        # The next ``count`` notification sends of this buffer fail as a Zenoh error would.
+        producer = producers[cmd["buffer"]]
+        producer._session = _FailingSession(producer._session, int(cmd["count"]))  # type: ignore[assignment]
+        return {}
     if op == "exit":
         return {}
     raise FramegateError(f"unknown op {op!r}")

@@ -266,9 +266,7 @@ def test_token_flaps_do_not_leak_publishers(
             token.undeclare()
             wait_until(lambda: not images.subscriptions(), 5, "the token to go")
         _put(images, 10)  # with nobody registered
-        wait_until(
-            lambda: flaky.undeclared == flaky.declared == 3, 5, "every publisher undeclared"
-        )
+        wait_until(lambda: flaky.undeclared == flaky.declared == 3, 5, "every publisher undeclared")
 
 
 def test_closed_subscriptions_leave_the_node(
