@@ -15,11 +15,14 @@ from services.lib.sim import Dataset
 
 from ._config import MARKER_NAMES, PAPER_TABLE1, ExperimentConfig, RunKind
 from ._datasets import cached_dataset, scenario_for
+from ._frames import FrameOutcome
 from ._metrics import blur_pairs, recognized_frames
 from ._pipeline import RunSettings, run_configuration
 from ._plots import plot_gyro_exposures, plot_quality_vs_blur, plot_timeline
 from ._records import RunRecord
-from ._stats import correlations, improvement_pct, mean_ci95
+from ._replay import QueueModel
+from ._stats import captured_fraction, correlations, improvement_pct, mean_ci95
+from ._sweep import oracle_counts, period_ns
 from ._table import format_table
 
 RESULTS_FILE = "results.json"
@@ -29,13 +32,15 @@ FIG8_FILE = "fig8_quality_vs_blur.png"
 TIMELINE_FILE = "timeline.png"
 OUTPUT_FILES = (RESULTS_FILE, TABLE_FILE, FIG7_FILE, FIG8_FILE, TIMELINE_FILE)
 
-_COUNT_KEYS = ("all", "uncontrolled", "filtered", "beyond")
+_COUNT_KEYS = ("all", "uncontrolled", "filtered", "beyond", "oracle")
 # (key, base run, compared run) of the improvements reported per marker.
 _IMPROVEMENTS = (
     ("improvement_pct", "uncontrolled", "filtered"),
     ("beyond_improvement_pct", "uncontrolled", "beyond"),
     ("beyond_vs_filtered_pct", "filtered", "beyond"),
 )
+# (key, run) of the shares of the oracle's gain reported per marker.
+_CAPTURED = (("captured", "filtered"), ("beyond_captured", "beyond"))
 _TIMED = (RunKind.UNCONTROLLED, RunKind.FILTERED, RunKind.BEYOND)
 
 
@@ -61,8 +66,37 @@ def seed_markers(counts: dict[str, dict[str, int]]) -> dict[str, dict[str, Any]]
                 if row[base] is not None and row[new] is not None
                 else None
             )
+        for key, run in _CAPTURED:
+            policy, base, best = row[run], row["uncontrolled"], row["oracle"]
+            row[key] = (
+                captured_fraction(policy, base, best) if None not in (policy, base, best) else None
+            )
         out[name] = row
     return out
+
+
+def seed_oracle(
+    dataset: Dataset, recognized_all: dict[str, list[int]], queue: int, service_factor: float
+) -> dict[str, int]:
+    """The offline optimum per marker for this seed: the frames' arrivals (exposure ends)
+    and what the ``all`` run recognized in each, under the run's queue N and service time
+    (``service_factor`` × the mean frame period, as the detector emulates it)."""
+    by_frame: dict[int, set[str]] = {}
+    for name, ids in recognized_all.items():
+        for frame_id in ids:
+            by_frame.setdefault(frame_id, set()).add(name)
+    frames = tuple(
+        FrameOutcome(
+            frame_id=f.frame_id,
+            arrival_ns=f.exposure_start_ns + f.exposure_ns,
+            blur_px=None,
+            quality=None,
+            recognized=frozenset(by_frame.get(f.frame_id, ())),
+        )
+        for f in dataset.frames
+    )
+    model = QueueModel(queue=queue, service_ns=round(service_factor * period_ns(frames)))
+    return oracle_counts(frames, model)
 
 
 def aggregate_markers(seeds: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
@@ -76,8 +110,33 @@ def aggregate_markers(seeds: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
             row[f"{key}_ci95"] = estimate.ci95
         # The issue's name for the filtered improvement's interval.
         row["improvement_ci95"] = row["improvement_pct_ci95"]
+        for key, _run in _CAPTURED:
+            share = mean_ci95([seed["markers"][name].get(key) for seed in seeds])
+            row[key] = {"mean": share.mean, "ci95": share.ci95, "n": share.n}
         row["paper"] = dict(PAPER_TABLE1[name])
         out[name] = row
+    return out
+
+
+def policy_summary(
+    markers: dict[str, dict[str, Any]], runs: tuple[RunKind, ...]
+) -> dict[str, dict[str, Any]]:
+    """Per mediator policy and marker: its run, recognized count, the oracle's count and
+    ``captured`` (mean, ci95, n over seeds) — the gain as a share of the possible."""
+    out: dict[str, dict[str, Any]] = {}
+    for key, run in _CAPTURED:
+        kind = RunKind(run)
+        if kind not in runs or kind.policy is None:
+            continue
+        out[kind.policy] = {
+            name: {
+                "run": run,
+                "recognized": {"mean": row[run], "ci95": row[f"{run}_ci95"]},
+                "oracle": {"mean": row["oracle"], "ci95": row["oracle_ci95"]},
+                "captured": row[key],
+            }
+            for name, row in markers.items()
+        }
     return out
 
 
@@ -158,6 +217,9 @@ def run_experiment(
                 + ", ".join(f"{n} {len(ids)}" for n, ids in recognized[kind.value].items())
             )
         counts = {k: {n: len(ids) for n, ids in v.items()} for k, v in recognized.items()}
+        counts["oracle"] = seed_oracle(
+            dataset, recognized[RunKind.ALL.value], config.queue, config.service_factor
+        )
         seed_result: dict[str, Any] = {
             "seed": seed,
             "frames": len(dataset),
@@ -196,6 +258,7 @@ def _results(
     estimated = [v for series in blur_series.values() for v in series[0]]
     true = [v for series in blur_series.values() for v in series[2]]
     pearson, spearman = correlations(estimated, true)
+    markers = aggregate_markers(seeds)
     per_seed_r = mean_ci95([s.get("quality_vs_blur", {}).get("pearson") for s in seeds])
     drops = {
         kind.value: [s["runs"][kind.value]["dropped_at_camera"] for s in seeds]
@@ -203,7 +266,8 @@ def _results(
     }
     results: dict[str, Any] = _clean(
         {
-            "markers": aggregate_markers(seeds),
+            "markers": markers,
+            "policies": policy_summary(markers, config.runs),
             "quality_vs_blur": {
                 "pearson": pearson,
                 "spearman": spearman,

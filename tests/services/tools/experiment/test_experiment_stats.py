@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from types import SimpleNamespace
 
 import pytest
 
@@ -14,6 +15,10 @@ from services.tools.experiment import (
     mean_ci95,
     seed_markers,
 )
+from services.tools.experiment._config import RUN_KINDS
+from services.tools.experiment._experiment import policy_summary, seed_oracle
+
+MS = 1_000_000
 
 
 def test_mean_ci95_uses_students_t_with_n_minus_one_degrees_of_freedom() -> None:
@@ -121,3 +126,36 @@ def test_aggregate_markers_averages_seeds_with_intervals_and_quotes_the_paper() 
     }  # fmt: skip
     # Small: no seed recognized it uncontrolled, so there is no improvement to average.
     assert aggregate_markers(seeds)["small"]["improvement_pct"] is None
+
+
+def test_the_oracle_gives_each_run_its_share_of_the_possible_gain() -> None:
+    counts = _counts(246, 150, 160, 170)
+    counts["oracle"] = {"large": 190, "medium": 150, "small": 3}
+    large = seed_markers(counts)["large"]
+    assert large["oracle"] == 190
+    assert large["captured"] == pytest.approx(10 / 40)
+    assert large["beyond_captured"] == pytest.approx(20 / 40)
+    assert seed_markers(counts)["medium"]["captured"] is None  # the oracle gains nothing
+    seeds = [{"markers": seed_markers(counts)}, {"markers": seed_markers(counts)}]
+    aggregated = aggregate_markers(seeds)["large"]
+    assert aggregated["captured"] == {"mean": pytest.approx(0.25), "ci95": 0.0, "n": 2}
+    summary = policy_summary(aggregate_markers(seeds), RUN_KINDS)
+    assert summary["paper"]["large"]["captured"]["mean"] == pytest.approx(0.25)
+    assert summary["paper"]["large"]["oracle"]["mean"] == pytest.approx(190)
+
+
+def test_seed_oracle_is_the_best_schedule_of_the_all_runs_recognitions() -> None:
+    # Frames every 100 ms, the detector needs 250 ms, N = 1: after a frame that waits, the
+    # next one finds the queue full unless a frame was skipped.
+    dataset = SimpleNamespace(
+        frames=[
+            SimpleNamespace(frame_id=i, exposure_start_ns=i * 100 * MS, exposure_ns=MS)
+            for i in range(5)
+        ]
+    )
+    recognized = {"large": [0, 2, 3], "medium": [1, 2, 3, 4], "small": []}
+    oracle = seed_oracle(dataset, recognized, queue=1, service_factor=2.5)  # type: ignore[arg-type]
+    assert oracle["large"] == 3  # 0, skip 1, then 2 and 3 each wait their turn
+    assert oracle["medium"] == 3  # 3 would be the second frame waiting: one must go
+    assert oracle["small"] == 0
+    assert oracle["total"] == 5  # 0, 2, 3 (5 recognitions) beats 1, 2, 4 (4)

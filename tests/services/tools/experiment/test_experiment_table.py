@@ -7,13 +7,17 @@ from typing import Any
 from services.tools.experiment import aggregate_markers, format_table, seed_markers
 
 
-def _seed(seed: int, all_: int, unc: int, filt: int, beyond: int) -> dict[str, Any]:
+def _seed(
+    seed: int, all_: int, unc: int, filt: int, beyond: int, oracle: int | None = None
+) -> dict[str, Any]:
     counts = {
         "all": {"large": all_, "medium": all_ + 20, "small": 90},
         "uncontrolled": {"large": unc, "medium": unc, "small": 0},
         "filtered": {"large": filt, "medium": filt + 10, "small": 5},
         "beyond": {"large": beyond, "medium": beyond, "small": 6},
     }
+    if oracle is not None:
+        counts["oracle"] = {"large": oracle, "medium": oracle, "small": 10}
     run = {
         "processed": 200, "dropped_at_camera": 119, "skipped_late": 0, "forwarded": None,
         "drained": True,
@@ -86,3 +90,21 @@ def test_table_says_when_every_run_kept_real_time() -> None:
     text = format_table(results)
     assert "Every run kept real time" in text
     assert "Machine: 2 CPUs, 1-minute load average 0.70 before and 0.90 after" in text
+
+
+def test_table_shows_the_oracle_and_each_runs_share_of_its_gain() -> None:
+    text = format_table(
+        _results(_seed(1, 240, 150, 156, 160, oracle=170), _seed(2, 250, 160, 168, 170, 180))
+    )
+    assert "## The gain as a share of the possible" in text
+    # Oracle 175 on the mean; filtered captured 6/20 and 8/20 of the gain (35 %), beyond
+    # 10/20 both times (50 %, no spread).
+    assert (
+        "| large | 155.0 ± 63.5 | 175.0 ± 63.5 | 162.0 ± 76.2 | 35 ± 64 | 165.0 ± 63.5 | 50 ± 0 |"
+        in text
+    )
+
+
+def test_table_without_an_oracle_has_no_share_section() -> None:
+    text = format_table(_results(_seed(1, 240, 150, 156, 160)))
+    assert "share of the possible" not in text
