@@ -6,6 +6,7 @@ from collections.abc import Callable
 
 from services.lib.quality import QualityInputError
 
+from ._adaptive import AdaptivePolicy
 from ._deadline import DeadlinePolicy
 from ._paper import PaperPolicy
 from ._policy import Policy
@@ -15,6 +16,7 @@ POLICIES: dict[str, Callable[[], Policy]] = {
     "paper": PaperPolicy,
     "replace": ReplacePolicy,
     "deadline": DeadlinePolicy,
+    "adaptive": AdaptivePolicy,
 }
 """Policy name -> a factory taking no arguments (defaults of a policy's own parameters)."""
 

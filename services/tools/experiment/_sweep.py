@@ -28,7 +28,7 @@ from ._stats import captured_fraction, improvement_pct, mean_ci95
 SWEEP_RESULTS = "sweep.json"
 SWEEP_TABLE = "sweep.md"
 SWEEP_FIGURE = "captured.png"
-DEFAULT_POLICIES = ("paper", "replace", "deadline")
+DEFAULT_POLICIES = ("paper", "replace", "deadline", "adaptive")
 
 
 @dataclass(frozen=True, slots=True)
