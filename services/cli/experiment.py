@@ -60,7 +60,7 @@ def register(subparsers: Any) -> None:
     parser.add_argument("--queues", type=int, nargs="+", default=[1, 2, 3])
     parser.add_argument("--factors", type=float, nargs="+", default=[1.3, 1.6, 2.0])
     parser.add_argument(
-        "--policies", nargs="+", default=["paper", "replace", "deadline"],
+        "--policies", nargs="+", default=["paper", "replace", "deadline", "adaptive"],
         help="mediator policies the sweep replays",
     )  # fmt: skip
     parser.add_argument(

@@ -3,7 +3,7 @@
 For each seed a simulated approach is rendered once (cached by scenario hash) and replayed,
 frame for frame and gyro sample for gyro sample, through camera, gyro, mediator and detector
 processes on a private loopback rendezvous: ``all`` (every frame), ``uncontrolled`` (frames
-dropped at the source), ``filtered`` (the paper's mediator) and ``beyond`` (the ``replace``
+dropped at the source), ``filtered`` (the paper's mediator) and ``beyond`` (the ``adaptive``
 policy). ``run_experiment`` writes results.json, table.md and the figures.
 """
 

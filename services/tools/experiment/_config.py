@@ -38,12 +38,13 @@ class RunKind(enum.Enum):
     FILTERED = "filtered"
     """Camera → mediator (policy paper: accept iff q > load) → detector."""
     BEYOND = "beyond"
-    """Camera → mediator (policy replace: hold the sharpest frame while busy) → detector."""
+    """Camera → mediator (policy adaptive: thresholds from recent qualities on the detector's
+    clock, the best causal policy of the sweep) → detector."""
 
     @property
     def policy(self) -> str | None:
         """The mediator policy of this run, None when there is no mediator."""
-        return {RunKind.FILTERED: "paper", RunKind.BEYOND: "replace"}.get(self)
+        return {RunKind.FILTERED: "paper", RunKind.BEYOND: "adaptive"}.get(self)
 
 
 RUN_KINDS: tuple[RunKind, ...] = tuple(RunKind)

@@ -41,7 +41,7 @@ def format_table(results: Mapping[str, Any]) -> str:
         "",
         "*Recognizable* = recognized in the `all` run (every frame processed, regardless of "
         "time). *Improvement* = (filtered − uncontrolled) / uncontrolled, per seed, then "
-        "averaged; *beyond* is the mediator's `replace` policy (not in the paper).",
+        "averaged; *beyond* is the mediator's `adaptive` policy (not in the paper).",
         "",
     ]
     if n > 1:
@@ -56,7 +56,7 @@ def format_table(results: Mapping[str, Any]) -> str:
         "319 frames on a real robot).",
         "",
         "| Marker | Source | Recognizable | Uncontrolled | Filtered | Improvement % "
-        "| Beyond (`replace`) | Improvement % (beyond) | Beyond vs filtered % |",
+        "| Beyond (`adaptive`) | Improvement % (beyond) | Beyond vs filtered % |",
         "|---|---|--:|--:|--:|--:|--:|--:|--:|",
     ]
     for name in MARKER_NAMES:

@@ -110,7 +110,7 @@ def test_deployments_follow_the_papers_configurations(tmp_path: Path) -> None:
     assert detector[detector.index("--service-factor") + 1] == "1.6"
     filtered, beyond = args(RunKind.FILTERED), args(RunKind.BEYOND)
     assert filtered["mediator"][:2] == ("--policy", "paper")
-    assert beyond["mediator"][:2] == ("--policy", "replace")
+    assert beyond["mediator"][:2] == ("--policy", "adaptive")
     assert filtered["detector"][filtered["detector"].index("--input") + 1] == "mediator/images"
     assert all(not s.restart for s in deployment_for(RunKind.BEYOND, dataset, settings).services)
 
