@@ -94,7 +94,8 @@ def test_oracle_is_never_below_any_policy_on_the_same_run(
     oracle = oracle_counts(outcomes, model)
     runs = [replay_uncontrolled(outcomes, model)]
     runs += [
-        replay_policy(outcomes, model, make_policy(p)) for p in ("paper", "replace", "deadline")
+        replay_policy(outcomes, model, make_policy(p))
+        for p in ("paper", "replace", "deadline", "adaptive")
     ]
     for processed in runs:
         counts = marker_counts(outcomes, processed)
