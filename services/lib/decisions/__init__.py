@@ -34,10 +34,15 @@ may keep statistics of its own; it must not read a clock or do I/O. FORWARDs go 
 order; the decider drops what breaks a rule and counts contract faults in
 ``policy_faults``. Reasons are short kebab-case words; ``held`` marks a frame still waiting.
 
-Policies: ``paper`` (forward iff q > load: the paper's rule) and ``replace`` (hold the
-sharpest frames, one for each free queue slot; see ``_replace.py``).
+Policies: ``paper`` (forward iff q > load: the paper's rule), ``replace`` (hold the
+sharpest frames, one for each free queue slot; see ``_replace.py``), ``deadline`` (hold the
+best frame and forward it just before the detector needs one) and ``adaptive`` (quantile
+thresholds of the recent qualities on the detector's processing clock; tuned on
+calibration seeds; see ``_adaptive.py``).
 """
 
+from ._adaptive import AdaptivePolicy
+from ._deadline import DeadlinePolicy
 from ._decider import DEFAULT_MAX_HOLD_NS, Decider, GyroMissing, Rules
 from ._paper import PaperPolicy
 from ._policy import Policy
@@ -50,7 +55,9 @@ __all__ = [
     "DEFAULT_POLICY",
     "POLICIES",
     "Action",
+    "AdaptivePolicy",
     "Candidate",
+    "DeadlinePolicy",
     "Decider",
     "DetectorClock",
     "GyroMissing",
