@@ -18,9 +18,9 @@ from hypothesis import settings
 from middleware import NetworkConfig
 
 # ``--hypothesis-profile long``: the protocol state machine (tests/middleware/
-# test_protocol_model.py) runs 2,000 programs of 60 steps (120,000 steps) instead of CI's few
-# thousand. Registered here so that the option works from any test path.
-settings.register_profile("long", max_examples=2_000, stateful_step_count=60, deadline=None)
+# test_protocol_model.py) runs 3,000 programs of up to 80 steps (over 100,000 steps) instead
+# of CI's few thousand. Registered here so that the option works from any test path.
+settings.register_profile("long", max_examples=3_000, stateful_step_count=80, deadline=None)
 
 REPO = Path(__file__).resolve().parent.parent
 

@@ -138,3 +138,49 @@ def control_message(rng: random.Random) -> bytes:
     if choice == 3:
         return bytes(msgpack.packb([1, 2, 3]))
     return bytes(msgpack.packb({"e": "x", "s": 1, "t": "now", "p": 5, "m": [1]}))
+
+
+def token_suffix(rng: random.Random) -> tuple[str, bool]:
+    """``<mode>/<N>/<push>`` for a subscription token (the full four-segment shape the
+    producer's token parser sees) and whether a correct producer must register it."""
+    mode = rng.choice(["flow", "observe", "observe", "bogus", "FLOW", "-"])
+    size = rng.choice(["1", "4", "0", "-1", "x", "1e3", "99999999999", "2"])
+    push = rng.choice(["-1", "0", "65536", "-2", "y", "1.5"])
+    valid = (
+        mode in ("flow", "observe")
+        and size.isdigit()
+        and 1 <= int(size) <= 1 << 20
+        and push.lstrip("-").isdigit()
+        and int(push) >= -1
+    )
+    return f"{mode}/{size}/{push}", valid
+
+
+def forged_notification(rng: random.Random, epoch: str | None, descriptor: str) -> bytes:
+    """A protocol-valid notification header (README "Wire format"): a foreign epoch with
+    any seq, or the real epoch with a past (1) or far-future seq, maybe another
+    registration's descriptor. (An in-window seq of the real epoch is indistinguishable
+    from the producer's own: outside the trusted profile's promise.)"""
+    if epoch is not None and rng.random() < 0.6:
+        seq = rng.choice([1, rng.randint(10**6, 2**40)])
+    else:
+        epoch, seq = rng.choice(["x", "0.1", "ffff.1"]), rng.choice([1, 2, rng.randint(1, 99)])
+    body: dict[str, object] = {
+        "e": epoch,
+        "s": seq,
+        "t": 2 * rng.randint(0, 2**40) + 1,  # odd: never one of the fuzzer's own timestamps
+        "p": rng.random() < 0.5,
+        "m": f'<metadata {NS} kind="generic" timestamp_ns="1"/>'.encode(),
+    }
+    if rng.random() < 0.5:
+        body["k"] = descriptor if rng.random() < 0.5 else "observe/1/-1"
+    return bytes(msgpack.packb(body, use_bin_type=True))
+
+
+def forged_ack(rng: random.Random, epoch: str | None) -> bytes:
+    """A protocol-valid ack of a foreign epoch, or of the real one with a past seq (an
+    in-window forged ack of a live epoch is outside the trusted profile's promise)."""
+    if epoch is None or rng.random() < 0.5:
+        foreign = rng.choice(["x", "0.1", "ffff.1"])
+        return bytes(msgpack.packb({"e": foreign, "s": rng.randint(0, 99)}))
+    return bytes(msgpack.packb({"e": epoch, "s": 0}))

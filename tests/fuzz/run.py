@@ -91,6 +91,19 @@ def run(cases: int, seed: int, endpoint: str | None = None) -> Tally:
         session = _session(endpoint)
         legit = NodeProcess(None, ["--connect", endpoint])
         legit.call("subscribe", target=f"{SERVICE}/{BUFFER}", queue=100_000, mode="observe")
+        # A flow subscriber that takes everything: forgeries must neither block the service
+        # nor make it miss anything.
+        flow = NodeProcess(None, ["--connect", endpoint])
+        legit_id = flow.call("subscribe", target=f"{SERVICE}/{BUFFER}", queue=4)["id"]
+        spied: list[str] = []  # the flow subscriber's epoch, as any peer can read it
+        spy = session.declare_subscriber(
+            f"framegate/@notify/{SERVICE}/{BUFFER}/{legit_id}",
+            lambda sample: (
+                spied.append(msgpack.unpackb(sample.attachment.to_bytes())["e"])
+                if sample.attachment is not None and len(spied) < 1000
+                else None
+            ),
+        )
         base = f"framegate/{SERVICE}/{BUFFER}"
         for case in range(cases):
             kind = rng.random()
@@ -121,8 +134,11 @@ def run(cases: int, seed: int, endpoint: str | None = None) -> Tally:
                     extra = {"payload_raw": rng.choice([5, "text", [1, 2]])}
                     valid = False
                 metadata_b64 = base64.b64encode(doc).decode()
-                reply = service.call("put", buffer=BUFFER, t=t, metadata_b64=metadata_b64, **extra)
+                reply = service.call(
+                    "put", buffer=BUFFER, t=t, metadata_b64=metadata_b64, wait_s=5, **extra
+                )
                 if reply["ok"]:
+                    _flow_takes(flow, next_t, tally)
                     if not valid:
                         tally.fail(f"accepted hostile put: {doc[:80]!r} {extra} t={t!r}")
                     accepted[next_t] = b"p%d" % next_t
@@ -134,24 +150,48 @@ def run(cases: int, seed: int, endpoint: str | None = None) -> Tally:
                     tally.fail(f"rejection without a message: {reply}")
                 else:
                     tally.counts["put-rejected"] += 1
-            else:
+            elif kind < 0.85:
                 target = rng.choice(["@ack", "@notify"])
-                sub_id = rng.choice(["x", "0" * 12, "".join(rng.choices("abcdef0123456789", k=12))])
+                sub_id = rng.choice(
+                    ["x", "0" * 12, legit_id, "".join(rng.choices("abcdef0123456789", k=12))]
+                )
                 session.put(
                     f"framegate/{target}/{SERVICE}/{BUFFER}/{sub_id}", hostile.control_message(rng)
                 )
-                if rng.random() < 0.1:
-                    bad = rng.choice(["flow/-1", "bogus/2", "flow/x", "observe/0"])
+                if rng.random() < 0.2:
+                    # Four segments after the id, as the token parser expects: it must see it.
+                    suffix, _valid = hostile.token_suffix(rng)
                     token = session.liveliness().declare_token(
-                        f"framegate/@sub/{SERVICE}/{BUFFER}/{sub_id}/{bad}"
+                        f"framegate/@sub/{SERVICE}/{BUFFER}/{sub_id}/{suffix}"
                     )
                     token.undeclare()
+                    tally.counts["tokens-sent"] += 1
                 tally.counts["garbage-sent"] += 1
+            else:
+                # Protocol-valid forgeries aimed at the legitimate flow subscriber.
+                epoch = spied[-1] if spied else None
+                if rng.random() < 0.6:
+                    session.put(
+                        f"framegate/@notify/{SERVICE}/{BUFFER}/{legit_id}",
+                        b"forged",
+                        attachment=hostile.forged_notification(rng, epoch, "flow/4/-1"),
+                    )
+                else:
+                    session.put(
+                        f"framegate/@ack/{SERVICE}/{BUFFER}/{legit_id}",
+                        hostile.forged_ack(rng, epoch),
+                    )
+                tally.counts["forgeries-sent"] += 1
             if case % 250 == 249 or case == cases - 1:
                 _health(service, accepted, tally)
         legit_stats = legit.call("take", target=f"{SERVICE}/{BUFFER}", timeout=1.0)
         if accepted and legit_stats["notification"] is None:
             tally.fail("the legitimate subscriber received nothing")
+        flow_stats = flow.call("stats", target=f"{SERVICE}/{BUFFER}")
+        if flow_stats["missed_total"]:
+            tally.fail(f"the flow subscriber missed {flow_stats['missed_total']}")
+        spy.undeclare()
+        flow.close()
         legit.close()
         session.close()
     finally:
@@ -161,6 +201,26 @@ def run(cases: int, seed: int, endpoint: str | None = None) -> Tally:
             tally.fail(f"service process died with {service.proc.returncode}")
         service.close()
     return tally
+
+
+def _flow_takes(flow: NodeProcess, t: int, tally: Tally) -> None:
+    """The flow subscriber takes notifications until element ``t``'s; forged ones may come
+    first (the trusted profile cannot tell them), real ones must come in order, unmissed."""
+    while True:
+        took = flow.call("take", target=f"{SERVICE}/{BUFFER}", timeout=5)
+        note = took["notification"]
+        if note is None:
+            tally.fail(f"the flow subscriber never got element {t}")
+            return
+        if note["missed"]:
+            tally.fail(f"the flow subscriber reported {note['missed']} missed")
+        if note["t"] == t:
+            tally.counts["flow-taken"] += 1
+            return
+        if note["t"] % 2:
+            tally.counts["forgery-taken"] += 1  # not one of ours: a forgery reached it
+        else:
+            tally.fail(f"the flow subscriber got element {note['t']} while waiting for {t}")
 
 
 def _health(service: NodeProcess, accepted: dict[int, bytes], tally: Tally) -> None:

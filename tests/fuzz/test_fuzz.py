@@ -14,5 +14,13 @@ def test_live_service_survives_hostile_input_and_loses_nothing() -> None:
     print(dict(tally.counts))
     assert tally.counts["FAILURE"] == 0, "\n".join(tally.failures)
     assert tally.counts["crashes"] == 0
-    for category in ("query-rejected", "put-accepted", "put-rejected", "garbage-sent"):
+    for category in (
+        "query-rejected",
+        "put-accepted",
+        "put-rejected",
+        "garbage-sent",
+        "tokens-sent",
+        "forgeries-sent",
+        "flow-taken",
+    ):
         assert tally.counts[category] > 0, category

@@ -12,7 +12,7 @@ Outside the model, on purpose (see the README's trust profiles): a rogue that fo
 in-window notification or ack of the current epoch, or a token identical to another's.
 
 CI runs a few thousand steps; ``python -m pytest tests/middleware --hypothesis-profile long``
-runs 120,000. A failing example is kept in hypothesis's example database (``.hypothesis/``)
+runs over 100,000. A failing example is kept in hypothesis's example database (``.hypothesis/``)
 and replayed first on the next run.
 """
 
@@ -30,7 +30,7 @@ from middleware._ledger_producer import (
     ProducerLedger,
     RegistrationKey,
 )
-from middleware._ledger_subscriber import MAX_EPOCHS, SubscriberLedger
+from middleware._ledger_subscriber import MAX_EPOCHS, AckPolicy, SubscriberLedger
 from middleware._records import SubscriptionMode
 
 FLOW, OBSERVE = SubscriptionMode.FLOW, SubscriptionMode.OBSERVE
@@ -122,19 +122,31 @@ class ProtocolModel(RuleBasedStateMachine):
         return [s.key for s in self._live()] + self.rogue_tokens
 
     # -- subscribers -----------------------------------------------------------------------
-    @initialize(sizes=st.lists(st.integers(1, 3), min_size=1, max_size=3), observer=st.booleans())
-    def start(self, sizes: list[int], observer: bool) -> None:
-        for size in sizes:
-            self.subscribe(FLOW, size)
+    @initialize(
+        sizes=st.lists(st.tuples(st.integers(1, 8), st.integers(1, 4)), min_size=1, max_size=3),
+        observer=st.booleans(),
+    )
+    def start(self, sizes: list[tuple[int, int]], observer: bool) -> None:
+        for size, every in sizes:
+            self.subscribe(FLOW, size, every)
         if observer:
             self.subscribe(OBSERVE, 2)
 
     @precondition(lambda self: len(self._live()) < 4)
-    @rule(mode=st.sampled_from([FLOW, FLOW, OBSERVE]), size=st.integers(1, 4))
-    def subscribe(self, mode: SubscriptionMode, size: int) -> None:
+    @rule(
+        mode=st.sampled_from([FLOW, FLOW, OBSERVE]),
+        size=st.integers(1, 8),
+        every=st.integers(1, 8),
+    )
+    def subscribe(self, mode: SubscriptionMode, size: int, every: int = 1) -> None:
+        """``every``: the ack policy coalesces that many takes into one ack (any value, even
+        beyond the queue: liveness must not depend on it)."""
         STEPS[0] += 1
         key = RegistrationKey(f"s{len(self.subs)}", mode, size, -1)
-        ledger: SubscriberLedger[Item] = SubscriberLedger(mode, size, key.descriptor)
+        policy = AckPolicy(every=every)
+        if every > 1:
+            event("a subscriber that coalesces acks")
+        ledger: SubscriberLedger[Item] = SubscriberLedger(mode, size, key.descriptor, policy=policy)
         self.subs.append(Sub(key, ledger))
         self._register(key)
 
