@@ -45,7 +45,11 @@ A notification ``(epoch, seq, descriptor)``:
 ``take`` pops the oldest notification, sets ``taken`` of its epoch to its seq and makes an
 ack ``(epoch, seq)`` due (cumulative: it covers every earlier seq of that epoch). The ack
 policy decides when due acks leave: ``AckPolicy(every=1)`` sends each at once; a larger
-``every`` coalesces acks of queues > 1 (fewer messages, same credits once sent). While
+``every`` coalesces acks of queues > 1 (fewer messages, same credits once sent);
+``AckPolicy.for_queue(N)`` is what subscriptions use: each take for N <= 3 (a queue of 1
+must ack every element or the producer stays refused), every ``N // 2`` takes above that.
+Coalescing never holds the producer back for long: an ack is also due whenever the queue
+runs empty and whenever the caller waits idle. While
 idle the subscriber repeats the acks of known epochs every ``reack_ns``, so a lost ack or
 a lost notification heals (the producer resends on a repeated ack that moves nothing).
 
@@ -79,6 +83,13 @@ class AckPolicy:
 
     every: int = 1
     reack_ns: int = REACK_NS
+
+    @classmethod
+    def for_queue(cls, queue_size: int) -> AckPolicy:
+        """Coalesce up to half a queue's worth of takes into one ack (each take below 4):
+        the producer then sees at most ``N // 2 - 1`` elements as queued that are already
+        taken, and a queue that runs empty acks at once."""
+        return cls(every=max(1, queue_size // 2))
 
 
 @dataclass(slots=True)

@@ -20,7 +20,7 @@ from typing import Any
 import zenoh
 
 from ._errors import FramegateError
-from ._ledger_subscriber import REACK_NS, Entry, SubscriberCounters, SubscriberLedger
+from ._ledger_subscriber import REACK_NS, AckPolicy, Entry, SubscriberCounters, SubscriberLedger
 from ._records import DataObject, Notification, SubscriptionMode
 from ._wire import Keys, decode_notification_header, encode_ack
 
@@ -28,8 +28,10 @@ from ._wire import Keys, decode_notification_header, encode_ack
 PUSH_ALL = 2**31 - 1
 _REACK_S = REACK_NS / 1e9
 
-# What the queue holds per notification: timestamp_ns, metadata, the pushed element.
-_Item = tuple[int, bytes | None, DataObject | None]
+# What the queue holds per notification: timestamp_ns, metadata, the pushed payload. The
+# payload stays Zenoh's ZBytes until ``take`` (on the caller's thread) turns it into bytes:
+# copying a large frame on Zenoh's receive thread stalls every other message behind it.
+_Item = tuple[int, bytes | None, zenoh.ZBytes | None]
 
 
 class Subscription:
@@ -38,8 +40,9 @@ class Subscription:
     Survives restarts of the producing service: the producer re-registers this subscription
     from its liveliness token under a new epoch, and the ledger tracks every epoch it meets.
 
-    Threads: ``_on_notification`` runs on Zenoh's thread; it decodes, then takes ``_cond``
-    only to feed the ledger, and never calls Zenoh. ``_cond`` guards the ledger and
+    Threads: ``_on_notification`` runs on Zenoh's thread; it decodes the header, then takes
+    ``_cond`` only to feed the ledger, and never calls Zenoh nor copies the payload (``take``
+    does, on the caller's thread). ``_cond`` guards the ledger and
     ``garbage``; acks are computed under it and sent after releasing it (``take`` on the
     caller's thread), so a blocking ack put never holds a lock the callback needs.
     """
@@ -70,7 +73,10 @@ class Subscription:
         self._on_close = on_close
         self._cond = threading.Condition(threading.Lock())
         self._ledger: SubscriberLedger[_Item] = SubscriberLedger(
-            mode, queue_size, f"{mode.value}/{queue_size}/{push_max_bytes}"
+            mode,
+            queue_size,
+            f"{mode.value}/{queue_size}/{push_max_bytes}",
+            policy=AckPolicy.for_queue(queue_size),
         )
         self.garbage = 0
         self._closed = False
@@ -113,11 +119,7 @@ class Subscription:
                 raise ValueError("notification without a header")
             body = decode_notification_header(attachment.to_bytes())
             timestamp, metadata = body["t"], body.get("m")
-            element = (
-                DataObject(timestamp, sample.payload.to_bytes(), metadata)
-                if body["p"] and metadata is not None
-                else None
-            )
+            pushed = sample.payload if body["p"] and metadata is not None else None
         except Exception:  # garbage on our key is counted, never raised into Zenoh
             with self._cond:
                 self.garbage += 1
@@ -126,7 +128,7 @@ class Subscription:
             if self._ledger.receive(
                 body["e"],
                 body["s"],
-                (timestamp, metadata, element),
+                (timestamp, metadata, pushed),
                 descriptor=body.get("k"),
             ):
                 self._cond.notify_all()
@@ -164,7 +166,10 @@ class Subscription:
                 return self._notification(entry)
 
     def _notification(self, entry: Entry[_Item]) -> Notification:
-        timestamp, metadata, element = entry.item
+        timestamp, metadata, pushed = entry.item
+        element = None
+        if pushed is not None and metadata is not None:
+            element = DataObject(timestamp, pushed.to_bytes(), metadata)
         return Notification(
             self.service,
             self.buffer,
