@@ -95,10 +95,14 @@ def parse_untrusted(data: bytes | str, limits: XmlLimits = DEFAULT_LIMITS) -> An
         raise SchemaError(f"metadata is not well-formed XML: {exc}") from exc
     if root.getroottree().docinfo.internalDTD is not None:
         raise SchemaError("metadata contains a DTD, which is not allowed")
-    for count, _element in enumerate(root.iter(), start=1):
-        if count > limits.max_elements:
-            raise SchemaError(f"metadata has more than {limits.max_elements} elements")
-    _check_depth(root, limits.max_depth)
+    # Both walks are skipped when the bytes alone rule the limit out: an element takes at
+    # least 4 bytes (``<a/>``) and every level of nesting its own ``<``.
+    if len(raw) > 4 * limits.max_elements:
+        for count, _element in enumerate(root.iter(), start=1):
+            if count > limits.max_elements:
+                raise SchemaError(f"metadata has more than {limits.max_elements} elements")
+    if raw.count(b"<") > limits.max_depth:
+        _check_depth(root, limits.max_depth)
     return root
 
 
@@ -160,9 +164,19 @@ def _collapse_tree(root: Any) -> None:
     """Make every attribute and leaf text of a validated tree read as the XSD saw it."""
     for element in root.iter():
         for name, value in element.attrib.items():
-            element.set(name, collapse_whitespace(value))
-        if len(element) == 0 and element.text is not None:
-            element.text = collapse_whitespace(element.text)
+            if _needs_collapse(value):
+                element.set(name, collapse_whitespace(value))
+        text = element.text
+        if text is not None and len(element) == 0 and _needs_collapse(text):
+            element.text = collapse_whitespace(text)
+
+
+# Text that the collapse rule changes: XML whitespace other than single inner spaces.
+_NEEDS_COLLAPSE = re.compile(r"[\t\n\r]|  |^ | $")
+
+
+def _needs_collapse(text: str) -> bool:
+    return _NEEDS_COLLAPSE.search(text) is not None
 
 
 def metadata_timestamp_ns(root: Any) -> int:

@@ -125,6 +125,29 @@ def test_element_count_limit() -> None:
         parse_untrusted(doc, XmlLimits(max_elements=10))
 
 
+@given(
+    depth=st.integers(1, 6),
+    width=st.integers(0, 6),
+    max_depth=st.integers(1, 8),
+    max_elements=st.integers(1, 20),
+    short_tags=st.booleans(),
+)
+def test_size_limits_hold_exactly_whatever_the_shortcut(
+    depth: int, width: int, max_depth: int, max_elements: int, short_tags: bool
+) -> None:
+    # parse_untrusted skips its walks when the byte count rules a limit out: the limits
+    # must still hold exactly, at and around the boundaries, with the shortest elements.
+    leaf = "<a/>" if short_tags else "<abc></abc>"
+    doc = "<r>" * depth + leaf * width + "</r>" * depth
+    elements, levels = depth + width, depth + (1 if width else 0)
+    limits = XmlLimits(max_depth=max_depth, max_elements=max_elements)
+    if elements > max_elements or levels > max_depth:
+        with pytest.raises(SchemaError, match=r"more than|nested deeper"):
+            parse_untrusted(doc, limits)
+    else:
+        parse_untrusted(doc, limits)
+
+
 @given(st.binary(max_size=300))
 def test_arbitrary_bytes_parse_or_raise_schema_error(data: bytes) -> None:
     try:
