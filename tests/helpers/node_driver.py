@@ -95,6 +95,12 @@ def _do(
 ) -> dict[str, Any]:
     if op == "offer":
         retention = Retention(**cmd.get("retention", {}))  # e.g. {"max_payload_bytes": 1024}
+        if cmd.get("unchecked"):
+            # An attacker does not ask whether the name is taken: skip that courtesy check,
+            # so that a test can show what the router (not framegate) stops.
+            import middleware._service as service_module
+
+            service_module._instances = lambda *_args: []
         producers[cmd["buffer"]] = node.offer(
             cmd["buffer"], kind=cmd.get("kind", "generic"), retention=retention
         )
