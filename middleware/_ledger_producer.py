@@ -75,12 +75,14 @@ class RegistrationKey:
     mode: SubscriptionMode
     queue_size: int
     push_max_bytes: int
+    # ``mode/N/push`` as in the token; notifications carry it so that a subscriber can tell
+    # its own registration's notifications from those of a colliding token. Computed once:
+    # every notification sent needs it.
+    descriptor: str = field(init=False, compare=False, repr=False)
 
-    @property
-    def descriptor(self) -> str:
-        """``mode/N/push`` as in the token; notifications carry it so that a subscriber can
-        tell its own registration's notifications from those of a colliding token."""
-        return f"{self.mode.value}/{self.queue_size}/{self.push_max_bytes}"
+    def __post_init__(self) -> None:
+        descriptor = f"{self.mode.value}/{self.queue_size}/{self.push_max_bytes}"
+        object.__setattr__(self, "descriptor", descriptor)
 
 
 @dataclass(slots=True)
