@@ -8,7 +8,7 @@ with Node() as node:                            # a client
     sub = node.subscribe("camera/images", queue_size=2)
     note = sub.take(timeout_s=1.0)
     frame = sub.fetch(note)
-    recent = node.query("camera/images", time="[now(-2s)..]")
+    recent = node.query("camera/images", time_range="[now(-2s)..]")
 """
 
 from __future__ import annotations
@@ -318,7 +318,10 @@ class Node:
 
     # -- lifetime ---------------------------------------------------------------------------------
     def close(self) -> None:
-        """Withdraw everything and close the Zenoh session (always do this: see ZENOH_NOTES)."""
+        """Withdraw everything and close the Zenoh session.
+
+        Always close: an open session with Python callbacks may keep the process from exiting.
+        """
         if self._closed:
             return
         self._closed = True
