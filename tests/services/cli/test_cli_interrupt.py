@@ -1,0 +1,117 @@
+"""One Ctrl-C or SIGTERM ends every long-running CLI command, with its Zenoh session closed
+(the commands a service-less test can start: watch, hz, record, view, router, play)."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from middleware import NetworkConfig, Node, Producer, make_metadata
+from tests.conftest import REPO, child_env, free_port, wait_until
+
+pytestmark = pytest.mark.integration
+
+# The goal is 2 s; the bound tolerates a loaded test machine while still failing a command
+# that keeps running after the signal.
+STOP_WITHIN_S = 5.0
+
+
+@pytest.fixture
+def port() -> int:
+    return free_port()
+
+
+@pytest.fixture
+def producer(port: int) -> Iterator[Producer]:
+    """A live ``cam/log`` buffer that gains an element every 50 ms while the test runs."""
+    with Node("cam", NetworkConfig(local_port=port)) as node:
+        log = node.offer("log")
+        t = time.time_ns()
+        log.put(t, b"first", make_metadata("generic", t))
+        yield log
+
+
+def _start(argv: list[str], port: int) -> subprocess.Popen[str]:
+    env = child_env()
+    env["FRAMEGATE_LOCAL_PORT"] = str(port)
+    return subprocess.Popen(
+        [sys.executable, "-m", "services.cli", *argv],
+        cwd=REPO,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+
+
+def _feed_until(proc: subprocess.Popen[str], log: Producer, seen: int) -> None:
+    """Put elements until ``log`` has ``seen`` subscriptions (the command is listening)."""
+
+    def listening() -> bool:
+        t = time.time_ns()
+        log.put(t, b"x", make_metadata("generic", t))
+        assert proc.poll() is None, proc.communicate()[0]
+        return len(log.subscriptions()) >= seen
+
+    wait_until(listening, 60, "the command to subscribe")
+
+
+def _stops(proc: subprocess.Popen[str], signum: int) -> None:
+    proc.send_signal(signum)
+    try:
+        out, _ = proc.communicate(timeout=STOP_WITHIN_S)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        out, _ = proc.communicate()
+        message = f"still running {STOP_WITHIN_S} s after signal {signum}:\n{out}"
+        raise AssertionError(message) from None
+    assert "Traceback" not in out, out
+    assert proc.returncode in (0, 130, -signum), (proc.returncode, out)
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["watch", "cam/log"],
+        ["watch", "cam/log", "--flow-control", "--queue", "1", "--delay", "30"],
+        ["hz", "cam/log"],
+        ["view", "cam/log", "--port", "0"],
+    ],
+    ids=["watch", "watch-slow-flow", "hz", "view"],
+)
+def test_subscribing_command_stops_on_one_signal(
+    argv: list[str], signum: int, port: int, producer: Producer
+) -> None:
+    proc = _start(argv, port)
+    _feed_until(proc, producer, 1)
+    _stops(proc, signum)
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_record_stops_on_one_signal_and_leaves_a_readable_file(
+    signum: int, port: int, producer: Producer, tmp_path: Path
+) -> None:
+    from services.tools.bag import open_bag
+
+    out = tmp_path / "run.mcap"
+    proc = _start(["record", "cam/log", "-o", str(out)], port)
+    _feed_until(proc, producer, 1)
+    _stops(proc, signum)
+    assert open_bag(out) is not None
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_router_stops_on_one_signal(signum: int) -> None:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    proc = _start(["router", "--listen", endpoint], free_port())
+    assert proc.stdout is not None
+    line = proc.stdout.readline()
+    assert "router listening" in line, line
+    _stops(proc, signum)
