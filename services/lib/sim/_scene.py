@@ -23,6 +23,7 @@ from services.lib.markers import (
     marker_bits,
 )
 
+from . import _scene_cache
 from ._config import ScenarioConfig
 from ._rng import Stream, rng_for
 
@@ -104,9 +105,13 @@ def _periodic_noise(
     return np.asarray(noise / noise.std(), dtype=np.float32)
 
 
-def _wall(config: ScenarioConfig, rng: np.random.Generator) -> PlaneTexture:
-    shape = (_even(config.wall_height_m / config.wall_texel_m),
-             _even(config.wall_period_m / config.wall_texel_m))  # fmt: skip
+def _wall_shape(config: ScenarioConfig) -> tuple[int, int]:
+    return (_even(config.wall_height_m / config.wall_texel_m),
+            _even(config.wall_period_m / config.wall_texel_m))  # fmt: skip
+
+
+def _wall_texture(config: ScenarioConfig, rng: np.random.Generator) -> np.ndarray:
+    shape = _wall_shape(config)
     noise = _periodic_noise(rng, shape, config.wall_texel_m, 2 * config.wall_texel_m)
     texture = config.wall_reflectance + config.wall_contrast * noise
     # Posters and panels: straight, sharp edges, where motion blur shows most. Axis-aligned, so
@@ -123,7 +128,10 @@ def _wall(config: ScenarioConfig, rng: np.random.Generator) -> PlaneTexture:
         region = np.ix_(rows % shape[0], cols % shape[1])
         inside = level + 0.5 * (texture[region] - config.wall_reflectance)
         texture[region] = (1 - cover) * texture[region] + cover * inside
-    texture = np.clip(texture, 0.03, 0.97).astype(np.float32)
+    return np.clip(texture, 0.03, 0.97).astype(np.float32)
+
+
+def _wall(config: ScenarioConfig, texture: np.ndarray) -> PlaneTexture:
     return PlaneTexture(
         levels=_wrap_pyramid(texture),
         alpha=None,
@@ -135,12 +143,20 @@ def _wall(config: ScenarioConfig, rng: np.random.Generator) -> PlaneTexture:
     )
 
 
-def _floor(config: ScenarioConfig, rng: np.random.Generator) -> PlaneTexture:
+def _floor_shape(config: ScenarioConfig) -> tuple[int, int]:
     size = _even(config.floor_period_m / config.floor_texel_m)
-    noise = _periodic_noise(rng, (size, size), config.floor_texel_m, config.floor_feature_m)
+    return (size, size)
+
+
+def _floor_texture(config: ScenarioConfig, rng: np.random.Generator) -> np.ndarray:
+    noise = _periodic_noise(rng, _floor_shape(config), config.floor_texel_m, config.floor_feature_m)
     texture = np.clip(config.floor_reflectance + config.floor_contrast * noise, 0.02, 0.98)
+    return texture.astype(np.float32)
+
+
+def _floor(config: ScenarioConfig, texture: np.ndarray) -> PlaneTexture:
     return PlaneTexture(
-        levels=(texture.astype(np.float32),),
+        levels=(texture,),
         alpha=None,
         texel_m=config.floor_texel_m,
         origin=np.zeros(3),
@@ -208,9 +224,19 @@ class Scene:
 
     @classmethod
     def build(cls, config: ScenarioConfig) -> Scene:
-        """Textures for this configuration (drawn from the seed's texture stream)."""
-        rng = rng_for(config.seed, Stream.TEXTURE)
-        return cls(wall=_wall(config, rng), floor=_floor(config, rng), board=_board(config))
+        """Textures for this configuration (drawn from the seed's texture stream, or read
+        back from the scene cache, which holds exactly what the stream draws)."""
+        shapes = {"wall": _wall_shape(config), "floor": _floor_shape(config)}
+        textures = _scene_cache.load(config, shapes)
+        if textures is None:
+            rng = rng_for(config.seed, Stream.TEXTURE)
+            textures = {"wall": _wall_texture(config, rng), "floor": _floor_texture(config, rng)}
+            _scene_cache.save(config, textures)
+        return cls(
+            wall=_wall(config, textures["wall"]),
+            floor=_floor(config, textures["floor"]),
+            board=_board(config),
+        )
 
 
 def marker_corners_world(config: ScenarioConfig, marker: BoardMarker) -> np.ndarray:

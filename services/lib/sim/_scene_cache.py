@@ -1,0 +1,67 @@
+"""A disk cache of the scene's random textures, so a restarted camera renders at once.
+
+Building the wall and floor textures (1/f noise by FFT, posters) costs about a second of CPU
+per start; a supervised camera that restarts after a crash should produce again within a
+few seconds, so the textures of each configuration are kept under the user's cache
+directory (``$XDG_CACHE_HOME/framegate/scenes``, else ``~/.cache/framegate/scenes``).
+An entry is keyed by every scenario parameter and a format version, holds plain arrays
+(``np.load`` without pickle), is written atomically and is ignored, never trusted, when it
+cannot be read or has the wrong shape: the textures are then built again.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ._config import ScenarioConfig
+
+# Bump when the texture code changes what it draws, so old entries are never read.
+FORMAT = 1
+
+
+def cache_dir() -> Path:
+    """Where entries live (created on first save)."""
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "framegate" / "scenes"
+
+
+def _path(config: ScenarioConfig) -> Path:
+    key = hashlib.sha256(f"{FORMAT}:{config!r}".encode()).hexdigest()[:24]
+    return cache_dir() / f"{key}.npz"
+
+
+def load(
+    config: ScenarioConfig, shapes: dict[str, tuple[int, int]]
+) -> dict[str, np.ndarray] | None:
+    """The cached float32 textures named in ``shapes``, or None (missing, damaged, stale)."""
+    try:
+        with np.load(_path(config), allow_pickle=False) as entry:
+            arrays = {name: entry[name] for name in shapes}
+    except (OSError, KeyError, ValueError, EOFError):
+        return None
+    for name, shape in shapes.items():
+        if arrays[name].shape != shape or arrays[name].dtype != np.float32:
+            return None
+    return arrays
+
+
+def save(config: ScenarioConfig, arrays: dict[str, np.ndarray]) -> None:
+    """Store ``arrays`` for ``config``; a cache that cannot be written is simply skipped."""
+    path = _path(config)
+    with contextlib.suppress(OSError):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
+        try:
+            with os.fdopen(fd, "wb") as stream:
+                savez: Any = np.savez  # numpy's stubs take names for keywords only
+                savez(stream, **arrays)
+            os.replace(tmp, path)  # atomic: a reader sees the old entry or the whole new one
+        except OSError:
+            os.unlink(tmp)

@@ -1,0 +1,47 @@
+"""The scene cache gives back exactly what building draws, and is never trusted blindly."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from services.lib.sim import ScenarioConfig
+from services.lib.sim._scene import Scene
+from services.lib.sim._scene_cache import cache_dir
+
+SMALL = ScenarioConfig(seed=4, wall_texel_m=0.05, floor_texel_m=0.05)
+
+
+@pytest.fixture(autouse=True)
+def _private_cache(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+
+
+def _textures(scene: Scene) -> list[np.ndarray]:
+    return [scene.wall.levels[0], scene.floor.levels[0]]
+
+
+def test_a_cached_scene_equals_a_built_one() -> None:
+    built = Scene.build(SMALL)
+    assert list(cache_dir().glob("*.npz")), "the first build stores an entry"
+    cached = Scene.build(SMALL)
+    for a, b in zip(_textures(built), _textures(cached), strict=True):
+        assert np.array_equal(a, b)
+
+
+def test_a_damaged_entry_is_rebuilt_not_used() -> None:
+    built = Scene.build(SMALL)
+    for entry in cache_dir().glob("*.npz"):
+        entry.write_bytes(b"not an npz file")
+    again = Scene.build(SMALL)
+    for a, b in zip(_textures(built), _textures(again), strict=True):
+        assert np.array_equal(a, b)
+
+
+def test_another_seed_does_not_share_an_entry() -> None:
+    Scene.build(SMALL)
+    other = Scene.build(ScenarioConfig(seed=5, wall_texel_m=0.05, floor_texel_m=0.05))
+    assert len(list(cache_dir().glob("*.npz"))) == 2
+    assert not np.array_equal(other.wall.levels[0], Scene.build(SMALL).wall.levels[0])
