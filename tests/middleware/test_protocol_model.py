@@ -12,16 +12,19 @@ Outside the model, on purpose (see the README's trust profiles): a rogue that fo
 in-window notification or ack of the current epoch, or a token identical to another's.
 
 CI runs a few thousand steps; ``python -m pytest tests/middleware --hypothesis-profile long``
-runs over 100,000. A failing example is kept in hypothesis's example database (``.hypothesis/``)
-and replayed first on the next run.
+runs over 100,000. A failing example is kept in an example database inside the repository
+(``tests/middleware/protocol_examples/``, not the ignored ``.hypothesis/``) and replayed first
+on every later run: commit what a failure leaves there beside its fix.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 
 from hypothesis import event, settings
 from hypothesis import strategies as st
+from hypothesis.database import DirectoryBasedExampleDatabase
 from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, precondition, rule
 
 from middleware._ledger_producer import (
@@ -401,9 +404,10 @@ def _entries_of(sub: Sub, epoch: str) -> list[int]:
     return [e.seq for e in sub.ledger._queue if e.epoch == epoch]
 
 
+_EXAMPLES = DirectoryBasedExampleDatabase(str(Path(__file__).with_name("protocol_examples")))
 ProtocolModel.TestCase.settings = (
-    settings(max_examples=200, stateful_step_count=60, deadline=None)
+    settings(max_examples=200, stateful_step_count=60, deadline=None, database=_EXAMPLES)
     if settings.get_current_profile_name() == "default"
-    else settings()
+    else settings(database=_EXAMPLES)
 )
 TestProtocol = ProtocolModel.TestCase
