@@ -9,6 +9,11 @@ with Node() as node:                            # a client
     note = sub.take(timeout_s=1.0)
     frame = sub.fetch(note)
     recent = node.query("camera/images", time_range="[now(-2s)..]")
+
+Timeouts, everywhere in the API: a blocking call takes ``timeout_s`` (seconds, float) as a
+keyword-only argument. Asking the network what is live or how a buffer stands defaults to
+1-2 s, fetching data to 5 s; ``Subscription.take`` waits for ever unless given one, and a
+wait that a caller must bound (``Producer.wait_for_subscribers``) has no default.
 """
 
 from __future__ import annotations
@@ -250,7 +255,7 @@ class Node:
     def _settle(self) -> None:
         time.sleep(max(0.0, self._opened + _SETTLE_S - time.monotonic()))
 
-    def live_services(self, timeout_s: float = 1.0) -> list[str]:
+    def live_services(self, *, timeout_s: float = 1.0) -> list[str]:
         """Names of services whose liveliness token is visible now."""
         self._settle()
         prefix = self.keys.service_token("")
@@ -271,7 +276,7 @@ class Node:
                 f"no live service named {service!r}{did_you_mean}; live services: {listing}"
             )
 
-    def services(self, timeout_s: float = 2.0) -> list[ServiceInfo]:
+    def services(self, *, timeout_s: float = 2.0) -> list[ServiceInfo]:
         """Every live service with its buffers, clock offset and round trip."""
         self._settle()
         out: list[ServiceInfo] = []
@@ -294,7 +299,7 @@ class Node:
                 continue  # a peer that answers garbage is left out, not fatal
         return sorted(out, key=lambda s: s.service)
 
-    def service_info(self, service: str, timeout_s: float = 2.0) -> ServiceInfo:
+    def service_info(self, service: str, *, timeout_s: float = 2.0) -> ServiceInfo:
         """One live service's description; NotFoundError if it is not live."""
         start = time.time_ns()
         with zenoh_errors(f"describing {service}"):
@@ -306,10 +311,10 @@ class Node:
         self._require_service(service)
         raise NotFoundError(f"service {service!r} did not answer within {timeout_s} s")
 
-    def buffer_info(self, target: str, timeout_s: float = 2.0) -> BufferInfo:
+    def buffer_info(self, target: str, *, timeout_s: float = 2.0) -> BufferInfo:
         """One buffer's description (retention, size, rate, subscriptions, counters)."""
         service, buffer = split_target(target)
-        info = self.service_info(service, timeout_s)
+        info = self.service_info(service, timeout_s=timeout_s)
         for candidate in info.buffers:
             if candidate.buffer == buffer:
                 return candidate

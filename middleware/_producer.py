@@ -312,7 +312,7 @@ class Producer:
         with self._lock:
             return [r.info() for r in self._ledger.registrations()]
 
-    def wait_for_subscribers(self, count: int, timeout_s: float) -> bool:
+    def wait_for_subscribers(self, count: int, *, timeout_s: float) -> bool:
         """Wait until at least ``count`` subscriptions are registered."""
         deadline = time.monotonic() + timeout_s
         with self._cond:
@@ -323,7 +323,7 @@ class Producer:
                 self._cond.wait(remaining)
             return True
 
-    def wait_fill_below(self, limit: float, timeout_s: float) -> bool:
+    def wait_fill_below(self, limit: float, *, timeout_s: float) -> bool:
         """Wait until ``fill()`` < ``limit`` (e.g. a consumer took a notification)."""
         deadline = time.monotonic() + timeout_s
         with self._cond:

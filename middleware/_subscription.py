@@ -139,7 +139,7 @@ class Subscription:
         with self._cond:
             return len(self._ledger)
 
-    def take(self, timeout_s: float | None = None) -> Notification | None:
+    def take(self, *, timeout_s: float | None = None) -> Notification | None:
         """Take the oldest notification (it leaves the queue now); None on timeout.
 
         A lost ack heals itself: acks are cumulative, and while waiting idle the subscriber
@@ -187,7 +187,7 @@ class Subscription:
             if note is not None:
                 yield note
 
-    def fetch(self, notification: Notification, timeout_s: float = 5.0) -> DataObject:
+    def fetch(self, notification: Notification, *, timeout_s: float = 5.0) -> DataObject:
         """The element a notification names (inline if it came along, else one query)."""
         if notification.element is not None:
             return notification.element

@@ -208,7 +208,7 @@ class PipelineFuzzer:
         self._last_key_ns = 0
         self._frame_id = 0
         self.pids = self._wait_for_services()
-        if not self.frames.wait_for_subscribers(1, 60):
+        if not self.frames.wait_for_subscribers(1, timeout_s=60):
             raise AssertionError("the mediator never subscribed to " + FUZZ_CAMERA)
         if cli_watchers:
             self._start_watchers()

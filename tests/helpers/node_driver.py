@@ -135,7 +135,9 @@ def _do(
             ],
         }
     if op == "wait_subscribers":
-        ok = producers[cmd["buffer"]].wait_for_subscribers(int(cmd["count"]), cmd["timeout"])
+        ok = producers[cmd["buffer"]].wait_for_subscribers(
+            int(cmd["count"]), timeout_s=cmd["timeout"]
+        )
         return {"registered": ok}
     if op == "subscribe":
         sub = node.subscribe(

@@ -85,7 +85,7 @@ def _offered_with_consumer(
     with Node("cam", listen_net) as node:
         images = node.offer("images")
         consumer = _consumer(node_process, endpoint, queue=queue, mode=mode)
-        assert images.wait_for_subscribers(1, 5)
+        assert images.wait_for_subscribers(1, timeout_s=5)
         yield images, consumer
 
 

@@ -62,7 +62,7 @@ def _pair(
     with Node(SERVICE, listen_net) as server, Node(network=connect_net) as client:
         images = server.offer(BUFFER)
         sub = client.subscribe(f"{SERVICE}/{BUFFER}", queue_size=queue)
-        assert images.wait_for_subscribers(1, 5)
+        assert images.wait_for_subscribers(1, timeout_s=5)
         yield images, sub, client
 
 

@@ -99,7 +99,7 @@ def main(argv: list[str] | None = None) -> int:
                 services: dict[str, Any] = {}
                 for name in names:
                     try:
-                        services[name] = _describe(node.service_info(name, args.timeout))
+                        services[name] = _describe(node.service_info(name, timeout_s=args.timeout))
                     except FramegateError:
                         services[name] = None
                 _emit({"t_ns": time.time_ns(), "services": services})

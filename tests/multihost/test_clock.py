@@ -32,10 +32,10 @@ class FakeNetwork:
             name: iter(delays) for name, (_offset, delays) in hosts.items()
         }
 
-    def live_services(self, timeout_s: float = 1.0) -> list[str]:
+    def live_services(self, *, timeout_s: float = 1.0) -> list[str]:
         return sorted(self.hosts)
 
-    def service_info(self, service: str, timeout_s: float = 2.0) -> ServiceInfo:
+    def service_info(self, service: str, *, timeout_s: float = 2.0) -> ServiceInfo:
         delay = next(self.delays[service])
         if delay is None:
             raise NotFoundError(f"service {service!r} did not answer")

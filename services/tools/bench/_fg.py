@@ -76,7 +76,7 @@ def fg_pub(params: dict[str, Any]) -> None:
         producer = node.offer(params["buffer"], retention=retention, **inline)
 
         def produce(command: dict[str, Any]) -> dict[str, Any]:
-            if not producer.wait_for_subscribers(1, 10.0):
+            if not producer.wait_for_subscribers(1, timeout_s=10.0):
                 raise RuntimeError("no subscription registered within 10 s")
             end = time.monotonic() + float(command["seconds"])
             sent = refused = 0
@@ -209,7 +209,7 @@ def fg_lat_pub(params: dict[str, Any]) -> None:
 
         def latency(command: dict[str, Any]) -> dict[str, Any]:
             producer, payload = producers[str(command["stream"])]
-            if not producer.wait_for_subscribers(1, 10.0):
+            if not producer.wait_for_subscribers(1, timeout_s=10.0):
                 raise RuntimeError("no subscription registered within 10 s")
             sent = 0
             for tick in paced(float(command["seconds"]), float(command["interval_s"])):

@@ -49,7 +49,8 @@ def test_record_then_play_gives_back_identical_buffers(
             "record", "cam/images", "cam/log", "-o", str(bag), "--count", str(COUNT),
             "--queue", "1", "--json",
         )  # fmt: skip
-        assert images.wait_for_subscribers(1, 30) and log.wait_for_subscribers(1, 30)
+        assert images.wait_for_subscribers(1, timeout_s=30)
+        assert log.wait_for_subscribers(1, timeout_s=30)
         base = time.time_ns()
         for i in range(COUNT):  # a burst, as fast as the producer can go
             t = base + i * MS
@@ -179,7 +180,7 @@ def test_record_writes_verdict_and_detection_annotations_with_foxglove_schemas(
             "-o", str(bag), "--count", "3", "--json",
         )  # fmt: skip
         for producer in (images, decisions, detections, rates):
-            assert producer.wait_for_subscribers(1, 30)
+            assert producer.wait_for_subscribers(1, timeout_s=30)
         for i, t in enumerate(frames):
             put_frame(images, t, i)
             verdict = DecisionRecord(

@@ -40,7 +40,7 @@ def test_full_disk_stops_the_recording_with_one_line(
             "record", "cam/log", "-o", str(tiny_disk / "run.mcap"), "--compression", "none",
             "--duration", "120",
         )  # fmt: skip
-        assert log.wait_for_subscribers(1, 30)
+        assert log.wait_for_subscribers(1, timeout_s=30)
         noise = bytes(range(256)) * 200  # 51 KiB: six of them fill the disk
         t = time.time_ns()
         deadline = time.monotonic() + 60

@@ -61,7 +61,7 @@ def test_regression_a_flow_controlled_decisions_watcher_never_stops_the_mediator
     try:
         with Node("watcher", connect_net) as watcher:
             stuck = watcher.subscribe("mediator/decisions", queue_size=1)  # never takes
-            assert mediator.decisions.wait_for_subscribers(1, 10)
+            assert mediator.decisions.wait_for_subscribers(1, timeout_s=10)
             wait_until(lambda: images.subscriptions(), 10, "the mediator's camera subscription")
             for i in range(6):
                 _put_frame(images, i)
