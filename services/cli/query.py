@@ -20,7 +20,7 @@ from middleware import (
     parse_time_ns,
     parse_untrusted,
 )
-from services.lib.files import create_file, open_directory
+from services.lib.files import OutputError, create_file, open_directory
 
 from ._common import command_parser, format_bytes, format_ns, network, print_json
 from ._target import add_timeout_argument, resolve
@@ -219,7 +219,7 @@ def _save_all(directory: Path, elements: list[DataObject], force: bool) -> dict[
                     try:
                         out.write(data)
                     except OSError as exc:
-                        raise FramegateError(f"cannot write {shown}: {exc.strerror}") from exc
+                        raise OutputError(f"cannot write {shown}: {exc.strerror}") from exc
             saved[element.timestamp_ns] = [str(directory / n) for n in names]
     finally:
         os.close(dir_fd)
@@ -240,5 +240,5 @@ def _png(payload: bytes, layout: Any) -> bytes:
             image = image[:, :, ::-1]  # OpenCV writes BGR
     ok, encoded = cv2.imencode(".png", image)
     if not ok:
-        raise FramegateError("cannot encode a frame as PNG: OpenCV refused the image")
+        raise OutputError("cannot encode a frame as PNG: OpenCV refused the image")
     return bytes(encoded)

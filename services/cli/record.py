@@ -285,7 +285,9 @@ def run(args: argparse.Namespace) -> int:
         if recorder.error is not None:
             if isinstance(recorder.error, FramegateError):
                 raise recorder.error
-            raise FramegateError(f"recording {recorder.sub.name} failed: {recorder.error}")
+            from services.tools.bag import BagError
+
+            raise BagError(f"recording {recorder.sub.name} failed: {recorder.error}")
     _summary(args, recorders, counts, derived, (stopped_ns - started_ns) / 1e9)
     return 0
 

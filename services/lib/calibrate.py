@@ -65,9 +65,9 @@ def derive_b0(blur_px: npt.ArrayLike, recognized: npt.ArrayLike, *, min_frames: 
     blur = np.asarray(blur_px, dtype=np.float64).ravel()
     hits = np.asarray(recognized, dtype=bool).ravel().astype(np.float64)
     if blur.size != hits.size:
-        raise ValueError(f"{blur.size} blur values but {hits.size} recognition flags")
+        raise CalibrationError(f"{blur.size} blur values but {hits.size} recognition flags")
     if not bool(np.all(np.isfinite(blur) & (blur >= 0.0))):
-        raise ValueError("blur_px must be finite and >= 0 for every frame")
+        raise CalibrationError("blur_px must be finite and >= 0 for every frame")
     if blur.size < max(min_frames, 2):
         raise CalibrationError(
             f"{blur.size} frames are too few to fit recognition against blur; "

@@ -17,12 +17,16 @@ import stat
 from pathlib import Path
 from typing import BinaryIO
 
-from middleware import ConfigError
+from middleware import ConfigError, FramegateError
 
 _NOFOLLOW = getattr(os, "O_NOFOLLOW", 0)
 _CLOEXEC = getattr(os, "O_CLOEXEC", 0)
 _CREATE_FLAGS = os.O_WRONLY | os.O_CREAT | os.O_EXCL | _NOFOLLOW | _CLOEXEC
 _DIRECTORY_FLAGS = os.O_RDONLY | getattr(os, "O_DIRECTORY", 0) | _NOFOLLOW | _CLOEXEC
+
+
+class OutputError(FramegateError):
+    """A file we were asked to write cannot be written (disk full, permissions, encoding)."""
 
 
 def create_file(

@@ -23,6 +23,7 @@ import numpy as np
 from middleware import FramegateError, NetworkConfig, Node
 from services.launch import Supervisor, pipeline, process_specs
 from services.launch._supervisor import HEALTHY_AFTER_S
+from services.tools.bench import BenchError
 
 # What each service stores once it works again.
 OUTPUT = {
@@ -69,7 +70,7 @@ def _wait(
         if pid is not None:
             return pid
         if time.monotonic() > deadline:
-            raise FramegateError(
+            raise BenchError(
                 f"{service} did not produce within {_GIVE_UP_S:.0f} s of its restart; "
                 "run with --show-logs to see why"
             )

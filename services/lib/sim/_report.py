@@ -14,10 +14,9 @@ from typing import Any
 
 import numpy as np
 
-from middleware import FramegateError
 from services.lib.markers import BOARD_MARKERS, MarkerDetection, detect_markers
 
-from ._dataset import Dataset
+from ._dataset import Dataset, DatasetError
 from ._records import FrameTruth
 
 DEFAULT_BINS_PX = (0.0, 1.0, 2.0, 4.0, 6.0, 10.0, math.inf)
@@ -130,7 +129,7 @@ def recognition_report(
     """
     truth = dataset.truth
     if truth is None:
-        raise FramegateError(f"dataset {dataset.root} has no truth.json; nothing to compare with")
+        raise DatasetError(f"dataset {dataset.root} has no truth.json; nothing to compare with")
     names = [m.name for m in BOARD_MARKERS]
     edges = list(bins_px)
     counts = {n: np.zeros((2, len(edges) - 1), dtype=int) for n in names}

@@ -53,7 +53,7 @@ from middleware import DataObject, FramegateError, parse_untrusted, validate_met
 from services.lib.messages import DecisionRecord
 from services.lib.quality import GyroSamples
 
-from ._format import image_topic
+from ._format import BagError, image_topic
 from ._frames import FrameLayout, frame_layout
 
 PROTOBUF = "protobuf"
@@ -334,7 +334,7 @@ def jpeg_image(
     bgr = cv2.cvtColor(image, cv2.COLOR_RGB2BGR) if layout.encoding == "rgb8" else image
     ok, encoded = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, quality])
     if not ok:
-        raise FramegateError(f"frame {element.timestamp_ns}: OpenCV could not encode it as JPEG")
+        raise BagError(f"frame {element.timestamp_ns}: OpenCV could not encode it as JPEG")
     return CompressedImage(
         timestamp=_stamp(element.timestamp_ns),
         frame_id=frame_id,
