@@ -33,17 +33,22 @@ Messages in, and what they do in every state:
     a seq beyond ``sent`` cannot move it past what was sent. An ack that moves nothing
     while notifications are outstanding is an idle subscriber's repeat: the outstanding
     ones are due again (a lost notification heals).
-``put(now)``
-    refused while a flow registration has ``sent - acked >= queue_size`` (``full()``);
-    otherwise every registration gets ``sent += 1`` and one ``Send``.
+``put_many(n elements, now)`` (``put`` is ``n = 1``)
+    the queue is counted in elements: refused, whole, while a flow registration has
+    ``sent - acked + n > queue_size`` (``full(n)``; nothing of the batch is counted);
+    otherwise every registration gets seqs ``sent + 1 .. sent + n`` and one ``Send`` that
+    covers them all (one notification for the batch). Each element stays outstanding on its
+    own seq, so acks and resends work per element as if it had come alone.
 ``tick(now)``
     flow registrations with outstanding notifications and no progress for
-    ``RETRANSMIT_NS`` get them again (``Send(..., again=True)``), oldest first.
+    ``RETRANSMIT_NS`` get them again (``Send(..., again=True)``), oldest first, one element
+    per notification (a resend never batches).
 ``send_failed(key, epoch, seq)``
     the notification stays outstanding (its credit is not lost) and is due at the next tick.
 
 Properties (checked by tests/middleware/test_protocol_model.py after every step):
-- ``0 <= acked <= sent`` and, for flow control, ``sent - acked <= queue_size``;
+- ``0 <= acked <= sent`` and, for flow control, ``sent - acked <= queue_size`` (elements,
+  however they were batched);
 - the table holds at most ``MAX_REGISTRATIONS`` registrations and each at most
   ``queue_size`` outstanding headers, whatever peers send;
 - only the subscriber that owns an epoch (or a peer allowed to ack for it, see the README's
@@ -114,14 +119,19 @@ class Registration(Generic[H]):
 
 @dataclass(frozen=True, slots=True)
 class Send(Generic[H]):
-    """A notification to send: ``seq`` under ``epoch`` to ``key``'s subscriber."""
+    """A notification to send under ``epoch`` to ``key``'s subscriber: ``headers[i]`` is the
+    element of seq ``seq + i`` (one element, or a batch from ``put_many``)."""
 
     key: RegistrationKey
     epoch: str
     seq: int
     acked: int
-    header: H
+    headers: tuple[H, ...]
     again: bool = False
+
+    @property
+    def count(self) -> int:
+        return len(self.headers)
 
 
 @dataclass(slots=True)
@@ -185,25 +195,35 @@ class ProducerLedger(Generic[H]):
         return True
 
     # -- producing -------------------------------------------------------------------------
-    def full(self) -> Registration[H] | None:
-        """A flow registration whose queue is full (put must be refused), or None."""
+    def full(self, count: int = 1) -> Registration[H] | None:
+        """A flow registration without room for ``count`` more elements (a put of that many
+        must be refused), or None."""
         for reg in self._regs.values():
-            if reg.flow and reg.queued >= reg.key.queue_size:
+            if reg.flow and reg.queued + count > reg.key.queue_size:
                 return reg
         return None
 
     def put(self, header: H, now_ns: int) -> list[Send[H]]:
         """Count one stored element; the notifications to send. Call only when not full."""
-        if self.full() is not None:
-            raise RuntimeError("put while a flow-controlled queue is full")
+        return self.put_many((header,), now_ns)
+
+    def put_many(self, headers: tuple[H, ...], now_ns: int) -> list[Send[H]]:
+        """Count ``len(headers)`` stored elements, in order; one notification per
+        registration covers them all. Call only when not ``full(len(headers))``."""
+        count = len(headers)
+        if count < 1:
+            raise ValueError("put_many needs at least one element")
+        if self.full(count) is not None:
+            raise RuntimeError("put while a flow-controlled queue has no room for it")
         sends: list[Send[H]] = []
         for reg in self._regs.values():
-            reg.sent += 1
+            first = reg.sent + 1
+            reg.sent += count
             if reg.flow:
                 if not reg.outstanding:
                     reg.progress_ns = now_ns  # the retransmit clock starts now
-                reg.outstanding.append((reg.sent, header))
-            sends.append(Send(reg.key, reg.epoch, reg.sent, reg.acked, header))
+                reg.outstanding.extend(zip(range(first, first + count), headers, strict=True))
+            sends.append(Send(reg.key, reg.epoch, first, reg.acked, headers))
         return sends
 
     def send_failed(self, key: RegistrationKey, epoch: str) -> None:
@@ -223,7 +243,7 @@ class ProducerLedger(Generic[H]):
             reg.resend_now = False
             reg.progress_ns = now_ns  # at most one resend per period while nothing moves
             sends.extend(
-                Send(reg.key, reg.epoch, seq, reg.acked, header, again=True)
+                Send(reg.key, reg.epoch, seq, reg.acked, (header,), again=True)
                 for seq, header in reg.outstanding
             )
         return sends

@@ -42,6 +42,10 @@ A notification ``(epoch, seq, descriptor)``:
    (reported on the next notification taken), since observers use lossy delivery.
 8. Otherwise: queued, ``last = seq``.
 
+A batch notification ``(epoch, seq, n elements)`` is exactly the n notifications
+``(epoch, seq + i)`` received one after another (``receive_many``): every rule above
+applies per element, so a batch changes nothing the properties below depend on.
+
 ``take`` pops the oldest notification, sets ``taken`` of its epoch to its seq and makes an
 ack ``(epoch, seq)`` due (cumulative: it covers every earlier seq of that epoch). The ack
 policy decides when due acks leave: ``AckPolicy(every=1)`` sends each at once; a larger
@@ -213,6 +217,14 @@ class SubscriberLedger(Generic[T]):
         self._queue.append(Entry(epoch, seq, item, track.missed))
         track.missed = 0
         return True
+
+    def receive_many(self, epoch: str, seq: int, items: list[T], *, descriptor: str | None) -> int:
+        """Feed a batch notification: element i as the notification of seq ``seq + i``, in
+        order. How many were queued."""
+        queued = 0
+        for i, item in enumerate(items):
+            queued += self.receive(epoch, seq + i, item, descriptor=descriptor)
+        return queued
 
     def _make_room(self) -> bool:
         """Make room for one more epoch; False if every tracked epoch has queued entries."""

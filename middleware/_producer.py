@@ -16,21 +16,29 @@ this module only feeds it from Zenoh and sends what it returns.
 from __future__ import annotations
 
 import contextlib
+import itertools
 import logging
 import secrets
 import threading
 import time
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import zenoh
 
 from ._buffer import TimeSeries
-from ._errors import FlowControlRefused, FramegateError, SchemaError
+from ._errors import DuplicateTimestampError, FlowControlRefused, FramegateError, SchemaError
 from ._ledger_producer import ProducerLedger, Registration, RegistrationKey, Send
 from ._records import BufferInfo, DataObject, Retention, SubscriptionInfo, SubscriptionMode
-from ._wire import Keys, decode_ack, encode_notification_header, parse_subscription_token
+from ._wire import (
+    Keys,
+    decode_ack,
+    encode_batch_header,
+    encode_notification_header,
+    parse_subscription_token,
+)
 from ._xml import XmlLimits, metadata_timestamp_ns, validate_metadata
 
 log = logging.getLogger("framegate.middleware")
@@ -160,32 +168,75 @@ class Producer:
         """
         if self._closed:
             raise FramegateError(f"buffer {self.name} is closed")
-        element = self._checked(timestamp_ns, payload, metadata)
+        self._put((self._checked(timestamp_ns, payload, metadata),), wait_s)
+
+    def put_many(
+        self, elements: Sequence[tuple[int, bytes, bytes | str]], *, wait_s: float = 0.0
+    ) -> None:
+        """Store a batch of ``(timestamp_ns, payload, metadata)`` elements, timestamps
+        strictly increasing, and notify each subscriber once for all of them.
+
+        The queue counts elements: the batch is refused, whole, while a flow-controlled
+        subscriber has fewer than ``len(elements)`` free places (after ``wait_s``); a
+        batch larger than a subscriber's queue can never fit. Each element is stored on its
+        own, so queries see them exactly as if each had been ``put``. All or nothing: a
+        refused or rejected batch stores no element. Raises like ``put``.
+        """
+        if self._closed:
+            raise FramegateError(f"buffer {self.name} is closed")
+        if not elements:
+            return
+        checked = tuple(self._checked(t, p, m) for t, p, m in elements)
+        for before, after in itertools.pairwise(checked):
+            if after.timestamp_ns <= before.timestamp_ns:
+                with self._lock:
+                    self._counters.rejected += 1
+                raise DuplicateTimestampError(
+                    f"put_many: timestamp {after.timestamp_ns} follows {before.timestamp_ns} "
+                    "in the batch; timestamps must strictly increase"
+                )
+        self._put(checked, wait_s)
+
+    def _put(self, elements: tuple[DataObject, ...], wait_s: float) -> None:
+        count = len(elements)
         deadline = time.monotonic() + wait_s
         with self._send_lock:
             while True:
                 with self._cond:
                     due, retired = self._ledger.tick(time.monotonic_ns()), self._drain_retired()
-                    full = self._ledger.full()
+                    full = self._ledger.full(count)
                     if full is None:
-                        sends = self._store(element)
+                        sends = self._store(elements)
                         break
                     remaining = deadline - time.monotonic()
-                    if remaining <= 0:
-                        self._counters.refused += 1
-                        k = full.key
-                        raise FlowControlRefused(
-                            f"{self.name}: subscriber {k.sub_id} has {full.queued}/"
-                            f"{k.queue_size} notifications queued; element {timestamp_ns} "
-                            "was not stored (drop it, or put with wait_s to wait)"
-                        )
+                    if remaining <= 0 or count > full.key.queue_size:
+                        self._counters.refused += count
+                        raise FlowControlRefused(self._refusal(full, elements))
                 self._send_all(due)
                 self._undeclare(retired)
                 with self._cond:
-                    if self._ledger.full() is not None:
+                    if self._ledger.full(count) is not None:
                         self._cond.wait(min(remaining, _TICK_S))
             self._send_all(due + sends)
             self._undeclare(retired)
+
+    def _refusal(self, full: Registration[DataObject], elements: tuple[DataObject, ...]) -> str:
+        k, count, first = full.key, len(elements), elements[0].timestamp_ns
+        if count == 1:
+            return (
+                f"{self.name}: subscriber {k.sub_id} has {full.queued}/{k.queue_size} "
+                f"notifications queued; element {first} was not stored (drop it, or put "
+                "with wait_s to wait)"
+            )
+        if count > k.queue_size:
+            advice = f"it can never fit: put batches of at most {k.queue_size}"
+        else:
+            advice = "drop it, or put_many with wait_s to wait"
+        return (
+            f"{self.name}: subscriber {k.sub_id} has {full.queued}/{k.queue_size} "
+            f"notifications queued, no room for a batch of {count}; no element of the batch "
+            f"(from {first}) was stored ({advice})"
+        )
 
     def _checked(self, timestamp_ns: int, payload: bytes, metadata: bytes | str) -> DataObject:
         try:
@@ -211,17 +262,21 @@ class Producer:
             raise
         return DataObject(timestamp_ns, payload, meta)
 
-    def _store(self, element: DataObject) -> list[Send[DataObject]]:
+    def _store(self, elements: tuple[DataObject, ...]) -> list[Send[DataObject]]:
         """(under _lock) Append, count, and get the notifications to send."""
         try:
-            self.series.append(element)
+            # Only puts append, all under _lock, and a batch strictly increases: if its
+            # first element fits now, every one does, so a batch is stored whole or not at all.
+            self.series.check_put(elements[0].timestamp_ns, len(elements[0].payload))
+            for element in elements:
+                self.series.append(element)
         except FramegateError:
-            self._counters.rejected += 1
+            self._counters.rejected += len(elements)
             raise
-        self._counters.puts += 1
+        self._counters.puts += len(elements)
         now = time.monotonic_ns()
-        self._counters.put_times.append(now)
-        return self._ledger.put(element, now)
+        self._counters.put_times.extend([now] * len(elements))
+        return self._ledger.put_many(elements, now)
 
     def _drain_retired(self) -> list[Any]:
         retired, self._retired = self._retired, []
@@ -265,8 +320,12 @@ class Producer:
                     self._publishers[key] = publisher
                 else:
                     self._retired.append(publisher)
-        element = send.header
         limit = self.inline_max_bytes if key.push_max_bytes < 0 else key.push_max_bytes
+        if send.count > 1:
+            payload, header = self._batch(send, limit)
+            publisher.put(payload, attachment=header)
+            return
+        element = send.headers[0]
         # A resent notification carries no payload: the subscriber fetches if it needs it.
         pushed = not send.again and len(element.payload) <= limit
         header = encode_notification_header(
@@ -281,6 +340,24 @@ class Producer:
         # The payload travels as the Zenoh payload itself: no extra copy into msgpack,
         # and large ones go through Zenoh's shared memory on one host.
         publisher.put(element.payload if pushed else b"", attachment=header)
+
+    @staticmethod
+    def _batch(send: Send[DataObject], limit: int) -> tuple[bytes, bytes]:
+        """(Zenoh payload, attachment) of a batch notification: pushed only if every payload
+        fits the push limit, then the payloads one after another."""
+        elements = send.headers
+        pushed = all(len(e.payload) <= limit for e in elements)
+        header = encode_batch_header(
+            send.epoch,
+            send.seq,
+            [e.timestamp_ns for e in elements],
+            [e.metadata if len(e.metadata) <= _INLINE_METADATA_MAX else None for e in elements],
+            [len(e.payload) for e in elements] if pushed else None,
+            acked=send.acked,
+            descriptor=send.key.descriptor,
+        )
+        payload = b"".join(e.payload for e in elements) if pushed else b""
+        return payload, header
 
     @staticmethod
     def _undeclare(publishers: list[Any]) -> None:
@@ -341,7 +418,9 @@ class Producer:
             times = list(c.put_times)
             puts, refused, rejected = c.puts, c.refused, c.rejected
             subs = tuple(r.info() for r in self._ledger.registrations())
-        rate = (len(times) - 1) / ((times[-1] - times[0]) / 1e9) if len(times) > 1 else 0.0
+        span_ns = times[-1] - times[0] if times else 0
+        # Elements per second; a batch's elements share one time, so the span may be 0.
+        rate = (len(times) - 1) / (span_ns / 1e9) if span_ns > 0 else 0.0
         if times and time.monotonic_ns() - times[-1] > 5 * 1e9:
             rate = 0.0  # stale: nothing put for a while
         return BufferInfo(

@@ -28,10 +28,11 @@ from ._wire import Keys, decode_notification_header, encode_ack
 PUSH_ALL = 2**31 - 1
 _REACK_S = REACK_NS / 1e9
 
-# What the queue holds per notification: timestamp_ns, metadata, the pushed payload. The
-# payload stays Zenoh's ZBytes until ``take`` (on the caller's thread) turns it into bytes:
-# copying a large frame on Zenoh's receive thread stalls every other message behind it.
-_Item = tuple[int, bytes | None, zenoh.ZBytes | None]
+# What the queue holds per notification: timestamp_ns, metadata, the pushed payload. A
+# single element's payload stays Zenoh's ZBytes until ``take`` (on the caller's thread) turns
+# it into bytes: copying a large frame on Zenoh's receive thread stalls every other message
+# behind it. A batch (meant for many small elements) is split into bytes on arrival.
+_Item = tuple[int, bytes | None, zenoh.ZBytes | bytes | None]
 
 
 class Subscription:
@@ -118,19 +119,18 @@ class Subscription:
             if attachment is None:
                 raise ValueError("notification without a header")
             body = decode_notification_header(attachment.to_bytes())
-            timestamp, metadata = body["t"], body.get("m")
-            pushed = sample.payload if body["p"] and metadata is not None else None
+            if "n" in body:
+                items = _batch_items(body, sample.payload)
+            else:
+                timestamp, metadata = body["t"], body.get("m")
+                pushed = sample.payload if body["p"] and metadata is not None else None
+                items = [(timestamp, metadata, pushed)]
         except Exception:  # garbage on our key is counted, never raised into Zenoh
             with self._cond:
                 self.garbage += 1
             return
         with self._cond:
-            if self._ledger.receive(
-                body["e"],
-                body["s"],
-                (timestamp, metadata, pushed),
-                descriptor=body.get("k"),
-            ):
+            if self._ledger.receive_many(body["e"], body["s"], items, descriptor=body.get("k")):
                 self._cond.notify_all()
 
     @property
@@ -145,31 +145,43 @@ class Subscription:
         A lost ack heals itself: acks are cumulative, and while waiting idle the subscriber
         repeats them every 0.5 s (the producer resends what it has not seen taken).
         """
+        notes = self.take_many(1, timeout_s=timeout_s)
+        return notes[0] if notes else None
+
+    def take_many(self, max_count: int, *, timeout_s: float | None = None) -> list[Notification]:
+        """Take up to ``max_count`` queued notifications, oldest first, waiting up to
+        ``timeout_s`` for the first ([] on timeout). They leave the queue together and cost
+        at most one cumulative ack (per producer epoch); each still names one element."""
+        if max_count < 1:
+            raise FramegateError(f"max_count must be >= 1, got {max_count}")
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
         while True:
             with self._cond:
-                entry = self._ledger.take()
-                idle = entry is None
+                entries: list[Entry[_Item]] = []
+                while len(entries) < max_count and (entry := self._ledger.take()) is not None:
+                    entries.append(entry)
+                idle = not entries
                 acks = self._ledger.acks_due(time.monotonic_ns(), idle=idle)
                 if idle and not acks:
                     if self._closed:
-                        return None
+                        return []
                     remaining = None if deadline is None else deadline - time.monotonic()
                     if remaining is not None and remaining <= 0:
-                        return None
+                        return []
                     self._cond.wait(_REACK_S if remaining is None else min(remaining, _REACK_S))
                     continue
             for epoch, seq in acks:
                 with contextlib.suppress(zenoh.ZError):
                     self._ack_publisher.put(encode_ack(epoch, seq))
-            if entry is not None:
-                return self._notification(entry)
+            if entries:
+                return [self._notification(entry) for entry in entries]
 
     def _notification(self, entry: Entry[_Item]) -> Notification:
         timestamp, metadata, pushed = entry.item
         element = None
         if pushed is not None and metadata is not None:
-            element = DataObject(timestamp, pushed.to_bytes(), metadata)
+            payload = pushed if isinstance(pushed, bytes) else pushed.to_bytes()
+            element = DataObject(timestamp, payload, metadata)
         return Notification(
             self.service,
             self.buffer,
@@ -211,3 +223,19 @@ class Subscription:
 
     def __exit__(self, *_exc: Any) -> None:
         self.close()
+
+
+def _batch_items(body: dict[str, Any], payload: zenoh.ZBytes) -> list[_Item]:
+    """The elements of a decoded batch notification, payloads cut out when pushed."""
+    times, metas = body["t"], body["m"]
+    if not body["p"]:
+        return [(t, m, None) for t, m in zip(times, metas, strict=True)]
+    raw, sizes = payload.to_bytes(), body["l"]
+    if sum(sizes) != len(raw):
+        raise ValueError("batch payload sizes do not add up to the payload")
+    items: list[_Item] = []
+    offset = 0
+    for t, m, size in zip(times, metas, sizes, strict=True):
+        items.append((t, m, raw[offset : offset + size] if m is not None else None))
+        offset += size
+    return items

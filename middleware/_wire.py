@@ -143,11 +143,77 @@ def encode_notification_header(
     return bytes(msgpack.packb(body, use_bin_type=True))
 
 
+def encode_batch_header(
+    epoch: str,
+    seq: int,
+    timestamps_ns: list[int],
+    metadata: list[bytes | None],
+    payload_sizes: list[int] | None,
+    *,
+    acked: int | None = None,
+    descriptor: str | None = None,
+) -> bytes:
+    """The attachment of a batch notification, n elements of seqs ``seq .. seq + n - 1``:
+    like a single one, but with {"n": n, "t": [timestamp_ns, ...], "m": [metadata or nil,
+    ...]} and, when pushed ("p" true), "l": [payload size, ...]: the Zenoh payload is then
+    the elements' payloads one after another."""
+    body: dict[str, Any] = {
+        "e": epoch,
+        "s": seq,
+        "n": len(timestamps_ns),
+        "t": timestamps_ns,
+        "m": metadata,
+        "p": payload_sizes is not None,
+    }
+    if payload_sizes is not None:
+        body["l"] = payload_sizes
+    if acked is not None:
+        body["a"] = acked
+    if descriptor is not None:
+        body["k"] = descriptor
+    return bytes(msgpack.packb(body, use_bin_type=True))
+
+
+def _is_int(value: object) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _check_batch(body: dict[str, Any]) -> None:
+    n, times, metas = body["n"], body.get("t"), body.get("m")
+    if not _is_int(n) or n < 1:
+        raise ValueError("batch notification count must be an int >= 1")
+    if not isinstance(times, list) or len(times) != n or not all(map(_is_int, times)):
+        raise ValueError("batch notification needs n integer timestamps")
+    if not isinstance(metas, list) or len(metas) != n:
+        raise ValueError("batch notification needs n metadata entries")
+    if not all(m is None or isinstance(m, bytes) for m in metas):
+        raise ValueError("batch notification metadata must be bytes or nil")
+    if not isinstance(body.get("p"), bool):
+        raise ValueError("notification lacks push flag")
+    sizes = body.get("l")
+    if body["p"] and (
+        not isinstance(sizes, list)
+        or len(sizes) != n
+        or not all(_is_int(x) and x >= 0 for x in sizes)
+    ):
+        raise ValueError("pushed batch notification needs n payload sizes")
+
+
 def decode_notification_header(raw: bytes) -> dict[str, Any]:
-    """Decode and type-check a notification header; ValueError if it is garbage."""
+    """Decode and type-check a notification header (single or batch, see
+    ``encode_batch_header``); ValueError if it is garbage."""
     body = msgpack.unpackb(raw, raw=False)
     if not isinstance(body, dict):
         raise ValueError("notification header is not a map")
+    if "n" in body:
+        if not isinstance(body.get("e"), str) or not _is_int(body.get("s")):
+            raise ValueError("notification lacks epoch or seq")
+        _check_batch(body)
+        if "a" in body and not _is_int(body["a"]):
+            raise ValueError("notification window base is not an int")
+        if "k" in body and not isinstance(body["k"], str):
+            raise ValueError("notification registration descriptor is not a str")
+        return body
     if not isinstance(body.get("e"), str) or not isinstance(body.get("s"), int):
         raise ValueError("notification lacks epoch or seq")
     if not isinstance(body.get("t"), int) or not isinstance(body.get("p"), bool):

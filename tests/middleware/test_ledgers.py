@@ -23,7 +23,7 @@ def _pair(queue_size: int) -> tuple[ProducerLedger[int], SubscriberLedger[int], 
 def _fill(producer: ProducerLedger[int], subscriber: SubscriberLedger[int], count: int) -> None:
     for t in range(count):
         for send in producer.put(t, 0):
-            assert subscriber.receive(send.epoch, send.seq, send.header, descriptor=None)
+            assert subscriber.receive(send.epoch, send.seq, send.headers[0], descriptor=None)
 
 
 def _take_counting_acks(subscriber: SubscriberLedger[int], count: int) -> list[tuple[str, int]]:
@@ -67,3 +67,38 @@ def test_a_waiting_subscriber_sends_the_coalesced_ack() -> None:
     _fill(producer, subscriber, 6)
     assert _take_counting_acks(subscriber, 5) == [(producer.registrations()[0].epoch, 4)]
     assert [seq for _, seq in subscriber.acks_due(0, idle=True)] == [5]
+
+
+def test_a_batch_is_refused_whole_when_the_queue_lacks_room_for_all_its_elements() -> None:
+    producer, subscriber, _ = _pair(4)
+    _fill(producer, subscriber, 3)
+    assert producer.full(2) is not None, "3 queued + 2 > 4"
+    assert producer.full(1) is None
+    [send] = producer.put_many((10,), 0)
+    assert (send.seq, send.count) == (4, 1)
+
+
+def test_a_batch_is_one_send_that_the_subscriber_queues_as_its_elements() -> None:
+    producer, subscriber, _ = _pair(8)
+    _fill(producer, subscriber, 2)
+    [send] = producer.put_many((10, 11, 12), 0)
+    assert (send.seq, send.headers) == (3, (10, 11, 12))
+    assert subscriber.receive_many(send.epoch, send.seq, list(send.headers), descriptor=None) == 3
+    assert producer.registrations()[0].queued == 5
+    taken = [subscriber.take() for _ in range(5)]
+    assert [(e.seq, e.item) for e in taken if e] == [(1, 0), (2, 1), (3, 10), (4, 11), (5, 12)]
+    assert subscriber.acks_due(0, idle=False) == [(send.epoch, 5)], "one cumulative ack"
+
+
+def test_a_lost_batch_is_resent_element_by_element() -> None:
+    producer, subscriber, _ = _pair(4)
+    producer.put_many((10, 11, 12), 0)  # lost on the way
+    resent = producer.tick(10**9)
+    assert [(s.seq, s.headers, s.again) for s in resent] == [
+        (1, (10,), True),
+        (2, (11,), True),
+        (3, (12,), True),
+    ]
+    for send in resent:
+        assert subscriber.receive(send.epoch, send.seq, send.headers[0], descriptor=None)
+    assert [subscriber.take().item for _ in range(3)] == [10, 11, 12]  # type: ignore[union-attr]

@@ -52,7 +52,8 @@ class Note:
     seq: int
     acked: int | None
     descriptor: str | None
-    item: Item
+    # The elements of seqs seq, seq + 1, ...: one, or a batch (``put_many``).
+    items: tuple[Item, ...]
 
 
 @dataclass(frozen=True)
@@ -90,9 +91,12 @@ class ProtocolModel(RuleBasedStateMachine):
     # -- helpers ---------------------------------------------------------------------------
     def _emit(self, sends: list) -> None:  # type: ignore[type-arg]
         for s in sends:
-            self.sent[(s.epoch, s.seq)] = s.header
-            item = (self.instance, s.header)
-            self.net.append(Note(s.key.sub_id, s.epoch, s.seq, s.acked, s.key.descriptor, item))
+            items = []
+            for i, header in enumerate(s.headers):
+                self.sent[(s.epoch, s.seq + i)] = header
+                items.append((self.instance, header))
+            note = Note(s.key.sub_id, s.epoch, s.seq, s.acked, s.key.descriptor, tuple(items))
+            self.net.append(note)
 
     def _deliver(self, msg: Note | Ack) -> None:
         if isinstance(msg, Ack):
@@ -100,7 +104,8 @@ class ProtocolModel(RuleBasedStateMachine):
             return
         for sub in self.subs:
             if sub.alive and sub.key.sub_id == msg.sub_id:
-                sub.ledger.receive(msg.epoch, msg.seq, msg.item, descriptor=msg.descriptor)
+                items = list(msg.items)
+                sub.ledger.receive_many(msg.epoch, msg.seq, items, descriptor=msg.descriptor)
 
     def _take_all(self, sub: Sub) -> None:
         while (entry := sub.ledger.take()) is not None:
@@ -182,21 +187,31 @@ class ProtocolModel(RuleBasedStateMachine):
         self._acks(data.draw(st.sampled_from(self._live())), idle=True)
 
     # -- producer --------------------------------------------------------------------------
-    @rule(count=st.integers(1, 3), fail=st.booleans(), at_once=st.booleans())
-    def put(self, count: int, fail: bool, at_once: bool) -> None:
-        """Store elements unless refused; with ``fail`` a first send does not leave; with
-        ``at_once`` the network delivers the notifications at once (the common case)."""
+    @rule(
+        count=st.integers(1, 3),
+        batch=st.sampled_from([1, 1, 2, 3, 5]),
+        fail=st.booleans(),
+        at_once=st.booleans(),
+    )
+    def put(self, count: int, batch: int, fail: bool, at_once: bool) -> None:
+        """Store ``count`` times ``batch`` elements (``put_many`` when batch > 1) unless
+        refused; with ``fail`` a first send does not leave; with ``at_once`` the network
+        delivers the notifications at once (the common case)."""
         STEPS[0] += 1
         before = len(self.net)
         for _ in range(count):
             self._emit(self.producer.tick(self.now))
-            if self.producer.full() is not None:
+            if self.producer.full(batch) is not None:
                 self.refused += 1
                 return
-            sends = self.producer.put(self.next_t, self.now)
-            self.next_t += 1
+            headers = tuple(range(self.next_t, self.next_t + batch))
+            sends = self.producer.put_many(headers, self.now)
+            self.next_t += batch
+            if batch > 1:
+                event("a batch put")
             if fail and sends:
-                self.sent[(sends[0].epoch, sends[0].seq)] = sends[0].header
+                for i, header in enumerate(sends[0].headers):
+                    self.sent[(sends[0].epoch, sends[0].seq + i)] = header
                 self.producer.send_failed(sends[0].key, sends[0].epoch)
                 sends = sends[1:]
             self._emit(sends)
@@ -260,7 +275,7 @@ class ProtocolModel(RuleBasedStateMachine):
             if epoch.startswith(f"P{self.instance}."):
                 epoch = "X"  # a guess of a registration epoch yet to come is out of the model
             small = data.draw(st.integers(1, 3))  # seq 1 starts an epoch; others probe
-            note = Note(sub.key.sub_id, epoch, small, None, desc, (-1, 0))
+            note = Note(sub.key.sub_id, epoch, small, None, desc, ((-1, 0),))
             if direct:
                 self._deliver(note)
             else:
@@ -269,7 +284,7 @@ class ProtocolModel(RuleBasedStateMachine):
         track = sub.ledger.epochs().get(reg.epoch)
         last = track.last if track is not None else 0
         if seq <= last:  # a replayed past seq, through the network like any message
-            self.net.append(Note(sub.key.sub_id, reg.epoch, seq, None, desc, (-1, 0)))
+            self.net.append(Note(sub.key.sub_id, reg.epoch, seq, None, desc, ((-1, 0),)))
         else:  # a far-future seq, beyond anything in flight: straight to the subscriber
             future = reg.sent + sub.key.queue_size + seq
             sub.ledger.receive(reg.epoch, future, (-1, 0), descriptor=desc)
