@@ -1,10 +1,14 @@
-"""The gyro service: short batches of angular-rate samples in gyro/rates.
+"""The gyro service: angular-rate samples in gyro/rates, one element per sample.
 
-Batching (default 10 samples = 20 ms at 500 Hz) keeps 500-1000 Hz from meaning 1000
-messages per second; batches are small, so they reach subscribers inline with the
-notification. Buffering rule: a consumer that may lose nothing waits — when flow control
-refuses a batch, the gyro waits up to ``--wait-ms`` for credit (a sensor FIFO would buffer
-too), then drops the batch and counts it.
+Each sample is its own element (a one-sample ``gyro`` payload keyed by its time), so a query
+by time finds single samples; they are published in batches with ``put_many`` (default 10
+samples = 20 ms at 500 Hz): one message and one ack per batch, so 500-1000 Hz does not mean
+1000 messages per second; samples are small, so they reach subscribers inline with the
+notification. A batch never exceeds the smallest flow-controlled queue (queues count
+elements, and a batch larger than one could never be accepted). Buffering rule: a consumer
+that may lose nothing waits — when flow control refuses a batch, the gyro waits up to
+``--wait-ms`` for credit (a sensor FIFO would buffer too), then drops the batch and counts
+its samples.
 """
 
 from __future__ import annotations
@@ -16,7 +20,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from middleware import FlowControlRefused, FramegateError, NetworkConfig, Node, Retention
+from middleware import (
+    FlowControlRefused,
+    FramegateError,
+    NetworkConfig,
+    Node,
+    Producer,
+    Retention,
+    SubscriptionMode,
+)
 from services.lib.messages import gyro_metadata
 from services.lib.quality import GyroSamples
 from services.nodes._contract import Service
@@ -64,25 +76,44 @@ def run(config: GyroConfig, network: NetworkConfig, stop: threading.Event | None
                     continue
                 if not sleep_until_ns(int(t_wall[-1]), stop):
                     break
-                batch = GyroSamples(t_wall, w, period_ns=source.scale(source.period_ns))
-                try:
-                    rates.put(
-                        int(t_wall[-1]),
-                        batch.to_bytes(),
-                        gyro_metadata(batch),
-                        wait_s=config.wait_ms / 1e3,
-                    )
-                    stored += 1
-                except FlowControlRefused:
-                    dropped += 1
-                except FramegateError as exc:
-                    log.warning("gyro batch not stored: %s", exc)
+                samples = sample_elements(t_wall, w, period_ns=source.scale(source.period_ns))
+                for batch in _split(samples, _flow_queue_limit(rates, config.batch)):
+                    try:
+                        rates.put_many(batch, wait_s=config.wait_ms / 1e3)
+                        stored += len(batch)
+                    except FlowControlRefused:
+                        dropped += len(batch)
+                    except FramegateError as exc:
+                        log.warning("gyro batch not stored: %s", exc)
         except KeyboardInterrupt:
             pass
-        log.info("gyro: %d batches stored, %d dropped", stored, dropped)
+        log.info("gyro: %d samples stored, %d dropped", stored, dropped)
         if not config.source.exit_when_done:
             serve_until_stopped(stop)
     return 0
+
+
+def sample_elements(
+    t_ns: np.ndarray, rates_rad_s: np.ndarray, *, period_ns: int
+) -> list[tuple[int, bytes, bytes]]:
+    """``(timestamp_ns, payload, metadata)`` per sample: a one-sample ``gyro`` element."""
+    elements = []
+    for i in range(len(t_ns)):
+        one = GyroSamples(t_ns[i : i + 1], rates_rad_s[i : i + 1], period_ns=period_ns)
+        elements.append((int(t_ns[i]), one.to_bytes(), gyro_metadata(one)))
+    return elements
+
+
+def _flow_queue_limit(rates: Producer, batch: int) -> int:
+    """The largest batch every flow-controlled subscriber's queue can hold (at most ``batch``)."""
+    queues = [s.queue_size for s in rates.subscriptions() if s.mode is SubscriptionMode.FLOW]
+    return max(1, min([batch, *queues]))
+
+
+def _split(
+    elements: list[tuple[int, bytes, bytes]], size: int
+) -> list[list[tuple[int, bytes, bytes]]]:
+    return [elements[i : i + size] for i in range(0, len(elements), size)]
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -91,7 +122,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     parser.add_argument("--name", default="gyro", help="service name (default %(default)s)")
     add_source_arguments(parser, device=False)
-    parser.add_argument("--batch", type=int, default=10, help="samples per element")
+    parser.add_argument(
+        "--batch", type=int, default=10, help="samples per message (put_many batch)"
+    )
     parser.add_argument(
         "--wait-ms",
         type=float,
