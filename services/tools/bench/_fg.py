@@ -82,9 +82,8 @@ def fg_pub(params: dict[str, Any]) -> None:
             sent = refused = 0
             t = clock["t"]
             if batch:
-                # The batch API of issue 18 item 4 (run_batch skips this row until it
-                # exists); the call's shape follows the issue: elements in, one wait.
-                put_many = getattr(producer, "put_many")  # noqa: B009
+                # The batch API of issue 18 item 4: elements in, one wait, one notification.
+                put_many = producer.put_many
                 while time.monotonic() < end:
                     items = [(t + i, payload, stamp(t + i)) for i in range(1, batch + 1)]
                     t += batch
@@ -132,7 +131,7 @@ def _consume(sub: Subscription, stop: threading.Event, on_element: Any) -> None:
 
 def _consume_many(sub: Subscription, stop: threading.Event, on_element: Any, batch: int) -> None:
     """Like ``_consume`` through ``take_many`` (issue 18 item 4; see ``fg_pub``)."""
-    take_many = getattr(sub, "take_many")  # noqa: B009
+    take_many = sub.take_many
     with profiled(f"fg-consume-many-{sub.buffer}"):
         while not stop.is_set():
             for note in take_many(batch, timeout_s=0.2):
@@ -162,15 +161,18 @@ def fg_sub(params: dict[str, Any]) -> None:
             counter.count += 1
             counter.bytes += len(payload)
 
+    batch = int(params.get("batch") or 0)
+    # Queues count elements: one that holds less than a batch would refuse every put_many,
+    # and one of two batches lets the producer fill the next while this side takes.
+    queue_size = max(int(params["queue_size"]), 2 * batch)
     with Node(network=_network(params)) as node:
         sub = node.subscribe(
             f"{SERVICE}/{params['buffer']}",
-            queue_size=int(params["queue_size"]),
+            queue_size=queue_size,
             mode=SubscriptionMode.OBSERVE if params.get("observe") else SubscriptionMode.FLOW,
             wait_s=5.0,
             push_max_bytes=PUSH_ALL if params.get("push") else None,
         )
-        batch = int(params.get("batch") or 0)
         consume: Callable[[], None] = (
             partial(_consume_many, sub, stop, on_element, batch)
             if batch
