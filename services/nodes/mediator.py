@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import itertools
 import threading
 import time
 from dataclasses import dataclass
@@ -162,6 +163,10 @@ def merge_batch(
     return kept, outcome
 
 
+# Gyro notifications taken at once: a few of the gyro's batches of samples.
+_GYRO_TAKE_MAX = 64
+
+
 class GyroCache:
     """Recent gyro batches, fed by a thread that takes gyro notifications at once."""
 
@@ -177,16 +182,29 @@ class GyroCache:
 
     def _run(self) -> None:
         while not self._stop.is_set():
-            note = self._sub.take(timeout_s=0.2)
-            if note is None:
-                continue
-            try:
-                element = self._sub.fetch(note)
-                batch = GyroSamples.from_bytes(element.payload)
-            except (FramegateError, ValueError, OverflowError):
-                self.dropped["bad-batch"] += 1
-                continue
-            self.add(batch)
+            # The gyro puts its samples as elements in batches (put_many); taking up to a
+            # batch's worth at once and joining them keeps the cache at batch granularity
+            # and sends one ack per call.
+            notes = self._sub.take_many(_GYRO_TAKE_MAX, timeout_s=0.2)
+            parts: list[GyroSamples] = []
+            for note in notes:
+                try:
+                    parts.append(GyroSamples.from_bytes(self._sub.fetch(note).payload))
+                except (FramegateError, ValueError, OverflowError):
+                    self.dropped["bad-batch"] += 1
+            if parts:
+                self._add_parts(parts)
+
+    def _add_parts(self, parts: list[GyroSamples]) -> None:
+        """Add consecutive parts; joined when in order, one by one (trimmed) when not."""
+        ordered = all(len(p) for p in parts) and all(
+            int(a.t_ns[-1]) < int(b.t_ns[0]) for a, b in itertools.pairwise(parts)
+        )
+        if ordered and len(parts) > 1:
+            self.add(GyroSamples.concat(parts))
+        else:
+            for part in parts:
+                self.add(part)
 
     def add(self, batch: GyroSamples) -> None:
         """Keep what is new in ``batch`` (see ``merge_batch``)."""

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import time
 
 import numpy as np
 import pytest
@@ -14,6 +15,7 @@ from services.lib.quality import BlurOptions, Exposure, GyroSamples
 from services.nodes.mediator import (
     SERVICE,
     BadFrame,
+    GyroCache,
     MediatorConfig,
     blur_quality,
     check_frame,
@@ -145,3 +147,25 @@ def test_every_mediator_setting_has_a_flag() -> None:
     )
     assert (config.blur_mode.value, config.q_min, config.b0_px) == ("max", 0.2, 7.0)
     assert SERVICE.config_from_args(parser.parse_args([])) == MediatorConfig()
+
+
+class _NoNotes:
+    """A subscription that never has a notification (the cache is fed by hand)."""
+
+    def take_many(self, max_count: int, *, timeout_s: float | None = None) -> list[object]:
+        time.sleep(0.01)
+        return []
+
+
+def test_gyro_cache_joins_in_order_samples_and_trims_overlapping_ones() -> None:
+    cache = GyroCache(_NoNotes())  # type: ignore[arg-type]
+    try:
+        # One-sample elements taken together become one batch of the cache.
+        cache._add_parts([_batch(0, 1), _batch(1, 1), _batch(2, 1)])
+        assert _times_ms(cache._batches) == [0, 1, 2] and len(cache._batches) == 1
+        # A re-delivered and an overlapping part: the late one dropped, the overlap trimmed.
+        cache._add_parts([_batch(5, 2), _batch(1, 1), _batch(6, 3)])
+        assert _times_ms(cache._batches) == [0, 1, 2, 5, 6, 7, 8]
+        assert cache.dropped["late-batch"] == 1 and cache.dropped["overlap"] == 1
+    finally:
+        cache.stop()
