@@ -18,7 +18,6 @@ import pytest
 
 from services.cli import main
 from services.tools.bench import SCENARIO_NAMES, SCHEMA
-from services.tools.bench._throughput import batch_api_missing
 from tests.conftest import REPO, child_env
 
 REPORT_KEYS = {"schema", "created_utc", "elapsed_s", "machine", "options", "scenarios", "goals"}
@@ -71,15 +70,8 @@ def test_quick_run_gives_numbers_for_every_scenario(tmp_path: Path) -> None:
     assert set(report["options"]) >= OPTION_KEYS
     assert report["options"]["quick"] is True
     assert list(report["scenarios"]) == list(SCENARIO_NAMES)
-    skipped = set()
     for name, scenario in report["scenarios"].items():
         assert set(scenario) >= SCENARIO_KEYS, name
-        if name == "batch" and batch_api_missing() is not None:
-            # The one scenario allowed to skip: its middleware API does not exist yet.
-            assert scenario["status"] == "skipped"
-            assert scenario["reason"] == batch_api_missing()
-            skipped.add(name)
-            continue
         assert scenario["status"] == "ok", (name, scenario["reason"])
         assert scenario["rows"], name
         for row in scenario["rows"]:
@@ -106,7 +98,7 @@ def test_quick_run_gives_numbers_for_every_scenario(tmp_path: Path) -> None:
         assert _number(goal["measured"]), goal
         assert isinstance(goal["passed"], bool), goal
     goal_scenarios = {g["scenario"] for g in report["goals"]}
-    assert goal_scenarios == set(SCENARIO_NAMES) - skipped
+    assert goal_scenarios == set(SCENARIO_NAMES)
     for name in SCENARIO_NAMES:
         assert name in done.stdout
 

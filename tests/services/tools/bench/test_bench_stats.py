@@ -6,7 +6,6 @@ import math
 
 import pytest
 
-from middleware import Producer, Subscription
 from services.tools.bench import (
     SCENARIO_NAMES,
     BenchError,
@@ -21,7 +20,6 @@ from services.tools.bench import (
     summarize,
 )
 from services.tools.bench._records import extra_goal, ratio_goal
-from services.tools.bench._throughput import batch_api_missing
 
 
 def test_median_of_odd_count_is_the_middle_value() -> None:
@@ -187,11 +185,3 @@ def test_table_shows_extra_for_cost_rows_only() -> None:
     assert "MISS CPU per frame: framegate - raw <= 50 us (measured 60.0)" in cpu_line
     throughput_line = next(line for line in lines if line.startswith("  64 B "))
     assert "-50.0" not in throughput_line  # fg - raw = 50 - 100, not shown for a rate
-
-
-def test_batch_row_names_the_missing_api_until_it_exists() -> None:
-    missing = batch_api_missing()
-    if hasattr(Producer, "put_many") and hasattr(Subscription, "take_many"):
-        assert missing is None
-    else:
-        assert missing is not None and "issue 18 item 4" in missing
