@@ -183,6 +183,11 @@ def test_record_writes_verdict_and_detection_annotations_with_foxglove_schemas(
             assert producer.wait_for_subscribers(1, timeout_s=30)
         for i, t in enumerate(frames):
             put_frame(images, t, i)
+            # Verdict borders are drawn to the size of the frames recorded so far: let the
+            # recorder take the frame before its verdict is put.
+            wait_until(
+                lambda: all(s.queued == 0 for s in images.subscriptions()), 30, "frame taken"
+            )
             verdict = DecisionRecord(
                 t, i, 1.5 * i, 0.9 - 0.3 * i, 0.5, i == 0, "q", "paper", 5.0, 0
             )
