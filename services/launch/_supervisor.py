@@ -8,7 +8,7 @@ SIGTERM, waits up to 1.5 s, then SIGKILLs.
 
 No orphans: every child gets ``FRAMEGATE_PARENT_PID`` and the read end of a pipe whose
 write end only this process holds (``FRAMEGATE_PARENT_FD``). The child
-(services/nodes/_runtime.exit_with_parent) asks Linux for SIGTERM when its parent dies and
+(services/nodes/_runtime.exit_with_parent) asks Linux for SIGKILL when its parent dies and
 watches the pipe, whose end-of-file means the same anywhere; so the services end with
 their launcher however it ends, SIGKILL included. Linux sends that signal when the
 *thread* that started the child ends: start, poll and run a Supervisor from a thread that

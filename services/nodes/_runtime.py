@@ -110,9 +110,13 @@ def serve_until_stopped(stop: threading.Event) -> None:
 def exit_with_parent(stop: threading.Event) -> None:
     """End this process with the supervisor that started it, however the supervisor ends.
 
-    On Linux the kernel sends SIGTERM when the parent dies (the caller's signal handler
-    turns it into ``stop``); everywhere, a thread waits for end-of-file on the pipe whose
-    write end only the parent holds, then sets ``stop`` and, if the service has not ended
+    On Linux the kernel kills this process (SIGKILL) when the parent dies. Not SIGTERM: a
+    service busy in C code that holds the GIL (an FFT, OpenCV) runs no Python handler until it
+    returns, which measured over 5 s on a loaded machine; and with the parent gone there is
+    nothing left to stop gracefully for (peers see the liveliness token vanish at once).
+    A supervisor that stops normally stops its children first, so this is only the abnormal
+    path. Everywhere, a thread also waits for end-of-file on the pipe whose write end only
+    the parent holds, then sets ``stop`` and, if the service has not ended
     ``_ORPHAN_GRACE_S`` later, exits hard. A process started by hand (no
     ``FRAMEGATE_PARENT_PID``) is left alone.
 
@@ -124,7 +128,7 @@ def exit_with_parent(stop: threading.Event) -> None:
         return
     if sys.platform == "linux":
         libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(_PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
+        libc.prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0)
     # The parent may have died before the request above took effect.
     if os.getppid() != int(parent):
         stop.set()
