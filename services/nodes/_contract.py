@@ -18,7 +18,9 @@ from __future__ import annotations
 
 import argparse
 import threading
-from typing import Any, Protocol, TypeVar
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Generic, Protocol, TypeVar
 
 from middleware import NetworkConfig
 
@@ -52,3 +54,14 @@ class Service(Protocol[ConfigT]):
 
 
 AnyService = Service[Any]
+
+
+@dataclass(frozen=True, slots=True)
+class ServiceEntry(Generic[ConfigT]):
+    """A service module's functions bundled as a :class:`Service` (one line per module)."""
+
+    name: str
+    config_type: type[ConfigT]
+    add_arguments: Callable[[argparse.ArgumentParser], None]
+    config_from_args: Callable[[argparse.Namespace], ConfigT]
+    run: Callable[[ConfigT, NetworkConfig, threading.Event], int]

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 from middleware import FlowControlRefused, FramegateError, NetworkConfig, Node, Retention
 from services.lib.messages import frame_metadata
 from services.lib.quality import Exposure
-from services.nodes._contract import Service
+from services.nodes._contract import Service, ServiceEntry
 from services.nodes._runtime import (
     serve_until_stopped,
     setup_logging,
@@ -147,14 +147,6 @@ def config_from_args(args: argparse.Namespace) -> CameraConfig:
     )
 
 
-class Camera:
-    """The camera as the registry sees it (the contract: services/nodes/_contract.py)."""
-
-    name = "camera"
-    config_type = CameraConfig
-    add_arguments = staticmethod(add_arguments)
-    config_from_args = staticmethod(config_from_args)
-    run = staticmethod(run)
-
-
-SERVICE: Service[CameraConfig] = Camera()
+SERVICE: Service[CameraConfig] = ServiceEntry(
+    "camera", CameraConfig, add_arguments, config_from_args, run
+)

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from middleware import PUSH_ALL, FramegateError, NetworkConfig, Node, Retention
 from services.lib.markers import detect_markers
 from services.lib.messages import decode_image, detections_metadata, read_frame_metadata
-from services.nodes._contract import Service
+from services.nodes._contract import Service, ServiceEntry
 from services.nodes._runtime import setup_logging
 
 
@@ -139,14 +139,6 @@ def config_from_args(args: argparse.Namespace) -> DetectorConfig:
     )
 
 
-class Detector:
-    """The detector as the registry sees it (the contract: services/nodes/_contract.py)."""
-
-    name = "detector"
-    config_type = DetectorConfig
-    add_arguments = staticmethod(add_arguments)
-    config_from_args = staticmethod(config_from_args)
-    run = staticmethod(run)
-
-
-SERVICE: Service[DetectorConfig] = Detector()
+SERVICE: Service[DetectorConfig] = ServiceEntry(
+    "detector", DetectorConfig, add_arguments, config_from_args, run
+)

@@ -31,7 +31,7 @@ from middleware import (
 )
 from services.lib.messages import gyro_metadata
 from services.lib.quality import GyroSamples
-from services.nodes._contract import Service
+from services.nodes._contract import Service, ServiceEntry
 from services.nodes._runtime import serve_until_stopped, setup_logging, sleep_until_ns, start_at_ns
 from services.nodes.sources import SourceSpec, open_gyro_source
 
@@ -151,14 +151,6 @@ def config_from_args(args: argparse.Namespace) -> GyroConfig:
     )
 
 
-class Gyro:
-    """The gyro as the registry sees it (the contract: services/nodes/_contract.py)."""
-
-    name = "gyro"
-    config_type = GyroConfig
-    add_arguments = staticmethod(add_arguments)
-    config_from_args = staticmethod(config_from_args)
-    run = staticmethod(run)
-
-
-SERVICE: Service[GyroConfig] = Gyro()
+SERVICE: Service[GyroConfig] = ServiceEntry(
+    "gyro", GyroConfig, add_arguments, config_from_args, run
+)

@@ -88,7 +88,7 @@ from services.lib.quality import (
     estimate_blur,
     quality,
 )
-from services.nodes._contract import Service
+from services.nodes._contract import Service, ServiceEntry
 from services.nodes._runtime import Monotonic, setup_logging
 
 # A batch whose newest sample is this much older than the newest kept: the gyro restarted.
@@ -570,14 +570,6 @@ def run(config: MediatorConfig, network: NetworkConfig, stop: threading.Event | 
     return 0
 
 
-class MediatorService:
-    """The mediator as the registry sees it (the contract: services/nodes/_contract.py)."""
-
-    name = "mediator"
-    config_type = MediatorConfig
-    add_arguments = staticmethod(add_arguments)
-    config_from_args = staticmethod(config_from_args)
-    run = staticmethod(run)
-
-
-SERVICE: Service[MediatorConfig] = MediatorService()
+SERVICE: Service[MediatorConfig] = ServiceEntry(
+    "mediator", MediatorConfig, add_arguments, config_from_args, run
+)
