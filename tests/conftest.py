@@ -76,6 +76,21 @@ def child_env() -> dict[str, str]:
     return env
 
 
+def start_framegate(argv: list[str], *, local_port: int) -> subprocess.Popen[str]:
+    """``framegate ARGV`` in a child process meeting others on the rendezvous ``local_port``;
+    stdout and stderr together, as text."""
+    env = child_env()
+    env["FRAMEGATE_LOCAL_PORT"] = str(local_port)
+    return subprocess.Popen(
+        [sys.executable, "-m", "services.cli", *argv],
+        cwd=REPO,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+
+
 class NodeProcess:
     """A framegate node in a separate OS process, driven over stdin/stdout."""
 

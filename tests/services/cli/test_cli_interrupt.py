@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import signal
 import subprocess
-import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -13,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from middleware import NetworkConfig, Node, Producer, make_metadata
-from tests.conftest import REPO, child_env, free_port, wait_until
+from tests.conftest import free_port, start_framegate, wait_until
 
 pytestmark = pytest.mark.integration
 
@@ -35,19 +34,6 @@ def producer(port: int) -> Iterator[Producer]:
         t = time.time_ns()
         log.put(t, b"first", make_metadata("generic", t))
         yield log
-
-
-def _start(argv: list[str], port: int) -> subprocess.Popen[str]:
-    env = child_env()
-    env["FRAMEGATE_LOCAL_PORT"] = str(port)
-    return subprocess.Popen(
-        [sys.executable, "-m", "services.cli", *argv],
-        cwd=REPO,
-        env=env,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-    )
 
 
 def _feed_until(proc: subprocess.Popen[str], log: Producer, seen: int) -> None:
@@ -89,7 +75,7 @@ def _stops(proc: subprocess.Popen[str], signum: int) -> None:
 def test_subscribing_command_stops_on_one_signal(
     argv: list[str], signum: int, port: int, producer: Producer
 ) -> None:
-    proc = _start(argv, port)
+    proc = start_framegate(argv, local_port=port)
     _feed_until(proc, producer, 1)
     _stops(proc, signum)
 
@@ -101,7 +87,7 @@ def test_record_stops_on_one_signal_and_leaves_a_readable_file(
     from services.tools.bag import open_bag
 
     out = tmp_path / "run.mcap"
-    proc = _start(["record", "cam/log", "-o", str(out)], port)
+    proc = start_framegate(["record", "cam/log", "-o", str(out)], local_port=port)
     _feed_until(proc, producer, 1)
     _stops(proc, signum)
     assert open_bag(out) is not None
@@ -110,7 +96,7 @@ def test_record_stops_on_one_signal_and_leaves_a_readable_file(
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
 def test_router_stops_on_one_signal(signum: int) -> None:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    proc = _start(["router", "--listen", endpoint], free_port())
+    proc = start_framegate(["router", "--listen", endpoint], local_port=free_port())
     assert proc.stdout is not None
     line = proc.stdout.readline()
     assert "router listening" in line, line

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import signal
 import subprocess
-import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -16,7 +15,7 @@ import pytest
 from middleware import FramegateError, NetworkConfig, Node
 from services.launch import pipeline_yaml
 from services.nodes import SERVICES
-from tests.conftest import REPO, child_env, free_port, wait_until
+from tests.conftest import free_port, start_framegate, wait_until
 from tests.services.nodes.pipeline import Pipeline
 
 pytestmark = pytest.mark.integration
@@ -43,19 +42,6 @@ def port() -> int:
 def client(port: int) -> Iterator[Node]:
     with Node(network=NetworkConfig(local_port=port)) as node:
         yield node
-
-
-def _start(argv: list[str], port: int) -> subprocess.Popen[str]:
-    env = child_env()
-    env["FRAMEGATE_LOCAL_PORT"] = str(port)
-    return subprocess.Popen(
-        [sys.executable, "-m", "services.cli", *argv],
-        cwd=REPO,
-        env=env,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-    )
 
 
 def _pid_of(node: Node, service: str) -> int | None:
@@ -95,7 +81,7 @@ def _stopped_in_time(proc: subprocess.Popen[str], sig: signal.Signals) -> float:
 def test_one_signal_stops_a_service(
     service: str, sig: signal.Signals, port: int, client: Node
 ) -> None:
-    proc = _start(["run", service], port)  # camera and gyro: the simulator
+    proc = start_framegate(["run", service], local_port=port)  # camera and gyro: the simulator
     try:
         wait_until(lambda: _pid_of(client, service) == proc.pid, STARTUP_S, f"{service} up")
         took_s = _stopped_in_time(proc, sig)
@@ -121,7 +107,7 @@ def test_one_signal_stops_launch_and_its_services(tmp_path: Path) -> None:
 
 
 def test_one_signal_stops_the_demo(port: int, client: Node) -> None:
-    proc = _start(["demo", "--duration", "120"], port)
+    proc = start_framegate(["demo", "--duration", "120"], local_port=port)
     try:
         pids = [wait_until(lambda s=s: _pid_of(client, s), STARTUP_S, s) for s in SERVICES]  # type: ignore[misc]
         took_s = _stopped_in_time(proc, signal.SIGINT)
