@@ -13,9 +13,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.interpolate import CubicHermiteSpline
-from scipy.signal import cont2discrete, lfilter, ss2tf
 
+from . import _scene_cache
 from ._config import Bump, ScenarioConfig, Track
 from ._rng import Stream, rng_for
 
@@ -68,6 +67,10 @@ def _sprung_mode(
     Discretised exactly for a piecewise-linear input (first-order hold), so the result does
     not depend on the step beyond the sampling of ``u``.
     """
+    # Imported here: SciPy's signal package takes about a second to import, and a restarted
+    # camera or gyro reads these responses from the scenario cache instead.
+    from scipy.signal import cont2discrete, lfilter, ss2tf
+
     w = 2 * math.pi * natural_hz
     z = damping
     # State (x, x' - 2 z w u) keeps u' out of the equations; outputs are x and x'.
@@ -80,6 +83,36 @@ def _sprung_mode(
     return lfilter(num[0], den, u), lfilter(num[1], den, u)
 
 
+def _hermite(
+    knots: np.ndarray, values: np.ndarray, rates: np.ndarray, t: np.ndarray, *, derivative: bool
+) -> np.ndarray:
+    """The cubic Hermite interpolant through (knots, values) with slopes ``rates`` at ``t``
+    (its derivative with ``derivative``); NaN outside the knots, like SciPy's
+    ``CubicHermiteSpline(..., extrapolate=False)``, which this replaces so that a scenario
+    read from the cache needs no SciPy import at all."""
+    t = np.asarray(t, dtype=float)
+    i = np.clip(np.searchsorted(knots, t, side="right") - 1, 0, len(knots) - 2)
+    h = (knots[i + 1] - knots[i])[:, None]
+    s = ((t - knots[i]) / h[:, 0])[:, None]
+    y0, y1, m0, m1 = values[i], values[i + 1], rates[i], rates[i + 1]
+    if derivative:
+        out = (
+            ((6 * s**2 - 6 * s) * (y0 - y1)) / h
+            + (3 * s**2 - 4 * s + 1) * m0
+            + (3 * s**2 - 2 * s) * m1
+        )
+    else:
+        out = (
+            (2 * s**3 - 3 * s**2 + 1) * y0
+            + (s**3 - 2 * s**2 + s) * h * m0
+            + (-2 * s**3 + 3 * s**2) * y1
+            + (s**3 - s**2) * h * m1
+        )
+    outside = (t < knots[0]) | (t > knots[-1])
+    out[outside] = np.nan
+    return np.asarray(out)
+
+
 class Motion:
     """Body and camera motion over the simulated span; times in s on the camera clock."""
 
@@ -90,6 +123,22 @@ class Motion:
         count = math.ceil(config.duration_ns * _NS / step_s) + 3
         t = np.arange(count) * step_s
         front = self.travel_m(t)
+        shapes = {"values": (count, 3), "rates": (count, 3)}
+        knots = _scene_cache.load(config, "motion", shapes, np.float64)
+        if knots is None:
+            knots = self._integrate(front, step_s)
+            _scene_cache.save(config, "motion", knots)
+        # (heave m, pitch rad, roll rad) and their exact derivatives at the samples; between
+        # them one cubic Hermite piece each.
+        self._t = t
+        self._values, self._rates = knots["values"], knots["rates"]
+        self._r_cam_from_body = config.rotation_gyro_to_camera
+        self._camera_offset = np.array(
+            [config.camera_forward_m, 0.0, config.camera_height_m], dtype=float
+        )
+
+    def _integrate(self, front: np.ndarray, step_s: float) -> dict[str, np.ndarray]:
+        config = self.config
         rear = front - config.wheelbase_m
         fl, fr = _floor_under(self.bumps, "left", front), _floor_under(self.bumps, "right", front)
         rl, rr = _floor_under(self.bumps, "left", rear), _floor_under(self.bumps, "right", rear)
@@ -102,15 +151,16 @@ class Motion:
             _sprung_mode(pitch_in, config.pitch_hz, config.pitch_damping, step_s),
             _sprung_mode(roll_in, config.roll_hz, config.roll_damping, step_s),
         ]
-        values = np.stack([m[0] for m in modes], axis=1)
-        rates = np.stack([m[1] for m in modes], axis=1)
-        # (heave m, pitch rad, roll rad) and their exact derivatives between the samples.
-        self._state = CubicHermiteSpline(t, values, rates, axis=0, extrapolate=False)
-        self._rate = self._state.derivative()
-        self._r_cam_from_body = config.rotation_gyro_to_camera
-        self._camera_offset = np.array(
-            [config.camera_forward_m, 0.0, config.camera_height_m], dtype=float
-        )
+        return {
+            "values": np.ascontiguousarray(np.stack([m[0] for m in modes], axis=1)),
+            "rates": np.ascontiguousarray(np.stack([m[1] for m in modes], axis=1)),
+        }
+
+    def _state(self, t_s: np.ndarray) -> np.ndarray:
+        return _hermite(self._t, self._values, self._rates, t_s, derivative=False)
+
+    def _rate(self, t_s: np.ndarray) -> np.ndarray:
+        return _hermite(self._t, self._values, self._rates, t_s, derivative=True)
 
     def travel_m(self, t_s: np.ndarray) -> np.ndarray:
         """Distance travelled since the first exposure started (negative before)."""

@@ -227,11 +227,11 @@ class Scene:
         """Textures for this configuration (drawn from the seed's texture stream, or read
         back from the scene cache, which holds exactly what the stream draws)."""
         shapes = {"wall": _wall_shape(config), "floor": _floor_shape(config)}
-        textures = _scene_cache.load(config, shapes)
+        textures = _scene_cache.load(config, "scene", shapes, np.float32)
         if textures is None:
             rng = rng_for(config.seed, Stream.TEXTURE)
             textures = {"wall": _wall_texture(config, rng), "floor": _floor_texture(config, rng)}
-            _scene_cache.save(config, textures)
+            _scene_cache.save(config, "scene", textures)
         return cls(
             wall=_wall(config, textures["wall"]),
             floor=_floor(config, textures["floor"]),

@@ -1,9 +1,10 @@
-"""A disk cache of the scene's random textures, so a restarted camera renders at once.
+"""A disk cache of what a scenario computes at start, so a restarted camera or gyro is quick.
 
 Building the wall and floor textures (1/f noise by FFT, posters) costs about a second of CPU
-per start; a supervised camera that restarts after a crash should produce again within a
-few seconds, so the textures of each configuration are kept under the user's cache
-directory (``$XDG_CACHE_HOME/framegate/scenes``, else ``~/.cache/framegate/scenes``).
+per start, and the body's dynamics need SciPy's signal package (a second to import); a
+supervised camera or gyro that restarts after a crash should produce again within a few
+seconds, so the textures and the motion's knots of each configuration are kept under the
+user's cache directory (``$XDG_CACHE_HOME/framegate/scenes``, else ``~/.cache/framegate/scenes``).
 An entry is keyed by every scenario parameter and a format version, holds plain arrays
 (``np.load`` without pickle), is written atomically and is ignored, never trusted, when it
 cannot be read or has the wrong shape: the textures are then built again.
@@ -15,6 +16,7 @@ import contextlib
 import hashlib
 import os
 import tempfile
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -32,29 +34,29 @@ def cache_dir() -> Path:
     return Path(base) / "framegate" / "scenes"
 
 
-def _path(config: ScenarioConfig) -> Path:
-    key = hashlib.sha256(f"{FORMAT}:{config!r}".encode()).hexdigest()[:24]
-    return cache_dir() / f"{key}.npz"
+def _path(config: ScenarioConfig, kind: str) -> Path:
+    key = hashlib.sha256(f"{FORMAT}:{kind}:{config!r}".encode()).hexdigest()[:24]
+    return cache_dir() / f"{kind}-{key}.npz"
 
 
 def load(
-    config: ScenarioConfig, shapes: dict[str, tuple[int, int]]
+    config: ScenarioConfig, kind: str, shapes: Mapping[str, tuple[int, ...]], dtype: type
 ) -> dict[str, np.ndarray] | None:
-    """The cached float32 textures named in ``shapes``, or None (missing, damaged, stale)."""
+    """The cached ``kind`` arrays named in ``shapes``, or None (missing, damaged, stale)."""
     try:
-        with np.load(_path(config), allow_pickle=False) as entry:
+        with np.load(_path(config, kind), allow_pickle=False) as entry:
             arrays = {name: entry[name] for name in shapes}
     except (OSError, KeyError, ValueError, EOFError):
         return None
     for name, shape in shapes.items():
-        if arrays[name].shape != shape or arrays[name].dtype != np.float32:
+        if arrays[name].shape != shape or arrays[name].dtype != dtype:
             return None
     return arrays
 
 
-def save(config: ScenarioConfig, arrays: dict[str, np.ndarray]) -> None:
+def save(config: ScenarioConfig, kind: str, arrays: dict[str, np.ndarray]) -> None:
     """Store ``arrays`` for ``config``; a cache that cannot be written is simply skipped."""
-    path = _path(config)
+    path = _path(config, kind)
     with contextlib.suppress(OSError):
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")

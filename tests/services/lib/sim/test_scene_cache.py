@@ -1,4 +1,4 @@
-"""The scene cache gives back exactly what building draws, and is never trusted blindly."""
+"""The scenario cache gives back exactly what building computes, and is never trusted blindly."""
 
 from __future__ import annotations
 
@@ -45,3 +45,32 @@ def test_another_seed_does_not_share_an_entry() -> None:
     other = Scene.build(ScenarioConfig(seed=5, wall_texel_m=0.05, floor_texel_m=0.05))
     assert len(list(cache_dir().glob("*.npz"))) == 2
     assert not np.array_equal(other.wall.levels[0], Scene.build(SMALL).wall.levels[0])
+
+
+def test_cached_motion_equals_integrated_motion() -> None:
+    from services.lib.sim._motion import Motion
+
+    t = np.linspace(0.0, 1.0, 257)
+    integrated = Motion(SMALL)
+    assert list(cache_dir().glob("motion-*.npz")), "the first build stores the knots"
+    cached = Motion(SMALL)
+    assert np.array_equal(integrated.attitude(t), cached.attitude(t))
+    assert np.array_equal(integrated.body_rate_rad_s(t), cached.body_rate_rad_s(t))
+
+
+def test_motion_matches_scipys_cubic_hermite_spline() -> None:
+    from scipy.interpolate import CubicHermiteSpline
+
+    from services.lib.sim._motion import _hermite
+
+    rng = np.random.default_rng(7)
+    knots = np.cumsum(rng.uniform(0.1, 1.0, 40))
+    values, rates = rng.normal(size=(40, 3)), rng.normal(size=(40, 3))
+    spline = CubicHermiteSpline(knots, values, rates, axis=0, extrapolate=False)
+    t = np.concatenate([rng.uniform(knots[0] - 1, knots[-1] + 1, 500), knots])
+    for ours, theirs in (
+        (_hermite(knots, values, rates, t, derivative=False), spline(t)),
+        (_hermite(knots, values, rates, t, derivative=True), spline.derivative()(t)),
+    ):
+        assert np.array_equal(np.isnan(ours), np.isnan(theirs))
+        assert np.allclose(ours, theirs, rtol=0, atol=1e-12, equal_nan=True)
