@@ -47,10 +47,18 @@ def stop_on_signals() -> threading.Event:
     session cleanly. Call from the main thread.
     """
     stop = threading.Event()
+    signalled = False
 
     def handler(_signum: int, _frame: FrameType | None) -> None:
-        if stop.is_set():
+        # Python runs this in the main thread between bytecodes, possibly inside
+        # ``stop.set()`` itself when a second signal arrives (a supervisor's SIGTERM right
+        # after a parent-death signal): calling ``stop.set()`` again there would wait for
+        # the lock its own frame holds, for ever (seen: a mediator orphaned this way). So a
+        # plain flag, set first, decides; only the first signal touches the event.
+        nonlocal signalled
+        if signalled:
             raise KeyboardInterrupt
+        signalled = True
         stop.set()
 
     signal.signal(signal.SIGINT, handler)

@@ -140,7 +140,9 @@ def exit_with_parent(stop: threading.Event) -> None:
         with contextlib.suppress(OSError):
             while os.read(fd, 1):
                 pass
-        stop.set()
+        # The hard exit must not wait on anything: ``stop.set()`` takes the event's lock,
+        # which a stuck main thread could hold, so it is asked for on a thread of its own.
+        threading.Thread(target=stop.set, name="orphan-stop", daemon=True).start()
         time.sleep(_ORPHAN_GRACE_S)
         os._exit(1)
 

@@ -101,3 +101,20 @@ def test_router_stops_on_one_signal(signum: int) -> None:
     line = proc.stdout.readline()
     assert "router listening" in line, line
     _stops(proc, signum)
+
+
+def test_two_signals_at_once_still_stop_the_command() -> None:
+    # A parent-death or supervisor SIGTERM can arrive while the first signal's handler is
+    # still setting the stop event; the second must interrupt, never wait on that event.
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    for _ in range(5):
+        proc = start_framegate(["router", "--listen", endpoint], local_port=free_port())
+        assert proc.stdout is not None
+        assert "router listening" in proc.stdout.readline()
+        proc.send_signal(signal.SIGTERM)
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.communicate(timeout=STOP_WITHIN_S)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            raise AssertionError("two SIGTERMs left the router running") from None
