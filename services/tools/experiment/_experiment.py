@@ -21,7 +21,7 @@ from ._pipeline import RunSettings, run_configuration
 from ._plots import plot_gyro_exposures, plot_quality_vs_blur, plot_timeline
 from ._records import RunRecord
 from ._replay import QueueModel
-from ._stats import captured_fraction, correlations, improvement_pct, mean_ci95
+from ._stats import captured_fraction, correlations, improvement_pct, json_safe, mean_ci95
 from ._sweep import oracle_counts, period_ns
 from ._table import format_table
 
@@ -140,17 +140,6 @@ def policy_summary(
     return out
 
 
-def _clean(value: Any) -> Any:
-    """JSON-safe: nan and inf become None (no interval for one seed, no rate for zero)."""
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, dict):
-        return {str(k): _clean(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_clean(v) for v in value]
-    return value
-
-
 def _write_run(path: Path, record: RunRecord, recognized: dict[str, list[int]]) -> None:
     data = {
         "kind": record.kind.value,
@@ -161,7 +150,7 @@ def _write_run(path: Path, record: RunRecord, recognized: dict[str, list[int]]) 
         "detections": [asdict(d) for d in record.detections],
         "decisions": [asdict(d) for d in record.decisions],
     }
-    path.write_text(json.dumps(_clean(data)) + "\n", encoding="utf-8")
+    path.write_text(json.dumps(json_safe(data)) + "\n", encoding="utf-8")
 
 
 def run_experiment(
@@ -264,7 +253,7 @@ def _results(
         kind.value: [s["runs"][kind.value]["dropped_at_camera"] for s in seeds]
         for kind in config.runs
     }
-    results: dict[str, Any] = _clean(
+    results: dict[str, Any] = json_safe(
         {
             "markers": markers,
             "policies": policy_summary(markers, config.runs),

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy import stats
@@ -70,3 +71,14 @@ def captured_fraction(policy: float, uncontrolled: float, oracle: float) -> floa
     if oracle == uncontrolled:
         return None
     return (policy - uncontrolled) / (oracle - uncontrolled)
+
+
+def json_safe(value: Any) -> Any:
+    """JSON-safe: nan and inf become None (no interval for one seed, no rate for zero)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {str(k): json_safe(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [json_safe(v) for v in value]
+    return value

@@ -10,7 +10,6 @@ replay of milliseconds: ``uncontrolled``, each causal policy through the mediato
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -23,7 +22,7 @@ from ._datasets import cached_dataset, scenario_for
 from ._frames import FrameOutcome, frame_outcomes
 from ._oracle import optimal_schedule
 from ._replay import QueueModel, replay_policy, replay_uncontrolled
-from ._stats import captured_fraction, improvement_pct, mean_ci95
+from ._stats import captured_fraction, improvement_pct, json_safe, mean_ci95
 
 SWEEP_RESULTS = "sweep.json"
 SWEEP_TABLE = "sweep.md"
@@ -166,23 +165,13 @@ def run_sweep(config: SweepConfig, *, log: Any = None) -> dict[str, Any]:
         },
         "points": points,
     }
-    results = dict(_clean(results))
+    results = dict(json_safe(results))
     (config.out / SWEEP_RESULTS).write_text(json.dumps(results, indent=1) + "\n", "utf-8")
     (config.out / SWEEP_TABLE).write_text(format_sweep(results), "utf-8")
     from ._plots import plot_captured  # matplotlib only when writing figures
 
     plot_captured(results, config.out / SWEEP_FIGURE)
     return results
-
-
-def _clean(value: Any) -> Any:
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, dict):
-        return {str(k): _clean(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_clean(v) for v in value]
-    return value
 
 
 def _fmt(entry: dict[str, Any] | None, digits: int = 1, scale: float = 1.0) -> str:
