@@ -83,6 +83,24 @@ class TimeSeries:
             self._bytes += element.size_bytes
             return self._evict()
 
+    def extend(self, elements: tuple[DataObject, ...]) -> list[DataObject]:
+        """Append strictly increasing elements, all or none, and evict once; the evicted.
+
+        The caller has ordered the batch; only its first element is checked against the
+        series (every later one is newer than the one before it).
+        """
+        with self._lock:
+            self._check_put(elements[0].timestamp_ns, len(elements[0].payload))
+            limit = self.retention.max_payload_bytes
+            for element in elements:
+                if len(element.payload) > limit:
+                    self._check_put(element.timestamp_ns, len(element.payload))
+            for element in elements:
+                self._keys.append(element.timestamp_ns)
+                self._items.append(element)
+                self._bytes += element.size_bytes
+            return self._evict()
+
     def _evict(self) -> list[DataObject]:
         r = self.retention
         evicted: list[DataObject] = []

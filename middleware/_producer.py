@@ -32,6 +32,7 @@ from ._buffer import TimeSeries
 from ._errors import DuplicateTimestampError, FlowControlRefused, FramegateError, SchemaError
 from ._ledger_producer import ProducerLedger, Registration, RegistrationKey, Send
 from ._records import BufferInfo, DataObject, Retention, SubscriptionInfo, SubscriptionMode
+from ._shapes import ShapeChecker
 from ._wire import (
     Keys,
     decode_ack,
@@ -39,7 +40,7 @@ from ._wire import (
     encode_notification_header,
     parse_subscription_token,
 )
-from ._xml import XmlLimits, metadata_timestamp_ns, validate_metadata
+from ._xml import XmlLimits
 
 log = logging.getLogger("framegate.middleware")
 
@@ -91,7 +92,8 @@ class Producer:
         self.kind = kind
         self.series = TimeSeries(retention)
         self.inline_max_bytes = inline_max_bytes
-        self._xml_limits = xml_limits
+        # Validates each element's metadata, in full once per document shape.
+        self._metadata = ShapeChecker(kind, xml_limits)
         self._session = session
         self._keys = keys
         # A new epoch per producer instance; each registration gets "<epoch>.<n>".
@@ -239,18 +241,21 @@ class Producer:
         )
 
     def _checked(self, timestamp_ns: int, payload: bytes, metadata: bytes | str) -> DataObject:
-        try:
-            _check_types(timestamp_ns, payload, metadata)
-        except SchemaError:
-            with self._lock:
-                self._counters.rejected += 1
-            raise
-        meta = metadata.encode("utf-8") if isinstance(metadata, str) else bytes(metadata)
-        if not isinstance(payload, bytes):
+        # The common case (int, bytes, bytes) costs three type checks; the rest is converted.
+        if not (type(payload) is bytes and type(metadata) is bytes and type(timestamp_ns) is int):
+            try:
+                _check_types(timestamp_ns, payload, metadata)
+            except SchemaError:
+                with self._lock:
+                    self._counters.rejected += 1
+                raise
+            metadata = metadata.encode("utf-8") if isinstance(metadata, str) else bytes(metadata)
             payload = bytes(payload)
+        meta: bytes = metadata  # type: ignore[assignment]
         try:
-            root = validate_metadata(meta, self.kind, self._xml_limits)
-            declared = metadata_timestamp_ns(root)
+            if not 0 <= timestamp_ns < 2**63:
+                _check_types(timestamp_ns, payload, meta)
+            declared = self._metadata.timestamp_ns(meta)
             if declared != timestamp_ns:
                 raise SchemaError(
                     f"metadata says timestamp_ns={declared} but the element's key is {timestamp_ns}"
@@ -265,11 +270,9 @@ class Producer:
     def _store(self, elements: tuple[DataObject, ...]) -> list[Send[DataObject]]:
         """(under _lock) Append, count, and get the notifications to send."""
         try:
-            # Only puts append, all under _lock, and a batch strictly increases: if its
-            # first element fits now, every one does, so a batch is stored whole or not at all.
-            self.series.check_put(elements[0].timestamp_ns, len(elements[0].payload))
-            for element in elements:
-                self.series.append(element)
+            # All or nothing: ``extend`` checks the batch (strictly increasing, checked by
+            # the caller) against the series before appending any of it.
+            self.series.extend(elements)
         except FramegateError:
             self._counters.rejected += len(elements)
             raise
