@@ -105,6 +105,13 @@ class TimeSeries:
         r = self.retention
         evicted: list[DataObject] = []
         newest = self._keys[-1]
+        count = len(self._keys) - self._head
+        if (
+            (r.max_count is None or count <= r.max_count)
+            and (r.max_bytes is None or self._bytes <= r.max_bytes)
+            and (r.max_age_ns is None or newest - self._keys[self._head] <= r.max_age_ns)
+        ):
+            return evicted  # the common case of a growing buffer: nothing to check below
         # Always keep the newest element, whatever the limits say.
         while self._count() > 1:
             over_count = r.max_count is not None and self._count() > r.max_count

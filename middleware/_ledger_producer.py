@@ -84,10 +84,18 @@ class RegistrationKey:
     # its own registration's notifications from those of a colliding token. Computed once:
     # every notification sent needs it.
     descriptor: str = field(init=False, compare=False, repr=False)
+    # Keys are looked up several times per put; an Enum field makes the generated hash a
+    # Python call, so it is computed once.
+    _hash: int = field(init=False, compare=False, repr=False)
 
     def __post_init__(self) -> None:
         descriptor = f"{self.mode.value}/{self.queue_size}/{self.push_max_bytes}"
         object.__setattr__(self, "descriptor", descriptor)
+        identity = (self.sub_id, self.mode.value, self.queue_size, self.push_max_bytes)
+        object.__setattr__(self, "_hash", hash(identity))
+
+    def __hash__(self) -> int:
+        return self._hash
 
 
 @dataclass(slots=True)
