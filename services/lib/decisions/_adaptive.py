@@ -21,6 +21,16 @@ When the candidate goes to the detector, by the detector's state:
 - the detector is idle: forward it if it reaches the ``idle_quantile``, else let the
   detector idle for at most ``idle_wait`` frame periods waiting for a better one.
 
+The real-time margin. The mediator decides a frame only once the gyro covers its exposure,
+and while it waits for those samples it forwards nothing, so a held frame cannot go out
+between the next frame's arrival and its decision. "The next frame" therefore comes one
+frame period after this one's exposure plus *its* decision latency, not one period after
+this decision. The policy measures each frame's latency as ``arrived_ns − timestamp_ns``
+(the mediator's clock minus the camera's: an unknown constant offset plus the latency, so
+only the excess over the smallest recent one is used) and expects the next decision at
+this one's time plus a period plus the ``latency_quantile`` of the recent excesses, less
+this frame's own: a held frame the detector would need before then goes now.
+
 A held frame and the frames queued never outnumber the queue's N slots (the experiment's
 oracle bounds every policy under that rule); a full queue drops the candidate. Until the
 decider has measured the service time, the policy forwards when nothing waits, as
@@ -29,6 +39,7 @@ decider has measured the service time, the policy forwards when nothing waits, a
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -49,6 +60,8 @@ class AdaptiveParams:
     idle_quantile: float = 0.1
     idle_wait: float = 0.6
     slack_ns: int = 5_000_000
+    latency_quantile: float = 0.9
+    latency_window: int = 32
 
 
 class AdaptivePolicy:
@@ -59,8 +72,10 @@ class AdaptivePolicy:
     def __init__(self, params: AdaptiveParams | None = None) -> None:
         self.params = params or AdaptiveParams()
         self._free_at_ns: int | None = None  # when the detector finishes what it was given
-        self._last_arrival_ns: int | None = None
+        self._last_arrival_ns: int | None = None  # the last frame's decision (mediator clock)
+        self._last_timestamp_ns: int | None = None
         self._period_ns: int | None = None
+        self._lags: deque[int] = deque(maxlen=self.params.latency_window)
 
     # -- values and thresholds ---------------------------------------------------------------
     def _value(self, frame: Candidate) -> float:
@@ -84,6 +99,17 @@ class AdaptivePolicy:
             if self._value(frame) >= self._value(best) - self.params.recency_q:
                 best = frame
         return best
+
+    def margin_ns(self) -> int:
+        """How much later than one frame period after the last decision the next frame
+        will be decided: the ``latency_quantile`` of the recent latencies, less the last
+        frame's own (0 with no spread; below 0 when the last frame was decided late, so
+        that the next one may already be waiting)."""
+        if len(self._lags) < 4:
+            return 0
+        ranked = sorted(self._lags)
+        high = ranked[min(len(ranked) - 1, int(self.params.latency_quantile * len(ranked)))]
+        return high - self._lags[-1]
 
     # -- the processing clock ----------------------------------------------------------------
     def _needs_at_ns(self, view: View, service_ns: int) -> int:
@@ -120,9 +146,12 @@ class AdaptivePolicy:
         busy = needs_at > view.now_ns
         if busy and load.capacity >= 2 and self._reaches(best, p.busy_quantile, view):
             return self._forward(best, view, "commit-busy")
-        # The next frame comes one period after this arrival (or after the last one).
+        # The next frame is decided one period after this one (or after the last one), plus
+        # the real-time margin: until then nothing held can go out.
         last = self._last_arrival_ns if self._last_arrival_ns is not None else view.now_ns
-        next_arrival = (view.now_ns if arrival else last) + period
+        next_arrival = max(
+            view.now_ns, (view.now_ns if arrival else last) + period + self.margin_ns()
+        )
         if next_arrival <= needs_at + p.slack_ns:
             return None  # another frame comes before the detector needs one
         if self._reaches(best, p.idle_quantile, view):
@@ -151,11 +180,15 @@ class AdaptivePolicy:
 
     # -- the contract ------------------------------------------------------------------------
     def on_frame(self, frame: Candidate, view: View) -> Sequence[Verdict]:
-        last = self._last_arrival_ns
-        if last is not None and frame.arrived_ns > last:
-            step = frame.arrived_ns - last
+        # The frame period from the camera's timestamps (exact); the latency from the gap
+        # between them and the mediator's clock.
+        last = self._last_timestamp_ns
+        if last is not None and frame.timestamp_ns > last:
+            step = frame.timestamp_ns - last
             self._period_ns = step if self._period_ns is None else (7 * self._period_ns + step) // 8
+        self._last_timestamp_ns = frame.timestamp_ns
         self._last_arrival_ns = frame.arrived_ns
+        self._lags.append(frame.arrived_ns - frame.timestamp_ns)
         return self._verdicts([*view.held, frame], frame, view)
 
     def on_tick(self, view: View) -> Sequence[Verdict]:

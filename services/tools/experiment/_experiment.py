@@ -11,18 +11,20 @@ from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
 
+from services.lib.decisions import make_policy
 from services.lib.sim import Dataset
 
 from ._config import MARKER_NAMES, PAPER_TABLE1, ExperimentConfig, RunKind
 from ._datasets import cached_dataset, scenario_for
-from ._frames import FrameOutcome
+from ._frames import FrameOutcome, frame_outcomes
+from ._latency import recorded_latencies
 from ._metrics import blur_pairs, recognized_frames
 from ._pipeline import RunSettings, run_configuration
 from ._plots import plot_gyro_exposures, plot_quality_vs_blur, plot_timeline
 from ._records import RunRecord
-from ._replay import QueueModel
+from ._replay import QueueModel, replay_policy
 from ._stats import captured_fraction, correlations, improvement_pct, json_safe, mean_ci95
-from ._sweep import oracle_counts, period_ns
+from ._sweep import marker_counts, oracle_counts, period_ns
 from ._table import format_table
 
 RESULTS_FILE = "results.json"
@@ -97,6 +99,55 @@ def seed_oracle(
     )
     model = QueueModel(queue=queue, service_ns=round(service_factor * period_ns(frames)))
     return oracle_counts(frames, model)
+
+
+def seed_replay(
+    dataset: Dataset, records: dict[RunKind, RunRecord], config: ExperimentConfig
+) -> dict[str, dict[str, Any]]:
+    """The discrete-event replay of each mediator run on the same frames, fed the decision
+    latencies the filtered (``paper``) run recorded, beside the real run's counts: how far
+    the replay the sweep relies on is from the real pipeline (``real − replay`` per marker)."""
+    filtered = records.get(RunKind.FILTERED)
+    latencies = recorded_latencies(filtered.decisions) if filtered is not None else None
+    frames = frame_outcomes(dataset, config.b0_px)
+    model = QueueModel(
+        queue=config.queue, service_ns=round(config.service_factor * period_ns(frames))
+    )
+    assert dataset.truth is not None
+    out: dict[str, dict[str, Any]] = {}
+    for kind, record in records.items():
+        if kind.policy is None:
+            continue
+        replayed = marker_counts(
+            frames, replay_policy(frames, model, make_policy(kind.policy), latencies)
+        )
+        real = {
+            n: len(ids) for n, ids in recognized_frames(record.detections, dataset.truth).items()
+        }
+        out[kind.value] = {
+            "policy": kind.policy,
+            "replay": replayed,
+            "real": real,
+            "real_minus_replay": {n: real[n] - replayed[n] for n in MARKER_NAMES},
+        }
+    return out
+
+
+def aggregate_replay(seeds: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """Per mediator run and marker: real and replay counts and their difference, mean and
+    95 % CI over seeds."""
+    out: dict[str, dict[str, Any]] = {}
+    runs = sorted({run for seed in seeds for run in seed.get("replay", {})})
+    for run in runs:
+        rows = [seed["replay"][run] for seed in seeds if run in seed.get("replay", {})]
+        out[run] = {"policy": rows[0]["policy"]}
+        for name in MARKER_NAMES:
+            entry: dict[str, Any] = {}
+            for key in ("real", "replay", "real_minus_replay"):
+                estimate = mean_ci95([row[key][name] for row in rows])
+                entry[key] = {"mean": estimate.mean, "ci95": estimate.ci95}
+            out[run][name] = entry
+    return out
 
 
 def aggregate_markers(seeds: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
@@ -215,6 +266,7 @@ def run_experiment(
             "dataset": str(dataset.root),
             "markers": seed_markers(counts),
             "runs": {kind.value: records[kind].summary() for kind in config.runs},
+            "replay": seed_replay(dataset, records, config),
         }
         if RunKind.FILTERED in records:
             estimated, true = blur_pairs(records[RunKind.FILTERED], dataset.truth)
@@ -257,6 +309,7 @@ def _results(
         {
             "markers": markers,
             "policies": policy_summary(markers, config.runs),
+            "replay_vs_real": aggregate_replay(seeds),
             "quality_vs_blur": {
                 "pearson": pearson,
                 "spearman": spearman,

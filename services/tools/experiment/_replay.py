@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import statistics
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 from services.lib.decisions import (
@@ -105,10 +105,20 @@ def replay_uncontrolled(frames: Sequence[FrameOutcome], model: QueueModel) -> tu
 
 
 def replay_policy(
-    frames: Sequence[FrameOutcome], model: QueueModel, policy: Policy
+    frames: Sequence[FrameOutcome],
+    model: QueueModel,
+    policy: Policy,
+    latencies_ns: Mapping[int, int] | None = None,
 ) -> tuple[int, ...]:
     """Frame ids processed when a mediator with ``policy`` sits before the detector: the
-    mediator's own ``Decider`` decides, fed the replay's times and queue counts."""
+    mediator's own ``Decider`` decides, fed the replay's times and queue counts.
+
+    ``latencies_ns`` (frame id -> ns from exposure end to the mediator's decision, e.g. a
+    real run's decision records) makes the mediator decide each frame that much after its
+    exposure ended (never before the previous decision), and, as the real mediator, it is
+    blocked from the frame's arrival until then: it waits for the gyro to cover the
+    exposure, so no held frame goes out meanwhile. Without them every frame is decided the
+    moment it arrives."""
     decider = Decider(policy, Rules(max_hold_ns=model.max_hold_ns))
     detector = _Detector(model)
 
@@ -136,14 +146,19 @@ def replay_policy(
                 next_tick_ns = now + model.tick_ns
 
     next_tick = 0
+    decided = -(2**62)
     for frame in frames:
-        now = frame.arrival_ns
-        run_until(now, next_tick)
+        latency = latencies_ns.get(frame.frame_id, 0) if latencies_ns is not None else 0
+        # Ticks run until the frame arrives (or the last decision, if that was later); then
+        # the mediator waits for its gyro samples.
+        run_until(max(frame.arrival_ns, decided), next_tick)
+        now = max(frame.arrival_ns + max(0, latency), decided)
+        decided = now
         detector.advance(now)
-        candidate = Candidate(frame.frame_id, frame.frame_id, frame.quality, now, frame.blur_px)
+        candidate = Candidate(frame.arrival_ns, frame.frame_id, frame.quality, now, frame.blur_px)
         carry_out(decider.frame(candidate, load(), now), now)
         next_tick = now + model.tick_ns
-    end = frames[-1].arrival_ns if frames else 0
+    end = max(frames[-1].arrival_ns, decided) if frames else 0
     run_until(end + 2 * model.max_hold_ns, next_tick)
     detector.advance(2**62)
     return tuple(detector.processed)

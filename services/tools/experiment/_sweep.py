@@ -3,7 +3,9 @@
 Each (floor, seed) dataset is rendered once (cached by scenario hash, as the experiment
 does) and its frames scored offline (``frame_outcomes``); then every working point is a
 replay of milliseconds: ``uncontrolled``, each causal policy through the mediator's own
-``Decider``, and the offline-optimal ``oracle`` per marker. ``captured`` is
+``Decider`` with the mediator's decision latencies (``--latency measured``: drawn per frame
+as measured on real runs, see ``_latency.py``; ``none``: decided on arrival), and the
+offline-optimal ``oracle`` per marker. ``captured`` is
 (policy − uncontrolled) / (oracle − uncontrolled) per marker and seed, then averaged.
 """
 
@@ -20,6 +22,7 @@ from services.lib.quality import DEFAULT_B0_PX
 from ._config import MARKER_NAMES, ExperimentError
 from ._datasets import cached_dataset, scenario_for
 from ._frames import FrameOutcome, frame_outcomes
+from ._latency import LATENCY_MODES, measured_latencies
 from ._oracle import optimal_schedule
 from ._replay import QueueModel, replay_policy, replay_uncontrolled
 from ._stats import captured_fraction, improvement_pct, json_safe, mean_ci95
@@ -44,10 +47,15 @@ class SweepConfig:
     frames: int | None = None
     cache: Path | None = None
     progress: bool = True
+    latency: str = "measured"
 
     def __post_init__(self) -> None:
         if not self.seeds or not self.floors or not self.queues or not self.factors:
             raise ExperimentError("a sweep needs at least one seed, floor, queue and factor")
+        if self.latency not in LATENCY_MODES:
+            raise ExperimentError(
+                f"latency {self.latency!r}: use one of {', '.join(LATENCY_MODES)}"
+            )
         for policy in self.policies:
             make_policy(policy)  # fails early, naming the policies there are
 
@@ -83,13 +91,19 @@ def oracle_counts(frames: tuple[FrameOutcome, ...], model: QueueModel) -> dict[s
 
 
 def working_point(
-    frames: tuple[FrameOutcome, ...], queue: int, factor: float, policies: tuple[str, ...]
+    frames: tuple[FrameOutcome, ...],
+    queue: int,
+    factor: float,
+    policies: tuple[str, ...],
+    latencies_ns: dict[int, int] | None = None,
 ) -> dict[str, dict[str, int]]:
-    """Counts per run (uncontrolled, each policy, oracle) and marker at one working point."""
+    """Counts per run (uncontrolled, each policy, oracle) and marker at one working point;
+    the mediator decides each frame ``latencies_ns[frame_id]`` after its exposure ended."""
     model = QueueModel(queue=queue, service_ns=round(factor * period_ns(frames)))
     counts = {"uncontrolled": marker_counts(frames, replay_uncontrolled(frames, model))}
     for policy in policies:
-        counts[policy] = marker_counts(frames, replay_policy(frames, model, make_policy(policy)))
+        processed = replay_policy(frames, model, make_policy(policy), latencies_ns)
+        counts[policy] = marker_counts(frames, processed)
     for key in list(counts):
         counts[key]["total"] = sum(counts[key][name] for name in MARKER_NAMES)
     counts["oracle"] = oracle_counts(frames, model)
@@ -138,9 +152,10 @@ def run_sweep(config: SweepConfig, *, log: Any = None) -> dict[str, Any]:
             )
             frames = frame_outcomes(dataset, config.b0_px)
             say(f"floor {floor} seed {seed}: {len(frames)} frames scored")
+            latencies = measured_latencies(frames, seed) if config.latency == "measured" else None
             for queue in config.queues:
                 for factor in config.factors:
-                    counts = working_point(frames, queue, factor, config.policies)
+                    counts = working_point(frames, queue, factor, config.policies, latencies)
                     per_seed.setdefault((queue, factor), []).append(counts)
         for (queue, factor), rows in per_seed.items():
             points.append(
@@ -162,6 +177,7 @@ def run_sweep(config: SweepConfig, *, log: Any = None) -> dict[str, Any]:
             "policies": list(config.policies),
             "b0_px": config.b0_px,
             "frames": config.frames,
+            "latency": config.latency,
         },
         "points": points,
     }
@@ -190,7 +206,8 @@ def format_sweep(results: dict[str, Any]) -> str:
     lines = [
         "# Sweep: floors × queue N × service factor (discrete-event replay)",
         "",
-        f"Seeds {', '.join(map(str, seeds))}; mean ± 95 % CI over seeds. Counts are frames "
+        f"Seeds {', '.join(map(str, seeds))}; mediator decision latency "
+        f"{results['config'].get('latency', 'none')}; mean ± 95 % CI over seeds. Counts are frames "
         "with the marker recognized; *captured* = (policy − uncontrolled) / (oracle − "
         "uncontrolled) in %, per seed then averaged (seeds where the oracle gains nothing "
         "are left out); *oracle* is the offline optimum for that marker.",

@@ -77,6 +77,7 @@ def format_table(results: Mapping[str, Any]) -> str:
             f"{paper['improvement_pct']:+.1f} | - | - | - |"
         )
     lines += _captured_section(results, n)
+    lines += _replay_section(results)
     lines += ["", "## Per seed", ""]
     lines += [
         "| Seed | Marker | Recognizable | Uncontrolled | Filtered | Improvement % "
@@ -142,6 +143,36 @@ def _captured_section(results: Mapping[str, Any], n: int) -> list[str]:
             f"{_share(row.get('beyond_captured'))} |"
         )
     return lines
+
+
+def _replay_section(results: Mapping[str, Any]) -> list[str]:
+    comparison = results.get("replay_vs_real") or {}
+    if not comparison:
+        return []
+    lines = [
+        "",
+        "## The real pipeline against the replay",
+        "",
+        "Each mediator run replayed by the discrete-event model the sweep uses, on the same "
+        "frames, with the decision latencies the filtered run recorded. *Real − replay* "
+        "per seed, then averaged.",
+        "",
+        "| Run | Policy | Marker | Real | Replay | Real − replay |",
+        "|---|---|---|--:|--:|--:|",
+    ]
+    for run, entry in comparison.items():
+        for name in MARKER_NAMES:
+            row = entry[name]
+            cells = [_mean_ci(row[key]) for key in ("real", "replay", "real_minus_replay")]
+            lines.append(f"| {run} | `{entry['policy']}` | {name} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def _mean_ci(entry: Mapping[str, Any]) -> str:
+    if entry.get("mean") is None:
+        return "-"
+    text = f"{entry['mean']:.1f}"
+    return text + (f" ± {entry['ci95']:.1f}" if entry.get("ci95") is not None else "")
 
 
 def _runs_section(seeds: list[Mapping[str, Any]]) -> list[str]:

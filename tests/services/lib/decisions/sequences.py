@@ -84,15 +84,21 @@ def run_detector(
     service_ns: int,
     capacity: int,
     tick_ns: int = MS,
+    latencies_ns: list[int] | None = None,
 ) -> QueueRun:
     """Frames every ``frame_period_ns`` into ``decider``; a FIFO detector with ``capacity``
-    waiting slots takes one frame at a time for ``service_ns``. Ticks every ``tick_ns``."""
+    waiting slots takes one frame at a time for ``service_ns``. Ticks every ``tick_ns``.
+
+    Frame i (numbered from 1, its ``frame_id``) is exposed at (i - 1) periods (its
+    ``timestamp_ns``, the camera's clock) and decided ``latencies_ns[i - 1]`` later (0 by
+    default); ``processed`` holds frame ids."""
     run = QueueRun()
     queue: list[int] = []
     busy_until: int | None = None
     events: list[tuple[int, int, str]] = []
     for i in range(len(qualities)):
-        heapq.heappush(events, (i * frame_period_ns, 1, "frame"))
+        late = latencies_ns[i] if latencies_ns is not None else 0
+        heapq.heappush(events, (i * frame_period_ns + late, 1, "frame"))
     end_ns = len(qualities) * frame_period_ns + (capacity + 2) * service_ns + 10 * tick_ns
     t = 0
     while t <= end_ns:
@@ -111,7 +117,7 @@ def run_detector(
         if kind == "frame":
             q = qualities[index]
             index += 1
-            frame = Candidate(index, index, q, arrived_ns=now)
+            frame = Candidate((index - 1) * frame_period_ns, index, q, arrived_ns=now)
             verdicts = decider.frame(frame, load, now)
         else:
             verdicts = decider.tick(load, now)
@@ -119,7 +125,7 @@ def run_detector(
             run.verdicts.append(verdict)
             if verdict.action is Action.FORWARD:
                 assert len(queue) < capacity, "forwarded into a full queue"
-                queue.append(verdict.frame.timestamp_ns)
+                queue.append(verdict.frame.frame_id)
         if busy_until is None and queue:
             run.processed.append(queue.pop(0))
             busy_until = now + service_ns

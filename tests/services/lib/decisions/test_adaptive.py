@@ -6,7 +6,16 @@ import random
 
 import pytest
 
-from services.lib.decisions import POLICIES, Action, Decider, Rules, make_policy
+from services.lib.decisions import (
+    POLICIES,
+    Action,
+    AdaptivePolicy,
+    Candidate,
+    Decider,
+    Load,
+    Rules,
+    make_policy,
+)
 
 from .sequences import MS, run_detector
 
@@ -28,7 +37,7 @@ def test_held_and_queued_frames_never_outnumber_the_queue(capacity: int) -> None
         _adaptive(), qualities, frame_period_ns=33 * MS, service_ns=53 * MS, capacity=capacity
     )
     assert run.max_waiting <= capacity
-    finals = {v.frame.timestamp_ns for v in run.verdicts if v.action is not Action.HOLD}
+    finals = {v.frame.frame_id for v in run.verdicts if v.action is not Action.HOLD}
     assert len(finals) == len(qualities)  # every frame gets a final verdict
 
 
@@ -58,3 +67,27 @@ def test_it_measures_the_service_time_and_keeps_the_detector_busy() -> None:
     assert decider.detector.service_ns == 53 * MS
     # One frame per service time, as many as the detector can process.
     assert len(run.processed) >= 0.95 * 200 * 33 / 53
+
+
+def test_the_real_time_margin_is_a_high_quantile_of_recent_latencies_less_the_last() -> None:
+    # Latency = the mediator's clock minus the camera's (any constant offset cancels).
+    decider = _adaptive()
+    policy = decider.policy
+    assert isinstance(policy, AdaptivePolicy)
+    offset = 5_000 * MS
+    for i, lag_ms in enumerate([10] * 6 + [60] * 2 + [10]):
+        ts = i * 33 * MS
+        decider.frame(Candidate(ts, i + 1, 0.9, ts + offset + lag_ms * MS), Load(0, 2), ts)
+    # Next frame: one period after this one's exposure, decided up to 60 ms after it, where
+    # this one took 10 ms: 50 ms later than one period after this decision.
+    assert policy.margin_ns() == 50 * MS
+
+
+def test_without_latency_spread_there_is_no_margin() -> None:
+    decider = _adaptive()
+    policy = decider.policy
+    assert isinstance(policy, AdaptivePolicy)
+    for i in range(20):
+        ts = i * 33 * MS
+        decider.frame(Candidate(ts, i + 1, 0.9, ts + 12 * MS), Load(0, 2), ts)
+    assert policy.margin_ns() == 0

@@ -108,7 +108,7 @@ def test_replace_uses_every_queue_slot(capacity: int) -> None:
     )
     assert run.max_queued == capacity
     assert run.max_waiting == capacity + 0  # held + queued never exceeds the queue size
-    finals = {v.frame.timestamp_ns: v for v in run.verdicts if v.action is not Action.HOLD}
+    finals = {v.frame.frame_id: v for v in run.verdicts if v.action is not Action.HOLD}
     assert len(finals) == len(qualities)  # every frame gets a final verdict
 
 
@@ -143,8 +143,8 @@ def test_replace_decides_every_frame_exactly_once_finally() -> None:
         service_ns=35 * MS,
         capacity=2,
     )
-    finals = [v.frame.timestamp_ns for v in run.verdicts if v.action is not Action.HOLD]
+    finals = [v.frame.frame_id for v in run.verdicts if v.action is not Action.HOLD]
     assert sorted(finals) == list(range(1, 101))
-    forwarded = [v.frame.timestamp_ns for v in run.verdicts if v.action is Action.FORWARD]
+    forwarded = [v.frame.frame_id for v in run.verdicts if v.action is Action.FORWARD]
     assert forwarded == sorted(forwarded)
     assert run.processed == forwarded
