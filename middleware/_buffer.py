@@ -83,6 +83,18 @@ class TimeSeries:
             self._bytes += element.size_bytes
             return self._evict()
 
+    def check_extend(self, elements: tuple[DataObject, ...]) -> None:
+        """Raise if ``extend(elements)`` could not append them now (see ``extend``)."""
+        with self._lock:
+            self._check_extend(elements)
+
+    def _check_extend(self, elements: tuple[DataObject, ...]) -> None:
+        limit = self.retention.max_payload_bytes
+        for element in elements:
+            if len(element.payload) > limit:
+                self._check_put(element.timestamp_ns, len(element.payload))
+        self._check_put(elements[0].timestamp_ns, len(elements[0].payload))
+
     def extend(self, elements: tuple[DataObject, ...]) -> list[DataObject]:
         """Append strictly increasing elements, all or none, and evict once; the evicted.
 
@@ -90,44 +102,44 @@ class TimeSeries:
         series (every later one is newer than the one before it).
         """
         with self._lock:
-            self._check_put(elements[0].timestamp_ns, len(elements[0].payload))
-            limit = self.retention.max_payload_bytes
-            for element in elements:
-                if len(element.payload) > limit:
-                    self._check_put(element.timestamp_ns, len(element.payload))
-            for element in elements:
-                self._keys.append(element.timestamp_ns)
-                self._items.append(element)
-                self._bytes += element.size_bytes
+            self._check_extend(elements)
+            self._keys.extend([e.timestamp_ns for e in elements])
+            self._items.extend(elements)
+            self._bytes += sum([len(e.payload) + len(e.metadata) for e in elements])
             return self._evict()
 
     def _evict(self) -> list[DataObject]:
         r = self.retention
+        keys, items = self._keys, self._items
+        newest, head, held = keys[-1], self._head, self._bytes
+        # How far the head must move for each limit; the newest element always stays.
+        end = len(keys) - 1
+        target = head
+        if r.max_count is not None:
+            target = max(target, len(keys) - r.max_count)
+        if r.max_age_ns is not None and newest - keys[head] > r.max_age_ns:
+            target = max(target, bisect_left(keys, newest - r.max_age_ns, head))
+        target = min(target, end)
         evicted: list[DataObject] = []
-        newest = self._keys[-1]
-        count = len(self._keys) - self._head
-        if (
-            (r.max_count is None or count <= r.max_count)
-            and (r.max_bytes is None or self._bytes <= r.max_bytes)
-            and (r.max_age_ns is None or newest - self._keys[self._head] <= r.max_age_ns)
-        ):
-            return evicted  # the common case of a growing buffer: nothing to check below
-        # Always keep the newest element, whatever the limits say.
-        while self._count() > 1:
-            over_count = r.max_count is not None and self._count() > r.max_count
-            over_bytes = r.max_bytes is not None and self._bytes > r.max_bytes
-            over_age = r.max_age_ns is not None and newest - self._keys[self._head] > r.max_age_ns
-            if not (over_count or over_bytes or over_age):
-                break
-            item = self._items[self._head]
+        for i in range(head, target):
+            item = items[i]
             assert item is not None
-            self._items[self._head] = None
-            self._head += 1
-            self._bytes -= item.size_bytes
+            items[i] = None
+            held -= len(item.payload) + len(item.metadata)
             evicted.append(item)
-        if self._head >= _COMPACT_MIN and self._head * 2 >= len(self._keys):
-            del self._keys[: self._head]
-            del self._items[: self._head]
+        head = target
+        if r.max_bytes is not None:
+            while held > r.max_bytes and head < end:
+                item = items[head]
+                assert item is not None
+                items[head] = None
+                held -= len(item.payload) + len(item.metadata)
+                evicted.append(item)
+                head += 1
+        self._head, self._bytes = head, held
+        if head >= _COMPACT_MIN and head * 2 >= len(keys):
+            del keys[:head]
+            del items[:head]
             self._head = 0
         return evicted
 

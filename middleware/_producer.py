@@ -200,6 +200,13 @@ class Producer:
         self._put(checked, wait_s)
 
     def _put(self, elements: tuple[DataObject, ...], wait_s: float) -> None:
+        # Checked now too, so that an element that can never be stored is not waited for.
+        try:
+            self.series.check_extend(elements)
+        except FramegateError:
+            with self._lock:
+                self._counters.rejected += len(elements)
+            raise
         count = len(elements)
         deadline = time.monotonic() + wait_s
         with self._send_lock:
@@ -260,7 +267,6 @@ class Producer:
                 raise SchemaError(
                     f"metadata says timestamp_ns={declared} but the element's key is {timestamp_ns}"
                 )
-            self.series.check_put(timestamp_ns, len(payload))
         except FramegateError:
             with self._lock:
                 self._counters.rejected += 1
