@@ -22,11 +22,14 @@ from services.lib.messages import DecisionRecord
 
 from ._frames import FrameOutcome
 
-MEASURED_LATENCY_MS: tuple[float, ...] = (
-    6.8, 8.0, 8.7, 9.7, 10.9, 11.7, 12.2, 12.8, 13.6, 14.3,
-    14.7, 15.0, 15.5, 15.9, 16.7, 17.8, 19.9, 23.2, 29.0, 40.9, 361.9,
+MEASURED_LATENCY_MS: tuple[tuple[float, float], ...] = (
+    (0.00, 6.8), (0.05, 8.0), (0.10, 8.7), (0.15, 9.7), (0.20, 10.9), (0.25, 11.7),
+    (0.30, 12.2), (0.35, 12.8), (0.40, 13.6), (0.45, 14.3), (0.50, 14.7), (0.55, 15.0),
+    (0.60, 15.5), (0.65, 15.9), (0.70, 16.7), (0.75, 17.8), (0.80, 19.9), (0.85, 23.2),
+    (0.90, 29.0), (0.95, 40.9), (0.96, 44.7), (0.97, 51.5), (0.98, 64.4), (0.99, 115.7),
+    (1.00, 361.9),
 )  # fmt: skip
-"""Decision latency quantiles 0, 5, ..., 95 % and the maximum, in ms (see the docstring)."""
+"""(quantile, decision latency in ms) of the measured records (see the module docstring)."""
 
 LATENCY_MODES = ("measured", "none")
 
@@ -34,15 +37,16 @@ _NO_HOLD_REASONS = frozenset({"quality>load", "quality<=load"})
 
 
 def measured_latencies(frames: Sequence[FrameOutcome], seed: int) -> dict[int, int]:
-    """A latency per frame id drawn from ``MEASURED_LATENCY_MS`` (uniform between two
-    adjacent quantiles), the same for the same frames and seed."""
+    """A latency per frame id drawn from ``MEASURED_LATENCY_MS`` (the quantile function,
+    linear between the measured quantiles), the same for the same frames and seed."""
     rng = random.Random(seed)
     table = MEASURED_LATENCY_MS
     out = {}
     for frame in frames:
-        u = rng.random() * (len(table) - 1)
-        low = int(u)
-        value_ms = table[low] + (u - low) * (table[low + 1] - table[low])
+        u = rng.random()
+        upper = next(i for i in range(1, len(table)) if table[i][0] >= u)
+        (p0, v0), (p1, v1) = table[upper - 1], table[upper]
+        value_ms = v0 + (u - p0) / (p1 - p0) * (v1 - v0)
         out[frame.frame_id] = round(value_ms * 1e6)
     return out
 
