@@ -22,7 +22,7 @@ import zenoh
 from ._errors import FramegateError
 from ._ledger_subscriber import REACK_NS, AckPolicy, Entry, SubscriberCounters, SubscriberLedger
 from ._records import DataObject, Notification, SubscriptionMode
-from ._wire import Keys, decode_notification_header, encode_ack
+from ._wire import BatchHeader, Header, Keys, decode_notification_header, encode_ack
 
 # A push limit larger than any payload: everything travels with its notification.
 PUSH_ALL = 2**31 - 1
@@ -42,10 +42,12 @@ class Subscription:
     from its liveliness token under a new epoch, and the ledger tracks every epoch it meets.
 
     Threads: ``_on_notification`` runs on Zenoh's thread; it decodes the header, then takes
-    ``_cond`` only to feed the ledger, and never calls Zenoh nor copies the payload (``take``
-    does, on the caller's thread). ``_cond`` guards the ledger and
-    ``garbage``; acks are computed under it and sent after releasing it (``take`` on the
-    caller's thread), so a blocking ack put never holds a lock the callback needs.
+    ``_lock`` once to feed the ledger, and never calls Zenoh nor copies a single element's
+    payload (``take`` does, on the caller's thread). ``_lock`` guards the ledger, ``garbage``
+    and ``_waiting`` (callers blocked in ``_cond``, a condition on ``_lock``: the callback
+    notifies only when someone waits). Acks are computed under the lock and sent after
+    releasing it (``take`` on the caller's thread), so a blocking ack put never holds a lock
+    the callback needs.
     """
 
     def __init__(
@@ -72,7 +74,9 @@ class Subscription:
         self._keys = keys
         self._fetch = fetch
         self._on_close = on_close
-        self._cond = threading.Condition(threading.Lock())
+        self._lock = threading.Lock()
+        self._cond = threading.Condition(self._lock)
+        self._waiting = 0
         self._ledger: SubscriberLedger[_Item] = SubscriberLedger(
             mode,
             queue_size,
@@ -103,13 +107,13 @@ class Subscription:
     @property
     def missed_total(self) -> int:
         """Notifications lost so far (observers only: flow control loses none)."""
-        with self._cond:
+        with self._lock:
             return self._ledger.missed_total
 
     @property
     def counters(self) -> SubscriberCounters:
         """Notifications ignored so far, by reason (foreign, duplicate, out of order, ...)."""
-        with self._cond:
+        with self._lock:
             c = self._ledger.counters
             return SubscriberCounters(c.foreign, c.invalid, c.out_of_order, c.duplicates, c.refused)
 
@@ -118,25 +122,37 @@ class Subscription:
             attachment = sample.attachment
             if attachment is None:
                 raise ValueError("notification without a header")
-            body = decode_notification_header(attachment.to_bytes())
-            if "n" in body:
-                items = _batch_items(body, sample.payload)
+            head = decode_notification_header(attachment.to_bytes())
+            if isinstance(head, Header):
+                metadata = head.metadata
+                pushed = sample.payload if head.pushed and metadata is not None else None
+                item: _Item = (head.timestamp_ns, metadata, pushed)
+                items = None
             else:
-                timestamp, metadata = body["t"], body.get("m")
-                pushed = sample.payload if body["p"] and metadata is not None else None
-                items = [(timestamp, metadata, pushed)]
+                items = _batch_items(head, sample.payload)
         except Exception:  # garbage on our key is counted, never raised into Zenoh
-            with self._cond:
+            with self._lock:
                 self.garbage += 1
             return
-        with self._cond:
-            if self._ledger.receive_many(body["e"], body["s"], items, descriptor=body.get("k")):
+        with self._lock:
+            if items is None:
+                queued = self._ledger.receive(
+                    head.epoch, head.seq, item, descriptor=head.descriptor
+                )
+            else:
+                queued = (
+                    self._ledger.receive_many(
+                        head.epoch, head.seq, items, descriptor=head.descriptor
+                    )
+                    > 0
+                )
+            if queued and self._waiting:
                 self._cond.notify_all()
 
     @property
     def pending(self) -> int:
         """Notifications waiting in this process's queue."""
-        with self._cond:
+        with self._lock:
             return len(self._ledger)
 
     def take(self, *, timeout_s: float | None = None) -> Notification | None:
@@ -155,21 +171,32 @@ class Subscription:
         if max_count < 1:
             raise FramegateError(f"max_count must be >= 1, got {max_count}")
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        ledger = self._ledger
         while True:
-            with self._cond:
-                entries: list[Entry[_Item]] = []
-                while len(entries) < max_count and (entry := self._ledger.take()) is not None:
-                    entries.append(entry)
-                idle = not entries
-                acks = self._ledger.acks_due(time.monotonic_ns(), idle=idle)
-                if idle and not acks:
-                    if self._closed:
-                        return []
-                    remaining = None if deadline is None else deadline - time.monotonic()
-                    if remaining is not None and remaining <= 0:
-                        return []
-                    self._cond.wait(_REACK_S if remaining is None else min(remaining, _REACK_S))
-                    continue
+            with self._lock:
+                entry = ledger.take()
+                if entry is not None:
+                    entries = [entry]
+                    while len(entries) < max_count and (entry := ledger.take()) is not None:
+                        entries.append(entry)
+                    acks = ledger.acks_due(time.monotonic_ns(), idle=False)
+                else:
+                    entries = []
+                    acks = ledger.acks_due(time.monotonic_ns(), idle=True)
+                    if not acks:
+                        if self._closed:
+                            return []
+                        wait_s = _REACK_S
+                        if deadline is not None:
+                            wait_s = min(deadline - time.monotonic(), _REACK_S)
+                            if wait_s <= 0:
+                                return []
+                        self._waiting += 1
+                        try:
+                            self._cond.wait(wait_s)
+                        finally:
+                            self._waiting -= 1
+                        continue
             for epoch, seq in acks:
                 with contextlib.suppress(zenoh.ZError):
                     self._ack_publisher.put(encode_ack(epoch, seq))
@@ -183,13 +210,7 @@ class Subscription:
             payload = pushed if isinstance(pushed, bytes) else pushed.to_bytes()
             element = DataObject(timestamp, payload, metadata)
         return Notification(
-            self.service,
-            self.buffer,
-            timestamp,
-            entry.seq,
-            metadata=metadata,
-            element=element,
-            missed=entry.missed,
+            self.service, self.buffer, timestamp, entry.seq, metadata, element, entry.missed
         )
 
     def __iter__(self) -> Iterator[Notification]:
@@ -210,7 +231,7 @@ class Subscription:
         if self._closed:
             return
         self._closed = True
-        with self._cond:
+        with self._lock:
             self._cond.notify_all()
         for entity in (self._token, self._subscriber, self._ack_publisher):
             with contextlib.suppress(zenoh.ZError):
@@ -225,12 +246,12 @@ class Subscription:
         self.close()
 
 
-def _batch_items(body: dict[str, Any], payload: zenoh.ZBytes) -> list[_Item]:
+def _batch_items(head: BatchHeader, payload: zenoh.ZBytes) -> list[_Item]:
     """The elements of a decoded batch notification, payloads cut out when pushed."""
-    times, metas = body["t"], body["m"]
-    if not body["p"]:
+    times, metas, sizes = head.timestamps_ns, head.metadata, head.payload_sizes
+    if sizes is None:
         return [(t, m, None) for t, m in zip(times, metas, strict=True)]
-    raw, sizes = payload.to_bytes(), body["l"]
+    raw = payload.to_bytes()
     if sum(sizes) != len(raw):
         raise ValueError("batch payload sizes do not add up to the payload")
     items: list[_Item] = []

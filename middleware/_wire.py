@@ -12,13 +12,14 @@ Keys (``ns`` is the namespace, ``framegate`` by default):
 ``@`` chunks are verbatim in Zenoh: wildcards never match them, so ``ns/**`` sees data only.
 Element replies carry the raw payload; the attachment is msgpack ``{"t": int, "m": str}``
 (timestamp_ns, metadata XML). A notification's Zenoh payload is the element's payload when it
-is pushed (else empty) and its attachment a msgpack header; acks are msgpack maps.
+is pushed (else empty) and its attachment a msgpack array (the header, decoded once per
+notification on the subscriber's hot path); acks are msgpack maps.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import NamedTuple
 
 import msgpack
 
@@ -118,6 +119,30 @@ def decode_element(payload: bytes, attachment: bytes | None) -> DataObject:
         raise QueryError(f"reply attachment is not a framegate element header: {exc}") from exc
 
 
+class Header(NamedTuple):
+    """A decoded single-element notification header (see ``encode_notification_header``)."""
+
+    epoch: str
+    seq: int
+    timestamp_ns: int
+    metadata: bytes | None
+    pushed: bool
+    acked: int | None
+    descriptor: str | None
+
+
+class BatchHeader(NamedTuple):
+    """A decoded batch notification header (see ``encode_batch_header``)."""
+
+    epoch: str
+    seq: int
+    timestamps_ns: tuple[int, ...]
+    metadata: tuple[bytes | None, ...]
+    payload_sizes: tuple[int, ...] | None
+    acked: int | None
+    descriptor: str | None
+
+
 def encode_notification_header(
     epoch: str,
     seq: int,
@@ -128,19 +153,19 @@ def encode_notification_header(
     acked: int | None = None,
     descriptor: str | None = None,
 ) -> bytes:
-    """The attachment of a notification: {"e": registration epoch, "s": seq (1, 2, ... per
-    registration), "t": timestamp_ns, "m": metadata (bytes, optional), "p": true when the
-    Zenoh payload is the element's payload (pushed), false when it is empty, "a": the
-    producer's ack count when sent (the window base), "k": the registration's
-    ``mode/N/push`` (both optional for older peers)}."""
-    body: dict[str, Any] = {"e": epoch, "s": seq, "t": timestamp_ns, "p": pushed}
-    if metadata is not None:
-        body["m"] = metadata
-    if acked is not None:
-        body["a"] = acked
-    if descriptor is not None:
-        body["k"] = descriptor
-    return bytes(msgpack.packb(body, use_bin_type=True))
+    """The attachment of a notification, a msgpack array of 7: ``[epoch (str), seq (int, 1,
+    2, ... per registration), timestamp_ns (int), metadata (bin or nil), pushed (bool: the
+    Zenoh payload is the element's payload; else it is empty), acked (the producer's ack
+    count when sent, the window base; int or nil), descriptor (the registration's
+    ``mode/N/push``; str or nil)]``.
+
+    An array, not a map: the subscriber decodes it in a third of the time, without a dict.
+    """
+    return bytes(
+        msgpack.packb(
+            (epoch, seq, timestamp_ns, metadata, pushed, acked, descriptor), use_bin_type=True
+        )
+    )
 
 
 def encode_batch_header(
@@ -153,80 +178,64 @@ def encode_batch_header(
     acked: int | None = None,
     descriptor: str | None = None,
 ) -> bytes:
-    """The attachment of a batch notification, n elements of seqs ``seq .. seq + n - 1``:
-    like a single one, but with {"n": n, "t": [timestamp_ns, ...], "m": [metadata or nil,
-    ...]} and, when pushed ("p" true), "l": [payload size, ...]: the Zenoh payload is then
-    the elements' payloads one after another."""
-    body: dict[str, Any] = {
-        "e": epoch,
-        "s": seq,
-        "n": len(timestamps_ns),
-        "t": timestamps_ns,
-        "m": metadata,
-        "p": payload_sizes is not None,
-    }
-    if payload_sizes is not None:
-        body["l"] = payload_sizes
-    if acked is not None:
-        body["a"] = acked
-    if descriptor is not None:
-        body["k"] = descriptor
-    return bytes(msgpack.packb(body, use_bin_type=True))
+    """The attachment of a batch notification, n elements of seqs ``seq .. seq + n - 1``: like
+    a single one, an array of 7, but ``[epoch, seq, [timestamp_ns] * n, [metadata or nil] *
+    n, [payload size] * n or nil, acked, descriptor]``. The third item being an array is what
+    makes it a batch. With payload sizes (pushed) the Zenoh payload is the elements'
+    payloads one after another; without (nil) it is empty."""
+    return bytes(
+        msgpack.packb(
+            (epoch, seq, timestamps_ns, metadata, payload_sizes, acked, descriptor),
+            use_bin_type=True,
+        )
+    )
 
 
-def _is_int(value: object) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool)
-
-
-def _check_batch(body: dict[str, Any]) -> None:
-    n, times, metas = body["n"], body.get("t"), body.get("m")
-    if not _is_int(n) or n < 1:
-        raise ValueError("batch notification count must be an int >= 1")
-    if not isinstance(times, list) or len(times) != n or not all(map(_is_int, times)):
-        raise ValueError("batch notification needs n integer timestamps")
-    if not isinstance(metas, list) or len(metas) != n:
+def _check_batch(head: BatchHeader) -> BatchHeader:
+    n = len(head.timestamps_ns)
+    if n < 1 or not all(type(t) is int for t in head.timestamps_ns):
+        raise ValueError("batch notification needs integer timestamps, at least one")
+    metas = head.metadata
+    if type(metas) is not tuple or len(metas) != n:
         raise ValueError("batch notification needs n metadata entries")
-    if not all(m is None or isinstance(m, bytes) for m in metas):
-        raise ValueError("batch notification metadata must be bytes or nil")
-    if not isinstance(body.get("p"), bool):
-        raise ValueError("notification lacks push flag")
-    sizes = body.get("l")
-    if body["p"] and (
-        not isinstance(sizes, list)
+    if not all(m is None or type(m) is bytes for m in metas):
+        raise ValueError("batch notification metadata must be bin or nil")
+    sizes = head.payload_sizes
+    if sizes is not None and (
+        type(sizes) is not tuple
         or len(sizes) != n
-        or not all(_is_int(x) and x >= 0 for x in sizes)
+        or not all(type(x) is int and x >= 0 for x in sizes)
     ):
-        raise ValueError("pushed batch notification needs n payload sizes")
+        raise ValueError("pushed batch notification needs n payload sizes >= 0")
+    return head
 
 
-def decode_notification_header(raw: bytes) -> dict[str, Any]:
+def decode_notification_header(raw: bytes) -> Header | BatchHeader:
     """Decode and type-check a notification header (single or batch, see
-    ``encode_batch_header``); ValueError if it is garbage."""
-    body = msgpack.unpackb(raw, raw=False)
-    if not isinstance(body, dict):
-        raise ValueError("notification header is not a map")
-    if "n" in body:
-        if not isinstance(body.get("e"), str) or not _is_int(body.get("s")):
-            raise ValueError("notification lacks epoch or seq")
-        _check_batch(body)
-        if "a" in body and not _is_int(body["a"]):
-            raise ValueError("notification window base is not an int")
-        if "k" in body and not isinstance(body["k"], str):
-            raise ValueError("notification registration descriptor is not a str")
-        return body
-    if not isinstance(body.get("e"), str) or not isinstance(body.get("s"), int):
+    ``encode_notification_header`` and ``encode_batch_header``); ValueError if it is garbage.
+
+    Only the types are checked here (``type(x) is int`` also refuses bools); what the values
+    mean for the protocol (epochs, seqs, descriptors) is the ledger's to judge.
+    """
+    body = msgpack.unpackb(raw, use_list=False)
+    if type(body) is not tuple or len(body) != 7:
+        raise ValueError("notification header is not an array of 7")
+    epoch, seq, stamp, metadata, pushed, acked, descriptor = body
+    if type(epoch) is not str or type(seq) is not int:
         raise ValueError("notification lacks epoch or seq")
-    if not isinstance(body.get("t"), int) or not isinstance(body.get("p"), bool):
-        raise ValueError("notification lacks timestamp or push flag")
-    if "m" in body and not isinstance(body["m"], bytes):
-        raise ValueError("notification metadata is not bytes")
-    if "a" in body and (not isinstance(body["a"], int) or isinstance(body["a"], bool)):
+    if acked is not None and type(acked) is not int:
         raise ValueError("notification window base is not an int")
-    if "k" in body and not isinstance(body["k"], str):
+    if descriptor is not None and type(descriptor) is not str:
         raise ValueError("notification registration descriptor is not a str")
-    if isinstance(body["s"], bool) or isinstance(body["t"], bool):
-        raise ValueError("notification seq and timestamp must be ints")
-    return body
+    if type(stamp) is int:
+        if type(pushed) is not bool:
+            raise ValueError("notification lacks push flag")
+        if metadata is not None and type(metadata) is not bytes:
+            raise ValueError("notification metadata is not bin")
+        return tuple.__new__(Header, body)
+    if type(stamp) is tuple:
+        return _check_batch(tuple.__new__(BatchHeader, body))
+    raise ValueError("notification timestamp is neither an int nor an array")
 
 
 def encode_ack(epoch: str, seq: int) -> bytes:

@@ -165,15 +165,17 @@ def forged_notification(rng: random.Random, epoch: str | None, descriptor: str) 
         seq = rng.choice([1, rng.randint(10**6, 2**40)])
     else:
         epoch, seq = rng.choice(["x", "0.1", "ffff.1"]), rng.choice([1, 2, rng.randint(1, 99)])
-    body: dict[str, object] = {
-        "e": epoch,
-        "s": seq,
-        "t": 2 * rng.randint(0, 2**40) + 1,  # odd: never one of the fuzzer's own timestamps
-        "p": rng.random() < 0.5,
-        "m": f'<metadata {NS} kind="generic" timestamp_ns="1"/>'.encode(),
-    }
+    body: list[object] = [  # epoch, seq, timestamp_ns, metadata, pushed, acked, descriptor
+        epoch,
+        seq,
+        2 * rng.randint(0, 2**40) + 1,  # odd: never one of the fuzzer's own timestamps
+        f'<metadata {NS} kind="generic" timestamp_ns="1"/>'.encode(),
+        rng.random() < 0.5,
+        None,
+        None,
+    ]
     if rng.random() < 0.5:
-        body["k"] = descriptor if rng.random() < 0.5 else "observe/1/-1"
+        body[6] = descriptor if rng.random() < 0.5 else "observe/1/-1"
     return bytes(msgpack.packb(body, use_bin_type=True))
 
 

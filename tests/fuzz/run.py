@@ -99,7 +99,7 @@ def run(cases: int, seed: int, endpoint: str | None = None) -> Tally:
         spy = session.declare_subscriber(
             f"framegate/@notify/{SERVICE}/{BUFFER}/{legit_id}",
             lambda sample: (
-                spied.append(msgpack.unpackb(sample.attachment.to_bytes())["e"])
+                spied.append(msgpack.unpackb(sample.attachment.to_bytes())[0])
                 if sample.attachment is not None and len(spied) < 1000
                 else None
             ),

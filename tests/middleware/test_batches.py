@@ -21,7 +21,7 @@ from middleware import (
     Subscription,
     make_metadata,
 )
-from middleware._wire import decode_notification_header, encode_batch_header
+from middleware._wire import BatchHeader, decode_notification_header, encode_batch_header
 from tests.conftest import wait_until
 
 pytestmark = pytest.mark.integration
@@ -186,23 +186,25 @@ def test_queries_see_every_element_of_a_batch(
 
 def test_a_batch_header_round_trips_and_a_malformed_one_is_refused() -> None:
     raw = encode_batch_header("E.1", 3, [7, 8], [b"<m/>", None], [2, 0], acked=1, descriptor="k")
-    body = decode_notification_header(raw)
-    assert (body["s"], body["n"], body["t"], body["m"], body["l"]) == (
+    head = decode_notification_header(raw)
+    assert isinstance(head, BatchHeader)
+    assert (head.seq, head.timestamps_ns, head.metadata, head.payload_sizes) == (
         3,
-        2,
-        [7, 8],
-        [b"<m/>", None],
-        [2, 0],
+        (7, 8),
+        (b"<m/>", None),
+        (2, 0),
     )
-    good = msgpack.unpackb(raw, raw=False)
-    for broken in (
-        {"n": 0},
-        {"n": 3},
-        {"t": [7, "8"]},
-        {"m": [b"", 5]},
-        {"l": [2]},
-        {"l": [2, -1]},
-        {"s": True},
+    good = msgpack.unpackb(raw)
+    for index, broken in (
+        (2, []),
+        (3, [b"<m/>"]),
+        (2, [7, "8"]),
+        (3, [b"", 5]),
+        (4, [2]),
+        (4, [2, -1]),
+        (1, True),
     ):
         with pytest.raises(ValueError):
-            decode_notification_header(bytes(msgpack.packb({**good, **broken})))
+            decode_notification_header(
+                bytes(msgpack.packb([*good[:index], broken, *good[index + 1 :]]))
+            )

@@ -36,7 +36,8 @@ def _rogue(endpoint: str) -> Iterator[zenoh.Session]:
 
 
 def _forged(epoch: str, seq: int) -> bytes:
-    body = {"e": epoch, "s": seq, "t": FORGED_T, "p": True, "m": make_metadata("generic", 1)}
+    # The README's array: epoch, seq, timestamp_ns, metadata, pushed, acked, descriptor.
+    body = [epoch, seq, FORGED_T, make_metadata("generic", 1), True, None, None]
     return bytes(msgpack.packb(body, use_bin_type=True))
 
 
@@ -90,7 +91,7 @@ def test_forged_future_seq_across_processes(
 
         def spy(sample: zenoh.Sample) -> None:
             assert sample.attachment is not None
-            epochs.append(msgpack.unpackb(sample.attachment.to_bytes())["e"])
+            epochs.append(msgpack.unpackb(sample.attachment.to_bytes())[0])
             seen.set()
 
         listener = rogue.declare_subscriber(f"framegate/@notify/{TARGET}/{sub_id}", spy)

@@ -50,7 +50,8 @@ def _raw_session(endpoint: str) -> zenoh.Session:
 
 
 def _forged_header(epoch: str, seq: int, t: int = FORGED_T) -> bytes:
-    body = {"e": epoch, "s": seq, "t": t, "p": True, "m": make_metadata("generic", t)}
+    # The README's array: epoch, seq, timestamp_ns, metadata, pushed, acked, descriptor.
+    body = [epoch, seq, t, make_metadata("generic", t), True, None, None]
     return bytes(msgpack.packb(body, use_bin_type=True))
 
 
@@ -86,7 +87,7 @@ class _SpyEpoch:
 
     def _on(self, sample: zenoh.Sample) -> None:
         assert sample.attachment is not None
-        self.epochs.append(msgpack.unpackb(sample.attachment.to_bytes())["e"])
+        self.epochs.append(msgpack.unpackb(sample.attachment.to_bytes())[0])
         self.seen.set()
 
     def close(self) -> None:

@@ -143,8 +143,9 @@ def test_cli_may_observe_but_not_hold_the_camera_back(
 
 def _forged_notification(t: int) -> bytes:
     """The header of a notification (README "Notifications"): it rides as the attachment,
-    and with "p" true the Zenoh payload is taken for the element's payload."""
-    header = {"e": "forged", "s": 1, "t": t, "p": True, "m": make_metadata("generic", t)}
+    and with pushed true the Zenoh payload is taken for the element's payload."""
+    # epoch, seq, timestamp_ns, metadata, pushed, acked, descriptor
+    header = ["forged", 1, t, make_metadata("generic", t), True, None, None]
     return bytes(msgpack.packb(header, use_bin_type=True))
 
 
@@ -192,7 +193,7 @@ def test_intruder_cannot_ack_for_the_camera_s_subscriber(
 
     def on_notification(sample: zenoh.Sample) -> None:
         assert sample.attachment is not None
-        epochs.append(msgpack.unpackb(sample.attachment.to_bytes())["e"])
+        epochs.append(msgpack.unpackb(sample.attachment.to_bytes())[0])
         seen.set()
 
     spy = raw_session("mediator").declare_subscriber(

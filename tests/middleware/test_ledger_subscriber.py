@@ -1,0 +1,93 @@
+"""The subscriber ledger's fast path decides exactly as its full rules do."""
+
+from __future__ import annotations
+
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from middleware._ledger_subscriber import AckPolicy, SubscriberLedger
+from middleware._records import SubscriptionMode
+
+EPOCHS = ["A.1", "A.2", "B.1", "C.7"]
+DESCRIPTOR = "flow/3/-1"
+
+
+class FullRulesOnly(SubscriberLedger[int]):
+    """The same ledger with the fast path of ``receive`` switched off."""
+
+    def receive(self, epoch: str, seq: int, item: int, *, descriptor: str | None) -> bool:
+        return self._receive(epoch, seq, item, descriptor)
+
+
+# One step: receive (mostly the next seq of a recent epoch, as a real producer sends), a
+# batch, a take, or an ack round (idle or not).
+_receive = st.tuples(
+    st.just("receive"),
+    st.one_of(st.just(EPOCHS[0]), st.sampled_from(EPOCHS)),
+    # The epoch's next seq plus an offset (0 most often), or any seq (encoded as 100 + seq).
+    st.one_of(st.just(0), st.integers(-3, 3), st.integers(99, 112)),
+    st.sampled_from([None, DESCRIPTOR, "observe/3/-1"]),
+)
+_step = st.one_of(
+    _receive,
+    _receive,
+    st.tuples(st.just("batch"), st.sampled_from(EPOCHS), st.integers(1, 4), st.none()),
+    st.tuples(st.just("take"), st.none(), st.integers(1, 3), st.none()),
+    st.tuples(st.just("acks"), st.none(), st.integers(0, 2 * 10**9), st.booleans()),
+)
+
+
+def _state(ledger: SubscriberLedger[int]) -> tuple[object, ...]:
+    c = ledger.counters
+    return (
+        len(ledger),
+        ledger.missed_total,
+        (c.foreign, c.invalid, c.out_of_order, c.duplicates, c.refused),
+        list(ledger.epochs().items()),  # the order is the LRU order: it must match too
+    )
+
+
+@settings(max_examples=600)
+@given(
+    mode=st.sampled_from(list(SubscriptionMode)),
+    queue_size=st.integers(1, 4),
+    every=st.integers(1, 3),
+    max_epochs=st.integers(1, 3),
+    steps=st.lists(_step, max_size=80),
+)
+def test_the_fast_path_changes_no_decision(
+    mode: SubscriptionMode,
+    queue_size: int,
+    every: int,
+    max_epochs: int,
+    steps: list[tuple[str, str | None, int, object]],
+) -> None:
+    policy = AckPolicy(every=every, reack_ns=10**9)
+    fast = SubscriberLedger[int](mode, queue_size, DESCRIPTOR, policy=policy, max_epochs=max_epochs)
+    full = FullRulesOnly(mode, queue_size, DESCRIPTOR, policy=policy, max_epochs=max_epochs)
+    now = 0
+    item = 0
+    for kind, epoch, number, extra in steps:
+        if kind in ("receive", "batch"):
+            assert epoch is not None
+            track = full.epochs().get(epoch)
+            base = (track.last + 1) if track is not None else 1
+            descriptor = extra if kind == "receive" else None
+            assert descriptor is None or isinstance(descriptor, str)
+            if kind == "receive":
+                seq = number - 100 if number >= 99 else base + number
+                item += 1
+                got = fast.receive(epoch, seq, item, descriptor=descriptor)
+                assert got == full.receive(epoch, seq, item, descriptor=descriptor)
+            else:
+                items = list(range(item + 1, item + 1 + number))
+                item += number
+                got_n = fast.receive_many(epoch, base, items, descriptor=None)
+                assert got_n == full.receive_many(epoch, base, items, descriptor=None)
+        elif kind == "take":
+            for _ in range(number):
+                assert fast.take() == full.take()
+        else:
+            now += number
+            assert fast.acks_due(now, idle=bool(extra)) == full.acks_due(now, idle=bool(extra))
+        assert _state(fast) == _state(full)
