@@ -81,7 +81,15 @@ def fg_pub(params: dict[str, Any]) -> None:
             end = time.monotonic() + float(command["seconds"])
             sent = refused = 0
             t = clock["t"]
-            if batch:
+            interval_s = float(command.get("interval_s") or 0)
+            if batch and interval_s > 0:  # paced batches: a sensor that batches (the gyro)
+                for tick in paced(float(command["seconds"]), interval_s):
+                    sleep_until(tick)
+                    items = [(t + i, payload, stamp(t + i)) for i in range(1, batch + 1)]
+                    t += batch
+                    producer.put_many(items, wait_s=5.0)
+                    sent += batch
+            elif batch:
                 # The batch API of issue 18 item 4: elements in, one wait, one notification.
                 put_many = producer.put_many
                 while time.monotonic() < end:
@@ -92,8 +100,8 @@ def fg_pub(params: dict[str, Any]) -> None:
                     except FlowControlRefused:
                         refused += batch
                     sent += batch
-            elif float(command.get("interval_s") or 0) > 0:  # paced: a sensor's rate
-                for tick in paced(float(command["seconds"]), float(command["interval_s"])):
+            elif interval_s > 0:  # paced: a sensor's rate
+                for tick in paced(float(command["seconds"]), interval_s):
                     sleep_until(tick)
                     t += 1
                     producer.put(t, payload, stamp(t), wait_s=5.0)

@@ -9,7 +9,9 @@ camera and gyro replaying it in a loop, as separate processes on a private loopb
    and the element rate of each stream from the buffers' ``puts`` counters.
 2. **Middleware estimate**: the same streams (size, rate, pushed as the services ask) run
    paced in bench worker processes that do nothing but move elements: framegate
-   (put → take) and raw Zenoh (pub → sub) alternately. A worker's CPU is then the
+   (put → take) and raw Zenoh (pub → sub) alternately, each the way the service moves it
+   (the gyro: ``put_many`` of ``GYRO_BATCH`` samples, ``take_many`` on the other side; raw
+   Zenoh one message per batch). A worker's CPU is then the
    middleware's cost of that stream on that side. Each service's middleware CPU is the sum
    of its streams' sides: camera = frames produced; gyro = batches produced; mediator =
    frames and batches consumed + forwarded frames produced; detector = forwarded frames
@@ -48,6 +50,8 @@ EXPOSURE_NS = 20_000_000
 FULL_FRAMES = 30  # a 1 s loop
 QUICK_FRAMES = 10
 SHARE_GOAL_PCT = 10.0
+# The gyro service's put_many batch (``framegate run gyro --batch``, default 10).
+GYRO_BATCH = 10
 PROCESSES = ("camera", "gyro", "mediator", "detector")
 # Buffers whose rates the pipeline phase reads.
 FRAMES, GYRO, FORWARDED = "camera/images", "gyro/rates", "mediator/images"
@@ -65,6 +69,9 @@ class Stream:
     # (process, "producer" | "consumer") this stream's sides are charged to.
     producer: str
     consumer: str
+    # Elements per put_many / take_many as the service moves them (0: one put each). Raw
+    # Zenoh gets the same stream shape: one message per batch.
+    batch: int = 0
 
     def as_json(self) -> dict[str, Any]:
         return {
@@ -74,6 +81,7 @@ class Stream:
             "pushed": self.push,
             "producer": self.producer,
             "consumer": self.consumer,
+            "batch": self.batch,
         }
 
 
@@ -203,7 +211,7 @@ def _run_pipeline(
     gyro_bytes = int(after["bytes_each"][GYRO])
     streams = [
         Stream(FRAMES, FRAME_BYTES, rate(FRAMES), True, "camera", "mediator"),
-        Stream(GYRO, gyro_bytes, rate(GYRO), False, "gyro", "mediator"),
+        Stream(GYRO, gyro_bytes, rate(GYRO), False, "gyro", "mediator", batch=GYRO_BATCH),
         Stream(FORWARDED, FRAME_BYTES, rate(FORWARDED), True, "mediator", "detector"),
     ]
     return cpu_pct, streams
@@ -274,14 +282,18 @@ def _estimate(streams: list[Stream], options: BenchOptions) -> dict[Side, dict[s
             continue
         raw_at, fg_at = free_endpoint(), free_endpoint()
         common = {"shm": True, "size": stream.size}
+        per_message = max(1, stream.batch)
+        raw = {"shm": True, "size": stream.size * per_message}
         with WorkerGroup() as group:
             sides = {
                 "raw": (
-                    group.start("raw-pub", {**common, "listen": raw_at}),
-                    group.start("raw-sub", {**common, "connect": raw_at}),
+                    group.start("raw-pub", {**raw, "listen": raw_at}),
+                    group.start("raw-sub", {**raw, "connect": raw_at}),
                 ),
                 "framegate": (
-                    group.start("fg-pub", {**common, "listen": fg_at, "buffer": "s"}),
+                    group.start(
+                        "fg-pub", {**common, "listen": fg_at, "buffer": "s", "batch": stream.batch}
+                    ),
                     group.start(
                         "fg-sub",
                         {
@@ -290,6 +302,7 @@ def _estimate(streams: list[Stream], options: BenchOptions) -> dict[Side, dict[s
                             "buffer": "s",
                             "queue_size": 8,
                             "push": stream.push,
+                            "batch": stream.batch,
                         },
                     ),
                 ),
@@ -302,7 +315,7 @@ def _estimate(streams: list[Stream], options: BenchOptions) -> dict[Side, dict[s
                     consumer,
                     options.warmup_s,
                     options.duration_s,
-                    interval_s=1.0 / stream.rate_hz,
+                    interval_s=per_message / stream.rate_hz,
                 )
                 out[which][stream.producer] += float(sample["cpu_producer_pct"])
                 out[which][stream.consumer] += float(sample["cpu_consumer_pct"])
