@@ -64,6 +64,11 @@ def register(subparsers: Any) -> None:
         help="mediator policies the sweep replays",
     )  # fmt: skip
     parser.add_argument(
+        "--latency", choices=("measured", "none"), default="measured",
+        help="sweep: the mediator decides each frame after a decision latency drawn as "
+        "measured on real runs (default), or the moment it arrives (none)",
+    )  # fmt: skip
+    parser.add_argument(
         "--cache", type=Path,
         help="directory of rendered datasets to reuse (default OUT/datasets)",
     )  # fmt: skip
@@ -126,6 +131,7 @@ def _sweep(args: argparse.Namespace, seeds: list[int]) -> int:
         frames=args.frames if args.frames is not None else (60 if args.quick else None),
         cache=args.cache,
         progress=not args.no_progress and not args.json,
+        latency=args.latency,
     )
     results = run_sweep(config, log=(lambda _text: None) if args.json else None)
     if args.json:

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import json
+import signal
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -94,3 +96,25 @@ def test_bad_flag_value_is_one_error_line(tmp_path: Path) -> None:
     )  # fmt: skip
     assert result.returncode == 1
     assert result.stderr.strip() == "error: --queue must be >= 1, got 0"
+
+
+def test_sweep_latency_flag_reaches_the_sweep(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import services.tools.experiment as experiment
+    from services.cli import main
+
+    seen: list[Any] = []
+
+    def fake_sweep(config: Any, *, log: Any = None) -> dict[str, Any]:
+        seen.append(config)
+        (config.out / experiment.SWEEP_TABLE).write_text("table\n", encoding="utf-8")
+        return {}
+
+    monkeypatch.setattr(experiment, "run_sweep", fake_sweep)
+    # The command makes SIGTERM unwind like Ctrl-C; give pytest its handler back afterwards.
+    monkeypatch.setattr(signal, "signal", lambda *_args: None)
+    for flag, expected in (([], "measured"), (["--latency", "none"], "none")):
+        code = main(["experiment", "--sweep", "--out", str(tmp_path), "--no-progress", *flag])
+        assert code == 0
+        assert seen[-1].latency == expected
