@@ -54,8 +54,11 @@ policy decides when due acks leave: ``AckPolicy(every=1)`` sends each at once; a
 must ack every element or the producer stays refused), every ``N // 2`` takes above that.
 Coalescing never holds the producer back for long: an ack is also due whenever the queue
 runs empty and whenever the caller waits idle. While
-idle the subscriber repeats the acks of known epochs every ``reack_ns``, so a lost ack or
-a lost notification heals (the producer resends on a repeated ack that moves nothing).
+idle the subscriber repeats the acks of known epochs once no ack has left for ``reack_ns``,
+so a lost ack or a lost notification heals (the producer resends on a repeated ack that
+moves nothing). Timed from the last ack sent, not from the last repeat: a busy subscriber,
+idle only between notifications, repeats nothing, since a repeat that moves nothing makes
+the producer resend what is merely in flight.
 
 Properties (checked by tests/middleware/test_protocol_model.py after every step): the
 queue never exceeds N; the epoch table is bounded; a flow-controlled subscription never
@@ -152,7 +155,7 @@ class SubscriberLedger(Generic[T]):
         self._queue: deque[Entry[T]] = deque()
         self._epochs: OrderedDict[str, EpochTrack] = OrderedDict()
         self._forgotten: OrderedDict[str, tuple[int, int]] = OrderedDict()
-        self._reacked_ns: int | None = None
+        self._acked_ns: int | None = None  # when acks last left
         # The most recently used epoch (the last one in ``_epochs``) and its track: what the
         # fast path of ``receive`` compares against.
         self._recent: str | None = None
@@ -283,14 +286,12 @@ class SubscriberLedger(Generic[T]):
         """The acks to send now: (epoch, seq) pairs, each cumulative for its epoch.
 
         ``idle``: the caller is waiting for a notification; then every known epoch's ack is
-        repeated once per ``reack_ns``.
+        repeated once no ack has left for ``reack_ns``.
         """
         acks: list[tuple[str, int]] = []
         repeat = idle and (
-            self._reacked_ns is None or now_ns - self._reacked_ns >= self.policy.reack_ns
+            self._acked_ns is None or now_ns - self._acked_ns >= self.policy.reack_ns
         )
-        if repeat:
-            self._reacked_ns = now_ns
         for epoch, track in self._epochs.items():
             due = track.unacked_takes >= self.policy.every or (
                 track.unacked_takes > 0 and (idle or track.queued == 0)
@@ -299,4 +300,6 @@ class SubscriberLedger(Generic[T]):
                 acks.append((epoch, track.taken))
                 track.unacked_takes = 0
                 track.reack_due = False
+        if acks:
+            self._acked_ns = now_ns
         return acks

@@ -159,7 +159,8 @@ class Subscription:
         """Take the oldest notification (it leaves the queue now); None on timeout.
 
         A lost ack heals itself: acks are cumulative, and while waiting idle the subscriber
-        repeats them every 0.5 s (the producer resends what it has not seen taken).
+        repeats them once no ack has left for 0.5 s (the producer resends what it has not
+        seen taken).
         """
         notes = self.take_many(1, timeout_s=timeout_s)
         return notes[0] if notes else None

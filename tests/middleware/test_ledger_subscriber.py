@@ -91,3 +91,24 @@ def test_the_fast_path_changes_no_decision(
             now += number
             assert fast.acks_due(now, idle=bool(extra)) == full.acks_due(now, idle=bool(extra))
         assert _state(fast) == _state(full)
+
+
+def test_a_busy_subscriber_repeats_no_ack_between_notifications() -> None:
+    # A repeat that moves nothing makes the producer resend whatever is in flight, so an ack
+    # is repeated only after reack_ns without any ack, not every reack_ns while idle.
+    ms = 1_000_000
+    ledger = SubscriberLedger[int](
+        SubscriptionMode.FLOW, 2, DESCRIPTOR, policy=AckPolicy(reack_ns=500 * ms)
+    )
+    repeats = 0
+    for seq in range(1, 21):  # one element every 100 ms, taken at once, then idle
+        now = seq * 100 * ms
+        assert ledger.receive("A.1", seq, seq, descriptor=None)
+        assert ledger.take() is not None
+        assert ledger.acks_due(now, idle=False) == [("A.1", seq)]
+        repeats += len(ledger.acks_due(now + 50 * ms, idle=True))
+    assert repeats == 0
+    quiet = 2_000 * ms + 500 * ms  # 500 ms after the last ack
+    assert ledger.acks_due(quiet - 1, idle=True) == []
+    assert ledger.acks_due(quiet, idle=True) == [("A.1", 20)]
+    assert ledger.acks_due(quiet + 1, idle=True) == []
