@@ -30,9 +30,10 @@ Messages in, and what they do in every state:
     no registration with this epoch and id (a foreign, stale or forged epoch, or an id that
     does not own the epoch): counted in ``foreign_acks``, nothing else. Otherwise
     ``acked = max(acked, min(seq, sent))``: duplicates and reordering cannot move it back,
-    a seq beyond ``sent`` cannot move it past what was sent. An ack that moves nothing
-    while notifications are outstanding is an idle subscriber's repeat: the outstanding
-    ones are due again (a lost notification heals).
+    a seq beyond ``sent`` cannot move it past what was sent; an ack that moves it records
+    its time (``taken_ns``: when the producer last saw the subscriber take). An ack that
+    moves nothing while notifications are outstanding is an idle subscriber's repeat: the
+    outstanding ones are due again (a lost notification heals).
 ``put_many(n elements, now)`` (``put`` is ``n = 1``)
     the queue is counted in elements: refused, whole, while a flow registration has
     ``sent - acked + n > queue_size`` (``full(n)``; nothing of the batch is counted);
@@ -109,6 +110,8 @@ class Registration(Generic[H]):
     # (seq, header) of un-acked flow-control notifications, oldest first.
     outstanding: deque[tuple[int, H]] = field(default_factory=deque)
     progress_ns: int = 0
+    # When an ack last freed credit (the subscriber took something); None before any.
+    taken_ns: int | None = None
     # Set by a failed send or an idle subscriber's repeated ack: resend at the next tick.
     resend_now: bool = False
 
@@ -122,7 +125,7 @@ class Registration(Generic[H]):
 
     def info(self) -> SubscriptionInfo:
         k = self.key
-        return SubscriptionInfo(k.sub_id, k.mode, k.queue_size, self.queued)
+        return SubscriptionInfo(k.sub_id, k.mode, k.queue_size, self.queued, self.taken_ns)
 
 
 @dataclass(frozen=True, slots=True)
@@ -199,6 +202,7 @@ class ProducerLedger(Generic[H]):
         while reg.outstanding and reg.outstanding[0][0] <= new:
             reg.outstanding.popleft()
         reg.progress_ns = now_ns
+        reg.taken_ns = now_ns
         reg.resend_now = False
         return True
 

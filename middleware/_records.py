@@ -80,12 +80,18 @@ class Notification:
 
 @dataclass(frozen=True, slots=True)
 class SubscriptionInfo:
-    """A subscription as its producer sees it."""
+    """A subscription as its producer sees it.
+
+    ``taken_ns``: when the producer last learnt that the subscriber took something (an ack
+    that freed credit), on this process's ``time.monotonic_ns`` clock; None if never, and
+    for subscriptions reported by another process (its clock means nothing here).
+    """
 
     subscription_id: str
     mode: SubscriptionMode
     queue_size: int
     queued: int
+    taken_ns: int | None = None
 
     @property
     def fill(self) -> float:

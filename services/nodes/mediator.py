@@ -251,7 +251,7 @@ def detector_load(producer: Producer) -> Load:
     if not flows:
         return Load(0, 0)
     tightest = min(flows, key=lambda s: (s.queue_size - s.queued, -s.fill))
-    return Load(min(tightest.queued, tightest.queue_size), tightest.queue_size)
+    return Load(min(tightest.queued, tightest.queue_size), tightest.queue_size, tightest.taken_ns)
 
 
 def check_frame(meta: FrameMeta, payload_bytes: int) -> None:

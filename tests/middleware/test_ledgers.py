@@ -102,3 +102,17 @@ def test_a_lost_batch_is_resent_element_by_element() -> None:
     for send in resent:
         assert subscriber.receive(send.epoch, send.seq, send.headers[0], descriptor=None)
     assert [subscriber.take().item for _ in range(3)] == [10, 11, 12]  # type: ignore[union-attr]
+
+
+def test_the_producer_dates_the_last_take_by_the_ack_that_freed_credit() -> None:
+    producer, subscriber, _key = _pair(2)
+    _fill(producer, subscriber, 2)
+    [info] = [r.info() for r in producer.registrations()]
+    assert info.taken_ns is None
+    assert subscriber.take() is not None
+    [(epoch, seq)] = subscriber.acks_due(0, idle=False)
+    assert producer.ack("s", epoch, seq, 70)
+    assert not producer.ack("s", epoch, seq, 90)  # a repeat moves nothing: not a take
+    assert not producer.ack("s", "forged", seq + 1, 95)
+    [info] = [r.info() for r in producer.registrations()]
+    assert (info.queued, info.taken_ns) == (1, 70)

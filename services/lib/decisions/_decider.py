@@ -12,7 +12,8 @@ Rules kept here for every policy, in this order:
    (``View.detector``) when a frame was seen waiting in between (left queued at the first
    take, or forwarded after it and still queued at a later look): the detector was busy
    all along, so the second take came the moment it was free. With N = 1 only the second
-   case ever happens;
+   case ever happens. A take is dated by ``Load.taken_ns`` (when the producer saw it) when
+   the caller knows that, else by the look that noticed it;
 2. due held frames first: the policy's ``on_tick`` runs before a new frame is decided, so
    older frames go out before newer ones;
 3. late frames: a frame whose key is not newer than every frame seen is dropped
@@ -131,9 +132,16 @@ class Decider:
     def _observe(self, load: Load, now_ns: int) -> None:
         expected = self._expected_queued
         if expected is not None and load.queued < expected:
+            # The producer's time of the take if it has one: the count is only looked at
+            # when a frame arrives or a held one is due, so "now" can be a frame period late,
+            # and service times measured between such looks come out on that grid.
+            taken, last = load.taken_ns, self._last_take_ns
+            usable = taken is not None and taken <= now_ns and (last is None or taken > last)
+            at = taken if usable and taken is not None else now_ns
             if self._waiting_after_take and self._last_take_ns is not None:
-                self._service.append(now_ns - self._last_take_ns)
-            self._last_take_ns = now_ns
+                # Busy all along: the takes since the last one came back to back.
+                self._service.append((at - self._last_take_ns) // (expected - load.queued))
+            self._last_take_ns = at
             self._waiting_after_take = load.queued > 0
         elif load.queued > 0 and expected is not None and expected > 0:
             # A frame forwarded earlier still waits: the detector has been busy since its

@@ -44,10 +44,13 @@ class Load:
 
     ``queued``: frames waiting (the one in processing does not count); ``capacity``: its size
     N. ``capacity`` 0 means no flow-controlled consumer: nothing holds frames back.
+    ``taken_ns``: when the producer last saw the detector take a frame (the decider's clock),
+    if it knows; the decider otherwise dates a take by when it notices the count fall.
     """
 
     queued: int
     capacity: int
+    taken_ns: int | None = None
 
     def __post_init__(self) -> None:
         if self.capacity < 0 or self.queued < 0:

@@ -130,7 +130,9 @@ def replay_policy(
                 decider.refused(verdict.frame)
 
     def load() -> Load:
-        return Load(len(detector.waiting), model.queue)
+        # As the mediator's producer reports it: the count and when the last take was seen.
+        taken = detector.takes_ns[-1] if detector.takes_ns else None
+        return Load(len(detector.waiting), model.queue, taken)
 
     def run_until(limit_ns: int, next_tick_ns: int) -> None:
         # The mediator asks again every tick while it holds frames, and sees each take.

@@ -6,16 +6,17 @@ In-process nodes (the mediator's ``step`` is driven by the test); the process-le
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterator
 
 import numpy as np
 import pytest
 
-from middleware import NetworkConfig, Node, Producer, Retention
+from middleware import NetworkConfig, Node, Producer, Retention, make_metadata
 from services.lib.decisions import GyroMissing
 from services.lib.messages import frame_metadata
 from services.lib.quality import Exposure
-from services.nodes.mediator import Mediator, MediatorConfig
+from services.nodes.mediator import Mediator, MediatorConfig, detector_load
 from tests.conftest import wait_until
 
 MS = 1_000_000
@@ -94,3 +95,20 @@ def test_frames_with_a_wrong_payload_size_are_skipped_and_good_ones_still_go(
         assert sum(b"bad-payload-size" in m for m in reasons) == 2
     finally:
         mediator.close()
+
+
+def test_the_detector_load_carries_when_the_producer_saw_the_last_take(
+    nodes: tuple[Node, Node],
+) -> None:
+    producer_node, consumer_node = nodes
+    images = producer_node.offer("images", retention=Retention(max_count=4))
+    with consumer_node.subscribe("camera/images", queue_size=2, wait_s=5.0) as sub:
+        assert images.wait_for_subscribers(1, timeout_s=10.0)
+        images.put(1, b"x", make_metadata("generic", 1))
+        assert detector_load(images).taken_ns is None
+        before = time.monotonic_ns()
+        assert sub.take(timeout_s=10.0) is not None
+        wait_until(lambda: detector_load(images).taken_ns is not None, 10, "the take's ack")
+        load = detector_load(images)
+        assert load.queued == 0
+        assert load.taken_ns is not None and before <= load.taken_ns <= time.monotonic_ns()

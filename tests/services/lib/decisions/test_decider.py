@@ -147,6 +147,36 @@ def test_the_processing_clock_estimates_the_detector_service_time() -> None:
     assert decider.detector.service_ns == 50 * MS
 
 
+def test_takes_are_dated_by_the_producer_when_the_count_is_looked_at_late() -> None:
+    """The mediator looks at the count only when a frame arrives (every 66 ms here) or a
+    held frame is due, so takes 50 ms apart measure 66 ms or half of 66 between looks.
+    With the producer's time of each take (``Load.taken_ns``) the estimate is exact."""
+    takes_ms = (40, 90, 140, 190, 240)
+    for dated in (False, True):
+        decider = Decider(make_policy("paper"))
+        for i in range(5):  # five frames forwarded at once, all waiting
+            decider.frame(Candidate(i + 1, i + 1, 0.9, i), Load(i, 5), i)
+        for look_ms in (66, 132, 198, 264):
+            seen = [t for t in takes_ms if t <= look_ms]
+            taken = seen[-1] * MS if dated else None
+            decider.tick(Load(5 - len(seen), 5, taken), look_ms * MS)
+        clock = decider.detector
+        if dated:
+            assert (clock.last_take_ns, clock.service_ns) == (240 * MS, 50 * MS)
+        else:
+            assert (clock.last_take_ns, clock.service_ns) == (264 * MS, 66 * MS)
+
+
+def test_a_take_time_from_the_future_or_the_past_is_not_trusted() -> None:
+    decider = Decider(make_policy("paper"))
+    decider.frame(Candidate(1, 1, 0.9, 0), Load(0, 2), 0)
+    decider.frame(Candidate(2, 2, 0.9, 1), Load(1, 2), 1)
+    decider.tick(Load(1, 2, taken_ns=500 * MS), 100 * MS)  # after "now": the look's time
+    assert decider.detector.last_take_ns == 100 * MS
+    decider.tick(Load(0, 2, taken_ns=50 * MS), 150 * MS)  # before the last take: the look's
+    assert decider.detector.last_take_ns == 150 * MS
+
+
 def test_a_policy_sees_the_recent_qualities_and_the_hold_limit() -> None:
     policy = HoldEverything()
     decider = Decider(policy, Rules(max_hold_ns=7, recent_count=2))
