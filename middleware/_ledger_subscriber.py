@@ -52,8 +52,11 @@ policy decides when due acks leave: ``AckPolicy(every=1)`` sends each at once; a
 ``every`` coalesces acks of queues > 1 (fewer messages, same credits once sent);
 ``AckPolicy.for_queue(N)`` is what subscriptions use: each take for N <= 3 (a queue of 1
 must ack every element or the producer stays refused), every ``N // 2`` takes above that.
-Coalescing never holds the producer back for long: an ack is also due whenever the queue
-runs empty and whenever the caller waits idle. While
+Coalescing never holds the producer back for long: an ack is also due once the queue runs
+empty or the caller waits idle and ``delay_ns`` has passed since the first take it covers
+(``for_queue``: 1 ms above N = 3, so that a consumer that keeps up does not ack every
+element); ``flush_at_ns`` says when, for the Zenoh layer to send it even if the caller does
+not come back (a subscriber that took everything never holds its producer longer). While
 idle the subscriber repeats the acks of known epochs once no ack has left for ``reack_ns``,
 so a lost ack or a lost notification heals (the producer resends on a repeated ack that
 moves nothing). Timed from the last ack sent, not from the last repeat: a busy subscriber,
@@ -79,24 +82,30 @@ MAX_EPOCHS = 8
 FORGOTTEN_EPOCHS = 256
 # An idle subscriber repeats its acks this often.
 REACK_NS = 500_000_000
+# A coalescing subscriber whose queue ran empty acks at most this much later.
+ACK_DELAY_NS = 1_000_000
 
 T = TypeVar("T")
 
 
 @dataclass(frozen=True, slots=True)
 class AckPolicy:
-    """When acks leave: after ``every`` takes of one epoch, or when the subscriber is idle.
+    """When acks leave: after ``every`` takes of one epoch, or once the queue ran empty (or
+    the subscriber waits) and ``delay_ns`` passed since the first take not yet acked.
     ``every=1`` (the default) acks each take at once."""
 
     every: int = 1
     reack_ns: int = REACK_NS
+    delay_ns: int = 0
 
     @classmethod
     def for_queue(cls, queue_size: int) -> AckPolicy:
         """Coalesce up to half a queue's worth of takes into one ack (each take below 4):
         the producer then sees at most ``N // 2 - 1`` elements as queued that are already
-        taken, and a queue that runs empty acks at once."""
-        return cls(every=max(1, queue_size // 2))
+        taken, and a queue that runs empty acks within ``ACK_DELAY_NS`` (a consumer that
+        keeps up would otherwise ack nearly every element)."""
+        every = max(1, queue_size // 2)
+        return cls(every=every, delay_ns=ACK_DELAY_NS if every > 1 else 0)
 
 
 @dataclass(slots=True)
@@ -109,6 +118,8 @@ class EpochTrack:
     missed: int = 0  # observers: lost since the last notification taken
     unacked_takes: int = 0
     reack_due: bool = False
+    # When acks_due first saw an unacked take of this epoch (the delay counts from there).
+    unacked_since_ns: int | None = None
 
 
 class Entry(NamedTuple, Generic[T]):
@@ -292,14 +303,34 @@ class SubscriberLedger(Generic[T]):
         repeat = idle and (
             self._acked_ns is None or now_ns - self._acked_ns >= self.policy.reack_ns
         )
+        delay = self.policy.delay_ns
         for epoch, track in self._epochs.items():
-            due = track.unacked_takes >= self.policy.every or (
-                track.unacked_takes > 0 and (idle or track.queued == 0)
-            )
+            due = False
+            if track.unacked_takes > 0:
+                if track.unacked_since_ns is None:
+                    track.unacked_since_ns = now_ns
+                due = track.unacked_takes >= self.policy.every or (
+                    (idle or track.queued == 0) and now_ns - track.unacked_since_ns >= delay
+                )
             if due or track.reack_due or (repeat and track.taken > 0):
                 acks.append((epoch, track.taken))
                 track.unacked_takes = 0
+                track.unacked_since_ns = None
                 track.reack_due = False
         if acks:
             self._acked_ns = now_ns
         return acks
+
+    def flush_at_ns(self) -> int | None:
+        """When a delayed ack falls due for a subscriber that does not come back to take:
+        the earliest ``unacked_since + delay`` of an epoch with nothing queued (None if no
+        ack waits on the delay). The Zenoh layer calls ``acks_due`` then, so a producer
+        never waits on a subscriber that has taken everything for longer than the delay."""
+        if not self.policy.delay_ns:
+            return None
+        due = [
+            track.unacked_since_ns + self.policy.delay_ns
+            for track in self._epochs.values()
+            if track.unacked_takes > 0 and track.queued == 0 and track.unacked_since_ns is not None
+        ]
+        return min(due, default=None)

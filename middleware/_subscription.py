@@ -47,7 +47,10 @@ class Subscription:
     and ``_waiting`` (callers blocked in ``_cond``, a condition on ``_lock``: the callback
     notifies only when someone waits). Acks are computed under the lock and sent after
     releasing it (``take`` on the caller's thread), so a blocking ack put never holds a lock
-    the callback needs.
+    the callback needs. With a delayed-ack policy (queues of 4 and more) the ``fg-ack``
+    thread sends an emptied queue's ack when its delay is up and the caller has not come
+    back to take; the caller wakes it (``_flush_wake``) only when such an ack appears while
+    it watches none (``_flush_armed``, under ``_lock``).
     """
 
     def __init__(
@@ -93,6 +96,16 @@ class Subscription:
             keys.notify(service, buffer, self.subscription_id),
             zenoh.handlers.Callback(self._on_notification, indirect=False),
         )
+        # Acks held back by the ledger's delay are sent by this thread if the caller does
+        # not come back to take (``_flush_armed``: it has been told there is one to watch).
+        self._flush_wake = threading.Event()
+        self._flush_armed = False
+        self._flusher: threading.Thread | None = None
+        if self._ledger.policy.delay_ns:
+            self._flusher = threading.Thread(
+                target=self._flush_loop, daemon=True, name=f"fg-ack-{service}/{buffer}"
+            )
+            self._flusher.start()
         # Declared last: once the producer sees it, notifications may flow.
         self._token = session.liveliness().declare_token(
             keys.subscription_token(
@@ -181,7 +194,16 @@ class Subscription:
                     while len(entries) < max_count and (entry := ledger.take()) is not None:
                         entries.append(entry)
                     acks = ledger.acks_due(time.monotonic_ns(), idle=False)
+                    # Wake the flusher only when a delayed ack appears while it watches none.
+                    wake = (
+                        self._flusher is not None
+                        and not self._flush_armed
+                        and ledger.flush_at_ns() is not None
+                    )
+                    if wake:
+                        self._flush_armed = True
                 else:
+                    wake = False
                     entries = []
                     acks = ledger.acks_due(time.monotonic_ns(), idle=True)
                     if not acks:
@@ -198,11 +220,39 @@ class Subscription:
                         finally:
                             self._waiting -= 1
                         continue
-            for epoch, seq in acks:
-                with contextlib.suppress(zenoh.ZError):
-                    self._ack_publisher.put(encode_ack(epoch, seq))
+            if wake:
+                self._flush_wake.set()
+            self._send_acks(acks)
             if entries:
                 return [self._notification(entry) for entry in entries]
+
+    def _send_acks(self, acks: list[tuple[str, int]]) -> None:
+        for epoch, seq in acks:
+            with contextlib.suppress(zenoh.ZError):
+                self._ack_publisher.put(encode_ack(epoch, seq))
+
+    def _flush_loop(self) -> None:
+        """Send a delayed ack when it falls due and nobody took since (see ``AckPolicy``)."""
+        ledger = self._ledger
+        while not self._closed:
+            self._flush_wake.wait(_REACK_S)
+            self._flush_wake.clear()
+            while not self._closed:
+                with self._lock:
+                    due_at = ledger.flush_at_ns()
+                    now = time.monotonic_ns()
+                    acks = (
+                        ledger.acks_due(now, idle=False)
+                        if due_at is not None and due_at <= now
+                        else []
+                    )
+                    if due_at is None:
+                        self._flush_armed = False
+                        break
+                self._send_acks(acks)
+                if due_at > now:
+                    self._flush_wake.wait((due_at - now) / 1e9)
+                    self._flush_wake.clear()
 
     def _notification(self, entry: Entry[_Item]) -> Notification:
         timestamp, metadata, pushed = entry.item
@@ -234,6 +284,9 @@ class Subscription:
         self._closed = True
         with self._lock:
             self._cond.notify_all()
+        self._flush_wake.set()
+        if self._flusher is not None:
+            self._flusher.join(timeout=2.0)
         for entity in (self._token, self._subscriber, self._ack_publisher):
             with contextlib.suppress(zenoh.ZError):
                 entity.undeclare()

@@ -208,3 +208,18 @@ def test_a_batch_header_round_trips_and_a_malformed_one_is_refused() -> None:
             decode_notification_header(
                 bytes(msgpack.packb([*good[:index], broken, *good[index + 1 :]]))
             )
+
+
+def test_a_subscriber_that_took_everything_and_went_away_frees_the_producer_at_once(
+    listen_net: NetworkConfig, connect_net: NetworkConfig
+) -> None:
+    """A queue of 8 coalesces acks and holds back the ack of an emptied queue for a
+    millisecond; a caller that then processes for a long time must not keep that credit
+    (the subscription's flusher sends the ack, not the caller's next take)."""
+    with _pair(listen_net, connect_net, queue=8) as (rates, sub, _):
+        rates.put_many(_batch(1, 2, 3))
+        wait_until(lambda: sub.pending == 3, 5, "three notifications queued")
+        assert len(sub.take_many(3, timeout_s=5)) == 3
+        # No further take: the caller is "processing".
+        wait_until(lambda: _queued(rates) == 0, 2, "the delayed ack from the flusher")
+        rates.put_many(_batch(*range(4, 12)), wait_s=0.0)  # the whole queue is free again

@@ -4,7 +4,7 @@ only in aggregate: how many acks a run of takes costs, and batches of elements."
 from __future__ import annotations
 
 from middleware._ledger_producer import ProducerLedger, RegistrationKey
-from middleware._ledger_subscriber import AckPolicy, SubscriberLedger
+from middleware._ledger_subscriber import ACK_DELAY_NS, AckPolicy, SubscriberLedger
 from middleware._records import SubscriptionMode
 
 FLOW = SubscriptionMode.FLOW
@@ -55,18 +55,30 @@ def test_a_queue_of_one_acks_every_take() -> None:
         assert producer.full() is None
 
 
-def test_coalesced_acks_leave_as_soon_as_the_queue_runs_empty() -> None:
+def test_coalesced_acks_leave_within_the_delay_once_the_queue_runs_empty() -> None:
     producer, subscriber, _ = _pair(8)
     _fill(producer, subscriber, 3)
-    acks = _take_counting_acks(subscriber, 3)
-    assert [seq for _, seq in acks] == [3], "a consumer that keeps up must not hold credit"
+    assert _take_counting_acks(subscriber, 3) == [], "held back for the next few takes"
+    due = subscriber.flush_at_ns()
+    assert due == ACK_DELAY_NS, "a consumer that keeps up must not hold credit for long"
+    assert subscriber.acks_due(due - 1, idle=False) == []
+    assert [seq for _, seq in subscriber.acks_due(due, idle=False)] == [3]
+    assert subscriber.flush_at_ns() is None
+
+
+def test_a_delayed_ack_waits_for_nothing_while_frames_are_queued() -> None:
+    producer, subscriber, _ = _pair(8)
+    _fill(producer, subscriber, 3)
+    assert _take_counting_acks(subscriber, 1) == []
+    assert subscriber.flush_at_ns() is None  # the caller comes back for the two queued
+    assert subscriber.acks_due(10 * ACK_DELAY_NS, idle=False) == []
 
 
 def test_a_waiting_subscriber_sends_the_coalesced_ack() -> None:
     producer, subscriber, _ = _pair(8)
     _fill(producer, subscriber, 6)
     assert _take_counting_acks(subscriber, 5) == [(producer.registrations()[0].epoch, 4)]
-    assert [seq for _, seq in subscriber.acks_due(0, idle=True)] == [5]
+    assert [seq for _, seq in subscriber.acks_due(ACK_DELAY_NS, idle=True)] == [5]
 
 
 def test_a_batch_is_refused_whole_when_the_queue_lacks_room_for_all_its_elements() -> None:

@@ -33,7 +33,7 @@ from middleware._ledger_producer import (
     ProducerLedger,
     RegistrationKey,
 )
-from middleware._ledger_subscriber import MAX_EPOCHS, AckPolicy, SubscriberLedger
+from middleware._ledger_subscriber import ACK_DELAY_NS, MAX_EPOCHS, AckPolicy, SubscriberLedger
 from middleware._records import SubscriptionMode
 
 FLOW, OBSERVE = SubscriptionMode.FLOW, SubscriptionMode.OBSERVE
@@ -145,15 +145,21 @@ class ProtocolModel(RuleBasedStateMachine):
         mode=st.sampled_from([FLOW, FLOW, OBSERVE]),
         size=st.integers(1, 8),
         every=st.integers(1, 8),
+        delay_ns=st.sampled_from([0, ACK_DELAY_NS]),
     )
-    def subscribe(self, mode: SubscriptionMode, size: int, every: int = 1) -> None:
+    def subscribe(
+        self, mode: SubscriptionMode, size: int, every: int = 1, delay_ns: int = 0
+    ) -> None:
         """``every``: the ack policy coalesces that many takes into one ack (any value, even
-        beyond the queue: liveness must not depend on it)."""
+        beyond the queue: liveness must not depend on it); ``delay_ns``: an emptied queue's
+        ack waits that long (the flusher sends it, see ``flush``)."""
         STEPS[0] += 1
         key = RegistrationKey(f"s{len(self.subs)}", mode, size, -1)
-        policy = AckPolicy(every=every)
+        policy = AckPolicy(every=every, delay_ns=delay_ns)
         if every > 1:
             event("a subscriber that coalesces acks")
+        if delay_ns:
+            event("a subscriber that delays acks")
         ledger: SubscriberLedger[Item] = SubscriberLedger(mode, size, key.descriptor, policy=policy)
         self.subs.append(Sub(key, ledger))
         self._register(key)
@@ -179,6 +185,20 @@ class ProtocolModel(RuleBasedStateMachine):
             if sub.key.mode is FLOW:
                 assert entry.missed == 0, "a flow-controlled subscription reported missed"
         self._acks(sub, idle=False)
+
+    @precondition(lambda self: bool(self._live()))
+    @rule(data=st.data())
+    def flush(self, data: st.DataObject) -> None:
+        """The subscription's flusher thread: at the ledger's flush time, the delayed ack."""
+        STEPS[0] += 1
+        self._flush(data.draw(st.sampled_from(self._live())))
+
+    def _flush(self, sub: Sub) -> None:
+        due = sub.ledger.flush_at_ns()
+        if due is not None:
+            self.now = max(self.now, due)
+            event("flush: a delayed ack sent by the flusher")
+            self._acks(sub, idle=False)
 
     @precondition(lambda self: bool(self._live()))
     @rule(data=st.data())
@@ -334,6 +354,7 @@ class ProtocolModel(RuleBasedStateMachine):
                 self._deliver(self.net.pop(0))
             for sub in self._live():
                 self._take_all(sub)
+                self._flush(sub)
             while self.net:
                 self._deliver(self.net.pop(0))
             regs = self.producer.registrations()
