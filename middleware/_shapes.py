@@ -39,7 +39,6 @@ from lxml import etree
 
 import schemas
 
-from ._errors import SchemaError
 from ._xml import XmlLimits, metadata_timestamp_ns, validate_metadata
 
 # Shapes one checker remembers, and the largest document it remembers one of.
@@ -235,6 +234,3 @@ def _schema_set(path: Path) -> list[etree._Element]:
                 raise OSError(f"{current}: include without schemaLocation")
             todo.append((current.parent / location).resolve())
     return list(seen.values())
-
-
-__all__ = ["MAX_SHAPES", "SchemaError", "ShapeChecker", "counter_slots"]
