@@ -371,7 +371,12 @@ def _service_info(body: dict[str, Any], start_ns: int, end_ns: int) -> ServiceIn
     for b in body["buffers"]:
         subs = tuple(
             SubscriptionInfo(
-                s["id"], SubscriptionMode(s["mode"]), int(s["queue_size"]), int(s["queued"])
+                s["id"],
+                SubscriptionMode(s["mode"]),
+                int(s["queue_size"]),
+                int(s["queued"]),
+                node=s.get("node"),
+                host=s.get("host"),
             )
             for s in b["subscriptions"]
         )
@@ -390,6 +395,7 @@ def _service_info(body: dict[str, Any], start_ns: int, end_ns: int) -> ServiceIn
                 refused=b["refused"],
                 rejected=b["rejected"],
                 subscriptions=subs,
+                skipped={str(k): int(v) for k, v in b.get("skipped", {}).items()},
             )
         )
     sample = ClockSample.from_times(start_ns, int(body["clock_ns"]), end_ns)

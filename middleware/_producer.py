@@ -59,6 +59,7 @@ class _Counters:
     refused: int = 0
     rejected: int = 0
     bad_messages: int = 0
+    skipped: dict[str, int] = field(default_factory=dict)
     put_times: deque[int] = field(default_factory=lambda: deque(maxlen=_RATE_WINDOW))
 
 
@@ -384,6 +385,13 @@ class Producer:
                 self._send_all(due)
                 self._undeclare(retired)
 
+    def count_skip(self, reason: str, count: int = 1) -> None:
+        """Count ``count`` elements the service chose not to put, e.g. ``late`` frames a
+        camera could not produce in time; ``info`` shows them by reason."""
+        with self._lock:
+            skipped = self._counters.skipped
+            skipped[reason] = skipped.get(reason, 0) + count
+
     # -- reading state -------------------------------------------------------------------
     def fill(self) -> float:
         """The fullest flow-controlled subscription's queued/N in [0, 1]; 0 with none.
@@ -426,6 +434,7 @@ class Producer:
             c = self._counters
             times = list(c.put_times)
             puts, refused, rejected = c.puts, c.refused, c.rejected
+            skipped = dict(c.skipped)
             subs = tuple(r.info() for r in self._ledger.registrations())
         span_ns = times[-1] - times[0] if times else 0
         # Elements per second; a batch's elements share one time, so the span may be 0.
@@ -446,6 +455,7 @@ class Producer:
             refused=refused,
             rejected=rejected,
             subscriptions=subs,
+            skipped=skipped,
         )
 
     def close(self) -> None:

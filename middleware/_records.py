@@ -92,6 +92,10 @@ class SubscriptionInfo:
     queue_size: int
     queued: int
     taken_ns: int | None = None
+    # The node (service name, or "" for an anonymous client) and host holding the
+    # subscription, as its token says; None when the token does not say (older peers).
+    node: str | None = None
+    host: str | None = None
 
     @property
     def fill(self) -> float:
@@ -116,6 +120,9 @@ class BufferInfo:
     refused: int
     rejected: int
     subscriptions: tuple[SubscriptionInfo, ...] = field(default=())
+    # Elements the offering service chose not to put, by reason (e.g. the camera's
+    # ``late``: a frame it could not produce in time), counted with ``Producer.count_skip``.
+    skipped: dict[str, int] = field(default_factory=dict)
 
     @property
     def name(self) -> str:

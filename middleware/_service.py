@@ -82,6 +82,8 @@ def buffer_info_json(info: BufferInfo) -> dict[str, Any]:
             "queue_size": s.queue_size,
             "queued": s.queued,
             "fill": s.fill,
+            "node": s.node,
+            "host": s.host,
         }
         for s in info.subscriptions
     ]
