@@ -6,7 +6,7 @@ a queue size of their choice. While a flow-controlled subscriber's queue is full
 producer is refused (paper §4.1). See the README's *Wire format* for the protocol.
 """
 
-from ._clock import ClockSample
+from ._clock import ClockSample, ClockStatus, SteadyClock, now_ns
 from ._config import NetworkConfig, add_network_arguments, check_name, network_from_args
 from ._errors import (
     ConfigError,
@@ -39,6 +39,7 @@ __all__ = [
     "PUSH_ALL",
     "BufferInfo",
     "ClockSample",
+    "ClockStatus",
     "ConfigError",
     "DataObject",
     "DuplicateTimestampError",
@@ -54,6 +55,7 @@ __all__ = [
     "Retention",
     "SchemaError",
     "ServiceInfo",
+    "SteadyClock",
     "Subscription",
     "SubscriptionInfo",
     "SubscriptionMode",
@@ -65,6 +67,7 @@ __all__ = [
     "field_text",
     "make_metadata",
     "network_from_args",
+    "now_ns",
     "parse_duration_ns",
     "parse_time_ns",
     "parse_time_range",
