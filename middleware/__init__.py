@@ -16,6 +16,7 @@ from ._errors import (
     NotFoundError,
     PayloadTooLargeError,
     QueryError,
+    RegistrationRefused,
     SchemaError,
     TransportError,
 )
@@ -52,6 +53,7 @@ __all__ = [
     "PayloadTooLargeError",
     "Producer",
     "QueryError",
+    "RegistrationRefused",
     "Retention",
     "SchemaError",
     "ServiceInfo",

@@ -9,6 +9,7 @@ tool defines its own errors next to its code, always below ``FramegateError``::
     ├── QueryError                 a query is malformed or the service answered with an error
     │   └── NotFoundError          no such service, buffer or element
     ├── FlowControlRefused         a subscriber's notification queue is full; nothing was stored
+    ├── RegistrationRefused        a producer refused a subscription (a limit it names)
     ├── DuplicateTimestampError    a put's timestamp is not newer than the newest element
     ├── PayloadTooLargeError       a payload exceeds the buffer's configured limit
     ├── TransportError             Zenoh failed underneath us (every zenoh.ZError maps here)
@@ -54,6 +55,11 @@ class FlowControlRefused(FramegateError):
     The paper's rule: the source is prevented from producing. A camera drops the frame and
     counts it; a lossless source waits (``put(..., wait_s=...)``).
     """
+
+
+class RegistrationRefused(FramegateError):
+    """A producer refused a subscription: too many subscriptions, or a queue beyond what it
+    can hold for flow control. The message names the limit."""
 
 
 class DuplicateTimestampError(FramegateError):

@@ -63,6 +63,7 @@ from dataclasses import dataclass, field
 from typing import Generic, TypeVar
 
 from ._records import SubscriptionInfo, SubscriptionMode
+from ._wire import descriptor_of
 
 # Registrations one producer keeps; tokens beyond it are ignored (and counted).
 MAX_REGISTRATIONS = 1024
@@ -90,7 +91,7 @@ class RegistrationKey:
     _hash: int = field(init=False, compare=False, repr=False)
 
     def __post_init__(self) -> None:
-        descriptor = f"{self.mode.value}/{self.queue_size}/{self.push_max_bytes}"
+        descriptor = descriptor_of(self.mode, self.queue_size, self.push_max_bytes)
         object.__setattr__(self, "descriptor", descriptor)
         identity = (self.sub_id, self.mode.value, self.queue_size, self.push_max_bytes)
         object.__setattr__(self, "_hash", hash(identity))
@@ -259,6 +260,15 @@ class ProducerLedger(Generic[H]):
                 for seq, header in reg.outstanding
             )
         return sends
+
+    def next_retransmit_ns(self) -> int | None:
+        """When ``tick`` next has a resend due (None: nothing outstanding)."""
+        due = [
+            reg.progress_ns if reg.resend_now else reg.progress_ns + RETRANSMIT_NS
+            for reg in self._regs.values()
+            if reg.outstanding
+        ]
+        return min(due, default=None)
 
     # -- reading ---------------------------------------------------------------------------
     def registrations(self) -> list[Registration[H]]:

@@ -37,6 +37,7 @@ from ._errors import (
     QueryError,
     TransportError,
 )
+from ._loop import NodeLoop
 from ._producer import Producer
 from ._records import (
     BufferInfo,
@@ -82,10 +83,12 @@ class Node:
     """A process's presence on the framegate network. Use as a context manager."""
 
     def __init__(self, name: str | None = None, network: NetworkConfig | None = None) -> None:
-        self.network = network or NetworkConfig()
+        # The same FRAMEGATE_* variables as every command (see the README's table).
+        self.network = network or NetworkConfig().with_env()
         self.name = check_name(name, "service") if name else None
         self.keys = Keys(self.network.namespace)
         self._session = _open(self.network)
+        self._loop = NodeLoop(self.name or "client")
         self._opened = time.monotonic()
         self._endpoint: ServiceEndpoint | None = None
         self._subscriptions: list[Subscription] = []
@@ -123,6 +126,7 @@ class Node:
                 retention=retention or Retention(),
                 inline_max_bytes=inline_max_bytes,
                 xml_limits=xml_limits,
+                loop=self._loop,
             )
             self._endpoint.add(producer)
         return producer
@@ -156,7 +160,9 @@ class Node:
                 queue_size=queue_size,
                 mode=mode,
                 fetch=self._fetch_exact,
+                loop=self._loop,
                 push_max_bytes=-1 if push_max_bytes is None else max(0, push_max_bytes),
+                holder=self.name,
                 on_close=self._forget,
             )
         with self._lock:
@@ -171,17 +177,18 @@ class Node:
                 self._subscriptions.remove(sub)
 
     def _wait_registered(self, sub: Subscription, wait_s: float) -> None:
+        """Wait for the producer's greeting; RegistrationRefused (the subscription closed)
+        if it refused. A service that is not live returns at once."""
         deadline = time.monotonic() + wait_s
         while time.monotonic() < deadline:
+            try:
+                if sub.wait_registered(min(0.25, max(0.0, deadline - time.monotonic()))):
+                    return
+            except FramegateError:
+                sub.close()
+                raise
             if sub.service not in self.live_services(timeout_s=min(1.0, wait_s)):
                 return
-            try:
-                infos = self.buffer_info(sub.name, timeout_s=1.0).subscriptions
-            except FramegateError:
-                infos = ()
-            if any(s.subscription_id == sub.subscription_id for s in infos):
-                return
-            time.sleep(0.02)
 
     def query(
         self,
@@ -336,6 +343,7 @@ class Node:
             sub.close()
         if self._endpoint is not None:
             self._endpoint.close()
+        self._loop.close()
         with suppress(zenoh.ZError):
             self._session.close()
 
@@ -396,6 +404,7 @@ def _service_info(body: dict[str, Any], start_ns: int, end_ns: int) -> ServiceIn
                 rejected=b["rejected"],
                 subscriptions=subs,
                 skipped={str(k): int(v) for k, v in b.get("skipped", {}).items()},
+                refused_subscriptions=int(b.get("refused_subscriptions", 0)),
             )
         )
     sample = ClockSample.from_times(start_ns, int(body["clock_ns"]), end_ns)

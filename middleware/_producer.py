@@ -8,9 +8,9 @@ stored and the producer learns at once (a camera drops the frame and counts it),
 to ``wait_s`` (a lossless replay source). Observers never hold the producer back.
 
 Flow control lives above Zenoh (credits: queued = sent - acknowledged), because a full Zenoh
-FIFO would stall the whole link, not just one subscription. The protocol itself (which
-message does what in which state) is the pure ``ProducerLedger`` in ``_ledger_producer``;
-this module only feeds it from Zenoh and sends what it returns.
+FIFO would stall the whole link, not just one subscription. Every decision is the sans-IO
+``ProducerProtocol`` (``_protocol_producer``); this module feeds it and carries out its
+events.
 """
 
 from __future__ import annotations
@@ -29,28 +29,25 @@ from typing import Any
 import zenoh
 
 from ._buffer import TimeSeries
+from ._clock import now_ns
 from ._errors import DuplicateTimestampError, FlowControlRefused, FramegateError, SchemaError
-from ._ledger_producer import ProducerLedger, Registration, RegistrationKey, Send
-from ._records import BufferInfo, DataObject, Retention, SubscriptionInfo, SubscriptionMode
+from ._ledger_producer import Registration, RegistrationKey
+from ._loop import NodeLoop
+from ._protocol_producer import Event, ProducerProtocol, Publish, Retire
+from ._records import BufferInfo, DataObject, Retention, SubscriptionInfo
 from ._shapes import ShapeChecker
-from ._wire import (
-    Keys,
-    decode_ack,
-    encode_batch_header,
-    encode_notification_header,
-    parse_subscription_token,
-)
+from ._wire import Keys
 from ._xml import XmlLimits
 
 log = logging.getLogger("framegate.middleware")
 
-# Metadata rides along with notifications up to this size.
-_INLINE_METADATA_MAX = 8 * 1024
+# Elements stamped further ahead of this process's clock are refused: a stamp a consumer
+# cannot bound must never reach it (see the README's time model).
+HORIZON_NS = 10_000_000_000
 # Rate over the last this-many puts.
 _RATE_WINDOW = 64
-# How often outstanding notifications are checked for resending (and retired publishers
-# undeclared) when no put does it.
-_TICK_S = 0.1
+# A put that waits for credit looks again at least this often.
+_WAIT_S = 0.1
 
 
 @dataclass
@@ -66,14 +63,13 @@ class _Counters:
 class Producer:
     """A buffer offered by this process. Create with ``Node.offer``.
 
-    Threads: ``_on_token`` and ``_on_ack`` run on Zenoh's threads; they parse, then take
-    ``_lock`` only to feed the ledger, and never call Zenoh. ``_lock`` (with ``_cond`` on it)
-    guards the ledger, the publishers, the counters and the rate window; nothing holds it
-    while calling Zenoh. ``_send_lock`` serialises sending (``put`` on the caller's threads
-    and the ``fg-resend`` thread, which resends outstanding notifications and undeclares the
-    publishers of withdrawn registrations): notifications of one registration leave in seq
-    order, and a ``publisher.put`` that blocks (flow control uses ``BLOCK``) holds only
-    ``_send_lock``, which no Zenoh callback takes. Lock order: ``_send_lock``, then ``_lock``.
+    Threads (see the README's *Threads*): ``_on_token`` and ``_on_ack`` run on zenoh-python's
+    callback thread, never on Zenoh's own; they feed the protocol under ``_lock`` and wake
+    whoever waits, and never call Zenoh. ``_lock`` (with ``_cond`` on it) guards the
+    protocol, the counters and the rate window. ``_send_lock`` serialises carrying out the
+    protocol's events (``put`` on the caller's thread, ``on_deadline`` on the node's loop),
+    so the messages of one registration leave in order and a ``publisher.put`` that blocks
+    holds only ``_send_lock``. Lock order: ``_send_lock``, then ``_lock``.
     """
 
     def __init__(
@@ -87,77 +83,84 @@ class Producer:
         retention: Retention,
         inline_max_bytes: int,
         xml_limits: XmlLimits,
+        loop: NodeLoop,
+        horizon_ns: int = HORIZON_NS,
     ) -> None:
         self.service = service
         self.buffer = buffer
         self.kind = kind
         self.series = TimeSeries(retention)
         self.inline_max_bytes = inline_max_bytes
+        self.horizon_ns = horizon_ns
         # Validates each element's metadata, in full once per document shape.
         self._metadata = ShapeChecker(kind, xml_limits)
         self._session = session
-        self._keys = keys
+        self._loop = loop
         # A new epoch per producer instance; each registration gets "<epoch>.<n>".
         self.epoch = secrets.token_hex(6)
         self._lock = threading.Lock()
         self._cond = threading.Condition(self._lock)
         self._send_lock = threading.Lock()
-        self._ledger: ProducerLedger[DataObject] = ProducerLedger(self.epoch)
+        self._protocol = ProducerProtocol(
+            keys, service, buffer, self.epoch, inline_max_bytes=inline_max_bytes
+        )
         self._publishers: dict[RegistrationKey, Any] = {}
-        self._retired: list[Any] = []
         self._counters = _Counters()
         self._closed = False
-        self._stop = threading.Event()
+        # Events produced by Zenoh input (greetings, refusals, retired publishers) wait for
+        # the loop or the next put; this says whether any do.
+        self._events_waiting = False
         self._token_sub = session.liveliness().declare_subscriber(
             keys.subscription_tokens(service, buffer),
-            zenoh.handlers.Callback(self._on_token, indirect=False),
+            zenoh.handlers.Callback(self._on_token),
             history=True,
         )
         self._ack_sub = session.declare_subscriber(
-            keys.acks(service, buffer), zenoh.handlers.Callback(self._on_ack, indirect=False)
+            keys.acks(service, buffer), zenoh.handlers.Callback(self._on_ack)
         )
-        self._resender = threading.Thread(
-            target=self._resend_loop, daemon=True, name=f"fg-resend-{service}/{buffer}"
-        )
-        self._resender.start()
+        loop.add(self)
 
     @property
     def name(self) -> str:
         return f"{self.service}/{self.buffer}"
 
-    # -- Zenoh callbacks (Zenoh's threads: short, never call Zenoh) -------------------------
+    # -- Zenoh input (zenoh-python's callback thread: short, never calls Zenoh) -----------
     def _on_token(self, sample: zenoh.Sample) -> None:
-        try:
-            key = RegistrationKey(*parse_subscription_token(str(sample.key_expr)))
-        except ValueError:
-            with self._lock:
-                self._counters.bad_messages += 1
-            return
+        alive = sample.kind == zenoh.SampleKind.PUT
         with self._cond:
-            if sample.kind == zenoh.SampleKind.PUT:
-                self._ledger.token_put(key, time.monotonic_ns())
-            elif (gone := self._ledger.token_delete(key)) is not None:
-                self._retire(gone)
-                log.info("%s: subscription %s gone; no longer waiting for it", self.name, key)
+            self._protocol.token(str(sample.key_expr), alive, time.monotonic_ns())
+            self._events_waiting = True
             self._cond.notify_all()
+        self._loop.poke(0)
 
     def _on_ack(self, sample: zenoh.Sample) -> None:
-        sub_id = str(sample.key_expr).rsplit("/", 1)[-1]
-        try:
-            epoch, seq = decode_ack(sample.payload.to_bytes())
-        except Exception:  # garbage on our ack key must never hurt the producer
-            with self._lock:
-                self._counters.bad_messages += 1
-            return
+        keyexpr = str(sample.key_expr)
+        payload = sample.payload.to_bytes()
         with self._cond:
-            if self._ledger.ack(sub_id, epoch, seq, time.monotonic_ns()):
+            if self._protocol.ack(keyexpr, payload, time.monotonic_ns()):
                 self._cond.notify_all()
 
-    def _retire(self, reg: Registration[DataObject]) -> None:
-        """(under _lock) Its publisher is undeclared by the next sender, not on Zenoh's thread."""
-        publisher = self._publishers.pop(reg.key, None)
-        if publisher is not None:
-            self._retired.append(publisher)
+    # -- the node's loop ---------------------------------------------------------------------
+    def next_deadline_ns(self) -> int | None:
+        if self._events_waiting:
+            return 0
+        with self._lock:
+            return self._protocol.next_deadline_ns()
+
+    def on_deadline(self, now_ns: int) -> None:
+        """Resends that are due and events Zenoh input produced, sent from the node's loop."""
+        with self._send_lock:
+            with self._lock:
+                if self._closed:
+                    return
+                self._protocol.tick(now_ns)
+                events = self._take_events()
+            self._carry_out(events)
+
+    def _take_events(self) -> list[Event]:
+        """(under _lock)"""
+        self._events_waiting = False
+        return self._protocol.events()
 
     # -- producing -------------------------------------------------------------------------
     def put(
@@ -210,27 +213,28 @@ class Producer:
             raise
         count = len(elements)
         deadline = time.monotonic() + wait_s
-        with self._send_lock:
-            while True:
+        while True:
+            with self._send_lock:
                 with self._cond:
-                    due, retired = self._ledger.tick(time.monotonic_ns()), self._drain_retired()
-                    full = self._ledger.full(count)
+                    full = self._protocol.full(count)
                     if full is None:
-                        sends = self._store(elements)
-                        break
-                    remaining = deadline - time.monotonic()
-                    if remaining <= 0 or count > full.key.queue_size:
-                        self._counters.refused += count
-                        raise FlowControlRefused(self._refusal(full, elements))
-                self._send_all(due)
-                self._undeclare(retired)
-                with self._cond:
-                    if self._ledger.full(count) is not None:
-                        self._cond.wait(min(remaining, _TICK_S))
-            self._send_all(due + sends)
-            self._undeclare(retired)
+                        self._store(elements)
+                    else:
+                        self._protocol.tick(time.monotonic_ns())  # a waiting put heals losses
+                    events = self._take_events()
+                self._carry_out(events)
+            if full is None:
+                return
+            # Not stored: wait for credit outside _send_lock (the loop keeps sending).
+            with self._cond:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0 or count > full.key.queue_size:
+                    self._counters.refused += count
+                    raise FlowControlRefused(self._refusal(full, elements))
+                if self._protocol.full(count) is not None:
+                    self._cond.wait(min(remaining, _WAIT_S))
 
-    def _refusal(self, full: Registration[DataObject], elements: tuple[DataObject, ...]) -> str:
+    def _refusal(self, full: Registration[Any], elements: tuple[DataObject, ...]) -> str:
         k, count, first = full.key, len(elements), elements[0].timestamp_ns
         if count == 1:
             return (
@@ -263,6 +267,12 @@ class Producer:
         try:
             if not 0 <= timestamp_ns < 2**63:
                 _check_types(timestamp_ns, payload, meta)
+            if timestamp_ns > now_ns() + self.horizon_ns:
+                raise SchemaError(
+                    f"timestamp {timestamp_ns} is {(timestamp_ns - now_ns()) / 1e9:.1f} s ahead "
+                    f"of this process's clock; {self.name} refuses elements more than "
+                    f"{self.horizon_ns / 1e9:g} s ahead (stamp with middleware.now_ns())"
+                )
             declared = self._metadata.timestamp_ns(meta)
             if declared != timestamp_ns:
                 raise SchemaError(
@@ -274,8 +284,8 @@ class Producer:
             raise
         return DataObject(timestamp_ns, payload, meta)
 
-    def _store(self, elements: tuple[DataObject, ...]) -> list[Send[DataObject]]:
-        """(under _lock) Append, count, and get the notifications to send."""
+    def _store(self, elements: tuple[DataObject, ...]) -> None:
+        """(under _lock) Append, count, and let the protocol notify."""
         try:
             # All or nothing: ``extend`` checks the batch (strictly increasing, checked by
             # the caller) against the series before appending any of it.
@@ -286,111 +296,48 @@ class Producer:
         self._counters.puts += len(elements)
         now = time.monotonic_ns()
         self._counters.put_times.extend([now] * len(elements))
-        return self._ledger.put_many(elements, now)
+        self._protocol.put_many(elements, now)
 
-    def _drain_retired(self) -> list[Any]:
-        retired, self._retired = self._retired, []
-        return retired
-
-    def _send_all(self, sends: list[Send[DataObject]]) -> None:
-        """(under _send_lock, not _lock) Send notifications; a failure keeps them outstanding."""
-        for send in sends:
+    def _carry_out(self, events: list[Event]) -> None:
+        """(under _send_lock, not _lock) Send what the protocol decided; a notification that
+        fails to leave stays outstanding."""
+        for event in events:
+            if type(event) is Retire:
+                publisher = self._publishers.pop(event.key, None)
+                if publisher is not None:
+                    with contextlib.suppress(zenoh.ZError):
+                        publisher.undeclare()
+                continue
+            assert type(event) is Publish
             try:
-                self._send(send)
+                if event.epoch is None:  # a control message: rare, never blocks
+                    self._session.put(
+                        event.keyexpr,
+                        event.payload,
+                        attachment=event.attachment,
+                        congestion_control=zenoh.CongestionControl.DROP,
+                    )
+                    continue
+                publisher = self._publishers.get(event.key)
+                if publisher is None:
+                    publisher = self._session.declare_publisher(
+                        event.keyexpr,
+                        congestion_control=zenoh.CongestionControl.BLOCK
+                        if event.block
+                        else zenoh.CongestionControl.DROP,
+                    )
+                    self._publishers[event.key] = publisher
+                publisher.put(event.payload, attachment=event.attachment)
             except zenoh.ZError as exc:
                 log.warning(
-                    "%s: notification %d to %s failed (%s); it will be sent again",
+                    "%s: a notification to %s failed (%s); it will be sent again",
                     self.name,
-                    send.seq,
-                    send.key.sub_id,
+                    event.key.sub_id,
                     exc,
                 )
-                with self._lock:
-                    self._ledger.send_failed(send.key, send.epoch)
-
-    def _send(self, send: Send[DataObject]) -> None:
-        key = send.key
-        with self._lock:
-            publisher = self._publishers.get(key)
-            live = self._ledger.get(key) is not None
-        if not live:
-            return  # withdrawn since
-        if publisher is None:
-            congestion = (
-                zenoh.CongestionControl.BLOCK
-                if key.mode is SubscriptionMode.FLOW
-                else zenoh.CongestionControl.DROP
-            )
-            publisher = self._session.declare_publisher(
-                self._keys.notify(self.service, self.buffer, key.sub_id),
-                congestion_control=congestion,
-            )
-            with self._lock:
-                if self._ledger.get(key) is not None:
-                    self._publishers[key] = publisher
-                else:
-                    self._retired.append(publisher)
-        limit = self.inline_max_bytes if key.push_max_bytes < 0 else key.push_max_bytes
-        if send.count > 1:
-            payload, header = self._batch(send, limit)
-            publisher.put(payload, attachment=header)
-            return
-        element = send.headers[0]
-        # A resent notification carries no payload: the subscriber fetches if it needs it.
-        pushed = not send.again and len(element.payload) <= limit
-        header = encode_notification_header(
-            send.epoch,
-            send.seq,
-            element.timestamp_ns,
-            element.metadata if len(element.metadata) <= _INLINE_METADATA_MAX else None,
-            pushed=pushed,
-            acked=send.acked,
-            descriptor=key.descriptor,
-        )
-        # The payload travels as the Zenoh payload itself: no extra copy into msgpack,
-        # and large ones go through Zenoh's shared memory on one host.
-        publisher.put(element.payload if pushed else b"", attachment=header)
-
-    @staticmethod
-    def _batch(send: Send[DataObject], limit: int) -> tuple[bytes, bytes]:
-        """(Zenoh payload, attachment) of a batch notification: pushed only if every payload
-        fits the push limit, then the payloads one after another."""
-        elements = send.headers
-        pushed = all(len(e.payload) <= limit for e in elements)
-        header = encode_batch_header(
-            send.epoch,
-            send.seq,
-            [e.timestamp_ns for e in elements],
-            [e.metadata if len(e.metadata) <= _INLINE_METADATA_MAX else None for e in elements],
-            [len(e.payload) for e in elements] if pushed else None,
-            acked=send.acked,
-            descriptor=send.key.descriptor,
-        )
-        payload = b"".join(e.payload for e in elements) if pushed else b""
-        return payload, header
-
-    @staticmethod
-    def _undeclare(publishers: list[Any]) -> None:
-        for publisher in publishers:
-            with contextlib.suppress(zenoh.ZError):
-                publisher.undeclare()
-
-    def _resend_loop(self) -> None:
-        while not self._stop.wait(_TICK_S):
-            with self._send_lock:
-                if self._closed:
-                    return
-                with self._lock:
-                    due, retired = self._ledger.tick(time.monotonic_ns()), self._drain_retired()
-                self._send_all(due)
-                self._undeclare(retired)
-
-    def count_skip(self, reason: str, count: int = 1) -> None:
-        """Count ``count`` elements the service chose not to put, e.g. ``late`` frames a
-        camera could not produce in time; ``info`` shows them by reason."""
-        with self._lock:
-            skipped = self._counters.skipped
-            skipped[reason] = skipped.get(reason, 0) + count
+                if event.epoch is not None:
+                    with self._lock:
+                        self._protocol.send_failed(event.key, event.epoch)
 
     # -- reading state -------------------------------------------------------------------
     def fill(self) -> float:
@@ -399,18 +346,18 @@ class Producer:
         This is the paper's load indicator, read by the mediator.
         """
         with self._lock:
-            return self._ledger.fill()
+            return self._protocol.fill()
 
     def subscriptions(self) -> list[SubscriptionInfo]:
         """Every live subscription (registration) as this producer counts it."""
         with self._lock:
-            return [r.info() for r in self._ledger.registrations()]
+            return self._protocol.subscriptions()
 
     def wait_for_subscribers(self, count: int, *, timeout_s: float) -> bool:
         """Wait until at least ``count`` subscriptions are registered."""
         deadline = time.monotonic() + timeout_s
         with self._cond:
-            while len(self._ledger.registrations()) < count:
+            while len(self._protocol.registrations()) < count:
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
                     return False
@@ -421,7 +368,7 @@ class Producer:
         """Wait until ``fill()`` < ``limit`` (e.g. a consumer took a notification)."""
         deadline = time.monotonic() + timeout_s
         with self._cond:
-            while self._ledger.fill() >= limit:
+            while self._protocol.fill() >= limit:
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
                     return False
@@ -435,7 +382,8 @@ class Producer:
             times = list(c.put_times)
             puts, refused, rejected = c.puts, c.refused, c.rejected
             skipped = dict(c.skipped)
-            subs = tuple(r.info() for r in self._ledger.registrations())
+            subs = tuple(self._protocol.subscriptions())
+            protocol = self._protocol.counters
         span_ns = times[-1] - times[0] if times else 0
         # Elements per second; a batch's elements share one time, so the span may be 0.
         rate = (len(times) - 1) / (span_ns / 1e9) if span_ns > 0 else 0.0
@@ -456,22 +404,22 @@ class Producer:
             rejected=rejected,
             subscriptions=subs,
             skipped=skipped,
+            refused_subscriptions=protocol.refused_registrations,
         )
 
     def close(self) -> None:
         """Stop serving; subscribers see the service token go."""
         if self._closed:
             return
-        self._closed = True
-        self._stop.set()
-        with self._cond:
-            gone = self._ledger.clear()
-            for reg in gone:
-                self._retire(reg)
-            retired = self._drain_retired()
-            self._cond.notify_all()
-        self._resender.join(timeout=6.0)  # a BLOCK put gives up after 5 s
-        for entity in [self._token_sub, self._ack_sub, *retired]:
+        self._loop.remove(self)
+        with self._send_lock:
+            with self._cond:
+                self._closed = True
+                self._protocol.close()
+                events = self._take_events()
+                self._cond.notify_all()
+            self._carry_out(events)
+        for entity in (self._token_sub, self._ack_sub):
             with contextlib.suppress(zenoh.ZError):
                 entity.undeclare()
 

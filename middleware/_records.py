@@ -123,6 +123,8 @@ class BufferInfo:
     # Elements the offering service chose not to put, by reason (e.g. the camera's
     # ``late``: a frame it could not produce in time), counted with ``Producer.count_skip``.
     skipped: dict[str, int] = field(default_factory=dict)
+    # Subscription tokens this producer refused (a limit: slots or the queue budget).
+    refused_subscriptions: int = 0
 
     @property
     def name(self) -> str:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import secrets
+import socket
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -19,38 +20,31 @@ from typing import Any
 
 import zenoh
 
-from ._errors import FramegateError
-from ._ledger_subscriber import REACK_NS, AckPolicy, Entry, SubscriberCounters, SubscriberLedger
+from ._errors import FramegateError, RegistrationRefused
+from ._ledger_subscriber import REACK_NS, Entry, SubscriberCounters
+from ._loop import NodeLoop
+from ._protocol_subscriber import Item, SubscriberProtocol
 from ._records import DataObject, Notification, SubscriptionMode
-from ._wire import BatchHeader, Header, Keys, decode_notification_header, encode_ack
+from ._wire import Keys, holder_chunk
 
 # A push limit larger than any payload: everything travels with its notification.
 PUSH_ALL = 2**31 - 1
 _REACK_S = REACK_NS / 1e9
-
-# What the queue holds per notification: timestamp_ns, metadata, the pushed payload. A
-# single element's payload stays Zenoh's ZBytes until ``take`` (on the caller's thread) turns
-# it into bytes: copying a large frame on Zenoh's receive thread stalls every other message
-# behind it. A batch (meant for many small elements) is split into bytes on arrival.
-_Item = tuple[int, bytes | None, zenoh.ZBytes | bytes | None]
 
 
 class Subscription:
     """Availability notifications of one buffer. Create with ``Node.subscribe``.
 
     Survives restarts of the producing service: the producer re-registers this subscription
-    from its liveliness token under a new epoch, and the ledger tracks every epoch it meets.
+    from its liveliness token under a new epoch, and the protocol tracks every epoch it meets.
 
-    Threads: ``_on_notification`` runs on Zenoh's thread; it decodes the header, then takes
-    ``_lock`` once to feed the ledger, and never calls Zenoh nor copies a single element's
-    payload (``take`` does, on the caller's thread). ``_lock`` guards the ledger, ``garbage``
-    and ``_waiting`` (callers blocked in ``_cond``, a condition on ``_lock``: the callback
-    notifies only when someone waits). Acks are computed under the lock and sent after
-    releasing it (``take`` on the caller's thread), so a blocking ack put never holds a lock
-    the callback needs. With a delayed-ack policy (queues of 4 and more) the ``fg-ack``
-    thread sends an emptied queue's ack when its delay is up and the caller has not come
-    back to take; the caller wakes it (``_flush_wake``) only when such an ack appears while
-    it watches none (``_flush_armed``, under ``_lock``).
+    Threads (see the README's *Threads*): ``_on_notification`` runs on zenoh-python's
+    callback thread, never on Zenoh's own; it takes ``_lock`` once to feed the protocol and
+    wakes a caller only if one waits, and never calls Zenoh nor copies a single element's
+    payload (``take`` does, on the caller's thread). ``_lock`` guards the protocol and
+    ``_waiting`` (callers blocked in ``_cond``). Acks are computed under the lock and sent
+    after releasing it: by ``take`` on the caller's thread, or by the node's loop when a
+    delayed ack falls due and the caller has not come back (``on_deadline``).
     """
 
     def __init__(
@@ -63,11 +57,12 @@ class Subscription:
         queue_size: int,
         mode: SubscriptionMode,
         fetch: Callable[[str, int, float], DataObject],
+        loop: NodeLoop,
         push_max_bytes: int = -1,
+        holder: str | None = None,
         on_close: Callable[[Subscription], None] | None = None,
     ) -> None:
-        if queue_size < 1:
-            raise FramegateError(f"queue_size must be >= 1, got {queue_size}")
+        self._protocol = SubscriberProtocol(mode, queue_size, push_max_bytes)
         self.service = service
         self.buffer = buffer
         self.queue_size = queue_size
@@ -76,17 +71,11 @@ class Subscription:
         self._session = session
         self._keys = keys
         self._fetch = fetch
+        self._loop = loop
         self._on_close = on_close
         self._lock = threading.Lock()
         self._cond = threading.Condition(self._lock)
         self._waiting = 0
-        self._ledger: SubscriberLedger[_Item] = SubscriberLedger(
-            mode,
-            queue_size,
-            f"{mode.value}/{queue_size}/{push_max_bytes}",
-            policy=AckPolicy.for_queue(queue_size),
-        )
-        self.garbage = 0
         self._closed = False
         self._ack_publisher = session.declare_publisher(
             keys.ack(service, buffer, self.subscription_id),
@@ -94,22 +83,19 @@ class Subscription:
         )
         self._subscriber = session.declare_subscriber(
             keys.notify(service, buffer, self.subscription_id),
-            zenoh.handlers.Callback(self._on_notification, indirect=False),
+            zenoh.handlers.Callback(self._on_notification),
         )
-        # Acks held back by the ledger's delay are sent by this thread if the caller does
-        # not come back to take (``_flush_armed``: it has been told there is one to watch).
-        self._flush_wake = threading.Event()
-        self._flush_armed = False
-        self._flusher: threading.Thread | None = None
-        if self._ledger.policy.delay_ns:
-            self._flusher = threading.Thread(
-                target=self._flush_loop, daemon=True, name=f"fg-ack-{service}/{buffer}"
-            )
-            self._flusher.start()
+        loop.add(self)
         # Declared last: once the producer sees it, notifications may flow.
         self._token = session.liveliness().declare_token(
             keys.subscription_token(
-                service, buffer, self.subscription_id, mode, queue_size, push_max_bytes
+                service,
+                buffer,
+                self.subscription_id,
+                mode,
+                queue_size,
+                push_max_bytes,
+                holder_chunk(holder, socket.gethostname()),
             )
         )
 
@@ -121,52 +107,66 @@ class Subscription:
     def missed_total(self) -> int:
         """Notifications lost so far (observers only: flow control loses none)."""
         with self._lock:
-            return self._ledger.missed_total
+            return self._protocol.missed_total
 
     @property
     def counters(self) -> SubscriberCounters:
         """Notifications ignored so far, by reason (foreign, duplicate, out of order, ...)."""
         with self._lock:
-            c = self._ledger.counters
-            return SubscriberCounters(c.foreign, c.invalid, c.out_of_order, c.duplicates, c.refused)
+            return self._protocol.counters()
+
+    @property
+    def garbage(self) -> int:
+        """Messages on this subscription's key that were not notifications."""
+        with self._lock:
+            return self._protocol.garbage
 
     def _on_notification(self, sample: zenoh.Sample) -> None:
-        try:
-            attachment = sample.attachment
-            if attachment is None:
-                raise ValueError("notification without a header")
-            head = decode_notification_header(attachment.to_bytes())
-            if isinstance(head, Header):
-                metadata = head.metadata
-                pushed = sample.payload if head.pushed and metadata is not None else None
-                item: _Item = (head.timestamp_ns, metadata, pushed)
-                items = None
-            else:
-                items = _batch_items(head, sample.payload)
-        except Exception:  # garbage on our key is counted, never raised into Zenoh
-            with self._lock:
-                self.garbage += 1
-            return
+        attachment = sample.attachment
+        raw = attachment.to_bytes() if attachment is not None else None
         with self._lock:
-            if items is None:
-                queued = self._ledger.receive(
-                    head.epoch, head.seq, item, descriptor=head.descriptor
-                )
-            else:
-                queued = (
-                    self._ledger.receive_many(
-                        head.epoch, head.seq, items, descriptor=head.descriptor
-                    )
-                    > 0
-                )
-            if queued and self._waiting:
+            self._protocol.receive(raw, sample.payload)
+            if self._waiting:  # a notification, or the producer's greeting or refusal
                 self._cond.notify_all()
+
+    def wait_registered(self, timeout_s: float) -> bool:
+        """Wait until the producer greets this subscription; RegistrationRefused if it
+        refused it (naming the limit). False if neither came within ``timeout_s``."""
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while self._protocol.registered is None:
+                if self._protocol.refusal is not None:
+                    raise RegistrationRefused(
+                        f"{self.name} refused this subscription: {self._protocol.refusal}"
+                    )
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    return False
+                self._waiting += 1
+                try:
+                    self._cond.wait(remaining)
+                finally:
+                    self._waiting -= 1
+            return True
+
+    # -- the node's loop ---------------------------------------------------------------------
+    def next_deadline_ns(self) -> int | None:
+        with self._lock:
+            return self._protocol.next_deadline_ns()
+
+    def on_deadline(self, now_ns: int) -> None:
+        """A delayed ack fell due and nobody took since: send it (see ``AckPolicy``)."""
+        with self._lock:
+            due = self._protocol.next_deadline_ns()
+            ready = due is not None and due <= now_ns
+            acks = self._protocol.acks(now_ns, idle=False) if ready else []
+        self._send_acks(acks)
 
     @property
     def pending(self) -> int:
         """Notifications waiting in this process's queue."""
         with self._lock:
-            return len(self._ledger)
+            return len(self._protocol)
 
     def take(self, *, timeout_s: float | None = None) -> Notification | None:
         """Take the oldest notification (it leaves the queue now); None on timeout.
@@ -185,76 +185,39 @@ class Subscription:
         if max_count < 1:
             raise FramegateError(f"max_count must be >= 1, got {max_count}")
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
-        ledger = self._ledger
+        protocol = self._protocol
         while True:
             with self._lock:
-                entry = ledger.take()
-                if entry is not None:
-                    entries = [entry]
-                    while len(entries) < max_count and (entry := ledger.take()) is not None:
-                        entries.append(entry)
-                    acks = ledger.acks_due(time.monotonic_ns(), idle=False)
-                    # Wake the flusher only when a delayed ack appears while it watches none.
-                    wake = (
-                        self._flusher is not None
-                        and not self._flush_armed
-                        and ledger.flush_at_ns() is not None
-                    )
-                    if wake:
-                        self._flush_armed = True
-                else:
-                    wake = False
-                    entries = []
-                    acks = ledger.acks_due(time.monotonic_ns(), idle=True)
-                    if not acks:
-                        if self._closed:
+                entries = protocol.take_many(max_count)
+                acks = protocol.acks(time.monotonic_ns(), idle=not entries)
+                if entries:
+                    flush_at = protocol.next_deadline_ns()
+                elif not acks:
+                    if self._closed:
+                        return []
+                    wait_s = _REACK_S
+                    if deadline is not None:
+                        wait_s = min(deadline - time.monotonic(), _REACK_S)
+                        if wait_s <= 0:
                             return []
-                        wait_s = _REACK_S
-                        if deadline is not None:
-                            wait_s = min(deadline - time.monotonic(), _REACK_S)
-                            if wait_s <= 0:
-                                return []
-                        self._waiting += 1
-                        try:
-                            self._cond.wait(wait_s)
-                        finally:
-                            self._waiting -= 1
-                        continue
-            if wake:
-                self._flush_wake.set()
+                    self._waiting += 1
+                    try:
+                        self._cond.wait(wait_s)
+                    finally:
+                        self._waiting -= 1
+                    continue
             self._send_acks(acks)
             if entries:
+                if flush_at is not None:
+                    self._loop.poke(flush_at)
                 return [self._notification(entry) for entry in entries]
 
-    def _send_acks(self, acks: list[tuple[str, int]]) -> None:
-        for epoch, seq in acks:
+    def _send_acks(self, acks: list[bytes]) -> None:
+        for ack in acks:
             with contextlib.suppress(zenoh.ZError):
-                self._ack_publisher.put(encode_ack(epoch, seq))
+                self._ack_publisher.put(ack)
 
-    def _flush_loop(self) -> None:
-        """Send a delayed ack when it falls due and nobody took since (see ``AckPolicy``)."""
-        ledger = self._ledger
-        while not self._closed:
-            self._flush_wake.wait(_REACK_S)
-            self._flush_wake.clear()
-            while not self._closed:
-                with self._lock:
-                    due_at = ledger.flush_at_ns()
-                    now = time.monotonic_ns()
-                    acks = (
-                        ledger.acks_due(now, idle=False)
-                        if due_at is not None and due_at <= now
-                        else []
-                    )
-                    if due_at is None:
-                        self._flush_armed = False
-                        break
-                self._send_acks(acks)
-                if due_at > now:
-                    self._flush_wake.wait((due_at - now) / 1e9)
-                    self._flush_wake.clear()
-
-    def _notification(self, entry: Entry[_Item]) -> Notification:
+    def _notification(self, entry: Entry[Item]) -> Notification:
         timestamp, metadata, pushed = entry.item
         element = None
         if pushed is not None and metadata is not None:
@@ -282,11 +245,9 @@ class Subscription:
         if self._closed:
             return
         self._closed = True
+        self._loop.remove(self)
         with self._lock:
             self._cond.notify_all()
-        self._flush_wake.set()
-        if self._flusher is not None:
-            self._flusher.join(timeout=2.0)
         for entity in (self._token, self._subscriber, self._ack_publisher):
             with contextlib.suppress(zenoh.ZError):
                 entity.undeclare()
@@ -298,19 +259,3 @@ class Subscription:
 
     def __exit__(self, *_exc: Any) -> None:
         self.close()
-
-
-def _batch_items(head: BatchHeader, payload: zenoh.ZBytes) -> list[_Item]:
-    """The elements of a decoded batch notification, payloads cut out when pushed."""
-    times, metas, sizes = head.timestamps_ns, head.metadata, head.payload_sizes
-    if sizes is None:
-        return [(t, m, None) for t, m in zip(times, metas, strict=True)]
-    raw = payload.to_bytes()
-    if sum(sizes) != len(raw):
-        raise ValueError("batch payload sizes do not add up to the payload")
-    items: list[_Item] = []
-    offset = 0
-    for t, m, size in zip(times, metas, sizes, strict=True):
-        items.append((t, m, raw[offset : offset + size] if m is not None else None))
-        offset += size
-    return items

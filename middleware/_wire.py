@@ -5,7 +5,8 @@ Keys (``ns`` is the namespace, ``framegate`` by default):
     ns/<service>/<buffer>                         queryable: the elements
     ns/@info/<service>                            queryable: JSON description of the service
     ns/@svc/<service>                             liveliness token of a live service
-    ns/@sub/<service>/<buffer>/<id>/<mode>/<N>/<push>   liveliness token of a subscription
+    ns/@sub/<service>/<buffer>/<id>/<mode>/<N>/<push>/<node>~<host>
+                                                  liveliness token of a subscription
     ns/@notify/<service>/<buffer>/<id>            notifications to one subscription
     ns/@ack/<service>/<buffer>/<id>               the subscription's "taken" acknowledgements
 
@@ -57,14 +58,13 @@ class Keys:
         mode: SubscriptionMode,
         queue_size: int,
         push_max_bytes: int,
+        holder: str,
     ) -> str:
-        return (
-            f"{self.namespace}/@sub/{service}/{buffer}/{sub_id}/{mode.value}/{queue_size}"
-            f"/{push_max_bytes}"
-        )
+        descriptor = descriptor_of(mode, queue_size, push_max_bytes)
+        return f"{self.namespace}/@sub/{service}/{buffer}/{sub_id}/{descriptor}/{holder}"
 
     def subscription_tokens(self, service: str, buffer: str) -> str:
-        return f"{self.namespace}/@sub/{service}/{buffer}/*/*/*/*"
+        return f"{self.namespace}/@sub/{service}/{buffer}/**"
 
     def notify(self, service: str, buffer: str, sub_id: str) -> str:
         return f"{self.namespace}/@notify/{service}/{buffer}/{sub_id}"
@@ -77,16 +77,38 @@ class Keys:
 
 
 # Largest queue size a token may ask for: bounds the subscriber's and producer's tables.
+# (A producer holds flow-control queues within a smaller budget, see _protocol_producer.)
 MAX_QUEUE_SIZE = 1 << 20
 
 
-def parse_subscription_token(key: str) -> tuple[str, SubscriptionMode, int, int]:
-    """(id, mode, queue size, push limit) from a subscription token; ValueError if malformed.
+def descriptor_of(mode: SubscriptionMode, queue_size: int, push_max_bytes: int) -> str:
+    """A registration's ``mode/N/push``, as its token says and its notifications carry it."""
+    return f"{mode.value}/{queue_size}/{push_max_bytes}"
+
+
+def holder_chunk(node: str | None, host: str) -> str:
+    """The token's last chunk: ``<node>~<host>`` (node empty for an anonymous client)."""
+    clean = "".join(c if c.isalnum() or c in "-._" else "_" for c in host) or "unknown"
+    return f"{node or ''}~{clean}"
+
+
+def parse_subscription_token(
+    key: str,
+) -> tuple[str, SubscriptionMode, int, int, str | None, str | None]:
+    """(id, mode, queue size, push limit, node, host) from a subscription token; ValueError
+    if malformed. Node and host are None for a token without the holder chunk.
 
     The push limit is the largest payload the subscriber wants pushed with its notifications
     (-1: the producer's default).
     """
     parts = key.split("/")
+    node: str | None = None
+    host: str | None = None
+    if len(parts) >= 9 and parts[-8] == "@sub":
+        node, sep, host = parts[-1].partition("~")
+        if not sep:
+            raise ValueError(f"holder chunk {parts[-1]!r} is not <node>~<host>")
+        parts = parts[:-1]
     if len(parts) < 8 or parts[-7] != "@sub":
         raise ValueError(f"not a subscription token: {key!r}")
     sub_id, mode, size, push = parts[-4], parts[-3], parts[-2], parts[-1]
@@ -101,7 +123,7 @@ def parse_subscription_token(key: str) -> tuple[str, SubscriptionMode, int, int]
         raise ValueError(f"queue size {queue_size} < 1")
     if push_max_bytes < -1:
         raise ValueError(f"push limit {push_max_bytes} < -1")
-    return sub_id, SubscriptionMode(mode), queue_size, push_max_bytes
+    return sub_id, SubscriptionMode(mode), queue_size, push_max_bytes, node, host
 
 
 def encode_element_attachment(element: DataObject) -> bytes:
@@ -210,7 +232,7 @@ def _check_batch(head: BatchHeader) -> BatchHeader:
     return head
 
 
-def decode_notification_header(raw: bytes) -> Header | BatchHeader:
+def decode_notification_header(raw: bytes) -> Header | BatchHeader | Control:
     """Decode and type-check a notification header (single or batch, see
     ``encode_notification_header`` and ``encode_batch_header``); ValueError if it is garbage.
 
@@ -218,6 +240,11 @@ def decode_notification_header(raw: bytes) -> Header | BatchHeader:
     mean for the protocol (epochs, seqs, descriptors) is the ledger's to judge.
     """
     body = msgpack.unpackb(raw, use_list=False)
+    if type(body) is tuple and len(body) == 3:
+        kind, descriptor, text = body
+        if kind not in CONTROL_KINDS or type(descriptor) is not str or type(text) is not str:
+            raise ValueError("control message is not [kind, descriptor, text]")
+        return tuple.__new__(Control, body)  # type: ignore[return-value]
     if type(body) is not tuple or len(body) != 7:
         raise ValueError("notification header is not an array of 7")
     epoch, seq, stamp, metadata, pushed, acked, descriptor = body
@@ -236,6 +263,22 @@ def decode_notification_header(raw: bytes) -> Header | BatchHeader:
     if type(stamp) is tuple:
         return _check_batch(tuple.__new__(BatchHeader, body))
     raise ValueError("notification timestamp is neither an int nor an array")
+
+
+# Control messages travel on a subscription's notification key with an empty payload; their
+# attachment is a msgpack array of 3: ["hello", descriptor, epoch] when the producer
+# registered the subscription, ["refused", descriptor, reason] when it refused it.
+CONTROL_KINDS = ("hello", "refused")
+
+
+class Control(NamedTuple):
+    kind: str
+    descriptor: str
+    text: str
+
+
+def encode_control(kind: str, descriptor: str, text: str) -> bytes:
+    return bytes(msgpack.packb((kind, descriptor, text)))
 
 
 def encode_ack(epoch: str, seq: int) -> bytes:

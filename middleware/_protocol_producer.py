@@ -1,0 +1,334 @@
+"""The producer's side of the protocol as one sans-IO object, in the manner of h11's
+``Connection``: Zenoh samples' bytes and the time go in, wire-ready messages come out.
+
+``ProducerProtocol`` owns every decision the producer makes: which registration a token
+makes (or refuses, and why), what an ack means, whether a notification pushes the payload,
+inlines the metadata or batches, when an outstanding notification is resent and how many
+at once, which publisher a message leaves by and when that publisher is retired. The
+Zenoh layer (``Producer``) only feeds it (``token``, ``ack``, ``put_many``, ``tick``) and
+carries out what ``events()`` returns; ``next_deadline_ns()`` tells the node's loop when
+to call ``tick``. The credit rules themselves are the pure ``ProducerLedger``.
+
+Limits (every resource a peer can make a producer hold is bounded here):
+
+- Registration slots: ``MAX_FLOW_REGISTRATIONS`` flow-controlled and, separately,
+  ``MAX_OBSERVE_REGISTRATIONS`` observers, so a crowd of observers can never take the slot
+  of a flow-controlled subscriber.
+- Queue budget: a flow registration may leave up to its queue size of notifications
+  un-acked, and the producer keeps each un-acked one (its seq, timestamp and metadata, never
+  its payload) to resend it. The queue sizes of all flow registrations together may not
+  exceed ``QUEUE_BUDGET``; a token that would exceed it is refused. So the headers kept for
+  resending are at most ``QUEUE_BUDGET`` (each holding at most ``INLINE_METADATA_MAX`` bytes
+  of metadata), whatever the peers ask for.
+- Resends are paced: at most ``RESEND_BURST`` notifications of one registration per tick,
+  the rest ``RESEND_PACE_NS`` later, never a whole window at once.
+
+Every refusal reaches the subscriber as a control message on its notification key
+(``["refused", descriptor, reason]``; see ``_wire``) and is counted; an accepted
+registration is greeted (``["hello", descriptor, epoch]``), so ``subscribe`` learns at once.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field, replace
+
+from ._ledger_producer import ProducerLedger, Registration, RegistrationKey, Send
+from ._records import DataObject, SubscriptionInfo, SubscriptionMode
+from ._wire import (
+    Keys,
+    decode_ack,
+    encode_batch_header,
+    encode_control,
+    encode_notification_header,
+    parse_subscription_token,
+)
+
+log = logging.getLogger("framegate.middleware")
+
+MAX_FLOW_REGISTRATIONS = 256
+MAX_OBSERVE_REGISTRATIONS = 256
+# Sum of the queue sizes of all flow registrations of one producer (see the module doc).
+QUEUE_BUDGET = 1 << 16
+# Metadata rides along with notifications (and is kept for resends) up to this size.
+INLINE_METADATA_MAX = 8 * 1024
+RESEND_BURST = 16
+RESEND_PACE_NS = 5_000_000
+
+
+@dataclass(frozen=True, slots=True)
+class Publish:
+    """Send ``payload`` with ``attachment`` to ``key``'s subscriber on ``keyexpr``; ``block``:
+    flow-controlled (Zenoh's BLOCK congestion control), else DROP. The first ``Publish`` of
+    a key declares its publisher."""
+
+    key: RegistrationKey
+    keyexpr: str
+    payload: bytes
+    attachment: bytes
+    block: bool
+    # (epoch, seq) of the notification, None for control messages: a send that fails is
+    # reported back with it (``send_failed``).
+    epoch: str | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class Retire:
+    """Undeclare ``key``'s publisher: the registration is gone."""
+
+    key: RegistrationKey
+
+
+Event = Publish | Retire
+
+
+@dataclass(slots=True)
+class ProtocolCounters:
+    """What the producer's protocol refused or ignored, for ``info`` and the tests."""
+
+    bad_messages: int = 0
+    foreign_acks: int = 0
+    refused_registrations: int = 0
+    refusals: dict[str, int] = field(default_factory=dict)
+
+
+# What the ledger keeps per outstanding notification: never the payload.
+_Kept = tuple[int, bytes | None]  # (timestamp_ns, metadata or None when too large)
+
+
+class ProducerProtocol:
+    """One buffer's producer protocol. Not thread-safe: the caller serialises every call."""
+
+    def __init__(
+        self,
+        keys: Keys,
+        service: str,
+        buffer: str,
+        epoch: str,
+        *,
+        inline_max_bytes: int,
+        queue_budget: int = QUEUE_BUDGET,
+        max_flow: int = MAX_FLOW_REGISTRATIONS,
+        max_observe: int = MAX_OBSERVE_REGISTRATIONS,
+    ) -> None:
+        self.name = f"{service}/{buffer}"
+        self.epoch = epoch
+        self.inline_max_bytes = inline_max_bytes
+        self._keys = keys
+        self._service = service
+        self._buffer = buffer
+        self._budget = queue_budget
+        self._max = {SubscriptionMode.FLOW: max_flow, SubscriptionMode.OBSERVE: max_observe}
+        self._ledger: ProducerLedger[_Kept] = ProducerLedger(
+            epoch, max_registrations=max_flow + max_observe
+        )
+        self._events: list[Event] = []
+        # Registrations whose resend was cut at RESEND_BURST: when to go on.
+        self._paced: dict[RegistrationKey, tuple[int, int]] = {}  # key -> (when, next seq)
+        self._holders: dict[RegistrationKey, tuple[str | None, str | None]] = {}
+        self.counters = ProtocolCounters()
+
+    # -- input -----------------------------------------------------------------------------
+    def token(self, keyexpr: str, alive: bool, now_ns: int) -> None:
+        """A subscription token appeared (``alive``) or was withdrawn."""
+        try:
+            parsed = parse_subscription_token(keyexpr)
+        except ValueError as exc:
+            self.counters.bad_messages += 1
+            log.debug("%s: ignored token %s: %s", self.name, keyexpr, exc)
+            return
+        key = RegistrationKey(*parsed[:4])
+        if not alive:
+            gone = self._ledger.token_delete(key)
+            if gone is not None:
+                self._paced.pop(key, None)
+                self._holders.pop(key, None)
+                self._events.append(Retire(key))
+                log.debug("%s: subscription %s withdrawn", self.name, key.sub_id)
+            return
+        if self._ledger.get(key) is not None:
+            return  # a repeat (history and live both deliver it)
+        reason = self._refusal(key)
+        if reason is not None:
+            self.counters.refused_registrations += 1
+            self.counters.refusals[reason] = self.counters.refusals.get(reason, 0) + 1
+            log.debug("%s: refused subscription %s: %s", self.name, key.sub_id, reason)
+            self._control(key, encode_control("refused", key.descriptor, reason))
+            return
+        reg = self._ledger.token_put(key, now_ns)
+        if reg is None:  # the ledger's own table bound; unreachable under the limits above
+            self.counters.refused_registrations += 1
+            return
+        self._holders[key] = parsed[4:]
+        log.debug("%s: subscription %s registered as %s", self.name, key.sub_id, reg.epoch)
+        self._control(key, encode_control("hello", key.descriptor, reg.epoch))
+
+    def _refusal(self, key: RegistrationKey) -> str | None:
+        regs = self._ledger.registrations()
+        same_mode = sum(1 for r in regs if r.key.mode is key.mode)
+        if same_mode >= self._max[key.mode]:
+            return (
+                f"{self.name} holds {same_mode} {key.mode.value} subscriptions, its limit; "
+                "close unused subscriptions"
+            )
+        if key.mode is SubscriptionMode.FLOW:
+            used = sum(r.key.queue_size for r in regs if r.flow)
+            if used + key.queue_size > self._budget:
+                return (
+                    f"queue size {key.queue_size} exceeds what {self.name} can still hold "
+                    f"for flow control ({self._budget - used} of {self._budget}); "
+                    "subscribe with a smaller queue"
+                )
+        return None
+
+    def ack(self, keyexpr: str, payload: bytes, now_ns: int) -> bool:
+        """An ack arrived on ``keyexpr``; True if it freed credit."""
+        sub_id = keyexpr.rsplit("/", 1)[-1]
+        try:
+            epoch, seq = decode_ack(payload)
+        except Exception:  # garbage on our ack key is counted, never raised
+            self.counters.bad_messages += 1
+            return False
+        freed = self._ledger.ack(sub_id, epoch, seq, now_ns)
+        if freed:
+            reg = self._ledger.by_epoch(epoch)
+            if reg is not None and not reg.outstanding:
+                self._paced.pop(reg.key, None)
+        return freed
+
+    def full(self, count: int = 1) -> Registration[_Kept] | None:
+        """A flow registration without room for ``count`` more elements, or None."""
+        return self._ledger.full(count)
+
+    def put_many(self, elements: tuple[DataObject, ...], now_ns: int) -> None:
+        """Count stored elements (the caller checked ``full``) and queue their notifications:
+        one per registration, a batch if there are several."""
+        kept = tuple(
+            (e.timestamp_ns, e.metadata if len(e.metadata) <= INLINE_METADATA_MAX else None)
+            for e in elements
+        )
+        for send in self._ledger.put_many(kept, now_ns):
+            self._events.append(self._publish(send, elements))
+
+    def send_failed(self, key: RegistrationKey, epoch: str) -> None:
+        """A notification did not leave: it stays outstanding and is resent at the next tick."""
+        self._ledger.send_failed(key, epoch)
+
+    def tick(self, now_ns: int) -> None:
+        """Queue the resends that are due, at most ``RESEND_BURST`` per registration."""
+        # The ledger hands over each due registration's whole window, oldest first: pace it.
+        started: set[RegistrationKey] = set()
+        for send in self._ledger.tick(now_ns):
+            if send.key not in started:
+                started.add(send.key)
+                reg = self._ledger.get(send.key)
+                if reg is not None:
+                    self._resend_from(reg, send.seq, now_ns)
+        for key, (at, seq) in list(self._paced.items()):
+            if at <= now_ns:
+                del self._paced[key]
+                reg = self._ledger.get(key)
+                if reg is not None and reg.outstanding:
+                    self._resend_from(reg, max(seq, reg.outstanding[0][0]), now_ns)
+
+    def _resend_from(self, reg: Registration[_Kept], first: int, now_ns: int) -> None:
+        sent = 0
+        for seq, kept in reg.outstanding:
+            if seq < first:
+                continue
+            if sent == RESEND_BURST:
+                self._paced[reg.key] = (now_ns + RESEND_PACE_NS, seq)
+                return
+            again = Send(reg.key, reg.epoch, seq, reg.acked, (kept,), again=True)
+            self._events.append(self._publish(again, ()))
+            sent += 1
+
+    def next_deadline_ns(self) -> int | None:
+        """When ``tick`` has work next (None: nothing outstanding)."""
+        deadlines = [at for at, _ in self._paced.values()]
+        retransmit = self._ledger.next_retransmit_ns()
+        if retransmit is not None:
+            deadlines.append(retransmit)
+        return min(deadlines, default=None)
+
+    # -- output ----------------------------------------------------------------------------
+    def events(self) -> list[Event]:
+        """What to carry out, in order (each call hands over what accumulated since)."""
+        events, self._events = self._events, []
+        return events
+
+    def _control(self, key: RegistrationKey, attachment: bytes) -> None:
+        self._events.append(
+            Publish(key, self._notify_key(key), b"", attachment, block=False, epoch=None)
+        )
+
+    def _notify_key(self, key: RegistrationKey) -> str:
+        return self._keys.notify(self._service, self._buffer, key.sub_id)
+
+    def _publish(self, send: Send[_Kept], elements: tuple[DataObject, ...]) -> Publish:
+        """The wire form of ``send``: ``elements`` are the stored elements (with payloads)
+        when it is a first send; a resend carries no payload (the subscriber fetches)."""
+        key = send.key
+        limit = self.inline_max_bytes if key.push_max_bytes < 0 else key.push_max_bytes
+        block = key.mode is SubscriptionMode.FLOW
+        if send.count > 1:
+            pushed = all(len(e.payload) <= limit for e in elements)
+            header = encode_batch_header(
+                send.epoch,
+                send.seq,
+                [t for t, _ in send.headers],
+                [m for _, m in send.headers],
+                [len(e.payload) for e in elements] if pushed else None,
+                acked=send.acked,
+                descriptor=key.descriptor,
+            )
+            payload = b"".join(e.payload for e in elements) if pushed else b""
+            return Publish(key, self._notify_key(key), payload, header, block, send.epoch)
+        timestamp, metadata = send.headers[0]
+        element = elements[0] if elements else None
+        pushed = element is not None and not send.again and len(element.payload) <= limit
+        header = encode_notification_header(
+            send.epoch,
+            send.seq,
+            timestamp,
+            metadata,
+            pushed=pushed,
+            acked=send.acked,
+            descriptor=key.descriptor,
+        )
+        # The payload travels as the Zenoh payload itself: no copy into msgpack, and large
+        # ones go through Zenoh's shared memory on one host.
+        payload = element.payload if pushed and element is not None else b""
+        return Publish(key, self._notify_key(key), payload, header, block, send.epoch)
+
+    # -- reading ---------------------------------------------------------------------------
+    def registrations(self) -> list[Registration[_Kept]]:
+        return self._ledger.registrations()
+
+    def has(self, key: RegistrationKey) -> bool:
+        return self._ledger.get(key) is not None
+
+    def fill(self) -> float:
+        return self._ledger.fill()
+
+    def subscriptions(self) -> list[SubscriptionInfo]:
+        out = []
+        for reg in self._ledger.registrations():
+            node, host = self._holders.get(reg.key, (None, None))
+            k = reg.key
+            out.append(
+                SubscriptionInfo(
+                    k.sub_id, k.mode, k.queue_size, reg.queued, reg.taken_ns, node, host
+                )
+            )
+        return out
+
+    @property
+    def foreign_acks(self) -> int:
+        return self._ledger.counters.foreign_acks
+
+    def close(self) -> None:
+        """Forget every registration; their publishers are retired."""
+        for reg in self._ledger.clear():
+            self._events.append(Retire(reg.key))
+        self._paced.clear()
