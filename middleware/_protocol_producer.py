@@ -31,7 +31,7 @@ registration is greeted (``["hello", descriptor, epoch]``), so ``subscribe`` lea
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 from ._ledger_producer import ProducerLedger, Registration, RegistrationKey, Send
 from ._records import DataObject, SubscriptionInfo, SubscriptionMode
