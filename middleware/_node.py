@@ -188,7 +188,14 @@ class Node:
                 sub.close()
                 raise
             if sub.service not in self.live_services(timeout_s=min(1.0, wait_s)):
-                return
+                return  # not up yet: the subscription registers when it appears
+            try:
+                self.buffer_info(sub.name, timeout_s=1.0)
+            except NotFoundError:
+                sub.close()
+                raise
+            except FramegateError:
+                pass
 
     def query(
         self,
@@ -254,7 +261,7 @@ class Node:
                     assert reply.err is not None
                     raise _error_from_reply(target, reply.err.payload.to_string())
         if not elements:
-            self._require_service(service)
+            self.buffer_info(target)  # NotFoundError, with a did-you-mean, if there is none
         elements.sort(key=lambda e: e.timestamp_ns)
         return elements
 
@@ -325,8 +332,13 @@ class Node:
         for candidate in info.buffers:
             if candidate.buffer == buffer:
                 return candidate
-        offered = ", ".join(b.buffer for b in info.buffers) or "none"
-        raise NotFoundError(f"service {service!r} has no buffer {buffer!r} (it offers: {offered})")
+        names = [b.buffer for b in info.buffers]
+        hint = difflib.get_close_matches(buffer, names, n=1)
+        did_you_mean = f" (did you mean {hint[0]!r}?)" if hint else ""
+        offered = ", ".join(names) or "none"
+        raise NotFoundError(
+            f"service {service!r} has no buffer {buffer!r}{did_you_mean}; it offers: {offered}"
+        )
 
     # -- lifetime ---------------------------------------------------------------------------------
     def close(self) -> None:

@@ -1,0 +1,184 @@
+"""The redesigned core against real Zenoh sessions on loopback: limits refused at subscribe,
+registration slots and the queue budget, the horizon, the one loop per node, names."""
+
+from __future__ import annotations
+
+import json
+import threading
+
+import pytest
+import zenoh
+
+from middleware import (
+    ConfigError,
+    FlowControlRefused,
+    Node,
+    NotFoundError,
+    RegistrationRefused,
+    SchemaError,
+    SubscriptionMode,
+    make_metadata,
+    now_ns,
+)
+from middleware._protocol_producer import QUEUE_BUDGET
+from middleware._wire import MAX_QUEUE_SIZE, Keys
+from tests.conftest import wait_until
+
+
+def _meta(t: int) -> bytes:
+    return make_metadata("generic", t)
+
+
+def _raw_session(endpoint: str) -> zenoh.Session:
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    return zenoh.open(conf)
+
+
+def test_a_queue_beyond_the_limit_is_refused_at_subscribe(listen_net, connect_net) -> None:
+    with Node("cam", listen_net) as service, Node(network=connect_net) as client:
+        service.offer("images")
+        with pytest.raises(ConfigError, match=f"exceeds the flow limit of {QUEUE_BUDGET}"):
+            client.subscribe("cam/images", queue_size=QUEUE_BUDGET + 1)
+        with pytest.raises(ConfigError, match="exceeds the observe limit"):
+            client.subscribe(
+                "cam/images", queue_size=MAX_QUEUE_SIZE + 1, mode=SubscriptionMode.OBSERVE
+            )
+
+
+def test_a_registration_beyond_the_budget_is_refused_with_its_reason(
+    listen_net, connect_net
+) -> None:
+    with Node("cam", listen_net) as service, Node(network=connect_net) as client:
+        service.offer("images")
+        big = client.subscribe("cam/images", queue_size=QUEUE_BUDGET - 10)
+        with pytest.raises(RegistrationRefused, match="queue size 20 exceeds what cam/images"):
+            client.subscribe("cam/images", queue_size=20)
+        small = client.subscribe("cam/images", queue_size=10)  # what is left still fits
+        info = client.buffer_info("cam/images")
+        assert info.refused_subscriptions == 1
+        assert {s.subscription_id for s in info.subscriptions} == {
+            big.subscription_id,
+            small.subscription_id,
+        }
+
+
+def test_hostile_huge_queue_tokens_never_hold_the_producer(listen_net, endpoint) -> None:
+    """300 forged flow tokens asking for 2**20 each are refused: puts go on, no memory held."""
+    with Node("cam", listen_net) as service:
+        images = service.offer("images")
+        keys = Keys("framegate")
+        with _raw_session(endpoint) as rogue:
+            tokens = [
+                rogue.liveliness().declare_token(
+                    keys.subscription_token(
+                        "cam", "images", f"rogue{i}", SubscriptionMode.FLOW, 1 << 20, 0, "x~y"
+                    )
+                )
+                for i in range(300)
+            ]
+            wait_until(lambda: images.info().refused_subscriptions == 300, 10.0, "300 refusals")
+            for t in range(1, 50):
+                images.put(t, b"x" * 1000, _meta(t))  # never refused
+            assert images.subscriptions() == []
+            for token in tokens:
+                token.undeclare()
+
+
+def test_observers_cannot_take_a_flow_subscribers_slot(listen_net, endpoint, connect_net) -> None:
+    with Node("cam", listen_net) as service, Node(network=connect_net) as client:
+        images = service.offer("images")
+        keys = Keys("framegate")
+        with _raw_session(endpoint) as rogue:
+            tokens = [
+                rogue.liveliness().declare_token(
+                    keys.subscription_token(
+                        "cam", "images", f"obs{i}", SubscriptionMode.OBSERVE, 2, 0, "x~y"
+                    )
+                )
+                for i in range(300)
+            ]
+            wait_until(lambda: images.info().refused_subscriptions >= 44, 10.0, "observers full")
+            sub = client.subscribe("cam/images", queue_size=1)
+            images.put(1, b"a", _meta(1))
+            assert sub.take(timeout_s=5.0) is not None
+            images.put(2, b"b", _meta(2), wait_s=5.0)  # once the take's ack arrived
+            with pytest.raises(FlowControlRefused):
+                images.put(3, b"c", _meta(3))  # the flow subscriber holds the producer back
+            for token in tokens:
+                token.undeclare()
+
+
+def test_an_element_stamped_beyond_the_horizon_is_refused(listen_net) -> None:
+    with Node("cam", listen_net) as service:
+        images = service.offer("images")
+        ahead = now_ns() + 3600 * 10**9
+        with pytest.raises(SchemaError, match="ahead of this process's clock"):
+            images.put(ahead, b"x", _meta(ahead))
+        t = now_ns()
+        images.put(t, b"x", _meta(t))  # a sane stamp after it is stored
+        assert images.info().rejected == 1 and images.info().count == 1
+
+
+def test_one_timer_thread_per_node_however_many_buffers_and_subscriptions(
+    listen_net, connect_net
+) -> None:
+    def framegate_threads() -> list[str]:
+        return [t.name for t in threading.enumerate() if t.name.startswith("fg-")]
+
+    before = framegate_threads()
+    with Node("cam", listen_net) as service, Node(network=connect_net) as client:
+        for i in range(4):
+            service.offer(f"b{i}")
+        subs = [client.subscribe(f"cam/b{i}", queue_size=8) for i in range(4)]
+        names = [n for n in framegate_threads() if n not in before]
+        assert sorted(n for n in names if n.startswith("fg-loop")) == [
+            "fg-loop-cam",
+            "fg-loop-client",
+        ]
+        assert not [n for n in names if n.startswith(("fg-resend", "fg-ack"))]
+        del subs
+
+
+def test_a_delayed_ack_leaves_without_the_caller_coming_back(listen_net, connect_net) -> None:
+    """A queue of 8 coalesces acks; the node's loop sends the held one within ~1 ms."""
+    with Node("cam", listen_net) as service, Node(network=connect_net) as client:
+        images = service.offer("images")
+        sub = client.subscribe("cam/images", queue_size=8)
+        for t in range(1, 4):
+            images.put(t, b"x", _meta(t))
+        assert len(sub.take_many(8, timeout_s=5.0)) >= 1
+        wait_until(lambda: images.fill() == 0.0 or sub.pending, 5.0, "the held ack")
+        while sub.pending:
+            sub.take_many(8, timeout_s=1.0)
+        wait_until(lambda: images.fill() == 0.0, 5.0, "producer freed by the loop's ack")
+
+
+def test_a_misspelled_buffer_of_a_live_service_is_not_found(listen_net, connect_net) -> None:
+    with Node("cam", listen_net) as service, Node(network=connect_net) as client:
+        service.offer("images")
+        with pytest.raises(NotFoundError, match="images"):
+            client.query("cam/imags", last=1)
+        with pytest.raises(NotFoundError, match="images"):
+            client.latest("cam/imags")
+        with pytest.raises(NotFoundError, match="did you mean 'images'"):
+            client.subscribe("cam/imags")
+
+
+def test_node_honours_framegate_environment(monkeypatch: pytest.MonkeyPatch) -> None:
+    from tests.conftest import free_port
+
+    port = free_port()
+    with Node("cam", _local(port)) as service:
+        service.offer("images")
+        monkeypatch.setenv("FRAMEGATE_LOCAL_PORT", str(port))
+        with Node() as client:
+            wait_until(lambda: "cam" in client.live_services(), 5.0, "cam seen")
+
+
+def _local(port: int):  # type: ignore[no-untyped-def]
+    from middleware import NetworkConfig
+
+    return NetworkConfig(local_port=port)
