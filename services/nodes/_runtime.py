@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import ctypes
 import logging
@@ -73,12 +74,17 @@ class Monotonic:
 
 
 def unless_stopped(work: Callable[[], T], stop: threading.Event) -> T | None:
-    """``work()``, or None as soon as ``stop`` is set while it runs.
+    """``work()``, or None once ``stop`` is set while it runs.
 
     For slow steps a stop must not wait for (the simulator's first frame takes seconds):
-    the work runs on a daemon thread, abandoned if the process stops first.
+    the work runs on a worker thread. After a stop the worker is given
+    ``_WORKER_GRACE_S`` to finish; one still running then is abandoned, and the process
+    exits without finalising the interpreter (``_exit_past_workers``): a thread that is
+    inside native code (OpenCV) when the interpreter finalises is ended by ``pthread_exit``,
+    which unwinds through C++ frames into ``std::terminate`` and aborts the process (exit
+    134 on an ordinary Ctrl-C).
 
-    Threads: one short-lived daemon thread per call; ``work`` must not touch Zenoh.
+    Threads: one short-lived worker thread per call; ``work`` must not touch Zenoh.
     """
     result: list[T] = []
     failure: list[BaseException] = []
@@ -92,13 +98,50 @@ def unless_stopped(work: Callable[[], T], stop: threading.Event) -> T | None:
         finally:
             done.set()
 
-    threading.Thread(target=target, name="unless-stopped", daemon=True).start()
-    while not done.wait(0.05):
-        if stop.is_set():
-            return None
+    worker = threading.Thread(target=target, name="unless-stopped", daemon=True)
+    with _workers_lock:
+        _workers.add(worker)
+    worker.start()
+    try:
+        while not done.wait(0.05):
+            if stop.is_set():
+                done.wait(_WORKER_GRACE_S)
+                return None
+    finally:
+        if done.is_set():
+            with _workers_lock:
+                _workers.discard(worker)
     if failure:
         raise failure[0]
     return result[0]
+
+
+# How long a stopped service waits for a worker in native code before abandoning it.
+_WORKER_GRACE_S = 0.5
+_workers: set[threading.Thread] = set()
+_workers_lock = threading.Lock()
+
+
+def _exit_past_workers() -> None:
+    """At exit: if a worker is still inside native code, end the process here.
+
+    Runs as the last ``atexit`` hook, after the service has returned and closed its
+    session, before the interpreter finalises. The code is 0 (a worker is only abandoned
+    after a requested stop), or 1 after an uncaught exception.
+    """
+    with _workers_lock:
+        alive = [t for t in _workers if t.is_alive()]
+    if not alive:
+        return
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    os._exit(1 if getattr(sys, "last_value", None) is not None else 0)
+
+
+# Registered at import, so it runs after every hook registered later (atexit is LIFO).
+atexit.register(_exit_past_workers)
 
 
 def serve_until_stopped(stop: threading.Event) -> None:

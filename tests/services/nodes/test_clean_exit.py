@@ -1,0 +1,137 @@
+"""One Ctrl-C or SIGTERM ends a camera with exit 0, even while it renders a frame.
+
+The simulated camera renders on a worker thread inside OpenCV; a stop that left that thread
+running while the interpreter finalised aborted the process (exit 134, "terminate called
+without an active exception"). Each process is signalled the moment it starts rendering
+frames (once it has stored one: a camera that cannot keep its rate renders all the time).
+"""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from middleware import FramegateError, NetworkConfig, Node
+from tests.conftest import free_port, start_framegate, wait_until
+from tests.services.nodes.pipeline import Pipeline
+
+pytestmark = pytest.mark.integration
+
+
+def _stored(node: Node, target: str) -> bool:
+    try:
+        return node.buffer_info(target, timeout_s=2.0).puts > 0
+    except FramegateError:
+        return False
+
+
+class _Watched:
+    """A process whose merged output is collected by a thread."""
+
+    def __init__(self, proc: subprocess.Popen[str]) -> None:
+        self.proc = proc
+        self.lines: list[str] = []
+        threading.Thread(target=self._pump, daemon=True).start()
+
+    def _pump(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            self.lines.append(line.rstrip())
+
+    def stop(self, signum: int) -> tuple[int, float]:
+        """Signal once; the exit code and how long the process took to end."""
+        sent = time.monotonic()
+        self.proc.send_signal(signum)
+        try:
+            code = self.proc.wait(timeout=20)
+        except subprocess.TimeoutExpired as exc:
+            self.proc.kill()
+            self.proc.wait()
+            raise AssertionError(f"pid {self.proc.pid} still running 20 s after {signum}") from exc
+        return code, time.monotonic() - sent
+
+
+def _stop_batch(
+    node: Node, start: list[_Watched], names: list[str], signum: int
+) -> list[tuple[int, float, str]]:
+    """Signal each camera once it stored a frame; exit codes, stop times, output."""
+    results: list[tuple[int, float, str]] = [(0, 0.0, "")] * len(start)
+
+    def one(i: int) -> None:
+        watched = start[i]
+        target = f"{names[i]}/images"
+        wait_until(lambda: _stored(node, target) or watched.proc.poll() is not None, 90, target)
+        code, took = watched.stop(signum)
+        time.sleep(0.1)  # let the pump read the last lines
+        results[i] = (code, took, "\n".join(watched.lines[-20:]))
+
+    threads = [threading.Thread(target=one, args=(i,)) for i in range(len(start))]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    return results
+
+
+def _check(results: list[tuple[int, float, str]], what: str) -> None:
+    failed = [(code, took, out) for code, took, out in results if code != 0]
+    assert not failed, f"{len(failed)}/{len(results)} {what} did not exit 0: {failed[0]}"
+    for _code, _took, out in results:
+        assert "terminate called" not in out, out
+    # "~2 s" is the contract; the generous bound only catches a stop that hangs.
+    slowest = max(took for _code, took, _out in results)
+    assert slowest < 10, f"slowest stop took {slowest:.1f} s"
+
+
+@pytest.mark.slow
+def test_twenty_signals_stop_rendering_cameras_with_exit_0() -> None:
+    results: list[tuple[int, float, str]] = []
+    port = free_port()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        names = [f"cam{i}" for i in range(10)]
+        argv = ["run", "camera", "--source", "sim", "--loop", "--name"]
+        batch = [_Watched(start_framegate([*argv, name], local_port=port)) for name in names]
+        try:
+            with Node(network=NetworkConfig(local_port=port)) as node:
+                results += _stop_batch(node, batch, names, signum)
+        finally:
+            for watched in batch:
+                if watched.proc.poll() is None:
+                    watched.proc.kill()
+                    watched.proc.wait()
+    _check(results, "camera stops")
+
+
+_CAMERA_ONLY = """\
+version: 1
+services:
+  camera:
+    args: {source: sim, seed: 1, loop: true}
+"""
+
+
+def test_launch_stops_its_rendering_camera_with_exit_0(tmp_path: Path) -> None:
+    """Under ``launch`` the supervisor's SIGTERM reaches the camera mid-render."""
+    runs = []
+    for i, signum in enumerate((signal.SIGINT, signal.SIGTERM)):
+        (tmp_path / str(i)).mkdir()
+        runs.append((Pipeline(tmp_path / str(i), _CAMERA_ONLY), signum))
+    try:
+        for pipe, signum in runs:
+            wait_until(lambda p=pipe: p.counter("camera/images") > 0, 90, "a stored frame")
+            pipe.proc.send_signal(signum)
+        for pipe, _signum in runs:
+            code = pipe.proc.wait(timeout=20)
+            time.sleep(0.1)
+            log = pipe.log()
+            assert code == 0, log
+            assert "terminate called" not in log, log
+            assert "134" not in log and "SIGABRT" not in log, log
+    finally:
+        for pipe, _signum in runs:
+            pipe.close()
