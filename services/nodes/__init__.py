@@ -18,6 +18,7 @@ _MODULES = {
     "gyro": "services.nodes.gyro",
     "mediator": "services.nodes.mediator",
     "detector": "services.nodes.detector",
+    "ros2": "services.nodes.ros2",
 }
 SERVICES: tuple[str, ...] = tuple(_MODULES)
 

@@ -1,0 +1,166 @@
+"""The bridge's Zenoh session on the ROS 2 side: the one place in services/nodes that
+imports zenoh (framegate's own buffers go through ``middleware`` as everywhere else).
+
+A :class:`RosLink` is one ROS 2 node as rmw_zenoh makes it: a Zenoh session to the ROS 2
+system (``rmw_zenohd``), the node's liveliness token, and per topic a publisher or a
+subscriber with its own token. Publishers attach rmw_zenoh's per-sample attachment
+(sequence number, source timestamp, gid) to every sample.
+
+Threads: Zenoh's callback thread only hands each received sample's payload and attachment
+bytes to the subscription's ``on_sample`` (which must only enqueue); everything else runs
+on the caller's threads. A publisher's sequence counter is guarded by its own lock.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+import time
+from collections.abc import Callable
+from types import TracebackType
+
+import zenoh
+
+from middleware import ConfigError, NetworkConfig, TransportError
+
+from ._rmw import Attachment, EntityKind, NodeIdentity, Qos, Reliability, data_key, gid
+
+OnSample = Callable[[bytes, bytes | None], None]
+
+
+class RosPublisher:
+    """A ROS 2 publisher: a Zenoh publisher on the topic's data key plus its MP token."""
+
+    def __init__(self, publisher: zenoh.Publisher, token: zenoh.LivelinessToken, gid_: bytes):
+        self._publisher = publisher
+        self._token = token
+        self._gid = gid_
+        self._sequence = 0
+        self._lock = threading.Lock()
+
+    def publish(self, cdr: bytes | bytearray) -> None:
+        """Put one CDR message (Zenoh copies it into its own buffer, as any put)."""
+        with self._lock:
+            self._sequence += 1
+            attachment = Attachment(self._sequence, time.time_ns(), self._gid).encode()
+        self._publisher.put(cdr, attachment=attachment)
+
+    @property
+    def matched(self) -> bool:
+        """True while some subscriber matches the data key."""
+        return bool(self._publisher.matching_status.matching)
+
+    def close(self) -> None:
+        self._token.undeclare()
+        self._publisher.undeclare()
+
+
+class RosLink:
+    """One ROS 2 node on the ROS 2 system's Zenoh network (use as a context manager)."""
+
+    def __init__(
+        self,
+        network: NetworkConfig,
+        *,
+        domain_id: int,
+        node_name: str,
+        namespace: str = "/",
+    ) -> None:
+        try:
+            self._session = zenoh.open(network.zenoh_configs()[0])
+        except zenoh.ZError as exc:
+            where = ", ".join(network.connect) or "the configured endpoints"
+            raise TransportError(f"cannot open the ROS 2 Zenoh session to {where}: {exc}") from exc
+        self.identity = NodeIdentity(
+            domain_id, str(self._session.info.zid()), node_name, namespace=namespace
+        )
+        self._entities: list[RosPublisher | tuple[zenoh.Subscriber[None], zenoh.LivelinessToken]]
+        self._entities = []
+        self._next_id = self.identity.node_id + 1
+        self._node_token = self._session.liveliness().declare_token(self.identity.node_token())
+
+    def _entity_id(self) -> int:
+        entity_id, self._next_id = self._next_id, self._next_id + 1
+        return entity_id
+
+    def publisher(self, topic_fqn: str, ros_type: str, hash_chunk: str, qos: Qos) -> RosPublisher:
+        """Declare a publisher (data key + MP liveliness token)."""
+        token_key = self.identity.endpoint_token(
+            self._entity_id(), EntityKind.PUBLISHER, topic_fqn, ros_type, hash_chunk, qos
+        )
+        key = data_key(self.identity.domain_id, topic_fqn, ros_type, hash_chunk)
+        try:
+            # Like rmw_zenoh: samples are dropped rather than block the publisher, except for a
+            # reliable keep-all publisher, which may lose nothing.
+            lossless = qos.reliability is Reliability.RELIABLE and qos.depth == 0
+            publisher = self._session.declare_publisher(
+                key,
+                congestion_control=(
+                    zenoh.CongestionControl.BLOCK if lossless else zenoh.CongestionControl.DROP
+                ),
+                reliability=(
+                    zenoh.Reliability.RELIABLE
+                    if qos.reliability is Reliability.RELIABLE
+                    else zenoh.Reliability.BEST_EFFORT
+                ),
+            )
+            token = self._session.liveliness().declare_token(token_key)
+        except zenoh.ZError as exc:
+            raise ConfigError(f"cannot publish ROS 2 topic {topic_fqn}: {exc}") from exc
+        entity = RosPublisher(publisher, token, gid(token_key))
+        self._entities.append(entity)
+        return entity
+
+    def subscribe(
+        self, topic_fqn: str, ros_type: str, hash_chunk: str, qos: Qos, on_sample: OnSample
+    ) -> None:
+        """Declare a subscription (data key + MS liveliness token); ``on_sample(payload,
+        attachment)`` runs on Zenoh's callback thread and must only enqueue."""
+        token_key = self.identity.endpoint_token(
+            self._entity_id(), EntityKind.SUBSCRIPTION, topic_fqn, ros_type, hash_chunk, qos
+        )
+        key = data_key(self.identity.domain_id, topic_fqn, ros_type, hash_chunk)
+
+        def deliver(sample: zenoh.Sample) -> None:
+            attachment = sample.attachment
+            on_sample(
+                sample.payload.to_bytes(),
+                attachment.to_bytes() if attachment is not None else None,
+            )
+
+        try:
+            # indirect=True: Zenoh's own thread only queues; zenoh-python's thread runs us.
+            subscriber = self._session.declare_subscriber(
+                key, zenoh.handlers.Callback(deliver, indirect=True)
+            )
+            token = self._session.liveliness().declare_token(token_key)
+        except zenoh.ZError as exc:
+            raise ConfigError(f"cannot subscribe to ROS 2 topic {topic_fqn}: {exc}") from exc
+        self._entities.append((subscriber, token))
+
+    def close(self) -> None:
+        """Withdraw every token and close the session (a process with it open may hang)."""
+        for entity in reversed(self._entities):
+            try:
+                if isinstance(entity, RosPublisher):
+                    entity.close()
+                else:
+                    entity[1].undeclare()
+                    entity[0].undeclare()
+            except zenoh.ZError:
+                pass  # the session is going anyway
+        self._entities.clear()
+        with contextlib.suppress(zenoh.ZError):
+            self._node_token.undeclare()
+        self._session.close()
+
+    def __enter__(self) -> RosLink:
+        return self
+
+    def __exit__(
+        self,
+        _type: type[BaseException] | None,
+        _value: BaseException | None,
+        _tb: TracebackType | None,
+    ) -> None:
+        self.close()

@@ -1,0 +1,151 @@
+"""rmw_zenoh's wire grammar against the examples of its design document (docs/design.md of
+ros2/rmw_zenoh) and against zenoh's own serializer."""
+
+from __future__ import annotations
+
+import pytest
+import zenoh.ext
+
+from middleware import ConfigError
+from services.nodes.ros2._cdr import Codec
+from services.nodes.ros2._rmw import (
+    ATTACHMENT_BYTES,
+    HUMBLE_TYPE_HASH,
+    Attachment,
+    EntityKind,
+    NodeIdentity,
+    Qos,
+    Reliability,
+    data_key,
+    dds_type_name,
+    fully_qualified,
+    gid,
+    mangle,
+    type_hash,
+)
+
+STRING_HASH = "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"
+ADD_TWO_INTS_HASH = "RIHS01_e118de6bf5eeb66a2491b5bda11202e7b68f198d6f67922cf30364858239c81a"
+
+
+def test_rosbags_computes_the_design_documents_string_hash() -> None:
+    for distro in ("jazzy", "kilted", "rolling"):
+        assert Codec(distro).rihs01("std_msgs/msg/String") == STRING_HASH
+
+
+def test_humble_keys_carry_no_type_hash() -> None:
+    assert type_hash(STRING_HASH, "humble") == HUMBLE_TYPE_HASH == "TypeHashNotSupported"
+    assert type_hash(STRING_HASH, "jazzy") == STRING_HASH
+    with pytest.raises(ConfigError, match="unknown ROS 2 distro 'foxy'"):
+        type_hash(STRING_HASH, "foxy")
+
+
+@pytest.mark.parametrize(
+    ("domain", "topic", "ros_type", "hash_", "key"),
+    [
+        (
+            0,
+            "/chatter",
+            "std_msgs/msg/String",
+            STRING_HASH,
+            f"0/chatter/std_msgs::msg::dds_::String_/{STRING_HASH}",
+        ),
+        (
+            0,
+            "/robot1/chatter",
+            "std_msgs/msg/String",
+            STRING_HASH,
+            f"0/robot1/chatter/std_msgs::msg::dds_::String_/{STRING_HASH}",
+        ),
+        (
+            2,
+            "/add_two_ints",
+            "example_interfaces/srv/AddTwoInts",
+            ADD_TWO_INTS_HASH,
+            f"2/add_two_ints/example_interfaces::srv::dds_::AddTwoInts_/{ADD_TWO_INTS_HASH}",
+        ),
+    ],
+)
+def test_data_keys_match_the_design_document(
+    domain: int, topic: str, ros_type: str, hash_: str, key: str
+) -> None:
+    assert data_key(domain, topic, ros_type, hash_) == key
+
+
+def test_qos_strings_match_the_design_document() -> None:
+    assert Qos(Reliability.RELIABLE, 10).keyexpr() == "::,10:,:,:,,"  # listener
+    assert Qos(Reliability.RELIABLE, 7).keyexpr() == "::,7:,:,:,,"  # talker
+    assert Qos.sensor_data().keyexpr() == "2::,5:,:,:,,"
+    assert Qos(Reliability.RELIABLE, 42).keyexpr() == "::,:,:,:,,"  # all rmw_zenoh defaults
+
+
+def test_liveliness_tokens_match_the_design_document() -> None:
+    listener = NodeIdentity(2, "aac3178e146ba6f1fc6e6a4085e77f21", "listener")
+    assert listener.node_token() == "@ros2_lv/2/aac3178e146ba6f1fc6e6a4085e77f21/0/0/NN/%/%/listener"
+    assert listener.endpoint_token(
+        10, EntityKind.SUBSCRIPTION, "/chatter", "std_msgs/msg/String", STRING_HASH, Qos()
+    ) == (
+        "@ros2_lv/2/aac3178e146ba6f1fc6e6a4085e77f21/0/10/MS/%/%/listener/%chatter/"
+        f"std_msgs::msg::dds_::String_/{STRING_HASH}/::,10:,:,:,,"
+    )
+    talker = NodeIdentity(2, "8b20917502ee955ac4476e0266340d5c", "talker")
+    assert talker.endpoint_token(
+        10, EntityKind.PUBLISHER, "/chatter", "std_msgs/msg/String", STRING_HASH, Qos(depth=7)
+    ) == (
+        "@ros2_lv/2/8b20917502ee955ac4476e0266340d5c/0/10/MP/%/%/talker/%chatter/"
+        f"std_msgs::msg::dds_::String_/{STRING_HASH}/::,7:,:,:,,"
+    )
+
+
+def test_namespaces_are_mangled() -> None:
+    node = NodeIdentity(0, "ab", "cam", namespace="/robot1")
+    assert node.node_token() == "@ros2_lv/0/ab/0/0/NN/%/%robot1/cam"
+    assert mangle("/robot1/cmd_vel") == "%robot1%cmd_vel"
+    assert mangle("") == "%"
+    assert fully_qualified("image_raw", "/robot1") == "/robot1/image_raw"
+    assert fully_qualified("/abs", "/robot1") == "/abs"
+
+
+@pytest.mark.parametrize("bad", ["", "/a//b", "/a/", "/a b", "/a/*"])
+def test_bad_topic_names_are_refused(bad: str) -> None:
+    with pytest.raises(ConfigError, match="bad ROS 2 topic name"):
+        fully_qualified(bad)
+
+
+def test_dds_type_names() -> None:
+    assert dds_type_name("sensor_msgs/msg/Image") == "sensor_msgs::msg::dds_::Image_"
+    with pytest.raises(ConfigError, match="expected pkg/msg/Name"):
+        dds_type_name("Image")
+
+
+def test_attachment_is_what_zenohs_serializer_writes() -> None:
+    source_gid = bytes(range(16))
+    attachment = Attachment(7, 1_700_000_000_123_456_789, source_gid)
+    expected = zenoh.ext.z_serialize(
+        (zenoh.ext.Int64(7), zenoh.ext.Int64(1_700_000_000_123_456_789), source_gid)
+    ).to_bytes()
+    assert attachment.encode() == expected
+    assert len(expected) == ATTACHMENT_BYTES == 33
+    assert Attachment.decode(expected) == attachment
+
+
+@pytest.mark.parametrize("bad", [b"", bytes(32), bytes(34), bytes(16) + b"\x0f" + bytes(16)])
+def test_malformed_attachments_are_refused(bad: bytes) -> None:
+    with pytest.raises(ValueError, match="attachment"):
+        Attachment.decode(bad)
+
+
+def test_gid_is_the_xxh3_128_of_the_token_low_half_first() -> None:
+    token = "@ros2_lv/0/ab/0/1/MP/%/%/n/%t/std_msgs::msg::dds_::String_/x/::,10:,:,:,,"
+    value = gid(token)
+    assert len(value) == 16
+    assert value == gid(token) != gid(token + "x")
+    # xxh3-128 of the empty string (the reference value of the xxHash test vectors).
+    assert gid("") == (0x99AA06D3014798D86001C324468D497F).to_bytes(16, "little")
+
+
+def test_node_identity_refuses_bad_values() -> None:
+    with pytest.raises(ConfigError, match="domain id"):
+        NodeIdentity(300, "ab", "n")
+    with pytest.raises(ConfigError, match="node name"):
+        NodeIdentity(0, "ab", "bad-name")
