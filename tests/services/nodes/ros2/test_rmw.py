@@ -81,7 +81,9 @@ def test_qos_strings_match_the_design_document() -> None:
 
 def test_liveliness_tokens_match_the_design_document() -> None:
     listener = NodeIdentity(2, "aac3178e146ba6f1fc6e6a4085e77f21", "listener")
-    assert listener.node_token() == "@ros2_lv/2/aac3178e146ba6f1fc6e6a4085e77f21/0/0/NN/%/%/listener"
+    assert (
+        listener.node_token() == "@ros2_lv/2/aac3178e146ba6f1fc6e6a4085e77f21/0/0/NN/%/%/listener"
+    )
     assert listener.endpoint_token(
         10, EntityKind.SUBSCRIPTION, "/chatter", "std_msgs/msg/String", STRING_HASH, Qos()
     ) == (
