@@ -14,7 +14,7 @@ import time
 from collections.abc import Callable
 from typing import TypeVar
 
-from middleware import ConfigError
+from middleware import ConfigError, Producer, now_ns
 
 START_AT_ENV = "FRAMEGATE_START_AT_NS"
 # Set by the launch supervisor (services/launch/_supervisor.py) for each child it starts.
@@ -47,21 +47,99 @@ def start_at_ns(flag_value: int | None) -> int:
             return int(raw)
         except ValueError as exc:
             raise ConfigError(f"{START_AT_ENV} must be integer ns, got {raw!r}") from exc
-    return time.time_ns()
+    return now_ns()
 
 
 def sleep_until_ns(wall_ns: int, stop: threading.Event) -> bool:
-    """Sleep until the wall clock reaches ``wall_ns``; False if ``stop`` was set first."""
+    """Sleep until the process clock reaches ``wall_ns``; False if ``stop`` was set first."""
     while True:
-        remaining = (wall_ns - time.time_ns()) / 1e9
+        remaining = (wall_ns - now_ns()) / 1e9
         if remaining <= 0:
             return not stop.is_set()
         if stop.wait(min(remaining, 0.5)):
             return False
 
 
+def count_skip(producer: Producer, reason: str, n: int = 1) -> None:
+    """``producer.count_skip(reason, n)``: an element the service chose not to put, shown
+    by ``info`` in ``skipped``. A middleware without the counter counts nothing."""
+    method = getattr(producer, "count_skip", None)
+    if method is not None:
+        method(reason, n)
+
+
+def _wall_minus_monotonic_ns() -> int:
+    """The process clock minus the monotonic clock, read as one pair (a thread switch
+    between the two readings would make it off by milliseconds)."""
+    best = None
+    for _ in range(5):
+        before = time.monotonic_ns()
+        wall = now_ns()
+        after = time.monotonic_ns()
+        if best is None or after - before < best[0]:
+            best = (after - before, wall - (before + after) // 2)
+        if after - before < 50_000:
+            break
+    assert best is not None
+    return best[1]
+
+
+# A change of (process clock - monotonic) smaller than this is reading noise and ignored.
+_OFFSET_NOISE_NS = 500_000
+
+
+class Timeline:
+    """Where a replayed source's relative times happen, and how they are stamped.
+
+    Paced by the monotonic clock, stamped by the process clock (``middleware.now_ns``):
+    the start instant is converted once, so a step of the system clock changes the stamps
+    (a forward step moves them forward at once; a backward one is absorbed by the process
+    clock) but never when the next frame or sample is due. Camera and gyro processes on
+    one host share the monotonic clock, so their streams stay aligned across a step; a
+    source paced by the wall clock instead stalls for the size of a backward step and
+    skips everything for the size of a forward one. Stamps strictly increase.
+    """
+
+    def __init__(self, start_wall_ns: int) -> None:
+        self._offset_ns = _wall_minus_monotonic_ns()
+        self._start_mono_ns = start_wall_ns - self._offset_ns
+        self._last_ns = 0
+
+    def _base_ns(self) -> int:
+        offset = _wall_minus_monotonic_ns()
+        if abs(offset - self._offset_ns) > _OFFSET_NOISE_NS:
+            self._offset_ns = offset
+        return self._start_mono_ns + self._offset_ns
+
+    def stamp_ns(self, rel_ns: int) -> int:
+        """The process-clock time of relative time ``rel_ns`` (as the clock reads now)."""
+        return self.stamps_ns([rel_ns])[0]
+
+    def stamps_ns(self, rel_ns: list[int]) -> list[int]:
+        """``stamp_ns`` of increasing times with one reading of the clocks (a batch); each
+        after every stamp given before."""
+        base = self._base_ns()
+        base = max(base, self._last_ns + 1 - rel_ns[0])
+        out = [base + t for t in rel_ns]
+        self._last_ns = out[-1]
+        return out
+
+    def late_ns(self, rel_ns: int) -> int:
+        """How long ago relative time ``rel_ns`` came (negative: still to come)."""
+        return time.monotonic_ns() - (self._start_mono_ns + rel_ns)
+
+    def sleep_until(self, rel_ns: int, stop: threading.Event) -> bool:
+        """Sleep until relative time ``rel_ns``; False if ``stop`` was set first."""
+        while True:
+            remaining = -self.late_ns(rel_ns) / 1e9
+            if remaining <= 0:
+                return not stop.is_set()
+            if stop.wait(min(remaining, 0.5)):
+                return False
+
+
 class Monotonic:
-    """Strictly increasing int ns keys from the wall clock (for decision records)."""
+    """Strictly increasing int ns keys from the process clock (for decision records)."""
 
     def __init__(self) -> None:
         self._last = 0
@@ -69,7 +147,7 @@ class Monotonic:
 
     def next(self) -> int:
         with self._lock:
-            self._last = max(self._last + 1, time.time_ns())
+            self._last = max(self._last + 1, now_ns())
             return self._last
 
 

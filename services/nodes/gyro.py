@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import threading
-import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,7 +31,13 @@ from middleware import (
 from services.lib.messages import gyro_metadata
 from services.lib.quality import GyroSamples
 from services.nodes._contract import Service, ServiceEntry
-from services.nodes._runtime import serve_until_stopped, setup_logging, sleep_until_ns, start_at_ns
+from services.nodes._runtime import (
+    Timeline,
+    count_skip,
+    serve_until_stopped,
+    setup_logging,
+    start_at_ns,
+)
 from services.nodes.sources import SourceSpec, open_gyro_source
 
 # Batches older than this when their time comes are skipped, not sent.
@@ -63,19 +68,21 @@ def run(config: GyroConfig, network: NetworkConfig, stop: threading.Event | None
             kind="gyro",
             retention=Retention(max_count=None, max_age_ns=int(config.retention_s * 1e9)),
         )
-        t0_wall = start_at_ns(config.source.start_at_ns)
+        timeline = Timeline(start_at_ns(config.source.start_at_ns))
         log.info(
             "gyro: %s -> %s/rates (batches of %d)", source.description, config.name, config.batch
         )
         stored = dropped = 0
         try:
             for t_rel, w in source.batches(config.batch, stop):
-                t_wall = t0_wall + np.asarray([source.scale(int(t)) for t in t_rel], np.int64)
+                rel = [source.scale(int(t)) for t in t_rel]
                 # A sensor cannot deliver the past: a restarted or stalled gyro resumes now.
-                if time.time_ns() - int(t_wall[-1]) > _STALE_NS:
+                if timeline.late_ns(rel[-1]) > _STALE_NS:
+                    count_skip(rates, "late", len(rel))
                     continue
-                if not sleep_until_ns(int(t_wall[-1]), stop):
+                if not timeline.sleep_until(rel[-1], stop):
                     break
+                t_wall = np.asarray(timeline.stamps_ns(rel), np.int64)
                 samples = sample_elements(t_wall, w, period_ns=source.scale(source.period_ns))
                 for batch in _split(samples, _flow_queue_limit(rates, config.batch)):
                     try:
@@ -118,22 +125,23 @@ def _split(
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The gyro's flags (``framegate run gyro --help``)."""
+    from services.cli.argtypes import non_negative_float, positive_float, positive_int
     from services.nodes.sources import add_source_arguments
 
     parser.add_argument("--name", default="gyro", help="service name (default %(default)s)")
     add_source_arguments(parser, device=False)
     parser.add_argument(
-        "--batch", type=int, default=10, help="samples per message (put_many batch)"
+        "--batch", type=positive_int, default=10, help="samples per message (put_many batch)"
     )
     parser.add_argument(
         "--wait-ms",
-        type=float,
+        type=non_negative_float,
         default=50.0,
         help="how long a refused batch waits for credit before it is dropped",
     )
     parser.add_argument(
         "--retention-s",
-        type=float,
+        type=positive_float,
         default=30.0,
         help="how many seconds of batches gyro/rates keeps (default %(default)s)",
     )

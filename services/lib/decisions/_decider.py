@@ -17,7 +17,10 @@ Rules kept here for every policy, in this order:
 2. due held frames first: the policy's ``on_tick`` runs before a new frame is decided, so
    older frames go out before newer ones;
 3. late frames: a frame whose key is not newer than every frame seen is dropped
-   (``out-of-order``): the detector's buffer only takes increasing keys;
+   (``out-of-order``): the detector's buffer only takes increasing keys. The caller
+   bounds the keys that may become this reference (the mediator skips frames stamped
+   beyond a horizon of its clock before they get here) and calls ``restart_order`` when
+   the source starts over (a new producer epoch), so no gap outlasts one frame;
 4. the gyro-missing rule: a frame without a quality is forwarded only when the detector
    is idle (``idle``, the default), always (``accept``) or never (``reject``);
 5. the minimum quality: q < q_min is dropped (``below-minimum``);
@@ -121,6 +124,14 @@ class Decider:
         out = self._apply(self.policy.on_tick(self.view(now_ns)), None)
         out += self._expire(now_ns)
         return out
+
+    def restart_order(self, floor_ns: int | None = None) -> None:
+        """The source started over (a new producer epoch, a clock step): forget the newest
+        frame seen. ``floor_ns``: the newest key the detector's buffer holds, below which
+        nothing can be forwarded (None: keep the decider's own)."""
+        self._newest_seen_ns = None
+        if floor_ns is not None:
+            self._newest_forwarded_ns = floor_ns
 
     def refused(self, frame: Candidate) -> Verdict:
         """The detector's buffer refused a forwarded frame: it is dropped after all."""

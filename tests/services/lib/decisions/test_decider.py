@@ -74,6 +74,22 @@ def test_a_late_frame_is_dropped_as_out_of_order() -> None:
     )
 
 
+def test_restart_order_lets_a_restarted_source_be_decided_at_once() -> None:
+    """A far-future key would otherwise make every later frame ``out-of-order``."""
+    decider = Decider(make_policy("paper"))
+    idle = Load(0, 2)
+    [first] = decider.frame(Candidate(1_000, 1, 0.9, arrived_ns=0), idle, 0)
+    [rogue] = decider.frame(Candidate(10**15, 2, 0.9, arrived_ns=1), Load(1, 2), 1)
+    assert (first.action, rogue.action) == (Action.FORWARD, Action.FORWARD)
+    [late] = decider.frame(Candidate(2_000, 3, 0.9, arrived_ns=2), idle, 2)
+    assert late.reason == "out-of-order"
+    decider.restart_order(floor_ns=1_000)  # the detector's buffer still holds key 1000
+    [again] = decider.frame(Candidate(3_000, 4, 0.9, arrived_ns=3), idle, 3)
+    assert (again.action, again.reason) == (Action.FORWARD, "quality>load")
+    [older] = decider.frame(Candidate(500, 5, 0.9, arrived_ns=4), idle, 4)
+    assert older.reason == "out-of-order"  # below the floor: never forwarded
+
+
 @pytest.mark.parametrize(
     ("rule", "idle", "busy"),
     [
