@@ -305,8 +305,8 @@ class ProducerProtocol:
     def registrations(self) -> list[Registration[_Kept]]:
         return self._ledger.registrations()
 
-    def has(self, key: RegistrationKey) -> bool:
-        return self._ledger.get(key) is not None
+    def get(self, key: RegistrationKey) -> Registration[_Kept] | None:
+        return self._ledger.get(key)
 
     def fill(self) -> float:
         return self._ledger.fill()

@@ -51,13 +51,20 @@ def check_request(mode: SubscriptionMode, queue_size: int, push_max_bytes: int) 
 class SubscriberProtocol:
     """One subscription's protocol. Not thread-safe: the caller serialises every call."""
 
-    def __init__(self, mode: SubscriptionMode, queue_size: int, push_max_bytes: int) -> None:
+    def __init__(
+        self,
+        mode: SubscriptionMode,
+        queue_size: int,
+        push_max_bytes: int,
+        *,
+        policy: AckPolicy | None = None,
+    ) -> None:
         check_request(mode, queue_size, push_max_bytes)
         self.mode = mode
         self.queue_size = queue_size
         self.descriptor = descriptor_of(mode, queue_size, push_max_bytes)
         self.ledger: SubscriberLedger[Item] = SubscriberLedger(
-            mode, queue_size, self.descriptor, policy=AckPolicy.for_queue(queue_size)
+            mode, queue_size, self.descriptor, policy=policy or AckPolicy.for_queue(queue_size)
         )
         self.garbage = 0
         # The producer's answer to our token: its registration's epoch, or why it refused.

@@ -1,4 +1,6 @@
-"""The flow-control protocol as a whole: both ledgers driven by hypothesis's stateful testing.
+"""The flow-control protocol as a whole: the real sans-IO protocol objects of both sides
+(``ProducerProtocol``, ``SubscriberProtocol``) driven by hypothesis's stateful testing, on
+wire bytes, with the node loop's deadlines (``tick``, the delayed-ack flush) as rules.
 
 One producer (restartable), several subscribers (flow and observe, joining and leaving) and
 an adversarial network that loses, duplicates, reorders and delays notifications and acks.
@@ -27,48 +29,64 @@ from hypothesis import strategies as st
 from hypothesis.database import DirectoryBasedExampleDatabase
 from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, precondition, rule
 
-from middleware._ledger_producer import (
-    MAX_REGISTRATIONS,
-    RETRANSMIT_NS,
-    ProducerLedger,
-    RegistrationKey,
+from middleware._ledger_producer import RETRANSMIT_NS, RegistrationKey
+from middleware._ledger_subscriber import ACK_DELAY_NS, MAX_EPOCHS, AckPolicy
+from middleware._protocol_producer import (
+    MAX_FLOW_REGISTRATIONS,
+    MAX_OBSERVE_REGISTRATIONS,
+    RESEND_PACE_NS,
+    ProducerProtocol,
+    Publish,
 )
-from middleware._ledger_subscriber import ACK_DELAY_NS, MAX_EPOCHS, AckPolicy, SubscriberLedger
-from middleware._records import SubscriptionMode
+from middleware._protocol_subscriber import SubscriberProtocol
+from middleware._records import DataObject, SubscriptionMode
+from middleware._wire import (
+    BatchHeader,
+    Header,
+    Keys,
+    decode_notification_header,
+    encode_ack,
+    encode_notification_header,
+)
 
 FLOW, OBSERVE = SubscriptionMode.FLOW, SubscriptionMode.OBSERVE
 MS = 1_000_000
 STEPS = [0]  # rule steps run, across programs (tests/middleware/conftest.py prints them)
 EXAMPLES = [0]
-
-# What a notification names: (producer instance, element timestamp); forged ones use -1.
-Item = tuple[int, int]
+KEYS = Keys("framegate")
+SERVICE, BUFFER = "svc", "buf"
+# Forged notifications carry this metadata; real ones the producer instance's number.
+FORGED = b"-1"
 
 
 @dataclass(frozen=True)
 class Note:
+    """A message on a subscription's notification key, as the wire carries it."""
+
     sub_id: str
-    epoch: str
-    seq: int
-    acked: int | None
-    descriptor: str | None
-    # The elements of seqs seq, seq + 1, ...: one, or a batch (``put_many``).
-    items: tuple[Item, ...]
+    attachment: bytes
+    payload: bytes
 
 
 @dataclass(frozen=True)
 class Ack:
-    sub_id: str
-    epoch: str
-    seq: int
+    keyexpr: str
+    payload: bytes
 
 
 @dataclass
 class Sub:
     key: RegistrationKey
-    ledger: SubscriberLedger[Item]
+    protocol: SubscriberProtocol
     alive: bool = True
-    taken: list[tuple[str, int, Item]] = field(default_factory=list)
+    # (epoch, seq, (timestamp_ns, metadata, pushed payload)) of every notification taken.
+    taken: list[tuple[str, int, tuple[int, bytes | None, object]]] = field(default_factory=list)
+
+
+def _token(key: RegistrationKey) -> str:
+    return KEYS.subscription_token(
+        SERVICE, BUFFER, key.sub_id, key.mode, key.queue_size, key.push_max_bytes, "n~h"
+    )
 
 
 class ProtocolModel(RuleBasedStateMachine):
@@ -77,7 +95,7 @@ class ProtocolModel(RuleBasedStateMachine):
         EXAMPLES[0] += 1
         self.now = 0
         self.instance = 0
-        self.producer: ProducerLedger[int] = ProducerLedger("P0")
+        self.producer = self._new_producer()
         self.next_t = 1
         self.subs: list[Sub] = []
         self.rogue_tokens: list[RegistrationKey] = []
@@ -88,40 +106,56 @@ class ProtocolModel(RuleBasedStateMachine):
         # The epochs the producer gave each subscriber's key (a registration is its key).
         self.epochs_of: dict[RegistrationKey, set[str]] = {}
 
+    def _new_producer(self) -> ProducerProtocol:
+        # Payloads up to 4 bytes are pushed with their notification; larger ones are not.
+        return ProducerProtocol(KEYS, SERVICE, BUFFER, f"P{self.instance}", inline_max_bytes=4)
+
     # -- helpers ---------------------------------------------------------------------------
-    def _emit(self, sends: list) -> None:  # type: ignore[type-arg]
-        for s in sends:
-            items = []
-            for i, header in enumerate(s.headers):
-                self.sent[(s.epoch, s.seq + i)] = header
-                items.append((self.instance, header))
-            note = Note(s.key.sub_id, s.epoch, s.seq, s.acked, s.key.descriptor, tuple(items))
-            self.net.append(note)
+    def _emit(self, fail_first: bool = False) -> None:
+        """Carry out the producer's events: notifications into the network (the first one
+        failing to leave with ``fail_first``), retired publishers dropped."""
+        for ev in self.producer.events():
+            if not isinstance(ev, Publish):
+                continue
+            sub_id = ev.keyexpr.rsplit("/", 1)[-1]
+            head = decode_notification_header(ev.attachment)
+            if isinstance(head, Header | BatchHeader):
+                stamps = (head.timestamp_ns,) if isinstance(head, Header) else head.timestamps_ns
+                for i, t in enumerate(stamps):
+                    self.sent[(head.epoch, head.seq + i)] = t
+                if fail_first:
+                    fail_first = False
+                    assert ev.epoch is not None
+                    self.producer.send_failed(ev.key, ev.epoch)
+                    continue
+            self.net.append(Note(sub_id, ev.attachment, ev.payload))
 
     def _deliver(self, msg: Note | Ack) -> None:
         if isinstance(msg, Ack):
-            self.producer.ack(msg.sub_id, msg.epoch, msg.seq, self.now)
+            self.producer.ack(msg.keyexpr, msg.payload, self.now)
             return
         for sub in self.subs:
             if sub.alive and sub.key.sub_id == msg.sub_id:
-                items = list(msg.items)
-                sub.ledger.receive_many(msg.epoch, msg.seq, items, descriptor=msg.descriptor)
+                sub.protocol.receive(msg.attachment, msg.payload)
 
     def _take_all(self, sub: Sub) -> None:
-        while (entry := sub.ledger.take()) is not None:
+        for entry in sub.protocol.take_many(1 << 20):
             sub.taken.append((entry.epoch, entry.seq, entry.item))
             if sub.key.mode is FLOW:
                 assert entry.missed == 0, "a flow-controlled subscription reported missed"
         self._acks(sub, idle=True)
 
     def _acks(self, sub: Sub, *, idle: bool) -> None:
-        for epoch, seq in sub.ledger.acks_due(self.now, idle=idle):
-            self.net.append(Ack(sub.key.sub_id, epoch, seq))
+        keyexpr = KEYS.ack(SERVICE, BUFFER, sub.key.sub_id)
+        for ack in sub.protocol.acks(self.now, idle=idle):
+            self.net.append(Ack(keyexpr, ack))
 
     def _register(self, key: RegistrationKey) -> None:
-        reg = self.producer.token_put(key, self.now)
+        self.producer.token(_token(key), True, self.now)
+        reg = self.producer.get(key)
         if reg is not None:
             self.epochs_of.setdefault(key, set()).add(reg.epoch)
+        self._emit()
 
     def _live(self) -> list[Sub]:
         return [s for s in self.subs if s.alive]
@@ -144,24 +178,26 @@ class ProtocolModel(RuleBasedStateMachine):
     @rule(
         mode=st.sampled_from([FLOW, FLOW, OBSERVE]),
         size=st.integers(1, 8),
-        every=st.integers(1, 8),
+        every=st.integers(0, 8),
         delay_ns=st.sampled_from([0, ACK_DELAY_NS]),
+        push=st.sampled_from([-1, 0]),
     )
     def subscribe(
-        self, mode: SubscriptionMode, size: int, every: int = 1, delay_ns: int = 0
+        self, mode: SubscriptionMode, size: int, every: int = 1, delay_ns: int = 0, push: int = -1
     ) -> None:
         """``every``: the ack policy coalesces that many takes into one ack (any value, even
-        beyond the queue: liveness must not depend on it); ``delay_ns``: an emptied queue's
-        ack waits that long (the flusher sends it, see ``flush``)."""
+        beyond the queue: liveness must not depend on it), 0 for what subscriptions use
+        (``AckPolicy.for_queue``); ``delay_ns``: an emptied queue's ack waits that long (the
+        node's loop sends it, see ``flush``); ``push``: -1 for the producer's default."""
         STEPS[0] += 1
-        key = RegistrationKey(f"s{len(self.subs)}", mode, size, -1)
-        policy = AckPolicy(every=every, delay_ns=delay_ns)
+        key = RegistrationKey(f"s{len(self.subs)}", mode, size, push)
+        policy = None if every == 0 else AckPolicy(every=every, delay_ns=delay_ns)
         if every > 1:
             event("a subscriber that coalesces acks")
-        if delay_ns:
+        protocol = SubscriberProtocol(mode, size, push, policy=policy)
+        if protocol.ledger.policy.delay_ns:
             event("a subscriber that delays acks")
-        ledger: SubscriberLedger[Item] = SubscriberLedger(mode, size, key.descriptor, policy=policy)
-        self.subs.append(Sub(key, ledger))
+        self.subs.append(Sub(key, protocol))
         self._register(key)
 
     @precondition(lambda self: bool(self._live()))
@@ -170,17 +206,15 @@ class ProtocolModel(RuleBasedStateMachine):
         STEPS[0] += 1
         sub = data.draw(st.sampled_from(self._live()))
         sub.alive = False
-        self.producer.token_delete(sub.key)
+        self.producer.token(_token(sub.key), False, self.now)
+        self._emit()
 
     @precondition(lambda self: bool(self._live()))
     @rule(data=st.data(), count=st.integers(1, 3))
     def take(self, data: st.DataObject, count: int) -> None:
         STEPS[0] += 1
         sub = data.draw(st.sampled_from(self._live()))
-        for _ in range(count):
-            entry = sub.ledger.take()
-            if entry is None:
-                break
+        for entry in sub.protocol.take_many(count):
             sub.taken.append((entry.epoch, entry.seq, entry.item))
             if sub.key.mode is FLOW:
                 assert entry.missed == 0, "a flow-controlled subscription reported missed"
@@ -189,15 +223,15 @@ class ProtocolModel(RuleBasedStateMachine):
     @precondition(lambda self: bool(self._live()))
     @rule(data=st.data())
     def flush(self, data: st.DataObject) -> None:
-        """The subscription's flusher thread: at the ledger's flush time, the delayed ack."""
+        """The node's loop: at the subscription's deadline, the delayed ack."""
         STEPS[0] += 1
         self._flush(data.draw(st.sampled_from(self._live())))
 
     def _flush(self, sub: Sub) -> None:
-        due = sub.ledger.flush_at_ns()
+        due = sub.protocol.next_deadline_ns()
         if due is not None:
             self.now = max(self.now, due)
-            event("flush: a delayed ack sent by the flusher")
+            event("flush: a delayed ack sent by the node's loop")
             self._acks(sub, idle=False)
 
     @precondition(lambda self: bool(self._live()))
@@ -212,45 +246,47 @@ class ProtocolModel(RuleBasedStateMachine):
         batch=st.sampled_from([1, 1, 2, 3, 5]),
         fail=st.booleans(),
         at_once=st.booleans(),
+        size=st.sampled_from([0, 3, 9]),
     )
-    def put(self, count: int, batch: int, fail: bool, at_once: bool) -> None:
-        """Store ``count`` times ``batch`` elements (``put_many`` when batch > 1) unless
-        refused; with ``fail`` a first send does not leave; with ``at_once`` the network
-        delivers the notifications at once (the common case)."""
+    def put(self, count: int, batch: int, fail: bool, at_once: bool, size: int) -> None:
+        """Store ``count`` times ``batch`` elements (``put_many`` when batch > 1) of
+        ``size``-byte payloads (pushed up to 4 bytes) unless refused; with ``fail`` a first
+        send does not leave; with ``at_once`` the network delivers at once (the common case)."""
         STEPS[0] += 1
         before = len(self.net)
+        meta = str(self.instance).encode()
         for _ in range(count):
-            self._emit(self.producer.tick(self.now))
+            self.producer.tick(self.now)
+            self._emit()
             if self.producer.full(batch) is not None:
                 self.refused += 1
                 return
-            headers = tuple(range(self.next_t, self.next_t + batch))
-            sends = self.producer.put_many(headers, self.now)
+            elements = tuple(
+                DataObject(t, bytes(size), meta) for t in range(self.next_t, self.next_t + batch)
+            )
+            self.producer.put_many(elements, self.now)
             self.next_t += batch
             if batch > 1:
                 event("a batch put")
-            if fail and sends:
-                for i, header in enumerate(sends[0].headers):
-                    self.sent[(sends[0].epoch, sends[0].seq + i)] = header
-                self.producer.send_failed(sends[0].key, sends[0].epoch)
-                sends = sends[1:]
-            self._emit(sends)
+            self._emit(fail_first=fail)
         if at_once:
             for msg in self.net[before:]:
                 self._deliver(msg)
             del self.net[before:]
 
-    @rule(dt=st.sampled_from([1 * MS, 100 * MS, RETRANSMIT_NS + 1]))
+    @rule(dt=st.sampled_from([1 * MS, RESEND_PACE_NS, 100 * MS, RETRANSMIT_NS + 1]))
     def time_passes(self, dt: int) -> None:
+        """The node's loop: ``tick`` at whatever time has come (paced resends included)."""
         STEPS[0] += 1
         self.now += dt
-        self._emit(self.producer.tick(self.now))
+        self.producer.tick(self.now)
+        self._emit()
 
     @rule()
     def restart_producer(self) -> None:
         STEPS[0] += 1
         self.instance += 1
-        self.producer = ProducerLedger(f"P{self.instance}")
+        self.producer = self._new_producer()
         for key in self._registered_keys():  # liveliness history re-registers every token
             self._register(key)
 
@@ -275,6 +311,12 @@ class ProtocolModel(RuleBasedStateMachine):
         self.net.append(self.net[i % len(self.net)])
 
     # -- the rogue -------------------------------------------------------------------------
+    def _forged(self, sub: Sub, epoch: str, seq: int, descriptor: str | None) -> Note:
+        header = encode_notification_header(
+            epoch, seq, 0, FORGED, pushed=True, acked=None, descriptor=descriptor
+        )
+        return Note(sub.key.sub_id, header, b"")
+
     @precondition(lambda self: bool(self._live()))
     @rule(
         data=st.data(),
@@ -295,19 +337,28 @@ class ProtocolModel(RuleBasedStateMachine):
             if epoch.startswith(f"P{self.instance}."):
                 epoch = "X"  # a guess of a registration epoch yet to come is out of the model
             small = data.draw(st.integers(1, 3))  # seq 1 starts an epoch; others probe
-            note = Note(sub.key.sub_id, epoch, small, None, desc, ((-1, 0),))
+            note = self._forged(sub, epoch, small, desc)
             if direct:
                 self._deliver(note)
             else:
                 self.net.append(note)
             return
-        track = sub.ledger.epochs().get(reg.epoch)
+        track = sub.protocol.ledger.epochs().get(reg.epoch)
         last = track.last if track is not None else 0
         if seq <= last:  # a replayed past seq, through the network like any message
-            self.net.append(Note(sub.key.sub_id, reg.epoch, seq, None, desc, ((-1, 0),)))
+            self.net.append(self._forged(sub, reg.epoch, seq, desc))
         else:  # a far-future seq, beyond anything in flight: straight to the subscriber
             future = reg.sent + sub.key.queue_size + seq
-            sub.ledger.receive(reg.epoch, future, (-1, 0), descriptor=desc)
+            self._deliver(self._forged(sub, reg.epoch, future, desc))
+
+    @precondition(lambda self: bool(self._live()))
+    @rule(data=st.data(), garbage=st.binary(max_size=12))
+    def rogue_garbage(self, data: st.DataObject, garbage: bytes) -> None:
+        """Bytes that are no header at all, on a subscription's key and on the ack key."""
+        STEPS[0] += 1
+        sub = data.draw(st.sampled_from(self._live()))
+        self._deliver(Note(sub.key.sub_id, garbage, garbage))
+        self._deliver(Ack(KEYS.ack(SERVICE, BUFFER, sub.key.sub_id), garbage))
 
     @precondition(lambda self: bool(self.subs))
     @rule(data=st.data(), kind=st.sampled_from(["foreign", "past", "colliding"]))
@@ -315,12 +366,14 @@ class ProtocolModel(RuleBasedStateMachine):
         STEPS[0] += 1
         sub = data.draw(st.sampled_from(self.subs))
         reg = self.producer.get(sub.key)
+        own = KEYS.ack(SERVICE, BUFFER, sub.key.sub_id)
         if kind == "foreign" or reg is None:
-            self.net.append(Ack(sub.key.sub_id, "X", data.draw(st.integers(0, 1_000))))
+            self.net.append(Ack(own, encode_ack("X", data.draw(st.integers(0, 1_000)))))
         elif kind == "past":
-            self.net.append(Ack(sub.key.sub_id, reg.epoch, data.draw(st.integers(0, reg.acked))))
+            self.net.append(Ack(own, encode_ack(reg.epoch, data.draw(st.integers(0, reg.acked)))))
         else:  # another id claims this registration's epoch
-            self.net.append(Ack("rogue", reg.epoch, data.draw(st.integers(0, 1_000))))
+            rogue = KEYS.ack(SERVICE, BUFFER, "rogue")
+            self.net.append(Ack(rogue, encode_ack(reg.epoch, data.draw(st.integers(0, 1_000)))))
 
     @rule(data=st.data(), size=st.integers(1, 4), colliding=st.booleans())
     def rogue_token(self, data: st.DataObject, size: int, colliding: bool) -> None:
@@ -341,7 +394,8 @@ class ProtocolModel(RuleBasedStateMachine):
         STEPS[0] += 1
         key = data.draw(st.sampled_from(self.rogue_tokens))
         self.rogue_tokens.remove(key)
-        self.producer.token_delete(key)
+        self.producer.token(_token(key), False, self.now)
+        self._emit()
 
     # -- liveness --------------------------------------------------------------------------
     @rule()
@@ -361,7 +415,8 @@ class ProtocolModel(RuleBasedStateMachine):
             if all(r.acked == r.sent for r in regs if r.flow) and not self.net:
                 break
             self.now += RETRANSMIT_NS + 1
-            self._emit(self.producer.tick(self.now))
+            self.producer.tick(self.now)
+            self._emit()
         else:
             raise AssertionError("the producer stayed held after the network healed")
         assert self.producer.full() is None
@@ -372,7 +427,7 @@ class ProtocolModel(RuleBasedStateMachine):
                 continue
             got = [(e, s) for e, s, item in sub.taken if e == reg.epoch]
             event(f"heal: a flow subscriber checked, {min(len(got), 3)}+ notifications")
-            if any(item[0] < 0 for _, _, item in sub.taken):
+            if any(item[1] == FORGED for _, _, item in sub.taken):
                 event("heal: a flow subscriber that took forged notifications")
             if any(e != reg.epoch for e, _, _ in sub.taken):
                 event("heal: a flow subscriber that took several epochs")
@@ -380,16 +435,17 @@ class ProtocolModel(RuleBasedStateMachine):
             assert got == wanted, f"{sub.key.sub_id} lost or reordered notifications"
             for epoch, seq, item in sub.taken:
                 if epoch == reg.epoch:
-                    assert item == (self.instance, self.sent[(epoch, seq)])
+                    assert item[:2] == (self.sent[(epoch, seq)], str(self.instance).encode())
 
     # -- invariants ------------------------------------------------------------------------
     @invariant()
     def queues_and_tables_are_bounded(self) -> None:
         for sub in self.subs:
-            assert len(sub.ledger) <= sub.key.queue_size
-            assert len(sub.ledger.epochs()) <= max(MAX_EPOCHS, sub.key.queue_size + 1)
+            assert len(sub.protocol) <= sub.key.queue_size
+            epochs = sub.protocol.ledger.epochs()
+            assert len(epochs) <= max(MAX_EPOCHS, sub.key.queue_size + 1)
         regs = self.producer.registrations()
-        assert len(regs) <= MAX_REGISTRATIONS
+        assert len(regs) <= MAX_FLOW_REGISTRATIONS + MAX_OBSERVE_REGISTRATIONS
         for reg in regs:
             assert 0 <= reg.acked <= reg.sent
             if reg.flow:
@@ -421,10 +477,10 @@ class ProtocolModel(RuleBasedStateMachine):
                 continue
             by_epoch: dict[str, list[int]] = {}
             for epoch, seq, item in sub.taken:
-                if item[0] < 0:
+                if item[1] == FORGED:
                     continue  # a forgery the subscriber could not tell from the real thing
                 assert epoch in self.epochs_of.get(sub.key, set()), "another registration's"
-                assert item[1] == self.sent[(epoch, seq)]
+                assert item[0] == self.sent[(epoch, seq)]
                 by_epoch.setdefault(epoch, []).append(seq)
             for seqs in by_epoch.values():
                 assert seqs == list(range(1, len(seqs) + 1)), f"gap or reorder: {seqs}"
@@ -432,12 +488,19 @@ class ProtocolModel(RuleBasedStateMachine):
     @invariant()
     def nothing_is_taken_twice(self) -> None:
         for sub in self.subs:
-            seen = [(e, s) for e, s, item in sub.taken if item[0] >= 0]
+            seen = [(e, s) for e, s, item in sub.taken if item[1] != FORGED]
             assert len(seen) == len(set(seen))
+
+    @invariant()
+    def a_pushed_payload_is_the_element_and_a_resend_pushes_none(self) -> None:
+        for sub in self.subs:
+            for _, _, (_, meta, pushed) in sub.taken:
+                if pushed is not None and meta != FORGED:
+                    assert len(pushed) <= 4, "a payload beyond the push limit was pushed"
 
 
 def _entries_of(sub: Sub, epoch: str) -> list[int]:
-    return [e.seq for e in sub.ledger._queue if e.epoch == epoch]
+    return [e.seq for e in sub.protocol.ledger._queue if e.epoch == epoch]
 
 
 _EXAMPLES = DirectoryBasedExampleDatabase(str(Path(__file__).with_name("protocol_examples")))
