@@ -150,15 +150,13 @@ def _sequence(attachment: bytes | None, fallback: int) -> int:
 class ImagesIn:
     """ROS 2 images → NAME/images (see the module docstring for the rules)."""
 
-    def __init__(
-        self, node: Node, codec: Codec, config: Ros2Config, skips: _Skips, log: logging.Logger
-    ) -> None:
+    def __init__(self, node: Node, codec: Codec, config: Ros2Config, skips: _Skips) -> None:
         self.producer = node.offer(
             "images",
             kind="frame",
             retention=Retention(max_count=config.retention_frames, max_bytes=512 * 2**20),
         )
-        self._codec, self._config, self._skips, self._log = codec, config, skips, log
+        self._codec, self._config, self._skips = codec, config, skips
         self.camera = (
             CameraModel.from_xml(config.camera_xml.read_bytes()) if config.camera_xml else None
         )
@@ -228,9 +226,7 @@ class ImagesIn:
 class ImuIn:
     """ROS 2 IMU samples → one-sample ``gyro`` elements of NAME/rates, in batches."""
 
-    def __init__(
-        self, node: Node, codec: Codec, config: Ros2Config, skips: _Skips, log: logging.Logger
-    ) -> None:
+    def __init__(self, node: Node, codec: Codec, config: Ros2Config, skips: _Skips) -> None:
         self.producer = node.offer(
             "rates", kind="gyro", retention=Retention(max_count=None, max_age_ns=30_000_000_000)
         )
@@ -416,11 +412,11 @@ def run(config: Ros2Config, network: NetworkConfig, stop: threading.Event | None
     ):
         images = imu = None
         if config.image_in:
-            images = ImagesIn(node, codec, config, skips, log)
+            images = ImagesIn(node, codec, config, skips)
             link.subscribe(config.image_in, IMAGE, hashed(IMAGE), config.in_qos, images.queue.put)
             start("ros2-images-in", lambda: images.run(stop))  # type: ignore[union-attr]
         if config.imu_in:
-            imu = ImuIn(node, codec, config, skips, log)
+            imu = ImuIn(node, codec, config, skips)
             link.subscribe(config.imu_in, IMU, hashed(IMU), config.in_qos, imu.queue.put)
             start("ros2-imu-in", lambda: imu.run(stop))  # type: ignore[union-attr]
         encoders = Encoders(codec, config)

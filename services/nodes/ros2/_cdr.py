@@ -113,7 +113,7 @@ class Codec:
     def decode_image(self, raw: bytes) -> Image:
         """CdrError for a message that is not a consistent 8-bit image."""
         try:
-            msg = self.store.deserialize_cdr(raw, IMAGE)
+            msg: Any = self.store.deserialize_cdr(raw, IMAGE)
         except Exception as exc:  # rosbags raises several types for truncated input
             raise CdrError(f"not a CDR {IMAGE}: {exc}") from exc
         width, height, step = int(msg.width), int(msg.height), int(msg.step)
@@ -156,7 +156,7 @@ class Codec:
     def decode_imu(self, raw: bytes) -> tuple[int, tuple[float, float, float]]:
         """(stamp, angular velocity in rad/s); CdrError for a malformed message."""
         try:
-            msg = self.store.deserialize_cdr(raw, IMU)
+            msg: Any = self.store.deserialize_cdr(raw, IMU)
         except Exception as exc:
             raise CdrError(f"not a CDR {IMU}: {exc}") from exc
         w = msg.angular_velocity

@@ -14,7 +14,7 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from middleware import ConfigError, NetworkConfig, check_name, split_target
+from middleware import ConfigError, FramegateError, NetworkConfig, check_name, split_target
 
 from ._rmw import DISTROS, History, Qos, Reliability, fully_qualified
 
@@ -35,7 +35,10 @@ class Mapping:
         buffer, sep, topic = text.partition("=")
         if not buffer or (sep and not topic):
             raise ConfigError(f"bad mapping {text!r}: use SERVICE/BUFFER=/ros/topic")
-        split_target(buffer)
+        try:
+            split_target(buffer)
+        except FramegateError as exc:
+            raise ConfigError(f"bad mapping {text!r}: {exc}") from exc
         return cls(buffer, fully_qualified(topic if sep else "/" + buffer, namespace))
 
 

@@ -18,6 +18,7 @@ import threading
 import time
 from collections.abc import Callable
 from types import TracebackType
+from typing import Any
 
 import zenoh
 
@@ -48,7 +49,8 @@ class RosPublisher:
     @property
     def matched(self) -> bool:
         """True while some subscriber matches the data key."""
-        return bool(self._publisher.matching_status.matching)
+        status: Any = self._publisher.matching_status
+        return bool(status.matching)
 
     def close(self) -> None:
         self._token.undeclare()

@@ -137,8 +137,8 @@ def main(params: dict[str, Any]) -> None:
             time.sleep(0.0005)
         _emit(done=count)
         sys.stdin.read()  # keep the router up until the test is done
-        for token in tokens:
-            token.undeclare()
+        for declared in tokens:
+            declared.undeclare()
 
 
 if __name__ == "__main__":

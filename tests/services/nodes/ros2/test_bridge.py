@@ -1,0 +1,223 @@
+"""The bridge's in-direction boundary with real framegate buffers (no ROS 2 session):
+flow control ends at the bridge, and every bad message is a counted skip, never a crash."""
+
+from __future__ import annotations
+
+import logging
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+
+from middleware import NetworkConfig, Node, Producer
+from services.nodes.ros2._bridge import ImagesIn, ImuIn, _Skips
+from services.nodes.ros2._cdr import IMU, Codec
+from services.nodes.ros2._config import Ros2Config
+from tests.conftest import REPO, child_env, wait_until
+
+W, H = 8, 4
+
+
+@pytest.fixture
+def codec() -> Codec:
+    return Codec("jazzy")
+
+
+@pytest.fixture
+def node(listen_net: NetworkConfig) -> Iterator[Node]:
+    with Node("ros2", listen_net) as n:
+        yield n
+
+
+@pytest.fixture
+def consumer(connect_net: NetworkConfig) -> Iterator[Node]:
+    with Node(network=connect_net) as n:
+        yield n
+
+
+def _image(codec: Codec, stamp_ns: int, encoding: str = "mono8") -> bytes:
+    channels = 3 if encoding != "mono8" else 1
+    pixels = (np.arange(W * H * channels) % 251).astype(np.uint8).tobytes()
+    return bytes(codec.encode_image(stamp_ns, "cam", W, H, encoding, pixels))
+
+
+def _skipped(producer: Producer) -> dict[str, int]:
+    return dict(getattr(producer.info(), "skipped", {}))
+
+
+def test_a_refused_image_is_dropped_at_the_bridge_and_counted(
+    node: Node, consumer: Node, codec: Codec
+) -> None:
+    images = ImagesIn(node, codec, Ros2Config(image_in="/cam"), _Skips(logging.getLogger()))
+    # A flow-controlled subscriber with a queue of one that never takes.
+    sub = consumer.subscribe("ros2/images", queue_size=1, wait_s=5)
+    wait_until(lambda: images.producer.subscriptions(), 5, "the subscription")
+    now = time.time_ns()
+    images.handle(_image(codec, now), 1)
+    images.handle(_image(codec, now + 1_000_000), 2)
+    info = images.producer.info()
+    assert (info.puts, info.refused) == (1, 1)
+    assert (images.stored, images.dropped) == (1, 1)
+    note = sub.take(timeout_s=5)
+    assert note is not None and note.timestamp_ns == now
+
+
+@pytest.mark.parametrize(
+    ("raw", "reason"),
+    [
+        (b"\x00\x01\x00\x00garbage", "bad-cdr"),
+        (b"", "bad-cdr"),
+    ],
+)
+def test_malformed_cdr_is_a_counted_skip(node: Node, codec: Codec, raw: bytes, reason: str) -> None:
+    skips = _Skips(logging.getLogger())
+    images = ImagesIn(node, codec, Ros2Config(image_in="/cam"), skips)
+    images.handle(raw, 1)
+    assert skips.counts == {reason: 1}
+    assert images.producer.info().puts == 0
+
+
+def test_inconsistent_sizes_unknown_encodings_and_stamps_are_counted_skips(
+    node: Node, codec: Codec, caplog: pytest.LogCaptureFixture
+) -> None:
+    skips = _Skips(logging.getLogger("test"))
+    images = ImagesIn(node, codec, Ros2Config(image_in="/cam"), skips)
+    store = codec.store
+    t = store.types
+    now = time.time_ns()
+
+    def message(width: int, height: int, step: int, encoding: str, data: int) -> bytes:
+        header = t["std_msgs/msg/Header"](t["builtin_interfaces/msg/Time"](now // 10**9, 0), "c")
+        image = t["sensor_msgs/msg/Image"](
+            header, height, width, encoding, 0, step, np.zeros(data, dtype=np.uint8)
+        )
+        return bytes(store.serialize_cdr(image, "sensor_msgs/msg/Image"))
+
+    with caplog.at_level(logging.WARNING):
+        images.handle(message(W, H, W, "mono8", W * H - 1), 1)  # data too short
+        images.handle(message(W, H, W - 1, "mono8", (W - 1) * H), 2)  # step < width
+        images.handle(message(2**20, 2**20, 2**20, "mono8", 16), 3)  # absurd size
+        images.handle(message(W, H, 2 * W, "mono16", 2 * W * H), 4)  # unknown encoding
+        images.handle(message(W, H, W, "mono8", W * H), 5)  # fine
+        images.handle(message(W, H, W, "mono8", W * H), 6)  # same stamp again
+        images.handle(_image(codec, now - 10**9), 7)  # older
+        images.handle(_image(codec, 0), 8)  # no stamp
+    assert skips.counts == {
+        "bad-image": 4,
+        "duplicate-stamp": 1,
+        "out-of-order": 1,
+        "bad-stamp": 1,
+    }
+    assert images.producer.info().puts == 1
+    # One warning per reason, however many skips.
+    warned = [r for r in caplog.records if "skipping (bad-image" in r.getMessage()]
+    assert len(warned) == 1
+
+
+def test_padded_rows_are_stored_without_padding(node: Node, consumer: Node, codec: Codec) -> None:
+    images = ImagesIn(node, codec, Ros2Config(image_in="/cam"), _Skips(logging.getLogger()))
+    t, store = codec.store.types, codec.store
+    rows = np.arange(H * (W + 4), dtype=np.uint8).reshape(H, W + 4)
+    now = time.time_ns()
+    header = t["std_msgs/msg/Header"](
+        t["builtin_interfaces/msg/Time"](now // 10**9, now % 10**9), "c"
+    )
+    image = t["sensor_msgs/msg/Image"](header, H, W, "mono8", 0, W + 4, rows.reshape(-1))
+    images.handle(bytes(store.serialize_cdr(image, "sensor_msgs/msg/Image")), 1)
+    [element] = consumer.query("ros2/images")
+    assert element.timestamp_ns == now
+    assert element.payload == rows[:, :W].tobytes()
+
+
+def test_stamp_at_exposure_end_keys_by_exposure_start(
+    node: Node, consumer: Node, codec: Codec
+) -> None:
+    config = Ros2Config(image_in="/cam", stamp="end", exposure_ms=20)
+    images = ImagesIn(node, codec, config, _Skips(logging.getLogger()))
+    now = time.time_ns()
+    images.handle(_image(codec, now), 1)
+    [element] = consumer.query("ros2/images")
+    assert element.timestamp_ns == now - 20_000_000
+    assert config.stamp_ns(element.timestamp_ns) == now
+    assert b"<exposure_ns>20000000</exposure_ns>" in element.metadata
+
+
+def test_imu_samples_become_gyro_elements_in_batches(
+    node: Node, consumer: Node, codec: Codec
+) -> None:
+    skips = _Skips(logging.getLogger())
+    imu = ImuIn(node, codec, Ros2Config(imu_in="/imu", gyro_batch=4), skips)
+    t, store = codec.store.types, codec.store
+    start = time.time_ns() - 10**9
+
+    def sample(t_ns: int, wz: float) -> bytes:
+        header = t["std_msgs/msg/Header"](
+            t["builtin_interfaces/msg/Time"](t_ns // 10**9, t_ns % 10**9), "i"
+        )
+        v = t["geometry_msgs/msg/Vector3"]
+        z = np.zeros(9)
+        message = t[IMU](
+            header,
+            t["geometry_msgs/msg/Quaternion"](0, 0, 0, 1),
+            z,
+            v(0.0, 0.0, wz),
+            z,
+            v(0, 0, 0),
+            z,
+        )
+        return bytes(store.serialize_cdr(message, IMU))
+
+    for i in range(4):
+        imu.add(sample(start + i * 5_000_000, 0.1 * i))
+    imu.add(sample(start + 2 * 5_000_000, 9.0))  # out of order
+    imu.add(b"nonsense")
+    imu.flush()
+    elements = consumer.query("ros2/rates")
+    assert [e.timestamp_ns for e in elements] == [start + i * 5_000_000 for i in range(4)]
+    assert skips.counts == {"out-of-order": 1, "bad-cdr": 1}
+    assert imu.stored == 4
+
+
+@pytest.mark.integration
+def test_sigterm_stops_the_bridge_within_two_seconds_with_exit_0(endpoint: str) -> None:
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "services.cli",
+            "run",
+            "ros2",
+            "--listen",
+            endpoint,
+            "--ros-connect",
+            "tcp/127.0.0.1:1",
+            "--image-in",
+            "/camera/image_raw",
+            "--image-out",
+            "ros2/images=/echo",
+        ],
+        cwd=REPO,
+        env=child_env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    try:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            if "ros2: node framegate_bridge" in line:
+                break
+        else:
+            raise AssertionError(f"bridge exited with {proc.wait()}")
+        proc.send_signal(signal.SIGTERM)
+        started = time.monotonic()
+        assert proc.wait(timeout=10) == 0
+        assert time.monotonic() - started < 2.0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()

@@ -1,0 +1,81 @@
+"""CDR round trips through rosbags: images, IMU samples, detections, verdicts."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from middleware import ConfigError
+from services.nodes.ros2._cdr import DETECTIONS, IMAGE, STRING, CdrError, Codec
+
+
+@pytest.fixture(params=["humble", "jazzy"])
+def codec(request: pytest.FixtureRequest) -> Codec:
+    return Codec(request.param)
+
+
+def test_image_round_trip_keeps_pixels_and_stamp(codec: Codec) -> None:
+    pixels = (np.arange(6 * 5 * 3) % 256).astype(np.uint8).tobytes()
+    raw = codec.encode_image(1_700_000_000_987_654_321, "cam", 6, 5, "bgr8", pixels)
+    image = codec.decode_image(bytes(raw))
+    assert (image.stamp_ns, image.frame_id, image.width, image.height) == (
+        1_700_000_000_987_654_321,
+        "cam",
+        6,
+        5,
+    )
+    assert (image.encoding, image.step) == ("bgr8", 18)
+    assert image.pixels() == pixels
+    message = codec.decode(bytes(raw), IMAGE)  # rosbags reads what we wrote
+    assert message.data.tobytes() == pixels
+
+
+def test_encoding_hands_on_rosbags_buffer_without_another_copy(codec: Codec) -> None:
+    pixels = bytes(64 * 64)
+    raw = codec.encode_image(1, "cam", 64, 64, "mono8", pixels)
+    assert isinstance(raw, bytearray)
+    assert len(raw) < len(pixels) + 100  # the pixels once, plus the header
+
+
+def test_decoding_does_not_copy_the_pixels(codec: Codec) -> None:
+    raw = bytes(codec.encode_image(1, "cam", 4, 4, "mono8", bytes(16)))
+    image = codec.decode_image(raw)
+    assert not image.data.flags["OWNDATA"]
+
+
+def test_truncated_messages_are_cdr_errors(codec: Codec) -> None:
+    raw = bytes(codec.encode_image(1, "cam", 4, 4, "mono8", bytes(16)))
+    with pytest.raises(CdrError, match="not a CDR sensor_msgs/msg/Image"):
+        codec.decode_image(raw[:30])
+    with pytest.raises(CdrError, match="not a CDR sensor_msgs/msg/Imu"):
+        codec.decode_imu(raw[:10])
+
+
+def test_detections_and_verdicts_round_trip(codec: Codec) -> None:
+    raw = codec.encode_detections(42, "cam", [(7, [10, 20, 30, 20, 30, 40, 10, 40])])
+    message = codec.decode(bytes(raw), DETECTIONS)
+    assert message.header.stamp.nanosec == 42
+    [detection] = message.detections
+    assert detection.id == "7" and detection.results[0].hypothesis.class_id == "7"
+    box = detection.bbox
+    assert (box.center.position.x, box.center.position.y, box.size_x, box.size_y) == (
+        20,
+        30,
+        20,
+        20,
+    )
+    text = codec.decode(bytes(codec.encode_string({"accepted": True, "stamp_ns": 5})), STRING)
+    assert json.loads(text.data) == {"accepted": True, "stamp_ns": 5}
+
+
+def test_vision_msgs_are_registered_once_per_store() -> None:
+    first, second = Codec("jazzy"), Codec("jazzy")
+    assert first.rihs01(DETECTIONS) == second.rihs01(DETECTIONS)
+    assert first.rihs01(DETECTIONS).startswith("RIHS01_")
+
+
+def test_unknown_distro_is_a_config_error() -> None:
+    with pytest.raises(ConfigError, match="unknown ROS 2 distro 'foxy'"):
+        Codec("foxy")

@@ -1,0 +1,67 @@
+"""The bridge's flags: mappings, QoS defaults, distro, namespace."""
+
+from __future__ import annotations
+
+import argparse
+
+import pytest
+
+from middleware import ConfigError
+from services.nodes.ros2._config import Mapping, Ros2Config, add_arguments, config_from_args
+from services.nodes.ros2._rmw import Reliability
+
+
+def _config(*argv: str) -> Ros2Config:
+    parser = argparse.ArgumentParser(exit_on_error=False)
+    add_arguments(parser)
+    return config_from_args(parser.parse_args(list(argv)))
+
+
+def test_defaults_match_ros2_profiles() -> None:
+    config = _config("--image-in", "/camera/image_raw")
+    assert config.ros_connect == ("tcp/localhost:7447",)
+    assert config.in_qos.keyexpr() == "2::,5:,:,:,,"  # sensor data: best effort, depth 5
+    assert config.out_qos.keyexpr() == "::,10:,:,:,,"  # reliable, depth 10
+    assert config.out_reliability is Reliability.RELIABLE
+
+
+def test_mappings_from_flags_and_deploy_lists() -> None:
+    config = _config(
+        "--ros-namespace",
+        "robot1",
+        "--image-out",
+        "mediator/images=image_filtered",
+        "camera/images",
+        "--verdicts-out",
+        "mediator/decisions=/verdicts",
+    )
+    assert config.image_out == (
+        Mapping("mediator/images", "/robot1/image_filtered"),
+        Mapping("camera/images", "/camera/images"),
+    )
+    assert config.verdicts_out == (Mapping("mediator/decisions", "/verdicts"),)
+
+
+@pytest.mark.parametrize(
+    ("argv", "match"),
+    [
+        (["--image-out", "images=/x"], "SERVICE/BUFFER"),
+        (["--image-out", "mediator/images="], "bad mapping"),
+        (["--image-in", "/a b"], "bad ROS 2 topic name"),
+        (["--exposure-ms", "0"], "exposure-ms"),
+        (["--gyro-batch", "0"], "gyro-batch"),
+    ],
+)
+def test_bad_flags_are_one_line_errors(argv: list[str], match: str) -> None:
+    with pytest.raises(ConfigError, match=match):
+        _config(*argv)
+
+
+def test_a_bridge_with_nothing_to_carry_says_so() -> None:
+    with pytest.raises(ConfigError, match="nothing to carry"):
+        _config().check_has_work()
+
+
+def test_ros_network_uses_the_ros_flags() -> None:
+    network = _config("--ros-connect", "tcp/10.0.0.2:7447", "--image-in", "/c").ros_network()
+    assert network.connect == ("tcp/10.0.0.2:7447",)
