@@ -9,6 +9,7 @@ from middleware import add_network_arguments
 from services.nodes import SERVICES, describe, exit_with_parent, service
 
 from ._common import command_parser, network, stop_on_signals
+from .argtypes import FramegateParser
 
 
 def register(subparsers: Any) -> None:
@@ -28,7 +29,7 @@ def register(subparsers: Any) -> None:
 
 def service_parser(name: str) -> argparse.ArgumentParser:
     """The parser of ``framegate run NAME``: the network flags plus the service's own."""
-    parser = argparse.ArgumentParser(prog=f"framegate run {name}", description=describe(name))
+    parser = FramegateParser(prog=f"framegate run {name}", description=describe(name))
     add_network_arguments(parser)
     service(name).add_arguments(parser)
     return parser

@@ -100,6 +100,8 @@ def run(config: DetectorConfig, network: NetworkConfig, stop: threading.Event | 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The detector's flags (``framegate run detector --help``)."""
+    from services.cli.argtypes import non_negative_float, positive_float, positive_int
+
     d = DetectorConfig()
     parser.add_argument("--name", default=d.name, help="service name (default %(default)s)")
     parser.add_argument(
@@ -107,22 +109,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=d.input,
         help="frames to process: mediator/images (filtered) or camera/images",
     )
-    parser.add_argument("--queue", type=int, default=d.queue, help="notification queue size N")
+    parser.add_argument(
+        "--queue", type=positive_int, default=d.queue, help="notification queue size N"
+    )
     parser.add_argument(
         "--min-processing-ms",
-        type=float,
+        type=non_negative_float,
         default=d.min_processing_ms,
         help="emulate a slow computer: each frame takes at least this long",
     )
     parser.add_argument(
         "--service-factor",
-        type=float,
+        type=non_negative_float,
         default=None,
         help="emulated processing time as a multiple of the frame period",
     )
     parser.add_argument(
         "--frame-period-ms",
-        type=float,
+        type=positive_float,
         default=d.frame_period_ms,
         help="frame period used by --service-factor (default 15 fps)",
     )

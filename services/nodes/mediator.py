@@ -65,6 +65,7 @@ from middleware import (
     Retention,
     Subscription,
     SubscriptionMode,
+    now_ns,
 )
 from services.lib.decisions import (
     DEFAULT_POLICY,
@@ -439,7 +440,7 @@ class Mediator:
                 reason=verdict.reason,
                 policy=self.config.policy,
                 b0_px=self.config.b0_px,
-                latency_ns=time.time_ns() - frame.meta.exposure.end_ns,
+                latency_ns=now_ns() - frame.meta.exposure.end_ns,
             )
         )
 
@@ -480,24 +481,26 @@ class Mediator:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The mediator's flags (``framegate run mediator --help``): one per config field."""
+    from services.cli.argtypes import non_negative_float, positive_float, positive_int, unit_float
+
     d = MediatorConfig()
     parser.add_argument("--name", default=d.name, help="service name (default %(default)s)")
     parser.add_argument("--camera", default=d.camera, help="frames to filter (SERVICE/BUFFER)")
     parser.add_argument("--gyro", default=d.gyro, help="gyro batches (SERVICE/BUFFER)")
     parser.add_argument(
         "--camera-queue",
-        type=int,
+        type=positive_int,
         default=d.camera_queue,
         help="notification queue on the camera (deep: never stall it)",
     )
     parser.add_argument(
         "--b0",
-        type=float,
+        type=positive_float,
         default=d.b0_px,
         dest="b0_px",
         help="blur scale b0 in pixels: q = exp(-blur/b0) (default %(default)s)",
     )
-    parser.add_argument("--q-min", type=float, default=d.q_min, help="minimum quality")
+    parser.add_argument("--q-min", type=unit_float, default=d.q_min, help="minimum quality")
     parser.add_argument(
         "--policy",
         choices=sorted(POLICIES),
@@ -512,7 +515,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--gyro-wait-ms",
-        type=float,
+        type=non_negative_float,
         default=d.gyro_wait_ms,
         help="how long to wait for gyro coverage after exposure end",
     )
@@ -524,7 +527,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--max-hold-ms",
-        type=float,
+        type=non_negative_float,
         default=d.max_hold_ms,
         help="longest a frame may be held for the detector (default %(default)s)",
     )

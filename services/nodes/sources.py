@@ -258,15 +258,17 @@ def open_gyro_source(spec: SourceSpec) -> GyroSource:
 
 def add_source_arguments(parser: argparse.ArgumentParser, *, device: bool) -> None:
     """--source and how to play it, shared by camera and gyro."""
+    from services.cli.argtypes import positive_float, positive_int
+
     kinds = ["sim", "replay", "device"] if device else ["sim", "replay"]
     parser.add_argument("--source", choices=kinds, default="sim", help="where data comes from")
     parser.add_argument(
         "--path", help="dataset directory (replay)" + (" or device index/URL" if device else "")
     )
     parser.add_argument("--seed", type=int, default=1, help="simulator seed (sim)")
-    parser.add_argument("--rate", type=float, default=1.0, help="replay speed factor")
+    parser.add_argument("--rate", type=positive_float, default=1.0, help="replay speed factor")
     parser.add_argument("--loop", action="store_true", help="start over at the end")
-    parser.add_argument("--frames", type=int, help="play only the first N frames")
+    parser.add_argument("--frames", type=positive_int, help="play only the first N frames")
     parser.add_argument(
         "--start-at",
         type=int,
@@ -276,7 +278,10 @@ def add_source_arguments(parser: argparse.ArgumentParser, *, device: bool) -> No
     parser.add_argument("--exit-when-done", action="store_true", help="exit after the last element")
     if device:
         parser.add_argument(
-            "--exposure-ms", type=float, default=30.0, help="exposure time of a device camera"
+            "--exposure-ms",
+            type=positive_float,
+            default=30.0,
+            help="exposure time of a device camera",
         )
         parser.add_argument("--camera-xml", help="camera description (camera metadata XML)")
 

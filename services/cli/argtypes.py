@@ -1,0 +1,124 @@
+"""Argument parsing that gives one line a person can act on.
+
+``FramegateParser`` is the parser of every command: a mistake prints one line,
+``error: PROG: ...`` with a did-you-mean for a misspelt command, choice or flag, and exits
+with code 1 (argparse's default is a usage dump and code 2). The number types check a
+flag's value while parsing, so ``--rate nan`` or ``--retention-frames 0`` is refused with
+the flag and the allowed range instead of failing later, or silently doing nothing:
+
+    parser.add_argument("--rate", type=positive_float, default=1.0)
+
+This module imports nothing heavy: the services' ``add_arguments`` use it too.
+"""
+
+from __future__ import annotations
+
+import argparse
+import difflib
+import math
+import sys
+from collections.abc import Callable, Iterable, Sequence
+from typing import Any, NoReturn
+
+# Exit code of every command-line mistake (argparse's own is 2).
+USAGE_EXIT_CODE = 1
+
+
+def did_you_mean(word: str, candidates: Iterable[str]) -> str:
+    """`` (did you mean 'x'?)`` for the closest candidate, or ``""``."""
+    hint = difflib.get_close_matches(word, list(candidates), n=1, cutoff=0.6)
+    return f" (did you mean {hint[0]}?)" if hint else ""
+
+
+def _options(parser: argparse.ArgumentParser) -> list[str]:
+    return [s for a in parser._actions for s in a.option_strings if s.startswith("--")]
+
+
+def _subparser(
+    parser: argparse.ArgumentParser, namespace: argparse.Namespace
+) -> argparse.ArgumentParser | None:
+    """The subcommand parser ``namespace`` went through, if any."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            chosen = getattr(namespace, action.dest or "", None)
+            if isinstance(chosen, str) and chosen in action.choices:
+                sub: argparse.ArgumentParser = action.choices[chosen]
+                return _subparser(sub, namespace) or sub
+    return None
+
+
+class FramegateParser(argparse.ArgumentParser):
+    """An ArgumentParser whose errors are one line, with a did-you-mean, and exit code 1."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(USAGE_EXIT_CODE, f"error: {self.prog}: {message}\n")
+
+    def parse_args(  # type: ignore[override]
+        self, args: Sequence[str] | None = None, namespace: argparse.Namespace | None = None
+    ) -> argparse.Namespace:
+        parsed, extras = self.parse_known_args(args, namespace)
+        if extras:
+            sub = _subparser(self, parsed)
+            target = sub or self
+            known = _options(target) + ([] if sub is None else _options(self))
+            first = extras[0]
+            hint = did_you_mean(first.split("=", 1)[0], known) if first.startswith("-") else ""
+            what = "unknown option" if first.startswith("-") else "unexpected argument"
+            target.error(f"{what} {first!r}{hint}; see {target.prog} --help")
+        return parsed
+
+    def _check_value(self, action: argparse.Action, value: Any) -> None:
+        # argparse's own message lists every choice but suggests none.
+        choices = action.choices
+        if choices is not None and value not in choices:
+            names = [str(c) for c in choices]
+            raise argparse.ArgumentError(
+                action,
+                f"invalid choice: {value!r}{did_you_mean(str(value), names)} "
+                f"(choose from {', '.join(names)})",
+            )
+
+
+def _number(
+    kind: type[int] | type[float], low: float | None, *, strict: bool, high: float | None = None
+) -> Callable[[str], Any]:
+    if low is None:
+        allowed = "a finite number"
+    else:
+        allowed = f"{'an integer' if kind is int else 'a number'} {'>' if strict else '>='} {low:g}"
+    if high is not None:
+        allowed += f" and <= {high:g}"
+
+    def parse(text: str) -> int | float:
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be {allowed}, got {text!r}") from None
+        if not math.isfinite(value):
+            raise argparse.ArgumentTypeError(f"must be {allowed}, got {text!r}")
+        too_low = low is not None and (value <= low if strict else value < low)
+        if too_low or (high is not None and value > high):
+            raise argparse.ArgumentTypeError(f"must be {allowed}, got {text!r}")
+        return value
+
+    parse.__name__ = kind.__name__  # argparse names the type in some messages
+    return parse
+
+
+#: Finite, > 0: rates, periods, scales.
+positive_float = _number(float, 0, strict=True)
+#: Finite, >= 0: delays, waits, minimums.
+non_negative_float = _number(float, 0, strict=False)
+#: Finite, any sign.
+finite_float = _number(float, None, strict=False)
+#: In [0, 1]: qualities, fractions.
+unit_float = _number(float, 0, strict=False, high=1)
+#: >= 1: counts, queue sizes, retention.
+positive_int = _number(int, 0, strict=True)
+#: >= 0.
+non_negative_int = _number(int, 0, strict=False)
+
+
+def print_error(message: str) -> None:
+    """The one-line form of every error."""
+    print(f"error: {message}", file=sys.stderr)
