@@ -3,54 +3,63 @@
 Each command lives in its own module here and exposes ``register(subparsers)``, which adds
 its parser and sets ``func`` to a function ``(args) -> int``. Commands catch only
 ``FramegateError``, print ``error: ...`` on stderr and return a non-zero exit code.
+
+Start-up is part of the interface: ``framegate --help`` imports no command module (the
+summaries below are enough to list them) and ``framegate CMD`` imports only CMD's module,
+so ``ls`` does not pay for OpenCV, NumPy or the Foxglove bridge.
 """
 
 from __future__ import annotations
 
-import argparse
 import importlib
 import sys
 from collections.abc import Sequence
 
-from middleware import FramegateError
+from .argtypes import FramegateParser, print_error
 
-# Command modules, in the order `framegate --help` lists them.
-_COMMANDS = (
-    "demo",
-    "launch",
-    "run",
-    "ls",
-    "info",
-    "query",
-    "watch",
-    "hz",
-    "view",
-    "record",
-    "play",
-    "router",
-    "simulate",
-    "calibrate",
-    "experiment",
-    "bench",
-    "soak",
-    "faults",
-)
+# Every command with its one-line summary, in the order `framegate --help` lists them.
+COMMANDS: dict[str, str] = {
+    "demo": "run the whole pipeline on this host with a live status view",
+    "launch": "start the services a deploy file assigns to this host",
+    "run": "start one service (camera, gyro, mediator, detector)",
+    "ls": "list live services, their buffers and who subscribes",
+    "info": "describe a buffer: retention, size, span, rate, subscriptions, counters",
+    "query": "print (or save) the elements of a buffer in a time range",
+    "echo": "print each new element of a buffer: metadata fields and payload summary",
+    "watch": "print a buffer's notifications as they arrive",
+    "hz": "measure a buffer's rate, jitter and bandwidth",
+    "pub": "publish test elements of a kind under a temporary service",
+    "view": "stream buffers live to Foxglove",
+    "record": "record buffers to an MCAP file",
+    "play": "offer the buffers of an MCAP recording again",
+    "router": "run a Zenoh router until Ctrl-C",
+    "simulate": "render the bumpy-approach scenario into a dataset",
+    "calibrate": "derive the blur scale b0 from a dataset",
+    "experiment": "reproduce the paper's marker experiment",
+    "bench": "benchmark framegate against raw Zenoh",
+    "soak": "run the pipeline at full speed; report memory growth and losses",
+    "faults": "kill each service repeatedly; report restart times",
+}
 
 
-def build_parser(only: str | None = None) -> argparse.ArgumentParser:
-    """The top-level parser with every available command (or just ``only``) registered.
+def build_parser(only: str | None = None) -> FramegateParser:
+    """The top-level parser; with ``only`` (a command name) that command fully registered.
 
-    Registering one command imports only its module, so ``framegate ls`` does not pay for
-    OpenCV and SciPy.
+    Without ``only`` every command is listed by its summary but none is imported: enough
+    for ``--help`` and for naming a misspelt command.
     """
-    parser = argparse.ArgumentParser(
+    parser = FramegateParser(
         prog="framegate",
         description="Named, flow-controlled camera/gyro buffers over Zenoh, and the "
         "blur-aware mediator that keeps blurred frames away from vision code.",
+        epilog="framegate COMMAND --help describes a command.",
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name in (only,) if only in _COMMANDS else _COMMANDS:
-        importlib.import_module(f"services.cli.{name}").register(sub)
+    for name, summary in COMMANDS.items():
+        if name == only:
+            importlib.import_module(f"services.cli.{name}").register(sub)
+        else:
+            sub.add_parser(name, help=summary, add_help=False)
     return parser
 
 
@@ -58,22 +67,34 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``framegate`` console script."""
     words = list(sys.argv[1:] if argv is None else argv)
     chosen = next((w for w in words if not w.startswith("-")), None)
-    parser = build_parser(chosen)
-    args = parser.parse_args(words)
+    parser = build_parser(chosen if chosen in COMMANDS else None)
+    try:
+        args = parser.parse_args(words)
+    except SystemExit as exc:  # --help (0) or a one-line mistake (1)
+        return int(exc.code or 0)
     if not getattr(args, "func", None):
-        parser.print_help()
-        return 2
+        parser.print_usage(sys.stderr)
+        print_error("name a command; framegate --help lists them")
+        return 1
     try:
         return int(args.func(args))
-    except FramegateError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
     except KeyboardInterrupt:
         return 130
     except BrokenPipeError:
         # `framegate query ... | head` closed the pipe: not an error worth a traceback.
         sys.stderr.close()
         return 0
+    except Exception as exc:
+        # Only our own errors are a one-liner; anything else is a bug worth its traceback.
+        middleware = sys.modules.get("middleware")
+        if middleware is not None and isinstance(exc, middleware.FramegateError):
+            print_error(str(exc))
+            return 1
+        if isinstance(exc, OSError) and exc.strerror:
+            where = f" {exc.filename}" if exc.filename else ""
+            print_error(f"{exc.strerror}{where}")
+            return 1
+        raise
 
 
 if __name__ == "__main__":
