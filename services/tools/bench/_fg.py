@@ -27,6 +27,7 @@ from middleware import (
     Subscription,
     SubscriptionMode,
     make_metadata,
+    now_ns,
 )
 
 from ._serve import Counter, LatencyLog, paced, profiled, reply, serve, sleep_until
@@ -339,6 +340,101 @@ def fg_query_client(params: dict[str, Any]) -> None:
         serve({"latency": latency})
 
 
+def fg_idle(params: dict[str, Any]) -> None:
+    """A node at rest: offers ``offers`` buffers (named ``service``) and holds a subscription
+    per ``subscribe`` entry (``{target, mode}``), then does nothing until told to exit.
+
+    Ready once every subscription is registered (or refused: then the role fails), so what
+    is measured afterwards is the idle cost, not the handshake.
+    """
+    with Node(params.get("service"), _network(params)) as node:
+        producers = [node.offer(str(name)) for name in params.get("offers", [])]
+        subscriptions = [
+            node.subscribe(
+                str(entry["target"]),
+                queue_size=int(entry.get("queue_size", 8)),
+                mode=SubscriptionMode(str(entry["mode"])),
+                wait_s=10.0,
+            )
+            for entry in params.get("subscribe", [])
+        ]
+        reply(ready=True, buffers=len(producers), subscriptions=len(subscriptions))
+        serve({})
+        for sub in subscriptions:
+            sub.close()
+
+
+def fg_camera(params: dict[str, Any]) -> None:
+    """A camera-like producer: ``size``-byte frames (a fresh ``bytes`` each, as a camera
+    makes) at ``rate_hz``, put without waiting (a camera cannot wait), into a buffer that
+    retains ``retain`` frames. A frame that would be put more than one period late is
+    skipped, as the camera service does. Samples its own RSS while it runs.
+
+    ``run`` ``{seconds}``: ticks, frames stored, refused (flow control), skipped late, failed;
+    RSS at the start, its maximum and at the end; and the buffer's subscription counts.
+    """
+    frame = bytearray(int(params["size"]))
+    period_s = 1.0 / float(params["rate_hz"])
+    stamp = Stamper()
+    me = psutil.Process()
+    with Node(SERVICE, _network(params)) as node:
+        producer = node.offer(
+            str(params["buffer"]), retention=Retention(max_count=int(params["retain"]))
+        )
+        offered_rss = me.memory_info().rss
+
+        def run(command: dict[str, Any]) -> dict[str, Any]:
+            ticks = paced(float(command["seconds"]), period_s)
+            stored = refused = late = failed = 0
+            rss_start = rss_max = me.memory_info().rss
+            next_rss = time.monotonic()
+            errors: list[str] = []
+            started = time.monotonic()
+            for tick in ticks:
+                sleep_until(tick)
+                now = time.monotonic()
+                if now - tick > period_s:
+                    late += 1
+                    continue
+                t = now_ns()
+                frame[:8] = t.to_bytes(8, "little")
+                try:
+                    producer.put(t, bytes(frame), stamp(t))
+                    stored += 1
+                except FlowControlRefused:
+                    refused += 1
+                except FramegateError as exc:
+                    failed += 1
+                    if len(errors) < 3:
+                        errors.append(str(exc))
+                if now >= next_rss:
+                    rss_max = max(rss_max, me.memory_info().rss)
+                    next_rss = now + 0.5
+            elapsed_s = time.monotonic() - started
+            rss_end = me.memory_info().rss
+            info = producer.info()
+            return {
+                "ticks": len(ticks),
+                "stored": stored,
+                "refused": refused,
+                "late": late,
+                "failed": failed,
+                "errors": errors,
+                "elapsed_s": elapsed_s,
+                "rate_hz": stored / elapsed_s if elapsed_s > 0 else 0.0,
+                "rss_offered": offered_rss,
+                "rss_start": rss_start,
+                "rss_max": max(rss_max, rss_end),
+                "rss_end": rss_end,
+                "buffer_bytes": info.payload_bytes,
+                "subscriptions": len(info.subscriptions),
+                "refused_subscriptions": info.refused_subscriptions,
+            }
+
+        reply(ready=True, rss_offered=offered_rss)
+        serve({"run": run})
+
+
 def fg_memory(params: dict[str, Any]) -> None:
     """RSS of a service process before and after holding ``count`` × ``size`` bytes."""
     count, size = int(params["count"]), int(params["size"])
@@ -366,6 +462,8 @@ def fg_memory(params: dict[str, Any]) -> None:
 
 
 ROLES = {
+    "fg-camera": fg_camera,
+    "fg-idle": fg_idle,
     "fg-lat-pub": fg_lat_pub,
     "fg-lat-sub": fg_lat_sub,
     "fg-memory": fg_memory,

@@ -19,6 +19,8 @@ SCENARIO_NAMES = (
     "query-scaling",
     "memory",
     "quality",
+    "idle",
+    "hostile",
 )
 
 # Measured window per sample (s) and runs per side, unless the command line says otherwise.
@@ -26,6 +28,9 @@ FULL_DURATION_S = 4.0
 FULL_PAIRS = 3
 QUICK_DURATION_S = 0.5
 QUICK_PAIRS = 1
+# The hostile scenario's attacked window (s), unless --duration says otherwise.
+FULL_HOSTILE_S = 120.0
+QUICK_HOSTILE_S = 10.0
 
 
 def _stderr(message: str) -> None:
@@ -36,7 +41,8 @@ def _stderr(message: str) -> None:
 class BenchOptions:
     """Scenarios to run, the measured window per sample, and raw/framegate pairs per row.
 
-    Each sample measures ``duration_s`` (query-scaling: a quarter of it per (n, k));
+    Each sample measures ``duration_s`` (query-scaling: a quarter of it per (n, k); idle: at
+    least 5 s; hostile: ``hostile_s``, which a given duration also sets);
     ``quick`` also shrinks sizes (memory, query-scaling) for a CI smoke test.
     """
 
@@ -44,6 +50,7 @@ class BenchOptions:
     duration_s: float = FULL_DURATION_S
     pairs: int = FULL_PAIRS
     quick: bool = False
+    hostile_s: float = FULL_HOSTILE_S
     progress: Callable[[str], None] = field(default=_stderr, compare=False)
 
     def __post_init__(self) -> None:
@@ -52,8 +59,9 @@ class BenchOptions:
             raise BenchError(
                 f"unknown scenario(s) {', '.join(unknown)}; choose from {', '.join(SCENARIO_NAMES)}"
             )
-        if self.duration_s <= 0:
-            raise BenchError(f"duration {self.duration_s} s must be > 0")
+        for value in (self.duration_s, self.hostile_s):
+            if not value > 0 or value == float("inf"):  # NaN fails both comparisons
+                raise BenchError(f"duration {value} s must be a number > 0")
         if self.pairs < 1:
             raise BenchError(f"pairs {self.pairs} must be >= 1")
         if self.pairs < 3 and not self.quick:
@@ -72,12 +80,17 @@ class BenchOptions:
         quick: bool = False,
         progress: Callable[[str], None] = _stderr,
     ) -> BenchOptions:
-        """Fill unset values with the quick or full defaults."""
+        """Fill unset values with the quick or full defaults; a given ``duration_s`` is also
+        the hostile scenario's window."""
+        default_hostile = QUICK_HOSTILE_S if quick else FULL_HOSTILE_S
         return cls(
             scenarios=scenarios or SCENARIO_NAMES,
-            duration_s=duration_s or (QUICK_DURATION_S if quick else FULL_DURATION_S),
-            pairs=pairs or (QUICK_PAIRS if quick else FULL_PAIRS),
+            duration_s=(QUICK_DURATION_S if quick else FULL_DURATION_S)
+            if duration_s is None
+            else duration_s,
+            pairs=(QUICK_PAIRS if quick else FULL_PAIRS) if pairs is None else pairs,
             quick=quick,
+            hostile_s=default_hostile if duration_s is None else duration_s,
             progress=progress,
         )
 
@@ -93,4 +106,5 @@ class BenchOptions:
             "pairs": self.pairs,
             "quick": self.quick,
             "warmup_s": self.warmup_s,
+            "hostile_s": self.hostile_s,
         }

@@ -5,7 +5,9 @@ allows it). Each role does the least a competent raw-Zenoh application would do 
 job: a publisher with ``CongestionControl.BLOCK`` (lossless, like framegate's ``wait_s``), a
 subscriber that copies the payload out to ``bytes`` (framegate's consumer also ends with
 ``bytes``), the same pair paced for one-way latency, and a callback queryable answering a
-``session.get`` (what framegate's fetch and query use).
+``session.get`` (what framegate's fetch and query use). Besides the baselines: the same
+subscriber through each handler design zenoh-python offers (the ceiling each design allows),
+an idle session (the idle floor) and a hostile peer that speaks framegate's wire.
 """
 
 from __future__ import annotations
@@ -32,6 +34,17 @@ from ._serve import (
 
 KEY = "bench/raw/data"
 ECHO_KEY = "bench/raw/echo"
+
+# The subscriber handler designs zenoh-python offers, each measured as its own raw row:
+# name -> label. "fifo" is what ``raw_sub`` (every raw baseline) uses.
+HANDLER_DESIGNS = {
+    "callback-direct": "Callback(fn, indirect=False)",
+    "callback": "Callback(fn) (indirect)",
+    "fifo": "FifoChannel(256), drained by a thread",
+    "ring": "RingChannel(4096), try_recv in batches",
+}
+# How long the ring's drainer sleeps when it finds the ring empty.
+RING_IDLE_S = 0.0005
 
 
 def _config(params: dict[str, Any]) -> zenoh.Config:
@@ -120,6 +133,117 @@ def raw_sub(params: dict[str, Any]) -> None:
         serve({"mark": counter.mark})
         subscriber.undeclare()
         thread.join(timeout=2.0)
+
+
+def _declare_design(
+    session: zenoh.Session, design: str, on_sample: Any, stop: threading.Event
+) -> tuple[Any, threading.Thread | None]:
+    """A subscriber on KEY with ``design``'s handler, and the thread draining it (if any)."""
+    handlers = zenoh.handlers
+    if design == "callback-direct":  # runs on Zenoh's own receive thread, taking the GIL
+        return session.declare_subscriber(KEY, handlers.Callback(on_sample, indirect=False)), None
+    if design == "callback":  # zenoh-python hands samples to its own Python thread
+        return session.declare_subscriber(KEY, handlers.Callback(on_sample)), None
+    if design == "fifo":
+        subscriber = session.declare_subscriber(KEY, handlers.FifoChannel(256))
+
+        def drain_fifo() -> None:
+            for sample in subscriber:  # ends when the subscriber is undeclared
+                on_sample(sample)
+
+        return subscriber, threading.Thread(target=drain_fifo, daemon=True)
+    if design == "ring":  # drops the oldest sample when full: the loss is reported
+        subscriber = session.declare_subscriber(KEY, handlers.RingChannel(4096))
+
+        def drain_ring() -> None:
+            try_recv = subscriber.try_recv
+            while not stop.is_set():
+                sample = try_recv()
+                if sample is None:
+                    stop.wait(RING_IDLE_S)
+                    continue
+                while sample is not None:  # a batch: everything the ring holds now
+                    on_sample(sample)
+                    sample = try_recv()
+
+        return subscriber, threading.Thread(target=drain_ring, daemon=True)
+    raise ValueError(f"unknown handler design {design!r}; known: {', '.join(HANDLER_DESIGNS)}")
+
+
+def raw_handler_sub(params: dict[str, Any]) -> None:
+    """Like ``raw_sub`` (each payload copied out to ``bytes`` and counted) through the
+    handler design ``params["design"]`` (a key of HANDLER_DESIGNS)."""
+    counter = Counter()
+    stop = threading.Event()
+
+    def on_sample(sample: zenoh.Sample) -> None:
+        data = sample.payload.to_bytes()
+        counter.count += 1
+        counter.bytes += len(data)
+
+    with zenoh.open(_config(params)) as session:
+        subscriber, thread = _declare_design(session, str(params["design"]), on_sample, stop)
+        if thread is not None:
+            thread.start()
+        reply(ready=True)
+        serve({"mark": counter.mark})
+        stop.set()
+        subscriber.undeclare()
+        if thread is not None:
+            thread.join(timeout=2.0)
+
+
+def raw_idle(params: dict[str, Any]) -> None:
+    """The idle floor: a session holding ``publishers`` publishers and a liveliness token,
+    or ``subscribers`` subscribers on the other side's keys, and no traffic."""
+    with zenoh.open(_config(params)) as session:
+        declared: list[Any] = [
+            session.declare_publisher(f"bench/raw/idle/{i}")
+            for i in range(int(params.get("publishers", 0)))
+        ]
+        declared += [
+            session.declare_subscriber(f"bench/raw/idle/{i}", zenoh.handlers.FifoChannel(256))
+            for i in range(int(params.get("subscribers", 0)))
+        ]
+        declared.append(session.liveliness().declare_token("bench/raw/idle/@alive"))
+        reply(ready=True)
+        serve({})
+        for entity in declared:
+            entity.undeclare()
+
+
+def raw_hostile(params: dict[str, Any]) -> None:
+    """A hostile peer of a framegate producer, speaking the wire with plain Zenoh: declares
+    ``tokens`` flow-control subscription tokens asking for ``queue_size`` each (keys as
+    ``middleware._wire.Keys.subscription_token`` builds them) and, with ``listen_notify``,
+    receives their notifications but never acknowledges one."""
+    ns, service, buffer = params["namespace"], params["service"], params["buffer"]
+    queue_size, count = int(params["queue_size"]), int(params["tokens"])
+    counter = Counter()
+
+    def on_notification(sample: zenoh.Sample) -> None:
+        counter.count += 1
+        counter.bytes += len(sample.payload)
+
+    with zenoh.open(_config(params)) as session:
+        subscriber = None
+        if params.get("listen_notify"):
+            subscriber = session.declare_subscriber(
+                f"{ns}/@notify/{service}/{buffer}/*", zenoh.handlers.Callback(on_notification)
+            )
+        liveliness = session.liveliness()
+        tokens = [
+            liveliness.declare_token(
+                f"{ns}/@sub/{service}/{buffer}/hostile{i:04d}/flow/{queue_size}/-1/hostile~bench"
+            )
+            for i in range(count)
+        ]
+        reply(ready=True, tokens=len(tokens))
+        serve({"mark": counter.mark})
+        for token in tokens:
+            token.undeclare()
+        if subscriber is not None:
+            subscriber.undeclare()
 
 
 def _lat_key(size: int) -> str:
@@ -269,6 +393,9 @@ def raw_memory(params: dict[str, Any]) -> None:
 
 
 ROLES = {
+    "raw-handler-sub": raw_handler_sub,
+    "raw-hostile": raw_hostile,
+    "raw-idle": raw_idle,
     "raw-lat-pub": raw_lat_pub,
     "raw-lat-sub": raw_lat_sub,
     "raw-memory": raw_memory,

@@ -25,6 +25,8 @@ from typing import Any
 import psutil
 
 from ._fan_out import run_fan_out
+from ._hostile import run_hostile
+from ._idle import run_idle
 from ._latency import run_latency
 from ._memory import run_memory
 from ._options import BenchOptions
@@ -46,6 +48,8 @@ SCENARIOS: dict[str, Callable[[BenchOptions], ScenarioResult]] = {
     "query-scaling": run_query_scaling,
     "memory": run_memory,
     "quality": run_quality,
+    "idle": run_idle,
+    "hostile": run_hostile,
 }
 
 

@@ -10,7 +10,13 @@ the consumer's own clock. CPU is each process's user+system time over the same w
 % of one core and as microseconds per element received; each throughput row is followed by
 a producer and a consumer CPU row (framegate, raw and framegate - raw side by side).
 Between runs the consumer drains everything, so the runs never overlap. ``batch`` is the
-64 B row through ``put_many``/``take_many``, skipped until the middleware has them.
+64 B row through ``put_many``/``take_many``.
+
+``small`` also measures, in the same pairs, a raw subscriber through each handler design
+zenoh-python offers (``_raw.HANDLER_DESIGNS``): one row per design with that design's
+msg/s and subscriber CPU per message as the raw side and framegate's 64 B figures as the
+other, so the ceiling each design allows stands next to framegate's. The FIFO design is
+the raw baseline's own subscriber, so its row reuses the baseline's samples.
 """
 
 from __future__ import annotations
@@ -21,7 +27,8 @@ from typing import Any
 
 from ._options import BenchOptions
 from ._procs import BenchError, Worker, WorkerGroup, free_endpoint
-from ._records import Row, ScenarioResult, Side, extra_goal, ratio_goal
+from ._raw import HANDLER_DESIGNS
+from ._records import Goal, Row, ScenarioResult, Side, extra_goal, ratio_goal
 
 FRAME_BYTES = 1280 * 1024  # one mono8 frame
 INLINE_BYTES = 64 * 1024  # the largest payload the middleware sends inline by default
@@ -30,8 +37,11 @@ SMALL_BYTES = 64
 # Issue 18's targets, framegate/raw of elements per second.
 FRAMES_GOAL = 0.9
 INLINE_GOAL = 0.5
-SMALL_GOAL = 0.05
+SMALL_GOAL = 0.1
 BATCH_GOAL = 0.5
+FETCHED_FRAMES_GOAL = 0.5
+# framegate's CPU per 64 B element, on each side (us).
+SMALL_CPU_US = 20.0
 # framegate's extra CPU per pushed 1.3 MB frame, on each side (us).
 FRAME_EXTRA_CPU_US = 50.0
 # Elements per put_many / take_many in the batch row.
@@ -53,6 +63,10 @@ class Mode:
     batch: bool = False
     # Goal on framegate's extra CPU per element on each side (us), if any.
     extra_cpu_us: float | None = None
+    # Goal on framegate's CPU per element on each side (us), if any.
+    cpu_us: float | None = None
+    # Raw subscriber handler designs (keys of HANDLER_DESIGNS) measured in the same pairs.
+    designs: tuple[str, ...] = ()
 
     def as_json(self) -> dict[str, Any]:
         return {
@@ -66,7 +80,7 @@ class Mode:
 
 
 FRAME_MODES = (
-    Mode("1280x1024 mono8, shm", FRAME_BYTES, True, 8, FRAMES_GOAL),
+    Mode("1280x1024 mono8, shm", FRAME_BYTES, True, 8, FETCHED_FRAMES_GOAL),
     Mode(
         "1280x1024 mono8, shm, pushed",
         FRAME_BYTES,
@@ -76,7 +90,7 @@ FRAME_MODES = (
         push=True,
         extra_cpu_us=FRAME_EXTRA_CPU_US,
     ),
-    Mode("1280x1024 mono8, tcp", FRAME_BYTES, False, 8, FRAMES_GOAL),
+    Mode("1280x1024 mono8, tcp", FRAME_BYTES, False, 8, FETCHED_FRAMES_GOAL),
     Mode(
         "1280x1024 mono8, tcp, pushed",
         FRAME_BYTES,
@@ -88,7 +102,24 @@ FRAME_MODES = (
     ),
     Mode("64 KiB inline, shm", INLINE_BYTES, True, 8, INLINE_GOAL),
 )
-SMALL_MODES = (Mode("64 B", SMALL_BYTES, True, 8, SMALL_GOAL),)
+SMALL_MODES = (
+    Mode(
+        "64 B",
+        SMALL_BYTES,
+        True,
+        8,
+        SMALL_GOAL,
+        cpu_us=SMALL_CPU_US,
+        designs=tuple(HANDLER_DESIGNS),
+    ),
+)
+# Short labels of the handler designs, for row names.
+DESIGN_LABELS = {
+    "callback-direct": "Callback indirect=False",
+    "callback": "Callback (indirect)",
+    "fifo": "FifoChannel(256)+thread",
+    "ring": "RingChannel(4096) try_recv",
+}
 BATCH_MODES = (
     Mode(
         f"64 B, batches of {BATCH_ELEMENTS}",
@@ -137,20 +168,66 @@ def _run(scenario: str, modes: tuple[Mode, ...], options: BenchOptions) -> Scena
     for mode in modes:
         row = Row(mode.name, "throughput", "msg/s", higher_is_better=True)
         producer_cpu, consumer_cpu = cpu_rows(mode.name)
-        _run_mode(scenario, mode, (row, producer_cpu, consumer_cpu), options)
+        designs = {design: design_rows(mode.name, design) for design in mode.designs}
+        _run_mode(scenario, mode, (row, producer_cpu, consumer_cpu), designs, options)
         row.goal = ratio_goal(row, mode.goal, at_least=True, what="throughput")
         if mode.extra_cpu_us is not None:
             for cpu_row in (producer_cpu, consumer_cpu):
                 cpu_row.goal = extra_goal(cpu_row, mode.extra_cpu_us, what="CPU per frame")
+        if mode.cpu_us is not None:
+            for cpu_row in (producer_cpu, consumer_cpu):
+                cpu_row.goal = cpu_goal(cpu_row, mode.cpu_us)
         result.rows += [row, producer_cpu, consumer_cpu]
+        for design_row, design_cpu in designs.values():
+            result.rows += [design_row, design_cpu]
+    if any(mode.designs for mode in modes):
+        result.params["designs"] = {d: HANDLER_DESIGNS[d] for mode in modes for d in mode.designs}
     return result
 
 
-def _run_mode(scenario: str, mode: Mode, rows: tuple[Row, Row, Row], options: BenchOptions) -> None:
+def design_rows(mode_name: str, design: str) -> tuple[Row, Row]:
+    """A raw handler design's throughput and subscriber CPU rows (raw: the design,
+    framegate: framegate's figure of the same mode, so the ratio is the share of the
+    ceiling that design allows)."""
+    name = f"{mode_name} sub {DESIGN_LABELS[design]}"
+    note = (
+        f"raw side of the '{mode_name} sub ...' rows: a raw subscriber through that "
+        "zenoh-python handler design (same publisher, same pairs); framegate side: "
+        f"framegate's {mode_name} figure"
+    )
+    return (
+        Row(name, "throughput", "msg/s", higher_is_better=True, note=note),
+        Row(f"{name}: CPU", "CPU per element", "us", higher_is_better=False, note=note),
+    )
+
+
+def cpu_goal(row: Row, limit_us: float) -> Goal:
+    """framegate's own CPU per element (not the difference to raw) at most ``limit_us``."""
+    return Goal(
+        f"framegate CPU per element <= {limit_us:g} us", limit_us, False, row.median("framegate")
+    )
+
+
+def _run_mode(
+    scenario: str,
+    mode: Mode,
+    rows: tuple[Row, Row, Row],
+    designs: dict[str, tuple[Row, Row]],
+    options: BenchOptions,
+) -> None:
     row, producer_cpu, consumer_cpu = rows
     raw_at, fg_at = free_endpoint(), free_endpoint()
     common = {"shm": mode.shared_memory, "size": mode.size}
     with WorkerGroup() as group:
+        design_pairs: dict[str, tuple[Worker, Worker]] = {}
+        for design in designs:
+            if design == "fifo":  # the baseline's own subscriber: its samples are reused
+                continue
+            at = free_endpoint()
+            design_pairs[design] = (
+                group.start("raw-pub", {**common, "listen": at}),
+                group.start("raw-handler-sub", {**common, "connect": at, "design": design}),
+            )
         sides = {
             "raw": (
                 group.start("raw-pub", {**common, "listen": raw_at}),
@@ -184,12 +261,39 @@ def _run_mode(scenario: str, mode: Mode, rows: tuple[Row, Row, Row], options: Be
                 row.samples(which).append(sample)
                 for cpu_row, role in ((producer_cpu, "producer"), (consumer_cpu, "consumer")):
                     cpu_row.samples(which).append({"pair": pair, "value": sample[f"cpu_{role}_us"]})
-                options.progress(
-                    f"{scenario} {mode.name} pair {pair + 1}/{options.pairs} {side}: "
-                    f"{sample['value']:,.0f} msg/s, CPU producer {sample['cpu_producer_pct']:.0f}%"
-                    f" ({sample['cpu_producer_us']:.1f} us/el), consumer "
-                    f"{sample['cpu_consumer_pct']:.0f}% ({sample['cpu_consumer_us']:.1f} us/el)"
-                )
+                options.progress(_progress(scenario, mode.name, pair, options.pairs, side, sample))
+                if side == "raw":
+                    for design, (design_pub, design_sub) in design_pairs.items():
+                        found = measure(
+                            design_pub, design_sub, options.warmup_s, options.duration_s
+                        )
+                        found["pair"] = pair
+                        designs[design][0].samples("raw").append(found)
+                        designs[design][1].samples("raw").append(
+                            {"pair": pair, "value": found["cpu_consumer_us"]}
+                        )
+                        options.progress(
+                            _progress(scenario, mode.name, pair, options.pairs, design, found)
+                        )
+                    if "fifo" in designs:
+                        designs["fifo"][0].samples("raw").append(sample)
+                        designs["fifo"][1].samples("raw").append(
+                            {"pair": pair, "value": sample["cpu_consumer_us"]}
+                        )
+            for design_row, design_cpu in designs.values():
+                design_row.framegate.append(row.framegate[-1])
+                design_cpu.framegate.append(consumer_cpu.framegate[-1])
+
+
+def _progress(
+    scenario: str, mode: str, pair: int, pairs: int, side: str, sample: dict[str, Any]
+) -> str:
+    return (
+        f"{scenario} {mode} pair {pair + 1}/{pairs} {side}: "
+        f"{sample['value']:,.0f} msg/s, CPU producer {sample['cpu_producer_pct']:.0f}%"
+        f" ({sample['cpu_producer_us']:.1f} us/el), consumer "
+        f"{sample['cpu_consumer_pct']:.0f}% ({sample['cpu_consumer_us']:.1f} us/el)"
+    )
 
 
 def _batch(mode: Mode) -> int:
