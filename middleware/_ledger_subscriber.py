@@ -181,6 +181,10 @@ class SubscriberLedger(Generic[T]):
     def __len__(self) -> int:
         return len(self._queue)
 
+    def queued(self) -> list[Entry[T]]:
+        """The queued notifications, oldest first (they stay queued)."""
+        return list(self._queue)
+
     def epochs(self) -> dict[str, EpochTrack]:
         return dict(self._epochs)
 

@@ -160,6 +160,7 @@ class Node:
                 queue_size=queue_size,
                 mode=mode,
                 fetch=self._fetch_exact,
+                prefetch=(self._start_exact, self._finish_exact),
                 loop=self._loop,
                 push_max_bytes=-1 if push_max_bytes is None else max(0, push_max_bytes),
                 holder=self.name,
@@ -237,16 +238,27 @@ class Node:
     def _fetch_exact(self, target: str, timestamp_ns: int, timeout_s: float) -> DataObject:
         return self.get(target, timestamp_ns, timeout_s=timeout_s)
 
-    def _get(self, target: str, params: dict[str, str], timeout_s: float) -> list[DataObject]:
+    def _start_exact(self, target: str, timestamp_ns: int, timeout_s: float) -> Any:
+        """Start fetching one element (returns at once; ``_finish_exact`` collects it)."""
+        return self._start_get(target, {"ts": str(timestamp_ns)}, timeout_s)
+
+    def _finish_exact(self, target: str, timestamp_ns: int, pending: Any) -> DataObject:
+        found = self._collect(target, pending)
+        if not found:
+            raise NotFoundError(f"{target} has no element with timestamp {timestamp_ns}")
+        return found[0]
+
+    def _start_get(self, target: str, params: dict[str, str], timeout_s: float) -> Any:
         service, buffer = split_target(target)
         selector = zenoh.Selector(self.keys.data(service, buffer), params)
+        with zenoh_errors(f"querying {target}"):
+            return self._session.get(
+                selector, consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout_s
+            )
+
+    def _collect(self, target: str, replies: Any) -> list[DataObject]:
         elements: list[DataObject] = []
         with zenoh_errors(f"querying {target}"):
-            replies = self._session.get(
-                selector,
-                consolidation=zenoh.ConsolidationMode.NONE,
-                timeout=timeout_s,
-            )
             for reply in replies:
                 if reply.ok is not None:
                     sample = reply.ok
@@ -260,6 +272,10 @@ class Node:
                 else:
                     assert reply.err is not None
                     raise _error_from_reply(target, reply.err.payload.to_string())
+        return elements
+
+    def _get(self, target: str, params: dict[str, str], timeout_s: float) -> list[DataObject]:
+        elements = self._collect(target, self._start_get(target, params, timeout_s))
         if not elements:
             self.buffer_info(target)  # NotFoundError, with a did-you-mean, if there is none
         elements.sort(key=lambda e: e.timestamp_ns)

@@ -15,6 +15,7 @@ import secrets
 import socket
 import threading
 import time
+from collections import OrderedDict
 from collections.abc import Callable, Iterator
 from typing import Any
 
@@ -58,6 +59,8 @@ class Subscription:
         mode: SubscriptionMode,
         fetch: Callable[[str, int, float], DataObject],
         loop: NodeLoop,
+        prefetch: tuple[Callable[[str, int, float], Any], Callable[[str, int, Any], DataObject]]
+        | None = None,
         push_max_bytes: int = -1,
         holder: str | None = None,
         on_close: Callable[[Subscription], None] | None = None,
@@ -71,6 +74,12 @@ class Subscription:
         self._session = session
         self._keys = keys
         self._fetch = fetch
+        self._prefetch = prefetch
+        # Fetches started ahead (timestamp -> pending query), once the caller has fetched
+        # an element that did not come along: at most ``queue_size`` in flight.
+        self._fetching = False
+        self._inflight: OrderedDict[int, Any] = OrderedDict()
+        self.fetched_ahead = 0  # fetches answered by a query started ahead
         self._loop = loop
         self._on_close = on_close
         self._lock = threading.Lock()
@@ -210,7 +219,10 @@ class Subscription:
             if entries:
                 if flush_at is not None:
                     self._loop.poke(flush_at)
-                return [self._notification(entry) for entry in entries]
+                notes = [self._notification(entry) for entry in entries]
+                if self._fetching:
+                    self._fetch_ahead(notes)
+                return notes
 
     def _send_acks(self, acks: list[bytes]) -> None:
         for ack in acks:
@@ -235,10 +247,39 @@ class Subscription:
                 yield note
 
     def fetch(self, notification: Notification, *, timeout_s: float = 5.0) -> DataObject:
-        """The element a notification names (inline if it came along, else one query)."""
+        """The element a notification names (inline if it came along, else one query).
+
+        A subscription that fetches keeps fetching ahead: once ``fetch`` has queried, every
+        notification taken or queued without its element has its query started at once (up
+        to the queue size in flight), so elements arrive pipelined, not one round trip each.
+        """
         if notification.element is not None:
             return notification.element
-        return self._fetch(self.name, notification.timestamp_ns, timeout_s)
+        with self._lock:
+            pending = self._inflight.pop(notification.timestamp_ns, None)
+        if pending is not None:
+            self.fetched_ahead += 1
+        if pending is None or self._prefetch is None:
+            self._fetching = self._prefetch is not None
+            return self._fetch(self.name, notification.timestamp_ns, timeout_s)
+        return self._prefetch[1](self.name, notification.timestamp_ns, pending)
+
+    def _fetch_ahead(self, taken: list[Notification]) -> None:
+        """Start the queries of taken and queued notifications that lack their element."""
+        assert self._prefetch is not None
+        with self._lock:
+            queued = [e.item[0] for e in self._protocol.ledger.queued() if e.item[2] is None]
+            wanted = [n.timestamp_ns for n in taken if n.element is None] + queued
+            start = [t for t in wanted if t not in self._inflight][: self.queue_size]
+        for stamp in start:
+            try:
+                pending = self._prefetch[0](self.name, stamp, 5.0)
+            except FramegateError:
+                return  # fetch() will query, and say what failed
+            with self._lock:
+                self._inflight[stamp] = pending
+                while len(self._inflight) > self.queue_size + len(taken):
+                    self._inflight.popitem(last=False)
 
     def close(self) -> None:
         """Withdraw: the producer stops counting this subscription at once."""

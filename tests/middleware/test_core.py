@@ -182,3 +182,28 @@ def _local(port: int):  # type: ignore[no-untyped-def]
     from middleware import NetworkConfig
 
     return NetworkConfig(local_port=port)
+
+
+def test_a_fetching_subscription_keeps_its_queue_of_fetches_in_flight(
+    listen_net, connect_net
+) -> None:
+    with Node("cam", listen_net) as service, Node(network=connect_net) as client:
+        images = service.offer("images")
+        sub = client.subscribe("cam/images", queue_size=8, push_max_bytes=0)
+
+        def produce() -> None:
+            for t in range(1, 41):
+                images.put(t, t.to_bytes(4, "big") * 100, _meta(t), wait_s=10.0)
+
+        producer = threading.Thread(target=produce)
+        producer.start()
+        got: list[tuple[int, bytes]] = []
+        while len(got) < 40:
+            notes = sub.take_many(8, timeout_s=5.0)
+            assert notes, "no notification within 5 s"
+            for note in notes:
+                assert note.element is None  # nothing pushed: each element is fetched
+                got.append((note.timestamp_ns, sub.fetch(note).payload))
+        producer.join()
+        assert got == [(t, t.to_bytes(4, "big") * 100) for t in range(1, 41)]
+        assert sub.fetched_ahead > 0
