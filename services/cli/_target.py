@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import difflib
 import json
+import socket
 import sys
 import time
 from typing import Any
@@ -49,6 +50,26 @@ def where(net: NetworkConfig) -> str:
     return f"via the local rendezvous tcp/127.0.0.1:{net.local_port}"
 
 
+def unreachable(net: NetworkConfig, timeout_s: float = 1.0) -> str | None:
+    """The first ``--connect`` TCP endpoint that refuses a connection, with the reason.
+
+    Zenoh keeps retrying such an endpoint in the background and says nothing, so a plain
+    TCP connect tells "nothing answers there" from "nothing is live".
+    """
+    for endpoint in net.connect:
+        proto, _, address = endpoint.partition("/")
+        if proto not in ("tcp", "tls") or ":" not in address:
+            continue
+        host, _, port = address.split("#", 1)[0].rpartition(":")
+        try:
+            with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s):
+                pass
+        except (OSError, ValueError) as exc:
+            reason = getattr(exc, "strerror", None) or str(exc) or type(exc).__name__
+            return f"{endpoint} ({reason})"
+    return None
+
+
 def _did_you_mean(name: str, candidates: list[str]) -> str:
     hint = difflib.get_close_matches(name, candidates, n=1)
     return f" (did you mean {hint[0]!r}?)" if hint else ""
@@ -66,6 +87,8 @@ def wait_for_service(node: Node, service: str, timeout_s: float) -> None:
             break
         time.sleep(0.05)
     if not live:
+        if bad := unreachable(node.network):
+            raise NotFoundError(f"cannot reach {bad}; is the router or service running there?")
         raise NotFoundError(
             f"no live services reachable {where(node.network)} (waited {timeout_s:g} s); "
             "is the service running and is --connect right?"
@@ -79,11 +102,17 @@ def wait_for_service(node: Node, service: str, timeout_s: float) -> None:
 def resolve(node: Node, target: str, timeout_s: float) -> tuple[ServiceInfo, BufferInfo]:
     """The live service and buffer ``target`` (``SERVICE/BUFFER``) names."""
     service, buffer = split_target(target)
+    deadline = time.monotonic() + timeout_s
     wait_for_service(node, service, timeout_s)
-    info = node.service_info(service, timeout_s=timeout_s)
-    for candidate in info.buffers:
-        if candidate.buffer == buffer:
-            return info, candidate
+    while True:
+        info = node.service_info(service, timeout_s=timeout_s)
+        for candidate in info.buffers:
+            if candidate.buffer == buffer:
+                return info, candidate
+        # A service that has just started may not have offered all its buffers yet.
+        if time.monotonic() >= deadline:
+            break
+        time.sleep(0.1)
     offered = [b.buffer for b in info.buffers]
     raise NotFoundError(
         f"service {service!r} has no buffer {buffer!r}{_did_you_mean(buffer, offered)}; "

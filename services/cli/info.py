@@ -10,7 +10,7 @@ from middleware import BufferInfo, Node, ServiceInfo, check_name
 
 from ._common import command_parser, format_bytes, format_ns, network, print_json
 from ._target import add_timeout_argument, resolve, wait_for_service
-from .ls import listen_of, listen_text
+from .ls import holder, listen_of, listen_text
 
 
 def register(subparsers: Any) -> None:
@@ -36,6 +36,8 @@ def buffer_json(b: BufferInfo) -> dict[str, Any]:
     data["subscriptions"] = [
         {
             "subscription_id": s.subscription_id,
+            "node": s.node,
+            "host": s.host,
             "mode": s.mode.value,
             "queue_size": s.queue_size,
             "queued": s.queued,
@@ -107,13 +109,14 @@ def _print_buffer(service: ServiceInfo, b: BufferInfo) -> None:
     print(f"  size           {b.count} elements, {format_bytes(b.payload_bytes)}")
     print(f"  span           {format_ns(b.oldest_ns)} .. {format_ns(b.newest_ns)}{span}")
     print(f"  rate           {b.rate_hz:.1f} Hz")
-    print(f"  producer       puts {b.puts}, refused {b.refused}, rejected {b.rejected}")
+    skipped = "".join(f", skipped {reason} {n}" for reason, n in sorted(b.skipped.items()))
+    print(f"  producer       puts {b.puts}, refused {b.refused}, rejected {b.rejected}{skipped}")
     if not b.subscriptions:
         print("  subscriptions  none")
         return
     print("  subscriptions")
     for s in b.subscriptions:
         print(
-            f"    {s.subscription_id}  {s.mode.value:<8} queue {s.queue_size:<4}"
-            f" queued {s.queued:<4} fill {s.fill:.0%}"
+            f"    {holder(s):<32} {s.mode.value:<8} queue {s.queue_size:<4}"
+            f" queued {s.queued:<4} fill {s.fill:.0%}  ({s.subscription_id})"
         )

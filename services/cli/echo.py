@@ -1,0 +1,136 @@
+"""``framegate echo SERVICE/BUFFER``: each new element's metadata fields and payload summary.
+
+Like ``ros2 topic echo``: it observes (never slows the producer), fetches each element it
+is told about, and prints its decoded metadata; ``--field NAME`` prints one field per line,
+``--json`` one JSON object per element (JSON Lines) with numbers as numbers.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from typing import Any
+
+from middleware import FramegateError, Node, Notification, SubscriptionMode
+
+from ._common import command_parser, exit_on_sigterm, format_ns, network
+from ._fields import decode_metadata, field_value, flat_names, payload_summary
+from ._target import add_timeout_argument, print_json_line, resolve
+from .argtypes import did_you_mean, positive_float, positive_int
+
+DEFAULT_QUEUE = 10
+
+
+def register(subparsers: Any) -> None:
+    parser = command_parser(
+        subparsers,
+        "echo",
+        "print each new element of a buffer: decoded metadata fields and a payload summary "
+        "(observing: never slows the producer)",
+        json_flag=True,
+    )
+    parser.add_argument("target", metavar="SERVICE/BUFFER", help="the buffer, e.g. camera/images")
+    parser.add_argument(
+        "--field",
+        metavar="NAME",
+        help="print only this metadata field (dotted for nested ones: camera.focal_px)",
+    )
+    parser.add_argument("--count", type=positive_int, metavar="K", help="stop after K elements")
+    parser.add_argument("--duration", type=positive_float, metavar="S", help="stop after S s")
+    parser.add_argument(
+        "--queue",
+        type=positive_int,
+        default=DEFAULT_QUEUE,
+        metavar="N",
+        help=f"notification queue size (default {DEFAULT_QUEUE}); a full one skips elements",
+    )
+    add_timeout_argument(parser)
+    parser.epilog = "--json prints one JSON object per element (JSON Lines)."
+    parser.set_defaults(func=run)
+
+
+def element_json(note: Notification, payload: bytes, metadata: bytes) -> dict[str, Any]:
+    kind, fields = decode_metadata(metadata)
+    return {
+        "timestamp_ns": note.timestamp_ns,
+        "time": format_ns(note.timestamp_ns),
+        "seq": note.seq,
+        "missed": note.missed,
+        "kind": kind,
+        "fields": fields,
+        "payload_bytes": len(payload),
+        "payload": payload_summary(payload, kind, fields),
+    }
+
+
+def _text(value: Any) -> str:
+    if isinstance(value, str):
+        return value
+    return json.dumps(value)
+
+
+def _print_element(row: dict[str, Any]) -> None:
+    missed = f"  (missed {row['missed']} before this)" if row["missed"] else ""
+    lines = [
+        "---",
+        f"time: {row['time']}  timestamp_ns: {row['timestamp_ns']}  seq: {row['seq']}{missed}",
+        f"kind: {row['kind']}",
+    ]
+    lines += [f"{name}: {_text(value)}" for name, value in row["fields"].items()]
+    lines.append(f"payload: {row['payload']}")
+    print("\n".join(lines), flush=True)
+
+
+def run(args: argparse.Namespace) -> int:
+    exit_on_sigterm()
+    shown = 0
+    with Node(network=network(args)) as node:
+        resolve(node, args.target, args.timeout)
+        sub = node.subscribe(
+            args.target,
+            queue_size=args.queue,
+            mode=SubscriptionMode.OBSERVE,
+            wait_s=max(2.0, args.timeout),
+        )
+        if not args.json and args.field is None:
+            print(f"echoing {sub.name}; Ctrl-C to stop", file=sys.stderr, flush=True)
+        deadline = None if args.duration is None else time.monotonic() + args.duration
+        try:
+            while args.count is None or shown < args.count:
+                wait_s = 0.5
+                if deadline is not None:
+                    wait_s = min(wait_s, deadline - time.monotonic())
+                    if wait_s <= 0:
+                        break
+                note = sub.take(timeout_s=wait_s)
+                if note is None:
+                    continue
+                try:
+                    element = sub.fetch(note, timeout_s=max(2.0, args.timeout))
+                except FramegateError as exc:  # evicted before we asked: say so, go on
+                    print(f"warning: element {note.timestamp_ns}: {exc}", file=sys.stderr)
+                    continue
+                row = element_json(note, element.payload, element.metadata)
+                shown += 1
+                if args.field is not None:
+                    try:
+                        value = field_value(row["fields"], args.field)
+                    except KeyError:
+                        hint = did_you_mean(args.field, flat_names(row["fields"]))
+                        raise FramegateError(
+                            f"{row['kind']} metadata has no field {args.field!r}{hint}; "
+                            f"it has: {', '.join(flat_names(row['fields'])) or 'none'}"
+                        ) from None
+                    if args.json:
+                        print_json_line(value)
+                    else:
+                        print(_text(value), flush=True)
+                elif args.json:
+                    print_json_line(row)
+                else:
+                    _print_element(row)
+        except KeyboardInterrupt:
+            pass
+    return 0

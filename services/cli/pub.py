@@ -1,0 +1,151 @@
+"""``framegate pub SERVICE/BUFFER --kind K``: publish test elements under a temporary service.
+
+Like ``ros2 topic pub``: it starts a service named SERVICE for as long as it runs, offers
+BUFFER with metadata of kind K, puts ``--count`` schema-valid test elements at ``--rate``
+(stamped with this process's clock), keeps answering queries for ``--linger`` seconds so
+that subscribers can fetch the last one, then ends. SERVICE must not be live already.
+"""
+
+from __future__ import annotations
+
+import argparse
+import struct
+import sys
+import threading
+from collections.abc import Callable
+from typing import Any
+
+from middleware import ConfigError, Node, make_metadata, now_ns, split_target
+
+from ._common import command_parser, network, stop_on_signals
+from .argtypes import non_negative_float, non_negative_int, positive_float, positive_int
+
+WIDTH_PX, HEIGHT_PX = 64, 48
+EXPOSURE_NS = 10_000_000
+GYRO_RECORD = struct.Struct("<qddd")  # timestamp_ns, x, y, z rad/s (schemas/gyro.xsd)
+
+
+def _generic(i: int, t: int, _rate_hz: float) -> tuple[bytes, bytes]:
+    text = f"test element {i}"
+    return text.encode(), make_metadata("generic", t, {"index": i, "text": text})
+
+
+def _frame(i: int, t: int, _rate_hz: float) -> tuple[bytes, bytes]:
+    # A moving gradient, so that consecutive frames differ.
+    payload = bytes((x + y + i) % 256 for y in range(HEIGHT_PX) for x in range(WIDTH_PX))
+    fields = {
+        "frame_id": i,
+        "exposure_start_ns": t,
+        "exposure_ns": EXPOSURE_NS,
+        "encoding": "mono8",
+        "width_px": WIDTH_PX,
+        "height_px": HEIGHT_PX,
+    }
+    return payload, make_metadata("frame", t, fields)
+
+
+def _gyro(_i: int, t: int, rate_hz: float) -> tuple[bytes, bytes]:
+    fields = {"count": 1, "first_ns": t, "last_ns": t, "rate_hz": rate_hz, "layout": "i8,f8,f8,f8"}
+    return GYRO_RECORD.pack(t, 0.0, 0.0, 0.0), make_metadata("gyro", t, fields)
+
+
+def _decision(i: int, t: int, _rate_hz: float) -> tuple[bytes, bytes]:
+    fields = {
+        "frame_timestamp_ns": t,
+        "frame_id": i,
+        "blur_px": 0.0,
+        "quality": 1.0,
+        "load": 0.0,
+        "accepted": True,
+        "reason": "test",
+        "policy": "paper",
+        "b0_px": 5.0,
+        "latency_ns": 0,
+    }
+    return b"", make_metadata("decision", t, fields)
+
+
+def _detections(i: int, t: int, _rate_hz: float) -> tuple[bytes, bytes]:
+    fields = {"frame_id": i, "source": "pub", "processing_ns": 0}
+    return b"", make_metadata("detections", t, fields)
+
+
+# kind -> (index, timestamp_ns, rate_hz) -> (payload, metadata)
+KINDS: dict[str, Callable[[int, int, float], tuple[bytes, bytes]]] = {
+    "generic": _generic,
+    "frame": _frame,
+    "gyro": _gyro,
+    "decision": _decision,
+    "detections": _detections,
+}
+
+
+def register(subparsers: Any) -> None:
+    parser = command_parser(
+        subparsers, "pub", "publish test elements of a kind under a temporary service"
+    )
+    parser.add_argument("target", metavar="SERVICE/BUFFER", help="the buffer to offer")
+    parser.add_argument("--kind", required=True, choices=sorted(KINDS), help="metadata kind")
+    parser.add_argument(
+        "--count", type=positive_int, default=1, metavar="N", help="elements (default 1)"
+    )
+    parser.add_argument(
+        "--rate", type=positive_float, default=1.0, metavar="HZ", help="elements/s (default 1)"
+    )
+    parser.add_argument(
+        "--wait-subscribers",
+        type=non_negative_int,
+        default=0,
+        metavar="N",
+        help="first wait (up to --timeout) until N subscribers are registered",
+    )
+    parser.add_argument(
+        "--timeout",
+        type=positive_float,
+        default=10.0,
+        metavar="S",
+        help="how long --wait-subscribers waits (default 10)",
+    )
+    parser.add_argument(
+        "--linger",
+        type=non_negative_float,
+        default=2.0,
+        metavar="S",
+        help="keep answering queries this long after the last element (default 2)",
+    )
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    service, buffer = split_target(args.target)
+    make = KINDS[args.kind]
+    stop = stop_on_signals()
+    with Node(service, network(args)) as node:
+        producer = node.offer(buffer, kind=args.kind)
+        if args.wait_subscribers and not producer.wait_for_subscribers(
+            args.wait_subscribers, timeout_s=args.timeout
+        ):
+            raise ConfigError(
+                f"{len(producer.subscriptions())} of {args.wait_subscribers} subscribers "
+                f"registered on {producer.name} within {args.timeout:g} s"
+            )
+        period_s = 1.0 / args.rate
+        put = 0
+        last_t = 0
+        while put < args.count and not stop.is_set():
+            t = max(now_ns(), last_t + 1)
+            payload, metadata = make(put, t, args.rate)
+            producer.put(t, payload, metadata)
+            last_t = t
+            put += 1
+            print(f"published {producer.name} #{put} at {t} ({len(payload)} bytes)", flush=True)
+            if put < args.count:
+                stop.wait(period_s)
+        _linger(stop, args.linger)
+    print(f"published {put} {args.kind} elements to {service}/{buffer}", file=sys.stderr)
+    return 0
+
+
+def _linger(stop: threading.Event, seconds: float) -> None:
+    if seconds > 0:
+        stop.wait(seconds)
