@@ -12,6 +12,7 @@ subscription is registered and a settling second has passed. Goal: each framegat
 
 from __future__ import annotations
 
+import os
 import time
 from typing import Any
 
@@ -86,6 +87,15 @@ def measure_idle(workers: dict[str, dict[str, Worker]], window_s: float) -> dict
     return out
 
 
+def tick_resolution_pct(window_s: float) -> float | None:
+    """The smallest CPU share the OS's CPU-time counter can show over ``window_s``."""
+    try:
+        ticks = os.sysconf("SC_CLK_TCK")
+    except (AttributeError, ValueError, OSError):
+        return None
+    return 100.0 / ticks / window_s
+
+
 def idle_rows() -> dict[str, Row]:
     note = (
         f"idle: producer node offers {IDLE_BUFFERS} buffers; client node offers "
@@ -129,6 +139,7 @@ def run_idle(options: BenchOptions) -> ScenarioResult:
             "settle_s": IDLE_SETTLE_S,
             "processes": worker_params(),
             "cpu": "user+system CPU of each process over the window, % of one core",
+            "resolution_pct": tick_resolution_pct(window_s),
         },
     )
     with WorkerGroup() as group:

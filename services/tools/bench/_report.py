@@ -1,8 +1,22 @@
-"""The human-readable table of a report (the same dict that goes to ``--json``)."""
+"""The human-readable table of a report (the same dict that goes to ``--json``).
+
+Compact on purpose: one line per row, at most ``WIDTH`` columns — the row, its unit, the
+raw and framegate medians, framegate/raw and the goal (verdict, measured value, limit).
+Everything else (min/max, every sample, CPU per process, the goals' full texts, the
+parameters) is in the JSON report.
+"""
 
 from __future__ import annotations
 
+import textwrap
 from typing import Any
+
+WIDTH = 100
+_NAME = 38
+_UNIT = 6
+_VALUE = 9
+_RATIO = 6
+_UNITS = {"% of a core": "%core", "% core": "%core", "x payload": "x pay", "us/frame": "us/fr"}
 
 
 def _num(value: float | None) -> str:
@@ -15,82 +29,90 @@ def _num(value: float | None) -> str:
     return f"{value:.3f}"
 
 
-def _side(side: dict[str, Any] | None) -> str:
+def _cut(text: str, width: int) -> str:
+    return text if len(text) <= width else text[: width - 1] + "~"
+
+
+def _median(side: dict[str, Any] | None) -> str:
     if not side or "median" not in side:
         return "-"
-    return f"{_num(side['median'])} [{_num(side['min'])}..{_num(side['max'])}]"
+    return _num(side["median"])
 
 
-def _cpu(side: dict[str, Any] | None) -> str:
-    cpu = (side or {}).get("cpu_pct")
-    if not cpu:
-        return ""
-    return f"{cpu.get('producer', 0):.0f}/{cpu.get('consumer', 0):.0f}"
-
-
-def _is_cost(row: dict[str, Any]) -> bool:
-    return str(row["metric"]).startswith("CPU") and row.get("extra") is not None
-
-
-def _goal(goal: dict[str, Any] | None) -> str:
+def short_goal(goal: dict[str, Any] | None) -> str:
+    """``PASS|MISS|n/a <measured> <comparison> <limit>`` (``x`` marks a multiple of raw)."""
     if not goal:
         return ""
     verdict = {True: "PASS", False: "MISS", None: "n/a"}[goal["passed"]]
-    return f"{verdict} {goal['text']} (measured {_num(goal['measured'])})"
+    times = "x" if str(goal["text"]).endswith("x raw") else ""
+    return f"{verdict} {_num(goal['measured'])} {goal['comparison']} {goal['limit']:g}{times}"
+
+
+def load_warning(machine: dict[str, Any], share: float) -> str | None:
+    """``figures unreliable: ...`` when the 1-min load at start exceeds ``share`` × cores."""
+    load, cores = machine.get("load_average_start"), machine.get("cpu_count")
+    if not load or not cores or load[0] <= share * cores:
+        return None
+    return (
+        f"figures unreliable: load {load[0]:.2f} at start on {cores} cores "
+        f"(more than {share * cores:g}); compare ratios of one run only"
+    )
 
 
 def header(report: dict[str, Any]) -> str:
     machine, options = report["machine"], report["options"]
     load = machine.get("load_average_start")
-    return (
-        f"framegate bench: {machine['cpu_count']} cores, Python {machine['python']}, "
-        f"zenoh {machine['zenoh']}, numpy {machine['numpy']}; "
-        f"{options['pairs']} pair(s) of {options['duration_s']:g} s windows"
-        f"{' (quick)' if options['quick'] else ''}"
-        + (f"; load average at start {load[0]:.2f}" if load else "")
+    return _cut(
+        f"framegate bench: {machine['cpu_count']} cores"
+        + (f", load {load[0]:.2f} at start" if load else "")
+        + f"; Python {machine['python']}, zenoh {machine['zenoh']}; "
+        f"{options['pairs']} pair(s) of {options['duration_s']:g} s"
+        + (" (quick)" if options["quick"] else ""),
+        WIDTH,
     )
 
 
-def format_table(report: dict[str, Any]) -> str:
-    """One block per scenario: median [min..max] per side, framegate/raw, CPU, goal."""
-    lines = [header(report), ""]
+def _line(cells: list[str]) -> str:
+    name, unit, raw, fg, ratio, goal = cells
+    return (
+        f"  {_cut(name, _NAME):<{_NAME}} {_cut(unit, _UNIT):<{_UNIT}} {raw:>{_VALUE}} "
+        f"{fg:>{_VALUE}} {ratio:>{_RATIO}}  {goal}"
+    ).rstrip()
+
+
+def format_table(report: dict[str, Any], *, notes: bool = False) -> str:
+    """One line per row under its scenario, then the goals passed; ``notes``: each
+    scenario's notes, wrapped."""
+    lines = [header(report)]
+    lines += [f"WARNING: {w}" for w in report.get("warnings", [])]
+    lines += ["", _line(["row", "unit", "raw", "framegate", "fg/raw", "goal"])]
     for name, scenario in report["scenarios"].items():
         if scenario["status"] != "ok":
-            lines += [f"{name}: {scenario['status']}: {scenario['reason']}", ""]
+            lines.append(_cut(f"{name}: {scenario['status']}: {scenario['reason']}", WIDTH))
             continue
-        rows = scenario["rows"]
-        units = sorted({f"{r['metric']} ({r['unit']})" for r in rows})
-        lines.append(f"{name}: {', '.join(units)}")
-        has_cpu = any(_cpu(r.get("raw")) or _cpu(r.get("framegate")) for r in rows)
-        # What framegate adds matters for cost rows (CPU), not for rates or latencies.
-        has_extra = any(_is_cost(r) for r in rows)
-        table = [
-            ["", "raw median [min..max]", "framegate median [min..max]", "fg/raw"]
-            + (["fg-raw"] if has_extra else [])
-            + (["CPU% raw p/c", "CPU% fg p/c"] if has_cpu else [])
-            + ["goal"]
-        ]
-        for r in rows:
-            table.append(
-                [r["name"], _side(r.get("raw")), _side(r.get("framegate")), _num(r["ratio"])]
-                + ([_num(r.get("extra")) if _is_cost(r) else ""] if has_extra else [])
-                + ([_cpu(r.get("raw")), _cpu(r.get("framegate"))] if has_cpu else [])
-                + [_goal(r.get("goal"))]
+        lines.append(name)
+        for r in scenario["rows"]:
+            unit = _UNITS.get(str(r["unit"]), str(r["unit"]))
+            lines.append(
+                _line(
+                    [
+                        str(r["name"]),
+                        unit,
+                        _median(r.get("raw")),
+                        _median(r.get("framegate")),
+                        _num(r["ratio"]) if r.get("ratio") is not None else "",
+                        short_goal(r.get("goal")),
+                    ]
+                )
             )
-        widths = [max(len(row[i]) for row in table) for i in range(len(table[0]))]
-        for row in table:
-            cells = [
-                cell.ljust(width) if i in (0, len(row) - 1) else cell.rjust(width)
-                for i, (cell, width) in enumerate(zip(row, widths, strict=True))
-            ]
-            lines.append("  " + "  ".join(cells).rstrip())
-        for note in dict.fromkeys(r["note"] for r in rows if r.get("note")):
-            lines.append(f"  note: {note}")
-        lines.append("")
+        if notes:
+            for note in dict.fromkeys(r["note"] for r in scenario["rows"] if r.get("note")):
+                lines += textwrap.wrap(
+                    f"note: {note}", WIDTH, initial_indent="  ", subsequent_indent="    "
+                )
     goals = report.get("goals", [])
     if goals:
         passed = sum(1 for g in goals if g["passed"])
-        lines.append(f"goals: {passed}/{len(goals)} passed")
-        for g in goals:
-            lines.append(f"  {g['scenario']:<14} {g['row']:<28} {_goal(g)}")
-    return "\n".join(lines)
+        missed = sum(1 for g in goals if g["passed"] is False)
+        lines += ["", f"goals: {passed}/{len(goals)} passed, {missed} missed (details: --json)"]
+    return "\n".join(_cut(line, WIDTH) for line in lines)

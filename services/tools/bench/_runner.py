@@ -4,7 +4,8 @@ Report keys (``SCHEMA`` = ``framegate-bench/1``): ``schema``, ``created_utc``,
 ``elapsed_s``, ``machine`` (cpu_count, physical_cores, memory_bytes, load_average_start/end,
 platform, python, zenoh, numpy, msgpack, psutil), ``options`` (scenarios, duration_s,
 pairs, quick, warmup_s), ``scenarios`` (name → status, reason, params, elapsed_s, rows) and
-``goals`` (scenario, row, text, limit, comparison, measured, passed). Each row holds
+``goals`` (scenario, row, text, limit, comparison, measured, passed) and ``warnings``
+(e.g. a load at start that makes the figures unreliable). Each row holds
 ``raw`` and ``framegate`` (samples, median, min, max, count, cpu_pct), ``ratio``
 (framegate/raw medians), ``extra`` (framegate - raw medians), ``pair_ratios``
 (framegate/raw of each pair), ``goal`` and ``note``.
@@ -33,10 +34,13 @@ from ._options import BenchOptions
 from ._quality import run_quality
 from ._query_scaling import run_query_scaling
 from ._records import ScenarioResult
+from ._report import load_warning
 from ._throughput import run_batch, run_frames, run_small
 from ._working_point import run_working_point
 
 SCHEMA = "framegate-bench/1"
+# Figures are flagged unreliable when the 1-min load at start exceeds this share of the cores.
+LOAD_WARNING_SHARE = 0.5
 
 SCENARIOS: dict[str, Callable[[BenchOptions], ScenarioResult]] = {
     "frames": run_frames,
@@ -86,7 +90,12 @@ def run_bench(options: BenchOptions) -> dict[str, Any]:
         "options": options.as_json(),
         "scenarios": {},
         "goals": [],
+        "warnings": [],
     }
+    warning = load_warning(report["machine"], LOAD_WARNING_SHARE)
+    if warning is not None:
+        report["warnings"].append(warning)
+        options.progress(f"WARNING: {warning}")
     for name in options.scenarios:
         began = time.monotonic()
         options.progress(f"== {name}")
