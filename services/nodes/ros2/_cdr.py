@@ -113,7 +113,9 @@ class Codec:
     def decode_image(self, raw: bytes) -> Image:
         """CdrError for a message that is not a consistent 8-bit image."""
         try:
-            msg: Any = self.store.deserialize_cdr(raw, IMAGE)
+            # A memoryview: rosbags slices it (a bytes slice would copy the whole message)
+            # and the pixels stay a view into ``raw``.
+            msg: Any = self.store.deserialize_cdr(memoryview(raw), IMAGE)
         except Exception as exc:  # rosbags raises several types for truncated input
             raise CdrError(f"not a CDR {IMAGE}: {exc}") from exc
         width, height, step = int(msg.width), int(msg.height), int(msg.step)
@@ -156,7 +158,7 @@ class Codec:
     def decode_imu(self, raw: bytes) -> tuple[int, tuple[float, float, float]]:
         """(stamp, angular velocity in rad/s); CdrError for a malformed message."""
         try:
-            msg: Any = self.store.deserialize_cdr(raw, IMU)
+            msg: Any = self.store.deserialize_cdr(memoryview(raw), IMU)
         except Exception as exc:
             raise CdrError(f"not a CDR {IMU}: {exc}") from exc
         w = msg.angular_velocity

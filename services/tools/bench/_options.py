@@ -21,6 +21,7 @@ SCENARIO_NAMES = (
     "quality",
     "idle",
     "hostile",
+    "ros2",
 )
 
 # Measured window per sample (s) and runs per side, unless the command line says otherwise.

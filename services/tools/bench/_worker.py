@@ -16,9 +16,10 @@ from typing import Any
 
 from ._fg import ROLES as FG_ROLES
 from ._raw import ROLES as RAW_ROLES
+from ._ros2 import ROLES as ROS2_ROLES
 from ._serve import profiled
 
-ROLES: dict[str, Callable[[dict[str, Any]], None]] = {**RAW_ROLES, **FG_ROLES}
+ROLES: dict[str, Callable[[dict[str, Any]], None]] = {**RAW_ROLES, **FG_ROLES, **ROS2_ROLES}
 
 
 def main(argv: list[str]) -> int:
