@@ -97,10 +97,12 @@ def ros_pub(params: dict[str, Any]) -> None:
         def latency(command: dict[str, Any]) -> dict[str, Any]:
             publisher = publishers[str(command["stream"])]
             deadline = time.monotonic() + 30
-            while not publisher.matching_status.matching:
+            status: Any = publisher.matching_status  # typed bool in the stubs
+            while not status.matching:
                 if time.monotonic() > deadline:
                     raise RuntimeError("no subscriber matched within 30 s")
                 time.sleep(0.01)
+                status = publisher.matching_status
             sent = 0
             for tick in paced(float(command["seconds"]), INTERVAL_S):
                 sleep_until(tick)
