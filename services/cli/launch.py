@@ -1,15 +1,36 @@
-"""``framegate launch FILE [--host NAME]``: start this host's services from a deploy file."""
+"""``framegate launch FILE [--host NAME]``: start this host's services from a deploy file.
+
+``--check`` validates the file and prints the plan without starting anything. While it
+runs, ``--status`` prints one line per service every few seconds (pid, uptime, restarts,
+each buffer's rate). One launcher per deploy file and host: a second one refuses at once,
+naming the first one's pid. A service that died by a signal is reported, and the launcher
+then exits with code 1.
+"""
 
 from __future__ import annotations
 
 import argparse
+import shlex
+import sys
+import threading
 from pathlib import Path
 from typing import Any
 
 from middleware import NetworkConfig
-from services.launch import Supervisor, load_deployment, process_specs
+from services.launch import (
+    Deployment,
+    LaunchLock,
+    ProcessSpec,
+    Supervisor,
+    load_deployment,
+    process_specs,
+)
 
 from ._common import command_parser, network, stop_on_signals
+from .argtypes import positive_float
+
+DEFAULT_STATUS_S = 5.0
+STATUS_COLUMNS = 100
 
 
 def register(subparsers: Any) -> None:
@@ -18,25 +39,154 @@ def register(subparsers: Any) -> None:
     )
     parser.add_argument("file", help="deploy file (YAML), e.g. deploy/local.yaml")
     parser.add_argument("--host", help="which host of the file this machine is")
-    parser.add_argument("--duration", type=float, help="stop after this many seconds")
+    parser.add_argument(
+        "--duration", type=positive_float, metavar="S", help="stop after this many seconds"
+    )
     parser.add_argument("--no-colour", action="store_true", help="plain log prefixes")
+    parser.add_argument(
+        "--check",
+        action="store_true",
+        help="validate the file and print what would start; start nothing (exit 0 or 1)",
+    )
+    parser.add_argument(
+        "--status",
+        nargs="?",
+        type=positive_float,
+        const=DEFAULT_STATUS_S,
+        metavar="S",
+        help=f"print one status line per service every S seconds (default {DEFAULT_STATUS_S:g})",
+    )
     parser.set_defaults(func=run)
 
 
-def run(args: argparse.Namespace) -> int:
+def _plan(args: argparse.Namespace) -> tuple[Deployment, list[ProcessSpec]]:
     deployment = load_deployment(args.file)
     text = Path(args.file).read_text()
     # defaults -> deploy file -> environment -> flags, for every process.
     specs = process_specs(
         deployment, args.host, NetworkConfig(), text=text, override=lambda net: network(args, net)
     )
+    return deployment, specs
+
+
+def print_plan(deployment: Deployment, host: str | None, specs: list[ProcessSpec]) -> None:
+    """What ``launch`` would start, one block per process."""
+    where = f" on host {host}" if host else ""
+    print(f"{deployment.path}: {len(specs)} processes{where}")
+    by_name = {s.name: s for s in deployment.services}
+    for spec in specs:
+        svc = by_name[spec.name]
+        restart = "restart on exit" if spec.restart else "no restart"
+        print(f"  {spec.name:<12} type {svc.type:<9} host {svc.host:<10} {restart}")
+        # The command line without the interpreter: what `framegate ...` would run.
+        command = " ".join(shlex.quote(a) for a in spec.argv[3:])
+        print(f"    framegate {command}")
+    print("ok: nothing started (--check)")
+
+
+def _duration(seconds: float | None) -> str:
+    if seconds is None:
+        return "down"
+    whole = int(seconds)
+    if whole < 60:
+        return f"{whole}s"
+    if whole < 3600:
+        return f"{whole // 60}m{whole % 60:02d}s"
+    return f"{whole // 3600}h{whole % 3600 // 60:02d}m"
+
+
+def status_lines(
+    supervisor: Supervisor, rates: dict[str, list[tuple[str, float, int]]]
+) -> list[str]:
+    """One line per process: pid, uptime, restarts, then each buffer's rate and skips.
+
+    ``rates`` maps a service to (buffer, Hz, skipped) of each of its buffers.
+    """
+    pids, ups, restarts = supervisor.pids(), supervisor.uptimes(), supervisor.restarts()
+    width = max((len(n) for n in pids), default=4)
+    lines = []
+    for name, pid in pids.items():
+        head = (
+            f"[status] {name:<{width}} pid {pid if pid else '-':<7} up {_duration(ups[name]):<7}"
+            f" restarts {restarts[name]}"
+        )
+        parts = [
+            f"{buffer} {hz:.1f} Hz" + (f" ({skipped} skipped)" if skipped else "")
+            for buffer, hz, skipped in rates.get(name, [])
+        ]
+        line = head + ("  " + ", ".join(parts) if parts else "")
+        if len(line) > STATUS_COLUMNS:
+            line = line[: STATUS_COLUMNS - 3] + "..."
+        lines.append(line)
+    return lines
+
+
+def _status_loop(
+    supervisor: Supervisor,
+    net: NetworkConfig,
+    every_s: float,
+    stop: threading.Event,
+    emit: Any,
+) -> None:
+    from middleware import FramegateError, Node
+
+    node: Node | None = None
+    try:
+        while not stop.wait(every_s):
+            rates: dict[str, list[tuple[str, float, int]]] = {}
+            try:
+                if node is None:
+                    node = Node(network=net)
+                for info in node.services(timeout_s=min(2.0, every_s)):
+                    rates[info.service] = [
+                        (b.buffer, b.rate_hz, sum(b.skipped.values())) for b in info.buffers
+                    ]
+            except FramegateError:
+                pass  # the pids and restarts are still worth a line
+            for line in status_lines(supervisor, rates):
+                emit(line)
+    finally:
+        if node is not None:
+            node.close()
+
+
+def run(args: argparse.Namespace) -> int:
+    deployment, specs = _plan(args)
+    if args.check:
+        print_plan(deployment, args.host, specs)
+        return 0
+    with LaunchLock(args.file, args.host):
+        return _launch(args, deployment, specs)
+
+
+def _launch(args: argparse.Namespace, deployment: Deployment, specs: list[ProcessSpec]) -> int:
     stop = stop_on_signals()
     supervisor = Supervisor(specs, colour=False if args.no_colour else None)
     names = ", ".join(s.name for s in specs)
     print(f"launching {names} (Ctrl-C stops everything)", flush=True)
+    status_stop = threading.Event()
+    status: threading.Thread | None = None
+    if args.status is not None:
+        chosen = [s for s in deployment.for_host(args.host) if s.type != "router"]
+        net = network(args, deployment.network_for(chosen[0]) if chosen else None)
+        status = threading.Thread(
+            target=_status_loop,
+            args=(supervisor, net, args.status, status_stop, lambda t: print(t, flush=True)),
+            name="fg-launch-status",
+        )
     supervisor.start()
+    if status is not None:
+        status.start()
     try:
         supervisor.run(args.duration, stop=stop)
     except KeyboardInterrupt:  # a second Ctrl-C while stopping
         supervisor.stop(timeout_s=0.0)
-    return 0
+    finally:
+        # Joined, not left as a daemon: its Zenoh session must close before finalisation.
+        status_stop.set()
+        if status is not None:
+            status.join()
+    deaths = supervisor.signal_deaths()
+    for name, how in deaths.items():
+        print(f"error: {name} {', '.join(how)}", file=sys.stderr, flush=True)
+    return 1 if deaths else 0

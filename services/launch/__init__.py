@@ -10,9 +10,10 @@ from ._deploy import (
     load_deployment,
     parse_deployment,
 )
+from ._lock import LaunchLock, lock_path, runtime_dir
 from ._pipeline import PIPELINE, ArgValue, pipeline, pipeline_args, pipeline_yaml
 from ._plan import process_specs
-from ._supervisor import ProcessSpec, Supervisor
+from ._supervisor import ProcessSpec, Supervisor, exit_text
 
 __all__ = [
     "LOCAL_HOST",
@@ -21,13 +22,17 @@ __all__ = [
     "ArgValue",
     "Deployment",
     "HostSpec",
+    "LaunchLock",
     "ProcessSpec",
     "ServiceSpec",
     "Supervisor",
+    "exit_text",
     "load_deployment",
+    "lock_path",
     "parse_deployment",
     "pipeline",
     "pipeline_args",
     "pipeline_yaml",
     "process_specs",
+    "runtime_dir",
 ]

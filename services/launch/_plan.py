@@ -32,7 +32,16 @@ def _check_args(spec: ServiceSpec, deployment: Deployment, text: str | None) -> 
     lines = arg_lines(text, spec.name) if text else {}
     try:
         _args, unknown = parser.parse_known_args(list(spec.args))
-    except (argparse.ArgumentError, SystemExit) as exc:
+    except argparse.ArgumentError as exc:
+        # A bad value (`rate: .nan`, `frames: -5`): name its line, so that the launcher
+        # refuses the file at once instead of restarting a service that cannot start.
+        line = lines.get(exc.argument_name or "")
+        where = f":{line}" if line else ""
+        raise ConfigError(
+            f"{deployment.path}{where}: service {spec.name!r}: {exc}"
+            f" (see 'framegate run {spec.type} --help')"
+        ) from exc
+    except SystemExit as exc:
         raise ConfigError(f"{deployment.path}: service {spec.name!r}: bad args: {exc}") from exc
     # Short flags too (-e tcp/...), and stray values: whatever the service would not take.
     if unknown:

@@ -6,6 +6,10 @@ backoff (0.2 s doubling to 10 s) while it keeps dying young; one that ran 10 s i
 restarted at once again. ``stop`` sends
 SIGTERM, waits up to 1.5 s, then SIGKILLs.
 
+A process that dies by a signal (an abort in native code, a kill by someone else) is said
+so by name, and counted in ``signal_deaths``: a launcher reports it and exits non-zero. The
+SIGKILL ``stop`` itself sends to a process that would not stop is not counted.
+
 No orphans: every child gets ``FRAMEGATE_PARENT_PID`` and the read end of a pipe whose
 write end only this process holds (``FRAMEGATE_PARENT_FD``). The child
 (services/nodes/_runtime.exit_with_parent) asks Linux for SIGKILL when its parent dies and
@@ -59,6 +63,19 @@ class _Running:
     next_start: float = 0.0
     exit_codes: list[int] = field(default_factory=list)
     pump: threading.Thread | None = None
+    killed_by_us: bool = False
+    exit_recorded: bool = False  # by stop(): a second stop() must not count it again
+
+
+def exit_text(code: int) -> str:
+    """``exited with 3`` or ``died by signal SIGABRT (6)``."""
+    if code >= 0:
+        return f"exited with {code}"
+    try:
+        name = signal.Signals(-code).name
+    except ValueError:
+        name = "an unknown signal"
+    return f"died by signal {name} ({-code})"
 
 
 class Supervisor:
@@ -137,12 +154,12 @@ class Supervisor:
                 running.proc = None
                 if not running.spec.restart:
                     running.next_start = float("inf")
-                    self._emit(running, f"exited with {code}; not restarting")
+                    self._emit(running, f"{exit_text(code)}; not restarting")
                     continue
                 if now - running.started_at > HEALTHY_AFTER_S:
                     running.backoff_s = 0.0
                 running.next_start = now + running.backoff_s
-                self._emit(running, f"exited with {code}; restarting in {running.backoff_s:.1f} s")
+                self._emit(running, f"{exit_text(code)}; restarting in {running.backoff_s:.1f} s")
                 running.backoff_s = min(
                     _BACKOFF_MAX_S, max(_BACKOFF_START_S, running.backoff_s * 2)
                 )
@@ -179,6 +196,23 @@ class Supervisor:
     def restarts(self) -> dict[str, int]:
         return {r.spec.name: r.restarts for r in self._running}
 
+    def uptimes(self) -> dict[str, float | None]:
+        """Seconds each process has been running (None while waiting to restart)."""
+        now = time.monotonic()
+        return {r.spec.name: (now - r.started_at if r.proc else None) for r in self._running}
+
+    def signal_deaths(self) -> dict[str, list[str]]:
+        """Each process that died by a signal (not the SIGKILL of ``stop``), and how."""
+        out: dict[str, list[str]] = {}
+        for running in self._running:
+            codes = list(running.exit_codes)
+            if running.killed_by_us and codes and codes[-1] == -signal.SIGKILL:
+                codes.pop()
+            deaths = [exit_text(c) for c in codes if c < 0]
+            if deaths:
+                out[running.spec.name] = deaths
+        return out
+
     def stop(self, timeout_s: float = 1.5) -> None:
         """SIGTERM every process, wait up to ``timeout_s``, then SIGKILL what is left.
 
@@ -186,17 +220,31 @@ class Supervisor:
         killed, so that the whole launch ends within 2 s of one Ctrl-C.
         """
         self._stopping = True
-        procs = [r.proc for r in self._running if r.proc is not None and r.proc.poll() is None]
-        for proc in procs:
+        live = [r for r in self._running if r.proc is not None]
+        # A process that died since the last poll still gets its exit recorded below.
+        stopping = [r for r in live if r.proc is not None and r.proc.poll() is None]
+        for running in stopping:
+            assert running.proc is not None
             with contextlib.suppress(ProcessLookupError):
-                proc.send_signal(signal.SIGTERM)
+                running.proc.send_signal(signal.SIGTERM)
         deadline = time.monotonic() + timeout_s
-        for proc in procs:
+        for running in stopping:
+            assert running.proc is not None
             try:
-                proc.wait(timeout=max(0.0, deadline - time.monotonic()))
+                running.proc.wait(timeout=max(0.0, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
+                running.killed_by_us = True
+                running.proc.kill()
+                running.proc.wait()
+        for running in live:
+            assert running.proc is not None
+            code = running.proc.returncode
+            if code is None or running.exit_recorded:
+                continue
+            running.exit_recorded = True
+            running.exit_codes.append(code)
+            if code < 0 and not running.killed_by_us:
+                self._emit(running, f"{exit_text(code)} while stopping")
         # A stopped child's last lines (its totals) are still in the pipe: read them out.
         for running in self._running:
             if running.pump is not None:
