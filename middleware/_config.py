@@ -29,6 +29,7 @@ import psutil
 import zenoh
 
 from ._errors import ConfigError
+from ._rendezvous import known_peers
 
 # Matched with fullmatch: "$" alone would also accept a trailing newline ("camera\n").
 _NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.\-]*")
@@ -130,9 +131,12 @@ class NetworkConfig:
         """Configs to try in order (the rendezvous default has two: hub, then spoke)."""
         if self.uses_local_default:
             hub = [f"tcp/127.0.0.1:{self.local_port}"]
+            # Any live process of the rendezvous lets a newcomer in, not only the port's
+            # holder (it may be frozen): see _rendezvous.
+            peers = known_peers(self.local_port)
             return [
-                self._build(listen=hub, connect=[]),
-                self._build(listen=["tcp/127.0.0.1:0"], connect=hub),
+                self._build(listen=hub, connect=peers),
+                self._build(listen=["tcp/127.0.0.1:0"], connect=hub + peers),
             ]
         return [self._build(listen=list(self.listen), connect=list(self.connect))]
 

@@ -29,7 +29,7 @@ from typing import Any
 import zenoh
 
 from ._clock import ClockSample
-from ._config import NetworkConfig, check_name
+from ._config import NetworkConfig, check_name, listening_endpoints
 from ._errors import (
     ConfigError,
     FramegateError,
@@ -47,6 +47,7 @@ from ._records import (
     SubscriptionInfo,
     SubscriptionMode,
 )
+from ._rendezvous import announce, withdraw
 from ._service import ServiceEndpoint
 from ._subscription import Subscription
 from ._timerange import TimeRange
@@ -88,6 +89,11 @@ class Node:
         self.name = check_name(name, "service") if name else None
         self.keys = Keys(self.network.namespace)
         self._session = _open(self.network)
+        self._announced = (
+            announce(self.network.local_port, listening_endpoints())
+            if self.network.uses_local_default
+            else None
+        )
         self._loop = NodeLoop(self.name or "client")
         self._opened = time.monotonic()
         self._endpoint: ServiceEndpoint | None = None
@@ -372,6 +378,7 @@ class Node:
         if self._endpoint is not None:
             self._endpoint.close()
         self._loop.close()
+        withdraw(self._announced)
         with suppress(zenoh.ZError):
             self._session.close()
 

@@ -1,0 +1,83 @@
+"""The loopback rendezvous's memory: which framegate processes on this host listen where.
+
+The local default meets at ``tcp/127.0.0.1:<local_port>``, held by whichever process came
+first. If that one is frozen (SIGSTOP, a debugger) its port still accepts connections but
+never answers, so a newcomer that knew only the port would see nobody. So every process of
+the rendezvous also leaves its own loopback endpoints in a per-user directory
+(``$XDG_RUNTIME_DIR/framegate-<port>/<pid>``, else ``/tmp/framegate-<uid>-<port>/``), and a
+newcomer connects to the port *and* to the processes listed there that are still alive:
+any live one lets it in, and Zenoh's gossip does the rest. Files of dead processes are
+removed by whoever finds them; only loopback endpoints are ever written.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+from pathlib import Path
+
+# Connect to at most this many listed peers (the most recent), besides the port itself.
+MAX_PEERS = 16
+
+
+def directory(local_port: int) -> Path:
+    runtime = os.environ.get("XDG_RUNTIME_DIR")
+    if runtime and Path(runtime).is_dir():
+        return Path(runtime) / f"framegate-{local_port}"
+    return Path(f"/tmp/framegate-{os.getuid()}-{local_port}")
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def known_peers(local_port: int) -> list[str]:
+    """Loopback endpoints of live framegate processes of this rendezvous, newest first."""
+    folder = directory(local_port)
+    found: list[tuple[float, list[str]]] = []
+    with contextlib.suppress(OSError):
+        for entry in folder.iterdir():
+            if not entry.name.isdigit() or int(entry.name) == os.getpid():
+                continue
+            if not _alive(int(entry.name)):
+                with contextlib.suppress(OSError):
+                    entry.unlink()
+                continue
+            with contextlib.suppress(OSError, UnicodeDecodeError):
+                endpoints = [
+                    e
+                    for e in entry.read_text().split()
+                    if e.startswith("tcp/127.0.0.1:") and e != f"tcp/127.0.0.1:{local_port}"
+                ]
+                found.append((entry.stat().st_mtime, endpoints))
+    found.sort(reverse=True)
+    return [e for _, endpoints in found[:MAX_PEERS] for e in endpoints]
+
+
+def announce(local_port: int, endpoints: list[str]) -> Path | None:
+    """Leave this process's loopback endpoints for newcomers; the file (None if none)."""
+    mine = [e for e in endpoints if e.startswith("tcp/127.0.0.1:")]
+    if not mine:
+        return None
+    folder = directory(local_port)
+    try:
+        folder.mkdir(mode=0o700, parents=True, exist_ok=True)
+        path = folder / str(os.getpid())
+        tmp = folder / f".{os.getpid()}.tmp"
+        tmp.write_text("\n".join(mine) + "\n")
+        tmp.replace(path)
+    except OSError:
+        return None  # a read-only /tmp only costs the fallback
+    return path
+
+
+def withdraw(path: Path | None) -> None:
+    if path is not None:
+        with contextlib.suppress(OSError):
+            path.unlink()
