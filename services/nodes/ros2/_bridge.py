@@ -42,6 +42,7 @@ import numpy as np
 
 from middleware import (
     PUSH_ALL,
+    ConfigError,
     FlowControlRefused,
     FramegateError,
     NetworkConfig,
@@ -138,6 +139,18 @@ def frame_metadata(
     return make_metadata("frame", start_ns, fields)
 
 
+def _camera(config: Ros2Config) -> CameraModel | None:
+    """The ``--camera-xml`` description; ConfigError naming the file when it is unusable."""
+    if config.camera_xml is None:
+        return None
+    try:
+        return CameraModel.from_xml(config.camera_xml.read_bytes())
+    except OSError as exc:
+        raise ConfigError(f"cannot read --camera-xml {config.camera_xml}: {exc.strerror}") from exc
+    except FramegateError as exc:
+        raise ConfigError(f"--camera-xml {config.camera_xml}: {exc}") from exc
+
+
 def _sequence(attachment: bytes | None, fallback: int) -> int:
     if attachment is None:
         return fallback
@@ -157,9 +170,7 @@ class ImagesIn:
             retention=Retention(max_count=config.retention_frames, max_bytes=512 * 2**20),
         )
         self._codec, self._config, self._skips = codec, config, skips
-        self.camera = (
-            CameraModel.from_xml(config.camera_xml.read_bytes()) if config.camera_xml else None
-        )
+        self.camera = _camera(config)
         self.queue = _InQueue(
             config.in_depth,
             lambda: skips.count(self.producer, "in-queue-full", "the in-queue was full"),
