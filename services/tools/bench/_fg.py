@@ -23,6 +23,7 @@ from middleware import (
     FramegateError,
     NetworkConfig,
     Node,
+    NotFoundError,
     Retention,
     Subscription,
     SubscriptionMode,
@@ -52,6 +53,23 @@ class Stamper:
 
     def __call__(self, timestamp_ns: int) -> bytes:
         return self._format % timestamp_ns
+
+
+# How long a worker keeps trying to subscribe while its producer process is still starting.
+SUBSCRIBE_PATIENCE_S = 60.0
+
+
+def _subscribe(node: Node, target: str, **kwargs: Any) -> Subscription:
+    """``node.subscribe`` that waits for the producer worker started alongside: its
+    service may be visible before the buffer is offered (NotFoundError until then)."""
+    deadline = time.monotonic() + SUBSCRIBE_PATIENCE_S
+    while True:
+        try:
+            return node.subscribe(target, **kwargs)
+        except NotFoundError:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.1)
 
 
 def _network(params: dict[str, Any]) -> NetworkConfig:
@@ -175,7 +193,8 @@ def fg_sub(params: dict[str, Any]) -> None:
     # and one of two batches lets the producer fill the next while this side takes.
     queue_size = max(int(params["queue_size"]), 2 * batch)
     with Node(network=_network(params)) as node:
-        sub = node.subscribe(
+        sub = _subscribe(
+            node,
             f"{SERVICE}/{params['buffer']}",
             queue_size=queue_size,
             mode=SubscriptionMode.OBSERVE if params.get("observe") else SubscriptionMode.FLOW,
@@ -257,7 +276,8 @@ def fg_lat_sub(params: dict[str, Any]) -> None:
     with Node(network=_network(params)) as node:
         threads = []
         for name, stream in streams.items():
-            sub = node.subscribe(
+            sub = _subscribe(
+                node,
                 f"{SERVICE}/{name}",
                 queue_size=2,
                 wait_s=5.0,
@@ -350,7 +370,8 @@ def fg_idle(params: dict[str, Any]) -> None:
     with Node(params.get("service"), _network(params)) as node:
         producers = [node.offer(str(name)) for name in params.get("offers", [])]
         subscriptions = [
-            node.subscribe(
+            _subscribe(
+                node,
                 str(entry["target"]),
                 queue_size=int(entry.get("queue_size", 8)),
                 mode=SubscriptionMode(str(entry["mode"])),

@@ -55,7 +55,7 @@ def load_warning(machine: dict[str, Any], share: float) -> str | None:
         return None
     return (
         f"figures unreliable: load {load[0]:.2f} at start on {cores} cores "
-        f"(more than {share * cores:g}); compare ratios of one run only"
+        f"(more than {share * cores:g})"
     )
 
 
@@ -63,13 +63,19 @@ def header(report: dict[str, Any]) -> str:
     machine, options = report["machine"], report["options"]
     load = machine.get("load_average_start")
     return _cut(
-        f"framegate bench: {machine['cpu_count']} cores"
-        + (f", load {load[0]:.2f} at start" if load else "")
-        + f"; Python {machine['python']}, zenoh {machine['zenoh']}; "
-        f"{options['pairs']} pair(s) of {options['duration_s']:g} s"
-        + (" (quick)" if options["quick"] else ""),
+        f"framegate bench{' (quick)' if options['quick'] else ''}: "
+        f"{options['pairs']} pair(s) of {options['duration_s']:g} s; "
+        f"{machine['cpu_count']} cores" + (f", load {load[0]:.2f}" if load else "") + "; "
+        f"Python {machine['python']}, zenoh {machine['zenoh']}",
         WIDTH,
     )
+
+
+def _reason(scenario: dict[str, Any]) -> str:
+    """A failed scenario's reason, its last part when long (a worker's stderr tail ends
+    with the exception)."""
+    reason = str(scenario["reason"])
+    return reason.rsplit(" | ", 1)[-1].strip() if len(reason) > 60 else reason
 
 
 def _line(cells: list[str]) -> str:
@@ -88,7 +94,7 @@ def format_table(report: dict[str, Any], *, notes: bool = False) -> str:
     lines += ["", _line(["row", "unit", "raw", "framegate", "fg/raw", "goal"])]
     for name, scenario in report["scenarios"].items():
         if scenario["status"] != "ok":
-            lines.append(_cut(f"{name}: {scenario['status']}: {scenario['reason']}", WIDTH))
+            lines.append(_cut(f"{name}: {scenario['status']}: {_reason(scenario)}", WIDTH))
             continue
         lines.append(name)
         for r in scenario["rows"]:
