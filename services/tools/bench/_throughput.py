@@ -193,7 +193,8 @@ def design_rows(mode_name: str, design: str) -> tuple[Row, Row]:
     note = (
         f"raw side of the '{mode_name} sub ...' rows: a raw subscriber through that "
         "zenoh-python handler design (same publisher, same pairs); framegate side: "
-        f"framegate's {mode_name} figure"
+        f"framegate's {mode_name} figure; a RingChannel drops the oldest sample when full "
+        "(each sample's 'lost' in --json)"
     )
     return (
         Row(name, "throughput", "msg/s", higher_is_better=True, note=note),
