@@ -28,7 +28,7 @@ from typing import Any
 
 import zenoh
 
-from ._clock import ClockSample
+from ._clock import ClockSample, now_ns
 from ._config import NetworkConfig, check_name, listening_endpoints
 from ._errors import (
     ConfigError,
@@ -316,7 +316,7 @@ class Node:
         """Every live service with its buffers, clock offset and round trip."""
         self._settle()
         out: list[ServiceInfo] = []
-        start = time.time_ns()
+        start = now_ns()
         with zenoh_errors("describing services"):
             replies = list(
                 self._session.get(
@@ -325,7 +325,7 @@ class Node:
                     timeout=timeout_s,
                 )
             )
-        end = time.time_ns()
+        end = now_ns()
         for reply in replies:
             if reply.ok is None:
                 continue
@@ -337,10 +337,10 @@ class Node:
 
     def service_info(self, service: str, *, timeout_s: float = 2.0) -> ServiceInfo:
         """One live service's description; NotFoundError if it is not live."""
-        start = time.time_ns()
+        start = now_ns()
         with zenoh_errors(f"describing {service}"):
             replies = list(self._session.get(self.keys.info(service), timeout=timeout_s))
-        end = time.time_ns()
+        end = now_ns()
         for reply in replies:
             if reply.ok is not None:
                 return _service_info(json.loads(reply.ok.payload.to_bytes()), start, end)
@@ -443,6 +443,7 @@ def _service_info(body: dict[str, Any], start_ns: int, end_ns: int) -> ServiceIn
             )
         )
     sample = ClockSample.from_times(start_ns, int(body["clock_ns"]), end_ns)
+    clock = body.get("clock")
     return ServiceInfo(
         service=body["service"],
         host=body["host"],
@@ -451,4 +452,6 @@ def _service_info(body: dict[str, Any], start_ns: int, end_ns: int) -> ServiceIn
         buffers=tuple(buffers),
         clock_offset_ns=sample.offset_ns,
         round_trip_ns=sample.round_trip_ns,
+        clock_steps=int(clock["steps"]) if isinstance(clock, dict) else None,
+        clock_lead_ns=int(clock["lead_ns"]) if isinstance(clock, dict) else None,
     )

@@ -143,3 +143,7 @@ class ServiceInfo:
     buffers: tuple[BufferInfo, ...]
     clock_offset_ns: int | None = None
     round_trip_ns: int | None = None
+    # Steps of the service's system clock it absorbed, and how far ahead of its system
+    # clock it runs while slewing back (see the README's time model); None from old peers.
+    clock_steps: int | None = None
+    clock_lead_ns: int | None = None

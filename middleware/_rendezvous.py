@@ -81,3 +81,4 @@ def withdraw(path: Path | None) -> None:
     if path is not None:
         with contextlib.suppress(OSError):
             path.unlink()
+            path.parent.rmdir()  # only if this was the last one

@@ -20,13 +20,13 @@ import os
 import secrets
 import socket
 import threading
-import time
 from collections.abc import Callable
 from dataclasses import asdict
 from typing import Any, cast
 
 import zenoh
 
+from ._clock import CLOCK, now_ns
 from ._config import listening_endpoints
 from ._errors import ConfigError, FramegateError, NotFoundError, QueryError
 from ._producer import Producer
@@ -134,7 +134,7 @@ class ServiceEndpoint:
         self._producers: dict[str, Producer] = {}
         self._lock = threading.Lock()
         self.instance = secrets.token_hex(6)
-        self.started_ns = time.time_ns()
+        self.started_ns = now_ns()
         others = _instances(session, keys, service)
         if others:
             raise _taken(service, others[0])
@@ -219,7 +219,8 @@ class ServiceEndpoint:
             "service": self.service,
             "host": socket.gethostname(),
             "pid": os.getpid(),
-            "clock_ns": time.time_ns(),
+            "clock_ns": now_ns(),
+            "clock": asdict(CLOCK.status()),
             "instance": self.instance,
             "started_ns": self.started_ns,
             "buffers": [buffer_info_json(p.info()) for p in self.producers()],

@@ -18,11 +18,11 @@ with an error reply, never a traceback.
 from __future__ import annotations
 
 import re
-import time
 from dataclasses import dataclass
 from datetime import datetime
 from fractions import Fraction
 
+from ._clock import now_ns as clock_now_ns
 from ._errors import QueryError
 
 MAX_TIME_NS = 2**63 - 1
@@ -122,7 +122,7 @@ def parse_time_ns(text: str, now_ns: int | None = None) -> int:
         raise QueryError("empty time: write now(), now(-2s), an RFC 3339 time or nanoseconds")
     now_match = _NOW.fullmatch(text)
     if now_match:
-        base = time.time_ns() if now_ns is None else now_ns
+        base = clock_now_ns() if now_ns is None else now_ns
         inner = now_match.group(1).strip()
         return _check_time_ns(base + (parse_duration_ns(inner) if inner else 0), text)
     if _INTEGER.fullmatch(text):
@@ -169,7 +169,7 @@ def parse_time_range(text: str, now_ns: int | None = None) -> TimeRange:
     value = text.strip()
     if len(value) < 4 or value[0] not in "[]" or value[-1] not in "[]":
         raise QueryError(f"bad time range {_short(text)}: {_RANGE_HELP}")
-    now = time.time_ns() if now_ns is None else now_ns
+    now = clock_now_ns() if now_ns is None else now_ns
     start_open, end_open = value[0] == "]", value[-1] == "["
     body = value[1:-1]
     if ".." not in body:
