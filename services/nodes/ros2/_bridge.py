@@ -22,7 +22,10 @@ whose width x height x step disagrees with its data or an encoding framegate can
 stamp that is not newer than the last one (``out-of-order``, ``duplicate-stamp``) or is
 zero (``bad-stamp``), an element the producer rejects (``rejected``), a full in-queue
 (``in-queue-full``): each is a counted skip (``Producer.count_skip``, ``skipped`` in
-``framegate info``) with one warning per reason.
+``framegate info``) with one warning per reason. Out, an element that cannot be read
+(``bad-element``) or a publish Zenoh refuses (``publish-failed``) is skipped the same way,
+and anything unforeseen with one message is logged with its traceback (``internal-error``)
+while the bridge goes on.
 
 Threads: Zenoh's callback thread only appends to the in-queues (see ``_link``); one thread
 per input decodes and puts; one thread per output takes, encodes and publishes; the caller's
@@ -184,7 +187,11 @@ class ImagesIn:
             item = self.queue.get(_POLL_S)
             if item is not None:
                 count += 1
-                self.handle(item[0], _sequence(item[1], count))
+                try:
+                    self.handle(item[0], _sequence(item[1], count))
+                except Exception as exc:  # one message must never stop the bridge
+                    logging.getLogger("framegate.ros2").exception("image: unexpected error")
+                    self._skips.count(self.producer, "internal-error", repr(exc))
 
     def handle(self, raw: bytes, frame_id: int) -> None:
         """Decode, check and put one image; every failure is a counted skip."""
@@ -257,9 +264,13 @@ class ImuIn:
             if item is None:
                 self.flush()
                 continue
-            self.add(item[0])
-            if len(self._pending) >= self._config.gyro_batch:
-                self.flush()
+            try:
+                self.add(item[0])
+                if len(self._pending) >= self._config.gyro_batch:
+                    self.flush()
+            except Exception as exc:  # one message must never stop the bridge
+                logging.getLogger("framegate.ros2").exception("IMU: unexpected error")
+                self._skips.count(self.producer, "internal-error", repr(exc))
 
     def add(self, raw: bytes) -> None:
         try:
@@ -334,14 +345,18 @@ class Output:
             try:
                 element = self._sub.fetch(note)
                 cdr = self._encode(element)
-            except (FramegateError, ValueError, KeyError) as exc:
+            except (FramegateError, ValueError, KeyError, TypeError) as exc:
                 skips.count(
                     None, "bad-element", f"{self.mapping.buffer} at {note.timestamp_ns}: {exc}"
                 )
                 continue
-            if cdr is not None:
+            if cdr is None:
+                continue
+            try:
                 self._publisher.publish(cdr)
                 self.published += 1
+            except FramegateError as exc:
+                skips.count(None, "publish-failed", str(exc))
 
 
 class Encoders:
@@ -350,14 +365,14 @@ class Encoders:
     def __init__(self, codec: Codec, config: Ros2Config) -> None:
         self._codec, self._config = codec, config
 
-    def image(self, element: Any) -> bytearray:
+    def image(self, element: Any) -> bytes:
         meta = read_frame_metadata(element.metadata)
         if meta.encoding not in CHANNELS:
             raise ValueError(f"encoding {meta.encoding!r}")
         expected = meta.width_px * meta.height_px * CHANNELS[meta.encoding]
         if len(element.payload) != expected:
             raise ValueError(f"payload of {len(element.payload)} bytes, expected {expected}")
-        # The frame's one copy: into the CDR buffer, which goes to Zenoh as it is.
+        # The frame's one copy: after the CDR head, into the message that goes to Zenoh.
         return self._codec.encode_image(
             self._config.stamp_ns(element.timestamp_ns),
             self._config.frame_id,

@@ -6,13 +6,13 @@ definitions (vision_msgs 4.x, Humble and later) are registered from their ``.msg
 rosbags computes their hash from that text like rosidl does.
 
 Copies: decoding an image yields a read-only numpy view into the received buffer (no copy);
-encoding one writes the pixels once, into the CDR buffer rosbags allocates, and hands that
-buffer on as it is.
+encoding one copies the pixels once, after the head rosbags serializes.
 """
 
 from __future__ import annotations
 
 import json
+import struct
 from dataclasses import dataclass
 from typing import Any
 
@@ -48,6 +48,8 @@ _STORES = {
     "kilted": Stores.ROS2_KILTED,
     "rolling": Stores.LATEST,
 }
+_EMPTY = np.empty(0, dtype=np.uint8)
+_LENGTH = struct.Struct("<I")  # a CDR sequence length, little-endian like the head
 # Bytes per pixel of the encodings a framegate frame can hold.
 CHANNELS = {"mono8": 1, "bgr8": 3, "rgb8": 3}
 
@@ -140,17 +142,40 @@ class Codec:
 
     def encode_image(
         self, t_ns: int, frame_id: str, width: int, height: int, encoding: str, pixels: bytes
-    ) -> bytearray:
-        """A CDR ``sensor_msgs/msg/Image``; the pixels are copied once, into the result."""
+    ) -> bytes:
+        """A CDR ``sensor_msgs/msg/Image``; the pixels are copied once, into the result.
+
+        rosbags serializes everything but the pixels (the message with empty ``data`` ends
+        with the sequence's uint32 length, 0); the result is that head with the length set,
+        then the pixels, joined in one allocation. A full rosbags serialization would first
+        zero a buffer of the frame's size and then copy into it (test_cdr checks that both
+        give the same bytes).
+        """
         step = width * CHANNELS[encoding]
-        message = self._image(
+        head = self._image(
             header=self._header_type(t_ns, frame_id),
             height=height,
             width=width,
             encoding=encoding,
             is_bigendian=0,
             step=step,
-            data=np.frombuffer(pixels, dtype=np.uint8),  # a view: no copy yet
+            data=_EMPTY,
+        )
+        cdr = self.store.serialize_cdr(head, IMAGE)
+        return b"".join((cdr[:-4], _LENGTH.pack(len(pixels)), pixels))
+
+    def encode_image_rosbags(
+        self, t_ns: int, frame_id: str, width: int, height: int, encoding: str, pixels: bytes
+    ) -> bytearray:
+        """The same message serialized by rosbags as a whole (the reference for tests)."""
+        message = self._image(
+            header=self._header_type(t_ns, frame_id),
+            height=height,
+            width=width,
+            encoding=encoding,
+            is_bigendian=0,
+            step=width * CHANNELS[encoding],
+            data=np.frombuffer(pixels, dtype=np.uint8),
         )
         return _owner(self.store.serialize_cdr(message, IMAGE))
 

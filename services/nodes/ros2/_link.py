@@ -40,11 +40,15 @@ class RosPublisher:
         self._lock = threading.Lock()
 
     def publish(self, cdr: bytes | bytearray) -> None:
-        """Put one CDR message (Zenoh copies it into its own buffer, as any put)."""
+        """Put one CDR message (Zenoh copies it into its own buffer, as any put);
+        TransportError when Zenoh cannot."""
         with self._lock:
             self._sequence += 1
             attachment = Attachment(self._sequence, time.time_ns(), self._gid).encode()
-        self._publisher.put(cdr, attachment=attachment)
+        try:
+            self._publisher.put(cdr, attachment=attachment)
+        except zenoh.ZError as exc:
+            raise TransportError(f"cannot publish on {self._publisher.key_expr}: {exc}") from exc
 
     @property
     def matched(self) -> bool:

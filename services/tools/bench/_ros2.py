@@ -17,8 +17,9 @@ path's p50, so ``extra`` is what the bridge adds: decoding and checking (in) or 
 
 Copies: the ROS 2 publisher encodes one CDR image once and only rewrites its stamp before
 each put. The bridge's in path copies the pixels once (out of the received message into the
-element's payload), its out path once (into the CDR buffer rosbags allocates, which goes to
-Zenoh as it is); Zenoh's own copy of a put payload is there in the plain-Zenoh hop too.
+element's payload), its out path once (after the CDR head rosbags serializes, into the
+message that goes to Zenoh); Zenoh's own copy of a put payload is there in the plain-Zenoh
+hop too.
 """
 
 from __future__ import annotations
@@ -84,7 +85,8 @@ def ros_pub(params: dict[str, Any]) -> None:
     from services.nodes.ros2._cdr import Codec
     from services.nodes.ros2._rmw import Attachment
 
-    template = Codec("jazzy").encode_image(1, "camera", WIDTH, HEIGHT, "mono8", bytes(FRAME_BYTES))
+    image = Codec("jazzy").encode_image(1, "camera", WIDTH, HEIGHT, "mono8", bytes(FRAME_BYTES))
+    template = bytearray(image)  # its stamp is rewritten in place before each put
     with zenoh.open(_zenoh_config({**params, "mode": "router"})) as session:
         publishers = {
             stream: session.declare_publisher(

@@ -32,11 +32,19 @@ def test_image_round_trip_keeps_pixels_and_stamp(codec: Codec) -> None:
     assert message.data.tobytes() == pixels
 
 
-def test_encoding_hands_on_rosbags_buffer_without_another_copy(codec: Codec) -> None:
-    pixels = bytes(64 * 64)
-    raw = codec.encode_image(1, "cam", 64, 64, "mono8", pixels)
-    assert isinstance(raw, bytearray)
-    assert len(raw) < len(pixels) + 100  # the pixels once, plus the header
+@pytest.mark.parametrize(("width", "encoding"), [(64, "mono8"), (5, "rgb8"), (3, "bgr8")])
+def test_image_encoding_is_byte_for_byte_rosbags_own(
+    codec: Codec, width: int, encoding: str
+) -> None:
+    channels = 1 if encoding == "mono8" else 3
+    pixels = (np.arange(width * 7 * channels) % 253).astype(np.uint8).tobytes()
+    for frame_id in ("", "cam", "camera_optical_frame"):  # every alignment of the tail
+        ours = codec.encode_image(1_234_567_890_123, frame_id, width, 7, encoding, pixels)
+        reference = codec.encode_image_rosbags(
+            1_234_567_890_123, frame_id, width, 7, encoding, pixels
+        )
+        assert ours == bytes(reference)
+        assert len(ours) < len(pixels) + 100  # the pixels once, plus the head
 
 
 def test_decoding_does_not_copy_the_pixels(codec: Codec) -> None:
