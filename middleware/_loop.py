@@ -12,12 +12,16 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Callable
 from typing import Protocol
 
 log = logging.getLogger("framegate.middleware")
 
 # The loop re-reads every deadline at least this often (a poke lost to a race costs this).
 _MAX_SLEEP_NS = 1_000_000_000
+# Waking this much later than planned means the process did not run (SIGSTOP, a debugger,
+# a suspended VM): peers may have dropped it (see ``on_stall``).
+STALL_NS = 1_000_000_000
 
 
 class Timed(Protocol):
@@ -30,8 +34,9 @@ class NodeLoop:
     """The timer loop of one node (thread ``fg-loop-<node>``), started with the first
     object and stopped by ``close``."""
 
-    def __init__(self, name: str) -> None:
+    def __init__(self, name: str, on_stall: Callable[[int], None] | None = None) -> None:
         self._name = name
+        self._on_stall = on_stall
         self._cond = threading.Condition()
         self._objects: list[Timed] = []
         self._closed = False
@@ -91,6 +96,9 @@ class NodeLoop:
                     self.wake_at_ns = wake
                     self._cond.wait(timeout)
                 self.wake_at_ns = 0
+            late = time.monotonic_ns() - wake
+            if late > STALL_NS and self._on_stall is not None:
+                self._on_stall(late)
 
     def close(self) -> None:
         with self._cond:

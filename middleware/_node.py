@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import difflib
 import json
+import logging
 import threading
 import time
 from collections.abc import Iterator
@@ -53,6 +54,8 @@ from ._subscription import Subscription
 from ._timerange import TimeRange
 from ._wire import ERR_NOT_FOUND, Keys, decode_element
 from ._xml import DEFAULT_LIMITS, XmlLimits
+
+log = logging.getLogger("framegate.middleware")
 
 _DEFAULT_INLINE_BYTES = 64 * 1024
 # A fresh session needs a moment to learn the network's liveliness tokens and queryables;
@@ -94,7 +97,7 @@ class Node:
             if self.network.uses_local_default
             else None
         )
-        self._loop = NodeLoop(self.name or "client")
+        self._loop = NodeLoop(self.name or "client", on_stall=self._stalled)
         self._opened = time.monotonic()
         self._endpoint: ServiceEndpoint | None = None
         self._subscriptions: list[Subscription] = []
@@ -361,6 +364,19 @@ class Node:
         raise NotFoundError(
             f"service {service!r} has no buffer {buffer!r}{did_you_mean}; it offers: {offered}"
         )
+
+    def _stalled(self, late_ns: int) -> None:
+        """(the node's loop) The process did not run for ``late_ns``: say so, once."""
+        lease_s = self.network.lease_ms / 1000
+        if late_ns / 1e9 > lease_s:
+            log.warning(
+                "%s: this process did not run for %.1f s (stopped or suspended), longer than "
+                "the %.1f s lease: peers dropped it; it reconnects and its subscriptions "
+                "re-register by themselves",
+                self.name or "client",
+                late_ns / 1e9,
+                lease_s,
+            )
 
     # -- lifetime ---------------------------------------------------------------------------------
     def close(self) -> None:

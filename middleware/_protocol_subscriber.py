@@ -71,6 +71,7 @@ class SubscriberProtocol:
         self.registered: str | None = None
         self.refusal: str | None = None
         self.ignored_controls = 0
+        self.registrations = 0  # greetings under distinct epochs
 
     # -- input -----------------------------------------------------------------------------
     def receive(self, attachment: bytes | None, payload: Any) -> bool:
@@ -108,6 +109,10 @@ class SubscriberProtocol:
         if control.descriptor != self.descriptor:
             self.ignored_controls += 1
         elif control.kind == "hello":
+            if self.registered is not None and self.registered != control.text:
+                self.registrations += 1  # a producer restart, or our token had lapsed
+            elif self.registered is None:
+                self.registrations = 1
             self.registered = control.text
             self.refusal = None
         elif self.registered is None:

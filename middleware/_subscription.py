@@ -11,6 +11,7 @@ sends the acks it returns.
 from __future__ import annotations
 
 import contextlib
+import logging
 import secrets
 import socket
 import threading
@@ -27,6 +28,8 @@ from ._loop import NodeLoop
 from ._protocol_subscriber import Item, SubscriberProtocol
 from ._records import DataObject, Notification, SubscriptionMode
 from ._wire import Keys, holder_chunk
+
+log = logging.getLogger("framegate.middleware")
 
 # A push limit larger than any payload: everything travels with its notification.
 PUSH_ALL = 2**31 - 1
@@ -134,9 +137,17 @@ class Subscription:
         attachment = sample.attachment
         raw = attachment.to_bytes() if attachment is not None else None
         with self._lock:
+            before = self._protocol.registrations
             self._protocol.receive(raw, sample.payload)
+            again = self._protocol.registrations > before > 0
             if self._waiting:  # a notification, or the producer's greeting or refusal
                 self._cond.notify_all()
+        if again:
+            log.info(
+                "subscription to %s registered again (the producer restarted, or this "
+                "subscription had lapsed)",
+                self.name,
+            )
 
     def wait_registered(self, timeout_s: float) -> bool:
         """Wait until the producer greets this subscription; RegistrationRefused if it
