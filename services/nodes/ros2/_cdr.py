@@ -162,7 +162,7 @@ class Codec:
             data=_EMPTY,
         )
         cdr = self.store.serialize_cdr(head, IMAGE)
-        return b"".join((cdr[:-4], _LENGTH.pack(len(pixels)), pixels))
+        return b"".join((cdr[:-4], _LENGTH.pack(memoryview(pixels).nbytes), pixels))
 
     def encode_image_rosbags(
         self, t_ns: int, frame_id: str, width: int, height: int, encoding: str, pixels: bytes

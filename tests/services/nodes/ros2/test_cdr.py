@@ -47,6 +47,13 @@ def test_image_encoding_is_byte_for_byte_rosbags_own(
         assert len(ours) < len(pixels) + 100  # the pixels once, plus the head
 
 
+def test_an_image_array_encodes_like_its_bytes(codec: Codec) -> None:
+    array = np.arange(12, dtype=np.uint8).reshape(3, 4)
+    assert codec.encode_image(1, "c", 4, 3, "mono8", array) == codec.encode_image(  # type: ignore[arg-type]
+        1, "c", 4, 3, "mono8", array.tobytes()
+    )
+
+
 def test_decoding_does_not_copy_the_pixels(codec: Codec) -> None:
     raw = bytes(codec.encode_image(1, "cam", 4, 4, "mono8", bytes(16)))
     image = codec.decode_image(raw)
