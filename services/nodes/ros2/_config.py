@@ -163,7 +163,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--ros-connect",
         action="append",
         metavar="ENDPOINT",
-        help=f"the ROS 2 system's Zenoh router (rmw_zenohd; default {DEFAULT_ROUTER})",
+        help=f"the ROS 2 system's Zenoh router (rmw_zenohd; default {DEFAULT_ROUTER}, "
+        "or the --ros-config file's endpoints)",
     )
     ros.add_argument("--ros-listen", action="append", metavar="ENDPOINT", help="listen endpoint")
     ros.add_argument("--ros-config", metavar="FILE", help="Zenoh JSON5 file for the ROS 2 session")
@@ -247,7 +248,8 @@ def config_from_args(args: argparse.Namespace) -> Ros2Config:
 
     return Ros2Config(
         name=args.name,
-        ros_connect=tuple(args.ros_connect or (DEFAULT_ROUTER,)),
+        # A --ros-config file names its own endpoints unless --ros-connect is given too.
+        ros_connect=tuple(args.ros_connect or (() if args.ros_config else (DEFAULT_ROUTER,))),
         ros_listen=tuple(args.ros_listen or ()),
         ros_config=Path(args.ros_config) if args.ros_config else None,
         ros_distro=args.ros_distro,

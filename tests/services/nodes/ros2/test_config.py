@@ -65,3 +65,11 @@ def test_a_bridge_with_nothing_to_carry_says_so() -> None:
 def test_ros_network_uses_the_ros_flags() -> None:
     network = _config("--ros-connect", "tcp/10.0.0.2:7447", "--image-in", "/c").ros_network()
     assert network.connect == ("tcp/10.0.0.2:7447",)
+
+
+def test_a_ros_config_file_keeps_its_own_endpoints() -> None:
+    config = _config("--ros-config", "ros.json5", "--image-in", "/c")
+    assert config.ros_connect == ()
+    assert _config("--ros-config", "r.json5", "--ros-connect", "tcp/h:7447").ros_connect == (
+        "tcp/h:7447",
+    )
