@@ -118,7 +118,7 @@ DESIGN_LABELS = {
     "callback-direct": "Callback indirect=False",
     "callback": "Callback (indirect)",
     "fifo": "FifoChannel(256)+thread",
-    "ring": "RingChannel(4096) try_recv",
+    "ring": "RingChannel(4096) batch",
 }
 BATCH_MODES = (
     Mode(
