@@ -23,6 +23,7 @@ from middleware import (
 from services.lib.files import OutputError, create_file, open_directory
 
 from ._common import command_parser, format_bytes, format_ns, network, print_json
+from ._fields import decode_metadata
 from ._target import add_timeout_argument, resolve
 
 # With no selection at all, a query returns this many of the newest elements: a camera
@@ -163,7 +164,7 @@ def summarize(metadata: bytes) -> tuple[str, dict[str, str]]:
 def _element_json(
     element: DataObject, files: list[str] | None, with_payload: bool
 ) -> dict[str, Any]:
-    kind, fields = summarize(element.metadata)
+    kind, fields = decode_metadata(element.metadata)  # typed: numbers as JSON numbers
     row: dict[str, Any] = {
         "timestamp_ns": element.timestamp_ns,
         "time": format_ns(element.timestamp_ns),

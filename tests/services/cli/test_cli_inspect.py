@@ -74,7 +74,7 @@ def test_info_and_query_report_what_the_buffer_holds(
     rows = in_range.json()["elements"]
     assert [r["timestamp_ns"] for r in rows] == [base + 100 * MS, base + 200 * MS]
     assert rows[0]["kind"] == "frame" and rows[0]["payload_bytes"] == WIDTH * HEIGHT
-    assert rows[0]["fields"]["encoding"] == "mono8" and rows[0]["fields"]["frame_id"] == "1"
+    assert rows[0]["fields"]["encoding"] == "mono8" and rows[0]["fields"]["frame_id"] == 1
     assert rows[0]["metadata"].encode() == frame_metadata(base + 100 * MS, 1)
     png, xml = (Path(p) for p in rows[0]["files"])
     assert png.suffix == ".png" and xml.read_bytes() == frame_metadata(base + 100 * MS, 1)

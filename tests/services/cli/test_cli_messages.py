@@ -1,0 +1,123 @@
+"""Mistakes on the command line give one actionable line and exit 1; start-up stays light."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from services.cli import COMMANDS, build_parser
+from tests.conftest import REPO, child_env, free_port
+
+# Modules that the listed commands must not pay for (seconds of start-up on a small machine).
+HEAVY = ("cv2", "numpy", "matplotlib", "foxglove", "foxglove_websocket", "scipy", "mcap")
+
+# Positional arguments (and required flags) a command needs to parse at all.
+REQUIRED: dict[str, tuple[str, ...]] = {
+    "launch": ("deploy/local.yaml",),
+    "run": ("camera",),
+    "info": ("camera/images",),
+    "query": ("camera/images",),
+    "echo": ("camera/images",),
+    "watch": ("camera/images",),
+    "hz": ("camera/images",),
+    "pub": ("t/x", "--kind", "generic"),
+    "record": ("camera/images", "-o", "x.mcap"),
+    "play": ("x.mcap",),
+    "calibrate": ("dataset",),
+    "simulate": ("--out", "dataset"),
+    "experiment": ("--out", "results"),
+}
+
+
+def _framegate(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "services.cli", *args],
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+        env=child_env(),
+        timeout=120,
+        check=False,
+    )
+
+
+@pytest.mark.parametrize(
+    ("args", "expected"),
+    [
+        (("lss",), "(did you mean ls?)"),
+        (("query", "camera/images", "--lats", "3"), "unknown option '--lats' (did you mean --last?)"),  # noqa: E501
+        (("query", "camera/images", "--from", "-5x"), "bad time '-5x' for --from"),
+        (("run", "camera", "--source", "sim", "--rate", "nan"), "argument --rate: must be a number > 0, got 'nan'"),  # noqa: E501
+        (("run", "camera", "--retention-frames", "0"), "argument --retention-frames: must be an integer > 0"),  # noqa: E501
+        (("run", "gyro", "--rate", "inf"), "argument --rate: must be a number > 0, got 'inf'"),
+        (("run", "gyro", "--frames", "-5"), "argument --frames: must be an integer > 0, got '-5'"),
+        (("run", "mediator", "--q-min", "2"), "argument --q-min: must be a number >= 0 and <= 1"),
+        (("run", "camera", "--sorce", "sim"), "(did you mean --source?)"),
+        (("run", "camra"), "(did you mean camera?)"),
+        (("watch", "camera/images", "--queue", "0"), "--queue 0: the queue must hold at least 1"),
+        (("echo", "camera/images", "--count", "-1"), "argument --count: must be an integer > 0"),
+        (("pub", "t/x", "--kind", "fram"), "(did you mean frame?)"),
+        (("launch", "deploy/local.yaml", "--status", "0"), "argument --status: must be a number > 0"),  # noqa: E501
+        ((), "name a command"),
+    ],
+)  # fmt: skip
+def test_mistakes_are_one_line_with_exit_1(args: tuple[str, ...], expected: str) -> None:
+    result = _framegate(*args)
+    lines = [line for line in result.stderr.splitlines() if not line.startswith("usage:")]
+    assert result.returncode == 1, result
+    assert len(lines) == 1 and lines[0].startswith("error: "), result.stderr
+    assert expected in lines[0], result.stderr
+    assert "Traceback" not in result.stderr
+
+
+def test_an_unreachable_connect_endpoint_is_named_with_exit_1() -> None:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"  # nobody listens there
+    for args in (("ls",), ("info", "camera/images", "--timeout", "1")):
+        result = _framegate(*args, "--connect", endpoint)
+        assert result.returncode == 1, result
+        assert result.stderr.startswith(f"error: cannot reach {endpoint} ("), result.stderr
+        assert len(result.stderr.splitlines()) == 1, result.stderr
+
+
+@pytest.mark.parametrize(
+    "code",
+    [
+        "main(['--help'])",
+        "main(['ls', '--help'])",
+        "main(['info', '--help'])",
+        "build_parser('ls').parse_args(['ls'])",
+    ],
+)
+def test_help_and_ls_import_nothing_heavy(code: str) -> None:
+    script = (
+        "import contextlib, io, json, sys\n"
+        "from services.cli import build_parser, main\n"
+        "with contextlib.redirect_stdout(io.StringIO()):\n"
+        f"    {code}\n"
+        "print(json.dumps(sorted(sys.modules)))\n"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", script],
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+        env=child_env(),
+        timeout=120,
+        check=True,
+    )
+    loaded = json.loads(result.stdout.splitlines()[-1])
+    heavy = sorted({m.split(".")[0] for m in loaded} & set(HEAVY))
+    assert heavy == [], f"{code} imported {heavy}"
+
+
+def test_help_lists_every_command_and_each_has_a_parser() -> None:
+    result = _framegate("--help")
+    assert result.returncode == 0
+    for name in COMMANDS:
+        assert f"\n    {name}" in result.stdout, name
+    for name in COMMANDS:  # each summary's module exists and registers that very command
+        args = build_parser(name).parse_args([name, *REQUIRED.get(name, ())])
+        assert args.command == name and callable(args.func), name
