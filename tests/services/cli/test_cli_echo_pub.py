@@ -1,0 +1,104 @@
+"""echo and pub as real subprocesses; ls and info name who holds each subscription."""
+
+from __future__ import annotations
+
+import socket
+import time
+
+import pytest
+
+from middleware import NetworkConfig, Node, SubscriptionMode, validate_metadata
+from services.cli._fields import decode_metadata, typed
+from services.cli.pub import KINDS
+from tests.conftest import wait_until
+from tests.services.cli.conftest import DISCOVERY_TIMEOUT_S, Cli, LineReader, put_frame
+
+SECOND = 1_000_000_000
+
+
+@pytest.mark.parametrize("kind", sorted(KINDS))
+def test_pub_makes_schema_valid_elements_of_every_kind(kind: str) -> None:
+    t = time.time_ns()
+    payload, metadata = KINDS[kind](3, t, 100.0)
+    validate_metadata(metadata, kind)
+    got_kind, fields = decode_metadata(metadata)
+    assert got_kind == kind and isinstance(payload, bytes)
+    assert all(not isinstance(v, str) or not v.lstrip("-").isdigit() for v in fields.values())
+
+
+def test_typed_gives_numbers_their_json_type() -> None:
+    assert typed("12") == 12 and typed("-3") == -3
+    assert typed("0.5") == 0.5 and typed("1e-3") == 0.001
+    assert typed("true") is True and typed("1 2.5") == [1, 2.5]
+    assert typed("nan") == "nan" and typed("mono8") == "mono8"
+
+
+@pytest.mark.integration
+def test_echo_prints_typed_fields_of_what_pub_publishes(cli: Cli, endpoint: str) -> None:
+    echo = cli.start("echo", "t/x", "--json", "--count", "3")
+    reader = LineReader(echo)
+    pub = cli.start(
+        "pub", "t/x", "--kind", "frame", "--count", "3", "--rate", "20",
+        "--wait-subscribers", "1", "--timeout", str(DISCOVERY_TIMEOUT_S),
+        "--listen", endpoint, connect=False,
+    )  # fmt: skip
+    rows = [reader.json_until(lambda r: True, DISCOVERY_TIMEOUT_S * 3) for _ in range(3)]
+    assert echo.wait(timeout=60) == 0
+    assert pub.wait(timeout=60) == 0, pub.stderr.read()
+    assert [r["fields"]["frame_id"] for r in rows] == [0, 1, 2]
+    first = rows[0]
+    assert first["kind"] == "frame" and first["fields"]["width_px"] == 64
+    assert isinstance(first["fields"]["exposure_ns"], int)
+    assert first["payload_bytes"] == 64 * 48 and first["payload"].startswith("3072 bytes, 64x48")
+
+
+@pytest.mark.integration
+def test_echo_field_prints_one_value_per_element(service: Node, cli: Cli) -> None:
+    images = service.offer("images", kind="frame")
+    echo = cli.start("echo", "cam/images", "--field", "frame_id", "--count", "2")
+
+    def subscribed() -> bool:
+        return bool(images.subscriptions())
+
+    wait_until(subscribed, DISCOVERY_TIMEOUT_S * 3, "echo's subscription")
+    base = time.time_ns()
+    put_frame(images, base, 7)
+    put_frame(images, base + 1000, 8)
+    out, err = echo.communicate(timeout=60)
+    assert echo.returncode == 0, err
+    assert out.split() == ["7", "8"]
+
+
+@pytest.mark.integration
+def test_echo_names_a_missing_field(service: Node, cli: Cli) -> None:
+    images = service.offer("images", kind="frame")
+    echo = cli.start("echo", "cam/images", "--field", "frame_ide")
+    wait_until(lambda: bool(images.subscriptions()), DISCOVERY_TIMEOUT_S * 3, "echo")
+    put_frame(images, time.time_ns(), 1)
+    _out, err = echo.communicate(timeout=60)
+    assert echo.returncode == 1
+    assert "no field 'frame_ide' (did you mean frame_id?)" in err, err
+    assert "Traceback" not in err
+
+
+@pytest.mark.integration
+def test_ls_and_info_show_the_node_and_host_of_each_subscription(
+    service: Node, cli: Cli, endpoint: str
+) -> None:
+    images = service.offer("images", kind="frame")
+    with Node("watcher", NetworkConfig(connect=(endpoint,))) as watcher:
+        watcher.subscribe("cam/images", queue_size=3, mode=SubscriptionMode.OBSERVE)
+        assert images.wait_for_subscribers(1, timeout_s=10)
+        listing, info, data = cli.run_many(
+            [("ls",), ("info", "cam/images"), ("info", "cam/images", "--json")]
+        )
+    host = socket.gethostname()
+    assert listing.returncode == 0, listing.describe()
+    assert f"subscribers watcher@{host} observe 0/3" in listing.stdout, listing.stdout
+    assert f"watcher@{host}" in info.stdout, info.stdout
+    [sub] = data.json()["subscriptions"]
+    assert (sub["node"], sub["host"]) == ("watcher", host)
+    # Every line a person reads fits 100 columns.
+    assert max(len(line) for line in listing.stdout.splitlines()) <= 100, listing.stdout
+    # Services of this host share its clock: no offset warning however the round trip went.
+    assert "CLOCK OFFSET" not in listing.stdout and "clock of" not in listing.stderr
