@@ -339,6 +339,13 @@ class Producer:
                     with self._lock:
                         self._protocol.send_failed(event.key, event.epoch)
 
+    def count_skip(self, reason: str, count: int = 1) -> None:
+        """Count ``count`` elements the service chose not to put, e.g. ``late`` frames a
+        camera could not produce in time; ``info`` shows them by reason."""
+        with self._lock:
+            skipped = self._counters.skipped
+            skipped[reason] = skipped.get(reason, 0) + count
+
     # -- reading state -------------------------------------------------------------------
     def fill(self) -> float:
         """The fullest flow-controlled subscription's queued/N in [0, 1]; 0 with none.

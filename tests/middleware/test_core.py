@@ -207,3 +207,11 @@ def test_a_fetching_subscription_keeps_its_queue_of_fetches_in_flight(
         producer.join()
         assert got == [(t, t.to_bytes(4, "big") * 100) for t in range(1, 41)]
         assert sub.fetched_ahead > 0
+
+
+def test_skips_a_service_counts_show_in_info(listen_net, connect_net) -> None:
+    with Node("cam", listen_net) as service, Node(network=connect_net) as client:
+        images = service.offer("images")
+        images.count_skip("late", 3)
+        images.count_skip("late")
+        assert client.buffer_info("cam/images").skipped == {"late": 4}
