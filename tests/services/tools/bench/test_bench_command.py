@@ -51,6 +51,7 @@ def _bench_command() -> list[str]:
 
 @pytest.mark.integration
 @pytest.mark.slow
+@pytest.mark.timeout(540)
 def test_quick_run_gives_numbers_for_every_scenario(tmp_path: Path) -> None:
     out = tmp_path / "bench.json"
     done = subprocess.run(
@@ -105,6 +106,7 @@ def test_quick_run_gives_numbers_for_every_scenario(tmp_path: Path) -> None:
     assert goal_scenarios == set(SCENARIO_NAMES)
     for name in SCENARIO_NAMES:
         assert name in done.stdout
+    assert all(len(line) <= 100 for line in done.stdout.splitlines()), done.stdout
 
 
 def test_unknown_scenario_is_an_error_naming_it(capsys: pytest.CaptureFixture[str]) -> None:
