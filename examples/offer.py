@@ -1,5 +1,8 @@
 """Offer a buffer and put one element per period: ``python examples/offer.py``.
 
+It runs until Ctrl-C (or ``--count`` elements), at a pace a person can follow in a second
+terminal (``--period-s``, 0.5 s).
+
 The service ``example`` offers ``example/counter``. While a flow-controlled subscriber's
 queue is full the put is refused; this producer may lose nothing, so it waits (``wait_s``)
 instead of dropping, as a replayed log would. A camera would drop the frame and count it.
@@ -8,10 +11,13 @@ instead of dropping, as a replayed log would. A camera would drop the frame and 
 from __future__ import annotations
 
 import argparse
+import itertools
+import sys
 import time
 
 from middleware import (
     FlowControlRefused,
+    FramegateError,
     NetworkConfig,
     Node,
     add_network_arguments,
@@ -21,9 +27,10 @@ from middleware import (
 
 
 def main(network: NetworkConfig, *, count: int, period_s: float, wait_s: float) -> int:
+    """Put ``count`` elements (0: until Ctrl-C), one per ``period_s``."""
     with Node("example", network) as node:
         counter = node.offer("counter", kind="generic")
-        for i in range(count):
+        for i in range(count) if count else itertools.count():
             timestamp_ns = time.time_ns()
             try:
                 counter.put(
@@ -43,10 +50,17 @@ def main(network: NetworkConfig, *, count: int, period_s: float, wait_s: float) 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(prog="offer", description=__doc__.splitlines()[0])
     add_network_arguments(parser)
-    parser.add_argument("--count", type=int, default=10, help="elements to put (10)")
-    parser.add_argument("--period-s", type=float, default=0.1, help="between puts (0.1 s)")
+    parser.add_argument("--count", type=int, default=0, help="elements to put (0: until Ctrl-C)")
+    parser.add_argument("--period-s", type=float, default=0.5, help="between puts (0.5 s)")
     parser.add_argument("--wait-s", type=float, default=5.0, help="wait when refused (5 s)")
     args = parser.parse_args()
-    raise SystemExit(
-        main(network_from_args(args), count=args.count, period_s=args.period_s, wait_s=args.wait_s)
-    )
+    try:
+        code = main(
+            network_from_args(args), count=args.count, period_s=args.period_s, wait_s=args.wait_s
+        )
+    except KeyboardInterrupt:  # Ctrl-C: the way to stop it
+        code = 0
+    except FramegateError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        code = 1
+    raise SystemExit(code)

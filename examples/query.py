@@ -7,8 +7,15 @@ or integer nanoseconds since the epoch).
 from __future__ import annotations
 
 import argparse
+import sys
 
-from middleware import NetworkConfig, Node, add_network_arguments, network_from_args
+from middleware import (
+    FramegateError,
+    NetworkConfig,
+    Node,
+    add_network_arguments,
+    network_from_args,
+)
 
 
 def main(network: NetworkConfig, target: str, *, time_range: str) -> int:
@@ -26,4 +33,11 @@ if __name__ == "__main__":
     parser.add_argument("target", nargs="?", default="example/counter", help="SERVICE/BUFFER")
     parser.add_argument("--range", default="[now(-60s)..]", help="time range ([now(-60s)..])")
     args = parser.parse_args()
-    raise SystemExit(main(network_from_args(args), args.target, time_range=args.range))
+    try:
+        code = main(network_from_args(args), args.target, time_range=args.range)
+    except FramegateError as exc:  # a bad range, a service that is not running: one line
+        print(f"error: {exc}", file=sys.stderr)
+        code = 1
+    except KeyboardInterrupt:
+        code = 0
+    raise SystemExit(code)

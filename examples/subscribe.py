@@ -7,9 +7,16 @@ A notification stays in this subscriber's queue until it is taken, so a slow con
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 
-from middleware import NetworkConfig, Node, add_network_arguments, network_from_args
+from middleware import (
+    FramegateError,
+    NetworkConfig,
+    Node,
+    add_network_arguments,
+    network_from_args,
+)
 
 
 def main(network: NetworkConfig, target: str, *, count: int, queue: int, delay_s: float) -> int:
@@ -36,12 +43,17 @@ if __name__ == "__main__":
     parser.add_argument("--queue", type=int, default=2, help="queue size N (2)")
     parser.add_argument("--delay-s", type=float, default=0.0, help="work per element (0 s)")
     args = parser.parse_args()
-    raise SystemExit(
-        main(
+    try:
+        code = main(
             network_from_args(args),
             args.target,
             count=args.count,
             queue=args.queue,
             delay_s=args.delay_s,
         )
-    )
+    except FramegateError as exc:  # e.g. the offering example is not running: one line
+        print(f"error: {exc}", file=sys.stderr)
+        code = 1
+    except KeyboardInterrupt:
+        code = 0
+    raise SystemExit(code)

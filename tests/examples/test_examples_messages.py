@@ -1,0 +1,92 @@
+"""The examples at human speed, and their mistakes as one line, never a traceback."""
+
+from __future__ import annotations
+
+import queue
+import signal
+import subprocess
+import sys
+import threading
+
+import pytest
+
+from tests.conftest import REPO, child_env, free_port
+
+pytestmark = pytest.mark.integration
+
+
+def _start(script: str, *args: str) -> subprocess.Popen[str]:
+    return subprocess.Popen(
+        [sys.executable, str(REPO / "examples" / script), *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=child_env(),
+    )
+
+
+def _lines(proc: subprocess.Popen[str]) -> queue.Queue[str]:
+    lines: queue.Queue[str] = queue.Queue()
+
+    def pump() -> None:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            lines.put(line)
+
+    threading.Thread(target=pump, daemon=True).start()
+    return lines
+
+
+def test_offer_runs_until_ctrl_c_and_then_exits_0() -> None:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    offer = _start("offer.py", "--listen", endpoint, "--period-s", "0.05")
+    try:
+        lines = _lines(offer)
+        # Well past the old fixed count of 10: it keeps going until told to stop.
+        puts = [lines.get(timeout=60) for _ in range(15)]
+        assert all(p.startswith("put ") for p in puts), puts
+        assert offer.poll() is None
+        offer.send_signal(signal.SIGINT)
+        assert offer.wait(timeout=30) == 0
+        assert offer.stderr is not None and "Traceback" not in offer.stderr.read()
+    finally:
+        if offer.poll() is None:
+            offer.kill()
+            offer.wait()
+
+
+def _one_line_error(proc: subprocess.Popen[str]) -> str:
+    _out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 1, err
+    assert "Traceback" not in err and len(err.splitlines()) == 1, err
+    assert err.startswith("error: "), err
+    return err
+
+
+def test_query_of_a_stopped_example_is_one_line() -> None:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    with subprocess.Popen(  # something to connect to, but no example service
+        [sys.executable, "-m", "services.cli", "router", "--listen", endpoint],
+        env=child_env(),
+        cwd=REPO,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    ) as router:
+        try:
+            err = _one_line_error(_start("query.py", "--connect", endpoint))
+        finally:
+            router.send_signal(signal.SIGINT)
+            router.wait(timeout=30)
+    assert "example" in err
+
+
+def test_query_with_a_bad_range_is_one_line() -> None:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    offer = _start("offer.py", "--listen", endpoint, "--period-s", "0.05")
+    try:
+        lines = _lines(offer)
+        lines.get(timeout=60)  # it is up and has put something
+        _one_line_error(_start("query.py", "--connect", endpoint, "--range", "[now(-1x)..]"))
+    finally:
+        offer.kill()
+        offer.wait()
