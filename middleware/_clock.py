@@ -60,16 +60,18 @@ class SteadyClock:
     def __init__(
         self,
         *,
-        wall: Callable[[], int] = time.time_ns,
-        monotonic: Callable[[], int] = time.monotonic_ns,
+        wall: Callable[[], int] | None = None,
+        monotonic: Callable[[], int] | None = None,
         on_step: Callable[[int], None] | None = None,
     ) -> None:
-        self._wall = wall
-        self._monotonic = monotonic
+        # Looked up at each reading, so that a process (or a test) that replaces
+        # ``time.time_ns`` is followed.
+        self._wall = wall or (lambda: time.time_ns())
+        self._monotonic = monotonic or (lambda: time.monotonic_ns())
         self._on_step = on_step
         self._lock = threading.Lock()
-        self._mono_ns = monotonic()
-        self._skew_ns = wall() - self._mono_ns  # wall - monotonic at the last reading
+        self._mono_ns = self._monotonic()
+        self._skew_ns = self._wall() - self._mono_ns  # wall - monotonic at the last reading
         self._lead_ns = 0
         self._last_ns = 0
         self._steps = 0
