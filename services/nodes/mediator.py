@@ -47,7 +47,9 @@ from __future__ import annotations
 
 import argparse
 import collections
+import contextlib
 import itertools
+import statistics
 import threading
 import time
 from dataclasses import dataclass
@@ -64,8 +66,10 @@ from middleware import (
     Producer,
     Retention,
     Subscription,
+    SubscriptionInfo,
     SubscriptionMode,
     now_ns,
+    split_target,
 )
 from services.lib.decisions import (
     DEFAULT_POLICY,
@@ -90,7 +94,7 @@ from services.lib.quality import (
     quality,
 )
 from services.nodes._contract import Service, ServiceEntry
-from services.nodes._runtime import Monotonic, setup_logging
+from services.nodes._runtime import Monotonic, count_skip, setup_logging
 
 # A batch whose newest sample is this much older than the newest kept: the gyro restarted.
 _GYRO_RESTART_NS = 10_000_000_000
@@ -113,6 +117,8 @@ class MediatorConfig:
     gyro_wait_ms: float = 150.0
     blur_mode: BlurMode = BlurMode.DEFAULT
     max_hold_ms: float = 250.0
+    horizon_s: float = 10.0
+    max_clock_offset: float = 0.5
 
 
 @dataclass(frozen=True, slots=True)
@@ -248,11 +254,77 @@ class GyroCache:
 
 def detector_load(producer: Producer) -> Load:
     """The flow-controlled subscription with the fewest free slots (0/0 with none)."""
-    flows = [s for s in producer.subscriptions() if s.mode is SubscriptionMode.FLOW]
+    return _tightest(producer.subscriptions())[0]
+
+
+def _tightest(subs: list[SubscriptionInfo]) -> tuple[Load, SubscriptionInfo | None]:
+    flows = [s for s in subs if s.mode is SubscriptionMode.FLOW]
     if not flows:
-        return Load(0, 0)
+        return Load(0, 0), None
     tightest = min(flows, key=lambda s: (s.queue_size - s.queued, -s.fill))
-    return Load(min(tightest.queued, tightest.queue_size), tightest.queue_size, tightest.taken_ns)
+    load = Load(min(tightest.queued, tightest.queue_size), tightest.queue_size, tightest.taken_ns)
+    return load, tightest
+
+
+# How often the mediator asks camera and gyro for their clocks, and how many answers count.
+_OFFSET_PERIOD_S = 2.0
+_OFFSET_SAMPLES = 5
+
+
+class ClockOffsets:
+    """How far the camera's clock is from the gyro's, measured by asking both (a thread).
+
+    Every ``_OFFSET_PERIOD_S`` the services' descriptions give each clock's offset from
+    ours and the round trip that bounds its error (NTP-style); the camera-minus-gyro
+    offset is the median of the last ``_OFFSET_SAMPLES``, its uncertainty half the sum of
+    the median round trips. Unknown (None) until both have answered.
+
+    Threads: one daemon thread asks (it only calls ``Node.services``); ``_lock`` guards
+    the samples.
+    """
+
+    def __init__(self, node: Node, camera: str, gyro: str) -> None:
+        self._node = node
+        self._camera = camera
+        self._gyro = gyro
+        self._samples: collections.deque[tuple[int, int]] = collections.deque(
+            maxlen=_OFFSET_SAMPLES
+        )
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True, name="clock-offsets")
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            with contextlib.suppress(FramegateError):
+                self.measure()
+            self._stop.wait(_OFFSET_PERIOD_S)
+
+    def measure(self) -> None:
+        found = {s.service: s for s in self._node.services(timeout_s=1.0)}
+        camera, gyro = found.get(self._camera), found.get(self._gyro)
+        if camera is None or gyro is None:
+            return
+        if camera.clock_offset_ns is None or gyro.clock_offset_ns is None:
+            return
+        offset = camera.clock_offset_ns - gyro.clock_offset_ns
+        error = ((camera.round_trip_ns or 0) + (gyro.round_trip_ns or 0)) // 2
+        with self._lock:
+            self._samples.append((offset, error))
+
+    def current(self) -> tuple[int, int] | None:
+        """(camera - gyro offset, its uncertainty) in ns, or None while unknown."""
+        with self._lock:
+            if not self._samples:
+                return None
+            offsets = [o for o, _ in self._samples]
+            errors = [e for _, e in self._samples]
+        return int(statistics.median(offsets)), int(statistics.median(errors))
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2)
 
 
 def check_frame(meta: FrameMeta, payload_bytes: int) -> None:
@@ -310,6 +382,19 @@ class Mediator:
             config.camera, queue_size=config.camera_queue, wait_s=0, push_max_bytes=PUSH_ALL
         )
         self._gyro = GyroCache(node.subscribe(config.gyro, queue_size=256, wait_s=0))
+        self._offsets = ClockOffsets(
+            node, split_target(config.camera)[0], split_target(config.gyro)[0]
+        )
+        self._offset_ok = True
+        self._horizon_ns = int(config.horizon_s * 1e9)
+        self._camera_seq: int | None = None
+        self._newest_put_ns: int | None = None
+        # The flow-controlled consumer (the detector): whether one was ever seen, whether
+        # its subscription has lapsed, and the frames last seen waiting in its queue.
+        self._consumer_capacity: int | None = None
+        self.lapsed = False
+        self._queued_frames: collections.deque[_Frame] = collections.deque()
+        self._last_load = Load(0, 0)
         self._options = BlurOptions(mode=config.blur_mode)
         self._keys = Monotonic()
         self.decider = Decider(
@@ -332,8 +417,23 @@ class Mediator:
         wait = _HOLD_POLL_S if self.decider.held else timeout_s
         note = self._camera.take(timeout_s=wait)
         if note is None:
-            load = detector_load(self.images)
+            load = self._load()
             self._carry_out(self.decider.tick(load, time.monotonic_ns()), load)
+            return
+        if self._camera_seq is not None and note.seq <= self._camera_seq:
+            # A new epoch of the camera's stream (it restarted, or our subscription was
+            # registered again): its frames are judged afresh, not against the old ones.
+            self.log.info("camera stream started over (seq %d): time order restarts", note.seq)
+            self.decider.restart_order(self._newest_put_ns)
+        self._camera_seq = note.seq
+        if note.timestamp_ns > now_ns() + self._horizon_ns:
+            ahead_s = (note.timestamp_ns - now_ns()) / 1e9
+            self._skip(
+                note.timestamp_ns,
+                0,
+                "future-stamp",
+                f"stamped {ahead_s:.1f} s ahead of our clock (horizon {self.config.horizon_s:g} s)",
+            )
             return
         try:
             frame = self._assess(note)
@@ -344,9 +444,50 @@ class Mediator:
             self.log.exception("frame %d: unexpected error; skipped", note.timestamp_ns)
             self._skip(note.timestamp_ns, 0, "internal-error", repr(exc))
             return
+        load = self._load()
+        if self.lapsed:
+            self._record(frame, Verdict(frame.candidate, Action.DROP, "consumer-lapsed"), load)
+            return
         self._pending[frame.candidate.timestamp_ns] = frame
-        load = detector_load(self.images)
         self._carry_out(self.decider.frame(frame.candidate, load, time.monotonic_ns()), load)
+
+    def _load(self) -> Load:
+        """The detector's load; full while the subscription of a consumer we had lapsed.
+
+        A flow-controlled consumer that stops answering (stopped, frozen, partitioned)
+        loses its subscription after the lease; to the producer that looks like no
+        consumer at all (load 0), and frames forwarded then are lost without a trace.
+        So once a flow-controlled consumer has been seen, its absence means full: frames
+        are recorded ``consumer-lapsed`` (not forwarded) until a consumer is back, and the
+        frames that were waiting in its queue when it lapsed get a ``consumer-lapsed``
+        record too. A mediator that never had one (uncontrolled wiring) forwards as before.
+        """
+        load, tightest = _tightest(self.images.subscriptions())
+        if tightest is not None:
+            if self.lapsed:
+                self.lapsed = False
+                self.log.warning("the detector's subscription is back: forwarding again")
+            self._consumer_capacity = tightest.queue_size
+            self._last_load = load
+            return load
+        if self._consumer_capacity is None:
+            return load
+        full = Load(self._consumer_capacity, self._consumer_capacity)
+        if not self.lapsed:
+            self.lapsed = True
+            queued = self._last_load.queued
+            waiting = list(self._queued_frames)[-queued:] if queued else []
+            self.log.warning(
+                "the detector's subscription lapsed (a stopped or unreachable consumer); "
+                "frames are recorded consumer-lapsed, not forwarded, until it is back "
+                "(%d forwarded frames were waiting in its queue)",
+                len(waiting),
+            )
+            for frame in waiting:
+                self._record(frame, Verdict(frame.candidate, Action.DROP, "consumer-lapsed"), full)
+            self._queued_frames.clear()
+        self._last_load = full
+        return full
 
     def _assess(self, note: Notification) -> _Frame:
         try:
@@ -360,13 +501,19 @@ class Mediator:
         check_frame(meta, len(element.payload))
         blur, q = self._quality(meta)
         arrived = time.monotonic_ns()
-        candidate = Candidate(meta.timestamp_ns, meta.frame_id, q, arrived, blur)
+        unpaired = None if self._offset_ok else "clock-offset"
+        if unpaired:
+            self.skipped[unpaired] += 1
+            count_skip(self.images, unpaired)
+        candidate = Candidate(meta.timestamp_ns, meta.frame_id, q, arrived, blur, unpaired)
         return _Frame(meta, element.payload, element.metadata, candidate)
 
     def _quality(self, meta: FrameMeta) -> tuple[float | None, float | None]:
         """Blur and quality of a frame, or (None, None) when the gyro does not cover it."""
         camera = meta.camera
         if camera is None:
+            return None, None
+        if not self._clocks_agree(meta):
             return None, None
         end_ns = meta.exposure.end_ns
         gyro_end = end_ns + camera.gyro_time_offset_ns + camera.height_px * camera.line_readout_ns
@@ -396,6 +543,34 @@ class Mediator:
         assert result is not None
         return result
 
+    def _clocks_agree(self, meta: FrameMeta) -> bool:
+        """False when camera and gyro clocks are too far apart to pair their stamps.
+
+        Pairing looks up the gyro samples stamped during the frame's exposure; if the two
+        clocks disagree by more than ``max_clock_offset`` of the exposure (beyond what the
+        measurement can tell), those samples are of another moment. Warned once per
+        episode; such frames are ``clock-offset`` (the gyro-missing rule decides).
+        """
+        measured = self._offsets.current()
+        limit_ns = self.config.max_clock_offset * meta.exposure.duration_ns
+        agree = measured is None or abs(measured[0]) - measured[1] <= limit_ns
+        if agree != self._offset_ok:
+            self._offset_ok = agree
+            assert measured is not None
+            if agree:
+                self.log.warning("camera and gyro clocks agree again (%+.1f ms)", measured[0] / 1e6)
+            else:
+                self.log.warning(
+                    "camera clock is %+.3f s (+-%.3f) off the gyro's, more than %g of the "
+                    "%.0f ms exposure: frames are not paired with gyro samples (clock-offset) "
+                    "until they agree; synchronise the clocks (chrony)",
+                    measured[0] / 1e9,
+                    measured[1] / 1e9,
+                    self.config.max_clock_offset,
+                    meta.exposure.duration_ns / 1e6,
+                )
+        return agree
+
     # -- carrying out -------------------------------------------------------------------------
     def _carry_out(self, verdicts: list[Verdict], load: Load) -> None:
         """Put forwarded frames, record every verdict with the load the decider saw."""
@@ -420,6 +595,10 @@ class Mediator:
     def _put(self, frame: _Frame) -> bool:
         try:
             self.images.put(frame.meta.timestamp_ns, frame.payload, frame.metadata)
+            self._newest_put_ns = frame.meta.timestamp_ns
+            self._queued_frames.append(frame)
+            while len(self._queued_frames) > max(1, self._consumer_capacity or 1):
+                self._queued_frames.popleft()
             return True
         except FlowControlRefused:
             return False
@@ -446,6 +625,7 @@ class Mediator:
 
     def _skip(self, key_ns: int, frame_id: int, reason: str, detail: str) -> None:
         self.skipped[reason] += 1
+        count_skip(self.images, reason)
         count = self.skipped[reason]
         if count & (count - 1) == 0:  # 1, 2, 4, 8...: visible, never a flood
             self.log.warning("skipping frame %d (%s, %d so far): %s", key_ns, reason, count, detail)
@@ -455,7 +635,7 @@ class Mediator:
                 frame_id=frame_id,
                 blur_px=None,
                 quality=None,
-                load=detector_load(self.images).fill,
+                load=self._last_load.fill,
                 accepted=False,
                 reason=reason,
                 policy=self.config.policy,
@@ -477,6 +657,7 @@ class Mediator:
 
     def close(self) -> None:
         self._gyro.stop()
+        self._offsets.stop()
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -531,6 +712,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=d.max_hold_ms,
         help="longest a frame may be held for the detector (default %(default)s)",
     )
+    parser.add_argument(
+        "--horizon-s",
+        type=positive_float,
+        default=d.horizon_s,
+        help="frames stamped further ahead of our clock are skipped (default %(default)s)",
+    )
+    parser.add_argument(
+        "--max-clock-offset",
+        type=positive_float,
+        default=d.max_clock_offset,
+        help="camera-gyro clock offset allowed, as a fraction of the exposure (default "
+        "%(default)s)",
+    )
 
 
 def config_from_args(args: argparse.Namespace) -> MediatorConfig:
@@ -547,6 +741,8 @@ def config_from_args(args: argparse.Namespace) -> MediatorConfig:
         gyro_wait_ms=args.gyro_wait_ms,
         blur_mode=BlurMode(args.blur_mode),
         max_hold_ms=args.max_hold_ms,
+        horizon_s=args.horizon_s,
+        max_clock_offset=args.max_clock_offset,
     )
 
 

@@ -172,7 +172,8 @@ class Decider:
             rule = self.rules.gyro_missing
             go = rule is GyroMissing.ACCEPT or (rule is GyroMissing.IDLE and self._load.idle)
             action = Action.FORWARD if go else Action.DROP
-            return self._apply([Verdict(frame, action, f"gyro-missing-{rule.value}")], frame)
+            reason = frame.unpaired or f"gyro-missing-{rule.value}"
+            return self._apply([Verdict(frame, action, reason)], frame)
         if frame.q < self.rules.q_min:
             verdicts = [Verdict(frame, Action.DROP, "below-minimum")]
         else:

@@ -23,6 +23,9 @@ class Candidate:
 
     ``q`` is None when the gyro did not cover the exposure (the gyro-missing rule decides);
     ``arrived_ns`` is the mediator's clock when the frame arrived (hold times count from it).
+    ``unpaired``: why a frame has no quality, if not because the gyro does not cover it
+    (``clock-offset``: camera and gyro clocks disagree too much to pair them); it becomes
+    the decision's reason, the gyro-missing rule still decides.
     """
 
     timestamp_ns: int
@@ -30,6 +33,7 @@ class Candidate:
     q: float | None
     arrived_ns: int
     blur_px: float | None = None
+    unpaired: str | None = None
 
     def __post_init__(self) -> None:
         if self.q is not None and not (math.isfinite(self.q) and 0.0 < self.q <= 1.0):

@@ -51,11 +51,12 @@ def _candidates(action: argparse.Action) -> list[list[str]]:
     if action.choices:
         extra = COMPANIONS.get(flag, [])
         return [[flag, str(c), *extra] for c in action.choices if str(c) != str(action.default)]
-    if action.type is int:
-        return [[flag, str((action.default or 0) + 3)]]
-    if action.type is float:
-        return [[flag, str((action.default or 0.0) + 0.5)]]
-    return [[flag, "other"], [flag, "other/thing"]]
+    if action.type is int or isinstance(action.default, int):
+        return [[flag, str((action.default or 0) + 3)], [flag, "3"]]
+    if action.type is float or isinstance(action.default, float):
+        # A checked number type (positive_float, unit_float...): a value in every range.
+        return [[flag, str((action.default or 0.0) + 0.5)], [flag, "0.5"], [flag, "3"]]
+    return [[flag, "other"], [flag, "other/thing"], [flag, "3"], [flag, "0.5"]]
 
 
 def _config(name: str, argv: list[str]) -> Any:
