@@ -26,13 +26,15 @@ from middleware import (
     split_target,
 )
 
+from .argtypes import positive_float
+
 DEFAULT_TIMEOUT_S = 3.0
 
 
 def add_timeout_argument(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--timeout",
-        type=float,
+        type=positive_float,
         default=DEFAULT_TIMEOUT_S,
         metavar="S",
         help=f"seconds to wait for the service to answer (default {DEFAULT_TIMEOUT_S:g})",

@@ -17,6 +17,7 @@ from typing import Any
 from services.lib.quality import DEFAULT_B0_PX
 
 from ._common import exit_on_sigterm
+from .argtypes import non_negative_float, positive_float, positive_int
 
 # services.tools.experiment is imported when the command runs, not here: it pulls in scipy and
 # matplotlib (seconds on a busy machine), and every framegate command, including each
@@ -37,16 +38,18 @@ def register(subparsers: Any) -> None:
         "--seeds", type=int, nargs="+", default=None, metavar="SEED",
         help="simulator seeds, one approach each (default 1 2 3 4 5; --quick: 1)",
     )  # fmt: skip
-    parser.add_argument("--queue", type=int, default=2, help="detector queue size N (default 2)")
     parser.add_argument(
-        "--service-factor", type=float, default=1.6,
+        "--queue", type=positive_int, default=2, help="detector queue size N (default 2)"
+    )
+    parser.add_argument(
+        "--service-factor", type=positive_float, default=1.6,
         help="detector processing time as a multiple of the frame period (default 1.6)",
     )  # fmt: skip
     parser.add_argument(
-        "--b0", type=float, default=DEFAULT_B0_PX, dest="b0_px",
+        "--b0", type=positive_float, default=DEFAULT_B0_PX, dest="b0_px",
         help="the mediator's blur scale b0 in px: q = exp(-blur/b0) (default %(default)s)",
     )  # fmt: skip
-    parser.add_argument("--frames", type=int, help="frames per approach (default 319)")
+    parser.add_argument("--frames", type=positive_int, help="frames per approach (default 319)")
     parser.add_argument(
         "--floor", default="default", choices=("smooth", "default", "rough"),
         help="the simulated floor's bumps (default %(default)s)",
@@ -57,8 +60,8 @@ def register(subparsers: Any) -> None:
         "(discrete-event, with the oracle and every policy) and print one summary table",
     )  # fmt: skip
     parser.add_argument("--floors", nargs="+", default=["smooth", "default", "rough"])
-    parser.add_argument("--queues", type=int, nargs="+", default=[1, 2, 3])
-    parser.add_argument("--factors", type=float, nargs="+", default=[1.3, 1.6, 2.0])
+    parser.add_argument("--queues", type=positive_int, nargs="+", default=[1, 2, 3])
+    parser.add_argument("--factors", type=positive_float, nargs="+", default=[1.3, 1.6, 2.0])
     parser.add_argument(
         "--policies", nargs="+", default=["paper", "replace", "deadline", "adaptive"],
         help="mediator policies the sweep replays",
@@ -73,7 +76,7 @@ def register(subparsers: Any) -> None:
         help="directory of rendered datasets to reuse (default OUT/datasets)",
     )  # fmt: skip
     parser.add_argument(
-        "--startup", type=float, default=6.0, dest="startup_s", metavar="S",
+        "--startup", type=non_negative_float, default=6.0, dest="startup_s", metavar="S",
         help="seconds the processes get to come up before each replay starts (default 6)",
     )  # fmt: skip
     parser.add_argument(

@@ -15,6 +15,7 @@ from typing import Any
 from services.tools.faultbench import FaultConfig, format_faults, run_faults
 
 from ._common import command_parser, stop_on_signals
+from .argtypes import positive_int
 
 GOAL_MISSED = 3
 
@@ -27,8 +28,10 @@ def register(subparsers: Any) -> None:
         network=False,
     )
     d = FaultConfig()
-    parser.add_argument("--kills", type=int, default=d.kills, help="kills per service")
-    parser.add_argument("--port", type=int, help="private rendezvous port (default: a free one)")
+    parser.add_argument("--kills", type=positive_int, default=d.kills, help="kills per service")
+    parser.add_argument(
+        "--port", type=positive_int, help="private rendezvous port (default: a free one)"
+    )
     parser.add_argument("--json", metavar="FILE", help="also write the report as JSON")
     parser.add_argument("--show-logs", action="store_true", help="print the services' logs")
     parser.set_defaults(func=run)

@@ -20,6 +20,7 @@ from middleware import ConfigError, FramegateError, Node, SubscriptionMode
 
 from ._common import command_parser, exit_on_sigterm, format_bytes, network
 from ._target import add_timeout_argument, print_json_line, resolve
+from .argtypes import positive_float, positive_int
 
 DEFAULT_WINDOW = 100
 
@@ -42,17 +43,21 @@ def register(subparsers: Any) -> None:
     parser.add_argument("target", metavar="SERVICE/BUFFER", help="the buffer, e.g. camera/images")
     parser.add_argument(
         "--window",
-        type=int,
+        type=positive_int,
         default=DEFAULT_WINDOW,
         metavar="N",
         help=f"statistics over the last N elements (default {DEFAULT_WINDOW})",
     )
-    parser.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+    parser.add_argument("--duration", type=positive_float, metavar="S", help="stop after S seconds")
     parser.add_argument(
-        "--interval", type=float, default=1.0, metavar="S", help="report every S seconds"
+        "--interval", type=positive_float, default=1.0, metavar="S", help="report every S seconds"
     )
     parser.add_argument(
-        "--queue", type=int, default=100, metavar="N", help="observer queue size (default 100)"
+        "--queue",
+        type=positive_int,
+        default=100,
+        metavar="N",
+        help="observer queue size (default 100)",
     )
     add_timeout_argument(parser)
     parser.epilog = (

@@ -25,6 +25,7 @@ from services.lib.files import OutputError, create_file, open_directory
 from ._common import command_parser, format_bytes, format_ns, network, print_json
 from ._fields import decode_metadata
 from ._target import add_timeout_argument, resolve
+from .argtypes import positive_int
 
 # With no selection at all, a query returns this many of the newest elements: a camera
 # buffer can hold gigabytes, and nobody wants them all by accident.
@@ -52,7 +53,7 @@ def register(subparsers: Any) -> None:
     parser.add_argument("--to", dest="end", metavar="TIME", help=f"last time: {_TIME_HELP}")
     parser.add_argument(
         "--last",
-        type=int,
+        type=positive_int,
         metavar="N",
         help=f"only the newest N (of the range, if given); default {DEFAULT_LAST} with no range",
     )

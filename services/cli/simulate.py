@@ -19,6 +19,8 @@ from services.lib.sim import (
     write_report,
 )
 
+from .argtypes import positive_float, positive_int
+
 
 def register(subparsers: Any) -> None:
     """Add the ``simulate`` command."""
@@ -31,8 +33,8 @@ def register(subparsers: Any) -> None:
     )
     parser.add_argument("--out", type=Path, required=True, help="dataset directory to write")
     parser.add_argument("--seed", type=int, help="random seed (default 0)")
-    parser.add_argument("--frames", type=int, help="number of frames (default 319)")
-    parser.add_argument("--exposure-ms", type=float, help="exposure time (default 60)")
+    parser.add_argument("--frames", type=positive_int, help="number of frames (default 319)")
+    parser.add_argument("--exposure-ms", type=positive_float, help="exposure time (default 60)")
     parser.add_argument(
         "--floor", choices=ScenarioConfig.floor_names(),
         help="bump preset: smooth, default or rough (applied before --config and --set)",

@@ -17,6 +17,7 @@ from typing import Any
 from services.tools.soak import SoakConfig, format_report, run_soak
 
 from ._common import command_parser, stop_on_signals
+from .argtypes import non_negative_float, positive_float, positive_int
 
 GOAL_MISSED = 3
 
@@ -35,28 +36,38 @@ def register(subparsers: Any) -> None:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     d = SoakConfig()
     parser.add_argument(
-        "--duration", type=float, default=d.duration_s, help="seconds (default %(default)s)"
+        "--duration",
+        type=positive_float,
+        default=d.duration_s,
+        help="seconds (default %(default)s)",
     )
     parser.add_argument("--json", metavar="FILE", help="also write the report as JSON")
     parser.add_argument(
-        "--warmup", type=float, help="seconds before memory counts (default: 1/4, at most 60)"
+        "--warmup",
+        type=non_negative_float,
+        help="seconds before memory counts (default: 1/4, at most 60)",
     )
     parser.add_argument(
-        "--sample", type=float, default=d.sample_s, help="seconds between memory samples"
+        "--sample", type=positive_float, default=d.sample_s, help="seconds between memory samples"
     )
     parser.add_argument(
-        "--check", type=float, default=d.check_s, help="seconds between lost-element audits"
+        "--check",
+        type=positive_float,
+        default=d.check_s,
+        help="seconds between lost-element audits",
     )
     parser.add_argument(
-        "--rate", type=float, default=d.rate, help="scenario speed of camera and gyro"
+        "--rate", type=positive_float, default=d.rate, help="scenario speed of camera and gyro"
     )
     parser.add_argument("--seed", type=int, default=d.seed, help="simulator seed")
     parser.add_argument(
         "--service-factor",
-        type=float,
+        type=non_negative_float,
         help="emulate a slow detector (x frame period); default: no emulated load",
     )
-    parser.add_argument("--port", type=int, help="private rendezvous port (default: a free one)")
+    parser.add_argument(
+        "--port", type=positive_int, help="private rendezvous port (default: a free one)"
+    )
     parser.add_argument("--show-logs", action="store_true", help="print the services' logs")
 
 

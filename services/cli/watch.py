@@ -17,6 +17,7 @@ from middleware import ConfigError, Node, Notification, SubscriptionMode
 
 from ._common import command_parser, exit_on_sigterm, format_bytes, format_ns, network
 from ._target import add_timeout_argument, print_json_line, resolve
+from .argtypes import non_negative_float, positive_float, positive_int
 
 DEFAULT_QUEUE = 10
 
@@ -31,14 +32,14 @@ def register(subparsers: Any) -> None:
     parser.add_argument("target", metavar="SERVICE/BUFFER", help="the buffer, e.g. camera/images")
     parser.add_argument(
         "--queue",
-        type=int,
+        type=positive_int,
         default=DEFAULT_QUEUE,
         metavar="N",
         help=f"notification queue size (default {DEFAULT_QUEUE})",
     )
     parser.add_argument(
         "--delay",
-        type=float,
+        type=non_negative_float,
         default=0.0,
         metavar="S",
         help="sleep S seconds after taking each notification (a deliberately slow consumer)",
@@ -48,8 +49,10 @@ def register(subparsers: Any) -> None:
         action="store_true",
         help="take part in flow control: while this queue is full the producer is refused",
     )
-    parser.add_argument("--count", type=int, metavar="K", help="stop after K notifications")
-    parser.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+    parser.add_argument(
+        "--count", type=positive_int, metavar="K", help="stop after K notifications"
+    )
+    parser.add_argument("--duration", type=positive_float, metavar="S", help="stop after S seconds")
     add_timeout_argument(parser)
     parser.epilog = "--json prints one JSON object per line (JSON Lines), then a summary line."
     parser.set_defaults(func=run)

@@ -57,7 +57,7 @@ def _framegate(*args: str) -> subprocess.CompletedProcess[str]:
         (("run", "mediator", "--q-min", "2"), "argument --q-min: must be a number >= 0 and <= 1"),
         (("run", "camera", "--sorce", "sim"), "(did you mean --source?)"),
         (("run", "camra"), "(did you mean camera?)"),
-        (("watch", "camera/images", "--queue", "0"), "--queue 0: the queue must hold at least 1"),
+        (("watch", "camera/images", "--queue", "0"), "argument --queue: must be an integer > 0"),
         (("echo", "camera/images", "--count", "-1"), "argument --count: must be an integer > 0"),
         (("pub", "t/x", "--kind", "fram"), "(did you mean frame?)"),
         (("launch", "deploy/local.yaml", "--status", "0"), "argument --status: must be a number > 0"),  # noqa: E501
