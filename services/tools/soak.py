@@ -151,6 +151,10 @@ def _digest(payload: bytes, metadata: bytes) -> bytes:
     return hashlib.sha256(len(payload).to_bytes(8, "little") + payload + metadata).digest()
 
 
+# Decision reasons that explain why an accepted frame gets no detection.
+EXCUSED_REASONS = frozenset({"consumer-lapsed"})
+
+
 @dataclass
 class Audit:
     """Accepted elements that went missing, found by querying the services as any client.
@@ -165,6 +169,9 @@ class Audit:
     reasons: Counter[str] = field(default_factory=Counter)
     in_mediator: set[int] = field(default_factory=set)
     detected: set[int] = field(default_factory=set)
+    # Frames with a recorded reason why no detection will come (the detector's
+    # subscription lapsed while they waited): accepted, not lost.
+    excused: set[int] = field(default_factory=set)
     compared: int = 0
     lost: dict[str, set[int]] = field(
         default_factory=lambda: {
@@ -201,6 +208,8 @@ class Audit:
             ts = record.frame_timestamp_ns
             self.decided[ts] = self.decided.get(ts, False) or record.accepted
             self.reasons[record.reason] += 1
+            if record.reason in EXCUSED_REASONS:
+                self.excused.add(ts)
         for element in self._new(node, "detector/detections"):
             self.detected.add(element.timestamp_ns)
         self.checks += 1
@@ -234,7 +243,8 @@ class Audit:
                     self.lost["accepted_not_in_mediator"].add(ts)
         newest_detected = max(self.detected, default=0)
         for ts, accepted in self.decided.items():
-            if accepted and ts <= newest_detected and ts not in self.detected:
+            done = ts in self.detected or ts in self.excused
+            if accepted and ts <= newest_detected and not done:
                 self.lost["accepted_without_detection"].add(ts)
         # Frames the mediator has seen need no digest any more.
         horizon = min(newest_decided, self._cursor.get("mediator/images", 0))
@@ -251,6 +261,7 @@ class Audit:
             "accepted_seen_in_mediator": len(self.in_mediator),
             "compared_with_camera": self.compared,
             "detected": len(self.detected),
+            "accepted_with_reason": sum(1 for t in self.excused if self.decided.get(t)),
             "decision_reasons": dict(self.reasons.most_common()),
             "lost": {name: len(found) for name, found in self.lost.items()},
             "lost_examples": {name: sorted(found)[:5] for name, found in self.lost.items()},
@@ -523,7 +534,9 @@ def format_report(report: dict[str, Any]) -> str:
         f"  mediator           {audit['frames_decided']} frames decided: {reasons}",
         f"  mediator/images    {med.get('puts')} stored, {med.get('refused')} refused "
         "(detector's queue full)",
-        f"  detector           {det.get('puts')} detections ({det.get('per_s')}/s)",
+        f"  detector           {det.get('puts')} detections ({det.get('per_s')}/s); "
+        f"{audit.get('accepted_with_reason', 0)} accepted frames with a recorded reason "
+        "for no detection (consumer-lapsed)",
         "",
         f"lost (goal 0), {audit['checks']} audits while running",
     ]

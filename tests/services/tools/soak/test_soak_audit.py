@@ -115,6 +115,23 @@ def test_a_skipped_frame_an_unforwarded_accept_and_a_missing_detection_are_lost(
     assert lost["accepted_without_detection"] == {4 * MS, 5 * MS}
 
 
+def test_an_accepted_frame_with_a_consumer_lapsed_record_is_counted_not_lost() -> None:
+    pipe = FakePipeline()
+    for i in range(1, 5):
+        pipe.frame(i * MS)
+    pipe.decide(1 * MS, True)
+    pipe.decide(2 * MS, True, detect=False)  # waiting in the detector's queue...
+    key = 10**12 + 2 * MS + 1  # ... when its subscription lapsed: the mediator says so
+    lapsed = DecisionRecord(2 * MS, 2, 1.0, 0.8, 1.0, False, "consumer-lapsed", "paper", 5.0, 1)
+    pipe.buffers["mediator/decisions"][key] = DataObject(key, b"", lapsed.metadata(key))
+    pipe.decide(3 * MS, True, detect=False)  # no record why: lost
+    pipe.decide(4 * MS, True)
+    audit = _audit(pipe, now_ns=8 * MS)
+    assert audit.lost["accepted_without_detection"] == {3 * MS}
+    assert audit.summary()["accepted_with_reason"] == 1
+    assert audit.summary()["decision_reasons"]["consumer-lapsed"] == 1
+
+
 def test_an_altered_frame_in_mediator_images_is_not_identical() -> None:
     pipe = FakePipeline()
     for i in range(1, 4):
