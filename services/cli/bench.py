@@ -6,6 +6,7 @@ row (the raw and framegate medians, framegate/raw and the goal with PASS or MISS
 100 columns; ``--json`` keeps every sample. A 1-minute load average above half the cores at
 the start is flagged (the figures are then unreliable). Exit code 1 when a scenario could
 not run; with ``--check``, 3 when a goal is missed (without it, a missed goal exits 0).
+Ctrl-C or SIGTERM stops the workers and exits 0 without a report.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from typing import Any
 
 from services.tools.bench import SCENARIO_NAMES, BenchError, BenchOptions, format_table, run_bench
 
-from ._common import command_parser
+from ._common import command_parser, exit_on_sigterm
 
 GOAL_MISSED = 3
 
@@ -88,7 +89,12 @@ def run(args: argparse.Namespace) -> int:
     target = Path(args.json) if args.json else None
     if target is not None and not target.parent.is_dir():
         raise BenchError(f"cannot write --json {target}: directory {target.parent} does not exist")
-    report = run_bench(options)
+    exit_on_sigterm()  # SIGTERM stops the workers as Ctrl-C does
+    try:
+        report = run_bench(options)
+    except KeyboardInterrupt:
+        print("bench: interrupted; no report", file=sys.stderr, flush=True)
+        return 0
     print(format_table(report, notes=args.verbose), flush=True)
     if target is not None:
         target.write_text(json.dumps(report, indent=2) + "\n")

@@ -7,6 +7,7 @@ its deadline raises ``BenchError`` naming the role and the tail of its stderr.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import queue
@@ -118,22 +119,32 @@ class Worker:
         times = self._ps.cpu_times()
         return float(times.user + times.system)
 
-    def close(self) -> None:
-        """Ask politely, then terminate, then kill: never leave a worker behind."""
+    def request_exit(self) -> None:
+        """Ask the worker to exit (it closes its session first); no waiting."""
         if self.proc.poll() is None:
-            try:
+            with contextlib.suppress(BenchError):  # already gone: finish() reaps it
                 self.send("exit")
-                self.proc.wait(timeout=5.0)
-            except (BenchError, subprocess.TimeoutExpired):
-                self.proc.terminate()
-                try:
-                    self.proc.wait(timeout=3.0)
-                except subprocess.TimeoutExpired:
-                    self.proc.kill()
-                    self.proc.wait()
+
+    def finish(self, deadline: float) -> None:
+        """Wait until ``deadline`` (monotonic) for the exit, then terminate, then kill:
+        never leave a worker behind."""
+        try:
+            self.proc.wait(timeout=max(0.0, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            self.proc.terminate()  # the worker's SIGTERM handler still closes its session
+            try:
+                self.proc.wait(timeout=2.0)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
         for stream in (self.proc.stdin, self.proc.stdout, self.proc.stderr):
             if stream is not None:
                 stream.close()
+
+    def close(self, grace_s: float = 5.0) -> None:
+        """Ask politely, then terminate, then kill."""
+        self.request_exit()
+        self.finish(time.monotonic() + grace_s)
 
 
 class WorkerGroup:
@@ -158,10 +169,15 @@ class WorkerGroup:
             if not worker.ready:
                 worker.ready = worker.recv(max(0.1, deadline - time.monotonic()))
 
-    def close(self) -> None:
-        for worker in reversed(self._workers):
-            worker.close()
+    def close(self, grace_s: float = 5.0) -> None:
+        """Ask every worker to exit at once, then wait for all within one ``grace_s``."""
+        workers = list(reversed(self._workers))
         self._workers.clear()
+        for worker in workers:
+            worker.request_exit()
+        deadline = time.monotonic() + grace_s
+        for worker in workers:
+            worker.finish(deadline)
 
     def __enter__(self) -> WorkerGroup:
         return self
@@ -172,4 +188,6 @@ class WorkerGroup:
         _value: BaseException | None,
         _tb: TracebackType | None,
     ) -> None:
-        self.close()
+        # Interrupted (Ctrl-C, SIGTERM): the workers got the signal too or are told to
+        # exit now; do not wait long for them.
+        self.close(grace_s=1.0 if _type is KeyboardInterrupt else 5.0)

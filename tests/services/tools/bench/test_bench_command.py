@@ -9,16 +9,18 @@ from __future__ import annotations
 import json
 import math
 import shutil
+import signal
 import subprocess
 import sys
 from pathlib import Path
 from typing import Any
 
+import psutil
 import pytest
 
 from services.cli import main
 from services.tools.bench import SCENARIO_NAMES, SCHEMA
-from tests.conftest import REPO, child_env
+from tests.conftest import REPO, child_env, wait_until
 
 REPORT_KEYS = {"schema", "created_utc", "elapsed_s", "machine", "options", "scenarios", "goals"}
 MACHINE_KEYS = {"cpu_count", "python", "zenoh", "numpy", "msgpack", "platform"}
@@ -124,3 +126,34 @@ def test_json_into_a_missing_directory_is_refused(
 ) -> None:
     assert main(["bench", "--quick", "--json", str(tmp_path / "no" / "b.json"), "small"]) == 1
     assert "directory" in capsys.readouterr().err
+
+
+@pytest.mark.integration
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_one_signal_stops_the_bench_and_its_workers_with_exit_0(signum: int) -> None:
+    proc = subprocess.Popen(
+        [*_bench_command(), "--quick", "idle"],
+        cwd=REPO,
+        env=child_env(),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    try:
+        me = psutil.Process(proc.pid)
+        workers = wait_until(
+            lambda: (
+                [c for c in me.children(recursive=True) if "_worker" in " ".join(c.cmdline())]
+                if len(me.children(recursive=True)) >= 4
+                else None
+            ),
+            60.0,
+            "the bench's idle workers to start",
+        )
+        proc.send_signal(signum)
+        assert proc.wait(timeout=15.0) == 0
+        _gone, alive = psutil.wait_procs(workers, timeout=10.0)
+        assert not alive, alive
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
