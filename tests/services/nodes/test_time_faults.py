@@ -1,0 +1,210 @@
+"""Clocks and stalls against the mediator, with real camera, gyro and detector processes.
+
+The mediator runs in the test process (its ``step`` driven by the test, its records read
+as they are written); camera, gyro and the rogue producer are real processes on a private
+rendezvous port. A process's wall clock is shifted with an LD_PRELOAD shim
+(``tests/helpers/clock_shim.py``): ``CLOCK_REALTIME`` only, monotonic untouched.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from middleware import NetworkConfig, Node
+from services.launch import pipeline_yaml
+from services.lib.decisions import GyroMissing
+from services.lib.messages import DecisionRecord
+from services.nodes.mediator import Mediator, MediatorConfig
+from services.tools.soak import Audit
+from tests.conftest import REPO, child_env, free_port, wait_until
+from tests.helpers.clock_shim import build_clock_shim, shifted_clock_env, step_clock
+from tests.services.nodes.pipeline import Pipeline
+
+pytestmark = pytest.mark.integration
+
+S = 1_000_000_000
+
+ROGUE = """
+import sys
+import numpy as np
+from middleware import NetworkConfig, Node, Retention, now_ns
+from services.lib.messages import frame_metadata
+from services.lib.quality import Exposure
+
+with Node("camera", NetworkConfig(local_port=int(sys.argv[1]))) as node:
+    images = node.offer("images", kind="frame", retention=Retention(max_count=4))
+    assert images.wait_for_subscribers(1, timeout_s=60)
+    image = np.zeros((2, 4), np.uint8)
+    exposure = Exposure(now_ns(), 5_000_000)  # this process's clock: an hour ahead
+    images.put(exposure.start_ns, image.tobytes(), frame_metadata(1, exposure, image, None))
+    print("put", flush=True)
+    sys.stdin.readline()
+"""
+
+
+class Recorded:
+    """A mediator in this process whose decision records the test can read."""
+
+    def __init__(self, port: int, config: MediatorConfig) -> None:
+        self.node = Node("mediator", NetworkConfig(local_port=port))
+        self.mediator = Mediator(self.node, config, "mediator")
+        self.records: list[DecisionRecord] = []
+        write = self.mediator._write
+
+        def keep(record: DecisionRecord) -> None:
+            self.records.append(record)
+            write(record)
+
+        self.mediator._write = keep  # type: ignore[method-assign]
+
+    def step_until(self, done: object, timeout_s: float, what: str) -> None:
+        def stepped() -> bool:
+            self.mediator.step(timeout_s=0.1)
+            return bool(done())  # type: ignore[operator]
+
+        wait_until(stepped, timeout_s, what)
+
+    def reasons(self, since: int = 0) -> list[str]:
+        return [r.reason for r in self.records[since:]]
+
+    def close(self) -> None:
+        self.mediator.close()
+        self.node.close()
+
+
+def _start(argv: list[str], port: int, env: dict[str, str] | None = None) -> subprocess.Popen[str]:
+    env = dict(env or child_env())
+    env["FRAMEGATE_LOCAL_PORT"] = str(port)
+    return subprocess.Popen(
+        [sys.executable, *argv],
+        cwd=REPO,
+        env=env,
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+    )
+
+
+def _stop(*procs: subprocess.Popen[str]) -> None:
+    for proc in procs:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGINT)
+    for proc in procs:
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+@pytest.fixture
+def shim(tmp_path: Path) -> Path:
+    return build_clock_shim(tmp_path)
+
+
+CAMERA = ["-m", "services.cli", "run", "camera", "--source", "sim", "--loop"]
+GYRO = ["-m", "services.cli", "run", "gyro", "--source", "sim", "--loop"]
+
+
+def test_a_future_stamped_rogue_frame_is_skipped_and_decisions_resume(
+    tmp_path: Path, shim: Path
+) -> None:
+    port = free_port()
+    offset = tmp_path / "offset"
+    step_clock(offset, 3600 * S)
+    # No gyro: every frame goes through the gyro-missing rule (accepted while idle).
+    recorded = Recorded(port, MediatorConfig(gyro_missing=GyroMissing.ACCEPT, gyro_wait_ms=0))
+    rogue = _start(["-c", ROGUE, str(port)], port, shifted_clock_env(child_env(), shim, offset))
+    camera = None
+    try:
+        assert rogue.stdout is not None
+        assert rogue.stdout.readline().strip() == "put"
+        recorded.step_until(lambda: recorded.records, 30, "the rogue frame's record")
+        assert recorded.reasons() == ["future-stamp"]
+        assert recorded.mediator.skipped["future-stamp"] == 1
+        _stop(rogue)
+        camera = _start(CAMERA, port)
+        recorded.step_until(
+            lambda: sum(r.accepted for r in recorded.records) >= 3, 90, "decisions to resume"
+        )
+        assert "out-of-order" not in recorded.reasons(1), recorded.reasons()
+    finally:
+        _stop(rogue, *([camera] if camera else []))
+        recorded.close()
+
+
+def test_camera_and_gyro_clocks_5_s_apart_are_not_paired(tmp_path: Path, shim: Path) -> None:
+    port = free_port()
+    offset = tmp_path / "offset"
+    step_clock(offset, -5 * S)
+    recorded = Recorded(port, MediatorConfig())
+    camera = _start(CAMERA, port, shifted_clock_env(child_env(), shim, offset))
+    gyro = _start(GYRO, port)
+    try:
+        recorded.step_until(
+            lambda: "clock-offset" in recorded.reasons(), 90, "a clock-offset decision"
+        )
+        first = recorded.reasons().index("clock-offset")
+        # Measured camera - gyro offset: about -5 s.
+        measured = recorded.mediator._offsets.current()
+        assert measured is not None and abs(measured[0] + 5 * S) < S // 2, measured
+        recorded.step_until(lambda: len(recorded.records) >= first + 3, 60, "more frames")
+        later = recorded.records[first:]
+        assert {r.reason for r in later} == {"clock-offset"}, recorded.reasons()
+        assert all(r.quality is None for r in later)  # never paired with gyro samples
+        assert recorded.mediator.skipped["clock-offset"] >= 3
+    finally:
+        _stop(camera, gyro)
+        recorded.close()
+
+
+@pytest.fixture
+def pipe(tmp_path: Path) -> Iterator[Pipeline]:
+    pipeline = Pipeline(
+        tmp_path,
+        pipeline_yaml(
+            {"camera": {"seed": 3}, "gyro": {"seed": 3}, "detector": {"service_factor": 1.6}}
+        ),
+    )
+    yield pipeline
+    pipeline.close()
+
+
+def _decisions(pipe: Pipeline) -> list[DecisionRecord]:
+    found = pipe.node.query("mediator/decisions", time_range="[0..]", timeout_s=10)
+    return [DecisionRecord.from_metadata(e.metadata) for e in found]
+
+
+def test_a_stopped_detector_loses_no_accepted_frame_without_a_record(pipe: Pipeline) -> None:
+    wait_until(lambda: pipe.counter("detector/detections") >= 3, 90, "detections\n" + pipe.log())
+    pid = pipe.pid("detector")
+    assert pid is not None
+    os.kill(pid, signal.SIGSTOP)
+    try:
+        # Past the lease the subscription lapses: the mediator must say so, not forward.
+        wait_until(
+            lambda: any(r.reason == "consumer-lapsed" for r in _decisions(pipe)),
+            30,
+            "a consumer-lapsed record\n" + pipe.log(),
+        )
+    finally:
+        os.kill(pid, signal.SIGCONT)
+    detected = pipe.counter("detector/detections")
+    wait_until(
+        lambda: pipe.counter("detector/detections") >= detected + 3,
+        60,
+        "detections after SIGCONT\n" + pipe.log(),
+    )
+    audit = Audit()
+    audit.check(pipe.node)
+    summary = audit.summary()
+    assert summary["lost"]["accepted_without_detection"] == 0, summary
+    assert summary["decision_reasons"].get("consumer-lapsed", 0) >= 1, summary
