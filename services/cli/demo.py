@@ -1,33 +1,51 @@
-"""``framegate demo``: the whole pipeline on this host, no router, no configuration."""
+"""``framegate demo``: the whole pipeline on this host, filtered against uncontrolled."""
 
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 from typing import Any
 
-from services.tools.demo import DemoConfig, print_summary, run_demo
+from services.lib.decisions import POLICIES
+from services.tools.demo import SOURCES, DemoConfig, print_summary, run_demo
 
 from ._common import command_parser, network, print_json, stop_on_signals
+from .argtypes import non_negative_float, positive_float, positive_int
 
 
 def register(subparsers: Any) -> None:
     parser = command_parser(
         subparsers,
         "demo",
-        "run camera, gyro, mediator and detector on this host with a live status view",
+        "run camera, gyro, mediator and two detectors (behind the mediator, and uncontrolled) "
+        "on this host; show the markers each recognizes",
         json_flag=True,
     )
     d = DemoConfig()
-    parser.add_argument("--duration", type=float, default=d.duration_s, help="seconds to run")
+    parser.add_argument(
+        "--duration", type=positive_float, default=d.duration_s, help="seconds to run"
+    )
     parser.add_argument("--seed", type=int, default=d.seed, help="simulator seed")
-    parser.add_argument("--policy", choices=["paper", "replace"], default=d.policy)
-    parser.add_argument("--b0", type=float, default=d.b0_px, help="blur scale b0 in pixels")
-    parser.add_argument("--queue", type=int, default=d.queue, help="detector queue size N")
+    parser.add_argument(
+        "--policy", choices=sorted(POLICIES), default=d.policy, help="the mediator's policy"
+    )
+    parser.add_argument(
+        "--source",
+        choices=SOURCES,
+        default=d.source,
+        help="prerendered: the approach rendered once and cached (keeps 15 frames/s); "
+        "sim: rendered live (too slow for small machines)",
+    )
+    parser.add_argument(
+        "--cache", type=Path, help="where prerendered approaches are kept (default: user cache)"
+    )
+    parser.add_argument("--b0", type=positive_float, default=d.b0_px, help="blur scale b0 (px)")
+    parser.add_argument("--queue", type=positive_int, default=d.queue, help="detector queue N")
     parser.add_argument(
         "--service-factor",
-        type=float,
+        type=non_negative_float,
         default=d.service_factor,
-        help="detector processing time as a multiple of the frame period",
+        help="detector processing time as a multiple of the frame period (both detectors)",
     )
     parser.add_argument("--logs", action="store_true", help="show the services' own logs")
     parser.set_defaults(func=run)
@@ -42,6 +60,8 @@ def run(args: argparse.Namespace) -> int:
         b0_px=args.b0,
         queue=args.queue,
         service_factor=args.service_factor,
+        source=args.source,
+        cache=args.cache,
         show_logs=args.logs,
     )
     summary = run_demo(config, network(args), stop)

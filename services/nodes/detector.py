@@ -14,7 +14,14 @@ import threading
 import time
 from dataclasses import dataclass
 
-from middleware import PUSH_ALL, FramegateError, NetworkConfig, Node, Retention
+from middleware import (
+    PUSH_ALL,
+    FramegateError,
+    NetworkConfig,
+    Node,
+    Retention,
+    SubscriptionMode,
+)
 from services.lib.markers import detect_markers
 from services.lib.messages import decode_image, detections_metadata, read_frame_metadata
 from services.nodes._contract import Service, ServiceEntry
@@ -31,6 +38,10 @@ class DetectorConfig:
     min_processing_ms: float = 0.0
     service_factor: float | None = None
     frame_period_ms: float = 1000.0 / 15.0
+    # Observe instead of taking part in flow control: while the queue is full new frames are
+    # missed by this detector only (as a camera dropping at the source would for it alone),
+    # so a second, uncontrolled detector never holds the camera back for the others.
+    observe: bool = False
 
     @property
     def processing_floor_s(self) -> float:
@@ -50,7 +61,11 @@ def run(config: DetectorConfig, network: NetworkConfig, stop: threading.Event | 
         )
         # Every frame given to the detector is processed: have it pushed, not fetched.
         frames = node.subscribe(
-            config.input, queue_size=config.queue, wait_s=0, push_max_bytes=PUSH_ALL
+            config.input,
+            queue_size=config.queue,
+            mode=SubscriptionMode.OBSERVE if config.observe else SubscriptionMode.FLOW,
+            wait_s=0,
+            push_max_bytes=PUSH_ALL,
         )
         log.info(
             "detector: %s (queue %d, processing >= %.0f ms)",
@@ -130,6 +145,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=d.frame_period_ms,
         help="frame period used by --service-factor (default 15 fps)",
     )
+    parser.add_argument(
+        "--observe",
+        action="store_true",
+        help="never hold the input's producer back: a full queue misses new frames instead",
+    )
 
 
 def config_from_args(args: argparse.Namespace) -> DetectorConfig:
@@ -140,6 +160,7 @@ def config_from_args(args: argparse.Namespace) -> DetectorConfig:
         min_processing_ms=args.min_processing_ms,
         service_factor=args.service_factor,
         frame_period_ms=args.frame_period_ms,
+        observe=args.observe,
     )
 
 

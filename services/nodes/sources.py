@@ -1,5 +1,10 @@
 """Where the camera and gyro services get their data: simulator, dataset replay, device.
 
+``sim`` renders each frame live (about a second of CPU per frame: a small machine cannot keep
+15 frames/s); ``prerendered`` plays the same simulated approach rendered once and cached per
+scenario (``services.lib.sim.cached_dataset``; the first start renders it with a progress
+bar), so the camera keeps its nominal rate; ``replay DIR`` plays any dataset directory.
+
 Simulated and replayed sources give times relative to a dataset epoch (camera clock for
 frames, gyro clock for gyro samples); the services map them onto the wall clock from a
 shared start instant, divided by ``--rate``. A device gives wall-clock times directly.
@@ -22,6 +27,9 @@ import numpy.typing as npt
 from middleware import ConfigError
 from services.lib.camera_model import CameraModel
 
+# Where frames come from; ``prerendered``'s optional path is its cache directory.
+KINDS = ("sim", "prerendered", "replay", "device")
+
 
 @dataclass(frozen=True, slots=True)
 class SourceSpec:
@@ -39,8 +47,10 @@ class SourceSpec:
     camera_xml: str | None = None
 
     def __post_init__(self) -> None:
-        if self.kind not in ("sim", "replay", "device"):
-            raise ConfigError(f"unknown source {self.kind!r}: use sim, replay DIR or device N|URL")
+        if self.kind not in KINDS:
+            raise ConfigError(
+                f"unknown source {self.kind!r}: use sim, prerendered, replay DIR or device N|URL"
+            )
         if self.kind in ("replay", "device") and not self.path:
             raise ConfigError(f"source {self.kind} needs a path (--path)")
         if self.rate <= 0:
@@ -97,12 +107,10 @@ class FrameSource(_Timeline):
             infos = [self._scenario.frame_info(i) for i in range(self._scenario.frame_count)]
             self.description = f"simulated approach, seed {spec.seed}"
         else:
-            from services.lib.sim import read_dataset
-
-            self._scenario = read_dataset(Path(str(spec.path)))
+            self._scenario = _dataset(spec)
             self.camera = self._scenario.camera
             infos = list(self._scenario.frames)
-            self.description = f"replay of {spec.path}"
+            self.description = _described(spec)
         if not infos:
             raise ConfigError(f"{self.description} has no frames")
         self._infos = infos
@@ -149,18 +157,18 @@ class GyroSource(_Timeline):
             period, count = scenario.config.frame_period_ns, scenario.frame_count
             first_frame_ns = scenario.frame_info(0).exposure_start_ns
             self.description = f"simulated gyro, seed {spec.seed}"
-        elif spec.kind == "replay":
-            from services.lib.sim import read_dataset
-
-            dataset: Any = read_dataset(Path(str(spec.path)))
+        elif spec.kind in ("replay", "prerendered"):
+            dataset: Any = _dataset(spec)
             trace = dataset.gyro
             starts = [f.exposure_start_ns for f in dataset.frames]
             period = int(np.median(np.diff(starts))) if len(starts) > 1 else 66_666_667
             count = len(starts)
             first_frame_ns = starts[0] if starts else 0
-            self.description = f"replay of {spec.path}"
+            self.description = _described(spec)
         else:
-            raise ConfigError("the gyro service has no device source; use sim or replay DIR")
+            raise ConfigError(
+                "the gyro service has no device source; use sim, prerendered or replay DIR"
+            )
         super().__init__(spec, period, count)
         # A loop repeats the span of the frames (which need not start at zero), so each
         # pass carries the gyro samples of exactly that span.
@@ -242,6 +250,31 @@ class DeviceSource:
             frame_id += 1
 
 
+def _dataset(spec: SourceSpec) -> Any:
+    """The dataset a replayed or prerendered spec plays (prerendered: rendered if not cached)."""
+    from services.lib.sim import (
+        DatasetError,
+        ScenarioConfig,
+        approach_cache_dir,
+        cached_dataset,
+        read_dataset,
+    )
+
+    try:
+        if spec.kind == "prerendered":
+            cache = Path(spec.path) if spec.path else approach_cache_dir()
+            return cached_dataset(ScenarioConfig(seed=spec.seed), cache)
+        return read_dataset(Path(str(spec.path)))
+    except DatasetError as exc:
+        raise ConfigError(str(exc)) from exc
+
+
+def _described(spec: SourceSpec) -> str:
+    if spec.kind == "prerendered":
+        return f"prerendered approach, seed {spec.seed}"
+    return f"replay of {spec.path}"
+
+
 def _same(image: npt.NDArray[np.uint8]) -> npt.NDArray[np.uint8]:
     return image
 
@@ -260,12 +293,14 @@ def add_source_arguments(parser: argparse.ArgumentParser, *, device: bool) -> No
     """--source and how to play it, shared by camera and gyro."""
     from services.cli.argtypes import positive_float, positive_int
 
-    kinds = ["sim", "replay", "device"] if device else ["sim", "replay"]
+    kinds = list(KINDS) if device else [k for k in KINDS if k != "device"]
     parser.add_argument("--source", choices=kinds, default="sim", help="where data comes from")
     parser.add_argument(
-        "--path", help="dataset directory (replay)" + (" or device index/URL" if device else "")
+        "--path",
+        help="dataset directory (replay), cache directory (prerendered)"
+        + (" or device index/URL" if device else ""),
     )
-    parser.add_argument("--seed", type=int, default=1, help="simulator seed (sim)")
+    parser.add_argument("--seed", type=int, default=1, help="simulator seed (sim, prerendered)")
     parser.add_argument("--rate", type=positive_float, default=1.0, help="replay speed factor")
     parser.add_argument("--loop", action="store_true", help="start over at the end")
     parser.add_argument("--frames", type=positive_int, help="play only the first N frames")

@@ -1,9 +1,22 @@
-"""``framegate demo``: the simulator-fed pipeline on this host, with a live status view.
+"""``framegate demo``: the paper's effect on this host, filtered against uncontrolled.
 
-Four processes — camera and gyro rendering the simulated bumpy approach live, the mediator,
-and a detector emulating a computer 1.6x too slow for the frame rate — meet through the
-loopback rendezvous (no router, no configuration). This process only watches, through the
-same public API any client uses.
+Five processes meet through the loopback rendezvous (no router, no configuration): a camera
+and a gyro playing the simulated bumpy approach, the mediator, the detector behind it, and
+a second detector of the same speed that takes the camera's frames directly ("uncontrolled",
+the paper's baseline). Both detectors emulate a computer ``service_factor`` times too slow
+for the frame rate, so frames must be left out: the uncontrolled one loses whatever arrives
+while its queue is full, the mediator leaves out the blurred ones. This process only watches,
+through the same public API any client uses, and compares the markers each detector
+recognized.
+
+The camera's source is ``prerendered`` by default: the approach is rendered once (with a
+progress bar) and cached per seed, so the camera keeps its frame rate even on two cores;
+``source="sim"`` renders live, which a small machine cannot do at 15 frames/s (the camera
+then counts late skips, shown in the status line).
+
+Buffering: the uncontrolled detector observes camera/images (``--observe``): while its
+queue is full it misses new frames, exactly what a camera dropping at the source would do
+for it alone, without holding the camera back for the mediator.
 """
 
 from __future__ import annotations
@@ -13,38 +26,97 @@ import threading
 import time
 from collections import Counter
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
-from middleware import BufferInfo, FramegateError, NetworkConfig, Node
-from services.launch import Deployment, Supervisor, pipeline, process_specs
+from middleware import BufferInfo, ConfigError, FramegateError, NetworkConfig, Node
+from services.launch import (
+    LOCAL_HOST,
+    Deployment,
+    ServiceSpec,
+    Supervisor,
+    pipeline,
+    process_specs,
+)
+from services.launch._pipeline import to_argv
+from services.lib.decisions import DEFAULT_POLICY, POLICIES
 from services.lib.markers import BOARD_MARKERS
 from services.lib.messages import read_detections
+
+# The detector behind the mediator and the one fed by the camera directly.
+FILTERED = "detector"
+UNCONTROLLED = "uncontrolled"
+SOURCES = ("prerendered", "sim")
+STATUS_COLUMNS = 100
 
 
 @dataclass(frozen=True, slots=True)
 class DemoConfig:
     """What the demo runs."""
 
-    duration_s: float = 30.0
+    duration_s: float = 45.0
     seed: int = 1
-    policy: str = "paper"
+    policy: str = DEFAULT_POLICY
     b0_px: float = 5.0
     queue: int = 2
     service_factor: float = 1.6
+    source: str = "prerendered"
+    cache: Path | None = None
     show_logs: bool = False
+
+    def __post_init__(self) -> None:
+        if self.policy not in POLICIES:
+            raise ConfigError(f"--policy {self.policy!r}: choose one of {', '.join(POLICIES)}")
+        if self.source not in SOURCES:
+            raise ConfigError(f"--source {self.source!r}: choose one of {', '.join(SOURCES)}")
 
 
 def demo_deployment(config: DemoConfig) -> Deployment:
-    """The pipeline (deploy/local.yaml) with the demo's settings."""
-    return pipeline(
+    """The pipeline (deploy/local.yaml) with the demo's settings, plus the uncontrolled
+    detector on camera/images."""
+    source: dict[str, Any] = {"source": config.source, "seed": config.seed}
+    if config.cache is not None and config.source == "prerendered":
+        source["path"] = str(config.cache)
+    detector = {"queue": config.queue, "service_factor": config.service_factor}
+    base = pipeline(
         {
-            "camera": {"seed": config.seed},
-            "gyro": {"seed": config.seed},
+            "camera": source,
+            "gyro": source,
             "mediator": {"policy": config.policy, "b0": config.b0_px},
-            "detector": {"queue": config.queue, "service_factor": config.service_factor},
+            "detector": detector,
         },
         name="demo",
     )
+    uncontrolled = ServiceSpec(
+        UNCONTROLLED,
+        "detector",
+        LOCAL_HOST,
+        to_argv({"name": UNCONTROLLED, "input": "camera/images", **detector, "observe": True}),
+    )
+    return Deployment(base.path, base.network, base.hosts, (*base.services, uncontrolled))
+
+
+def prerender(config: DemoConfig) -> Path | None:
+    """Render the approach once (progress bar on stderr) so the camera finds it cached;
+    its directory, or None for a live source."""
+    if config.source != "prerendered":
+        return None
+    from services.lib.sim import (
+        DatasetError,
+        ScenarioConfig,
+        approach_cache_dir,
+        cached_dataset,
+        scenario_hash,
+    )
+
+    scenario = ScenarioConfig(seed=config.seed)
+    cache = config.cache or approach_cache_dir()
+    if not (cache / scenario_hash(scenario)).is_dir():
+        print(f"rendering the approach once (cached in {cache})", file=sys.stderr, flush=True)
+    try:
+        return cached_dataset(scenario, cache, progress=True).root
+    except DatasetError as exc:
+        raise ConfigError(str(exc)) from exc
 
 
 @dataclass
@@ -59,18 +131,23 @@ class Status:
     def counts(self) -> dict[str, Any]:
         cam, gyro = self.get("camera/images"), self.get("gyro/rates")
         out, dec = self.get("mediator/images"), self.get("mediator/decisions")
-        det = self.get("detector/detections")
+        det = self.get(f"{FILTERED}/detections")
+        raw = self.get(f"{UNCONTROLLED}/detections")
         load = max((s.fill for s in out.subscriptions), default=0.0) if out else 0.0
+        accepted = out.puts if out else 0
+        decisions = dec.puts if dec else 0
         return {
             "frames": cam.puts if cam else 0,
-            "dropped_at_camera": cam.refused if cam else 0,
             "camera_hz": cam.rate_hz if cam else 0.0,
-            "gyro_batches": gyro.puts if gyro else 0,
-            "decisions": dec.puts if dec else 0,
-            "accepted": out.puts if out else 0,
+            "late": cam.skipped.get("late", 0) if cam else 0,
+            "dropped_at_camera": cam.refused if cam else 0,
+            "gyro_samples": gyro.puts if gyro else 0,
+            "decisions": decisions,
+            "accepted": accepted,
+            "rejected": max(0, decisions - accepted),
             "load": load,
-            "detections": det.puts if det else 0,
-            "detections_hz": det.rate_hz if det else 0.0,
+            "processed_filtered": det.puts if det else 0,
+            "processed_uncontrolled": raw.puts if raw else 0,
         }
 
 
@@ -85,28 +162,50 @@ def read_status(node: Node) -> Status:
     return status
 
 
-def _line(counts: dict[str, Any], elapsed_s: float) -> str:
-    rejected = max(0, counts["decisions"] - counts["accepted"])
-    return (
-        f"{elapsed_s:5.1f}s  camera {counts['frames']:4d} frames ({counts['camera_hz']:4.1f}/s, "
-        f"{counts['dropped_at_camera']} dropped)  gyro {counts['gyro_batches']:5d} batches  "
-        f"mediator {counts['accepted']:4d} accepted / {rejected:4d} rejected, "
-        f"load {counts['load']:.2f}  detector {counts['detections']:4d} "
-        f"({counts['detections_hz']:4.1f}/s)"
+def gain_pct(filtered: int, uncontrolled: int) -> float | None:
+    """How many more recognitions the filtered detector made, in % of the uncontrolled
+    one's (None while the uncontrolled one has none)."""
+    return None if uncontrolled <= 0 else 100.0 * (filtered - uncontrolled) / uncontrolled
+
+
+def _gain_text(filtered: int, uncontrolled: int) -> str:
+    gain = gain_pct(filtered, uncontrolled)
+    return "  n/a" if gain is None else f"{gain:+4.0f}%"
+
+
+# Printed once above the status lines: what each group means.
+STATUS_LEGEND = (
+    "cam: frames, rate, late skips | med: mediator forwarded (in) and rejected (out), load |\n"
+    "markers: recognitions behind the mediator vs by the uncontrolled detector, and the gain"
+)
+
+
+def status_line(counts: dict[str, Any], seen: dict[str, int], elapsed_s: float) -> str:
+    """One line of at most ``STATUS_COLUMNS`` characters: the camera's frames, rate and late
+    skips; the mediator's forwarded and rejected frames and load; the markers recognized
+    behind the mediator against those of the uncontrolled detector, and the gain."""
+    filtered, raw = seen.get(FILTERED, 0), seen.get(UNCONTROLLED, 0)
+    line = (
+        f"{elapsed_s:5.1f}s cam {counts['frames']:5d} {counts['camera_hz']:4.1f}/s "
+        f"{counts['late']:4d} late | med {counts['accepted']:5d} in {counts['rejected']:5d} "
+        f"out load {counts['load']:.2f} | markers {filtered:5d} vs {raw:5d} "
+        f"{_gain_text(filtered, raw)}"
     )
+    return line[:STATUS_COLUMNS]
 
 
 class MarkerTally:
-    """Counts, per board marker, the processed frames that recognized it (read as we go)."""
+    """Per board marker, the processed frames of one detector that recognized it."""
 
-    def __init__(self) -> None:
+    def __init__(self, service: str) -> None:
+        self.buffer = f"{service}/detections"
         self._names = {m.marker_id: m.name for m in BOARD_MARKERS}
         self._after_ns = 0
         self.seen: Counter[str] = Counter()
 
     def update(self, node: Node) -> None:
         try:
-            elements = node.query("detector/detections", time_range=f"[{self._after_ns + 1}..]")
+            elements = node.query(self.buffer, time_range=f"[{self._after_ns + 1}..]")
         except FramegateError:
             return
         for element in elements:
@@ -115,53 +214,89 @@ class MarkerTally:
                 self.seen[self._names.get(marker_id, str(marker_id))] += 1
             self._after_ns = max(self._after_ns, element.timestamp_ns)
 
+    @property
+    def total(self) -> int:
+        return sum(self.seen.values())
+
 
 def run_demo(
     config: DemoConfig, network: NetworkConfig, stop: threading.Event | None = None
 ) -> dict[str, Any]:
     """Run the pipeline for ``duration_s`` (or until ``stop``) with a status line per second;
-    return a summary."""
+    return a summary read from the services' buffers."""
+    stop = stop or threading.Event()
+    prerender(config)
+    if stop.is_set():
+        return {}
     specs = process_specs(demo_deployment(config), None, network)
     supervisor = Supervisor(specs, quiet=not config.show_logs)
     started = time.monotonic()
     last_print = 0.0
-    counts: dict[str, Any] = {}
-    tally = MarkerTally()
+    counts: dict[str, Any] = Status().counts()
+    tallies = {name: MarkerTally(name) for name in (FILTERED, UNCONTROLLED)}
     with Node(network=network) as node:
-        supervisor.start()
+
+        def refresh() -> None:
+            nonlocal counts
+            counts = read_status(node).counts()
+            for tally in tallies.values():
+                tally.update(node)
 
         def tick() -> None:
-            nonlocal last_print, counts
+            nonlocal last_print
             now = time.monotonic()
             if now - last_print < 1.0:
                 return
             last_print = now
-            counts = read_status(node).counts()
-            tally.update(node)
-            print(_line(counts, now - started), flush=True)
+            refresh()
+            seen = {name: t.total for name, t in tallies.items()}
+            print(status_line(counts, seen, now - started), flush=True)
+            # The last reading is taken while the services still run.
+            if now - started >= config.duration_s - 1.0:
+                stop.set()
 
+        print(STATUS_LEGEND, flush=True)
+        supervisor.start()
         try:
-            supervisor.run(config.duration_s, on_tick=tick, stop=stop)
+            supervisor.run(None, on_tick=tick, stop=stop)
         except KeyboardInterrupt:
             supervisor.stop()
-    summary = {
+    markers = sorted(set(tallies[FILTERED].seen) | set(tallies[UNCONTROLLED].seen))
+    return {
         **counts,
-        "rejected": max(0, counts.get("decisions", 0) - counts.get("accepted", 0)),
+        "policy": config.policy,
+        "source": config.source,
         "restarts": supervisor.restarts(),
-        "markers_recognized": dict(tally.seen),
+        "markers": {
+            name: {
+                "filtered": tallies[FILTERED].seen[name],
+                "uncontrolled": tallies[UNCONTROLLED].seen[name],
+            }
+            for name in markers
+        },
+        "recognitions_filtered": tallies[FILTERED].total,
+        "recognitions_uncontrolled": tallies[UNCONTROLLED].total,
+        "gain_pct": gain_pct(tallies[FILTERED].total, tallies[UNCONTROLLED].total),
         "duration_s": round(time.monotonic() - started, 1),
     }
-    return summary
 
 
 def print_summary(summary: dict[str, Any]) -> None:
+    """The summary as a short table: recognitions per marker, filtered vs uncontrolled."""
+    if not summary:
+        return
     out = sys.stdout
     out.write(
-        f"\nsummary after {summary['duration_s']} s: {summary.get('frames', 0)} frames, "
-        f"{summary.get('dropped_at_camera', 0)} dropped at the camera, "
-        f"{summary.get('accepted', 0)} accepted and {summary['rejected']} rejected by the "
-        f"mediator, {summary.get('detections', 0)} frames processed by the detector\n"
+        f"\nsummary after {summary['duration_s']} s ({summary['source']} camera, policy "
+        f"{summary['policy']}):\n"
+        f"  camera      {summary['frames']} frames, {summary['late']} skipped late\n"
+        f"  mediator    {summary['accepted']} forwarded, {summary['rejected']} rejected "
+        f"(load {summary['load']:.2f})\n"
+        f"  detectors   {summary['processed_filtered']} frames processed behind the "
+        f"mediator, {summary['processed_uncontrolled']} uncontrolled\n"
     )
-    if summary["markers_recognized"]:
-        seen = ", ".join(f"{k} {v}" for k, v in sorted(summary["markers_recognized"].items()))
-        out.write(f"markers recognized (frames): {seen}\n")
+    out.write(f"\n  {'recognitions':<14}{'filtered':>10}{'uncontrolled':>14}{'gain':>8}\n")
+    rows = [(name, v["filtered"], v["uncontrolled"]) for name, v in summary["markers"].items()]
+    rows.append(("total", summary["recognitions_filtered"], summary["recognitions_uncontrolled"]))
+    for name, filtered, raw in rows:
+        out.write(f"  {name:<14}{filtered:>10}{raw:>14}{_gain_text(filtered, raw):>8}\n")

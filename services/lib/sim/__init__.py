@@ -6,6 +6,7 @@ other; ground truth per frame; and a dataset layout on disk that real recordings
 and ``read_dataset`` reads one back.
 """
 
+from ._approaches import approach_cache_dir, cached_dataset, scenario_hash
 from ._config import Bump, ScenarioConfig
 from ._dataset import Dataset, DatasetError, DatasetWriter, read_dataset, write_report
 from ._records import FrameInfo, FrameTruth, GyroTrace, MarkerTruth
@@ -28,8 +29,11 @@ __all__ = [
     "Scenario",
     "ScenarioConfig",
     "SimulationRun",
+    "approach_cache_dir",
+    "cached_dataset",
     "read_dataset",
     "recognition_report",
+    "scenario_hash",
     "simulate",
     "write_report",
 ]
