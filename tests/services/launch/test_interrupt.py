@@ -84,7 +84,14 @@ def _stopped_in_time(proc: subprocess.Popen[str], sig: signal.Signals) -> float:
 def test_one_signal_stops_a_service(
     service: str, sig: signal.Signals, port: int, client: Node
 ) -> None:
-    proc = start_framegate(["run", service], local_port=port)  # camera and gyro: the simulator
+    # camera and gyro: the simulator; the ROS 2 bridge needs a topic and a router address
+    # (nobody answers there: it must stop all the same).
+    extra = (
+        ["--image-in", "/camera/image_raw", "--ros-connect", f"tcp/127.0.0.1:{free_port()}"]
+        if service == "ros2"
+        else []
+    )
+    proc = start_framegate(["run", service, *extra], local_port=port)
     try:
         wait_until(lambda: _pid_of(client, service) == proc.pid, STARTUP_S, f"{service} up")
         took_s = _stopped_in_time(proc, sig)
