@@ -243,7 +243,11 @@ class Supervisor:
                 continue
             running.exit_recorded = True
             running.exit_codes.append(code)
-            if code < 0 and not running.killed_by_us:
+            if code == -signal.SIGTERM and any(r is running for r in stopping):
+                # Our own SIGTERM, taken before the child set its handler (it was still
+                # starting): a stop, not a death.
+                running.exit_codes[-1] = 0
+            elif code < 0 and not running.killed_by_us:
                 self._emit(running, f"{exit_text(code)} while stopping")
         # A stopped child's last lines (its totals) are still in the pipe: read them out.
         for running in self._running:

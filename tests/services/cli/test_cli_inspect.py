@@ -174,7 +174,7 @@ def test_user_mistakes_give_one_line_errors(service: Node, cli: Cli, tmp_path: P
         (("watch", "cam/images/extra"), "bad buffer name 'cam/images/extra'"),
         (
             ("info", "cam/images", "--connect", unreachable, "--timeout", "1"),
-            f"no live services reachable via {unreachable}",
+            f"cannot reach {unreachable} (",
         ),
         (("play", str(not_mcap)), "is not an MCAP file"),
     ]

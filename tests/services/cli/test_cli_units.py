@@ -106,7 +106,8 @@ def test_bad_files_are_named_in_the_error(tmp_path: Path) -> None:
     _write_bag(whole)
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(whole.read_bytes()[:200])
-    with pytest.raises(BagError, match="not a complete MCAP file"):
+    # Cut inside its first chunk: nothing to recover, and the message says so.
+    with pytest.raises(BagError, match="cut short before its first complete chunk"):
         open_bag(cut)
     with pytest.raises(BagError, match="exists"):
         BagWriter(whole)
