@@ -137,7 +137,8 @@ def _status_loop(
             try:
                 if node is None:
                     node = Node(network=net)
-                for info in node.services(timeout_s=min(2.0, every_s)):
+                # Short: a Ctrl-C waits for this call before the launcher can end.
+                for info in node.services(timeout_s=min(1.0, every_s)):
                     rates[info.service] = [
                         (b.buffer, b.rate_hz, sum(b.skipped.values())) for b in info.buffers
                     ]

@@ -9,6 +9,7 @@ from collections.abc import Callable
 from dataclasses import replace
 
 from middleware import ConfigError, NetworkConfig
+from services.cli.argtypes import did_you_mean
 from services.nodes import service
 
 from ._deploy import Deployment, ServiceSpec, arg_lines
@@ -47,8 +48,10 @@ def _check_args(spec: ServiceSpec, deployment: Deployment, text: str | None) -> 
     if unknown:
         flag = next((u for u in unknown if u.startswith("-")), unknown[0])
         where = f":{lines[flag]}" if flag in lines else ""
+        known = [o.lstrip("-").replace("-", "_") for a in parser._actions for o in a.option_strings]
+        key = flag.lstrip("-").replace("-", "_")
         what = (
-            f"has no option {flag.lstrip('-').replace('-', '_')!r}"
+            f"has no option {key!r}{did_you_mean(key, known)}"
             if flag.startswith("-")
             else f"does not take the value {flag!r}"
         )
