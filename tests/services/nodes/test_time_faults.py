@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from middleware import NetworkConfig, Node
+from middleware import FramegateError, NetworkConfig, Node
 from services.launch import pipeline_yaml
 from services.lib.decisions import GyroMissing
 from services.lib.messages import DecisionRecord
@@ -208,3 +208,40 @@ def test_a_stopped_detector_loses_no_accepted_frame_without_a_record(pipe: Pipel
     summary = audit.summary()
     assert summary["lost"]["accepted_without_detection"] == 0, summary
     assert summary["decision_reasons"].get("consumer-lapsed", 0) >= 1, summary
+
+
+def _puts(node: Node, target: str) -> int:
+    try:
+        return node.buffer_info(target, timeout_s=2.0).puts
+    except FramegateError:
+        return 0
+
+
+def test_camera_and_gyro_keep_producing_across_wall_clock_steps(tmp_path: Path, shim: Path) -> None:
+    """Only CLOCK_REALTIME steps (as chrony's makestep does): no stall, no skipped span."""
+    port = free_port()
+    offset = tmp_path / "offset"
+    step_clock(offset, 0)
+    env = shifted_clock_env(child_env(), shim, offset)
+    camera, gyro = _start(CAMERA, port, env), _start(GYRO, port, env)
+    try:
+        with Node(network=NetworkConfig(local_port=port)) as node:
+            wait_until(lambda: _puts(node, "camera/images") >= 2, 90, "camera frames")
+            wait_until(lambda: _puts(node, "gyro/rates") >= 100, 30, "gyro samples")
+            # Back 20 s, then forward 20 s: each would stall (backward) or skip (forward)
+            # a source paced by the wall clock for 20 s; within 10 s both keep producing.
+            for step_s in (-20, 0):
+                frames, samples = _puts(node, "camera/images"), _puts(node, "gyro/rates")
+                step_clock(offset, step_s * S)
+                wait_until(
+                    lambda f=frames: _puts(node, "camera/images") >= f + 3,
+                    10,
+                    f"frames after a step to {step_s} s",
+                )
+                wait_until(
+                    lambda n=samples: _puts(node, "gyro/rates") >= n + 200,
+                    10,
+                    f"gyro samples after a step to {step_s} s",
+                )
+    finally:
+        _stop(camera, gyro)
