@@ -215,3 +215,61 @@ def test_skips_a_service_counts_show_in_info(listen_net, connect_net) -> None:
         images.count_skip("late", 3)
         images.count_skip("late")
         assert client.buffer_info("cam/images").skipped == {"late": 4}
+
+
+@pytest.mark.integration
+def test_a_flood_of_forged_messages_loses_nothing_accepted_and_blocks_nobody(
+    listen_net, connect_net, endpoint
+) -> None:
+    """A rogue floods the subscription's notification key and the producer's ack key with
+    foreign-epoch forgeries and garbage while the producer puts 60 elements through a queue of 2: every
+    element arrives once, in order, and the producer is never held for good."""
+    from middleware._wire import encode_ack, encode_notification_header
+
+    with Node("cam", listen_net) as service, Node(network=connect_net) as client:
+        images = service.offer("images")
+        sub = client.subscribe("cam/images", queue_size=2)
+        keys = Keys("framegate")
+        stop = threading.Event()
+        flooded = [0]
+
+        def flood() -> None:
+            forged = encode_notification_header("X", 1, 5, b"m", pushed=True, descriptor=None)
+            with _raw_session(endpoint) as rogue:
+                notify = rogue.declare_publisher(keys.notify("cam", "images", sub.subscription_id))
+                ack = rogue.declare_publisher(keys.ack("cam", "images", sub.subscription_id))
+                i = 0
+                while not stop.is_set():
+                    i += 1
+                    flooded[0] = i
+                    notify.put(b"x" * 64, attachment=forged if i % 2 else b"\xc1garbage")
+                    # Foreign epochs and garbage (an in-window ack of the live epoch is the
+                    # secure profile's to stop, see the README's trust profiles).
+                    ack.put(encode_ack(f"X.{i}", 10**9) if i % 3 else b"\x00")
+
+        rogue = threading.Thread(target=flood)
+        rogue.start()
+        wait_until(lambda: flooded[0] > 5_000, 30.0, "the flood under way")
+
+        def produce() -> None:
+            for t in range(1, 61):
+                images.put(t, t.to_bytes(2, "big"), _meta(t), wait_s=20.0)
+
+        producer = threading.Thread(target=produce)
+        try:
+            producer.start()
+            taken: list[int] = []
+            while len(taken) < 60:
+                note = sub.take(timeout_s=20.0)
+                assert note is not None, f"stalled after {taken[-3:]}"
+                if note.metadata == b"m":
+                    continue  # a forgery of an epoch it had not met yet: indistinguishable
+                taken.append(note.timestamp_ns)
+                assert sub.fetch(note).payload == note.timestamp_ns.to_bytes(2, "big")
+            producer.join(timeout=20.0)
+            assert not producer.is_alive()
+        finally:
+            stop.set()
+            rogue.join()
+        assert taken == list(range(1, 61))
+        assert sub.garbage > 0
