@@ -222,8 +222,8 @@ def test_a_flood_of_forged_messages_loses_nothing_accepted_and_blocks_nobody(
     listen_net, connect_net, endpoint
 ) -> None:
     """A rogue floods the subscription's notification key and the producer's ack key with
-    foreign-epoch forgeries and garbage while the producer puts 60 elements through a queue of 2: every
-    element arrives once, in order, and the producer is never held for good."""
+    foreign-epoch forgeries and garbage while the producer puts 60 elements through a queue
+    of 2: every element arrives once, in order, and the producer is never held for good."""
     from middleware._wire import encode_ack, encode_notification_header
 
     with Node("cam", listen_net) as service, Node(network=connect_net) as client:
