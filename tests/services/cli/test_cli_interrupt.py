@@ -68,9 +68,10 @@ def _stops(proc: subprocess.Popen[str], signum: int) -> None:
         ["watch", "cam/log"],
         ["watch", "cam/log", "--flow-control", "--queue", "1", "--delay", "30"],
         ["hz", "cam/log"],
+        ["echo", "cam/log"],
         ["view", "cam/log", "--port", "0"],
     ],
-    ids=["watch", "watch-slow-flow", "hz", "view"],
+    ids=["watch", "watch-slow-flow", "hz", "echo", "view"],
 )
 def test_subscribing_command_stops_on_one_signal(
     argv: list[str], signum: int, port: int, producer: Producer
@@ -118,3 +119,15 @@ def test_two_signals_at_once_still_stop_the_command() -> None:
         except subprocess.TimeoutExpired:
             proc.kill()
             raise AssertionError("two SIGTERMs left the router running") from None
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_pub_stops_on_one_signal_with_exit_0(signum: int, port: int) -> None:
+    proc = start_framegate(
+        ["pub", "tmp/x", "--kind", "generic", "--count", "1000", "--rate", "20"], local_port=port
+    )
+    assert proc.stdout is not None
+    first = proc.stdout.readline()  # blocks until it has published (or ended)
+    assert first.startswith("published tmp/x #1"), first + proc.communicate()[0]
+    _stops(proc, signum)
+    assert proc.returncode == 0
