@@ -89,13 +89,16 @@ def test_an_unreachable_connect_endpoint_is_named_with_exit_1() -> None:
         "main(['ls', '--help'])",
         "main(['info', '--help'])",
         "build_parser('ls').parse_args(['ls'])",
+        # ls run to its end (nobody answers there): what it imports to look counts too.
+        "main(['ls', '--connect', 'tcp/127.0.0.1:1', '--timeout', '0.5'])",
     ],
 )
 def test_help_and_ls_import_nothing_heavy(code: str) -> None:
     script = (
-        "import contextlib, io, json, sys\n"
+        "import io, json, sys\n"
+        "from contextlib import redirect_stderr, redirect_stdout\n"
         "from services.cli import build_parser, main\n"
-        "with contextlib.redirect_stdout(io.StringIO()):\n"
+        "with redirect_stdout(io.StringIO()), redirect_stderr(io.StringIO()):\n"
         f"    {code}\n"
         "print(json.dumps(sorted(sys.modules)))\n"
     )
