@@ -92,6 +92,7 @@ class Producer:
         self.series = TimeSeries(retention)
         self.inline_max_bytes = inline_max_bytes
         self.horizon_ns = horizon_ns
+        self._horizon_at_ns = 0  # the largest stamp accepted without reading the clock
         # Validates each element's metadata, in full once per document shape.
         self._metadata = ShapeChecker(kind, xml_limits)
         self._session = session
@@ -204,13 +205,15 @@ class Producer:
         self._put(checked, wait_s)
 
     def _put(self, elements: tuple[DataObject, ...], wait_s: float) -> None:
-        # Checked now too, so that an element that can never be stored is not waited for.
-        try:
-            self.series.check_extend(elements)
-        except FramegateError:
-            with self._lock:
-                self._counters.rejected += len(elements)
-            raise
+        if wait_s > 0:
+            # Checked before waiting too, so that an element that can never be stored is not
+            # waited for (``_store`` checks it in any case).
+            try:
+                self.series.check_extend(elements)
+            except FramegateError:
+                with self._lock:
+                    self._counters.rejected += len(elements)
+                raise
         count = len(elements)
         deadline = time.monotonic() + wait_s
         while True:
@@ -267,7 +270,9 @@ class Producer:
         try:
             if not 0 <= timestamp_ns < 2**63:
                 _check_types(timestamp_ns, payload, meta)
-            if timestamp_ns > now_ns() + self.horizon_ns:
+            # The clock is read only when a stamp passes the last bound seen (stamps are
+            # near now, so that is about once per horizon).
+            if timestamp_ns > self._horizon_at_ns and timestamp_ns > self._horizon_now():
                 raise SchemaError(
                     f"timestamp {timestamp_ns} is {(timestamp_ns - now_ns()) / 1e9:.1f} s ahead "
                     f"of this process's clock; {self.name} refuses elements more than "
@@ -283,6 +288,10 @@ class Producer:
                 self._counters.rejected += 1
             raise
         return DataObject(timestamp_ns, payload, meta)
+
+    def _horizon_now(self) -> int:
+        self._horizon_at_ns = now_ns() + self.horizon_ns
+        return self._horizon_at_ns
 
     def _store(self, elements: tuple[DataObject, ...]) -> None:
         """(under _lock) Append, count, and let the protocol notify."""
