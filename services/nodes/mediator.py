@@ -387,7 +387,9 @@ class Mediator:
         )
         self._offset_ok = True
         self._horizon_ns = int(config.horizon_s * 1e9)
+        self._node = node
         self._camera_seq: int | None = None
+        self._newest_camera_ns: int | None = None
         self._newest_put_ns: int | None = None
         # The flow-controlled consumer (the detector): whether one was ever seen, whether
         # its subscription has lapsed, and the frames last seen waiting in its queue.
@@ -425,6 +427,7 @@ class Mediator:
             # registered again): its frames are judged afresh, not against the old ones.
             self.log.info("camera stream started over (seq %d): time order restarts", note.seq)
             self.decider.restart_order(self._newest_put_ns)
+            self._record_missed(note.timestamp_ns)
         self._camera_seq = note.seq
         if note.timestamp_ns > now_ns() + self._horizon_ns:
             ahead_s = (note.timestamp_ns - now_ns()) / 1e9
@@ -435,6 +438,7 @@ class Mediator:
                 f"stamped {ahead_s:.1f} s ahead of our clock (horizon {self.config.horizon_s:g} s)",
             )
             return
+        self._newest_camera_ns = note.timestamp_ns
         try:
             frame = self._assess(note)
         except BadFrame as exc:
@@ -450,6 +454,37 @@ class Mediator:
             return
         self._pending[frame.candidate.timestamp_ns] = frame
         self._carry_out(self.decider.frame(frame.candidate, load, time.monotonic_ns()), load)
+
+    def _record_missed(self, until_ns: int) -> None:
+        """Record the frames the camera stored between the last one we took and ``until_ns``.
+
+        They were stored while our subscription had lapsed (this process was stopped or
+        cut off past the lease) or before it registered with a restarted camera; none will
+        ever be notified, and each gets a ``mediator-lapsed`` record. Frames the camera's
+        retention has already evicted cannot be named; their count is not known here.
+        """
+        last = self._newest_camera_ns
+        if last is None or until_ns <= last + 1:
+            return
+        try:
+            missed = self._node.query(
+                self.config.camera, time_range=f"[{last + 1}..{until_ns - 1}]", timeout_s=5.0
+            )
+        except FramegateError as exc:
+            self.log.warning("cannot look up the frames missed before %d: %s", until_ns, exc)
+            return
+        for element in missed:
+            try:
+                frame_id = read_frame_metadata(element.metadata).frame_id
+            except (FramegateError, ValueError, TypeError):
+                frame_id = 0
+            self._skip(element.timestamp_ns, frame_id, "mediator-lapsed", "stored while not taken")
+        if missed:
+            self.log.warning(
+                "%d frames were stored while our camera subscription had lapsed: "
+                "recorded mediator-lapsed",
+                len(missed),
+            )
 
     def _load(self) -> Load:
         """The detector's load; full while the subscription of a consumer we had lapsed.
