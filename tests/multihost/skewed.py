@@ -3,8 +3,8 @@
     ip netns exec NS python -m tests.multihost.skewed --skew-ms 40 --name skewed \
         --connect tcp/127.0.0.1:7447
 
-Namespaces share the kernel's clock, so a host with a wrong clock is played by one process
-whose ``time.time_ns`` is shifted: everything framegate stamps in it (``@info``'s
+Namespaces share the kernel's clock and name, so a host with a wrong clock is played by one
+process whose ``time.time_ns`` is shifted and whose host name is its own: everything framegate stamps in it (``@info``'s
 ``clock_ns``, element keys) is off by the skew. Prints ``ready`` once it is offering.
 """
 
@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import signal
+import socket
 import threading
 import time
 from types import FrameType
@@ -28,6 +29,8 @@ def main(argv: list[str] | None = None) -> int:
     skew_ns = int(args.skew_ms * 1e6)
     real_time_ns = time.time_ns
     time.time_ns = lambda: real_time_ns() + skew_ns  # the whole process sees the wrong clock
+    # A separate host has a name of its own (`ls` flags offsets between hosts only).
+    socket.gethostname = lambda: "skewed-host"
 
     stop = threading.Event()
 
