@@ -21,6 +21,7 @@ from ._stats import percentile
 from ._throughput import FRAME_BYTES
 
 LATENCY_GOAL = 1.3
+LATENCY_P99_GOAL = 2.0
 # Payload size → pause between puts.
 INTERVALS_S = {64: 0.002, FRAME_BYTES: 0.005}
 
@@ -84,6 +85,9 @@ def run_latency(options: BenchOptions) -> ScenarioResult:
         if stream.goal:
             p50[stream.name].goal = ratio_goal(
                 p50[stream.name], LATENCY_GOAL, at_least=False, what="p50"
+            )
+            p99[stream.name].goal = ratio_goal(
+                p99[stream.name], LATENCY_P99_GOAL, at_least=False, what="p99"
             )
         else:
             p50[stream.name].note = "fetched: notification + query round trip, no goal"
