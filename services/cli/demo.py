@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any
 
 from services.lib.decisions import POLICIES
+from services.lib.sim import ScenarioConfig
 from services.tools.demo import SOURCES, DemoConfig, print_summary, run_demo
 
 from ._common import command_parser, network, print_json, stop_on_signals
@@ -37,6 +38,12 @@ def register(subparsers: Any) -> None:
         "sim: rendered live (too slow for small machines)",
     )
     parser.add_argument(
+        "--floor",
+        choices=ScenarioConfig.floor_names(),
+        default=d.floor,
+        help="floor of the approach (rough: bumpy enough for blur to matter)",
+    )
+    parser.add_argument(
         "--cache", type=Path, help="where prerendered approaches are kept (default: user cache)"
     )
     parser.add_argument("--b0", type=positive_float, default=d.b0_px, help="blur scale b0 (px)")
@@ -61,6 +68,7 @@ def run(args: argparse.Namespace) -> int:
         queue=args.queue,
         service_factor=args.service_factor,
         source=args.source,
+        floor=args.floor,
         cache=args.cache,
         show_logs=args.logs,
     )

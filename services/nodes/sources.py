@@ -45,6 +45,7 @@ class SourceSpec:
     exit_when_done: bool = False
     exposure_ms: float = 30.0
     camera_xml: str | None = None
+    floor: str = "default"
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
@@ -55,6 +56,12 @@ class SourceSpec:
             raise ConfigError(f"source {self.kind} needs a path (--path)")
         if self.rate <= 0:
             raise ConfigError(f"--rate must be > 0, got {self.rate}")
+
+    def scenario(self) -> Any:
+        """The simulated approach of ``sim`` and ``prerendered`` (a ``ScenarioConfig``)."""
+        from services.lib.sim import ScenarioConfig
+
+        return ScenarioConfig(seed=self.seed).with_floor(self.floor)
 
 
 @dataclass(frozen=True, slots=True)
@@ -100,9 +107,9 @@ class FrameSource(_Timeline):
 
     def __init__(self, spec: SourceSpec) -> None:
         if spec.kind == "sim":
-            from services.lib.sim import Scenario, ScenarioConfig
+            from services.lib.sim import Scenario
 
-            self._scenario: Any = Scenario(ScenarioConfig(seed=spec.seed))
+            self._scenario: Any = Scenario(spec.scenario())
             self.camera: CameraModel = self._scenario.camera
             infos = [self._scenario.frame_info(i) for i in range(self._scenario.frame_count)]
             self.description = f"simulated approach, seed {spec.seed}"
@@ -150,9 +157,9 @@ class GyroSource(_Timeline):
 
     def __init__(self, spec: SourceSpec) -> None:
         if spec.kind == "sim":
-            from services.lib.sim import Scenario, ScenarioConfig
+            from services.lib.sim import Scenario
 
-            scenario: Any = Scenario(ScenarioConfig(seed=spec.seed))
+            scenario: Any = Scenario(spec.scenario())
             trace = scenario.gyro_samples()
             period, count = scenario.config.frame_period_ns, scenario.frame_count
             first_frame_ns = scenario.frame_info(0).exposure_start_ns
@@ -254,7 +261,6 @@ def _dataset(spec: SourceSpec) -> Any:
     """The dataset a replayed or prerendered spec plays (prerendered: rendered if not cached)."""
     from services.lib.sim import (
         DatasetError,
-        ScenarioConfig,
         approach_cache_dir,
         cached_dataset,
         read_dataset,
@@ -263,7 +269,7 @@ def _dataset(spec: SourceSpec) -> Any:
     try:
         if spec.kind == "prerendered":
             cache = Path(spec.path) if spec.path else approach_cache_dir()
-            return cached_dataset(ScenarioConfig(seed=spec.seed), cache)
+            return cached_dataset(spec.scenario(), cache)
         return read_dataset(Path(str(spec.path)))
     except DatasetError as exc:
         raise ConfigError(str(exc)) from exc
@@ -301,6 +307,11 @@ def add_source_arguments(parser: argparse.ArgumentParser, *, device: bool) -> No
         + (" or device index/URL" if device else ""),
     )
     parser.add_argument("--seed", type=int, default=1, help="simulator seed (sim, prerendered)")
+    parser.add_argument(
+        "--floor",
+        default="default",
+        help="floor of the simulated approach (sim, prerendered): smooth, default or rough",
+    )
     parser.add_argument("--rate", type=positive_float, default=1.0, help="replay speed factor")
     parser.add_argument("--loop", action="store_true", help="start over at the end")
     parser.add_argument("--frames", type=positive_int, help="play only the first N frames")
@@ -333,4 +344,5 @@ def source_from_args(args: argparse.Namespace) -> SourceSpec:
         exit_when_done=args.exit_when_done,
         exposure_ms=getattr(args, "exposure_ms", 30.0),
         camera_xml=getattr(args, "camera_xml", None),
+        floor=args.floor,
     )

@@ -21,6 +21,8 @@ for it alone, without holding the camera back for the mediator.
 
 from __future__ import annotations
 
+import shutil
+import subprocess
 import sys
 import threading
 import time
@@ -61,6 +63,9 @@ class DemoConfig:
     queue: int = 2
     service_factor: float = 1.6
     source: str = "prerendered"
+    # The rough floor blurs enough frames for the mediator's choice to matter: on the default
+    # floor few frames are too blurred to recognize a marker, so filtering gains little.
+    floor: str = "rough"
     cache: Path | None = None
     show_logs: bool = False
 
@@ -75,6 +80,8 @@ def demo_deployment(config: DemoConfig) -> Deployment:
     """The pipeline (deploy/local.yaml) with the demo's settings, plus the uncontrolled
     detector on camera/images."""
     source: dict[str, Any] = {"source": config.source, "seed": config.seed}
+    if config.floor != "default":
+        source["floor"] = config.floor
     if config.cache is not None and config.source == "prerendered":
         source["path"] = str(config.cache)
     detector = {"queue": config.queue, "service_factor": config.service_factor}
@@ -96,27 +103,44 @@ def demo_deployment(config: DemoConfig) -> Deployment:
     return Deployment(base.path, base.network, base.hosts, (*base.services, uncontrolled))
 
 
-def prerender(config: DemoConfig) -> Path | None:
-    """Render the approach once (progress bar on stderr) so the camera finds it cached;
-    its directory, or None for a live source."""
-    if config.source != "prerendered":
-        return None
-    from services.lib.sim import (
-        DatasetError,
-        ScenarioConfig,
-        approach_cache_dir,
-        cached_dataset,
-        scenario_hash,
-    )
+def prerender(config: DemoConfig, stop: threading.Event) -> bool:
+    """Render the approach once (progress bar on stderr) so that the camera finds it cached.
 
-    scenario = ScenarioConfig(seed=config.seed)
+    The render runs in a child process, so that one Ctrl-C ends it at once (a render is
+    minutes of CPU). False when ``stop`` interrupted it."""
+    if config.source != "prerendered":
+        return True
+    from services.lib.sim import ScenarioConfig, approach_cache_dir, scenario_hash
+
+    scenario = ScenarioConfig(seed=config.seed).with_floor(config.floor)
     cache = config.cache or approach_cache_dir()
-    if not (cache / scenario_hash(scenario)).is_dir():
-        print(f"rendering the approach once (cached in {cache})", file=sys.stderr, flush=True)
+    if (cache / scenario_hash(scenario)).is_dir():
+        return True
+    print(f"rendering the approach once (cached in {cache})", file=sys.stderr, flush=True)
+    code = (
+        "import sys; from pathlib import Path; "
+        "from services.lib.sim import ScenarioConfig, cached_dataset; "
+        "cached_dataset(ScenarioConfig(seed=int(sys.argv[1])).with_floor(sys.argv[2]), "
+        "Path(sys.argv[3]))"
+    )
+    child = subprocess.Popen(
+        [sys.executable, "-c", code, str(config.seed), config.floor, str(cache)],
+        start_new_session=True,  # our Ctrl-C handling decides when it stops
+    )
     try:
-        return cached_dataset(scenario, cache, progress=True).root
-    except DatasetError as exc:
-        raise ConfigError(str(exc)) from exc
+        while child.poll() is None:
+            if stop.wait(0.2):
+                child.kill()
+                child.wait()
+                shutil.rmtree(cache / f"{scenario_hash(scenario)}.partial-{child.pid}", True)
+                return False
+    finally:
+        if child.poll() is None:
+            child.kill()
+            child.wait()
+    if child.returncode != 0:
+        raise ConfigError(f"rendering the approach into {cache} failed (exit {child.returncode})")
+    return True
 
 
 @dataclass
@@ -225,8 +249,7 @@ def run_demo(
     """Run the pipeline for ``duration_s`` (or until ``stop``) with a status line per second;
     return a summary read from the services' buffers."""
     stop = stop or threading.Event()
-    prerender(config)
-    if stop.is_set():
+    if not prerender(config, stop):
         return {}
     specs = process_specs(demo_deployment(config), None, network)
     supervisor = Supervisor(specs, quiet=not config.show_logs)
@@ -266,6 +289,7 @@ def run_demo(
         **counts,
         "policy": config.policy,
         "source": config.source,
+        "floor": config.floor,
         "restarts": supervisor.restarts(),
         "markers": {
             name: {
@@ -287,8 +311,8 @@ def print_summary(summary: dict[str, Any]) -> None:
         return
     out = sys.stdout
     out.write(
-        f"\nsummary after {summary['duration_s']} s ({summary['source']} camera, policy "
-        f"{summary['policy']}):\n"
+        f"\nsummary after {summary['duration_s']} s ({summary['source']} camera, "
+        f"{summary['floor']} floor, policy {summary['policy']}):\n"
         f"  camera      {summary['frames']} frames, {summary['late']} skipped late\n"
         f"  mediator    {summary['accepted']} forwarded, {summary['rejected']} rejected "
         f"(load {summary['load']:.2f})\n"

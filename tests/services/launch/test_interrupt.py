@@ -117,7 +117,9 @@ def test_one_signal_stops_launch_and_its_services(tmp_path: Path) -> None:
 
 
 def test_one_signal_stops_the_demo(port: int, client: Node) -> None:
-    proc = start_framegate(["demo", "--duration", "120"], local_port=port)
+    # A live-rendering camera: no approach to render first (the prerendered source's
+    # render, interruptible too, is minutes of CPU on a cold cache).
+    proc = start_framegate(["demo", "--duration", "120", "--source", "sim"], local_port=port)
     try:
         pids = [wait_until(lambda s=s: _pid_of(client, s), STARTUP_S, s) for s in PIPELINE]  # type: ignore[misc]
         took_s = _stopped_in_time(proc, signal.SIGINT)

@@ -44,7 +44,23 @@ def _without(argv: tuple[str, ...], flag: str) -> tuple[str, ...]:
 
 def test_demo_and_soak_default_to_the_shipped_pipeline() -> None:
     shipped = {s.name: s.args for s in pipeline().services}
-    assert {s.name: s.args for s in demo_deployment(DemoConfig()).services} == shipped
+    # The demo's live-rendering variant runs the shipped pipeline plus the uncontrolled
+    # detector (same speed, on the camera's frames); by default it plays a prerendered
+    # approach on the rough floor instead of rendering live.
+    demo = {
+        s.name: s.args for s in demo_deployment(DemoConfig(source="sim", floor="default")).services
+    }
+    uncontrolled = demo.pop("uncontrolled")
+    assert demo == shipped
+    assert _without(uncontrolled, "--input")[:2] == ("--name", "uncontrolled")
+    assert uncontrolled[uncontrolled.index("--input") + 1] == "camera/images"
+    assert "--observe" in uncontrolled
+    assert _without(_without(uncontrolled, "--name"), "--input")[:-1] == _without(
+        shipped["detector"], "--input"
+    )
+    camera = demo_deployment(DemoConfig()).services[0].args
+    assert camera[camera.index("--source") + 1] == "prerendered"
+    assert camera[camera.index("--floor") + 1] == "rough"
     soak = soak_deployment(SoakConfig(service_factor=1.6))
     # The soak adds only its replay rate.
     assert {s.name: _without(s.args, "--rate") for s in soak.services} == shipped

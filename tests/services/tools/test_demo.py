@@ -1,0 +1,87 @@
+"""The demo's status line, summary, policies and pipeline (no processes started)."""
+
+from __future__ import annotations
+
+import pytest
+
+from middleware import ConfigError
+from services.cli import build_parser
+from services.lib.decisions import POLICIES
+from services.tools.demo import (
+    STATUS_COLUMNS,
+    STATUS_LEGEND,
+    UNCONTROLLED,
+    DemoConfig,
+    Status,
+    demo_deployment,
+    gain_pct,
+    print_summary,
+    status_line,
+)
+
+
+def test_status_line_fits_100_columns_even_with_large_counts() -> None:
+    counts = Status().counts()
+    counts.update(frames=99_999, camera_hz=15.0, late=9_999, accepted=99_999, rejected=99_999)
+    line = status_line(counts, {"detector": 99_999, UNCONTROLLED: 9_999}, 999.9)
+    assert len(line) <= STATUS_COLUMNS == 100
+    assert line.endswith("| markers 99999 vs  9999 +900%")
+    assert all(len(legend) <= 100 for legend in STATUS_LEGEND.splitlines())
+
+
+def test_status_line_shows_late_skips_load_and_the_gain() -> None:
+    counts = Status().counts()
+    counts.update(frames=300, camera_hz=14.9, late=7, accepted=120, rejected=180, load=0.5)
+    line = status_line(counts, {"detector": 33, UNCONTROLLED: 30}, 20.0)
+    assert "   7 late" in line and "120 in   180 out load 0.50" in line
+    assert line.endswith("markers    33 vs    30  +10%")
+    assert status_line(counts, {}, 1.0).endswith("  n/a")
+
+
+def test_gain_is_relative_to_the_uncontrolled_detector() -> None:
+    assert gain_pct(12, 10) == pytest.approx(20.0)
+    assert gain_pct(9, 10) == pytest.approx(-10.0)
+    assert gain_pct(5, 0) is None
+
+
+def test_policy_flag_offers_every_policy() -> None:
+    parser = build_parser("demo")
+    for name in POLICIES:
+        args = parser.parse_args(["demo", "--policy", name])
+        assert args.policy == name
+    assert {"adaptive", "paper"} <= set(POLICIES)
+    with pytest.raises(ConfigError, match="--policy 'nope'"):
+        DemoConfig(policy="nope")
+
+
+def test_the_uncontrolled_detector_observes_the_camera_at_the_same_speed() -> None:
+    services = {s.name: s for s in demo_deployment(DemoConfig(service_factor=2.0)).services}
+    raw, filtered = services[UNCONTROLLED].args, services["detector"].args
+    assert services[UNCONTROLLED].type == "detector"
+    assert raw[raw.index("--input") + 1] == "camera/images" and "--observe" in raw
+    assert filtered[filtered.index("--input") + 1] == "mediator/images"
+    for flag in ("--queue", "--service-factor"):
+        assert raw[raw.index(flag) + 1] == filtered[filtered.index(flag) + 1]
+
+
+def test_summary_lists_each_marker_filtered_against_uncontrolled(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    counts = Status().counts()
+    counts.update(frames=600, late=3, accepted=330, rejected=270, load=0.5)
+    print_summary(
+        {
+            **counts,
+            "duration_s": 46.2,
+            "source": "prerendered",
+            "floor": "rough",
+            "policy": "paper",
+            "markers": {"large": {"filtered": 287, "uncontrolled": 275}},
+            "recognitions_filtered": 287,
+            "recognitions_uncontrolled": 275,
+        }
+    )
+    out = capsys.readouterr().out
+    assert "policy paper" in out and "330 forwarded, 270 rejected" in out
+    assert "  large                287           275     +4%" in out
+    assert "  total                287           275     +4%" in out
