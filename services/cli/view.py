@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import shutil
 import sys
 from typing import Any
 
@@ -13,6 +14,7 @@ from services.tools.view import (
     DEFAULT_QUEUE,
     Status,
     ViewConfig,
+    installed_layout,
     parse_target,
     run_view,
 )
@@ -65,7 +67,9 @@ def register(subparsers: Any) -> None:
     add_timeout_argument(parser)
     parser.epilog = (
         "Open Foxglove, choose 'Open connection', 'Foxglove WebSocket', ws://127.0.0.1:8765, "
-        "and import deploy/foxglove-layout.json. --json prints the status as JSON Lines."
+        "and import the layout view names at start (installed with framegate; also "
+        "deploy/foxglove-layout.json). A named buffer that no live service offers is an error "
+        "after --timeout. --json prints the status as JSON Lines."
     )
     parser.set_defaults(func=run)
 
@@ -94,16 +98,21 @@ def run(args: argparse.Namespace) -> int:
                 file=sys.stderr,
                 flush=True,
             )
+        layout = str(installed_layout())
         if args.json:
-            print_json_line({"event": "listening", "url": url})
+            print_json_line({"event": "listening", "url": url, "layout": layout})
         else:
             print(f"serving Foxglove on {url}; Ctrl-C to stop", flush=True)
+            print(f"Foxglove layout: {layout}", flush=True)
 
     def report(status: Status) -> None:
         if args.json:
             print_json_line(status.json())
         else:
-            print(("\r\x1b[K" if tty else "") + status.line(), end="" if tty else "\n", flush=True)
+            line = status.line()
+            if tty:  # one line redrawn in place: it must fit the terminal
+                line = line[: shutil.get_terminal_size().columns - 1]
+            print(("\r\x1b[K" if tty else "") + line, end="" if tty else "\n", flush=True)
 
     counters = run_view(config, network(args), stop=stop, report=report, started=started)
     if tty:

@@ -8,10 +8,10 @@ serves live and recorded data. The viewer observes and never slows a producer.
 """
 
 from ._config import DEFAULT_BACKLOG, DEFAULT_HOST, DEFAULT_PORT, DEFAULT_QUEUE, ViewConfig
-from ._layout import foxglove_layout
+from ._layout import foxglove_layout, installed_layout
 from ._server import FoxgloveServer
 from ._status import Counters, Status
-from ._view import parse_target, run_view
+from ._view import check_targets, parse_target, run_view
 
 __all__ = [
     "DEFAULT_BACKLOG",
@@ -22,7 +22,9 @@ __all__ = [
     "FoxgloveServer",
     "Status",
     "ViewConfig",
+    "check_targets",
     "foxglove_layout",
+    "installed_layout",
     "parse_target",
     "run_view",
 ]

@@ -1,4 +1,8 @@
-"""The Foxglove layout for framegate (``deploy/foxglove-layout.json``), built with the SDK.
+"""The Foxglove layout for framegate, built with the SDK.
+
+It is installed with the package (``installed_layout()``, named by ``framegate view`` at
+start) and kept in the repository as ``deploy/foxglove-layout.json``; a test checks that both
+files hold what ``foxglove_layout()`` builds.
 
 The camera image with the mediator's verdicts and the detector's markers drawn on it; q,
 load and accepted over time; the blur estimate and the gyro rate over time; the verdicts as
@@ -9,6 +13,8 @@ produce, so it works live and on a recording.
 from __future__ import annotations
 
 import json
+from importlib import resources
+from pathlib import Path
 
 import foxglove.layouts as fl
 
@@ -28,6 +34,14 @@ def _plot(title: str, series: list[tuple[str, str]]) -> fl.PlotPanel:
             show_legend=True,
         ),
     )
+
+
+LAYOUT_FILE = "foxglove-layout.json"
+
+
+def installed_layout() -> Path:
+    """Where the installed package keeps the layout (to import into Foxglove)."""
+    return Path(str(resources.files(__package__ or "services.tools.view") / LAYOUT_FILE))
 
 
 def foxglove_layout() -> str:

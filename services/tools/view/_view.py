@@ -9,11 +9,21 @@ Zenoh session.
 
 from __future__ import annotations
 
+import difflib
 import threading
 import time
 from collections.abc import Callable
 
-from middleware import BufferInfo, FramegateError, NetworkConfig, Node, check_name, split_target
+from middleware import (
+    BufferInfo,
+    FramegateError,
+    NetworkConfig,
+    Node,
+    NotFoundError,
+    ServiceInfo,
+    check_name,
+    split_target,
+)
 
 from ._config import ViewConfig
 from ._server import FoxgloveServer
@@ -49,6 +59,47 @@ def _find(node: Node, config: ViewConfig) -> list[BufferInfo]:
     return chosen
 
 
+def _did_you_mean(name: str, candidates: list[str]) -> str:
+    hint = difflib.get_close_matches(name, candidates, n=1)
+    return f" (did you mean {hint[0]!r}?)" if hint else ""
+
+
+def _missing(target: str, services: list[ServiceInfo]) -> str | None:
+    """Why ``target`` names nothing live (None: it does)."""
+    service, buffer = parse_target(target)
+    by_name = {s.service: s for s in services}
+    if service not in by_name:
+        live = sorted(by_name)
+        return (
+            f"no live service named {service!r}{_did_you_mean(service, live)}; "
+            f"live services: {', '.join(live) or 'none'}"
+        )
+    offered = [b.buffer for b in by_name[service].buffers]
+    if buffer is None or buffer in offered:
+        return None
+    return (
+        f"service {service!r} has no buffer {buffer!r}{_did_you_mean(buffer, offered)}; "
+        f"it offers: {', '.join(offered) or 'none'}"
+    )
+
+
+def check_targets(node: Node, targets: tuple[str, ...], timeout_s: float) -> None:
+    """Return once every named target is live; ``NotFoundError`` with a did-you-mean for
+    the first that is not within ``timeout_s`` (a pipeline starting meanwhile is waited for)."""
+    deadline = time.monotonic() + timeout_s
+    while targets:
+        try:
+            services = node.services(timeout_s=max(0.2, min(1.0, timeout_s)))
+        except FramegateError:
+            services = []
+        problems = [p for t in targets if (p := _missing(t, services)) is not None]
+        if not problems:
+            return
+        if time.monotonic() >= deadline:
+            raise NotFoundError(f"{problems[0]} (waited {timeout_s:g} s; --timeout waits longer)")
+        time.sleep(0.1)
+
+
 def run_view(
     config: ViewConfig,
     network: NetworkConfig,
@@ -64,6 +115,7 @@ def run_view(
     server = FoxgloveServer(config, counters)
     try:
         with Node(network=network) as node:
+            check_targets(node, config.targets, config.discovery_timeout_s)
             started(server.url)
             deadline = None if config.duration_s is None else time.monotonic() + config.duration_s
             next_find = next_status = time.monotonic()

@@ -8,7 +8,13 @@ import pytest
 
 from middleware import ConfigError, FramegateError
 from services.tools.bag import derived_topics
-from services.tools.view import Counters, ViewConfig, foxglove_layout, parse_target
+from services.tools.view import (
+    Counters,
+    ViewConfig,
+    foxglove_layout,
+    installed_layout,
+    parse_target,
+)
 from tests.conftest import REPO
 
 
@@ -85,19 +91,32 @@ def test_status_line_says_what_was_missed_and_which_client_is_slow() -> None:
     counters.slow_client("127.0.0.1:5000")
     status = counters.snapshot("ws://127.0.0.1:8765", 1.0)
     line = status.line()
-    assert line.startswith("ws://127.0.0.1:8765  clients 0 | /camera/images/image 15.0/s")
+    assert line.startswith("clients 0 | 1 channels 15.0 msg/s, images 15.0/s")
     assert "missed 3 lost 1" in line
-    assert "slow client, oldest messages dropped: 127.0.0.1:5000 (1x)" in line
+    assert line.endswith("| slow: 127.0.0.1:5000 (1x)")
     assert status.json()["slow_clients"] == {"127.0.0.1:5000": 1}
     counters.client_gone("127.0.0.1:5000")
     assert "slow" not in counters.snapshot("u", 2.0).line()
 
 
-def test_the_layout_file_is_the_generated_layout_and_names_only_produced_topics() -> None:
-    committed = (REPO / "deploy" / "foxglove-layout.json").read_text()
-    assert committed == foxglove_layout(), (
-        "regenerate: python -m services.tools.view._layout > deploy/foxglove-layout.json"
-    )
+def test_status_line_fits_100_columns_with_many_channels_and_slow_clients() -> None:
+    counters = Counters()
+    counters.snapshot("ws://127.0.0.1:8765", 0.0)
+    for service in ("camera", "gyro", "mediator", "detector", "uncontrolled"):
+        for topic in ("image", "metadata", "annotations", "verdict", "rates"):
+            counters.count(f"/{service}/{service}/{topic}", 15)
+    for port in range(5000, 5010):
+        counters.slow_client(f"127.0.0.1:{port}")
+    line = counters.snapshot("ws://127.0.0.1:8765", 1.0).line()
+    assert len(line) <= 100, line
+    assert line.startswith("clients 0 | 25 channels 375.0 msg/s, images 75.0/s")
+
+
+def test_the_layout_files_are_the_generated_layout_and_names_only_produced_topics() -> None:
+    for committed in (REPO / "deploy" / "foxglove-layout.json", installed_layout()):
+        assert committed.read_text() == foxglove_layout(), (
+            f"regenerate: python -m services.tools.view._layout > {committed}"
+        )
     produced = {
         t.topic
         for service, buffer, kind in [
@@ -108,5 +127,5 @@ def test_the_layout_file_is_the_generated_layout_and_names_only_produced_topics(
         ]
         for t in derived_topics(service, buffer, kind, images="raw")
     }
-    named = set(re.findall(r'"(/[a-z]+/[a-z]+/[a-z]+)', committed))
+    named = set(re.findall(r'"(/[a-z]+/[a-z]+/[a-z]+)', foxglove_layout()))
     assert named and named <= produced, named - produced
