@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import base64
-import json
 import random
 import sys
 import time
@@ -25,6 +24,7 @@ import msgpack
 import zenoh
 
 from tests.conftest import NodeProcess, free_port
+from tests.helpers.raw_zenoh import open_session
 
 SERVICE, BUFFER = "fz", "buf"
 MAX_PAYLOAD = 1 << 20
@@ -41,14 +41,6 @@ class Tally:
         self.counts["FAILURE"] += 1
         if len(self.failures) < 20:
             self.failures.append(what)
-
-
-def _session(endpoint: str) -> zenoh.Session:
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"peer"')
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
-    return zenoh.open(conf)
 
 
 def _query(session: zenoh.Session, selector: Any, tally: Tally, what: str) -> None:
@@ -88,7 +80,7 @@ def run(cases: int, seed: int, endpoint: str | None = None) -> Tally:
             buffer=BUFFER,
             retention={"max_count": 100_000, "max_payload_bytes": MAX_PAYLOAD},
         )
-        session = _session(endpoint)
+        session = open_session(endpoint)
         legit = NodeProcess(None, ["--connect", endpoint])
         legit.call("subscribe", target=f"{SERVICE}/{BUFFER}", queue=100_000, mode="observe")
         # A flow subscriber that takes everything: forgeries must neither block the service

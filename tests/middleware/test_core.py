@@ -3,11 +3,9 @@ registration slots and the queue budget, the horizon, the one loop per node, nam
 
 from __future__ import annotations
 
-import json
 import threading
 
 import pytest
-import zenoh
 
 from middleware import (
     ConfigError,
@@ -23,18 +21,11 @@ from middleware import (
 from middleware._protocol_producer import QUEUE_BUDGET
 from middleware._wire import MAX_QUEUE_SIZE, Keys
 from tests.conftest import wait_until
+from tests.helpers.raw_zenoh import open_session
 
 
 def _meta(t: int) -> bytes:
     return make_metadata("generic", t)
-
-
-def _raw_session(endpoint: str) -> zenoh.Session:
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"peer"')
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
-    return zenoh.open(conf)
 
 
 def test_a_queue_beyond_the_limit_is_refused_at_subscribe(listen_net, connect_net) -> None:
@@ -70,7 +61,7 @@ def test_hostile_huge_queue_tokens_never_hold_the_producer(listen_net, endpoint)
     with Node("cam", listen_net) as service:
         images = service.offer("images")
         keys = Keys("framegate")
-        with _raw_session(endpoint) as rogue:
+        with open_session(endpoint) as rogue:
             tokens = [
                 rogue.liveliness().declare_token(
                     keys.subscription_token(
@@ -91,7 +82,7 @@ def test_observers_cannot_take_a_flow_subscribers_slot(listen_net, endpoint, con
     with Node("cam", listen_net) as service, Node(network=connect_net) as client:
         images = service.offer("images")
         keys = Keys("framegate")
-        with _raw_session(endpoint) as rogue:
+        with open_session(endpoint) as rogue:
             tokens = [
                 rogue.liveliness().declare_token(
                     keys.subscription_token(
@@ -235,7 +226,7 @@ def test_a_flood_of_forged_messages_loses_nothing_accepted_and_blocks_nobody(
 
         def flood() -> None:
             forged = encode_notification_header("X", 1, 5, b"m", pushed=True, descriptor=None)
-            with _raw_session(endpoint) as rogue:
+            with open_session(endpoint) as rogue:
                 notify = rogue.declare_publisher(keys.notify("cam", "images", sub.subscription_id))
                 ack = rogue.declare_publisher(keys.ack("cam", "images", sub.subscription_id))
                 i = 0

@@ -7,7 +7,6 @@ the wire keys of the README's *Wire format*. Each test names the defect it pins 
 
 from __future__ import annotations
 
-import json
 import re
 import threading
 from collections.abc import Iterator
@@ -30,6 +29,7 @@ from middleware import (
 from middleware._buffer import TimeSeries
 from middleware._records import DataObject, Retention
 from tests.conftest import wait_until
+from tests.helpers.raw_zenoh import open_session
 
 pytestmark = pytest.mark.integration
 
@@ -39,14 +39,6 @@ FORGED_T = 999_999
 
 def _put(producer: Producer, t: int, wait_s: float = 0.0) -> None:
     producer.put(t, b"p%d" % t, make_metadata("generic", t), wait_s=wait_s)
-
-
-def _raw_session(endpoint: str) -> zenoh.Session:
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"peer"')
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
-    return zenoh.open(conf)
 
 
 def _forged_header(epoch: str, seq: int, t: int = FORGED_T) -> bytes:
@@ -101,7 +93,7 @@ def test_foreign_epoch_notification_does_not_block_a_full_producer(
         _put(images, 1)
         _put(images, 2)
         wait_until(lambda: sub.pending == 2, 5, "both notifications")
-        with _raw_session(endpoint) as rogue:
+        with open_session(endpoint) as rogue:
             rogue.put(
                 f"framegate/@notify/{SERVICE}/{BUFFER}/{sub.subscription_id}",
                 b"forged",
@@ -120,7 +112,7 @@ def test_forged_future_seq_neither_drops_real_notifications_nor_reports_missed(
     endpoint: str, listen_net: NetworkConfig, connect_net: NetworkConfig
 ) -> None:
     with _pair(listen_net, connect_net, queue=2) as (images, sub, _client):
-        with _raw_session(endpoint) as rogue:
+        with open_session(endpoint) as rogue:
             spy = _SpyEpoch(rogue, sub.subscription_id)
             wait_until(lambda: _put(images, 1) is None, 5, "the first put")
             assert spy.seen.wait(5)
@@ -146,7 +138,7 @@ def test_colliding_observe_token_cannot_remove_a_flow_subscription(
 ) -> None:
     with _pair(listen_net, connect_net, queue=2) as (images, sub, _client):
         sub_id = sub.subscription_id
-        with _raw_session(endpoint) as rogue:
+        with open_session(endpoint) as rogue:
             token = rogue.liveliness().declare_token(
                 f"framegate/@sub/{SERVICE}/{BUFFER}/{sub_id}/observe/1/-1"
             )
@@ -165,7 +157,7 @@ def test_colliding_observe_token_does_not_feed_the_flow_subscriber(
     endpoint: str, listen_net: NetworkConfig, connect_net: NetworkConfig
 ) -> None:
     with _pair(listen_net, connect_net, queue=4) as (images, sub, _client):
-        with _raw_session(endpoint) as rogue:
+        with open_session(endpoint) as rogue:
             token = rogue.liveliness().declare_token(
                 f"framegate/@sub/{SERVICE}/{BUFFER}/{sub.subscription_id}/observe/1/-1"
             )
@@ -254,7 +246,7 @@ def test_notification_send_does_not_hold_the_callback_lock(
 def test_token_flaps_do_not_leak_publishers(
     endpoint: str, listen_net: NetworkConfig, connect_net: NetworkConfig
 ) -> None:
-    with Node(SERVICE, listen_net) as server, _raw_session(endpoint) as rogue:
+    with Node(SERVICE, listen_net) as server, open_session(endpoint) as rogue:
         images = server.offer(BUFFER)
         flaky = _FlakySession(images._session)
         images._session = flaky  # type: ignore[assignment]

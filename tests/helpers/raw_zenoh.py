@@ -1,0 +1,16 @@
+"""A plain Zenoh session for tests that play a peer framegate does not control."""
+
+from __future__ import annotations
+
+import json
+
+import zenoh
+
+
+def open_session(endpoint: str) -> zenoh.Session:
+    """A peer session connected to ``endpoint``, multicast scouting off."""
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    return zenoh.open(conf)
