@@ -21,6 +21,7 @@ from ._errors import (
     TransportError,
 )
 from ._kinds import register_kind
+from ._protocol_producer import INLINE_METADATA_MAX, QUEUE_BUDGET
 from ._node import Node, split_target
 from ._producer import Producer
 from ._records import (
@@ -37,7 +38,9 @@ from ._timerange import TimeRange, parse_duration_ns, parse_time_ns, parse_time_
 from ._xml import XmlLimits, field_text, make_metadata, parse_untrusted, validate_metadata
 
 __all__ = [
+    "INLINE_METADATA_MAX",
     "PUSH_ALL",
+    "QUEUE_BUDGET",
     "BufferInfo",
     "ClockSample",
     "ClockStatus",

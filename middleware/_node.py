@@ -188,8 +188,11 @@ class Node:
 
     def _wait_registered(self, sub: Subscription, wait_s: float) -> None:
         """Wait for the producer's greeting; RegistrationRefused (the subscription closed)
-        if it refused. A service that is not live returns at once."""
+        if it refused, NotFoundError if the live service still does not offer the buffer
+        when ``wait_s`` is up (a service offers its buffers one after another). A service
+        that is not live returns at once: the subscription registers when it appears."""
         deadline = time.monotonic() + wait_s
+        missing: NotFoundError | None = None
         while time.monotonic() < deadline:
             try:
                 if sub.wait_registered(min(0.25, max(0.0, deadline - time.monotonic()))):
@@ -198,14 +201,17 @@ class Node:
                 sub.close()
                 raise
             if sub.service not in self.live_services(timeout_s=min(1.0, wait_s)):
-                return  # not up yet: the subscription registers when it appears
+                return
             try:
                 self.buffer_info(sub.name, timeout_s=1.0)
-            except NotFoundError:
-                sub.close()
-                raise
+                missing = None
+            except NotFoundError as exc:
+                missing = exc
             except FramegateError:
                 pass
+        if missing is not None:
+            sub.close()
+            raise missing
 
     def query(
         self,
