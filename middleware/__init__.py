@@ -21,9 +21,9 @@ from ._errors import (
     TransportError,
 )
 from ._kinds import register_kind
-from ._protocol_producer import INLINE_METADATA_MAX, QUEUE_BUDGET
 from ._node import Node, split_target
 from ._producer import Producer
+from ._protocol_producer import INLINE_METADATA_MAX, QUEUE_BUDGET
 from ._records import (
     BufferInfo,
     DataObject,

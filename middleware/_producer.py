@@ -55,7 +55,6 @@ class _Counters:
     puts: int = 0
     refused: int = 0
     rejected: int = 0
-    bad_messages: int = 0
     skipped: dict[str, int] = field(default_factory=dict)
     put_times: deque[int] = field(default_factory=lambda: deque(maxlen=_RATE_WINDOW))
 

@@ -87,7 +87,6 @@ class ProtocolCounters:
     """What the producer's protocol refused or ignored, for ``info`` and the tests."""
 
     bad_messages: int = 0
-    foreign_acks: int = 0
     refused_registrations: int = 0
     refusals: dict[str, int] = field(default_factory=dict)
 
@@ -322,10 +321,6 @@ class ProducerProtocol:
                 )
             )
         return out
-
-    @property
-    def foreign_acks(self) -> int:
-        return self._ledger.counters.foreign_acks
 
     def close(self) -> None:
         """Forget every registration; their publishers are retired."""

@@ -2,10 +2,10 @@
 
 The queue lives here, in the subscriber's process; the producer mirrors its fill from the
 acknowledgements (queued = sent - taken). A notification leaves the queue when ``take``
-returns it; processing the element afterwards does not count against the queue. The
-protocol itself (which notification is queued, which ignored, which ack is due) is the pure
-``SubscriberLedger`` in ``_ledger_subscriber``; this module only feeds it from Zenoh and
-sends the acks it returns.
+returns it; processing the element afterwards does not count against the queue. Every
+decision (which notification is queued, which ignored, which ack is due and when) is the
+sans-IO ``SubscriberProtocol`` in ``_protocol_subscriber``; this module only feeds it from
+Zenoh and sends the acks it returns.
 """
 
 from __future__ import annotations
