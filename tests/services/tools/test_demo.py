@@ -1,12 +1,16 @@
-"""The demo's status line, summary, policies and pipeline (no processes started)."""
+"""The demo's status line, summary, policies, pipeline and approach cache (no processes)."""
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import pytest
 
 from middleware import ConfigError
 from services.cli import build_parser
 from services.lib.decisions import POLICIES
+from services.lib.sim import ScenarioConfig, cached_dataset, scenario_hash
+from services.nodes.sources import SourceSpec, open_frame_source
 from services.tools.demo import (
     STATUS_COLUMNS,
     STATUS_LEGEND,
@@ -85,3 +89,20 @@ def test_summary_lists_each_marker_filtered_against_uncontrolled(
     assert "policy paper" in out and "330 forwarded, 270 rejected" in out
     assert "  large                287           275     +4%" in out
     assert "  total                287           275     +4%" in out
+
+
+def test_an_approach_is_rendered_once_and_then_read_from_the_cache(tmp_path: Path) -> None:
+    scenario = ScenarioConfig(seed=5).replace(frame_count=2)
+    first = cached_dataset(scenario, tmp_path, progress=False)
+    assert first.root == tmp_path / scenario_hash(scenario) and len(first) == 2
+    stamp = first.image_path(0).stat().st_mtime_ns
+    again = cached_dataset(scenario, tmp_path, progress=False)
+    assert again.image_path(0).stat().st_mtime_ns == stamp  # not rendered again
+    assert [p.name for p in tmp_path.iterdir()] == [scenario_hash(scenario)]  # no partials
+
+
+def test_a_damaged_prerendered_cache_is_one_clear_error(tmp_path: Path) -> None:
+    spec = SourceSpec(kind="prerendered", path=str(tmp_path), seed=4, floor="rough")
+    (tmp_path / scenario_hash(spec.scenario())).mkdir()  # an empty, damaged entry
+    with pytest.raises(ConfigError, match=r"unreadable .*delete it"):
+        open_frame_source(spec)
