@@ -49,7 +49,6 @@ import argparse
 import collections
 import contextlib
 import itertools
-import statistics
 import threading
 import time
 from dataclasses import dataclass
@@ -276,8 +275,9 @@ class ClockOffsets:
 
     Every ``_OFFSET_PERIOD_S`` the services' descriptions give each clock's offset from
     ours and the round trip that bounds its error (NTP-style); the camera-minus-gyro
-    offset is the median of the last ``_OFFSET_SAMPLES``, its uncertainty half the sum of
-    the median round trips. Unknown (None) until both have answered.
+    offset is that of the sample with the shortest round trips among the last
+    ``_OFFSET_SAMPLES``, its uncertainty half the sum of those round trips. Unknown (None)
+    until both have answered.
 
     Threads: one daemon thread asks (it only calls ``Node.services``); ``_lock`` guards
     the samples.
@@ -314,13 +314,12 @@ class ClockOffsets:
             self._samples.append((offset, error))
 
     def current(self) -> tuple[int, int] | None:
-        """(camera - gyro offset, its uncertainty) in ns, or None while unknown."""
+        """(camera - gyro offset, its uncertainty) in ns, or None while unknown: the recent
+        sample with the shortest round trip (the tightest bound, as NTP picks)."""
         with self._lock:
             if not self._samples:
                 return None
-            offsets = [o for o, _ in self._samples]
-            errors = [e for _, e in self._samples]
-        return int(statistics.median(offsets)), int(statistics.median(errors))
+            return min(self._samples, key=lambda sample: sample[1])
 
     def stop(self) -> None:
         self._stop.set()
