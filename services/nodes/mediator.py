@@ -34,6 +34,14 @@ newest one kept (late, re-delivered or overlapping batches) are dropped; a batch
 than everything kept is a restarted gyro and starts the cache over. Late or out-of-order
 frames are the decider's (``out-of-order``).
 
+Time and stalls: a frame stamped more than ``horizon_s`` ahead of our clock is skipped
+(``future-stamp``) before it can become the time-order reference; a new epoch of the camera
+stream (a restarted camera, our subscription registered again) restarts the time order, and
+the frames the camera stored in the gap get ``mediator-lapsed`` records. Camera and gyro
+clocks are compared every 2 s (``ClockOffsets``); beyond ``max_clock_offset`` of the exposure
+frames are not paired (``clock-offset``). Once a flow-controlled consumer has been seen, its
+lapsed subscription counts as a full queue (``consumer-lapsed``), never as load 0.
+
 Gyro missing or late (no coverage ``gyro_wait_ms`` after the exposure ended): by default a
 frame is forwarded only when the detector is idle (``--gyro-missing idle``); ``accept`` and
 ``reject`` are the alternatives. Outages and recovery are logged.
