@@ -18,7 +18,7 @@ from middleware._wire import (
     encode_notification_header,
 )
 from tests.conftest import wait_until
-from tests.middleware.test_protocol_regressions import _raw_session
+from tests.helpers.raw_zenoh import open_session
 
 META = make_metadata("generic", 7)
 
@@ -140,7 +140,7 @@ def test_a_subscription_counts_malformed_compact_headers_as_garbage(
         def valid(seq: int) -> bytes:
             return _array("E.1", seq, seq, META, True, None, None)
 
-        with _raw_session(endpoint) as rogue:
+        with open_session(endpoint) as rogue:
             # Until Zenoh has matched the subscriber, puts go nowhere: repeat the first one.
             wait_until(lambda: rogue.put(key, b"p1", attachment=valid(1)) or sub.pending, 5, "1")
             for payload, attachment in garbage:
