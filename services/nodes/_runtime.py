@@ -14,7 +14,7 @@ import time
 from collections.abc import Callable
 from typing import TypeVar
 
-from middleware import ConfigError, Producer, now_ns
+from middleware import ConfigError, now_ns
 
 START_AT_ENV = "FRAMEGATE_START_AT_NS"
 # Set by the launch supervisor (services/launch/_supervisor.py) for each child it starts.
@@ -58,14 +58,6 @@ def sleep_until_ns(wall_ns: int, stop: threading.Event) -> bool:
             return not stop.is_set()
         if stop.wait(min(remaining, 0.5)):
             return False
-
-
-def count_skip(producer: Producer, reason: str, n: int = 1) -> None:
-    """``producer.count_skip(reason, n)``: an element the service chose not to put, shown
-    by ``info`` in ``skipped``. A middleware without the counter counts nothing."""
-    method = getattr(producer, "count_skip", None)
-    if method is not None:
-        method(reason, n)
 
 
 def _wall_minus_monotonic_ns() -> int:

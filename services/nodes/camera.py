@@ -34,7 +34,6 @@ from services.lib.quality import Exposure
 from services.nodes._contract import Service, ServiceEntry
 from services.nodes._runtime import (
     Timeline,
-    count_skip,
     serve_until_stopped,
     setup_logging,
     start_at_ns,
@@ -90,7 +89,7 @@ def run(config: CameraConfig, network: NetworkConfig, stop: threading.Event | No
                     # A real camera cannot deliver a frame late: if rendering or reading fell
                     # a frame period behind, this frame is skipped (and counted) instead.
                     if timeline.late_ns(end_rel) > rate.period_ns:
-                        count_skip(images, "late")
+                        images.count_skip("late")
                         rate.late(log)
                         continue
                     image = rate.timed_load(frame.load, stop)

@@ -33,7 +33,6 @@ from services.lib.quality import GyroSamples
 from services.nodes._contract import Service, ServiceEntry
 from services.nodes._runtime import (
     Timeline,
-    count_skip,
     serve_until_stopped,
     setup_logging,
     start_at_ns,
@@ -78,7 +77,7 @@ def run(config: GyroConfig, network: NetworkConfig, stop: threading.Event | None
                 rel = [source.scale(int(t)) for t in t_rel]
                 # A sensor cannot deliver the past: a restarted or stalled gyro resumes now.
                 if timeline.late_ns(rel[-1]) > _STALE_NS:
-                    count_skip(rates, "late", len(rel))
+                    rates.count_skip("late", len(rel))
                     continue
                 if not timeline.sleep_until(rel[-1], stop):
                     break

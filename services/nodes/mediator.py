@@ -101,7 +101,7 @@ from services.lib.quality import (
     quality,
 )
 from services.nodes._contract import Service, ServiceEntry
-from services.nodes._runtime import Monotonic, count_skip, setup_logging
+from services.nodes._runtime import Monotonic, setup_logging
 
 # A batch whose newest sample is this much older than the newest kept: the gyro restarted.
 _GYRO_RESTART_NS = 10_000_000_000
@@ -546,7 +546,7 @@ class Mediator:
         unpaired = None if self._offset_ok else "clock-offset"
         if unpaired:
             self.skipped[unpaired] += 1
-            count_skip(self.images, unpaired)
+            self.images.count_skip(unpaired)
         candidate = Candidate(meta.timestamp_ns, meta.frame_id, q, arrived, blur, unpaired)
         return _Frame(meta, element.payload, element.metadata, candidate)
 
@@ -667,7 +667,7 @@ class Mediator:
 
     def _skip(self, key_ns: int, frame_id: int, reason: str, detail: str) -> None:
         self.skipped[reason] += 1
-        count_skip(self.images, reason)
+        self.images.count_skip(reason)
         count = self.skipped[reason]
         if count & (count - 1) == 0:  # 1, 2, 4, 8...: visible, never a flood
             self.log.warning("skipping frame %d (%s, %d so far): %s", key_ns, reason, count, detail)
