@@ -44,13 +44,17 @@ class Viewer:
 
     def __init__(self, pipe: Pipeline, *extra: str) -> None:
         self.port = free_port()
+        # stderr goes to a file: a pipe nobody reads would block the viewer once it holds
+        # 64 KiB, and the file's tail explains a failure.
+        self.stderr_path = pipe.deploy.parent / "view.stderr"
         env = child_env()
         env["FRAMEGATE_LOCAL_PORT"] = str(pipe.port)
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "services.cli", "view", "--port", str(self.port), "--json",
-             "--timeout", "20", *extra],
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO, env=env,
-        )  # fmt: skip
+        argv = [sys.executable, "-m", "services.cli", "view", "--port", str(self.port)]
+        argv += ["--json", "--timeout", "20", *extra]
+        with self.stderr_path.open("w") as err:
+            self.proc = subprocess.Popen(
+                argv, stdout=subprocess.PIPE, stderr=err, text=True, cwd=REPO, env=env
+            )
         self.events: queue.Queue[dict[str, Any]] = queue.Queue()
         self.seen: list[dict[str, Any]] = []
         threading.Thread(target=self._pump, daemon=True).start()
@@ -67,12 +71,15 @@ class Viewer:
             try:
                 event = self.events.get(timeout=0.5)
             except queue.Empty:
-                assert self.proc.poll() is None, self.proc.stderr.read() if self.proc.stderr else ""
+                assert self.proc.poll() is None, self.stderr_tail()
                 continue
             self.seen.append(event)
             if predicate(event):
                 return event
-        raise AssertionError(f"no such event; seen: {self.seen[-5:]}")
+        raise AssertionError(f"no such event; seen: {self.seen[-5:]}; {self.stderr_tail()}")
+
+    def stderr_tail(self) -> str:
+        return "viewer stderr: " + self.stderr_path.read_text()[-2000:]
 
     @property
     def url(self) -> str:
