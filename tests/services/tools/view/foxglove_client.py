@@ -33,9 +33,17 @@ class Received:
 
 
 class FoxgloveClient:
-    def __init__(self, url: str, *, max_queue: int | None = 64) -> None:
+    def __init__(self, url: str, *, max_queue: int | None = 64, keepalive: bool = True) -> None:
+        # ``keepalive=False`` for a client meant to stall: with websockets' keepalive pings a
+        # client that stops reading closes its own connection about 40 s later (ping every
+        # 20 s, 20 s for the pong it never reads), turning "stalled" into "gone".
         opened = connect(
-            url, subprotocols=[SUBPROTOCOL], max_size=None, max_queue=max_queue, compression=None
+            url,
+            subprotocols=[SUBPROTOCOL],
+            max_size=None,
+            max_queue=max_queue,
+            compression=None,
+            ping_interval=20 if keepalive else None,
         )
         self.ws: ClientConnection = opened.__enter__()  # closed by close()
         self.server_info: dict[str, Any] = {}

@@ -177,7 +177,7 @@ def test_client_gets_frames_with_verdicts_detections_and_plots_and_nothing_is_re
 
 def _stalled_client(url: str) -> FoxgloveClient:
     """A client that subscribes to the frames and then never reads again."""
-    slow = FoxgloveClient(url, max_queue=1)
+    slow = FoxgloveClient(url, max_queue=1, keepalive=False)
     slow.wait_for_topics({IMAGE}, DEADLINE_S)
     slow.ws.socket.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
     slow.subscribe([IMAGE])
