@@ -159,16 +159,18 @@ class Status:
         raw = self.get(f"{UNCONTROLLED}/detections")
         load = max((s.fill for s in out.subscriptions), default=0.0) if out else 0.0
         accepted = out.puts if out else 0
-        decisions = dec.puts if dec else 0
+        frames = cam.puts if cam else 0
         return {
-            "frames": cam.puts if cam else 0,
+            "frames": frames,
             "camera_hz": cam.rate_hz if cam else 0.0,
             "late": cam.skipped.get("late", 0) if cam else 0,
             "dropped_at_camera": cam.refused if cam else 0,
             "gyro_samples": gyro.puts if gyro else 0,
-            "decisions": decisions,
+            "decisions": dec.puts if dec else 0,
             "accepted": accepted,
-            "rejected": max(0, decisions - accepted),
+            # Every frame the mediator did not forward (a policy may record several decisions
+            # per frame, e.g. hold then forward, so decisions - accepted would overcount).
+            "rejected": max(0, frames - accepted),
             "load": load,
             "processed_filtered": det.puts if det else 0,
             "processed_uncontrolled": raw.puts if raw else 0,
@@ -199,8 +201,8 @@ def _gain_text(filtered: int, uncontrolled: int) -> str:
 
 # Printed once above the status lines: what each group means.
 STATUS_LEGEND = (
-    "cam: frames, rate, late skips | med: mediator forwarded (in) and rejected (out), load |\n"
-    "markers: recognitions behind the mediator vs by the uncontrolled detector, and the gain"
+    "cam: frames, rate, late skips | med: frames the mediator forwarded (in), left out (out),\n"
+    "load | markers: recognitions behind the mediator vs by the uncontrolled detector, gain"
 )
 
 
@@ -314,7 +316,7 @@ def print_summary(summary: dict[str, Any]) -> None:
         f"\nsummary after {summary['duration_s']} s ({summary['source']} camera, "
         f"{summary['floor']} floor, policy {summary['policy']}):\n"
         f"  camera      {summary['frames']} frames, {summary['late']} skipped late\n"
-        f"  mediator    {summary['accepted']} forwarded, {summary['rejected']} rejected "
+        f"  mediator    {summary['accepted']} forwarded, {summary['rejected']} left out "
         f"(load {summary['load']:.2f})\n"
         f"  detectors   {summary['processed_filtered']} frames processed behind the "
         f"mediator, {summary['processed_uncontrolled']} uncontrolled\n"

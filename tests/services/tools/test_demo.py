@@ -86,7 +86,7 @@ def test_summary_lists_each_marker_filtered_against_uncontrolled(
         }
     )
     out = capsys.readouterr().out
-    assert "policy paper" in out and "330 forwarded, 270 rejected" in out
+    assert "policy paper" in out and "330 forwarded, 270 left out" in out
     assert "  large                287           275     +4%" in out
     assert "  total                287           275     +4%" in out
 
