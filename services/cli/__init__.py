@@ -15,7 +15,7 @@ import importlib
 import sys
 from collections.abc import Sequence
 
-from .argtypes import FramegateParser, print_error
+from services.lib.argtypes import FramegateParser, print_error
 
 # Every command with its one-line summary, in the order `framegate --help` lists them.
 COMMANDS: dict[str, str] = {

@@ -25,8 +25,7 @@ from middleware import (
     ServiceInfo,
     split_target,
 )
-
-from .argtypes import positive_float
+from services.lib.argtypes import positive_float
 
 DEFAULT_TIMEOUT_S = 3.0
 

@@ -6,12 +6,12 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from services.lib.argtypes import non_negative_float, positive_float, positive_int
 from services.lib.decisions import POLICIES
 from services.lib.sim import ScenarioConfig
 from services.tools.demo import SOURCES, DemoConfig, print_summary, run_demo
 
 from ._common import command_parser, network, print_json, stop_on_signals
-from .argtypes import non_negative_float, positive_float, positive_int
 
 
 def register(subparsers: Any) -> None:

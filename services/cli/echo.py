@@ -14,11 +14,11 @@ import time
 from typing import Any
 
 from middleware import FramegateError, Node, Notification, SubscriptionMode
+from services.lib.argtypes import did_you_mean, positive_float, positive_int
 
 from ._common import command_parser, exit_on_sigterm, format_ns, network
 from ._fields import decode_metadata, field_value, flat_names, payload_summary
 from ._target import add_timeout_argument, print_json_line, resolve
-from .argtypes import did_you_mean, positive_float, positive_int
 
 DEFAULT_QUEUE = 10
 

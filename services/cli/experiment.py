@@ -14,10 +14,10 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from services.lib.argtypes import non_negative_float, positive_float, positive_int
 from services.lib.quality import DEFAULT_B0_PX
 
 from ._common import exit_on_sigterm
-from .argtypes import non_negative_float, positive_float, positive_int
 
 # services.tools.experiment is imported when the command runs, not here: it pulls in scipy and
 # matplotlib (seconds on a busy machine), and every framegate command, including each

@@ -17,10 +17,10 @@ from itertools import pairwise
 from typing import Any
 
 from middleware import ConfigError, FramegateError, Node, SubscriptionMode
+from services.lib.argtypes import positive_float, positive_int
 
 from ._common import command_parser, exit_on_sigterm, format_bytes, network
 from ._target import add_timeout_argument, print_json_line, resolve
-from .argtypes import positive_float, positive_int
 
 DEFAULT_WINDOW = 100
 

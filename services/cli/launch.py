@@ -25,9 +25,9 @@ from services.launch import (
     load_deployment,
     process_specs,
 )
+from services.lib.argtypes import positive_float
 
 from ._common import command_parser, network, stop_on_signals
-from .argtypes import positive_float
 
 DEFAULT_STATUS_S = 5.0
 STATUS_COLUMNS = 100

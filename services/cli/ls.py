@@ -11,11 +11,11 @@ from dataclasses import asdict
 from typing import Any
 
 from middleware import Node, NotFoundError, ServiceInfo, SubscriptionInfo
+from services.lib.argtypes import positive_float, positive_int
 from services.lib.clock import CLOCK_WARN_NS, ClockEstimate, clock_warning, estimate_clocks
 
 from ._common import command_parser, format_bytes, format_ns, network, print_json
 from ._target import unreachable
-from .argtypes import positive_float, positive_int
 
 
 def register(subparsers: Any) -> None:

@@ -16,9 +16,9 @@ from collections.abc import Callable
 from typing import Any
 
 from middleware import ConfigError, Node, make_metadata, now_ns, split_target
+from services.lib.argtypes import non_negative_float, non_negative_int, positive_float, positive_int
 
 from ._common import command_parser, network, stop_on_signals
-from .argtypes import non_negative_float, non_negative_int, positive_float, positive_int
 
 WIDTH_PX, HEIGHT_PX = 64, 48
 EXPOSURE_NS = 10_000_000

@@ -20,12 +20,12 @@ from middleware import (
     parse_time_ns,
     parse_untrusted,
 )
+from services.lib.argtypes import positive_int
 from services.lib.files import OutputError, create_file, open_directory
 
 from ._common import command_parser, format_bytes, format_ns, network, print_json
 from ._fields import decode_metadata
 from ._target import add_timeout_argument, resolve
-from .argtypes import positive_int
 
 # With no selection at all, a query returns this many of the newest elements: a camera
 # buffer can hold gigabytes, and nobody wants them all by accident.

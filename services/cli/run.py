@@ -6,10 +6,10 @@ import argparse
 from typing import Any
 
 from middleware import add_network_arguments
+from services.lib.argtypes import FramegateParser
 from services.nodes import SERVICES, describe, exit_with_parent, service
 
 from ._common import command_parser, network, stop_on_signals
-from .argtypes import FramegateParser
 
 
 def register(subparsers: Any) -> None:

@@ -11,6 +11,7 @@ from typing import Any
 from tqdm import tqdm
 
 from middleware import ConfigError
+from services.lib.argtypes import positive_float, positive_int
 from services.lib.sim import (
     ScenarioConfig,
     read_dataset,
@@ -18,8 +19,6 @@ from services.lib.sim import (
     simulate,
     write_report,
 )
-
-from .argtypes import positive_float, positive_int
 
 
 def register(subparsers: Any) -> None:

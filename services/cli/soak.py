@@ -14,10 +14,10 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from services.lib.argtypes import non_negative_float, positive_float, positive_int
 from services.tools.soak import SoakConfig, format_report, run_soak
 
 from ._common import command_parser, stop_on_signals
-from .argtypes import non_negative_float, positive_float, positive_int
 
 GOAL_MISSED = 3
 

@@ -14,10 +14,10 @@ import time
 from typing import Any
 
 from middleware import ConfigError, Node, Notification, SubscriptionMode
+from services.lib.argtypes import non_negative_float, positive_float, positive_int
 
 from ._common import command_parser, exit_on_sigterm, format_bytes, format_ns, network
 from ._target import add_timeout_argument, print_json_line, resolve
-from .argtypes import non_negative_float, positive_float, positive_int
 
 DEFAULT_QUEUE = 10
 

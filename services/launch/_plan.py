@@ -9,7 +9,7 @@ from collections.abc import Callable
 from dataclasses import replace
 
 from middleware import ConfigError, NetworkConfig
-from services.cli.argtypes import did_you_mean
+from services.lib.argtypes import did_you_mean
 from services.nodes import service
 
 from ._deploy import Deployment, ServiceSpec, arg_lines

@@ -199,7 +199,7 @@ class RateWatch:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The camera's flags (``framegate run camera --help``)."""
-    from services.cli.argtypes import positive_float, positive_int
+    from services.lib.argtypes import positive_float, positive_int
     from services.nodes.sources import add_source_arguments
 
     parser.add_argument("--name", default="camera", help="service name (default %(default)s)")

@@ -115,7 +115,7 @@ def run(config: DetectorConfig, network: NetworkConfig, stop: threading.Event | 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The detector's flags (``framegate run detector --help``)."""
-    from services.cli.argtypes import non_negative_float, positive_float, positive_int
+    from services.lib.argtypes import non_negative_float, positive_float, positive_int
 
     d = DetectorConfig()
     parser.add_argument("--name", default=d.name, help="service name (default %(default)s)")

@@ -124,7 +124,7 @@ def _split(
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The gyro's flags (``framegate run gyro --help``)."""
-    from services.cli.argtypes import non_negative_float, positive_float, positive_int
+    from services.lib.argtypes import non_negative_float, positive_float, positive_int
     from services.nodes.sources import add_source_arguments
 
     parser.add_argument("--name", default="gyro", help="service name (default %(default)s)")

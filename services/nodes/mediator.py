@@ -514,7 +514,7 @@ class Mediator:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The mediator's flags (``framegate run mediator --help``): one per config field."""
-    from services.cli.argtypes import non_negative_float, positive_float, positive_int, unit_float
+    from services.lib.argtypes import non_negative_float, positive_float, positive_int, unit_float
 
     d = MediatorConfig()
     parser.add_argument("--name", default=d.name, help="service name (default %(default)s)")

@@ -297,7 +297,7 @@ def open_gyro_source(spec: SourceSpec) -> GyroSource:
 
 def add_source_arguments(parser: argparse.ArgumentParser, *, device: bool) -> None:
     """--source and how to play it, shared by camera and gyro."""
-    from services.cli.argtypes import positive_float, positive_int
+    from services.lib.argtypes import positive_float, positive_int
 
     kinds = list(KINDS) if device else [k for k in KINDS if k != "device"]
     parser.add_argument("--source", choices=kinds, default="sim", help="where data comes from")

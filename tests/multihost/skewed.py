@@ -4,8 +4,9 @@
         --connect tcp/127.0.0.1:7447
 
 Namespaces share the kernel's clock and name, so a host with a wrong clock is played by one
-process whose ``time.time_ns`` is shifted and whose host name is its own: everything framegate stamps in it (``@info``'s
-``clock_ns``, element keys) is off by the skew. Prints ``ready`` once it is offering.
+process whose ``time.time_ns`` is shifted and whose host name is its own: everything
+framegate stamps in it (``@info``'s ``clock_ns``, element keys) is off by the skew. Prints
+``ready`` once it is offering.
 """
 
 from __future__ import annotations

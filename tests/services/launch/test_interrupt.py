@@ -15,13 +15,13 @@ import pytest
 from middleware import FramegateError, NetworkConfig, Node
 from services.launch import pipeline_yaml
 from services.nodes import SERVICES
-
-# What the default pipeline (and the demo) runs; SERVICES also lists the ROS 2 bridge.
-PIPELINE = ("camera", "gyro", "mediator", "detector")
 from tests.conftest import free_port, start_framegate, wait_until
 from tests.services.nodes.pipeline import Pipeline
 
 pytestmark = pytest.mark.integration
+
+# What the default pipeline (and the demo) runs; SERVICES also lists the ROS 2 bridge.
+PIPELINE = ("camera", "gyro", "mediator", "detector")
 
 # The goal is 2 s (0.4-0.9 s measured on an idle machine); the bound tolerates a loaded
 # test machine while still failing a process that keeps running after the signal.
