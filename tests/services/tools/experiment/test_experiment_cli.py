@@ -95,7 +95,9 @@ def test_bad_flag_value_is_one_error_line(tmp_path: Path) -> None:
         cwd=REPO, env=child_env(), capture_output=True, text=True, timeout=60, check=False,
     )  # fmt: skip
     assert result.returncode == 1
-    assert result.stderr.strip() == "error: --queue must be >= 1, got 0"
+    assert result.stderr.strip() == (
+        "error: framegate experiment: argument --queue: must be an integer > 0, got '0'"
+    )
 
 
 def test_sweep_latency_flag_reaches_the_sweep(
