@@ -214,6 +214,6 @@ def test_slow_and_vanished_clients_neither_slow_nor_crash_anything(
     assert _refused(pipe) == refused_before
     slow.ws.socket.close()
     viewer.proc.terminate()  # SIGTERM: a clean stop
-    assert viewer.proc.wait(timeout=10) == 0
+    assert viewer.proc.wait(timeout=10) == 0, viewer.stderr_tail()
     stopped = viewer.event(lambda e: e["event"] == "stopped", 5)
     assert stopped["published"] > 0
