@@ -39,6 +39,7 @@ from ._format import (
 from ._frames import FrameLayout, frame_layout, metadata_kind
 from ._reader import Bag, RecordedBuffer, open_bag
 from ._retime import shift_element, timestamp_fields
+from ._scan import Integrity
 from ._writer import COMPRESSIONS, BagWriter
 
 __all__ = [
@@ -55,6 +56,7 @@ __all__ = [
     "DerivedTopic",
     "Deriver",
     "FrameLayout",
+    "Integrity",
     "Marker",
     "RecordedBuffer",
     "annotations_topic",

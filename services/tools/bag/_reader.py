@@ -2,14 +2,14 @@
 
 from __future__ import annotations
 
-import struct
+import os
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
 
-from mcap.exceptions import McapError
-from mcap.reader import make_reader
+from mcap.reader import SeekingReader
+from mcap.summary import Summary
 
 from middleware import DataObject, Retention
 
@@ -25,8 +25,7 @@ from ._format import (
     decode_element,
     retention_from_json,
 )
-
-_MAGIC = b"\x89MCAP0\r\n"
+from ._scan import READ_ERRORS, Integrity, reason, scan
 
 
 @dataclass(frozen=True, slots=True)
@@ -46,35 +45,57 @@ class RecordedBuffer:
         return f"{self.service}/{self.buffer}"
 
 
+class _RecoveredReader(SeekingReader):
+    """The library's seeking reader over a summary rebuilt from the chunks that were whole."""
+
+    def __init__(self, stream: IO[bytes], summary: Summary, size: int) -> None:
+        super().__init__(stream, validate_crcs=True, record_size_limit=size)
+        self._recovered = summary
+
+    def get_summary(self) -> Summary:
+        return self._recovered
+
+
 class Bag:
-    """An open recording. Use as a context manager (``open_bag``)."""
+    """An open recording. Use as a context manager (``open_bag``).
+
+    Opening reads the whole file once to check it (``_scan``): ``integrity`` says whether it
+    is complete or how much of a cut-short or damaged file was recovered; ``buffers`` and
+    ``elements`` then give only what was recovered.
+    """
 
     def __init__(self, path: Path) -> None:
         self.path = path
         try:
             self._stream: IO[bytes] = open(path, "rb")  # noqa: SIM115 - closed in close()
+            self.size_bytes = os.fstat(self._stream.fileno()).st_size
         except OSError as exc:
             raise BagError(f"cannot read {path}: {exc.strerror}") from exc
         try:
-            if self._stream.read(len(_MAGIC)) != _MAGIC:
-                raise BagError(f"{path} is not an MCAP file; record one with `framegate record`")
+            found = scan(self._stream, self.size_bytes, str(path))
+            self.integrity: Integrity = found.integrity
+            self.header = found.header
+            self.metadata = found.metadata
+            self.compressions = found.compressions
+            self.chunks = found.chunks
+            self.summary = found.summary
             self._stream.seek(0)
-            self._reader = make_reader(self._stream)
+            if found.integrity.complete:
+                self._reader: SeekingReader = SeekingReader(
+                    self._stream, validate_crcs=True, record_size_limit=self.size_bytes
+                )
+            else:
+                self._reader = _RecoveredReader(self._stream, found.summary, self.size_bytes)
             self.buffers = self._find_buffers()
         except BagError:
             self._stream.close()
             raise
-        except (McapError, ValueError, struct.error, EOFError) as exc:
+        except READ_ERRORS as exc:
             self._stream.close()
-            raise BagError(
-                f"{path} is not a complete MCAP file ({exc}); "
-                "was the recording killed before it could finish?"
-            ) from exc
+            raise BagError(f"{path} is damaged: {reason(exc)}") from exc
 
     def _find_buffers(self) -> tuple[RecordedBuffer, ...]:
-        summary = self._reader.get_summary()
-        if summary is None:
-            raise BagError(f"{self.path} has no summary section; was the recording interrupted?")
+        summary = self.summary
         stats = summary.statistics
         counts: dict[int, int] = dict(stats.channel_message_counts) if stats else {}
         found = []
@@ -125,8 +146,8 @@ class Bag:
                 if recorded is None:
                     continue
                 yield recorded, decode_element(message.data, f"{self.path} {channel.topic}")
-        except (McapError, ValueError, struct.error, EOFError) as exc:
-            raise BagError(f"{self.path} is damaged: {exc}") from exc
+        except READ_ERRORS as exc:
+            raise BagError(f"{self.path} is damaged: {reason(exc)}") from exc
 
     def close(self) -> None:
         self._stream.close()

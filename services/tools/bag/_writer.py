@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
 import threading
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
@@ -36,6 +39,15 @@ from ._format import (
 from ._frames import frame_layout
 
 COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": None}
+
+# A chunk is closed, written and flushed to the OS once it holds this much, or once its
+# first message is this old: a recording cut short (full disk, kill -9, power loss) loses
+# at most the open chunk, which readers skip (``_scan``).
+CHUNK_BYTES = 4 * 1024 * 1024
+CHUNK_AGE_S = 1.0
+# The file is fsync'ed at most this often (after a chunk), so a power loss loses about this
+# much more than a kill does, and a high-rate recording does not wait on the disk per chunk.
+FSYNC_PERIOD_S = 1.0
 
 
 @dataclass
@@ -87,8 +99,13 @@ class BagWriter:
         chosen = COMPRESSIONS[compression]
         self._writer = Writer(
             self._stream,
+            chunk_size=CHUNK_BYTES,
             compression=chosen if chosen is not None else CompressionType.NONE,
             use_chunking=True,
+            # Chunks carry a CRC of their contents; the data section's CRC also covers chunk
+            # headers and indexes, so readers tell a damaged file from a complete one.
+            enable_crcs=True,
+            enable_data_crcs=True,
         )
         self._writer.start(profile=PROFILE, library=library)
         self._lock = threading.Lock()
@@ -98,36 +115,48 @@ class BagWriter:
         self._image_schema: int | None = None
         self._channels: dict[str, _Channels] = {}
         self._closed = False
+        self._failed: str | None = None  # why the file cannot be written any more
+        self._chunk_bytes = 0
+        self._chunk_started = 0.0
+        self._synced = time.monotonic()
 
     def add_buffer(self, service: str, buffer: str, *, kind: str, retention: Retention) -> None:
         """Declare a buffer before writing its elements (its kind is what ``play`` offers)."""
         with self._lock:
-            name = f"{service}/{buffer}"
-            if name in self._channels:
-                return
-            element_id = self._writer.register_channel(
-                element_topic(service, buffer),
-                ELEMENT_MESSAGE_ENCODING,
-                self._element_schema,
-                channel_metadata(service, buffer, kind, retention),
-            )
-            channels = _Channels(service, element_id, frame=kind == "frame")
-            if self._images and kind == "frame":
-                if self._image_schema is None:
-                    self._image_schema = self._writer.register_schema(
-                        IMAGE_SCHEMA_NAME,
-                        IMAGE_SCHEMA_ENCODING,
-                        json.dumps(IMAGE_SCHEMA).encode("utf-8"),
-                    )
-                channels.image_id = self._writer.register_channel(
-                    image_topic(service, buffer),
-                    IMAGE_MESSAGE_ENCODING,
-                    self._image_schema,
-                    {KEY_ROLE: "image", KEY_SOURCE: element_topic(service, buffer)},
+            self._check_writable()
+            try:
+                self._add_buffer(service, buffer, kind, retention)
+            except OSError as exc:
+                raise self._fail("write", exc) from exc
+
+    def _add_buffer(self, service: str, buffer: str, kind: str, retention: Retention) -> None:
+        """Register the buffer's channels (called under the lock)."""
+        name = f"{service}/{buffer}"
+        if name in self._channels:
+            return
+        element_id = self._writer.register_channel(
+            element_topic(service, buffer),
+            ELEMENT_MESSAGE_ENCODING,
+            self._element_schema,
+            channel_metadata(service, buffer, kind, retention),
+        )
+        channels = _Channels(service, element_id, frame=kind == "frame")
+        if self._images and kind == "frame":
+            if self._image_schema is None:
+                self._image_schema = self._writer.register_schema(
+                    IMAGE_SCHEMA_NAME,
+                    IMAGE_SCHEMA_ENCODING,
+                    json.dumps(IMAGE_SCHEMA).encode("utf-8"),
                 )
-            if self._annotations:
-                self._add_derived(channels, service, buffer, kind)
-            self._channels[name] = channels
+            channels.image_id = self._writer.register_channel(
+                image_topic(service, buffer),
+                IMAGE_MESSAGE_ENCODING,
+                self._image_schema,
+                {KEY_ROLE: "image", KEY_SOURCE: element_topic(service, buffer)},
+            )
+        if self._annotations:
+            self._add_derived(channels, service, buffer, kind)
+        self._channels[name] = channels
 
     def _add_derived(self, channels: _Channels, service: str, buffer: str, kind: str) -> None:
         """Register the buffer's derived channels (called under the lock)."""
@@ -167,14 +196,18 @@ class BagWriter:
         if channels.deriver is not None:
             derived = channels.deriver.derive(element, frame_size_px=self._frame_size_px)
         t = element.timestamp_ns
+        sync = False
         with self._lock:
-            if self._closed:
-                raise BagError(f"{self.path} is closed")
+            self._check_writable()
             channels.messages += 1
             try:
+                if self._chunk_bytes == 0:
+                    self._chunk_started = time.monotonic()
                 self._add(channels, t, data, image)
+                self._chunk_bytes += len(data) + (len(image) if image is not None else 0)
                 for message in derived:
                     channels.derived += 1
+                    self._chunk_bytes += len(message.data)
                     self._writer.add_message(
                         channels.derived_ids[message.topic],
                         log_time=message.log_time_ns,
@@ -182,8 +215,61 @@ class BagWriter:
                         publish_time=message.log_time_ns,
                         sequence=channels.derived & 0xFFFFFFFF,
                     )
+                if self._chunk_bytes >= CHUNK_BYTES:
+                    sync = self._end_chunk()
             except OSError as exc:
-                raise BagError(f"cannot write {self.path}: {exc.strerror or exc}") from exc
+                raise self._fail("write", exc) from exc
+        if sync:
+            self._sync()
+
+    def flush_if_due(self) -> None:
+        """Close the open chunk if it is older than ``CHUNK_AGE_S`` (call this periodically:
+        a quiet buffer must not keep its last elements only in memory)."""
+        sync = False
+        with self._lock:
+            if self._closed or self._failed is not None or self._chunk_bytes == 0:
+                return
+            if time.monotonic() - self._chunk_started < CHUNK_AGE_S:
+                return
+            try:
+                sync = self._end_chunk()
+            except OSError as exc:
+                raise self._fail("write", exc) from exc
+        if sync:
+            self._sync()
+
+    def _end_chunk(self) -> bool:
+        """Write the open chunk and hand it to the OS (under the lock); whether to fsync."""
+        self._writer.flush()
+        self._chunk_bytes = 0
+        now = time.monotonic()
+        if now - self._synced < FSYNC_PERIOD_S:
+            return False
+        self._synced = now
+        return True
+
+    def _sync(self) -> None:
+        """fsync outside the lock, so writers do not wait on the disk."""
+        try:
+            os.fsync(self._stream.fileno())
+        except (OSError, ValueError) as exc:  # ValueError: closed meanwhile, nothing to sync
+            if isinstance(exc, OSError):
+                with self._lock:
+                    raise self._fail("write", exc) from exc
+
+    def _check_writable(self) -> None:
+        if self._failed is not None:
+            raise BagError(self._failed)
+        if self._closed:
+            raise BagError(f"{self.path} is closed")
+
+    def _fail(self, verb: str, exc: OSError) -> BagError:
+        """Remember that the file cannot be written (under the lock): close() then leaves it as
+        it is, cut short after its last complete chunk, instead of appending a summary to a
+        file whose last chunk may be torn."""
+        if self._failed is None:
+            self._failed = f"cannot {verb} {self.path}: {exc.strerror or exc}"
+        return BagError(self._failed)
 
     def _add(self, channels: _Channels, t: int, data: bytes, image: bytes | None) -> None:
         """Write the element message and its image message (called under the lock)."""
@@ -207,7 +293,11 @@ class BagWriter:
     def add_metadata(self, name: str, data: dict[str, str]) -> None:
         """A named MCAP metadata record (e.g. where and when the recording was made)."""
         with self._lock:
-            self._writer.add_metadata(name, data)
+            self._check_writable()
+            try:
+                self._writer.add_metadata(name, data)
+            except OSError as exc:
+                raise self._fail("write", exc) from exc
 
     def counts(self) -> dict[str, tuple[int, int]]:
         """``service/buffer`` → (element messages, image messages) written so far."""
@@ -225,14 +315,20 @@ class BagWriter:
             if self._closed:
                 return
             self._closed = True
+            if self._failed is not None:
+                with contextlib.suppress(OSError):  # the write that failed already said why
+                    self._stream.close()
+                return
             try:
                 try:
                     self._writer.finish()
+                    self._stream.flush()
+                    os.fsync(self._stream.fileno())
                 finally:
                     self._stream.close()
             except OSError as exc:
                 # A full disk (ENOSPC) or a vanished mount: say so, naming the file.
-                raise BagError(f"cannot finish {self.path}: {exc.strerror or exc}") from exc
+                raise self._fail("finish", exc) from exc
 
     def __enter__(self) -> BagWriter:
         return self
