@@ -1,9 +1,11 @@
-"""``framegate info``: one buffer's retention, size, span, rate, subscriptions and counters."""
+"""``framegate info``: one buffer's retention, size, span, rate, subscriptions and counters;
+or, given a recording (``FILE.mcap``), what it holds, like ``ros2 bag info``."""
 
 from __future__ import annotations
 
 import argparse
 from dataclasses import asdict
+from pathlib import Path
 from typing import Any
 
 from middleware import BufferInfo, Node, ServiceInfo, check_name
@@ -21,7 +23,9 @@ def register(subparsers: Any) -> None:
         json_flag=True,
     )
     parser.add_argument(
-        "target", metavar="SERVICE/BUFFER", help="the buffer, or just SERVICE for all its buffers"
+        "target",
+        metavar="SERVICE/BUFFER|FILE.mcap",
+        help="the buffer, just SERVICE for all its buffers, or a recording",
     )
     add_timeout_argument(parser)
     parser.set_defaults(func=run)
@@ -60,6 +64,8 @@ def service_json(info: ServiceInfo) -> dict[str, Any]:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.target.endswith(".mcap") or Path(args.target).is_file():
+        return _recording(args, Path(args.target))
     whole_service = "/" not in args.target.strip("/")
     with Node(network=network(args)) as node:
         if whole_service:
@@ -120,3 +126,29 @@ def _print_buffer(service: ServiceInfo, b: BufferInfo) -> None:
             f"    {holder(s):<32} {s.mode.value:<8} queue {s.queue_size:<4}"
             f" queued {s.queued:<4} fill {s.fill:.0%}  ({s.subscription_id})"
         )
+
+
+def _recording(args: argparse.Namespace, path: Path) -> int:
+    from services.tools.bag import recording_info  # MCAP only for a recording
+
+    info = recording_info(path)
+    if args.json:
+        print_json(info.json())
+        return 0
+    span = (
+        f"{format_ns(info.start_ns)} .. {format_ns(info.end_ns)} ({info.duration_s:.1f} s)"
+        if info.start_ns is not None and info.end_ns is not None
+        else "no messages"
+    )
+    print(f"Files:         {info.path}")
+    print(f"Size:          {format_bytes(info.size_bytes)}")
+    print(f"Status:        {info.integrity}")
+    print(f"Span:          {span}")
+    print(f"Messages:      {info.messages} in {info.chunks} chunks")
+    print(f"Compression:   {', '.join(info.compressions) or 'none'}")
+    print("Channels:")
+    width = max((len(c.topic) for c in info.channels), default=0)
+    for c in info.channels:
+        kind = f" ({c.kind})" if c.kind else ""
+        print(f"  {c.topic:<{width}}  {c.messages:>8} msgs  {c.schema}{kind}")
+    return 0

@@ -17,6 +17,7 @@ import socket
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -53,7 +54,12 @@ def register(subparsers: Any) -> None:
         json_flag=True,
     )
     parser.add_argument(
-        "targets", nargs="+", metavar="SERVICE/BUFFER", help="the buffers to record"
+        "targets", nargs="*", metavar="SERVICE/BUFFER", help="the buffers to record"
+    )
+    parser.add_argument(
+        "--all",
+        action="store_true",
+        help="record every buffer of every live service, and those that appear later",
     )
     parser.add_argument(
         "-o", "--output", required=True, type=Path, metavar="FILE.mcap", help="the MCAP file"
@@ -233,6 +239,10 @@ class _Recorder:
 
 
 def _check(args: argparse.Namespace) -> None:
+    if not args.targets and not args.all:
+        raise ConfigError("name the buffers to record (SERVICE/BUFFER ...), or pass --all")
+    if args.targets and args.all:
+        raise ConfigError("--all records every buffer: give it without SERVICE/BUFFER names")
     if args.queue < 1:
         raise ConfigError(f"--queue {args.queue}: must be >= 1")
     if args.count is not None and args.count < 1:
@@ -250,7 +260,11 @@ def run(args: argparse.Namespace) -> int:
     exit_on_sigterm()
     targets = list(dict.fromkeys(t.strip("/") for t in args.targets))
     with Node(network=network(args)) as node:
-        buffers: list[BufferInfo] = [resolve(node, t, args.timeout)[1] for t in targets]
+        buffers: list[BufferInfo] = (
+            _live_buffers(node, args.timeout)
+            if args.all
+            else [resolve(node, t, args.timeout)[1] for t in targets]
+        )
         writer = BagWriter(
             args.output,
             images=not args.no_images,
@@ -265,7 +279,7 @@ def run(args: argparse.Namespace) -> int:
             if not args.json:
                 names = ", ".join(f"{b.name} ({b.kind})" for b in buffers)
                 print(f"recording {names} to {args.output}; Ctrl-C to stop", flush=True)
-            _wait(recorders, args.duration)
+            _wait(recorders, args.duration, _discover(node, writer, recorders, args))
             stopped_ns = time.time_ns()
             for recorder in recorders:
                 recorder.progress.missed = recorder.sub.missed_total
@@ -293,9 +307,13 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _start(
-    node: Node, writer: BagWriter, buffers: list[BufferInfo], args: argparse.Namespace
+    node: Node,
+    writer: BagWriter,
+    buffers: list[BufferInfo],
+    args: argparse.Namespace,
+    stop: threading.Event | None = None,
 ) -> list[_Recorder]:
-    stop = threading.Event()
+    stop = stop or threading.Event()
     recorders = []
     for b in buffers:
         sub = node.subscribe(
@@ -310,7 +328,53 @@ def _start(
     return recorders
 
 
-def _wait(recorders: list[_Recorder], duration: float | None) -> None:
+def _live_buffers(node: Node, timeout_s: float) -> list[BufferInfo]:
+    """Every buffer of every live service (``--all``); ConfigError if there is none."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        buffers = [b for s in node.services(timeout_s=min(2.0, timeout_s)) for b in s.buffers]
+        if buffers:
+            return buffers
+        if time.monotonic() >= deadline:
+            raise ConfigError(f"no live service offers a buffer (waited {timeout_s:g} s)")
+        time.sleep(0.2)
+
+
+# ``--all`` looks for buffers that appeared since this often.
+_DISCOVER_S = 2.0
+
+
+def _discover(
+    node: Node, writer: BagWriter, recorders: list[_Recorder], args: argparse.Namespace
+) -> Callable[[], None] | None:
+    """With ``--all``: a step that starts recording buffers that appeared since."""
+    if not args.all:
+        return None
+    due = [time.monotonic() + _DISCOVER_S]
+
+    def step() -> None:
+        if time.monotonic() < due[0]:
+            return
+        due[0] = time.monotonic() + _DISCOVER_S
+        known = {r.sub.name for r in recorders}
+        try:
+            services = node.services(timeout_s=1.0)
+        except FramegateError:
+            return
+        new = [b for s in services for b in s.buffers if b.name not in known]
+        for b in new:
+            writer.add_buffer(b.service, b.buffer, kind=b.kind, retention=b.retention)
+        if new:
+            recorders.extend(_start(node, writer, new, args, recorders[0].stop))
+            if not args.json:
+                print(f"recording {', '.join(b.name for b in new)} too", flush=True)
+
+    return step
+
+
+def _wait(
+    recorders: list[_Recorder], duration: float | None, step: Callable[[], None] | None = None
+) -> None:
     """Until every recorder has its count, the duration is over, an error, or Ctrl-C."""
     stop = recorders[0].stop
     deadline = None if duration is None else time.monotonic() + duration
@@ -318,6 +382,8 @@ def _wait(recorders: list[_Recorder], duration: float | None) -> None:
         while any(r.thread.is_alive() for r in recorders):
             if deadline is not None and time.monotonic() >= deadline:
                 break
+            if step is not None:
+                step()
             stop.wait(0.1)
     except KeyboardInterrupt:
         pass

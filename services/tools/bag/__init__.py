@@ -37,6 +37,7 @@ from ._format import (
     image_topic,
 )
 from ._frames import FrameLayout, frame_layout, metadata_kind
+from ._info import ChannelInfo, RecordingInfo, recording_info
 from ._reader import Bag, RecordedBuffer, open_bag
 from ._retime import shift_element, timestamp_fields
 from ._scan import Integrity
@@ -52,6 +53,7 @@ __all__ = [
     "Bag",
     "BagError",
     "BagWriter",
+    "ChannelInfo",
     "DerivedMessage",
     "DerivedTopic",
     "Deriver",
@@ -59,6 +61,7 @@ __all__ = [
     "Integrity",
     "Marker",
     "RecordedBuffer",
+    "RecordingInfo",
     "annotations_topic",
     "decode_element",
     "derived_topics",
@@ -73,6 +76,7 @@ __all__ = [
     "open_bag",
     "rates_topic",
     "read_markers",
+    "recording_info",
     "shift_element",
     "timestamp_fields",
     "verdict_annotations",

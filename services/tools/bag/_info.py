@@ -1,0 +1,97 @@
+"""``framegate info FILE.mcap``: what a recording holds, like ``ros2 bag info``."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from ._format import BagError
+from ._scan import scan
+
+
+@dataclass(frozen=True, slots=True)
+class ChannelInfo:
+    topic: str
+    schema: str
+    kind: str | None  # the framegate metadata kind of an element channel
+    messages: int
+
+
+@dataclass(frozen=True, slots=True)
+class RecordingInfo:
+    path: str
+    size_bytes: int
+    status: str  # complete | recovered
+    integrity: str  # one line: what was read, what was lost
+    messages: int
+    start_ns: int | None
+    end_ns: int | None
+    chunks: int
+    compressions: tuple[str, ...]
+    channels: tuple[ChannelInfo, ...]
+
+    @property
+    def duration_s(self) -> float:
+        if self.start_ns is None or self.end_ns is None:
+            return 0.0
+        return (self.end_ns - self.start_ns) / 1e9
+
+    def json(self) -> dict[str, Any]:
+        return {
+            "path": self.path,
+            "size_bytes": self.size_bytes,
+            "status": self.status,
+            "integrity": self.integrity,
+            "messages": self.messages,
+            "start_ns": self.start_ns,
+            "end_ns": self.end_ns,
+            "duration_s": self.duration_s,
+            "chunks": self.chunks,
+            "compressions": list(self.compressions),
+            "channels": [
+                {"topic": c.topic, "schema": c.schema, "kind": c.kind, "messages": c.messages}
+                for c in self.channels
+            ],
+        }
+
+
+def recording_info(path: Path) -> RecordingInfo:
+    """Scan ``path`` (every checksum) and describe it; BagError if it holds nothing readable."""
+    try:
+        size = path.stat().st_size
+        with path.open("rb") as stream:
+            found = scan(stream, size, str(path))
+    except OSError as exc:
+        raise BagError(f"cannot read {path}: {exc.strerror or exc}") from exc
+    summary, integrity = found.summary, found.integrity
+    counts = summary.statistics.channel_message_counts if summary.statistics else {}
+    channels = tuple(
+        sorted(
+            (
+                ChannelInfo(
+                    topic=channel.topic,
+                    schema=summary.schemas[channel.schema_id].name
+                    if channel.schema_id in summary.schemas
+                    else "",
+                    kind=channel.metadata.get("framegate.kind"),
+                    messages=int(counts.get(channel_id, 0)),
+                )
+                for channel_id, channel in summary.channels.items()
+            ),
+            key=lambda c: c.topic,
+        )
+    )
+    end = str(integrity.end_ns) if integrity.end_ns is not None else "its start"
+    return RecordingInfo(
+        path=str(path),
+        size_bytes=size,
+        status=integrity.status,
+        integrity=integrity.describe(end),
+        messages=integrity.messages,
+        start_ns=integrity.start_ns,
+        end_ns=integrity.end_ns,
+        chunks=found.chunks,
+        compressions=tuple(sorted(found.compressions)),
+        channels=channels,
+    )
