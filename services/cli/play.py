@@ -8,6 +8,7 @@ it keeps the recorded spacing from there rather than bursting to catch up.
 from __future__ import annotations
 
 import argparse
+import sys
 import threading
 import time
 from contextlib import ExitStack
@@ -26,7 +27,7 @@ from middleware import (
     check_name,
 )
 
-from ._common import command_parser, exit_on_sigterm, network
+from ._common import command_parser, exit_on_sigterm, format_ns, network
 from ._target import print_json_line
 
 if TYPE_CHECKING:
@@ -219,6 +220,10 @@ def run(args: argparse.Namespace) -> int:
     exit_on_sigterm()
     started = time.monotonic()
     with open_bag(args.file) as bag, ExitStack() as stack:
+        integrity = bag.integrity
+        if not integrity.complete:  # a cut-short or damaged file: say what was recovered
+            end = format_ns(integrity.end_ns) if integrity.end_ns is not None else "its start"
+            print(f"warning: {args.file}: {integrity.describe(end)}", file=sys.stderr, flush=True)
         played = _select(bag, args)
         _offer(stack, network(args), played, args.keep_all)
         _event(

@@ -82,7 +82,7 @@ def recording_info(path: Path) -> RecordingInfo:
             key=lambda c: c.topic,
         )
     )
-    end = str(integrity.end_ns) if integrity.end_ns is not None else "its start"
+    end = _rfc3339(integrity.end_ns) if integrity.end_ns is not None else "its start"
     return RecordingInfo(
         path=str(path),
         size_bytes=size,
@@ -95,3 +95,10 @@ def recording_info(path: Path) -> RecordingInfo:
         compressions=tuple(sorted(found.compressions)),
         channels=channels,
     )
+
+
+def _rfc3339(timestamp_ns: int) -> str:
+    from datetime import UTC, datetime
+
+    stamp = datetime.fromtimestamp(timestamp_ns / 1e9, UTC).isoformat(timespec="microseconds")
+    return stamp.replace("+00:00", "Z")
