@@ -7,11 +7,19 @@ import json
 import signal
 import sys
 import threading
+import time
+from collections.abc import Iterator
 from datetime import UTC, datetime
 from types import FrameType
 from typing import Any
 
-from middleware import NetworkConfig, add_network_arguments, network_from_args
+from middleware import (
+    NetworkConfig,
+    Notification,
+    Subscription,
+    add_network_arguments,
+    network_from_args,
+)
 
 
 def command_parser(
@@ -90,3 +98,18 @@ def format_bytes(count: int) -> str:
             return f"{value:.0f} {unit}" if unit == "B" else f"{value:.1f} {unit}"
         value /= 1024
     return f"{value:.1f} GiB"
+
+
+def notifications(sub: Subscription, duration_s: float | None) -> Iterator[Notification]:
+    """``sub``'s notifications as they come, until ``duration_s`` has passed (None: until the
+    caller stops); the streaming commands (``watch``, ``echo``) share this loop."""
+    deadline = None if duration_s is None else time.monotonic() + duration_s
+    while True:
+        wait_s = 0.5
+        if deadline is not None:
+            wait_s = min(wait_s, deadline - time.monotonic())
+            if wait_s <= 0:
+                return
+        note = sub.take(timeout_s=wait_s)
+        if note is not None:
+            yield note

@@ -10,13 +10,12 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import time
 from typing import Any
 
 from middleware import FramegateError, Node, Notification, SubscriptionMode
 from services.lib.argtypes import did_you_mean, positive_float, positive_int
 
-from ._common import command_parser, exit_on_sigterm, format_ns, network
+from ._common import command_parser, exit_on_sigterm, format_ns, network, notifications
 from ._fields import decode_metadata, field_value, flat_names, payload_summary
 from ._target import add_timeout_argument, print_json_line, resolve
 
@@ -96,17 +95,8 @@ def run(args: argparse.Namespace) -> int:
         )
         if not args.json and args.field is None:
             print(f"echoing {sub.name}; Ctrl-C to stop", file=sys.stderr, flush=True)
-        deadline = None if args.duration is None else time.monotonic() + args.duration
         try:
-            while args.count is None or shown < args.count:
-                wait_s = 0.5
-                if deadline is not None:
-                    wait_s = min(wait_s, deadline - time.monotonic())
-                    if wait_s <= 0:
-                        break
-                note = sub.take(timeout_s=wait_s)
-                if note is None:
-                    continue
+            for note in notifications(sub, args.duration):
                 try:
                     element = sub.fetch(note, timeout_s=max(2.0, args.timeout))
                 except FramegateError as exc:  # evicted before we asked: say so, go on
@@ -131,6 +121,8 @@ def run(args: argparse.Namespace) -> int:
                     print_json_line(row)
                 else:
                     _print_element(row)
+                if args.count is not None and shown >= args.count:
+                    break
         except KeyboardInterrupt:
             pass
     return 0

@@ -16,7 +16,14 @@ from typing import Any
 from middleware import ConfigError, Node, Notification, SubscriptionMode
 from services.lib.argtypes import non_negative_float, positive_float, positive_int
 
-from ._common import command_parser, exit_on_sigterm, format_bytes, format_ns, network
+from ._common import (
+    command_parser,
+    exit_on_sigterm,
+    format_bytes,
+    format_ns,
+    network,
+    notifications,
+)
 from ._target import add_timeout_argument, print_json_line, resolve
 
 DEFAULT_QUEUE = 10
@@ -107,17 +114,8 @@ def run(args: argparse.Namespace) -> int:
                 f"{f', delay {args.delay:g} s' if args.delay else ''}); Ctrl-C to stop",
                 flush=True,
             )
-        deadline = None if args.duration is None else time.monotonic() + args.duration
         try:
-            while args.count is None or received < args.count:
-                wait_s = 0.5
-                if deadline is not None:
-                    wait_s = min(wait_s, deadline - time.monotonic())
-                    if wait_s <= 0:
-                        break
-                note = sub.take(timeout_s=wait_s)
-                if note is None:
-                    continue
+            for note in notifications(sub, args.duration):
                 received += 1
                 if args.json:
                     print_json_line(_note_json(note))
@@ -125,6 +123,8 @@ def run(args: argparse.Namespace) -> int:
                     _print_note(note)
                 if args.delay:
                     time.sleep(args.delay)
+                if args.count is not None and received >= args.count:
+                    break
         except KeyboardInterrupt:
             pass
         missed = sub.missed_total
