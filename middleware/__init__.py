@@ -7,7 +7,13 @@ producer is refused (paper §4.1). See the README's *Wire format* for the protoc
 """
 
 from ._clock import ClockSample, ClockStatus, SteadyClock, now_ns
-from ._config import NetworkConfig, add_network_arguments, check_name, network_from_args
+from ._config import (
+    RENDEZVOUS_DELAY_MS,
+    NetworkConfig,
+    add_network_arguments,
+    check_name,
+    network_from_args,
+)
 from ._errors import (
     ConfigError,
     DuplicateTimestampError,
@@ -41,6 +47,7 @@ __all__ = [
     "INLINE_METADATA_MAX",
     "PUSH_ALL",
     "QUEUE_BUDGET",
+    "RENDEZVOUS_DELAY_MS",
     "BufferInfo",
     "ClockSample",
     "ClockStatus",

@@ -37,6 +37,11 @@ DEFAULT_NAMESPACE = "framegate"
 DEFAULT_LOCAL_PORT = 7447
 # Where a process listens when nothing asks for more: loopback, so no other host can reach it.
 LOOPBACK_PEER_LISTEN = "tcp/127.0.0.1:0"
+# On the loopback rendezvous, how long zenoh.open waits for peers (Zenoh's default is 500 ms).
+RENDEZVOUS_DELAY_MS = 50
+# ... and how long a Node then waits, at most, until every live process of the rendezvous is
+# connected (a frozen one never is).
+RENDEZVOUS_WAIT_S = 0.5
 LOOPBACK_ROUTER_LISTEN = f"tcp/127.0.0.1:{DEFAULT_LOCAL_PORT}"
 
 
@@ -134,10 +139,15 @@ class NetworkConfig:
             # Any live process of the rendezvous lets a newcomer in, not only the port's
             # holder (it may be frozen): see _rendezvous.
             peers = known_peers(self.local_port)
-            return [
+            configs = [
                 self._build(listen=hub, connect=peers),
                 self._build(listen=["tcp/127.0.0.1:0"], connect=hub + peers),
             ]
+            for conf in configs:
+                # Zenoh's open waits this long for peers to connect (500 ms by default);
+                # here every peer is named, and Node waits for them itself (RENDEZVOUS_WAIT_S).
+                _insert(conf, "scouting/delay", RENDEZVOUS_DELAY_MS)
+            return configs
         return [self._build(listen=list(self.listen), connect=list(self.connect))]
 
     def _build(self, *, listen: list[str], connect: list[str]) -> zenoh.Config:

@@ -30,7 +30,7 @@ from typing import Any
 import zenoh
 
 from ._clock import ClockSample, now_ns
-from ._config import NetworkConfig, check_name, listening_endpoints
+from ._config import RENDEZVOUS_WAIT_S, NetworkConfig, check_name, listening_endpoints
 from ._errors import (
     ConfigError,
     FramegateError,
@@ -48,7 +48,7 @@ from ._records import (
     SubscriptionInfo,
     SubscriptionMode,
 )
-from ._rendezvous import announce, withdraw
+from ._rendezvous import announce, live_processes, withdraw
 from ._service import ServiceEndpoint
 from ._subscription import Subscription
 from ._timerange import TimeRange
@@ -91,7 +91,11 @@ class Node:
         self.network = network or NetworkConfig().with_env()
         self.name = check_name(name, "service") if name else None
         self.keys = Keys(self.network.namespace)
+        opening = time.monotonic()
+        expected = live_processes(self.network.local_port) if self.network.uses_local_default else 0
         self._session = _open(self.network)
+        if self.network.uses_local_default:
+            self._await_peers(expected, opening + RENDEZVOUS_WAIT_S)
         self._announced = (
             announce(self.network.local_port, listening_endpoints())
             if self.network.uses_local_default
@@ -297,7 +301,19 @@ class Node:
         return elements
 
     # -- discovery -----------------------------------------------------------------------------
+    def _await_peers(self, expected: int, deadline: float) -> None:
+        """Return once the session is connected to ``expected`` peers (every other live
+        process of the rendezvous), or at ``deadline``: discovery asked earlier would miss
+        the services of a peer still connecting."""
+        while time.monotonic() < deadline:
+            with suppress(zenoh.ZError):
+                if len(list(self._session.info.peers_zid())) >= expected:
+                    return
+            time.sleep(0.005)
+
     def _settle(self) -> None:
+        if self.network.uses_local_default:
+            return  # the constructor waited for every peer (_await_peers)
         time.sleep(max(0.0, self._opened + _SETTLE_S - time.monotonic()))
 
     def live_services(self, *, timeout_s: float = 1.0) -> list[str]:

@@ -37,8 +37,8 @@ def _alive(pid: int) -> bool:
     return True
 
 
-def known_peers(local_port: int) -> list[str]:
-    """Loopback endpoints of live framegate processes of this rendezvous, newest first."""
+def _live_entries(local_port: int) -> list[tuple[float, list[str]]]:
+    """(mtime, loopback endpoints) of each other live process of the rendezvous, newest first."""
     folder = directory(local_port)
     found: list[tuple[float, list[str]]] = []
     with contextlib.suppress(OSError):
@@ -57,7 +57,17 @@ def known_peers(local_port: int) -> list[str]:
                 ]
                 found.append((entry.stat().st_mtime, endpoints))
     found.sort(reverse=True)
-    return [e for _, endpoints in found[:MAX_PEERS] for e in endpoints]
+    return found
+
+
+def known_peers(local_port: int) -> list[str]:
+    """Loopback endpoints of live framegate processes of this rendezvous, newest first."""
+    return [e for _, endpoints in _live_entries(local_port)[:MAX_PEERS] for e in endpoints]
+
+
+def live_processes(local_port: int) -> int:
+    """How many other live processes of this rendezvous left their endpoints."""
+    return len(_live_entries(local_port))
 
 
 def announce(local_port: int, endpoints: list[str]) -> Path | None:

@@ -73,10 +73,12 @@ def _subscribe(node: Node, target: str, **kwargs: Any) -> Subscription:
 
 
 def _network(params: dict[str, Any]) -> NetworkConfig:
+    """Explicit ``listen``/``connect`` endpoints, else the loopback rendezvous ``local_port``."""
     return NetworkConfig(
         listen=(params["listen"],) if params.get("listen") else (),
         connect=(params["connect"],) if params.get("connect") else (),
         shared_memory=bool(params.get("shm", True)),
+        local_port=int(params.get("local_port") or NetworkConfig().local_port),
     )
 
 

@@ -22,6 +22,7 @@ SCENARIO_NAMES = (
     "idle",
     "hostile",
     "ros2",
+    "startup",
 )
 
 # Measured window per sample (s) and runs per side, unless the command line says otherwise.

@@ -36,6 +36,7 @@ from ._query_scaling import run_query_scaling
 from ._records import ScenarioResult
 from ._report import load_warning
 from ._ros2 import run_ros2
+from ._startup import run_startup
 from ._throughput import run_batch, run_frames, run_small
 from ._working_point import run_working_point
 
@@ -56,6 +57,7 @@ SCENARIOS: dict[str, Callable[[BenchOptions], ScenarioResult]] = {
     "idle": run_idle,
     "hostile": run_hostile,
     "ros2": run_ros2,
+    "startup": run_startup,
 }
 
 

@@ -13,6 +13,7 @@ a plain attribute written and read whole.
 from __future__ import annotations
 
 import threading
+import time
 
 from middleware import (
     BufferInfo,
@@ -30,6 +31,8 @@ from ._server import FoxgloveServer
 from ._status import Counters
 
 TAKE_TIMEOUT_S = 0.2
+LOOKUP_INTERVAL_S = 1.0
+LOOKUP_TIMEOUT_S = 1.0
 
 
 class FrameSizes:
@@ -37,6 +40,31 @@ class FrameSizes:
 
     def __init__(self) -> None:
         self.size_px: tuple[int, int] | None = None
+        self._next_lookup = 0.0
+
+    def known(self, node: Node) -> tuple[int, int] | None:
+        """The size, asking a live frame buffer for its newest frame while none has been
+        seen: a verdict's notification can overtake its frame's (each buffer has its own
+        thread), and the verdict border needs the size. At most one lookup per second."""
+        if self.size_px is not None or time.monotonic() < self._next_lookup:
+            return self.size_px
+        self._next_lookup = time.monotonic() + LOOKUP_INTERVAL_S
+        try:
+            frames = [
+                b.name
+                for s in node.services(timeout_s=LOOKUP_TIMEOUT_S)
+                for b in s.buffers
+                if b.kind == "frame"
+            ]
+            for name in frames:
+                for element in node.latest(name, 1, timeout_s=LOOKUP_TIMEOUT_S):
+                    layout = frame_layout(element.metadata)
+                    if layout is not None:
+                        self.size_px = (layout.width_px, layout.height_px)
+                        return self.size_px
+        except FramegateError:
+            pass  # no frame to ask: the verdict goes without its border, as before
+        return self.size_px
 
 
 class BufferStream:
@@ -103,7 +131,8 @@ class BufferStream:
         element = self._element(note, needs_payload=bool(wanted & self._payload_topics))
         if element is None:
             return
-        messages = self._deriver.derive(element, frame_size_px=self._sizes.size_px, wanted=wanted)
+        size_px = self._sizes.known(self._node) if self._deriver.kind == "decision" else None
+        messages = self._deriver.derive(element, frame_size_px=size_px, wanted=wanted)
         self._server.publish(self._topics, messages)
 
     def _element(self, note: Notification, *, needs_payload: bool) -> DataObject | None:
