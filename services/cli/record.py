@@ -279,7 +279,16 @@ def run(args: argparse.Namespace) -> int:
             if not args.json:
                 names = ", ".join(f"{b.name} ({b.kind})" for b in buffers)
                 print(f"recording {names} to {args.output}; Ctrl-C to stop", flush=True)
-            _wait(recorders, args.duration, _discover(node, writer, recorders, args))
+            discover = _discover(node, writer, recorders, args)
+
+            def step() -> None:
+                # A quiet buffer's last elements must not stay only in memory: a recorder
+                # killed now keeps every chunk closed so far (at most CHUNK_AGE_S lost).
+                writer.flush_if_due()
+                if discover is not None:
+                    discover()
+
+            _wait(recorders, args.duration, step)
             stopped_ns = time.time_ns()
             for recorder in recorders:
                 recorder.progress.missed = recorder.sub.missed_total

@@ -1,4 +1,5 @@
-"""A recording that runs out of disk says so in one line and exits non-zero."""
+"""A recording that runs out of disk says so in one line and exits non-zero, and what it
+wrote plays up to its last complete chunk; so does one whose recorder is killed."""
 
 from __future__ import annotations
 
@@ -10,6 +11,8 @@ from pathlib import Path
 import pytest
 
 from middleware import NetworkConfig, Node, Retention, make_metadata
+from services.tools.bag import recording_info
+from tests.conftest import wait_until
 from tests.services.cli.conftest import TIMEOUT_S, Cli
 
 pytestmark = pytest.mark.integration
@@ -20,7 +23,7 @@ def tiny_disk(tmp_path: Path) -> Iterator[Path]:
     mount = tmp_path / "tiny"
     mount.mkdir()
     done = subprocess.run(
-        ["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(mount)],
+        ["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(mount)],
         capture_output=True, text=True,
     )  # fmt: skip
     if done.returncode != 0:
@@ -41,15 +44,48 @@ def test_full_disk_stops_the_recording_with_one_line(
             "--duration", "120",
         )  # fmt: skip
         assert log.wait_for_subscribers(1, timeout_s=30)
-        noise = bytes(range(256)) * 200  # 51 KiB: six of them fill the disk
+        # 51 KiB every 0.1 s: a chunk closes each second, and the disk (1 MiB) is full
+        # after a few of them.
+        noise = bytes(range(256)) * 200
         t = time.time_ns()
         deadline = time.monotonic() + 60
         while recorder.poll() is None and time.monotonic() < deadline:
             t += 1_000_000
             log.put(t, noise, make_metadata("generic", t), wait_s=1.0)
-            time.sleep(0.01)
-        _out, err = recorder.communicate(timeout=TIMEOUT_S)
+            time.sleep(0.1)
+    _out, err = recorder.communicate(timeout=TIMEOUT_S)
     assert recorder.returncode == 1, err
     lines = [line for line in err.splitlines() if line.strip()]
     assert lines[-1].startswith("error: ") and "No space left on device" in lines[-1], err
     assert "Traceback" not in err
+    # What fitted before the disk filled is there to play (whole chunks only).
+    info = recording_info(tiny_disk / "run.mcap")
+    assert info.status == "recovered" and info.messages > 0, info
+
+
+def test_a_killed_recorder_leaves_every_chunk_it_closed(
+    listen_net: NetworkConfig, cli: Cli, tmp_path: Path
+) -> None:
+    out = tmp_path / "run.mcap"
+    with Node("cam", listen_net) as service:
+        log = service.offer("log", retention=Retention(max_count=1000))
+        recorder = cli.start("record", "cam/log", "-o", str(out), "--duration", "120")
+        assert log.wait_for_subscribers(1, timeout_s=30)
+        t = time.time_ns()
+        put = 0
+
+        def chunks_written() -> bool:
+            nonlocal t, put
+            t += 1_000_000
+            log.put(t, b"x" * 1000, make_metadata("generic", t), wait_s=1.0)
+            put += 1
+            time.sleep(0.01)
+            # A chunk is closed at least every second: wait for two of them.
+            return out.exists() and out.stat().st_size > 4096 and put > 300
+
+        wait_until(chunks_written, 60, "a recording with closed chunks")
+        recorder.kill()  # SIGKILL: no summary, no footer
+        recorder.wait(timeout=TIMEOUT_S)
+    info = recording_info(out)
+    assert info.status == "recovered" and "cut short" in info.integrity, info
+    assert 0 < info.messages <= put, (info.messages, put)
