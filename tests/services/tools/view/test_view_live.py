@@ -23,8 +23,7 @@ from tests.services.tools.view.foxglove_client import FoxgloveClient, Received, 
 
 pytestmark = pytest.mark.integration
 
-# A detector faster than the camera: in this pipeline no producer ever has reason to refuse,
-# so any refusal would be the viewer's doing.
+# A detector faster than the camera: the pipeline keeps up on its own.
 PIPELINE = """
 version: 1
 services:
@@ -103,8 +102,21 @@ def viewer(pipe: Pipeline) -> Iterator[Viewer]:
         started.proc.wait()
 
 
-def _refused(pipe: Pipeline) -> dict[str, int]:
-    return {name: pipe.counter(name, "refused") for name in PRODUCERS}
+def _viewer_modes(pipe: Pipeline) -> dict[str, list[str]]:
+    """The modes of the anonymous client subscriptions on each producer's buffer: the
+    viewer's (the pipeline's own are held by named services; the test's node holds none)."""
+    return {
+        name: sorted(s.mode.value for s in pipe.info(name).subscriptions if s.node == "")
+        for name in PRODUCERS
+    }
+
+
+def _holds_nothing_back(pipe: Pipeline) -> None:
+    """The viewer observes every producer and holds none back: an observer can never make a
+    producer refuse, whatever the clients do. (A refusal count is no proof either way: on a
+    starved machine the pipeline's own consumers fall behind and refuse, viewer or not.)"""
+    modes = _viewer_modes(pipe)
+    assert all(found == ["observe"] for found in modes.values()), modes
 
 
 def _marker_ids(pipe: Pipeline, timestamp_ns: int) -> list[int]:
@@ -115,12 +127,11 @@ def _marker_ids(pipe: Pipeline, timestamp_ns: int) -> list[int]:
     return read_detections(element.metadata)[1]
 
 
-def test_client_gets_frames_with_verdicts_detections_and_plots_and_nothing_is_refused(
+def test_client_gets_frames_with_verdicts_detections_and_plots_and_holds_nothing_back(
     pipe: Pipeline, viewer: Viewer
 ) -> None:
     listening = viewer.event(lambda e: e["event"] == "listening", DEADLINE_S)
     assert Path(listening["layout"]).is_file(), listening  # the installed Foxglove layout
-    refused_before = _refused(pipe)
     client = FoxgloveClient(viewer.url)
     try:
         assert client.ws.subprotocol == "foxglove.sdk.v1"
@@ -172,7 +183,7 @@ def test_client_gets_frames_with_verdicts_detections_and_plots_and_nothing_is_re
         client.close()
     status = viewer.event(lambda e: e["event"] == "status" and e["published"] > 0, 30)
     assert status["clients"] >= 0
-    assert _refused(pipe) == refused_before
+    _holds_nothing_back(pipe)
 
 
 def _stalled_client(url: str) -> FoxgloveClient:
@@ -188,7 +199,6 @@ def test_slow_and_vanished_clients_neither_slow_nor_crash_anything(
     pipe: Pipeline, viewer: Viewer
 ) -> None:
     viewer.event(lambda e: e["event"] == "listening", DEADLINE_S)
-    refused_before = _refused(pipe)
     slow = _stalled_client(viewer.url)
     vanished = FoxgloveClient(viewer.url)
     vanished.wait_for_topics({IMAGE}, DEADLINE_S)
@@ -211,7 +221,7 @@ def test_slow_and_vanished_clients_neither_slow_nor_crash_anything(
     finally:
         healthy.close()
     assert viewer.proc.poll() is None
-    assert _refused(pipe) == refused_before
+    _holds_nothing_back(pipe)
     slow.ws.socket.close()
     viewer.proc.terminate()  # SIGTERM: a clean stop
     assert viewer.proc.wait(timeout=10) == 0, viewer.stderr_tail()
