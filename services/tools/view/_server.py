@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import logging
 import re
+import sys
 import threading
 from typing import Any
 
@@ -57,6 +58,10 @@ class _SlowClients(logging.Handler):
             self._counters.slow_client(slow.group(1))
         elif gone := _GONE.search(text):
             self._counters.client_gone(gone.group(1))
+        elif record.levelno >= logging.WARNING:
+            # Anything else the SDK warns about (a client subscribing to a channel it does
+            # not know, a client disconnected) is for the user to see, one line each.
+            print(f"foxglove: {text}", file=sys.stderr, flush=True)
 
 
 _logging_lock = threading.Lock()

@@ -117,7 +117,7 @@ class BufferStream:
                 self._counters.set_missed(self.name, self._sub.missed_total)
                 if note is not None:
                     self._on_notification(note)
-        except BaseException as exc:  # the status line says so; the other buffers go on
+        except Exception as exc:  # the viewer says so and starts it again; the others go on
             self.error = exc
 
     def _on_notification(self, note: Notification) -> None:

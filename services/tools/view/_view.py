@@ -10,9 +10,11 @@ Zenoh session.
 from __future__ import annotations
 
 import difflib
+import logging
 import threading
 import time
 from collections.abc import Callable
+from contextlib import suppress
 
 from middleware import (
     BufferInfo,
@@ -29,6 +31,8 @@ from ._config import ViewConfig
 from ._server import FoxgloveServer
 from ._status import Counters, Status
 from ._stream import BufferStream, FrameSizes
+
+log = logging.getLogger("framegate.view")
 
 
 def parse_target(target: str) -> tuple[str, str | None]:
@@ -100,6 +104,36 @@ def check_targets(node: Node, targets: tuple[str, ...], timeout_s: float) -> Non
         time.sleep(0.1)
 
 
+def _start_stream(
+    node: Node,
+    buffer: BufferInfo,
+    config: ViewConfig,
+    server: FoxgloveServer,
+    counters: Counters,
+    sizes: FrameSizes,
+    stop: threading.Event,
+) -> BufferStream | None:
+    """A stream of ``buffer``, or None (said on stderr) when it cannot be subscribed to now:
+    the next discovery tries again, and the other buffers go on."""
+    try:
+        return BufferStream(node, buffer, config, server, counters, sizes, stop)
+    except FramegateError as exc:
+        log.warning("view: cannot stream %s yet (%s); trying again", buffer.name, exc)
+        return None
+
+
+def _drop_dead(streams: dict[str, BufferStream]) -> None:
+    """Forget streams whose thread ended with an error, so that discovery starts them again:
+    a dead stream would leave its channels silent for good."""
+    for name, stream in list(streams.items()):
+        if stream.thread.is_alive():
+            continue
+        log.warning("view: streaming %s stopped (%r); starting it again", name, stream.error)
+        with suppress(FramegateError):
+            stream.close()
+        del streams[name]
+
+
 def run_view(
     config: ViewConfig,
     network: NetworkConfig,
@@ -127,11 +161,14 @@ def run_view(
                     if deadline is not None and now >= deadline:
                         break
                     if now >= next_find:
+                        _drop_dead(streams)
                         for buffer in _find(node, config):
                             if buffer.name not in streams:
-                                streams[buffer.name] = BufferStream(
+                                stream = _start_stream(
                                     node, buffer, config, server, counters, sizes, stop
                                 )
+                                if stream is not None:
+                                    streams[buffer.name] = stream
                         next_find = time.monotonic() + config.discover_interval_s
                     if now >= next_status:
                         report(counters.snapshot(server.url, now))

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import base64
 import json
+import re
 import struct
 import time
 from dataclasses import dataclass
@@ -22,6 +23,12 @@ from websockets.typing import Subprotocol
 
 SUBPROTOCOL = Subprotocol("foxglove.sdk.v1")
 MESSAGE_DATA = 1
+# foxglove-sdk (0.30) sends a channel's advertisement to a client *before* it records the
+# channel for that client (connected_client.rs, advertise_channels): a subscribe that arrives
+# in between is refused with "Unknown channel ID: N". A client that subscribes the moment it
+# sees a channel leaves the server this long first, and subscribes again if refused.
+ADVERTISE_SETTLE_S = 0.2
+_UNKNOWN = re.compile(r"Unknown channel ID: (\d+)")
 
 
 @dataclass(frozen=True)
@@ -58,6 +65,15 @@ class FoxgloveClient:
         elif body["op"] == "advertise":
             for channel in body["channels"]:
                 self.channels[channel["topic"]] = channel
+        elif body["op"] == "status" and (refused := _UNKNOWN.search(body.get("message", ""))):
+            again = [
+                {"id": sub_id, "channelId": channel["id"]}
+                for sub_id, channel in self._subs.items()
+                if channel["id"] == int(refused.group(1))
+            ]
+            if again:
+                time.sleep(ADVERTISE_SETTLE_S)
+                self.ws.send(json.dumps({"op": "subscribe", "subscriptions": again}))
 
     def wait_for_topics(self, topics: set[str], timeout_s: float) -> None:
         deadline = time.monotonic() + timeout_s
@@ -73,6 +89,7 @@ class FoxgloveClient:
                 self._handle_text(frame)
 
     def subscribe(self, topics: list[str]) -> None:
+        time.sleep(ADVERTISE_SETTLE_S)  # see ADVERTISE_SETTLE_S
         requests = []
         for topic in topics:
             channel = self.channels[topic]

@@ -129,3 +129,32 @@ def test_the_layout_files_are_the_generated_layout_and_names_only_produced_topic
     }
     named = set(re.findall(r'"(/[a-z]+/[a-z]+/[a-z]+)', foxglove_layout()))
     assert named and named <= produced, named - produced
+
+
+class _Ended:
+    """A stream whose thread ended with an error (the view loop only looks at these)."""
+
+    def __init__(self, alive: bool) -> None:
+        import threading
+
+        self.thread = threading.Thread(target=lambda: None)
+        if not alive:
+            self.thread.start()
+            self.thread.join()
+        else:
+            self.thread.is_alive = lambda: True  # type: ignore[method-assign]
+        self.error = None if alive else FramegateError("fetch failed")
+        self.closed = False
+
+    def close(self) -> None:
+        self.closed = True
+
+
+def test_a_stream_that_died_is_said_and_started_again(caplog: pytest.LogCaptureFixture) -> None:
+    from services.tools.view._view import _drop_dead
+
+    dead, live = _Ended(alive=False), _Ended(alive=True)
+    streams = {"camera/images": dead, "gyro/rates": live}
+    _drop_dead(streams)  # type: ignore[arg-type]
+    assert list(streams) == ["gyro/rates"] and dead.closed and not live.closed
+    assert "streaming camera/images stopped" in caplog.text and "fetch failed" in caplog.text
