@@ -23,6 +23,7 @@ from typing import Any
 import zenoh
 
 from ._errors import FramegateError, RegistrationRefused
+from ._inbox import Inbox
 from ._ledger_subscriber import REACK_NS, Entry, SubscriberCounters
 from ._loop import NodeLoop
 from ._protocol_subscriber import Item, SubscriberProtocol
@@ -34,6 +35,17 @@ log = logging.getLogger("framegate.middleware")
 # A push limit larger than any payload: everything travels with its notification.
 PUSH_ALL = 2**31 - 1
 _REACK_S = REACK_NS / 1e9
+# With nobody taking, the node's loop drains the inbox this often (at the latest when it
+# wakes, at least once a second): what honest traffic can bring in between is the queue's
+# credit plus a resend round or two of it, hence the inbox's capacity.
+DRAIN_NS = 250_000_000
+_INBOX_SLACK = 64  # greetings, refusals, doorbells
+
+
+def inbox_capacity(queue_size: int) -> int:
+    """Notifications honest traffic can leave in the inbox between two drains: the credit
+    (N), and N again per resend round (every 0.5 s), with room to spare."""
+    return 4 * queue_size + _INBOX_SLACK
 
 
 class Subscription:
@@ -42,13 +54,17 @@ class Subscription:
     Survives restarts of the producing service: the producer re-registers this subscription
     from its liveliness token under a new epoch, and the protocol tracks every epoch it meets.
 
-    Threads (see the README's *Threads*): ``_on_notification`` runs on zenoh-python's
-    callback thread, never on Zenoh's own; it takes ``_lock`` once to feed the protocol and
-    wakes a caller only if one waits, and never calls Zenoh nor copies a single element's
-    payload (``take`` does, on the caller's thread). ``_lock`` guards the protocol and
-    ``_waiting`` (callers blocked in ``_cond``). Acks are computed under the lock and sent
-    after releasing it: by ``take`` on the caller's thread, or by the node's loop when a
-    delayed ack falls due and the caller has not come back (``on_deadline``).
+    Threads (see the README's *Threads*): no Python runs on Zenoh's threads for it.
+    Notifications wait in the ``Inbox`` (a Zenoh channel) until a caller of ``take`` drains
+    them with ``try_recv`` into the protocol, in one batch; a caller with nothing to take
+    blocks in the channel's ``recv`` (the *receiver*, one at a time; others wait in
+    ``_cond`` for its news), and the node's loop rings its doorbell at its deadline. With
+    nobody taking, the node's loop drains (``on_deadline``). ``_lock`` guards the protocol,
+    ``_receiving``, ``_wake_at_ns`` and ``_waiting`` (callers blocked in ``_cond``); the
+    inbox is drained under it, and only while no receiver blocks in ``recv``. Acks are
+    computed under the lock and sent after releasing it: by ``take`` on the caller's
+    thread, or by the node's loop when a delayed ack falls due and the caller has not come
+    back (``on_deadline``).
     """
 
     def __init__(
@@ -88,14 +104,18 @@ class Subscription:
         self._lock = threading.Lock()
         self._cond = threading.Condition(self._lock)
         self._waiting = 0
+        # A caller blocked in the inbox's recv, and when it wants the doorbell (monotonic ns).
+        self._receiving = False
+        self._wake_at_ns: int | None = None
+        self._drain_at_ns = time.monotonic_ns() + DRAIN_NS
         self._closed = False
         self._ack_publisher = session.declare_publisher(
             keys.ack(service, buffer, self.subscription_id),
             congestion_control=zenoh.CongestionControl.BLOCK,
         )
-        self._subscriber = session.declare_subscriber(
-            keys.notify(service, buffer, self.subscription_id),
-            zenoh.handlers.Callback(self._on_notification),
+        notify_key = keys.notify(service, buffer, self.subscription_id)
+        self._inbox = Inbox(
+            session, notify_key, capacity=inbox_capacity(queue_size), doorbell_key=notify_key
         )
         loop.add(self)
         # Declared last: once the producer sees it, notifications may flow.
@@ -119,73 +139,128 @@ class Subscription:
     def missed_total(self) -> int:
         """Notifications lost so far (observers only: flow control loses none)."""
         with self._lock:
+            self._drain()
             return self._protocol.missed_total
 
     @property
     def counters(self) -> SubscriberCounters:
         """Notifications ignored so far, by reason (foreign, duplicate, out of order, ...)."""
         with self._lock:
+            self._drain()
             return self._protocol.counters()
 
     @property
     def garbage(self) -> int:
         """Messages on this subscription's key that were not notifications."""
         with self._lock:
+            self._drain()
             return self._protocol.garbage
 
-    def _on_notification(self, sample: zenoh.Sample) -> None:
+    # -- Zenoh input (under _lock, on the thread that needs it) ------------------------------
+    def _drain(self) -> None:
+        """(under _lock) Feed the protocol every notification waiting in the inbox, unless a
+        receiver blocks in ``recv``: then the input is its to take."""
+        if self._receiving:
+            return
+        for sample in self._inbox.drain():
+            self._feed(sample)
+
+    def _feed(self, sample: zenoh.Sample) -> None:
+        """(under _lock)"""
         attachment = sample.attachment
         raw = attachment.to_bytes() if attachment is not None else None
-        with self._lock:
-            before = self._protocol.registrations
-            self._protocol.receive(raw, sample.payload)
-            again = self._protocol.registrations > before > 0
-            if self._waiting:  # a notification, or the producer's greeting or refusal
-                self._cond.notify_all()
-        if again:
+        protocol = self._protocol
+        before = protocol.registrations
+        protocol.receive(raw, sample.payload)
+        if protocol.registrations > before > 0:
             log.info(
                 "subscription to %s registered again (the producer restarted, or this "
                 "subscription had lapsed)",
                 self.name,
             )
 
+    def _wait_input(self, wait_s: float) -> None:
+        """(holding _lock through ``_cond``) Wait up to ``wait_s`` for Zenoh input, fed to
+        the protocol when this returns: as the receiver, blocked in the inbox's ``recv``
+        with the loop asked to ring the doorbell at the deadline; or, when another caller
+        is the receiver already, in ``_cond`` for its news."""
+        if self._receiving:
+            self._waiting += 1
+            try:
+                self._cond.wait(wait_s)
+            finally:
+                self._waiting -= 1
+            return
+        self._receiving = True
+        wake_at = time.monotonic_ns() + int(wait_s * 1e9)
+        self._wake_at_ns = wake_at
+        self._lock.release()
+        sample = None
+        try:
+            self._loop.poke(wake_at)
+            sample = self._inbox.recv()
+        finally:
+            self._lock.acquire()
+            self._receiving = False
+            self._wake_at_ns = None
+            if sample is not None:
+                self._feed(sample)
+            self._drain()
+            if self._waiting:  # news for them, or their turn to receive
+                self._cond.notify_all()
+
     def wait_registered(self, timeout_s: float) -> bool:
         """Wait until the producer greets this subscription; RegistrationRefused if it
         refused it (naming the limit). False if neither came within ``timeout_s``."""
         deadline = time.monotonic() + timeout_s
         with self._cond:
+            self._drain()
             while self._protocol.registered is None:
                 if self._protocol.refusal is not None:
                     raise RegistrationRefused(
                         f"{self.name} refused this subscription: {self._protocol.refusal}"
                     )
                 remaining = deadline - time.monotonic()
-                if remaining <= 0:
+                if remaining <= 0 or self._closed:
                     return False
-                self._waiting += 1
-                try:
-                    self._cond.wait(remaining)
-                finally:
-                    self._waiting -= 1
+                self._wait_input(remaining)
             return True
 
     # -- the node's loop ---------------------------------------------------------------------
     def next_deadline_ns(self) -> int | None:
         with self._lock:
-            return self._protocol.next_deadline_ns()
+            due = self._protocol.next_deadline_ns()
+            other = self._wake_at_ns if self._receiving else self._drain_at_ns
+        if other is not None and (due is None or other < due):
+            return other
+        return due
 
     def on_deadline(self, now_ns: int) -> None:
-        """A delayed ack fell due and nobody took since: send it (see ``AckPolicy``)."""
+        """Drain the inbox if nobody takes; send a delayed ack that fell due with nobody
+        taking since (see ``AckPolicy``); ring the receiver's doorbell at its deadline."""
+        ring = False
         with self._lock:
+            if self._receiving:
+                if self._wake_at_ns is not None and self._wake_at_ns <= now_ns:
+                    self._wake_at_ns = None
+                    ring = True
+            elif self._drain_at_ns <= now_ns:
+                self._drain()
+                self._drain_at_ns = now_ns + DRAIN_NS
+                if self._waiting:
+                    self._cond.notify_all()
             due = self._protocol.next_deadline_ns()
             ready = due is not None and due <= now_ns
             acks = self._protocol.acks(now_ns, idle=False) if ready else []
         self._send_acks(acks)
+        if ring:
+            self._inbox.ring()
 
     @property
     def pending(self) -> int:
         """Notifications waiting in this process's queue."""
         with self._lock:
+            self._drain()
             return len(self._protocol)
 
     def take(self, *, timeout_s: float | None = None) -> Notification | None:
@@ -208,6 +283,7 @@ class Subscription:
         protocol = self._protocol
         while True:
             with self._lock:
+                self._drain()
                 entries = protocol.take_many(max_count)
                 acks = protocol.acks(time.monotonic_ns(), idle=not entries)
                 if entries:
@@ -220,12 +296,10 @@ class Subscription:
                         wait_s = min(deadline - time.monotonic(), _REACK_S)
                         if wait_s <= 0:
                             return []
-                    self._waiting += 1
-                    try:
-                        self._cond.wait(wait_s)
-                    finally:
-                        self._waiting -= 1
+                    self._wait_input(wait_s)
                     continue
+                if entries and self._waiting and len(protocol):
+                    self._cond.notify_all()  # more queued: another caller may take them
             self._send_acks(acks)
             if entries:
                 if flush_at is not None:
@@ -300,7 +374,8 @@ class Subscription:
         self._loop.remove(self)
         with self._lock:
             self._cond.notify_all()
-        for entity in (self._token, self._subscriber, self._ack_publisher):
+        self._inbox.close()  # ends a receiver's recv
+        for entity in (self._token, self._ack_publisher):
             with contextlib.suppress(zenoh.ZError):
                 entity.undeclare()
         if self._on_close is not None:
