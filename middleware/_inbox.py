@@ -38,9 +38,7 @@ class Inbox:
     ) -> None:
         self._session = session
         self._doorbell_key = doorbell_key
-        self._subscriber = session.declare_subscriber(
-            keyexpr, zenoh.handlers.RingChannel(capacity)
-        )
+        self._subscriber = session.declare_subscriber(keyexpr, zenoh.handlers.RingChannel(capacity))
         self._handler = self._subscriber.handler
         self.closed = False
 

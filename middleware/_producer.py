@@ -31,6 +31,7 @@ import zenoh
 from ._buffer import TimeSeries
 from ._clock import now_ns
 from ._errors import DuplicateTimestampError, FlowControlRefused, FramegateError, SchemaError
+from ._inbox import Inbox
 from ._ledger_producer import Registration, RegistrationKey
 from ._loop import NodeLoop
 from ._protocol_producer import Event, ProducerProtocol, Publish, Retire
@@ -48,6 +49,12 @@ HORIZON_NS = 10_000_000_000
 _RATE_WINDOW = 64
 # A put that waits for credit looks again at least this often.
 _WAIT_S = 0.1
+# With no put waiting, the node's loop drains the ack inbox at least this often.
+_DRAIN_NS = 250_000_000
+# Acks honest subscribers can send between two drains: coalesced, at most a few per
+# registration and queue window (see ``AckPolicy``) plus a re-ack each per 0.5 s. A lost
+# ack costs nothing: acks are cumulative and repeated.
+_ACK_INBOX = 8192
 
 
 @dataclass
@@ -62,12 +69,16 @@ class _Counters:
 class Producer:
     """A buffer offered by this process. Create with ``Node.offer``.
 
-    Threads (see the README's *Threads*): ``_on_token`` and ``_on_ack`` run on zenoh-python's
-    callback thread, never on Zenoh's own; they feed the protocol under ``_lock`` and wake
-    whoever waits, and never call Zenoh. ``_lock`` (with ``_cond`` on it) guards the
-    protocol, the counters and the rate window. ``_send_lock`` serialises carrying out the
-    protocol's events (``put`` on the caller's thread, ``on_deadline`` on the node's loop),
-    so the messages of one registration leave in order and a ``publisher.put`` that blocks
+    Threads (see the README's *Threads*): ``_on_token`` runs on zenoh-python's callback
+    thread (tokens are rare); it feeds the protocol under ``_lock`` and wakes whoever waits,
+    and never calls Zenoh. Acks wait in the ``Inbox`` (a Zenoh channel) until ``put``
+    drains them with ``try_recv`` before deciding credit; a put that waits for credit
+    blocks in the channel's ``recv`` (the *receiver*; the loop rings its doorbell at its
+    deadline), and with no put waiting the node's loop drains them. ``_lock`` (with
+    ``_cond`` on it) guards the protocol, the counters, the rate window, ``_receiving`` and
+    ``_wake_at_ns``; the inbox is drained under it while no receiver blocks in ``recv``.
+    ``_send_lock`` serialises carrying out the protocol's events (``put`` on the caller's
+    thread, ``on_deadline`` on the node's loop), so the messages of one registration leave in order and a ``publisher.put`` that blocks
     holds only ``_send_lock``. Lock order: ``_send_lock``, then ``_lock``.
     """
 
@@ -110,13 +121,20 @@ class Producer:
         # Events produced by Zenoh input (greetings, refusals, retired publishers) wait for
         # the loop or the next put; this says whether any do.
         self._events_waiting = False
+        # A put blocked in the ack inbox's recv, and when it wants the doorbell.
+        self._receiving = False
+        self._wake_at_ns: int | None = None
+        self._drain_at_ns = time.monotonic_ns() + _DRAIN_NS
         self._token_sub = session.liveliness().declare_subscriber(
             keys.subscription_tokens(service, buffer),
             zenoh.handlers.Callback(self._on_token),
             history=True,
         )
-        self._ack_sub = session.declare_subscriber(
-            keys.acks(service, buffer), zenoh.handlers.Callback(self._on_ack)
+        self._acks = Inbox(
+            session,
+            keys.acks(service, buffer),
+            capacity=_ACK_INBOX,
+            doorbell_key=keys.ack(service, buffer, "doorbell"),
         )
         loop.add(self)
 
@@ -130,32 +148,85 @@ class Producer:
         with self._cond:
             self._protocol.token(str(sample.key_expr), alive, time.monotonic_ns())
             self._events_waiting = True
+            if self._receiving:  # a waiting put looks again (a gone subscriber frees it)
+                self._wake_at_ns = 0
             self._cond.notify_all()
         self._loop.poke(0)
 
-    def _on_ack(self, sample: zenoh.Sample) -> None:
-        keyexpr = str(sample.key_expr)
-        payload = sample.payload.to_bytes()
-        with self._cond:
-            if self._protocol.ack(keyexpr, payload, time.monotonic_ns()):
-                self._cond.notify_all()
+    # -- acks (under _lock, on the thread that needs them) ---------------------------------
+    def _drain_acks(self) -> None:
+        """(under _lock) Feed the protocol every ack waiting in the inbox, unless a put
+        blocks in its ``recv``: then they are that put's to take."""
+        if self._receiving:
+            return
+        freed = False
+        ack = self._protocol.ack
+        now = 0
+        for sample in self._acks.drain():
+            now = now or time.monotonic_ns()
+            freed |= ack(str(sample.key_expr), sample.payload.to_bytes(), now)
+        if freed:
+            self._cond.notify_all()
+
+    def _wait_acks(self, wait_s: float) -> None:
+        """(holding _lock through ``_cond``) Wait up to ``wait_s`` for acks, fed to the
+        protocol when this returns: as the receiver, blocked in the inbox's ``recv`` with
+        the loop asked to ring the doorbell at the deadline; or, when another thread is the
+        receiver already, in ``_cond`` for its news."""
+        if self._receiving:
+            self._cond.wait(wait_s)
+            return
+        self._receiving = True
+        wake_at = time.monotonic_ns() + int(wait_s * 1e9)
+        self._wake_at_ns = wake_at
+        self._lock.release()
+        sample = None
+        try:
+            self._loop.poke(wake_at)
+            sample = self._acks.recv()
+        finally:
+            self._lock.acquire()
+            self._receiving = False
+            self._wake_at_ns = None
+            if sample is not None:
+                self._protocol.ack(
+                    str(sample.key_expr), sample.payload.to_bytes(), time.monotonic_ns()
+                )
+            self._drain_acks()
+            self._cond.notify_all()  # news for other waiters, or their turn to receive
 
     # -- the node's loop ---------------------------------------------------------------------
     def next_deadline_ns(self) -> int | None:
         if self._events_waiting:
             return 0
         with self._lock:
-            return self._protocol.next_deadline_ns()
+            due = self._protocol.next_deadline_ns()
+            other = self._wake_at_ns if self._receiving else self._drain_at_ns
+        if other is not None and (due is None or other < due):
+            return other
+        return due
 
     def on_deadline(self, now_ns: int) -> None:
-        """Resends that are due and events Zenoh input produced, sent from the node's loop."""
+        """Resends that are due and events Zenoh input produced, sent from the node's loop;
+        acks drained if no put waits for them; a waiting put's doorbell rung at its
+        deadline."""
+        ring = False
         with self._send_lock:
             with self._lock:
                 if self._closed:
                     return
+                if self._receiving:
+                    if self._wake_at_ns is not None and self._wake_at_ns <= now_ns:
+                        self._wake_at_ns = None
+                        ring = True
+                else:
+                    self._drain_acks()
+                    self._drain_at_ns = now_ns + _DRAIN_NS
                 self._protocol.tick(now_ns)
                 events = self._take_events()
             self._carry_out(events)
+        if ring:
+            self._acks.ring()
 
     def _take_events(self) -> list[Event]:
         """(under _lock)"""
@@ -218,6 +289,7 @@ class Producer:
         while True:
             with self._send_lock:
                 with self._cond:
+                    self._drain_acks()
                     full = self._protocol.full(count)
                     if full is None:
                         self._store(elements)
@@ -233,8 +305,9 @@ class Producer:
                 if remaining <= 0 or count > full.key.queue_size:
                     self._counters.refused += count
                     raise FlowControlRefused(self._refusal(full, elements))
+                self._drain_acks()
                 if self._protocol.full(count) is not None:
-                    self._cond.wait(min(remaining, _WAIT_S))
+                    self._wait_acks(min(remaining, _WAIT_S))
 
     def _refusal(self, full: Registration[Any], elements: tuple[DataObject, ...]) -> str:
         k, count, first = full.key, len(elements), elements[0].timestamp_ns
@@ -361,11 +434,13 @@ class Producer:
         This is the paper's load indicator, read by the mediator.
         """
         with self._lock:
+            self._drain_acks()
             return self._protocol.fill()
 
     def subscriptions(self) -> list[SubscriptionInfo]:
         """Every live subscription (registration) as this producer counts it."""
         with self._lock:
+            self._drain_acks()
             return self._protocol.subscriptions()
 
     def wait_for_subscribers(self, count: int, *, timeout_s: float) -> bool:
@@ -383,16 +458,18 @@ class Producer:
         """Wait until ``fill()`` < ``limit`` (e.g. a consumer took a notification)."""
         deadline = time.monotonic() + timeout_s
         with self._cond:
+            self._drain_acks()
             while self._protocol.fill() >= limit:
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
                     return False
-                self._cond.wait(remaining)
+                self._wait_acks(min(remaining, _WAIT_S))
             return True
 
     def info(self) -> BufferInfo:
         """Retention, size, span, rate, counters and subscriptions."""
         with self._lock:
+            self._drain_acks()
             c = self._counters
             times = list(c.put_times)
             puts, refused, rejected = c.puts, c.refused, c.rejected
@@ -434,9 +511,9 @@ class Producer:
                 events = self._take_events()
                 self._cond.notify_all()
             self._carry_out(events)
-        for entity in (self._token_sub, self._ack_sub):
-            with contextlib.suppress(zenoh.ZError):
-                entity.undeclare()
+        self._acks.close()
+        with contextlib.suppress(zenoh.ZError):
+            self._token_sub.undeclare()
 
 
 def _check_types(timestamp_ns: object, payload: object, metadata: object) -> None:
