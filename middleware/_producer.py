@@ -78,8 +78,9 @@ class Producer:
     ``_cond`` on it) guards the protocol, the counters, the rate window, ``_receiving`` and
     ``_wake_at_ns``; the inbox is drained under it while no receiver blocks in ``recv``.
     ``_send_lock`` serialises carrying out the protocol's events (``put`` on the caller's
-    thread, ``on_deadline`` on the node's loop), so the messages of one registration leave in order and a ``publisher.put`` that blocks
-    holds only ``_send_lock``. Lock order: ``_send_lock``, then ``_lock``.
+    thread, ``on_deadline`` on the node's loop), so the messages of one registration leave
+    in order and a ``publisher.put`` that blocks holds only ``_send_lock``. Lock order:
+    ``_send_lock``, then ``_lock``.
     """
 
     def __init__(
