@@ -125,7 +125,7 @@ class Producer:
         # A put blocked in the ack inbox's recv, and when it wants the doorbell.
         self._receiving = False
         self._wake_at_ns: int | None = None
-        self._drain_at_ns = time.monotonic_ns() + _DRAIN_NS
+        self._drain_at_ns = (time.monotonic_ns() // _DRAIN_NS + 1) * _DRAIN_NS
         self._token_sub = session.liveliness().declare_subscriber(
             keys.subscription_tokens(service, buffer),
             zenoh.handlers.Callback(self._on_token),
@@ -222,7 +222,9 @@ class Producer:
                         ring = True
                 else:
                     self._drain_acks()
-                    self._drain_at_ns = now_ns + _DRAIN_NS
+                    self._drain_at_ns = (
+                        now_ns // _DRAIN_NS + 1
+                    ) * _DRAIN_NS  # one grid: a node's objects share a wake
                 self._protocol.tick(now_ns)
                 events = self._take_events()
             self._carry_out(events)

@@ -107,7 +107,7 @@ class Subscription:
         # A caller blocked in the inbox's recv, and when it wants the doorbell (monotonic ns).
         self._receiving = False
         self._wake_at_ns: int | None = None
-        self._drain_at_ns = time.monotonic_ns() + DRAIN_NS
+        self._drain_at_ns = (time.monotonic_ns() // DRAIN_NS + 1) * DRAIN_NS
         self._closed = False
         self._ack_publisher = session.declare_publisher(
             keys.ack(service, buffer, self.subscription_id),
@@ -246,7 +246,9 @@ class Subscription:
                     ring = True
             elif self._drain_at_ns <= now_ns:
                 self._drain()
-                self._drain_at_ns = now_ns + DRAIN_NS
+                self._drain_at_ns = (
+                    now_ns // DRAIN_NS + 1
+                ) * DRAIN_NS  # one grid: a node's objects share a wake
                 if self._waiting:
                     self._cond.notify_all()
             due = self._protocol.next_deadline_ns()
