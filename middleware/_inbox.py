@@ -43,9 +43,18 @@ class Inbox:
         self.closed = False
 
     def drain(self) -> Iterator[zenoh.Sample]:
-        """Every sample waiting now, oldest first, doorbells left out (never blocks)."""
+        """Every sample waiting now, oldest first, doorbells left out (never blocks);
+        nothing once closed."""
+        if self.closed:
+            return
         try_recv = self._handler.try_recv
-        while (sample := try_recv()) is not None:
+        while True:
+            try:
+                sample = try_recv()
+            except zenoh.ZError:  # closed under us: a ring's try_recv raises then
+                return
+            if sample is None:
+                return
             attachment = sample.attachment
             if attachment is not None and attachment.to_bytes() == DOORBELL:
                 continue

@@ -272,6 +272,24 @@ def test_closed_subscriptions_leave_the_node(
         assert client._subscriptions == []
 
 
+def test_a_closed_subscription_reads_and_takes_nothing_without_raising(
+    listen_net: NetworkConfig, connect_net: NetworkConfig
+) -> None:
+    # Its inbox (a Zenoh ring) raises once undeclared; a taker blocked in it is released.
+    with _pair(listen_net, connect_net, 4) as (images, sub, _client):
+        taken: list[object] = []
+        taker = threading.Thread(target=lambda: taken.append(sub.take(timeout_s=5)))
+        taker.start()
+        wait_until(lambda: sub._receiving, 5, "the taker to block in the inbox")
+        sub.close()
+        taker.join(timeout=2)
+        assert not taker.is_alive() and taken == [None]
+        assert (sub.pending, sub.garbage, sub.missed_total) == (0, 0, 0)
+        assert sub.take(timeout_s=0.1) is None and sub.take_many(3, timeout_s=0.1) == []
+        images.close()
+        assert images.fill() == 0.0 and images.subscriptions() == []
+
+
 def test_second_process_offering_a_live_name_is_refused(
     listen_net: NetworkConfig, connect_net: NetworkConfig
 ) -> None:
