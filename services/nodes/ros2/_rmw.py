@@ -17,7 +17,8 @@ What a ROS 2 node using ``rmw_zenoh_cpp`` puts on Zenoh, so that the bridge look
 - QoS string: ``<reliability>:<durability>:<history>,<depth>:<deadline s>,<ns>:<lifespan
   s>,<ns>:<liveliness>,<lease s>,<ns>`` with rmw's enum numbers, each field left empty when
   it equals rmw_zenoh's default (reliable, volatile, keep-last, depth 42, infinite
-  durations, automatic liveliness): a depth-10 reliable publisher is ``::,10:,:,:,,``.
+  durations, automatic liveliness): a depth-10 reliable publisher is ``::,10:,:,:,,``. A
+  depth of 0 is first replaced by 42, as rmw_zenoh does, so keep-all is ``::2,:,:,:,,``.
 - per-sample attachment, as zenoh's ``ext`` serializer writes it: int64 sequence number,
   int64 source timestamp (ns), then the 16-byte publisher gid as a sequence (one LEB128
   length byte, 16, and the bytes) — 33 bytes, little-endian.
@@ -103,10 +104,12 @@ class Qos:
         def field(value: int, default: int) -> str:
             return "" if value == default else str(int(value))
 
+        # rmw_zenoh first replaces a depth of 0 (rclcpp's keep-all) by its default depth.
+        depth = self.depth or _DEFAULT_DEPTH
         return (
             f"{field(self.reliability, Reliability.RELIABLE)}:"
             f"{field(self.durability, Durability.VOLATILE)}:"
-            f"{field(self.history, History.KEEP_LAST)},{field(self.depth, _DEFAULT_DEPTH)}:"
+            f"{field(self.history, History.KEEP_LAST)},{field(depth, _DEFAULT_DEPTH)}:"
             ",:,:,,"
         )
 

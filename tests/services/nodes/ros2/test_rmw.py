@@ -13,6 +13,7 @@ from services.nodes.ros2._rmw import (
     HUMBLE_TYPE_HASH,
     Attachment,
     EntityKind,
+    History,
     NodeIdentity,
     Qos,
     Reliability,
@@ -77,6 +78,13 @@ def test_qos_strings_match_the_design_document() -> None:
     assert Qos(Reliability.RELIABLE, 7).keyexpr() == "::,7:,:,:,,"  # talker
     assert Qos.sensor_data().keyexpr() == "2::,5:,:,:,,"
     assert Qos(Reliability.RELIABLE, 42).keyexpr() == "::,:,:,:,,"  # all rmw_zenoh defaults
+
+
+def test_depth_zero_is_written_as_rmw_zenohs_default_depth() -> None:
+    # rmw_zenoh replaces a depth of 0 (what rclcpp's KeepAll() sets) by its default, 42,
+    # before it writes the token, so the depth field is empty like any default.
+    assert Qos(Reliability.RELIABLE, 0, History.KEEP_ALL).keyexpr() == "::2,:,:,:,,"
+    assert Qos(Reliability.BEST_EFFORT, 0).keyexpr() == "2::,:,:,:,,"
 
 
 def test_liveliness_tokens_match_the_design_document() -> None:
