@@ -244,6 +244,7 @@ class Mediator:
             # registered again): its frames are judged afresh, not against the old ones.
             self.log.info("camera stream started over (seq %d): time order restarts", note.seq)
             self.decider.restart_order(self._newest_put_ns)
+            self._offsets.forget()  # maybe another process, another clock
             self._record_missed(note.timestamp_ns)
         self._camera_seq = note.seq
         if note.timestamp_ns > now_ns() + self._horizon_ns:
@@ -408,10 +409,11 @@ class Mediator:
         agree = measured is None or abs(measured[0]) - measured[1] <= limit_ns
         if agree != self._offset_ok:
             self._offset_ok = agree
-            assert measured is not None
-            if agree:
+            if agree and measured is None:  # a source restarted: its clock not measured yet
+                self.log.warning("camera or gyro started over: paired again until measured")
+            elif agree and measured is not None:
                 self.log.warning("camera and gyro clocks agree again (%+.1f ms)", measured[0] / 1e6)
-            else:
+            elif measured is not None:
                 self.log.warning(
                     "camera clock is %+.3f s (+-%.3f) off the gyro's, more than %g of the "
                     "%.0f ms exposure: frames are not paired with gyro samples (clock-offset) "

@@ -141,6 +141,39 @@ def test_a_future_stamped_rogue_frame_is_skipped_and_decisions_resume(
         recorded.close()
 
 
+def test_a_camera_after_a_rogue_an_hour_ahead_is_paired_with_gyro_at_once(
+    tmp_path: Path, shim: Path
+) -> None:
+    """The rogue's clock (+1 h off the gyro's) is measured; the real camera that follows is
+    another process with another clock: its frames are not judged by the rogue's offset."""
+    port = free_port()
+    offset = tmp_path / "offset"
+    step_clock(offset, 3600 * S)
+    recorded = Recorded(port, MediatorConfig())
+    gyro = _start(GYRO, port)
+    rogue = _start(["-c", ROGUE, str(port)], port, shifted_clock_env(child_env(), shim, offset))
+    camera = None
+    try:
+        assert rogue.stdout is not None
+        assert rogue.stdout.readline().strip() == "put"
+
+        def rogue_measured() -> bool:
+            measured = recorded.mediator._offsets.current()
+            return measured is not None and measured[0] > 3000 * S
+
+        recorded.step_until(rogue_measured, 30, "the rogue's clock offset measured")
+        assert recorded.reasons() == ["future-stamp"]
+        _stop(rogue)
+        camera = _start(CAMERA, port)
+        recorded.step_until(lambda: len(recorded.records) >= 6, 90, "the camera's frames")
+        later = recorded.reasons(1)
+        assert "clock-offset" not in later and "out-of-order" not in later, later
+        assert any(r.quality is not None for r in recorded.records[1:]), later  # paired
+    finally:
+        _stop(rogue, gyro, *([camera] if camera else []))
+        recorded.close()
+
+
 def test_camera_and_gyro_clocks_5_s_apart_are_not_paired(tmp_path: Path, shim: Path) -> None:
     port = free_port()
     offset = tmp_path / "offset"
