@@ -73,3 +73,19 @@ def test_a_ros_config_file_keeps_its_own_endpoints() -> None:
     assert _config("--ros-config", "r.json5", "--ros-connect", "tcp/h:7447").ros_connect == (
         "tcp/h:7447",
     )
+
+
+def test_run_help_describes_the_bridge_in_one_whole_line() -> None:
+    from services.nodes import describe
+
+    # ``framegate run ros2 --help`` shows the first line of the package docstring.
+    line = describe("ros2")
+    assert line.endswith(".") and "rmw_zenoh" in line, line
+
+
+def test_run_help_shows_every_default_a_flag_has() -> None:
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    text = parser.format_help()
+    for default in ("default jazzy", "default framegate_bridge", "default 10.0", "default 5"):
+        assert default in " ".join(text.split()), default
