@@ -88,9 +88,7 @@ class _Skips:
             self.counts[reason] += 1
             first = self.counts[reason] == 1
         if producer is not None:
-            count_skip: Callable[[str], None] | None = getattr(producer, "count_skip", None)
-            if count_skip is not None:
-                count_skip(reason)
+            producer.count_skip(reason)
         if first:
             self._log.warning("skipping (%s; counted, warned once): %s", reason, detail)
 

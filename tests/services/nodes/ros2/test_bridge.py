@@ -46,7 +46,7 @@ def _image(codec: Codec, stamp_ns: int, encoding: str = "mono8") -> bytes:
 
 
 def _skipped(producer: Producer) -> dict[str, int]:
-    return dict(getattr(producer.info(), "skipped", {}))
+    return dict(producer.info().skipped)
 
 
 def test_a_refused_image_is_dropped_at_the_bridge_and_counted(
@@ -223,11 +223,6 @@ def test_sigterm_stops_the_bridge_within_two_seconds_with_exit_0(endpoint: str) 
             proc.wait()
 
 
-@pytest.mark.xfail(
-    not hasattr(Producer, "count_skip"),
-    reason="Producer.count_skip is not in middleware yet: skips are counted by the bridge only",
-    strict=True,
-)
 def test_skips_show_in_the_buffers_skipped_counter(node: Node, codec: Codec) -> None:
     images = ImagesIn(node, codec, Ros2Config(image_in="/cam"), _Skips(logging.getLogger()))
     images.handle(b"garbage", 1)
