@@ -139,6 +139,14 @@ def test_attachment_is_what_zenohs_serializer_writes() -> None:
     assert Attachment.decode(expected) == attachment
 
 
+def test_attachment_layout_is_the_design_documents() -> None:
+    # 8 bytes sequence number and 8 bytes source timestamp (int64, little-endian), 1 byte
+    # for the gid's length (16), then the 16 gid bytes.
+    source_gid = bytes(range(0xA0, 0xB0))
+    encoded = Attachment(1, 0x0102030405060708, source_gid).encode()
+    assert encoded == (bytes.fromhex("0100000000000000080706050403020110") + source_gid)
+
+
 @pytest.mark.parametrize("bad", [b"", bytes(32), bytes(34), bytes(16) + b"\x0f" + bytes(16)])
 def test_malformed_attachments_are_refused(bad: bytes) -> None:
     with pytest.raises(ValueError, match="attachment"):
