@@ -106,3 +106,35 @@ def test_a_damaged_prerendered_cache_is_one_clear_error(tmp_path: Path) -> None:
     (tmp_path / scenario_hash(spec.scenario())).mkdir()  # an empty, damaged entry
     with pytest.raises(ConfigError, match=r"unreadable .*delete it"):
         open_frame_source(spec)
+
+
+@pytest.mark.parametrize(
+    ("source", "frames", "late", "expected"),
+    [
+        ("sim", 124, 129, "it kept 49 % of its frames (below 90 %): rendering live is too slow"),
+        ("prerendered", 500, 100, "it kept 83 % of its frames (below 90 %): the machine is busy"),
+        ("prerendered", 593, 28, None),
+    ],
+)
+def test_summary_says_why_when_the_camera_did_not_keep_its_rate(
+    capsys: pytest.CaptureFixture[str], source: str, frames: int, late: int, expected: str | None
+) -> None:
+    counts = Status().counts()
+    counts.update(frames=frames, late=late)
+    print_summary(
+        {
+            **counts,
+            "duration_s": 20.3,
+            "source": source,
+            "floor": "rough",
+            "policy": "paper",
+            "markers": {},
+            "recognitions_filtered": 0,
+            "recognitions_uncontrolled": 0,
+        }
+    )
+    out = capsys.readouterr().out
+    if expected is None:
+        assert "it kept" not in out, out
+    else:
+        assert expected in out, out
