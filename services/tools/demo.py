@@ -318,13 +318,13 @@ def _late_note(summary: dict[str, Any]) -> str:
     if frames + late == 0 or frames >= KEPT_RATE_SHARE * (frames + late):
         return ""
     why = (
-        "rendering live is too slow here; the default --source prerendered keeps the rate"
+        "rendering live is too slow here; --source prerendered keeps the rate"
         if summary["source"] == "sim"
         else "the machine is busy; --logs shows the camera's own warning"
     )
+    kept_pct = 100 * frames / (frames + late)
     return (
-        f"              it kept {100 * frames / (frames + late):.0f} % of its frames "
-        f"(below 90 %): {why}\n"
+        f"              it kept {kept_pct:.0f} % of its frames (below 90 %):\n              {why}\n"
     )
 
 

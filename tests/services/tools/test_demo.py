@@ -111,8 +111,13 @@ def test_a_damaged_prerendered_cache_is_one_clear_error(tmp_path: Path) -> None:
 @pytest.mark.parametrize(
     ("source", "frames", "late", "expected"),
     [
-        ("sim", 124, 129, "it kept 49 % of its frames (below 90 %): rendering live is too slow"),
-        ("prerendered", 500, 100, "it kept 83 % of its frames (below 90 %): the machine is busy"),
+        ("sim", 124, 129, "it kept 49 % of its frames (below 90 %):\n              rendering live"),
+        (
+            "prerendered",
+            500,
+            100,
+            "it kept 83 % of its frames (below 90 %):\n              the machine",
+        ),
         ("prerendered", 593, 28, None),
     ],
 )
