@@ -28,8 +28,9 @@ and anything unforeseen with one message is logged with its traceback (``interna
 while the bridge goes on.
 
 Threads: Zenoh's callback thread only appends to the in-queues (see ``_link``); one thread
-per input decodes and puts; one thread per output takes, encodes and publishes; the caller's
-thread waits for ``stop``. Each in-queue is guarded by its condition; ``_Skips`` by its lock.
+per input decodes and puts; one thread per output takes, encodes and publishes; one watches
+for the ROS 2 router (``_link.watch_router``); the caller's thread waits for ``stop``. Each
+in-queue is guarded by its condition; ``_Skips`` by its lock.
 """
 
 from __future__ import annotations
@@ -65,7 +66,7 @@ from services.nodes.gyro import sample_elements
 
 from ._cdr import CHANNELS, DETECTIONS, IMAGE, IMU, STRING, CdrError, Codec
 from ._config import Mapping, Ros2Config
-from ._link import RosLink, RosPublisher
+from ._link import RosLink, RosPublisher, watch_router
 from ._rmw import Attachment, type_hash
 
 _NS = "{urn:framegate:1}"
@@ -483,6 +484,8 @@ def run(config: Ros2Config, network: NetworkConfig, stop: threading.Event | None
             or "-",
             ", ".join(f"{o.mapping.buffer} -> {o.mapping.topic}" for o in outputs) or "-",
         )
+        where = ", ".join(config.ros_connect) or "the --ros-config endpoints"
+        start("ros2-router", lambda: watch_router(link.routers, where, stop, log))
         try:
             while not stop.wait(0.5):
                 pass

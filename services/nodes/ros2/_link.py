@@ -8,12 +8,14 @@ subscriber with its own token. Publishers attach rmw_zenoh's per-sample attachme
 
 Threads: Zenoh's callback thread only hands each received sample's payload and attachment
 bytes to the subscription's ``on_sample`` (which must only enqueue); everything else runs
-on the caller's threads. A publisher's sequence counter is guarded by its own lock.
+on the caller's threads (``watch_router`` on one of its own, asking the session only how many
+routers it has). A publisher's sequence counter is guarded by its own lock.
 """
 
 from __future__ import annotations
 
 import contextlib
+import logging
 import threading
 import time
 from collections.abc import Callable
@@ -27,6 +29,8 @@ from middleware import ConfigError, NetworkConfig, TransportError
 from ._rmw import Attachment, EntityKind, NodeIdentity, Qos, Reliability, data_key, gid
 
 OnSample = Callable[[bytes, bytes | None], None]
+# How long the bridge waits for the ROS 2 router before it says none answers.
+ROUTER_WAIT_S = 3.0
 
 
 class RosPublisher:
@@ -84,6 +88,13 @@ class RosLink:
         self._entities = []
         self._next_id = self.identity.node_id + 1
         self._node_token = self._session.liveliness().declare_token(self.identity.node_token())
+
+    def routers(self) -> int:
+        """How many Zenoh routers (``rmw_zenohd``) the session is connected to now."""
+        try:
+            return len(list(self._session.info.routers_zid()))
+        except zenoh.ZError:
+            return 0
 
     def _entity_id(self) -> int:
         entity_id, self._next_id = self._next_id, self._next_id + 1
@@ -170,3 +181,32 @@ class RosLink:
         _tb: TracebackType | None,
     ) -> None:
         self.close()
+
+
+def watch_router(
+    routers: Callable[[], int], where: str, stop: threading.Event, log: logging.Logger
+) -> None:
+    """Warn once when no ROS 2 router answers within ROUTER_WAIT_S (as rmw_zenoh does: its
+    nodes see no other node without one), then say when one does; Zenoh keeps retrying."""
+    if stop.wait(0) or _wait_for_router(routers, stop, ROUTER_WAIT_S):
+        return
+    log.warning(
+        "ros2: no ROS 2 router at %s yet (is rmw_zenohd running? 'ros2 run rmw_zenoh_cpp "
+        "rmw_zenohd'); nothing reaches ROS 2 until one answers, still trying",
+        where,
+    )
+    if _wait_for_router(routers, stop, None):
+        log.info("ros2: connected to the ROS 2 router at %s", where)
+
+
+def _wait_for_router(
+    routers: Callable[[], int], stop: threading.Event, limit_s: float | None
+) -> bool:
+    deadline = None if limit_s is None else time.monotonic() + limit_s
+    while not stop.is_set():
+        if routers() > 0:
+            return True
+        if deadline is not None and time.monotonic() >= deadline:
+            return False
+        stop.wait(0.1)
+    return False

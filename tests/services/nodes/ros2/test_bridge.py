@@ -7,6 +7,7 @@ import logging
 import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 
@@ -14,6 +15,7 @@ import numpy as np
 import pytest
 
 from middleware import NetworkConfig, Node, Producer
+from services.nodes.ros2 import _link as link_module
 from services.nodes.ros2._bridge import ImagesIn, ImuIn, _Skips
 from services.nodes.ros2._cdr import IMU, Codec
 from services.nodes.ros2._config import Ros2Config
@@ -208,11 +210,15 @@ def test_sigterm_stops_the_bridge_within_two_seconds_with_exit_0(endpoint: str) 
     )
     try:
         assert proc.stdout is not None
+        seen = []
         for line in proc.stdout:
-            if "ros2: node framegate_bridge" in line:
+            seen.append(line)
+            # Nothing listens on port 1: the bridge starts, then says no router answers.
+            if "no ROS 2 router at tcp/127.0.0.1:1" in line:
                 break
         else:
-            raise AssertionError(f"bridge exited with {proc.wait()}")
+            raise AssertionError(f"bridge exited with {proc.wait()}: {''.join(seen)}")
+        assert any("ros2: node framegate_bridge" in line for line in seen), seen
         proc.send_signal(signal.SIGTERM)
         started = time.monotonic()
         assert proc.wait(timeout=10) == 0
@@ -248,3 +254,32 @@ def test_out_images_keep_pixels_and_refuse_inconsistent_elements(codec: Codec) -
     ):
         with pytest.raises(ValueError, match=match):
             encoders.image(bad)
+
+
+def test_a_missing_ros2_router_is_said_once_and_its_arrival_too(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    monkeypatch.setattr(link_module, "ROUTER_WAIT_S", 0.2)
+    routers = [0]
+    stop = threading.Event()
+    log = logging.getLogger("test.router")
+    with caplog.at_level(logging.INFO, logger="test.router"):
+        watcher = threading.Thread(
+            target=link_module.watch_router,
+            args=(lambda: routers[0], "tcp/localhost:7447", stop, log),
+        )
+        watcher.start()
+        wait_until(lambda: "no ROS 2 router at tcp/localhost:7447" in caplog.text, 5, "warning")
+        routers[0] = 1
+        watcher.join(5)
+    assert not watcher.is_alive()
+    assert caplog.text.count("no ROS 2 router") == 1
+    assert "connected to the ROS 2 router at tcp/localhost:7447" in caplog.text
+
+
+def test_a_present_ros2_router_is_not_warned_about(caplog: pytest.LogCaptureFixture) -> None:
+    with caplog.at_level(logging.INFO, logger="test.router"):
+        link_module.watch_router(
+            lambda: 1, "tcp/localhost:7447", threading.Event(), logging.getLogger("test.router")
+        )
+    assert caplog.text == ""
