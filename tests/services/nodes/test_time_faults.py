@@ -79,7 +79,9 @@ class Recorded:
         self.node.close()
 
 
-def _start(argv: list[str], port: int, env: dict[str, str] | None = None) -> subprocess.Popen[str]:
+def _start(
+    argv: list[str], port: int, env: dict[str, str] | None = None, log: Path | None = None
+) -> subprocess.Popen[str]:
     env = dict(env or child_env())
     env["FRAMEGATE_LOCAL_PORT"] = str(port)
     return subprocess.Popen(
@@ -88,7 +90,7 @@ def _start(argv: list[str], port: int, env: dict[str, str] | None = None) -> sub
         env=env,
         stdin=subprocess.PIPE,
         stdout=subprocess.PIPE,
-        stderr=subprocess.DEVNULL,
+        stderr=log.open("w") if log is not None else subprocess.DEVNULL,
         text=True,
     )
 
@@ -259,7 +261,8 @@ def test_camera_and_gyro_keep_producing_across_wall_clock_steps(tmp_path: Path, 
     offset = tmp_path / "offset"
     step_clock(offset, 0)
     env = shifted_clock_env(child_env(), shim, offset)
-    camera, gyro = _start(CAMERA, port, env), _start(GYRO, port, env)
+    logs = {name: tmp_path / f"{name}.log" for name in ("camera", "gyro")}
+    camera, gyro = _start(CAMERA, port, env, logs["camera"]), _start(GYRO, port, env, logs["gyro"])
     try:
         with Node(network=NetworkConfig(local_port=port)) as node:
             wait_until(lambda: _puts(node, "camera/images") >= 2, 90, "camera frames")
@@ -279,8 +282,17 @@ def test_camera_and_gyro_keep_producing_across_wall_clock_steps(tmp_path: Path, 
                     10,
                     f"gyro samples after a step to {step_s} s",
                 )
+            # Each step is seen once, with its size: in the log and in the service's info.
+            for name in ("camera", "gyro"):
+                info = node.service_info(name)
+                assert info.clock_steps == 2, info
+                assert info.clock_lead_ns is not None and 0 <= info.clock_lead_ns < S // 10, info
     finally:
         _stop(camera, gyro)
+    for name, log in logs.items():
+        text = log.read_text()
+        assert text.count("stepped backward by 20.000 s") == 1, (name, text)
+        assert text.count("stepped forward by 20.000 s") == 1, (name, text)
 
 
 def test_a_stopped_mediator_records_every_frame_stored_meanwhile(pipe: Pipeline) -> None:
