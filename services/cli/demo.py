@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from services.lib.argtypes import non_negative_float, positive_float, positive_int
+from services.lib.argtypes import non_negative_float, non_negative_int, positive_float, positive_int
 from services.lib.decisions import POLICIES
 from services.lib.sim import ScenarioConfig
 from services.tools.demo import SOURCES, DemoConfig, print_summary, run_demo
@@ -26,7 +26,7 @@ def register(subparsers: Any) -> None:
     parser.add_argument(
         "--duration", type=positive_float, default=d.duration_s, help="seconds to run"
     )
-    parser.add_argument("--seed", type=int, default=d.seed, help="simulator seed")
+    parser.add_argument("--seed", type=non_negative_int, default=d.seed, help="simulator seed")
     parser.add_argument(
         "--policy", choices=sorted(POLICIES), default=d.policy, help="the mediator's policy"
     )

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import subprocess
 import sys
@@ -61,6 +62,16 @@ def _framegate(*args: str) -> subprocess.CompletedProcess[str]:
         (("echo", "camera/images", "--count", "-1"), "argument --count: must be an integer > 0"),
         (("pub", "t/x", "--kind", "fram"), "(did you mean frame?)"),
         (("launch", "deploy/local.yaml", "--status", "0"), "argument --status: must be a number > 0"),  # noqa: E501
+        (("record", "camera/images", "-o", "x.mcap", "--duration", "nan"), "argument --duration: must be a number > 0"),  # noqa: E501
+        (("view", "--duration", "-1"), "argument --duration: must be a number > 0"),
+        (("view", "--backlog", "0"), "argument --backlog: must be an integer > 0"),
+        (("play", "x.mcap", "--rate", "nan"), "argument --rate: must be a number >= 0"),
+        (("play", "x.mcap", "--start-delay", "inf"), "argument --start-delay: must be a number >= 0"),  # noqa: E501
+        (("bench", "--pairs", "0"), "argument --pairs: must be an integer > 0"),
+        (("demo", "--seed", "-1"), "argument --seed: must be an integer >= 0"),
+        (("soak", "--seed", "-2"), "argument --seed: must be an integer >= 0"),
+        (("simulate", "--seed", "-1", "--out", "x"), "argument --seed: must be an integer >= 0"),
+        (("experiment", "--out", "x", "--seeds", "-1"), "argument --seeds: must be an integer >= 0"),  # noqa: E501
         ((), "name a command"),
     ],
 )  # fmt: skip
@@ -124,3 +135,28 @@ def test_help_lists_every_command_and_each_has_a_parser() -> None:
     for name in COMMANDS:  # each summary's module exists and registers that very command
         args = build_parser(name).parse_args([name, *REQUIRED.get(name, ())])
         assert args.command == name and callable(args.func), name
+
+
+# Number flags whose range a later check states in one line (a port, a JPEG quality).
+RANGE_CHECKED_LATER = {("view", "--port"), ("view", "--jpeg")}
+
+
+def _number_flags(parser: argparse.ArgumentParser) -> list[str]:
+    return [
+        action.option_strings[-1]
+        for action in parser._actions
+        if action.type in (int, float) and action.option_strings
+    ]
+
+
+@pytest.mark.parametrize("command", list(COMMANDS))
+def test_every_number_flag_is_checked_as_it_is_parsed(command: str) -> None:
+    # A plain int/float type lets nan, inf, 0 or -5 through to fail later, or to do nothing.
+    sub = next(
+        a for a in build_parser(command)._actions if isinstance(a, argparse._SubParsersAction)
+    )
+    unchecked = [
+        flag for flag in _number_flags(sub.choices[command])
+        if (command, flag) not in RANGE_CHECKED_LATER
+    ]  # fmt: skip
+    assert not unchecked, f"framegate {command}: {unchecked} take plain int/float"
