@@ -168,3 +168,23 @@ def test_ls_ends_promptly_while_the_port_holder_is_frozen(frozen_holder: tuple[i
     code, out, took = _run(["ls"], *frozen_holder)
     assert code == 0 and "gyro2" in out, out
     assert took < 4.0, f"ls took {took:.1f} s"
+
+
+@pytest.mark.integration
+@pytest.mark.xfail(
+    strict=True,
+    reason="Node announces every listening socket of its process (listening_endpoints reads "
+    "the OS), not its own session's: a process with Nodes on two rendezvous ports (a test, "
+    "a tool) lists each port's endpoints under the other, and newcomers join both together",
+)
+def test_a_process_on_two_rendezvous_ports_keeps_them_apart(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))
+    first, second = free_port(), free_port()
+    with (
+        Node(network=NetworkConfig(local_port=first)),
+        Node(network=NetworkConfig(local_port=second)),
+    ):
+        mine = (directory(second) / str(os.getpid())).read_text().split()
+        assert f"tcp/127.0.0.1:{first}" not in mine, mine
