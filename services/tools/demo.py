@@ -201,8 +201,8 @@ def _gain_text(filtered: int, uncontrolled: int) -> str:
 
 # Printed once above the status lines: what each group means.
 STATUS_LEGEND = (
-    "cam: frames, rate, late skips | med: frames the mediator forwarded (in), left out (out),\n"
-    "load | markers: recognitions behind the mediator vs by the uncontrolled detector, gain"
+    "cam: frames, rate, late skips | med: frames the mediator forwarded (fwd) and left out\n"
+    "(left), load | found: markers recognized behind the mediator vs uncontrolled, gain"
 )
 
 
@@ -213,8 +213,8 @@ def status_line(counts: dict[str, Any], seen: dict[str, int], elapsed_s: float) 
     filtered, raw = seen.get(FILTERED, 0), seen.get(UNCONTROLLED, 0)
     line = (
         f"{elapsed_s:5.1f}s cam {counts['frames']:5d} {counts['camera_hz']:4.1f}/s "
-        f"{counts['late']:4d} late | med {counts['accepted']:5d} in {counts['rejected']:5d} "
-        f"out load {counts['load']:.2f} | markers {filtered:5d} vs {raw:5d} "
+        f"{counts['late']:4d} late | med {counts['accepted']:5d} fwd {counts['rejected']:5d} "
+        f"left load {counts['load']:.2f} | found {filtered:5d} vs {raw:5d} "
         f"{_gain_text(filtered, raw)}"
     )
     return line[:STATUS_COLUMNS]

@@ -29,7 +29,7 @@ def test_status_line_fits_100_columns_even_with_large_counts() -> None:
     counts.update(frames=99_999, camera_hz=15.0, late=9_999, accepted=99_999, rejected=99_999)
     line = status_line(counts, {"detector": 99_999, UNCONTROLLED: 9_999}, 999.9)
     assert len(line) <= STATUS_COLUMNS == 100
-    assert line.endswith("| markers 99999 vs  9999 +900%")
+    assert line.endswith("| found 99999 vs  9999 +900%")
     assert all(len(legend) <= 100 for legend in STATUS_LEGEND.splitlines())
 
 
@@ -37,8 +37,8 @@ def test_status_line_shows_late_skips_load_and_the_gain() -> None:
     counts = Status().counts()
     counts.update(frames=300, camera_hz=14.9, late=7, accepted=120, rejected=180, load=0.5)
     line = status_line(counts, {"detector": 33, UNCONTROLLED: 30}, 20.0)
-    assert "   7 late" in line and "120 in   180 out load 0.50" in line
-    assert line.endswith("markers    33 vs    30  +10%")
+    assert "   7 late" in line and "120 fwd   180 left load 0.50" in line
+    assert line.endswith("found    33 vs    30  +10%")
     assert status_line(counts, {}, 1.0).endswith("  n/a")
 
 
