@@ -1,7 +1,9 @@
-"""The demo's status line, summary, policies, pipeline and approach cache (no processes)."""
+"""The demo's status line, summary, policies, pipeline and approach cache; one short live run."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -22,6 +24,7 @@ from services.tools.demo import (
     print_summary,
     status_line,
 )
+from tests.conftest import REPO, child_env, free_port
 
 
 def test_status_line_fits_100_columns_even_with_large_counts() -> None:
@@ -143,3 +146,26 @@ def test_summary_says_why_when_the_camera_did_not_keep_its_rate(
         assert "it kept" not in out, out
     else:
         assert expected in out, out
+
+
+@pytest.mark.integration
+def test_a_short_live_demo_prints_status_lines_and_the_side_by_side_summary() -> None:
+    env = child_env()
+    env["FRAMEGATE_LOCAL_PORT"] = str(free_port())
+    result = subprocess.run(
+        [sys.executable, "-m", "services.cli", "demo", "--source", "sim", "--duration", "8"],
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert result.returncode == 0 and "Traceback" not in result.stderr, result
+    lines = result.stdout.splitlines()
+    status = [line for line in lines if " late | med " in line]
+    assert status and all(len(line) <= STATUS_COLUMNS for line in status), result.stdout
+    assert "(sim camera, rough floor, policy paper)" in result.stdout
+    table = lines[next(i for i, line in enumerate(lines) if line.split()[:1] == ["recognitions"]) :]
+    assert table[0].split() == ["recognitions", "filtered", "uncontrolled", "gain"], table
+    assert table[-1].split()[0] == "total", table
