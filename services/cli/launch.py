@@ -1,6 +1,7 @@
 """``framegate launch FILE [--host NAME]``: start this host's services from a deploy file.
 
-``--check`` validates the file and prints the plan without starting anything. While it
+``--check`` validates the file and prints the plan without starting anything (``--json``:
+as JSON). While it
 runs, ``--status`` prints one line per service every few seconds (pid, uptime, restarts,
 each buffer's rate). One launcher per deploy file and host: a second one refuses at once,
 naming the first one's pid. A service that died by a signal is reported, and the launcher
@@ -16,7 +17,7 @@ import threading
 from pathlib import Path
 from typing import Any
 
-from middleware import NetworkConfig
+from middleware import ConfigError, NetworkConfig
 from services.launch import (
     Deployment,
     LaunchLock,
@@ -27,7 +28,7 @@ from services.launch import (
 )
 from services.lib.argtypes import positive_float
 
-from ._common import command_parser, network, stop_on_signals
+from ._common import command_parser, network, print_json, stop_on_signals
 
 DEFAULT_STATUS_S = 5.0
 STATUS_COLUMNS = 100
@@ -35,7 +36,10 @@ STATUS_COLUMNS = 100
 
 def register(subparsers: Any) -> None:
     parser = command_parser(
-        subparsers, "launch", "start the services a deploy file assigns to this host"
+        subparsers,
+        "launch",
+        "start the services a deploy file assigns to this host",
+        json_flag=True,
     )
     parser.add_argument("file", help="deploy file (YAML), e.g. deploy/local.yaml")
     parser.add_argument("--host", help="which host of the file this machine is")
@@ -72,7 +76,7 @@ def _plan(args: argparse.Namespace) -> tuple[Deployment, list[ProcessSpec]]:
 def print_plan(deployment: Deployment, host: str | None, specs: list[ProcessSpec]) -> None:
     """What ``launch`` would start, one block per process."""
     where = f" on host {host}" if host else ""
-    print(f"{deployment.path}: {len(specs)} processes{where}")
+    print(f"{deployment.path}: {len(specs)} process{'' if len(specs) == 1 else 'es'}{where}")
     by_name = {s.name: s for s in deployment.services}
     for spec in specs:
         svc = by_name[spec.name]
@@ -82,6 +86,26 @@ def print_plan(deployment: Deployment, host: str | None, specs: list[ProcessSpec
         command = " ".join(shlex.quote(a) for a in spec.argv[3:])
         print(f"    framegate {command}")
     print("ok: nothing started (--check)")
+
+
+def plan_json(deployment: Deployment, host: str | None, specs: list[ProcessSpec]) -> Any:
+    """The plan of ``--check --json``: each process with its type, host and command line."""
+    by_name = {s.name: s for s in deployment.services}
+    return {
+        "file": str(deployment.path),
+        "host": host,
+        "processes": [
+            {
+                "name": spec.name,
+                "type": by_name[spec.name].type,
+                "host": by_name[spec.name].host,
+                "restart": spec.restart,
+                "command": ["framegate", *spec.argv[3:]],
+            }
+            for spec in specs
+        ],
+        "started": False,
+    }
 
 
 def _duration(seconds: float | None) -> str:
@@ -152,9 +176,14 @@ def _status_loop(
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.json and not args.check:
+        raise ConfigError("--json prints the plan of --check; a running launch prints its logs")
     deployment, specs = _plan(args)
     if args.check:
-        print_plan(deployment, args.host, specs)
+        if args.json:
+            print_json(plan_json(deployment, args.host, specs))
+        else:
+            print_plan(deployment, args.host, specs)
         return 0
     with LaunchLock(args.file, args.host):
         return _launch(args, deployment, specs)
