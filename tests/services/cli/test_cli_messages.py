@@ -98,6 +98,7 @@ def test_an_unreachable_connect_endpoint_is_named_with_exit_1() -> None:
     [
         "main(['--help'])",
         "main(['ls', '--help'])",
+        "main(['--version'])",
         "main(['info', '--help'])",
         "build_parser('ls').parse_args(['ls'])",
         # ls run to its end (nobody answers there): what it imports to look counts too.
@@ -160,3 +161,10 @@ def test_every_number_flag_is_checked_as_it_is_parsed(command: str) -> None:
         if (command, flag) not in RANGE_CHECKED_LATER
     ]  # fmt: skip
     assert not unchecked, f"framegate {command}: {unchecked} take plain int/float"
+
+
+@pytest.mark.parametrize("args", [("--version",), ("ls", "--version")])
+def test_version_prints_the_installed_version_and_exits_0(args: tuple[str, ...]) -> None:
+    result = _framegate(*args)
+    assert result.returncode == 0 and result.stderr == "", result
+    assert result.stdout.startswith("framegate ") and len(result.stdout.splitlines()) == 1
