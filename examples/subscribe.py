@@ -33,7 +33,7 @@ def main(network: NetworkConfig, target: str, *, count: int, queue: int, delay_s
                 )
                 return 1
             element = sub.fetch(note)
-            print(f"took {note.timestamp_ns}: {element.payload.decode()!r}", flush=True)
+            print(f"took {note.timestamp_ns}: {shown(element.payload)}", flush=True)
             taken += 1
             time.sleep(delay_s)  # stands in for the work done on each element
     return 0
@@ -63,6 +63,12 @@ def seconds(text: str) -> float:
     if not math.isfinite(value) or value < 0:
         raise argparse.ArgumentTypeError(f"must be a number of seconds >= 0, got {text!r}")
     return value
+
+
+def shown(payload: bytes) -> str:
+    """A short text payload as text; anything else (an image) by its size."""
+    text = payload.decode(errors="replace")
+    return repr(text) if len(payload) <= 64 and text.isprintable() else f"{len(payload)} bytes"
 
 
 if __name__ == "__main__":

@@ -128,3 +128,25 @@ def test_subscribe_to_an_example_that_is_not_running_says_so() -> None:
             router.send_signal(signal.SIGINT)
             router.wait(timeout=30)
     assert "service 'example' is not live" in err and "offer.py" in err, err
+
+
+def test_subscribe_and_query_show_a_binary_payload_by_its_size() -> None:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    sub = _start("subscribe.py", "t/img", "--connect", endpoint, "--count", "2")
+    pub = subprocess.Popen(  # 64x48 mono8 test frames: no text to print
+        [sys.executable, "-m", "services.cli", "pub", "t/img", "--kind", "frame", "--count", "3",
+         "--rate", "5", "--wait-subscribers", "1", "--timeout", "60", "--linger", "30",
+         "--listen", endpoint],
+        env=child_env(), cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        out, err = sub.communicate(timeout=90)
+        assert sub.returncode == 0 and "Traceback" not in err, err
+        assert out.count(": 3072 bytes") == 2, out
+        query = _start("query.py", "t/img", "--connect", endpoint, "--range", "[now(-60s)..]")
+        out, err = query.communicate(timeout=60)
+        assert query.returncode == 0 and "Traceback" not in err, err
+        assert out.count(": 3072 bytes") >= 2 and "\\x" not in out, out
+    finally:
+        pub.kill()
+        pub.wait()
