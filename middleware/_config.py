@@ -42,6 +42,10 @@ RENDEZVOUS_DELAY_MS = 50
 # ... and how long a Node then waits, at most, until every live process of the rendezvous is
 # connected (a frozen one never is).
 RENDEZVOUS_WAIT_S = 0.5
+# ... and how long a handshake with one of them may take. On loopback a live peer answers in
+# milliseconds; a frozen one (SIGSTOP) never does, and closing a session waits for every
+# handshake it started (Zenoh's default of 10 s made `framegate ls` exit 10 s late).
+RENDEZVOUS_OPEN_TIMEOUT_MS = 1000
 LOOPBACK_ROUTER_LISTEN = f"tcp/127.0.0.1:{DEFAULT_LOCAL_PORT}"
 
 
@@ -147,6 +151,7 @@ class NetworkConfig:
                 # Zenoh's open waits this long for peers to connect (500 ms by default);
                 # here every peer is named, and Node waits for them itself (RENDEZVOUS_WAIT_S).
                 _insert(conf, "scouting/delay", RENDEZVOUS_DELAY_MS)
+                _insert(conf, "transport/unicast/open_timeout", RENDEZVOUS_OPEN_TIMEOUT_MS)
             return configs
         return [self._build(listen=list(self.listen), connect=list(self.connect))]
 

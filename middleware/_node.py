@@ -48,7 +48,7 @@ from ._records import (
     SubscriptionInfo,
     SubscriptionMode,
 )
-from ._rendezvous import announce, live_processes, withdraw
+from ._rendezvous import announce, live_nodes, withdraw
 from ._service import ServiceEndpoint
 from ._subscription import Subscription
 from ._timerange import TimeRange
@@ -92,13 +92,20 @@ class Node:
         self.name = check_name(name, "service") if name else None
         self.keys = Keys(self.network.namespace)
         opening = time.monotonic()
-        expected = live_processes(self.network.local_port) if self.network.uses_local_default else 0
+        local = self.network.uses_local_default
+        expected = live_nodes(self.network.local_port) if local else 0
+        # This session's own listeners are the ones that appear while it opens: the process
+        # may listen for other nodes of other rendezvous too, which must not be announced.
+        before = set(listening_endpoints()) if local else set()
         self._session = _open(self.network)
-        if self.network.uses_local_default:
+        if local:
             self._await_peers(expected, opening + RENDEZVOUS_WAIT_S)
         self._announced = (
-            announce(self.network.local_port, listening_endpoints())
-            if self.network.uses_local_default
+            announce(
+                self.network.local_port,
+                [e for e in listening_endpoints() if e not in before],
+            )
+            if local
             else None
         )
         self._loop = NodeLoop(self.name or "client", on_stall=self._stalled)

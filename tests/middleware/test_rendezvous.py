@@ -47,10 +47,10 @@ def test_dead_processes_leave_no_trace_in_the_directory(
     monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))
     folder = directory(4242)
     folder.mkdir(parents=True)
-    (folder / "999999999").write_text("tcp/127.0.0.1:5555\n")  # no such pid
-    (folder / str(os.getppid())).write_text("tcp/127.0.0.1:6666\ntcp/0.0.0.0:7777\n")
+    (folder / "999999999-1").write_text("tcp/127.0.0.1:5555\n")  # no such pid
+    (folder / f"{os.getppid()}-1").write_text("tcp/127.0.0.1:6666\ntcp/0.0.0.0:7777\n")
     assert known_peers(4242) == ["tcp/127.0.0.1:6666"]  # loopback only, the live one
-    assert not (folder / "999999999").exists()
+    assert not (folder / "999999999-1").exists()
 
 
 @pytest.mark.integration
@@ -144,7 +144,6 @@ def frozen_holder(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[t
 
 
 @pytest.mark.integration
-@pytest.mark.slow  # each command's exit waits ~10 s on the frozen holder (the xfail below)
 def test_ls_query_and_watch_work_while_the_port_holder_is_frozen(
     frozen_holder: tuple[int, Path],
 ) -> None:
@@ -158,12 +157,6 @@ def test_ls_query_and_watch_work_while_the_port_holder_is_frozen(
 
 
 @pytest.mark.integration
-@pytest.mark.xfail(
-    strict=True,
-    reason="a session's close waits out Zenoh's 10 s open_timeout of its handshake with the "
-    "frozen port holder; needs transport/unicast/open_timeout ~1000 ms on the rendezvous "
-    "configs (middleware/_config.py)",
-)
 def test_ls_ends_promptly_while_the_port_holder_is_frozen(frozen_holder: tuple[int, Path]) -> None:
     code, out, took = _run(["ls"], *frozen_holder)
     assert code == 0 and "gyro2" in out, out
@@ -171,12 +164,6 @@ def test_ls_ends_promptly_while_the_port_holder_is_frozen(frozen_holder: tuple[i
 
 
 @pytest.mark.integration
-@pytest.mark.xfail(
-    strict=True,
-    reason="Node announces every listening socket of its process (listening_endpoints reads "
-    "the OS), not its own session's: a process with Nodes on two rendezvous ports (a test, "
-    "a tool) lists each port's endpoints under the other, and newcomers join both together",
-)
 def test_a_process_on_two_rendezvous_ports_keeps_them_apart(
     monkeypatch: pytest.MonkeyPatch, tmp_path: Path
 ) -> None:
@@ -186,5 +173,13 @@ def test_a_process_on_two_rendezvous_ports_keeps_them_apart(
         Node(network=NetworkConfig(local_port=first)),
         Node(network=NetworkConfig(local_port=second)),
     ):
-        mine = (directory(second) / str(os.getpid())).read_text().split()
-        assert f"tcp/127.0.0.1:{first}" not in mine, mine
+        def announced(port: int) -> set[str]:
+            return {
+                endpoint
+                for path in directory(port).glob(f"{os.getpid()}-*")
+                for endpoint in path.read_text().split()
+            }
+
+        on_first, on_second = announced(first), announced(second)
+        assert f"tcp/127.0.0.1:{first}" in on_first and on_second, (on_first, on_second)
+        assert not on_first & on_second, (on_first, on_second)
