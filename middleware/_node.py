@@ -21,6 +21,7 @@ from __future__ import annotations
 import difflib
 import json
 import logging
+import math
 import threading
 import time
 from collections.abc import Iterator
@@ -39,7 +40,7 @@ from ._errors import (
     TransportError,
 )
 from ._loop import NodeLoop
-from ._producer import Producer
+from ._producer import HORIZON_NS, Producer
 from ._records import (
     BufferInfo,
     DataObject,
@@ -124,11 +125,18 @@ class Node:
         retention: Retention | None = None,
         inline_max_bytes: int = _DEFAULT_INLINE_BYTES,
         xml_limits: XmlLimits = DEFAULT_LIMITS,
+        horizon_s: float = HORIZON_NS / 1e9,
     ) -> Producer:
-        """Offer a named buffer ``<node name>/<buffer>`` holding metadata of ``kind``."""
+        """Offer a named buffer ``<node name>/<buffer>`` holding metadata of ``kind``.
+
+        ``put`` refuses elements stamped more than ``horizon_s`` ahead of this process's
+        clock (``now_ns``), so one future stamp cannot stop its consumers' time order.
+        """
         if self.name is None:
             raise ConfigError("only a named Node can offer buffers: Node('camera', ...)")
         check_name(buffer, "buffer")
+        if not (math.isfinite(horizon_s) and horizon_s > 0):
+            raise ConfigError(f"horizon_s must be a finite number of seconds > 0, got {horizon_s}")
         from ._xml import _schema  # a missing kind should fail here, not at the first put
 
         _schema(kind)
@@ -147,6 +155,7 @@ class Node:
                 inline_max_bytes=inline_max_bytes,
                 xml_limits=xml_limits,
                 loop=self._loop,
+                horizon_ns=int(horizon_s * 1e9),
             )
             self._endpoint.add(producer)
         return producer

@@ -113,6 +113,16 @@ def test_an_element_stamped_beyond_the_horizon_is_refused(listen_net) -> None:
         assert images.info().rejected == 1 and images.info().count == 1
 
 
+def test_the_horizon_is_chosen_at_offer(listen_net) -> None:
+    with Node("cam", listen_net) as service:
+        images = service.offer("images", horizon_s=1.0)
+        ahead = now_ns() + 3 * 10**9  # inside the default 10 s, beyond this buffer's 1 s
+        with pytest.raises(SchemaError, match="1 s ahead"):
+            images.put(ahead, b"x", _meta(ahead))
+        with pytest.raises(ConfigError, match="horizon_s"):
+            service.offer("other", horizon_s=float("nan"))
+
+
 def test_one_timer_thread_per_node_however_many_buffers_and_subscriptions(
     listen_net, connect_net
 ) -> None:

@@ -173,6 +173,7 @@ def test_a_process_on_two_rendezvous_ports_keeps_them_apart(
         Node(network=NetworkConfig(local_port=first)),
         Node(network=NetworkConfig(local_port=second)),
     ):
+
         def announced(port: int) -> set[str]:
             return {
                 endpoint
