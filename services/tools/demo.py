@@ -245,15 +245,34 @@ class MarkerTally:
         return sum(self.seen.values())
 
 
+def refuse_if_running(node: Node, names: list[str]) -> None:
+    """ConfigError if a service of the demo is live already (another demo or a launch on
+    this rendezvous): ours would fail to offer their names and be restarted again and again,
+    while the status and the summary read the other pipeline's buffers."""
+    live = set(node.live_services())
+    taken = [name for name in names if name in live]
+    if not taken:
+        return
+    where = {i.service: f"pid {i.pid} on host {i.host}" for i in node.services(timeout_s=1.0)}
+    first = taken[0]
+    raise ConfigError(
+        f"service {first!r} is live already ({where.get(first, 'another process')}): another "
+        "demo or launch runs on this rendezvous; stop it, or give this demo its own "
+        "(FRAMEGATE_LOCAL_PORT=7448 framegate demo)"
+    )
+
+
 def run_demo(
     config: DemoConfig, network: NetworkConfig, stop: threading.Event | None = None
 ) -> dict[str, Any]:
     """Run the pipeline for ``duration_s`` (or until ``stop``) with a status line per second;
     return a summary read from the services' buffers."""
     stop = stop or threading.Event()
+    specs = process_specs(demo_deployment(config), None, network)
+    with Node(network=network) as node:  # before minutes of rendering, not after
+        refuse_if_running(node, [spec.name for spec in specs])
     if not prerender(config, stop):
         return {}
-    specs = process_specs(demo_deployment(config), None, network)
     supervisor = Supervisor(specs, quiet=not config.show_logs)
     started = time.monotonic()
     last_print = 0.0
@@ -280,6 +299,7 @@ def run_demo(
             if now - started >= config.duration_s - 1.0:
                 stop.set()
 
+        refuse_if_running(node, [spec.name for spec in specs])  # one started while we rendered
         print(STATUS_LEGEND, flush=True)
         supervisor.start()
         try:

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from middleware import ConfigError
+from middleware import ConfigError, NetworkConfig, Node
 from services.cli import build_parser
 from services.lib.decisions import POLICIES
 from services.lib.sim import ScenarioConfig, cached_dataset, scenario_hash
@@ -169,3 +169,25 @@ def test_a_short_live_demo_prints_status_lines_and_the_side_by_side_summary() ->
     table = lines[next(i for i, line in enumerate(lines) if line.split()[:1] == ["recognitions"]) :]
     assert table[0].split() == ["recognitions", "filtered", "uncontrolled", "gain"], table
     assert table[-1].split()[0] == "total", table
+
+
+@pytest.mark.integration
+def test_a_demo_beside_a_live_pipeline_on_its_rendezvous_refuses_in_one_line() -> None:
+    port = free_port()
+    env = child_env()
+    env["FRAMEGATE_LOCAL_PORT"] = str(port)
+    with Node("camera", NetworkConfig(local_port=port)) as other:  # another pipeline's camera
+        other.offer("images", kind="frame")
+        result = subprocess.run(
+            [sys.executable, "-m", "services.cli", "demo", "--source", "sim", "--duration", "5"],
+            cwd=REPO,
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=120,
+            check=False,
+        )
+    assert result.returncode == 1, result
+    assert result.stderr.startswith("error: service 'camera' is live already (pid "), result
+    assert len(result.stderr.splitlines()) == 1 and "FRAMEGATE_LOCAL_PORT" in result.stderr
+    assert " late | med " not in result.stdout  # it read no other pipeline's numbers
