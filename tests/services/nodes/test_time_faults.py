@@ -320,6 +320,18 @@ def test_camera_and_gyro_keep_producing_across_wall_clock_steps(tmp_path: Path, 
                 info = node.service_info(name)
                 assert info.clock_steps == 2, info
                 assert info.clock_lead_ns is not None and 0 <= info.clock_lead_ns < S // 10, info
+            # ... and in what a user reads: `framegate ls` and `framegate info`.
+            cli_env = {**child_env(), "FRAMEGATE_LOCAL_PORT": str(port)}
+            for argv in (["ls"], ["info", "camera/images"]):
+                shown = subprocess.run(
+                    [sys.executable, "-m", "services.cli", *argv],
+                    env=cli_env,
+                    capture_output=True,
+                    text=True,
+                    timeout=60,
+                )
+                assert shown.returncode == 0, shown.stderr
+                assert "clock stepped 2x" in shown.stdout, shown.stdout
     finally:
         _stop(camera, gyro)
     for name, log in logs.items():
