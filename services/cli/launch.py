@@ -175,6 +175,24 @@ def _status_loop(
             node.close()
 
 
+def _refuse_if_running(net: NetworkConfig, names: list[str]) -> None:
+    """ConfigError if a service this launch would start is live already (a demo, another
+    deploy file): each of ours would fail to offer its name and be restarted in a loop.
+    A router this launch starts is not up yet, so nothing is found then: no false alarm."""
+    from middleware import Node
+
+    with Node(network=net) as node:
+        live = set(node.live_services())
+        taken = [name for name in names if name in live]
+        if not taken:
+            return
+        where = {i.service: f"pid {i.pid} on host {i.host}" for i in node.services(timeout_s=1.0)}
+    raise ConfigError(
+        f"service {taken[0]!r} is live already ({where.get(taken[0], 'another process')}); "
+        "stop it first (a demo, or a launch of another file), or rename the service"
+    )
+
+
 def run(args: argparse.Namespace) -> int:
     if args.json and not args.check:
         raise ConfigError("--json prints the plan of --check; a running launch prints its logs")
@@ -191,14 +209,15 @@ def run(args: argparse.Namespace) -> int:
 
 def _launch(args: argparse.Namespace, deployment: Deployment, specs: list[ProcessSpec]) -> int:
     stop = stop_on_signals()
+    chosen = [s for s in deployment.for_host(args.host) if s.type != "router"]
+    net = network(args, deployment.network_for(chosen[0]) if chosen else None)
+    _refuse_if_running(net, [s.name for s in chosen])
     supervisor = Supervisor(specs, colour=False if args.no_colour else None)
     names = ", ".join(s.name for s in specs)
     print(f"launching {names} (Ctrl-C stops everything)", flush=True)
     status_stop = threading.Event()
     status: threading.Thread | None = None
     if args.status is not None:
-        chosen = [s for s in deployment.for_host(args.host) if s.type != "router"]
-        net = network(args, deployment.network_for(chosen[0]) if chosen else None)
         status = threading.Thread(
             target=_status_loop,
             args=(supervisor, net, args.status, status_stop, lambda t: print(t, flush=True)),

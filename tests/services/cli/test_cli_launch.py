@@ -1,13 +1,16 @@
-"""launch --check as data: the plan as JSON, and --json refused without --check."""
+"""launch --check as data (the plan as JSON); a launch beside live services of its names."""
 
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 
 import pytest
 
+from middleware import NetworkConfig, Node
 from services.cli import main
-from tests.conftest import REPO
+from tests.conftest import REPO, child_env, free_port
 
 
 def test_check_json_gives_each_process_with_its_command_and_starts_nothing(
@@ -26,3 +29,32 @@ def test_json_without_check_is_one_line_and_exit_1(capsys: pytest.CaptureFixture
     assert main(["launch", str(REPO / "deploy" / "local.yaml"), "--json"]) == 1
     err = capsys.readouterr().err
     assert err.startswith("error: --json prints the plan of --check") and err.count("\n") == 1
+
+
+@pytest.mark.integration
+def test_a_launch_beside_a_live_service_of_the_same_name_refuses_in_one_line() -> None:
+    port = free_port()
+    env = child_env()
+    env["FRAMEGATE_LOCAL_PORT"] = str(port)
+    with Node("camera", NetworkConfig(local_port=port)) as other:  # e.g. a demo's camera
+        other.offer("images", kind="frame")
+        result = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "services.cli",
+                "launch",
+                "deploy/local.yaml",
+                "--duration",
+                "5",
+            ],
+            cwd=REPO,
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=120,
+            check=False,
+        )
+    assert result.returncode == 1, result
+    assert result.stderr.startswith("error: service 'camera' is live already (pid "), result
+    assert len(result.stderr.splitlines()) == 1 and "launching" not in result.stdout, result
