@@ -28,7 +28,7 @@ import zenoh
 
 from ._clock import CLOCK, now_ns
 from ._config import listening_endpoints
-from ._errors import ConfigError, FramegateError, NotFoundError, QueryError
+from ._errors import FramegateError, NameTakenError, NotFoundError, QueryError
 from ._producer import Producer
 from ._records import BufferInfo, DataObject
 from ._timerange import parse_time_range
@@ -113,8 +113,8 @@ def _instances(session: zenoh.Session, keys: Keys, service: str) -> list[dict[st
     return found or [{"host": "an unknown host", "pid": "unknown"}]
 
 
-def _taken(service: str, other: dict[str, Any]) -> ConfigError:
-    return ConfigError(
+def _taken(service: str, other: dict[str, Any]) -> NameTakenError:
+    return NameTakenError(
         f"service {service!r} is already offered by pid {other.get('pid')} on host "
         f"{other.get('host')}; stop that instance first, or choose another name"
     )

@@ -238,4 +238,11 @@ def _launch(args: argparse.Namespace, deployment: Deployment, specs: list[Proces
     deaths = supervisor.signal_deaths()
     for name, how in deaths.items():
         print(f"error: {name} {', '.join(how)}", file=sys.stderr, flush=True)
-    return 1 if deaths else 0
+    taken = supervisor.name_taken()
+    for name in taken:
+        print(
+            f"error: {name} did not start: another live instance offers its name",
+            file=sys.stderr,
+            flush=True,
+        )
+    return 1 if deaths or taken else 0
