@@ -9,15 +9,25 @@ import sys
 import pytest
 
 from middleware import NetworkConfig, Node
-from services.cli import main
 from tests.conftest import REPO, child_env, free_port
 
 
-def test_check_json_gives_each_process_with_its_command_and_starts_nothing(
-    capsys: pytest.CaptureFixture[str],
-) -> None:
-    assert main(["launch", str(REPO / "deploy" / "local.yaml"), "--check", "--json"]) == 0
-    plan = json.loads(capsys.readouterr().out)
+def _launch(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "services.cli", "launch", *args],
+        cwd=REPO,
+        env=env or child_env(),
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+
+
+def test_check_json_gives_each_process_with_its_command_and_starts_nothing() -> None:
+    result = _launch("deploy/local.yaml", "--check", "--json")
+    assert result.returncode == 0, result
+    plan = json.loads(result.stdout)
     assert plan["started"] is False
     by_name = {p["name"]: p for p in plan["processes"]}
     assert sorted(by_name) == ["camera", "detector", "gyro", "mediator"]
@@ -25,10 +35,11 @@ def test_check_json_gives_each_process_with_its_command_and_starts_nothing(
     assert by_name["detector"]["type"] == "detector" and by_name["detector"]["restart"] is True
 
 
-def test_json_without_check_is_one_line_and_exit_1(capsys: pytest.CaptureFixture[str]) -> None:
-    assert main(["launch", str(REPO / "deploy" / "local.yaml"), "--json"]) == 1
-    err = capsys.readouterr().err
-    assert err.startswith("error: --json prints the plan of --check") and err.count("\n") == 1
+def test_json_without_check_is_one_line_and_exit_1() -> None:
+    result = _launch("deploy/local.yaml", "--json")
+    assert result.returncode == 1, result
+    assert result.stderr.startswith("error: --json prints the plan of --check"), result
+    assert len(result.stderr.splitlines()) == 1 and result.stdout == "", result
 
 
 @pytest.mark.integration
@@ -38,23 +49,7 @@ def test_a_launch_beside_a_live_service_of_the_same_name_refuses_in_one_line() -
     env["FRAMEGATE_LOCAL_PORT"] = str(port)
     with Node("camera", NetworkConfig(local_port=port)) as other:  # e.g. a demo's camera
         other.offer("images", kind="frame")
-        result = subprocess.run(
-            [
-                sys.executable,
-                "-m",
-                "services.cli",
-                "launch",
-                "deploy/local.yaml",
-                "--duration",
-                "5",
-            ],
-            cwd=REPO,
-            env=env,
-            capture_output=True,
-            text=True,
-            timeout=120,
-            check=False,
-        )
+        result = _launch("deploy/local.yaml", "--duration", "5", env=env)
     assert result.returncode == 1, result
     assert result.stderr.startswith("error: service 'camera' is live already (pid "), result
     assert len(result.stderr.splitlines()) == 1 and "launching" not in result.stdout, result
