@@ -67,7 +67,7 @@ from services.nodes.gyro import sample_elements
 from ._cdr import CHANNELS, DETECTIONS, IMAGE, IMU, STRING, CdrError, Codec
 from ._config import Mapping, Ros2Config
 from ._link import RosLink, RosPublisher, watch_router
-from ._rmw import Attachment, type_hash
+from ._rmw import Attachment, TopicCheck, dds_type_name, type_hash
 
 _NS = "{urn:framegate:1}"
 # How long an output thread waits for a notification before looking at ``stop``.
@@ -484,6 +484,22 @@ def run(config: Ros2Config, network: NetworkConfig, stop: threading.Event | None
             or "-",
             ", ".join(f"{o.mapping.buffer} -> {o.mapping.topic}" for o in outputs) or "-",
         )
+        expected = {
+            topic: (dds_type_name(ros_type), hashed(ros_type))
+            for topic, ros_type in (
+                *((t, r) for t, r in ((config.image_in, IMAGE), (config.imu_in, IMU)) if t),
+                *((m.topic, IMAGE) for m in config.image_out),
+                *((m.topic, DETECTIONS) for m in config.detections_out),
+                *((m.topic, STRING) for m in config.verdicts_out),
+            )
+        }
+        check = TopicCheck(link.identity.session_id, expected)
+
+        def on_token(token: str) -> None:
+            if said := check.check(token):
+                log.warning("ros2: %s", said)
+
+        link.watch_graph(on_token)
         where = ", ".join(config.ros_connect) or "the --ros-config endpoints"
         start("ros2-router", lambda: watch_router(link.routers, where, stop, log))
         try:

@@ -26,7 +26,16 @@ import zenoh
 
 from middleware import ConfigError, NetworkConfig, TransportError
 
-from ._rmw import Attachment, EntityKind, NodeIdentity, Qos, Reliability, data_key, gid
+from ._rmw import (
+    ADMIN_SPACE,
+    Attachment,
+    EntityKind,
+    NodeIdentity,
+    Qos,
+    Reliability,
+    data_key,
+    gid,
+)
 
 OnSample = Callable[[bytes, bytes | None], None]
 # How long the bridge waits for the ROS 2 router before it says none answers.
@@ -86,8 +95,28 @@ class RosLink:
         )
         self._entities: list[RosPublisher | tuple[zenoh.Subscriber[None], zenoh.LivelinessToken]]
         self._entities = []
+        self._watchers: list[zenoh.Subscriber[None]] = []
         self._next_id = self.identity.node_id + 1
         self._node_token = self._session.liveliness().declare_token(self.identity.node_token())
+
+    def watch_graph(self, on_token: Callable[[str], None]) -> None:
+        """Call ``on_token(key)`` with the liveliness token of every ROS 2 entity of the
+        domain, present and arriving (as every rmw_zenoh node watches the graph); it runs on
+        zenoh-python's thread for this watch, one token at a time."""
+
+        def seen(sample: zenoh.Sample) -> None:
+            if sample.kind == zenoh.SampleKind.PUT:  # a new object each time: not `is`
+                on_token(str(sample.key_expr))
+
+        try:
+            watcher = self._session.liveliness().declare_subscriber(
+                f"{ADMIN_SPACE}/{self.identity.domain_id}/**",
+                zenoh.handlers.Callback(seen, indirect=True),
+                history=True,
+            )
+        except zenoh.ZError as exc:
+            raise TransportError(f"cannot watch the ROS 2 graph: {exc}") from exc
+        self._watchers.append(watcher)
 
     def routers(self) -> int:
         """How many Zenoh routers (``rmw_zenohd``) the session is connected to now."""
@@ -167,6 +196,10 @@ class RosLink:
             except zenoh.ZError:
                 pass  # the session is going anyway
         self._entities.clear()
+        for watcher in self._watchers:
+            with contextlib.suppress(zenoh.ZError):
+                watcher.undeclare()
+        self._watchers.clear()
         with contextlib.suppress(zenoh.ZError):
             self._node_token.undeclare()
         self._session.close()

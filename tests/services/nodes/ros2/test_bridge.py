@@ -3,6 +3,7 @@ flow control ends at the bridge, and every bad message is a counted skip, never 
 
 from __future__ import annotations
 
+import json
 import logging
 import signal
 import subprocess
@@ -13,13 +14,15 @@ from collections.abc import Iterator
 
 import numpy as np
 import pytest
+import zenoh
 
 from middleware import NetworkConfig, Node, Producer
 from services.nodes.ros2 import _link as link_module
 from services.nodes.ros2._bridge import ImagesIn, ImuIn, _Skips
-from services.nodes.ros2._cdr import IMU, Codec
+from services.nodes.ros2._cdr import IMAGE, IMU, Codec
 from services.nodes.ros2._config import Ros2Config
-from tests.conftest import REPO, child_env, wait_until
+from services.nodes.ros2._rmw import HUMBLE_TYPE_HASH, EntityKind, NodeIdentity, Qos
+from tests.conftest import REPO, child_env, free_port, wait_until
 
 W, H = 8, 4
 
@@ -184,6 +187,17 @@ def test_imu_samples_become_gyro_elements_in_batches(
     assert imu.stored == 4
 
 
+def _lines_within(proc: subprocess.Popen[str], limit_s: float) -> Iterator[str]:
+    """The process's output lines; it is killed if they have not stopped coming by then."""
+    assert proc.stdout is not None
+    killer = threading.Timer(limit_s, proc.kill)
+    killer.start()
+    try:
+        yield from proc.stdout
+    finally:
+        killer.cancel()
+
+
 @pytest.mark.integration
 def test_sigterm_stops_the_bridge_within_two_seconds_with_exit_0(endpoint: str) -> None:
     proc = subprocess.Popen(
@@ -211,7 +225,7 @@ def test_sigterm_stops_the_bridge_within_two_seconds_with_exit_0(endpoint: str) 
     try:
         assert proc.stdout is not None
         seen = []
-        for line in proc.stdout:
+        for line in _lines_within(proc, 30):
             seen.append(line)
             # Nothing listens on port 1: the bridge starts, then says no router answers.
             if "no ROS 2 router at tcp/127.0.0.1:1" in line:
@@ -283,3 +297,50 @@ def test_a_present_ros2_router_is_not_warned_about(caplog: pytest.LogCaptureFixt
             lambda: 1, "tcp/localhost:7447", threading.Event(), logging.getLogger("test.router")
         )
     assert caplog.text == ""
+
+
+@pytest.mark.integration
+def test_a_driver_on_another_distro_is_named_with_the_flag_to_change(endpoint: str) -> None:
+    # A ROS 2 router with a Humble camera driver's publisher token on /camera/image_raw; the
+    # bridge, on its default distro (jazzy), would never meet its samples.
+    router_at = f"tcp/127.0.0.1:{free_port()}"
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"router"')
+    conf.insert_json5("listen/endpoints", json.dumps([router_at]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    with zenoh.open(conf) as router:
+        driver = NodeIdentity(0, str(router.info.zid()), "camera_driver")
+        token = router.liveliness().declare_token(
+            driver.endpoint_token(
+                1,
+                EntityKind.PUBLISHER,
+                "/camera/image_raw",
+                IMAGE,
+                HUMBLE_TYPE_HASH,
+                Qos.sensor_data(),
+            )
+        )
+        proc = subprocess.Popen(
+            [
+                *(sys.executable, "-m", "services.cli", "run", "ros2", "--listen", endpoint),
+                *("--ros-connect", router_at, "--image-in", "/camera/image_raw"),
+            ],
+            cwd=REPO,
+            env=child_env(),
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
+        try:
+            seen = []
+            for line in _lines_within(proc, 30):
+                seen.append(line)
+                if "--ros-distro humble" in line:
+                    break
+            else:
+                raise AssertionError(f"bridge exited with {proc.wait()}: {''.join(seen)}")
+            assert "/camera/image_raw is published as sensor_msgs::msg::dds_::Image_" in line
+        finally:
+            proc.terminate()
+            proc.wait(timeout=10)
+            token.undeclare()
