@@ -14,7 +14,10 @@ from ._common import command_parser, network, stop_on_signals
 
 def register(subparsers: Any) -> None:
     parser = command_parser(
-        subparsers, "run", "start one service (camera, gyro, mediator, detector, ros2)", network=False
+        subparsers,
+        "run",
+        "start one service (camera, gyro, mediator, detector, ros2)",
+        network=False,
     )
     # The service's own flags are parsed in run(): registering them here would import all
     # four services (OpenCV, SciPy) for every command and slow every restart.
