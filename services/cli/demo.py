@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -72,7 +73,8 @@ def run(args: argparse.Namespace) -> int:
         cache=args.cache,
         show_logs=args.logs,
     )
-    summary = run_demo(config, network(args), stop)
+    # With --json, stdout is the summary alone; the status lines go to stderr.
+    summary = run_demo(config, network(args), stop, status_out=sys.stderr if args.json else None)
     if args.json:
         print_json(summary)
     else:

@@ -29,7 +29,7 @@ import time
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TextIO
 
 from middleware import BufferInfo, ConfigError, FramegateError, NetworkConfig, Node
 from services.launch import (
@@ -263,11 +263,17 @@ def refuse_if_running(node: Node, names: list[str]) -> None:
 
 
 def run_demo(
-    config: DemoConfig, network: NetworkConfig, stop: threading.Event | None = None
+    config: DemoConfig,
+    network: NetworkConfig,
+    stop: threading.Event | None = None,
+    *,
+    status_out: TextIO | None = None,
 ) -> dict[str, Any]:
-    """Run the pipeline for ``duration_s`` (or until ``stop``) with a status line per second;
-    return a summary read from the services' buffers."""
+    """Run the pipeline for ``duration_s`` (or until ``stop``) with a status line per second
+    on ``status_out`` (stdout; stderr when stdout carries JSON); return a summary read from
+    the services' buffers."""
     stop = stop or threading.Event()
+    out = status_out or sys.stdout
     specs = process_specs(demo_deployment(config), None, network)
     with Node(network=network) as node:  # before minutes of rendering, not after
         refuse_if_running(node, [spec.name for spec in specs])
@@ -294,13 +300,13 @@ def run_demo(
             last_print = now
             refresh()
             seen = {name: t.total for name, t in tallies.items()}
-            print(status_line(counts, seen, now - started), flush=True)
+            print(status_line(counts, seen, now - started), file=out, flush=True)
             # The last reading is taken while the services still run.
             if now - started >= config.duration_s - 1.0:
                 stop.set()
 
         refuse_if_running(node, [spec.name for spec in specs])  # one started while we rendered
-        print(STATUS_LEGEND, flush=True)
+        print(STATUS_LEGEND, file=out, flush=True)
         supervisor.start()
         try:
             supervisor.run(None, on_tick=tick, stop=stop)

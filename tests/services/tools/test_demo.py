@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -191,3 +192,18 @@ def test_a_demo_beside_a_live_pipeline_on_its_rendezvous_refuses_in_one_line() -
     assert result.stderr.startswith("error: service 'camera' is live already (pid "), result
     assert len(result.stderr.splitlines()) == 1 and "FRAMEGATE_LOCAL_PORT" in result.stderr
     assert " late | med " not in result.stdout  # it read no other pipeline's numbers
+
+
+@pytest.mark.integration
+def test_demo_json_prints_only_the_summary_on_stdout() -> None:
+    env = child_env()
+    env["FRAMEGATE_LOCAL_PORT"] = str(free_port())
+    result = subprocess.run(
+        [sys.executable, "-m", "services.cli", "demo", "--source", "sim", "--duration", "5",
+         "--json"],
+        cwd=REPO, env=env, capture_output=True, text=True, timeout=120, check=False,
+    )  # fmt: skip
+    assert result.returncode == 0, result
+    summary = json.loads(result.stdout)  # no status line mixed in
+    assert summary["source"] == "sim" and "gain_pct" in summary and "markers" in summary
+    assert " late | med " in result.stderr  # the status lines went to stderr
