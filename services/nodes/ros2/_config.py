@@ -15,6 +15,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from middleware import ConfigError, FramegateError, NetworkConfig, check_name, split_target
+from services.lib.argtypes import (
+    non_negative_float,
+    non_negative_int,
+    positive_float,
+    positive_int,
+)
 
 from ._rmw import DISTROS, History, Qos, Reliability, fully_qualified
 
@@ -176,7 +182,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     ros.add_argument(
         "--domain-id",
-        type=int,
+        type=non_negative_int,
         default=int(os.environ.get("ROS_DOMAIN_ID") or 0),
         help="ROS_DOMAIN_ID (default: $ROS_DOMAIN_ID or 0)",
     )
@@ -193,7 +199,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     inbound.add_argument("--imu-in", metavar="TOPIC", help="sensor_msgs/msg/Imu -> NAME/rates")
     inbound.add_argument(
         "--exposure-ms",
-        type=float,
+        type=positive_float,
         default=d.exposure_ms,
         help="exposure time of the camera (default %(default)s)",
     )
@@ -206,13 +212,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     inbound.add_argument(
         "--gyro-batch",
-        type=int,
+        type=positive_int,
         default=d.gyro_batch,
         help="IMU samples per put (default %(default)s)",
     )
     inbound.add_argument(
         "--gyro-wait-ms",
-        type=float,
+        type=non_negative_float,
         default=d.gyro_wait_ms,
         help="how long a refused gyro batch waits for credit before it is dropped "
         "(default %(default)s)",
@@ -224,11 +230,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="QoS of the subscriptions (default: sensor data, best effort)",
     )
     inbound.add_argument(
-        "--in-depth", type=int, default=d.in_depth, help="KEEP_LAST depth in (default %(default)s)"
+        "--in-depth",
+        type=positive_int,
+        default=d.in_depth,
+        help="KEEP_LAST depth in (default %(default)s)",
     )
     inbound.add_argument(
         "--retention-frames",
-        type=int,
+        type=positive_int,
         default=d.retention_frames,
         help="frames NAME/images keeps (default %(default)s)",
     )
@@ -252,13 +261,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     outbound.add_argument(
         "--out-depth",
-        type=int,
+        type=non_negative_int,
         default=d.out_depth,
         help="KEEP_LAST depth out, 0: keep all (default %(default)s)",
     )
     outbound.add_argument(
         "--out-queue",
-        type=int,
+        type=positive_int,
         default=d.out_queue,
         help="notification queue of each observed framegate buffer (default %(default)s)",
     )

@@ -48,12 +48,30 @@ def test_mappings_from_flags_and_deploy_lists() -> None:
         (["--image-out", "images=/x"], "SERVICE/BUFFER"),
         (["--image-out", "mediator/images="], "bad mapping"),
         (["--image-in", "/a b"], "bad ROS 2 topic name"),
-        (["--exposure-ms", "0"], "exposure-ms"),
-        (["--gyro-batch", "0"], "gyro-batch"),
     ],
 )
 def test_bad_flags_are_one_line_errors(argv: list[str], match: str) -> None:
     with pytest.raises(ConfigError, match=match):
+        _config(*argv)
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["--exposure-ms", "0"],
+        ["--exposure-ms", "nan"],
+        ["--gyro-batch", "0"],
+        ["--retention-frames", "0"],
+        ["--out-queue", "0"],
+        ["--in-depth", "0"],
+        ["--out-depth", "-1"],
+        ["--gyro-wait-ms", "inf"],
+        ["--domain-id", "-1"],
+    ],
+)
+def test_bad_numbers_are_refused_as_parsed(argv: list[str]) -> None:
+    """Checked by the flag's type, so a deploy file's `launch --check` refuses them too."""
+    with pytest.raises(argparse.ArgumentError, match=argv[0]):
         _config(*argv)
 
 
