@@ -63,7 +63,7 @@ class Producer:
     """A buffer offered by this process. Create with ``Node.offer``.
 
     Threads (see the README's *Threads*): ``_on_token`` and ``_on_ack`` run on zenoh-python's
-    callback thread, never on Zenoh's own; they feed the protocol under ``_lock`` and wake
+    callback threads (one per declared subscriber), never on Zenoh's own; they feed the protocol under ``_lock`` and wake
     whoever waits, and never call Zenoh. ``_lock`` (with ``_cond`` on it) guards the
     protocol, the counters and the rate window. ``_send_lock`` serialises carrying out the
     protocol's events (``put`` on the caller's thread, ``on_deadline`` on the node's loop),
@@ -124,7 +124,7 @@ class Producer:
     def name(self) -> str:
         return f"{self.service}/{self.buffer}"
 
-    # -- Zenoh input (zenoh-python's callback thread: short, never calls Zenoh) -----------
+    # -- Zenoh input (zenoh-python's callback threads: short, never call Zenoh) -----------
     def _on_token(self, sample: zenoh.Sample) -> None:
         alive = sample.kind == zenoh.SampleKind.PUT
         with self._cond:
