@@ -62,13 +62,14 @@ class _Counters:
 class Producer:
     """A buffer offered by this process. Create with ``Node.offer``.
 
-    Threads (see the README's *Threads*): ``_on_token`` and ``_on_ack`` run on zenoh-python's
-    callback threads (one per declared subscriber), never on Zenoh's own; they feed the protocol under ``_lock`` and wake
-    whoever waits, and never call Zenoh. ``_lock`` (with ``_cond`` on it) guards the
-    protocol, the counters and the rate window. ``_send_lock`` serialises carrying out the
-    protocol's events (``put`` on the caller's thread, ``on_deadline`` on the node's loop),
-    so the messages of one registration leave in order and a ``publisher.put`` that blocks
-    holds only ``_send_lock``. Lock order: ``_send_lock``, then ``_lock``.
+    Threads (see the README's *Threads*): ``_on_token`` and ``_on_ack`` run on
+    zenoh-python's callback threads (one per declared subscriber), never on Zenoh's own;
+    they feed the protocol under ``_lock`` and wake whoever waits, and never call Zenoh.
+    ``_lock`` (with ``_cond`` on it) guards the protocol, the counters and the rate window.
+    ``_send_lock`` serialises carrying out the protocol's events (``put`` on the caller's
+    thread, ``on_deadline`` on the node's loop), so the messages of one registration leave
+    in order and a ``publisher.put`` that blocks holds only ``_send_lock``. Lock order:
+    ``_send_lock``, then ``_lock``.
     """
 
     def __init__(

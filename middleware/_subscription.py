@@ -43,12 +43,13 @@ class Subscription:
     from its liveliness token under a new epoch, and the protocol tracks every epoch it meets.
 
     Threads (see the README's *Threads*): ``_on_notification`` runs on zenoh-python's
-    callback thread (one per declared subscriber), never on Zenoh's own; it takes ``_lock`` once to feed the protocol and
-    wakes a caller only if one waits, and never calls Zenoh nor copies a single element's
-    payload (``take`` does, on the caller's thread). ``_lock`` guards the protocol and
-    ``_waiting`` (callers blocked in ``_cond``). Acks are computed under the lock and sent
-    after releasing it: by ``take`` on the caller's thread, or by the node's loop when a
-    delayed ack falls due and the caller has not come back (``on_deadline``).
+    callback thread (one per declared subscriber), never on Zenoh's own; it takes ``_lock``
+    once to feed the protocol and wakes a caller only if one waits, and never calls Zenoh
+    nor copies a single element's payload (``take`` does, on the caller's thread). ``_lock``
+    guards the protocol and ``_waiting`` (callers blocked in ``_cond``). Acks are computed
+    under the lock and sent after releasing it: by ``take`` on the caller's thread, or by
+    the node's loop when a delayed ack falls due and the caller has not come back
+    (``on_deadline``).
     """
 
     def __init__(
