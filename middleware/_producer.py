@@ -348,6 +348,31 @@ class Producer:
                     with self._lock:
                         self._protocol.send_failed(event.key, event.epoch)
 
+    def discard_after(self, timestamp_ns: int, reason: str) -> int:
+        """Remove the elements stamped after ``timestamp_ns`` so that later puts may be
+        stamped from there on; how many there were. Counted in ``info`` as skipped by
+        ``reason`` and logged.
+
+        For a stage whose input started over earlier in time (a camera restarted after its
+        clock was stepped back, a rogue's future stamp): the removed elements came from a
+        clock now known to be wrong. Subscribers that were notified of them keep what was
+        pushed to them; a fetch of a removed one finds nothing.
+        """
+        with self._lock:
+            removed = self.series.discard_after(timestamp_ns)
+            if removed:
+                skipped = self._counters.skipped
+                skipped[reason] = skipped.get(reason, 0) + len(removed)
+        if removed:
+            log.warning(
+                "%s: %d elements stamped after %d removed (%s): stamps continue from there",
+                self.name,
+                len(removed),
+                timestamp_ns,
+                reason,
+            )
+        return len(removed)
+
     def count_skip(self, reason: str, count: int = 1) -> None:
         """Count ``count`` elements the service chose not to put, e.g. ``late`` frames a
         camera could not produce in time; ``info`` shows them by reason."""

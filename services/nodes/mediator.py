@@ -37,7 +37,10 @@ frames are the decider's (``out-of-order``).
 Time and stalls: a frame stamped more than ``horizon_s`` ahead of our clock is skipped
 (``future-stamp``) before it can become the time-order reference; a new epoch of the camera
 stream (a restarted camera, our subscription registered again) restarts the time order, and
-the frames the camera stored in the gap get ``mediator-lapsed`` records. Camera and gyro
+the frames the camera stored in the gap get ``mediator-lapsed`` records. A new stream that
+starts before frames already forwarded (a camera restarted after its clock was stepped back,
+after a rogue's future stamp) removes those from ``images`` (counted skipped ``rewound``) so
+that its frames can follow at once; the detector does the same with its detections. Camera and gyro
 clocks are compared every 2 s (``ClockOffsets``); beyond ``max_clock_offset`` of the exposure
 frames are not paired (``clock-offset``). Once a flow-controlled consumer has been seen, its
 lapsed subscription counts as a full queue (``consumer-lapsed``), never as load 0.
@@ -243,7 +246,16 @@ class Mediator:
             # A new epoch of the camera's stream (it restarted, or our subscription was
             # registered again): its frames are judged afresh, not against the old ones.
             self.log.info("camera stream started over (seq %d): time order restarts", note.seq)
-            self.decider.restart_order(self._newest_put_ns)
+            floor = self._newest_put_ns
+            if floor is not None and note.timestamp_ns <= floor:
+                # It starts before frames we forwarded: those were stamped by a clock now
+                # known to be wrong (a camera restarted after its clock was stepped back, a
+                # rogue's future stamp). Kept, they would hold every later frame out of the
+                # detector's time-ordered buffer for as long as the error.
+                self.images.discard_after(note.timestamp_ns - 1, "rewound")
+                floor = self.images.series.newest_ns or 0
+                self._newest_put_ns = floor or None
+            self.decider.restart_order(floor)
             self._offsets.forget()  # maybe another process, another clock
             self._record_missed(note.timestamp_ns)
         self._camera_seq = note.seq

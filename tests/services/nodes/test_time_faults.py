@@ -143,31 +143,46 @@ def test_a_future_stamped_rogue_frame_is_skipped_and_decisions_resume(
         recorded.close()
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="a frame stamped ahead within the horizon (+9 s of 10) is forwarded, and the "
-    "detector's buffer keeps time order: every real frame is out-of-order until its stamps "
-    "pass it (by hand: 105 frames, ~9 s, no log line)",
-)
 def test_a_rogue_frame_9_s_ahead_does_not_stop_forwarding_after_it(
     tmp_path: Path, shim: Path
 ) -> None:
+    """Inside the horizon, so forwarded (and detected); the real camera that follows starts
+    9 s earlier: the mediator and the detector remove what the wrong clock stamped and
+    the real frames go through at once, to the detector's detections."""
     port = free_port()
     offset = tmp_path / "offset"
     step_clock(offset, 9 * S)
     recorded = Recorded(port, MediatorConfig(gyro_missing=GyroMissing.ACCEPT, gyro_wait_ms=0))
+    detector = _start(["-m", "services.cli", "run", "detector", "--input", "mediator/images"], port)
     rogue = _start(["-c", ROGUE, str(port)], port, shifted_clock_env(child_env(), shim, offset))
     camera = None
     try:
         assert rogue.stdout is not None
         assert rogue.stdout.readline().strip() == "put"
         recorded.step_until(lambda: recorded.records, 30, "the rogue frame's record")
+        assert recorded.records[0].accepted, recorded.reasons()  # forwarded
+        rogue_ns = recorded.records[0].frame_timestamp_ns
+        node = recorded.node
+        wait_until(lambda: node.latest("detector/detections"), 30, "the rogue's detection")
         _stop(rogue)
         camera = _start(CAMERA, port)
         recorded.step_until(lambda: len(recorded.records) >= 6, 90, "the camera's frames")
         assert "out-of-order" not in recorded.reasons(1), recorded.reasons()
+        assert any(r.accepted for r in recorded.records[1:]), recorded.reasons()
+        assert recorded.mediator.images.info().skipped == {"rewound": 1}
+        detected = wait_until(
+            lambda: [
+                e.timestamp_ns
+                for e in node.query("detector/detections", last=10)
+                if e.timestamp_ns < rogue_ns
+            ],
+            30,
+            "detections of the real camera's frames",
+        )
+        assert all(t < rogue_ns for t in detected)
+        assert node.buffer_info("detector/detections").skipped == {"rewound": 1}
     finally:
-        _stop(rogue, *([camera] if camera else []))
+        _stop(rogue, detector, *([camera] if camera else []))
         recorded.close()
 
 
