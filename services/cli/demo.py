@@ -12,7 +12,13 @@ from services.lib.decisions import POLICIES
 from services.lib.sim import ScenarioConfig
 from services.tools.demo import SOURCES, DemoConfig, print_summary, run_demo
 
-from ._common import command_parser, network, print_json, stop_on_signals
+from ._common import (
+    command_parser,
+    network,
+    print_json,
+    report_failures,
+    stop_on_signals,
+)
 
 
 def register(subparsers: Any) -> None:
@@ -79,4 +85,4 @@ def run(args: argparse.Namespace) -> int:
         print_json(summary)
     else:
         print_summary(summary)
-    return 0
+    return report_failures(summary.get("failures", []))

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import shlex
-import sys
 import threading
 from pathlib import Path
 from typing import Any
@@ -28,7 +27,7 @@ from services.launch import (
 )
 from services.lib.argtypes import positive_float
 
-from ._common import command_parser, network, print_json, stop_on_signals
+from ._common import command_parser, network, print_json, report_failures, stop_on_signals
 
 DEFAULT_STATUS_S = 5.0
 STATUS_COLUMNS = 100
@@ -235,14 +234,4 @@ def _launch(args: argparse.Namespace, deployment: Deployment, specs: list[Proces
         status_stop.set()
         if status is not None:
             status.join()
-    deaths = supervisor.signal_deaths()
-    for name, how in deaths.items():
-        print(f"error: {name} {', '.join(how)}", file=sys.stderr, flush=True)
-    taken = supervisor.name_taken()
-    for name in taken:
-        print(
-            f"error: {name} did not start: another live instance offers its name",
-            file=sys.stderr,
-            flush=True,
-        )
-    return 1 if deaths or taken else 0
+    return report_failures(supervisor.failures())

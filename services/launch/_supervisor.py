@@ -229,6 +229,16 @@ class Supervisor:
                 out[running.spec.name] = deaths
         return out
 
+    def failures(self) -> list[str]:
+        """One line per process a launcher must report (and then exit non-zero): each that
+        died by a signal, and each that could not start because its name is taken."""
+        deaths = [f"{name} {', '.join(how)}" for name, how in self.signal_deaths().items()]
+        taken = [
+            f"{name} did not start: another live instance offers its name"
+            for name in self.name_taken()
+        ]
+        return deaths + taken
+
     def stop(self, timeout_s: float = 1.5) -> None:
         """SIGTERM every process, wait up to ``timeout_s``, then SIGKILL what is left.
 

@@ -319,6 +319,8 @@ def run_demo(
         "source": config.source,
         "floor": config.floor,
         "restarts": supervisor.restarts(),
+        # Children that died by a signal or found their name taken: the CLI exits 1.
+        "failures": supervisor.failures(),
         "markers": {
             name: {
                 "filtered": tallies[FILTERED].seen[name],

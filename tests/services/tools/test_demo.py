@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import json
+import signal
 import subprocess
 import sys
 from pathlib import Path
 
+import psutil
 import pytest
 
 from middleware import ConfigError, NetworkConfig, Node
@@ -25,7 +27,7 @@ from services.tools.demo import (
     print_summary,
     status_line,
 )
-from tests.conftest import REPO, child_env, free_port
+from tests.conftest import REPO, child_env, free_port, wait_until
 
 
 def test_status_line_fits_100_columns_even_with_large_counts() -> None:
@@ -207,3 +209,40 @@ def test_demo_json_prints_only_the_summary_on_stdout() -> None:
     summary = json.loads(result.stdout)  # no status line mixed in
     assert summary["source"] == "sim" and "gain_pct" in summary and "markers" in summary
     assert " late | med " in result.stderr  # the status lines went to stderr
+
+
+def _child(parent: psutil.Process, *argv: str) -> psutil.Process | None:
+    """The descendant of ``parent`` whose command line holds ``argv`` in a row, if any."""
+    for child in parent.children(recursive=True):
+        try:
+            cmdline = child.cmdline()
+        except psutil.Error:
+            continue
+        if any(cmdline[i : i + len(argv)] == list(argv) for i in range(len(cmdline))):
+            return child
+    return None
+
+
+@pytest.mark.integration
+def test_demo_names_a_child_that_died_by_a_signal_and_exits_1() -> None:
+    env = child_env()
+    env["FRAMEGATE_LOCAL_PORT"] = str(free_port())
+    demo = subprocess.Popen(
+        [sys.executable, "-m", "services.cli", "demo", "--source", "sim", "--duration", "3"],
+        cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        parent = psutil.Process(demo.pid)
+        detector = wait_until(
+            lambda: _child(parent, "run", "detector", "--name", "detector"), 60, "the detector"
+        )
+        detector.rlimit(psutil.RLIMIT_CORE, (0, 0))  # an abort, without a core file
+        detector.send_signal(signal.SIGABRT)
+        _out, err = demo.communicate(timeout=60)
+    finally:
+        if demo.poll() is None:
+            demo.kill()
+            demo.communicate()
+    assert demo.returncode == 1, (demo.returncode, err)
+    errors = [line for line in err.splitlines() if line.startswith("error: ")]
+    assert errors == ["error: detector died by signal SIGABRT (6)"], err
