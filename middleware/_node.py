@@ -31,7 +31,14 @@ from typing import Any
 import zenoh
 
 from ._clock import ClockSample, now_ns
-from ._config import RENDEZVOUS_WAIT_S, NetworkConfig, check_name, listening_endpoints
+from ._config import (
+    ENDPOINT_FORM,
+    RENDEZVOUS_WAIT_S,
+    NetworkConfig,
+    check_name,
+    listening_endpoints,
+    zenoh_message,
+)
 from ._errors import (
     ConfigError,
     FramegateError,
@@ -70,7 +77,7 @@ def zenoh_errors(action: str) -> Iterator[None]:
     try:
         yield
     except zenoh.ZError as exc:
-        raise TransportError(f"{action} failed in Zenoh: {exc}") from exc
+        raise TransportError(f"{action} failed in Zenoh: {zenoh_message(exc)}") from exc
 
 
 def split_target(target: str) -> tuple[str, str]:
@@ -452,7 +459,10 @@ def _open(network: NetworkConfig) -> zenoh.Session:
         except zenoh.ZError as exc:
             last = exc
     where = ", ".join(network.connect or network.listen) or f"local port {network.local_port}"
-    raise TransportError(f"cannot open a Zenoh session ({where}): {last}") from last
+    raise TransportError(
+        f"cannot open a Zenoh session ({where}): {zenoh_message(last) if last else 'no config'}; "
+        f"check the endpoints ({ENDPOINT_FORM}) and that each to listen on is free on this host"
+    ) from last
 
 
 def _error_from_reply(target: str, text: str) -> QueryError:

@@ -94,6 +94,24 @@ def test_an_unreachable_connect_endpoint_is_named_with_exit_1() -> None:
 
 
 @pytest.mark.parametrize(
+    ("args", "expected"),
+    [
+        (("--connect", "bogus"), "error: bad endpoint 'bogus' to connect to: write PROTOCOL/"),
+        (("--listen", "tcp/"), "error: bad endpoint 'tcp/' to listen on: write PROTOCOL/"),
+        (("--connect", "foo/bar"), "error: cannot open a Zenoh session (foo/bar): Unicast not"),
+    ],
+)
+def test_a_bad_endpoint_is_one_line_naming_it_without_zenoh_source_paths(
+    args: tuple[str, ...], expected: str
+) -> None:
+    result = _framegate("ls", *args)
+    assert result.returncode == 1, result
+    assert result.stderr.startswith(expected), result.stderr
+    assert len(result.stderr.splitlines()) == 1, result.stderr
+    assert ".rs:" not in result.stderr and ".cargo" not in result.stderr, result.stderr
+
+
+@pytest.mark.parametrize(
     "code",
     [
         "main(['--help'])",
