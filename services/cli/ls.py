@@ -15,7 +15,7 @@ from services.lib.argtypes import positive_float, positive_int
 from services.lib.clock import CLOCK_WARN_NS, ClockEstimate, clock_warning, estimate_clocks
 
 from ._common import command_parser, format_bytes, format_ns, network, print_json
-from ._target import unreachable
+from ._target import unreachable, where
 
 
 def register(subparsers: Any) -> None:
@@ -126,7 +126,7 @@ def run(args: argparse.Namespace) -> int:
         print_json({"services": [service_json(i, clocks.get(i.service)) for i in infos]})
         return 0
     if not infos:
-        print("no live services")
+        print(f"no live services {where(net)}")
         return 0
     warnings = []
     for info in infos:

@@ -84,6 +84,21 @@ def test_mistakes_are_one_line_with_exit_1(args: tuple[str, ...], expected: str)
     assert "Traceback" not in result.stderr
 
 
+def test_an_endpoint_without_a_port_is_named_with_exit_1() -> None:
+    for endpoint in ("tcp/abc", "tcp/127.0.0.1:1,bogus"):
+        result = _framegate("ls", "--connect", endpoint)
+        assert result.returncode == 1, result
+        assert result.stderr == f"error: cannot reach {endpoint} (no port number: write " + (
+            "tcp/HOST:PORT); is the router or service running there?\n"
+        ), result.stderr
+
+
+def test_ls_says_where_it_looked_when_it_finds_nobody() -> None:
+    result = _framegate("ls", "--connect", "udp/127.0.0.1:1", "--timeout", "0.5")
+    assert result.returncode == 0, result
+    assert result.stdout == "no live services via udp/127.0.0.1:1\n", result.stdout
+
+
 def test_an_unreachable_connect_endpoint_is_named_with_exit_1() -> None:
     endpoint = f"tcp/127.0.0.1:{free_port()}"  # nobody listens there
     for args in (("ls",), ("info", "camera/images", "--timeout", "1")):
