@@ -15,6 +15,7 @@ from middleware import (
     FramegateError,
     NetworkConfig,
     Node,
+    NotFoundError,
     add_network_arguments,
     network_from_args,
 )
@@ -22,7 +23,14 @@ from middleware import (
 
 def main(network: NetworkConfig, target: str, *, count: int, queue: int, delay_s: float) -> int:
     with Node(network=network) as node:
-        sub = node.subscribe(target, queue_size=queue, wait_s=5.0)
+        try:
+            sub = node.subscribe(target, queue_size=queue, wait_s=5.0)
+        except NotFoundError:
+            service = target.split("/", 1)[0]
+            if service in node.live_services():
+                raise  # live, but no such buffer: the error names what it offers
+            print(f"error: {_why_silent(node, service)}", file=sys.stderr)
+            return 1
         taken = 0
         while taken < count:
             note = sub.take(timeout_s=10.0)

@@ -176,6 +176,7 @@ class Node:
         mode: SubscriptionMode = SubscriptionMode.DEFAULT,
         wait_s: float = 2.0,
         push_max_bytes: int | None = None,
+        await_service: bool = False,
     ) -> Subscription:
         """Subscribe to ``service/buffer`` notifications with a queue of ``queue_size``.
 
@@ -183,10 +184,16 @@ class Node:
         producer's ``inline_max_bytes``, 64 KiB by default); larger ones are fetched by
         ``Subscription.fetch`` with one query. A consumer that takes every element (a
         detector) asks for everything pushed; one that picks some (an inspector) does not.
-        Waits up to ``wait_s`` for a live producer to register the subscription; if the
-        service is not up yet, returns anyway (it registers when the service appears).
+        Waits up to ``wait_s`` for a live producer to register the subscription.
+
+        A service that is not live within ``wait_s`` is a NotFoundError naming the live
+        ones (a misspelt name fails here, not silently later); with ``await_service=True``
+        the subscription is returned anyway and registers when the service appears (a
+        consumer started before its producer, as ``launch`` does).
         """
         service, buffer = split_target(target)
+        if not await_service:
+            self._await_live(service, wait_s)
         with zenoh_errors(f"subscribing to {target}"):
             sub = Subscription(
                 self._session,
@@ -350,7 +357,19 @@ class Node:
             names = [str(r.ok.key_expr)[len(prefix) :] for r in replies if r.ok is not None]
         return sorted(set(names))
 
-    def _require_service(self, service: str) -> None:
+    def _await_live(self, service: str, wait_s: float) -> None:
+        """Return once ``service`` is live; NotFoundError (as ``_require_service``) if it is
+        not within ``wait_s`` (a service being started is given that long)."""
+        deadline = time.monotonic() + wait_s
+        while time.monotonic() < deadline:
+            if service in self.live_services(timeout_s=min(1.0, max(0.1, wait_s))):
+                return
+            time.sleep(0.05)
+        self._require_service(
+            service, " (to subscribe before it starts: subscribe(..., await_service=True))"
+        )
+
+    def _require_service(self, service: str, advice: str = "") -> None:
         live = self.live_services()
         if service not in live:
             hint = difflib.get_close_matches(service, live, n=1)
@@ -358,6 +377,7 @@ class Node:
             listing = ", ".join(live) if live else "none"
             raise NotFoundError(
                 f"no live service named {service!r}{did_you_mean}; live services: {listing}"
+                + advice
             )
 
     def services(self, *, timeout_s: float = 2.0) -> list[ServiceInfo]:

@@ -66,6 +66,7 @@ def run(config: DetectorConfig, network: NetworkConfig, stop: threading.Event | 
             mode=SubscriptionMode.OBSERVE if config.observe else SubscriptionMode.FLOW,
             wait_s=0,
             push_max_bytes=PUSH_ALL,
+            await_service=True,  # a pipeline starts every service at once
         )
         log.info(
             "detector: %s (queue %d, processing >= %.0f ms)",

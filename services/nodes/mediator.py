@@ -199,9 +199,15 @@ class Mediator:
         )
         # Every frame is taken and assessed, so frames come pushed with their notification.
         self._camera = node.subscribe(
-            config.camera, queue_size=config.camera_queue, wait_s=0, push_max_bytes=PUSH_ALL
+            config.camera,
+            queue_size=config.camera_queue,
+            wait_s=0,
+            push_max_bytes=PUSH_ALL,
+            await_service=True,  # a pipeline starts every service at once
         )
-        self._gyro = GyroCache(node.subscribe(config.gyro, queue_size=256, wait_s=0))
+        self._gyro = GyroCache(
+            node.subscribe(config.gyro, queue_size=256, wait_s=0, await_service=True)
+        )
         self._offsets = ClockOffsets(
             node, split_target(config.camera)[0], split_target(config.gyro)[0]
         )

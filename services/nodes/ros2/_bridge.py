@@ -335,6 +335,7 @@ class Output:
             mode=SubscriptionMode.OBSERVE,
             wait_s=0,
             push_max_bytes=PUSH_ALL,
+            await_service=True,  # the services it carries may start after it
         )
         self.published = 0
 
