@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import itertools
+import math
 import sys
 import time
 
@@ -47,12 +48,28 @@ def main(network: NetworkConfig, *, count: int, period_s: float, wait_s: float) 
     return 0
 
 
+def seconds(text: str) -> float:
+    """A flag's duration: a finite number >= 0 (``nan`` or ``-1`` is refused as it is parsed)."""
+    value = float(text)
+    if not math.isfinite(value) or value < 0:
+        raise argparse.ArgumentTypeError(f"must be a number of seconds >= 0, got {text!r}")
+    return value
+
+
+def count(text: str) -> int:
+    """A flag's count: an integer >= 0."""
+    value = int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got {text!r}")
+    return value
+
+
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(prog="offer", description=__doc__.splitlines()[0])
     add_network_arguments(parser)
-    parser.add_argument("--count", type=int, default=0, help="elements to put (0: until Ctrl-C)")
-    parser.add_argument("--period-s", type=float, default=0.5, help="between puts (0.5 s)")
-    parser.add_argument("--wait-s", type=float, default=5.0, help="wait when refused (5 s)")
+    parser.add_argument("--count", type=count, default=0, help="elements to put (0: until Ctrl-C)")
+    parser.add_argument("--period-s", type=seconds, default=0.5, help="between puts (0.5 s)")
+    parser.add_argument("--wait-s", type=seconds, default=5.0, help="wait when refused (5 s)")
     args = parser.parse_args()
     try:
         code = main(

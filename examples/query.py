@@ -22,9 +22,15 @@ def main(network: NetworkConfig, target: str, *, time_range: str) -> int:
     with Node(network=network) as node:
         elements = node.query(target, time_range=time_range)
         for element in elements:
-            print(f"{element.timestamp_ns}: {element.payload.decode(errors='replace')!r}")
+            print(f"{element.timestamp_ns}: {shown(element.payload)}")
         print(f"{len(elements)} elements", flush=True)
     return 0
+
+
+def shown(payload: bytes) -> str:
+    """A short text payload as text; anything else (an image) by its size."""
+    text = payload.decode(errors="replace")
+    return repr(text) if len(payload) <= 64 and text.isprintable() else f"{len(payload)} bytes"
 
 
 if __name__ == "__main__":

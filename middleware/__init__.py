@@ -15,10 +15,12 @@ from ._config import (
     network_from_args,
 )
 from ._errors import (
+    EXIT_NAME_TAKEN,
     ConfigError,
     DuplicateTimestampError,
     FlowControlRefused,
     FramegateError,
+    NameTakenError,
     NotFoundError,
     PayloadTooLargeError,
     QueryError,
@@ -44,6 +46,7 @@ from ._timerange import TimeRange, parse_duration_ns, parse_time_ns, parse_time_
 from ._xml import XmlLimits, field_text, make_metadata, parse_untrusted, validate_metadata
 
 __all__ = [
+    "EXIT_NAME_TAKEN",
     "INLINE_METADATA_MAX",
     "PUSH_ALL",
     "QUEUE_BUDGET",
@@ -56,6 +59,7 @@ __all__ = [
     "DuplicateTimestampError",
     "FlowControlRefused",
     "FramegateError",
+    "NameTakenError",
     "NetworkConfig",
     "Node",
     "NotFoundError",

@@ -108,6 +108,21 @@ class TimeSeries:
             self._bytes += sum([len(e.payload) + len(e.metadata) for e in elements])
             return self._evict()
 
+    def discard_after(self, timestamp_ns: int) -> list[DataObject]:
+        """Remove every element stamped after ``timestamp_ns``; the removed, oldest first.
+
+        The one way back in time: elements stamped by a clock that was wrong (a source
+        restarted after its clock was corrected backward) would otherwise keep every later,
+        correct one out for as long as the error.
+        """
+        with self._lock:
+            cut = max(self._head, bisect_right(self._keys, timestamp_ns, self._head))
+            removed = [self._at(i) for i in range(cut, len(self._keys))]
+            del self._keys[cut:]
+            del self._items[cut:]
+            self._bytes -= sum(len(e.payload) + len(e.metadata) for e in removed)
+            return removed
+
     def _evict(self) -> list[DataObject]:
         r = self.retention
         keys, items = self._keys, self._items

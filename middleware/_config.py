@@ -42,7 +42,31 @@ RENDEZVOUS_DELAY_MS = 50
 # ... and how long a Node then waits, at most, until every live process of the rendezvous is
 # connected (a frozen one never is).
 RENDEZVOUS_WAIT_S = 0.5
+# ... and how long a handshake with one of them may take. On loopback a live peer answers in
+# milliseconds; a frozen one (SIGSTOP) never does, and closing a session waits for every
+# handshake it started (Zenoh's default of 10 s made `framegate ls` exit 10 s late).
+RENDEZVOUS_OPEN_TIMEOUT_MS = 1000
 LOOPBACK_ROUTER_LISTEN = f"tcp/127.0.0.1:{DEFAULT_LOCAL_PORT}"
+
+
+# Zenoh's errors end in the Rust source line that raised them (" at /root/.cargo/...rs:86."),
+# and its config errors wrap the message in a Debug dump ('Json5Err(Message { msg: "..." })').
+_RUST_LOCATION = re.compile(r"\s+at\s+\S+\.rs:\d+\.?")
+_DEBUG_MSG = re.compile(r'\bmsg: "((?:[^"\\]|\\.)*)"')
+_DEBUG_LOCATION = re.compile(r"Location \{ line: (\d+), column: (\d+) \}")
+ENDPOINT_FORM = "PROTOCOL/ADDRESS:PORT, e.g. tcp/192.168.1.10:7447"
+
+
+def zenoh_message(exc: BaseException) -> str:
+    """A Zenoh error as one line a person can read: its message without the Rust source
+    locations and Debug wrapping Zenoh adds."""
+    text = str(exc)
+    where = ""
+    if wrapped := _DEBUG_MSG.search(text):
+        if at := _DEBUG_LOCATION.search(text):
+            where = f" (line {at.group(1)}, column {at.group(2)})"
+        text = wrapped.group(1).replace('\\"', '"')
+    return " ".join(_RUST_LOCATION.sub("", text).split()).rstrip(".") + where
 
 
 def check_name(value: str, what: str) -> str:
@@ -147,6 +171,7 @@ class NetworkConfig:
                 # Zenoh's open waits this long for peers to connect (500 ms by default);
                 # here every peer is named, and Node waits for them itself (RENDEZVOUS_WAIT_S).
                 _insert(conf, "scouting/delay", RENDEZVOUS_DELAY_MS)
+                _insert(conf, "transport/unicast/open_timeout", RENDEZVOUS_OPEN_TIMEOUT_MS)
             return configs
         return [self._build(listen=list(self.listen), connect=list(self.connect))]
 
@@ -158,7 +183,9 @@ class NetworkConfig:
                 else zenoh.Config()
             )
         except zenoh.ZError as exc:
-            raise ConfigError(f"cannot read Zenoh config {self.config_file}: {exc}") from exc
+            raise ConfigError(
+                f"cannot read Zenoh config {self.config_file}: {zenoh_message(exc)}"
+            ) from exc
         except OSError as exc:
             raise ConfigError(f"cannot read Zenoh config {self.config_file}: {exc}") from exc
         settings: list[tuple[str, Any]] = []
@@ -180,10 +207,12 @@ class NetworkConfig:
             if not self.shared_memory:
                 settings.append(("transport/shared_memory/enabled", False))
         if listen:
+            _check_endpoints(listen, "listen on")
             settings.append(("listen/endpoints", listen))
         elif (default_listen := _loopback_listen(conf, self.mode)) is not None:
             settings.append(("listen/endpoints", default_listen))
         if connect:
+            _check_endpoints(connect, "connect to")
             settings.append(("connect/endpoints", connect))
         for key, value in settings:
             _insert(conf, key, value)
@@ -247,6 +276,17 @@ def listening_endpoints() -> list[str]:
     return sorted(found)
 
 
+def _check_endpoints(endpoints: list[str], verb: str) -> None:
+    """ConfigError naming the first endpoint Zenoh cannot parse, and the form it takes."""
+    for endpoint in endpoints:
+        try:
+            zenoh.Config().insert_json5("connect/endpoints", json.dumps([endpoint]))
+        except zenoh.ZError as exc:
+            raise ConfigError(
+                f"bad endpoint {endpoint!r} to {verb}: write {ENDPOINT_FORM}"
+            ) from exc
+
+
 def _insert(conf: zenoh.Config, key: str, value: Any) -> None:
     _insert_raw(conf, key, json.dumps(value))
 
@@ -255,7 +295,7 @@ def _insert_raw(conf: zenoh.Config, key: str, raw: str) -> None:
     try:
         conf.insert_json5(key, raw)
     except zenoh.ZError as exc:
-        raise ConfigError(f"bad Zenoh setting {key} = {raw}: {exc}") from exc
+        raise ConfigError(f"bad Zenoh setting {key} = {raw}: {zenoh_message(exc)}") from exc
 
 
 def _split(value: str) -> tuple[str, ...]:

@@ -5,6 +5,7 @@ tool defines its own errors next to its code, always below ``FramegateError``::
 
     FramegateError                 base: catch this to catch everything of ours
     ├── ConfigError                a configuration, deploy file or endpoint is wrong
+    │   └── NameTakenError         another live instance already offers this service name
     ├── SchemaError                metadata is not well-formed, hostile, or fails its XSD
     ├── QueryError                 a query is malformed or the service answered with an error
     │   └── NotFoundError          no such service, buffer or element
@@ -35,6 +36,16 @@ class FramegateError(Exception):
 
 class ConfigError(FramegateError):
     """A configuration value, deploy file or endpoint is wrong."""
+
+
+class NameTakenError(ConfigError):
+    """Another live process already offers this service name (it names that process's pid
+    and host). Restarting will not help while that one lives: ``framegate run`` exits with
+    ``EXIT_NAME_TAKEN`` so that ``launch`` does not restart it."""
+
+
+# ``framegate run``'s exit code for a NameTakenError: a supervisor must not restart it.
+EXIT_NAME_TAKEN = 4
 
 
 class SchemaError(FramegateError):

@@ -21,6 +21,7 @@ from __future__ import annotations
 import difflib
 import json
 import logging
+import math
 import threading
 import time
 from collections.abc import Iterator
@@ -30,7 +31,14 @@ from typing import Any
 import zenoh
 
 from ._clock import ClockSample, now_ns
-from ._config import RENDEZVOUS_WAIT_S, NetworkConfig, check_name, listening_endpoints
+from ._config import (
+    ENDPOINT_FORM,
+    RENDEZVOUS_WAIT_S,
+    NetworkConfig,
+    check_name,
+    listening_endpoints,
+    zenoh_message,
+)
 from ._errors import (
     ConfigError,
     FramegateError,
@@ -39,7 +47,7 @@ from ._errors import (
     TransportError,
 )
 from ._loop import NodeLoop
-from ._producer import Producer
+from ._producer import HORIZON_NS, Producer
 from ._records import (
     BufferInfo,
     DataObject,
@@ -48,7 +56,7 @@ from ._records import (
     SubscriptionInfo,
     SubscriptionMode,
 )
-from ._rendezvous import announce, live_processes, withdraw
+from ._rendezvous import announce, live_nodes, withdraw
 from ._service import ServiceEndpoint
 from ._subscription import Subscription
 from ._timerange import TimeRange
@@ -69,7 +77,7 @@ def zenoh_errors(action: str) -> Iterator[None]:
     try:
         yield
     except zenoh.ZError as exc:
-        raise TransportError(f"{action} failed in Zenoh: {exc}") from exc
+        raise TransportError(f"{action} failed in Zenoh: {zenoh_message(exc)}") from exc
 
 
 def split_target(target: str) -> tuple[str, str]:
@@ -92,13 +100,20 @@ class Node:
         self.name = check_name(name, "service") if name else None
         self.keys = Keys(self.network.namespace)
         opening = time.monotonic()
-        expected = live_processes(self.network.local_port) if self.network.uses_local_default else 0
+        local = self.network.uses_local_default
+        expected = live_nodes(self.network.local_port) if local else 0
+        # This session's own listeners are the ones that appear while it opens: the process
+        # may listen for other nodes of other rendezvous too, which must not be announced.
+        before = set(listening_endpoints()) if local else set()
         self._session = _open(self.network)
-        if self.network.uses_local_default:
+        if local:
             self._await_peers(expected, opening + RENDEZVOUS_WAIT_S)
         self._announced = (
-            announce(self.network.local_port, listening_endpoints())
-            if self.network.uses_local_default
+            announce(
+                self.network.local_port,
+                [e for e in listening_endpoints() if e not in before],
+            )
+            if local
             else None
         )
         self._loop = NodeLoop(self.name or "client", on_stall=self._stalled)
@@ -117,11 +132,18 @@ class Node:
         retention: Retention | None = None,
         inline_max_bytes: int = _DEFAULT_INLINE_BYTES,
         xml_limits: XmlLimits = DEFAULT_LIMITS,
+        horizon_s: float = HORIZON_NS / 1e9,
     ) -> Producer:
-        """Offer a named buffer ``<node name>/<buffer>`` holding metadata of ``kind``."""
+        """Offer a named buffer ``<node name>/<buffer>`` holding metadata of ``kind``.
+
+        ``put`` refuses elements stamped more than ``horizon_s`` ahead of this process's
+        clock (``now_ns``), so one future stamp cannot stop its consumers' time order.
+        """
         if self.name is None:
             raise ConfigError("only a named Node can offer buffers: Node('camera', ...)")
         check_name(buffer, "buffer")
+        if not (math.isfinite(horizon_s) and horizon_s > 0):
+            raise ConfigError(f"horizon_s must be a finite number of seconds > 0, got {horizon_s}")
         from ._xml import _schema  # a missing kind should fail here, not at the first put
 
         _schema(kind)
@@ -140,6 +162,7 @@ class Node:
                 inline_max_bytes=inline_max_bytes,
                 xml_limits=xml_limits,
                 loop=self._loop,
+                horizon_ns=int(horizon_s * 1e9),
             )
             self._endpoint.add(producer)
         return producer
@@ -153,6 +176,7 @@ class Node:
         mode: SubscriptionMode = SubscriptionMode.DEFAULT,
         wait_s: float = 2.0,
         push_max_bytes: int | None = None,
+        await_service: bool = False,
     ) -> Subscription:
         """Subscribe to ``service/buffer`` notifications with a queue of ``queue_size``.
 
@@ -160,10 +184,16 @@ class Node:
         producer's ``inline_max_bytes``, 64 KiB by default); larger ones are fetched by
         ``Subscription.fetch`` with one query. A consumer that takes every element (a
         detector) asks for everything pushed; one that picks some (an inspector) does not.
-        Waits up to ``wait_s`` for a live producer to register the subscription; if the
-        service is not up yet, returns anyway (it registers when the service appears).
+        Waits up to ``wait_s`` for a live producer to register the subscription.
+
+        A service that is not live within ``wait_s`` is a NotFoundError naming the live
+        ones (a misspelt name fails here, not silently later); with ``await_service=True``
+        the subscription is returned anyway and registers when the service appears (a
+        consumer started before its producer, as ``launch`` does).
         """
         service, buffer = split_target(target)
+        if not await_service:
+            self._await_live(service, wait_s)
         with zenoh_errors(f"subscribing to {target}"):
             sub = Subscription(
                 self._session,
@@ -327,7 +357,19 @@ class Node:
             names = [str(r.ok.key_expr)[len(prefix) :] for r in replies if r.ok is not None]
         return sorted(set(names))
 
-    def _require_service(self, service: str) -> None:
+    def _await_live(self, service: str, wait_s: float) -> None:
+        """Return once ``service`` is live; NotFoundError (as ``_require_service``) if it is
+        not within ``wait_s`` (a service being started is given that long)."""
+        deadline = time.monotonic() + wait_s
+        while time.monotonic() < deadline:
+            if service in self.live_services(timeout_s=min(1.0, max(0.1, wait_s))):
+                return
+            time.sleep(0.05)
+        self._require_service(
+            service, " (to subscribe before it starts: subscribe(..., await_service=True))"
+        )
+
+    def _require_service(self, service: str, advice: str = "") -> None:
         live = self.live_services()
         if service not in live:
             hint = difflib.get_close_matches(service, live, n=1)
@@ -335,6 +377,7 @@ class Node:
             listing = ", ".join(live) if live else "none"
             raise NotFoundError(
                 f"no live service named {service!r}{did_you_mean}; live services: {listing}"
+                + advice
             )
 
     def services(self, *, timeout_s: float = 2.0) -> list[ServiceInfo]:
@@ -436,7 +479,10 @@ def _open(network: NetworkConfig) -> zenoh.Session:
         except zenoh.ZError as exc:
             last = exc
     where = ", ".join(network.connect or network.listen) or f"local port {network.local_port}"
-    raise TransportError(f"cannot open a Zenoh session ({where}): {last}") from last
+    raise TransportError(
+        f"cannot open a Zenoh session ({where}): {zenoh_message(last) if last else 'no config'}; "
+        f"check the endpoints ({ENDPOINT_FORM}) and that each to listen on is free on this host"
+    ) from last
 
 
 def _error_from_reply(target: str, text: str) -> QueryError:

@@ -143,7 +143,7 @@ class Producer:
     def name(self) -> str:
         return f"{self.service}/{self.buffer}"
 
-    # -- Zenoh input (zenoh-python's callback thread: short, never calls Zenoh) -----------
+    # -- Zenoh input (zenoh-python's callback threads: short, never call Zenoh) -----------
     def _on_token(self, sample: zenoh.Sample) -> None:
         alive = sample.kind == zenoh.SampleKind.PUT
         with self._cond:
@@ -422,6 +422,31 @@ class Producer:
                 if event.epoch is not None:
                     with self._lock:
                         self._protocol.send_failed(event.key, event.epoch)
+
+    def discard_after(self, timestamp_ns: int, reason: str) -> int:
+        """Remove the elements stamped after ``timestamp_ns`` so that later puts may be
+        stamped from there on; how many there were. Counted in ``info`` as skipped by
+        ``reason`` and logged.
+
+        For a stage whose input started over earlier in time (a camera restarted after its
+        clock was stepped back, a rogue's future stamp): the removed elements came from a
+        clock now known to be wrong. Subscribers that were notified of them keep what was
+        pushed to them; a fetch of a removed one finds nothing.
+        """
+        with self._lock:
+            removed = self.series.discard_after(timestamp_ns)
+            if removed:
+                skipped = self._counters.skipped
+                skipped[reason] = skipped.get(reason, 0) + len(removed)
+        if removed:
+            log.warning(
+                "%s: %d elements stamped after %d removed (%s): stamps continue from there",
+                self.name,
+                len(removed),
+                timestamp_ns,
+                reason,
+            )
+        return len(removed)
 
     def count_skip(self, reason: str, count: int = 1) -> None:
         """Count ``count`` elements the service chose not to put, e.g. ``late`` frames a

@@ -315,10 +315,11 @@ class ProducerProtocol:
         for reg in self._ledger.registrations():
             node, host = self._holders.get(reg.key, (None, None))
             k = reg.key
+            # An observer is never held back: sent - acked counts what it missed too, while
+            # its queue holds at most N (flow control never exceeds N).
+            queued = min(reg.queued, k.queue_size)
             out.append(
-                SubscriptionInfo(
-                    k.sub_id, k.mode, k.queue_size, reg.queued, reg.taken_ns, node, host
-                )
+                SubscriptionInfo(k.sub_id, k.mode, k.queue_size, queued, reg.taken_ns, node, host)
             )
         return out
 

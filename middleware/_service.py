@@ -14,6 +14,7 @@ moment can both pass that check; right after declaring, each asks again and the 
 from __future__ import annotations
 
 import contextlib
+import difflib
 import json
 import logging
 import os
@@ -28,7 +29,7 @@ import zenoh
 
 from ._clock import CLOCK, now_ns
 from ._config import listening_endpoints
-from ._errors import ConfigError, FramegateError, NotFoundError, QueryError
+from ._errors import FramegateError, NameTakenError, NotFoundError, QueryError
 from ._producer import Producer
 from ._records import BufferInfo, DataObject
 from ._timerange import parse_time_range
@@ -113,8 +114,8 @@ def _instances(session: zenoh.Session, keys: Keys, service: str) -> list[dict[st
     return found or [{"host": "an unknown host", "pid": "unknown"}]
 
 
-def _taken(service: str, other: dict[str, Any]) -> ConfigError:
-    return ConfigError(
+def _taken(service: str, other: dict[str, Any]) -> NameTakenError:
+    return NameTakenError(
         f"service {service!r} is already offered by pid {other.get('pid')} on host "
         f"{other.get('host')}; stop that instance first, or choose another name"
     )
@@ -200,10 +201,13 @@ class ServiceEndpoint:
             p for p in self.producers() if key.intersects(self._keys.data(self.service, p.buffer))
         ]
         if not matches:
-            offered = ", ".join(sorted(p.buffer for p in self.producers())) or "none"
+            buffers = sorted(p.buffer for p in self.producers())
+            asked = str(query.key_expr).rsplit("/", 1)[-1]
+            close = difflib.get_close_matches(asked, buffers, n=1)
+            hint = f" (did you mean {close[0]!r}?)" if close else ""
             raise NotFoundError(
-                f"service {self.service!r} has no buffer matching "
-                f"{str(query.key_expr).split('/', 1)[-1]!r} (it offers: {offered})"
+                f"service {self.service!r} has no buffer {asked!r}{hint}; "
+                f"it offers: {', '.join(buffers) or 'none'}"
             )
         # The stub types Parameters.__iter__ oddly; it yields (key, value) pairs.
         parameters = dict(cast(Any, query.parameters))

@@ -37,6 +37,26 @@ def _mentioned_paths() -> list[tuple[str, str]]:
     return found
 
 
+# A placeholder in a command's synopsis (FILE, SERVICE/BUFFER, [--json], A | B).
+_PLACEHOLDER = re.compile(r"\[|\||(?<![\w-])[A-Z][A-Z/_.]*(?![\w-])")
+
+
+def _inline_commands() -> list[tuple[str, str]]:
+    """(where, text) of each whole ``framegate ...`` command quoted in the README's prose and
+    tables; synopses with placeholders are left out (their flags are in --help)."""
+    found = []
+    for number, line in enumerate(README.read_text().splitlines(), 1):
+        if line.startswith("```"):
+            continue
+        for match in re.finditer(r"`(framegate [^`]+)`", line):
+            words = match.group(1).split()[1:]
+            # `framegate record` alone names the command in a sentence; with arguments it is
+            # a command line the reader may copy.
+            if len(words) > 1 and not _PLACEHOLDER.search(" ".join(words)):
+                found.append((f"README.md:{number}", match.group(1)))
+    return found
+
+
 def _command_lines() -> list[tuple[str, list[str]]]:
     """(where, words after ``framegate``) of each command in README code blocks and in the
     deploy files' comments."""
@@ -56,6 +76,7 @@ def _command_lines() -> list[tuple[str, list[str]]]:
                 # A command (`framegate ...`, `robot$ framegate ...`), not prose naming it.
                 if re.match(r"([\w-]*\$\s*)?framegate\s", text):
                     lines.append((f"{doc.name}:{number}", text))
+    lines += _inline_commands()
     commands = []
     for where, line in lines:
         code = re.sub(r"^\s*[\w-]*\$\s*", "", line)  # a `robot$ ` prompt
@@ -89,7 +110,26 @@ def test_every_path_the_docs_name_exists(doc: str, path: str) -> None:
     assert exists, f"{doc} names {path}, which does not exist"
 
 
-@pytest.mark.parametrize(("where", "words"), _command_lines())
+# Command lines the README shows that do not parse yet, in sections this test's owners do
+# not edit; strict, so that the fix makes this list shrink.
+KNOWN_BROKEN: set[str] = set()  # command lines the README is known to show wrongly
+
+
+def _command_params() -> list[object]:
+    return [
+        pytest.param(
+            where,
+            words,
+            id=f"{where}:{shlex.join(words)}",
+            marks=[pytest.mark.xfail(strict=True, reason="the README shows it wrongly")]
+            if shlex.join(words) in KNOWN_BROKEN
+            else [],
+        )
+        for where, words in _command_lines()
+    ]
+
+
+@pytest.mark.parametrize(("where", "words"), _command_params())
 def test_every_command_line_in_the_docs_parses(where: str, words: list[str]) -> None:
     if "--help" in words or "-h" in words:
         return  # asks for help: nothing else to parse

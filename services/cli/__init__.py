@@ -11,6 +11,7 @@ so ``ls`` does not pay for OpenCV, NumPy or the Foxglove bridge.
 
 from __future__ import annotations
 
+import argparse
 import importlib
 import sys
 from collections.abc import Sequence
@@ -21,7 +22,7 @@ from services.lib.argtypes import FramegateParser, print_error
 COMMANDS: dict[str, str] = {
     "demo": "run the whole pipeline on this host with a live status view",
     "launch": "start the services a deploy file assigns to this host",
-    "run": "start one service (camera, gyro, mediator, detector)",
+    "run": "start one service (camera, gyro, mediator, detector, ros2)",
     "ls": "list live services, their buffers and who subscribes",
     "info": "describe a buffer: retention, size, span, rate, subscriptions, counters",
     "query": "print (or save) the elements of a buffer in a time range",
@@ -42,6 +43,24 @@ COMMANDS: dict[str, str] = {
 }
 
 
+def _version() -> str:
+    """The installed distribution's version, looked up only when asked."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("framegate")
+    except PackageNotFoundError:  # run from a source tree that was never installed
+        return "unknown (not installed)"
+
+
+class _VersionAction(argparse.Action):
+    """``framegate --version`` (listed by ``--help``)."""
+
+    def __call__(self, parser: argparse.ArgumentParser, *_: object) -> None:
+        print(f"framegate {_version()}")
+        parser.exit(0)
+
+
 def build_parser(only: str | None = None) -> FramegateParser:
     """The top-level parser; with ``only`` (a command name) that command fully registered.
 
@@ -53,6 +72,9 @@ def build_parser(only: str | None = None) -> FramegateParser:
         description="Named, flow-controlled camera/gyro buffers over Zenoh, and the "
         "blur-aware mediator that keeps blurred frames away from vision code.",
         epilog="framegate COMMAND --help describes a command.",
+    )
+    parser.add_argument(
+        "--version", action=_VersionAction, nargs=0, help="print framegate's version and exit"
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, summary in COMMANDS.items():
@@ -66,6 +88,9 @@ def build_parser(only: str | None = None) -> FramegateParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``framegate`` console script."""
     words = list(sys.argv[1:] if argv is None else argv)
+    if "--version" in words:  # after a command too: `framegate ls --version`
+        print(f"framegate {_version()}")
+        return 0
     chosen = next((w for w in words if not w.startswith("-")), None)
     parser = build_parser(chosen if chosen in COMMANDS else None)
     try:

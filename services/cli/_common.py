@@ -113,3 +113,11 @@ def notifications(sub: Subscription, duration_s: float | None) -> Iterator[Notif
         note = sub.take(timeout_s=wait_s)
         if note is not None:
             yield note
+
+
+def report_failures(failures: list[str]) -> int:
+    """Print each of a supervisor's ``failures`` as ``error: ...`` on stderr; the exit code
+    (1 if there was any)."""
+    for line in failures:
+        print(f"error: {line}", file=sys.stderr, flush=True)
+    return 1 if failures else 0

@@ -59,14 +59,16 @@ def unreachable(net: NetworkConfig, timeout_s: float = 1.0) -> str | None:
     """
     for endpoint in net.connect:
         proto, _, address = endpoint.partition("/")
-        if proto not in ("tcp", "tls") or ":" not in address:
-            continue
-        host, _, port = address.split("#", 1)[0].rpartition(":")
+        if proto not in ("tcp", "tls"):
+            continue  # udp, quic, serial...: no connection to try
+        host, _, port = address.split("#", 1)[0].split("?", 1)[0].rpartition(":")
+        if not host or not port.isdigit():
+            return f"{endpoint} (no port number: write {proto}/HOST:PORT)"
         try:
             with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s):
                 pass
-        except (OSError, ValueError) as exc:
-            reason = getattr(exc, "strerror", None) or str(exc) or type(exc).__name__
+        except OSError as exc:
+            reason = exc.strerror or str(exc) or type(exc).__name__
             return f"{endpoint} ({reason})"
     return None
 

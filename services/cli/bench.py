@@ -18,6 +18,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from services.lib.argtypes import positive_float, positive_int
 from services.tools.bench import SCENARIO_NAMES, BenchError, BenchOptions, format_table, run_bench
 
 from ._common import command_parser, exit_on_sigterm
@@ -37,13 +38,16 @@ def register(subparsers: Any) -> None:
     )
     parser.add_argument(
         "--duration",
-        type=float,
+        type=positive_float,
         metavar="S",
         help="measured seconds per sample (4, quick 0.5); also the hostile scenario's "
         "window (120, quick 10)",
     )
     parser.add_argument(
-        "--pairs", type=int, metavar="N", help="raw/framegate run pairs per row (3, quick 1)"
+        "--pairs",
+        type=positive_int,
+        metavar="N",
+        help="raw/framegate run pairs per row (3, quick 1)",
     )
     parser.add_argument("--json", metavar="FILE", help="also write the full report as JSON")
     parser.add_argument(

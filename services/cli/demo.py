@@ -3,15 +3,22 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 from typing import Any
 
-from services.lib.argtypes import non_negative_float, positive_float, positive_int
+from services.lib.argtypes import non_negative_float, non_negative_int, positive_float, positive_int
 from services.lib.decisions import POLICIES
 from services.lib.sim import ScenarioConfig
 from services.tools.demo import SOURCES, DemoConfig, print_summary, run_demo
 
-from ._common import command_parser, network, print_json, stop_on_signals
+from ._common import (
+    command_parser,
+    network,
+    print_json,
+    report_failures,
+    stop_on_signals,
+)
 
 
 def register(subparsers: Any) -> None:
@@ -26,7 +33,7 @@ def register(subparsers: Any) -> None:
     parser.add_argument(
         "--duration", type=positive_float, default=d.duration_s, help="seconds to run"
     )
-    parser.add_argument("--seed", type=int, default=d.seed, help="simulator seed")
+    parser.add_argument("--seed", type=non_negative_int, default=d.seed, help="simulator seed")
     parser.add_argument(
         "--policy", choices=sorted(POLICIES), default=d.policy, help="the mediator's policy"
     )
@@ -72,9 +79,10 @@ def run(args: argparse.Namespace) -> int:
         cache=args.cache,
         show_logs=args.logs,
     )
-    summary = run_demo(config, network(args), stop)
+    # With --json, stdout is the summary alone; the status lines go to stderr.
+    summary = run_demo(config, network(args), stop, status_out=sys.stderr if args.json else None)
     if args.json:
         print_json(summary)
     else:
         print_summary(summary)
-    return 0
+    return report_failures(summary.get("failures", []))

@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from services.lib.argtypes import non_negative_float, positive_float, positive_int
+from services.lib.argtypes import non_negative_float, non_negative_int, positive_float, positive_int
 from services.lib.quality import DEFAULT_B0_PX
 
 from ._common import exit_on_sigterm
@@ -35,7 +35,7 @@ def register(subparsers: Any) -> None:
     )
     parser.add_argument("--out", type=Path, required=True, help="directory for the outputs")
     parser.add_argument(
-        "--seeds", type=int, nargs="+", default=None, metavar="SEED",
+        "--seeds", type=non_negative_int, nargs="+", default=None, metavar="SEED",
         help="simulator seeds, one approach each (default 1 2 3 4 5; --quick: 1)",
     )  # fmt: skip
     parser.add_argument(

@@ -6,13 +6,16 @@ from __future__ import annotations
 import argparse
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from middleware import BufferInfo, Node, ServiceInfo, check_name
 
 from ._common import command_parser, format_bytes, format_ns, network, print_json
 from ._target import add_timeout_argument, resolve, wait_for_service
-from .ls import holder, listen_of, listen_text
+from .ls import clock_steps_text, holder, listen_of, listen_text
+
+if TYPE_CHECKING:  # the bag code loads MCAP: only `info FILE.mcap` pays for it
+    from services.tools.bag import ChannelInfo
 
 
 def register(subparsers: Any) -> None:
@@ -59,6 +62,8 @@ def service_json(info: ServiceInfo) -> dict[str, Any]:
         "pid": info.pid,
         "clock_offset_ns": info.clock_offset_ns,
         "round_trip_ns": info.round_trip_ns,
+        "clock_steps": info.clock_steps,
+        "clock_lead_ns": info.clock_lead_ns,
         "listen": list(listen_of(info)),
     }
 
@@ -105,6 +110,7 @@ def _print_buffer(service: ServiceInfo, b: BufferInfo) -> None:
     print(
         f"  service        host {service.host}, pid {service.pid}, "
         f"clock offset {offset_ms:+.1f} ms (round trip {rtt_ms:.1f} ms)"
+        f"{clock_steps_text(service)}"
     )
     print(f"  listens on     {listen_text(listen_of(service))}")
     print(
@@ -149,6 +155,13 @@ def _recording(args: argparse.Namespace, path: Path) -> int:
     print("Channels:")
     width = max((len(c.topic) for c in info.channels), default=0)
     for c in info.channels:
-        kind = f" ({c.kind})" if c.kind else ""
-        print(f"  {c.topic:<{width}}  {c.messages:>8} msgs  {c.schema}{kind}")
+        print(channel_line(c, width))
     return 0
+
+
+def channel_line(channel: ChannelInfo, width: int) -> str:
+    """One channel of ``info FILE.mcap``: topic, message count, schema and framegate kind."""
+    kind = f" ({channel.kind})" if channel.kind else ""
+    # A schemaless channel (the JSON verdicts and gyro rates) would leave the column blank.
+    schema = channel.schema or "no schema"
+    return f"  {channel.topic:<{width}}  {channel.messages:>8} msgs  {schema}{kind}"

@@ -1,6 +1,7 @@
 """``framegate launch FILE [--host NAME]``: start this host's services from a deploy file.
 
-``--check`` validates the file and prints the plan without starting anything. While it
+``--check`` validates the file and prints the plan without starting anything (``--json``:
+as JSON). While it
 runs, ``--status`` prints one line per service every few seconds (pid, uptime, restarts,
 each buffer's rate). One launcher per deploy file and host: a second one refuses at once,
 naming the first one's pid. A service that died by a signal is reported, and the launcher
@@ -11,12 +12,11 @@ from __future__ import annotations
 
 import argparse
 import shlex
-import sys
 import threading
 from pathlib import Path
 from typing import Any
 
-from middleware import NetworkConfig
+from middleware import ConfigError, NetworkConfig
 from services.launch import (
     Deployment,
     LaunchLock,
@@ -27,7 +27,7 @@ from services.launch import (
 )
 from services.lib.argtypes import positive_float
 
-from ._common import command_parser, network, stop_on_signals
+from ._common import command_parser, network, print_json, report_failures, stop_on_signals
 
 DEFAULT_STATUS_S = 5.0
 STATUS_COLUMNS = 100
@@ -35,7 +35,10 @@ STATUS_COLUMNS = 100
 
 def register(subparsers: Any) -> None:
     parser = command_parser(
-        subparsers, "launch", "start the services a deploy file assigns to this host"
+        subparsers,
+        "launch",
+        "start the services a deploy file assigns to this host",
+        json_flag=True,
     )
     parser.add_argument("file", help="deploy file (YAML), e.g. deploy/local.yaml")
     parser.add_argument("--host", help="which host of the file this machine is")
@@ -72,7 +75,7 @@ def _plan(args: argparse.Namespace) -> tuple[Deployment, list[ProcessSpec]]:
 def print_plan(deployment: Deployment, host: str | None, specs: list[ProcessSpec]) -> None:
     """What ``launch`` would start, one block per process."""
     where = f" on host {host}" if host else ""
-    print(f"{deployment.path}: {len(specs)} processes{where}")
+    print(f"{deployment.path}: {len(specs)} process{'' if len(specs) == 1 else 'es'}{where}")
     by_name = {s.name: s for s in deployment.services}
     for spec in specs:
         svc = by_name[spec.name]
@@ -82,6 +85,26 @@ def print_plan(deployment: Deployment, host: str | None, specs: list[ProcessSpec
         command = " ".join(shlex.quote(a) for a in spec.argv[3:])
         print(f"    framegate {command}")
     print("ok: nothing started (--check)")
+
+
+def plan_json(deployment: Deployment, host: str | None, specs: list[ProcessSpec]) -> Any:
+    """The plan of ``--check --json``: each process with its type, host and command line."""
+    by_name = {s.name: s for s in deployment.services}
+    return {
+        "file": str(deployment.path),
+        "host": host,
+        "processes": [
+            {
+                "name": spec.name,
+                "type": by_name[spec.name].type,
+                "host": by_name[spec.name].host,
+                "restart": spec.restart,
+                "command": ["framegate", *spec.argv[3:]],
+            }
+            for spec in specs
+        ],
+        "started": False,
+    }
 
 
 def _duration(seconds: float | None) -> str:
@@ -151,10 +174,33 @@ def _status_loop(
             node.close()
 
 
+def _refuse_if_running(net: NetworkConfig, names: list[str]) -> None:
+    """ConfigError if a service this launch would start is live already (a demo, another
+    deploy file): each of ours would fail to offer its name and be restarted in a loop.
+    A router this launch starts is not up yet, so nothing is found then: no false alarm."""
+    from middleware import Node
+
+    with Node(network=net) as node:
+        live = set(node.live_services())
+        taken = [name for name in names if name in live]
+        if not taken:
+            return
+        where = {i.service: f"pid {i.pid} on host {i.host}" for i in node.services(timeout_s=1.0)}
+    raise ConfigError(
+        f"service {taken[0]!r} is live already ({where.get(taken[0], 'another process')}); "
+        "stop it first (a demo, or a launch of another file), or rename the service"
+    )
+
+
 def run(args: argparse.Namespace) -> int:
+    if args.json and not args.check:
+        raise ConfigError("--json prints the plan of --check; a running launch prints its logs")
     deployment, specs = _plan(args)
     if args.check:
-        print_plan(deployment, args.host, specs)
+        if args.json:
+            print_json(plan_json(deployment, args.host, specs))
+        else:
+            print_plan(deployment, args.host, specs)
         return 0
     with LaunchLock(args.file, args.host):
         return _launch(args, deployment, specs)
@@ -162,14 +208,15 @@ def run(args: argparse.Namespace) -> int:
 
 def _launch(args: argparse.Namespace, deployment: Deployment, specs: list[ProcessSpec]) -> int:
     stop = stop_on_signals()
+    chosen = [s for s in deployment.for_host(args.host) if s.type != "router"]
+    net = network(args, deployment.network_for(chosen[0]) if chosen else None)
+    _refuse_if_running(net, [s.name for s in chosen])
     supervisor = Supervisor(specs, colour=False if args.no_colour else None)
     names = ", ".join(s.name for s in specs)
     print(f"launching {names} (Ctrl-C stops everything)", flush=True)
     status_stop = threading.Event()
     status: threading.Thread | None = None
     if args.status is not None:
-        chosen = [s for s in deployment.for_host(args.host) if s.type != "router"]
-        net = network(args, deployment.network_for(chosen[0]) if chosen else None)
         status = threading.Thread(
             target=_status_loop,
             args=(supervisor, net, args.status, status_stop, lambda t: print(t, flush=True)),
@@ -187,7 +234,4 @@ def _launch(args: argparse.Namespace, deployment: Deployment, specs: list[Proces
         status_stop.set()
         if status is not None:
             status.join()
-    deaths = supervisor.signal_deaths()
-    for name, how in deaths.items():
-        print(f"error: {name} {', '.join(how)}", file=sys.stderr, flush=True)
-    return 1 if deaths else 0
+    return report_failures(supervisor.failures())

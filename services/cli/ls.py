@@ -15,7 +15,7 @@ from services.lib.argtypes import positive_float, positive_int
 from services.lib.clock import CLOCK_WARN_NS, ClockEstimate, clock_warning, estimate_clocks
 
 from ._common import command_parser, format_bytes, format_ns, network, print_json
-from ._target import unreachable
+from ._target import unreachable, where
 
 
 def register(subparsers: Any) -> None:
@@ -70,6 +70,16 @@ def listen_text(endpoints: Sequence[str]) -> str:
     )
 
 
+def clock_steps_text(info: ServiceInfo) -> str:
+    """``, clock stepped 2x (lead +20.0 s)`` when the service's system clock stepped, else ''.
+
+    Its stamps never went backward (see the README's *Time model*); the lead is how far its
+    process clock is still ahead of its system clock after a backward step."""
+    if not info.clock_steps:
+        return ""
+    return f", clock stepped {info.clock_steps}x (lead {(info.clock_lead_ns or 0) / 1e9:+.1f} s)"
+
+
 def listen_of(info: ServiceInfo) -> tuple[str, ...]:
     """What the service's process listens on (empty from a service too old to say)."""
     return tuple(getattr(info, "listen", ()))
@@ -116,7 +126,7 @@ def run(args: argparse.Namespace) -> int:
         print_json({"services": [service_json(i, clocks.get(i.service)) for i in infos]})
         return 0
     if not infos:
-        print("no live services")
+        print(f"no live services {where(net)}")
         return 0
     warnings = []
     for info in infos:
@@ -132,7 +142,8 @@ def run(args: argparse.Namespace) -> int:
                 warnings.append(text)
         print(
             f"{info.service}  (host {info.host}, pid {info.pid}, "
-            f"clock {offset_ns / 1e6:+.1f} ms ±{error_ns / 1e6:.1f}){warn}"
+            f"clock {offset_ns / 1e6:+.1f} ms ±{error_ns / 1e6:.1f}{clock_steps_text(info)})"
+            f"{warn}"
         )
         if listen := listen_of(info):
             print(f"  listens on {listen_text(listen)}")

@@ -26,6 +26,7 @@ from middleware import (
     Retention,
     check_name,
 )
+from services.lib.argtypes import non_negative_float
 
 from ._common import command_parser, exit_on_sigterm, format_ns, network
 from ._target import print_json_line
@@ -50,7 +51,7 @@ def register(subparsers: Any) -> None:
     parser.add_argument("file", type=Path, metavar="FILE.mcap", help="made by `framegate record`")
     parser.add_argument(
         "--rate",
-        type=float,
+        type=non_negative_float,
         default=1.0,
         metavar="R",
         help="pace factor (default 1: as recorded; 0: as fast as flow control allows)",
@@ -80,7 +81,7 @@ def register(subparsers: Any) -> None:
     )
     parser.add_argument(
         "--start-delay",
-        type=float,
+        type=non_negative_float,
         default=0.5,
         metavar="S",
         help="seconds between offering and the first element, for subscribers to register",

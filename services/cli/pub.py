@@ -4,6 +4,7 @@ Like ``ros2 topic pub``: it starts a service named SERVICE for as long as it run
 BUFFER with metadata of kind K, puts ``--count`` schema-valid test elements at ``--rate``
 (stamped with this process's clock), keeps answering queries for ``--linger`` seconds so
 that subscribers can fetch the last one, then ends. SERVICE must not be live already.
+``--json`` prints JSON Lines: a ``published`` event per element, then a ``done`` event.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from middleware import ConfigError, Node, make_metadata, now_ns, split_target
 from services.lib.argtypes import non_negative_float, non_negative_int, positive_float, positive_int
 
 from ._common import command_parser, network, stop_on_signals
+from ._target import print_json_line
 
 WIDTH_PX, HEIGHT_PX = 64, 48
 EXPOSURE_NS = 10_000_000
@@ -82,7 +84,10 @@ KINDS: dict[str, Callable[[int, int, float], tuple[bytes, bytes]]] = {
 
 def register(subparsers: Any) -> None:
     parser = command_parser(
-        subparsers, "pub", "publish test elements of a kind under a temporary service"
+        subparsers,
+        "pub",
+        "publish test elements of a kind under a temporary service",
+        json_flag=True,
     )
     parser.add_argument("target", metavar="SERVICE/BUFFER", help="the buffer to offer")
     parser.add_argument("--kind", required=True, choices=sorted(KINDS), help="metadata kind")
@@ -138,10 +143,20 @@ def run(args: argparse.Namespace) -> int:
             producer.put(t, payload, metadata)
             last_t = t
             put += 1
-            print(f"published {producer.name} #{put} at {t} ({len(payload)} bytes)", flush=True)
+            if args.json:
+                print_json_line(
+                    {"event": "published", "target": producer.name, "index": put,
+                     "timestamp_ns": t, "payload_bytes": len(payload)}
+                )  # fmt: skip
+            else:
+                print(f"published {producer.name} #{put} at {t} ({len(payload)} bytes)", flush=True)
             if put < args.count:
                 stop.wait(period_s)
         _linger(stop, args.linger)
+    if args.json:
+        print_json_line(
+            {"event": "done", "target": args.target, "kind": args.kind, "published": put}
+        )
     print(f"published {put} {args.kind} elements to {service}/{buffer}", file=sys.stderr)
     return 0
 

@@ -33,6 +33,7 @@ from middleware import (
     SubscriptionMode,
     TimeRange,
 )
+from services.lib.argtypes import positive_float, positive_int
 
 from ._common import command_parser, exit_on_sigterm, format_bytes, network, print_json
 from ._target import add_timeout_argument, resolve
@@ -64,13 +65,13 @@ def register(subparsers: Any) -> None:
     parser.add_argument(
         "-o", "--output", required=True, type=Path, metavar="FILE.mcap", help="the MCAP file"
     )
-    parser.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+    parser.add_argument("--duration", type=positive_float, metavar="S", help="stop after S seconds")
     parser.add_argument(
-        "--count", type=int, metavar="K", help="stop after K elements of each buffer"
+        "--count", type=positive_int, metavar="K", help="stop after K elements of each buffer"
     )
     parser.add_argument(
         "--queue",
-        type=int,
+        type=positive_int,
         default=DEFAULT_QUEUE,
         metavar="N",
         help=f"observer queue size (default {DEFAULT_QUEUE}); misses are backfilled anyway",

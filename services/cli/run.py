@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from middleware import add_network_arguments
-from services.lib.argtypes import FramegateParser
+from middleware import EXIT_NAME_TAKEN, NameTakenError, add_network_arguments
+from services.lib.argtypes import FramegateParser, print_error
 from services.nodes import SERVICES, describe, exit_with_parent, service
 
 from ._common import command_parser, network, stop_on_signals
@@ -14,7 +14,10 @@ from ._common import command_parser, network, stop_on_signals
 
 def register(subparsers: Any) -> None:
     parser = command_parser(
-        subparsers, "run", "start one service (camera, gyro, mediator, detector)", network=False
+        subparsers,
+        "run",
+        "start one service (camera, gyro, mediator, detector, ros2)",
+        network=False,
     )
     # The service's own flags are parsed in run(): registering them here would import all
     # four services (OpenCV, SciPy) for every command and slow every restart.
@@ -42,4 +45,9 @@ def run(args: argparse.Namespace) -> int:
     # One Ctrl-C or SIGTERM sets ``stop``; the service returns and closes its session.
     stop = stop_on_signals()
     exit_with_parent(stop)
-    return svc.run(config, network(parsed), stop)
+    try:
+        return svc.run(config, network(parsed), stop)
+    except NameTakenError as exc:
+        # Its own exit code: a supervisor (launch) must not restart what cannot start.
+        print_error(str(exc))
+        return EXIT_NAME_TAKEN

@@ -11,7 +11,7 @@ from typing import Any
 from tqdm import tqdm
 
 from middleware import ConfigError
-from services.lib.argtypes import positive_float, positive_int
+from services.lib.argtypes import non_negative_int, positive_float, positive_int
 from services.lib.sim import (
     ScenarioConfig,
     read_dataset,
@@ -31,7 +31,7 @@ def register(subparsers: Any) -> None:
         "Parameters: defaults, then --config, then --set, then the named flags.",
     )
     parser.add_argument("--out", type=Path, required=True, help="dataset directory to write")
-    parser.add_argument("--seed", type=int, help="random seed (default 0)")
+    parser.add_argument("--seed", type=non_negative_int, help="random seed (default 0)")
     parser.add_argument("--frames", type=positive_int, help="number of frames (default 319)")
     parser.add_argument("--exposure-ms", type=positive_float, help="exposure time (default 60)")
     parser.add_argument(

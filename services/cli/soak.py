@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from services.lib.argtypes import non_negative_float, positive_float, positive_int
+from services.lib.argtypes import non_negative_float, non_negative_int, positive_float, positive_int
 from services.tools.soak import SoakConfig, format_report, run_soak
 
 from ._common import command_parser, stop_on_signals
@@ -59,7 +59,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--rate", type=positive_float, default=d.rate, help="scenario speed of camera and gyro"
     )
-    parser.add_argument("--seed", type=int, default=d.seed, help="simulator seed")
+    parser.add_argument("--seed", type=non_negative_int, default=d.seed, help="simulator seed")
     parser.add_argument(
         "--service-factor",
         type=non_negative_float,

@@ -7,6 +7,7 @@ import shutil
 import sys
 from typing import Any
 
+from services.lib.argtypes import positive_float, positive_int
 from services.tools.view import (
     DEFAULT_BACKLOG,
     DEFAULT_HOST,
@@ -51,19 +52,19 @@ def register(subparsers: Any) -> None:
     )
     parser.add_argument(
         "--queue",
-        type=int,
+        type=positive_int,
         default=DEFAULT_QUEUE,
         metavar="N",
         help=f"observer queue per frame buffer (default {DEFAULT_QUEUE}; others hold at least 32)",
     )
     parser.add_argument(
         "--backlog",
-        type=int,
+        type=positive_int,
         default=DEFAULT_BACKLOG,
         metavar="N",
         help="messages buffered per client before its oldest are dropped",
     )
-    parser.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+    parser.add_argument("--duration", type=positive_float, metavar="S", help="stop after S seconds")
     add_timeout_argument(parser)
     parser.epilog = (
         "Open Foxglove, choose 'Open connection', 'Foxglove WebSocket', ws://127.0.0.1:8765, "

@@ -8,7 +8,9 @@ SIGTERM, waits up to 1.5 s, then SIGKILLs.
 
 A process that dies by a signal (an abort in native code, a kill by someone else) is said
 so by name, and counted in ``signal_deaths``: a launcher reports it and exits non-zero. The
-SIGKILL ``stop`` itself sends to a process that would not stop is not counted.
+SIGKILL ``stop`` itself sends to a process that would not stop is not counted. A process
+that exits with ``EXIT_NAME_TAKEN`` (another live instance offers its service name) is not
+restarted: it could not start while that one lives, and retrying would starve it.
 
 No orphans: every child gets ``FRAMEGATE_PARENT_PID`` and the read end of a pipe whose
 write end only this process holds (``FRAMEGATE_PARENT_FD``). The child
@@ -31,6 +33,8 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import IO
+
+from middleware import EXIT_NAME_TAKEN
 
 _COLOURS = ("36", "33", "35", "32", "34", "31", "96", "93")
 _BACKOFF_START_S = 0.2
@@ -156,6 +160,14 @@ class Supervisor:
                     running.next_start = float("inf")
                     self._emit(running, f"{exit_text(code)}; not restarting")
                     continue
+                if code == EXIT_NAME_TAKEN:
+                    # Another live instance holds the name (a second launcher, a copy of the
+                    # deploy file): restarting would only storm the host and starve it.
+                    running.next_start = float("inf")
+                    self._emit(
+                        running, "its service name is taken by another instance; not restarting"
+                    )
+                    continue
                 if now - running.started_at > HEALTHY_AFTER_S:
                     running.backoff_s = 0.0
                 running.next_start = now + running.backoff_s
@@ -193,6 +205,10 @@ class Supervisor:
         """Current pid of every process (None while waiting to restart)."""
         return {r.spec.name: (r.proc.pid if r.proc else None) for r in self._running}
 
+    def name_taken(self) -> list[str]:
+        """Processes that stopped because another live instance offers their service name."""
+        return [r.spec.name for r in self._running if r.exit_codes[-1:] == [EXIT_NAME_TAKEN]]
+
     def restarts(self) -> dict[str, int]:
         return {r.spec.name: r.restarts for r in self._running}
 
@@ -212,6 +228,16 @@ class Supervisor:
             if deaths:
                 out[running.spec.name] = deaths
         return out
+
+    def failures(self) -> list[str]:
+        """One line per process a launcher must report (and then exit non-zero): each that
+        died by a signal, and each that could not start because its name is taken."""
+        deaths = [f"{name} {', '.join(how)}" for name, how in self.signal_deaths().items()]
+        taken = [
+            f"{name} did not start: another live instance offers its name"
+            for name in self.name_taken()
+        ]
+        return deaths + taken
 
     def stop(self, timeout_s: float = 1.5) -> None:
         """SIGTERM every process, wait up to ``timeout_s``, then SIGKILL what is left.

@@ -1,4 +1,5 @@
-"""The four service processes and their one registry.
+"""The service processes (camera, gyro, mediator, detector, the ROS 2 bridge) and their
+one registry.
 
 ``SERVICES`` lists the service types; ``service(name)`` imports only that one's module and
 returns its :class:`~services.nodes._contract.Service`, so ``framegate ls`` never pays for
@@ -31,9 +32,10 @@ def service(name: str) -> AnyService:
 
 
 def describe(name: str) -> str:
-    """First line of the service module's docstring (for ``framegate run --help``)."""
+    """First paragraph of the service module's docstring, on one line (for ``framegate run
+    --help``)."""
     module = importlib.import_module(_MODULES[name])
-    return (module.__doc__ or name).strip().splitlines()[0]
+    return " ".join((module.__doc__ or name).strip().split("\n\n")[0].split())
 
 
 __all__ = ["SERVICES", "Service", "describe", "exit_with_parent", "service"]

@@ -168,7 +168,10 @@ class ClockOffsets:
     ours and the round trip that bounds its error (NTP-style); the camera-minus-gyro
     offset is that of the sample with the shortest round trips among the last
     ``_OFFSET_SAMPLES``, its uncertainty half the sum of those round trips. Unknown (None)
-    until both have answered.
+    until both have answered. The samples describe two particular clocks: when either
+    service is another process (restarted, or a rogue that held the name before) or its
+    clock has stepped since, they are forgotten, or a camera restarted after a clock error
+    would be judged by the clock it no longer has for up to ``_OFFSET_SAMPLES`` periods.
 
     Threads: one daemon thread asks (it only calls ``Node.services``); ``_lock`` guards
     the samples.
@@ -181,6 +184,8 @@ class ClockOffsets:
         self._samples: collections.deque[tuple[int, int]] = collections.deque(
             maxlen=_OFFSET_SAMPLES
         )
+        # (host, pid, clock steps) of camera and gyro when the samples were taken.
+        self._clocks: tuple[tuple[str, int, int | None], ...] | None = None
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True, name="clock-offsets")
@@ -201,8 +206,18 @@ class ClockOffsets:
             return
         offset = camera.clock_offset_ns - gyro.clock_offset_ns
         error = ((camera.round_trip_ns or 0) + (gyro.round_trip_ns or 0)) // 2
+        clocks = tuple((s.host, s.pid, s.clock_steps) for s in (camera, gyro))
         with self._lock:
+            if clocks != self._clocks:
+                self._samples.clear()
+                self._clocks = clocks
             self._samples.append((offset, error))
+
+    def forget(self) -> None:
+        """Drop the samples (a source started over): unknown until measured again."""
+        with self._lock:
+            self._samples.clear()
+            self._clocks = None
 
     def current(self) -> tuple[int, int] | None:
         """(camera - gyro offset, its uncertainty) in ns, or None while unknown: the recent

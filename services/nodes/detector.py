@@ -66,6 +66,7 @@ def run(config: DetectorConfig, network: NetworkConfig, stop: threading.Event | 
             mode=SubscriptionMode.OBSERVE if config.observe else SubscriptionMode.FLOW,
             wait_s=0,
             push_max_bytes=PUSH_ALL,
+            await_service=True,  # a pipeline starts every service at once
         )
         log.info(
             "detector: %s (queue %d, processing >= %.0f ms)",
@@ -94,6 +95,11 @@ def run(config: DetectorConfig, network: NetworkConfig, stop: threading.Event | 
                     (d.marker_id, [c for corner in d.corners_px for c in corner]) for d in found
                 ]
                 processing_ns = int((time.monotonic() - started) * 1e9)
+                newest = detections.series.newest_ns
+                if newest is not None and element.timestamp_ns <= newest:
+                    # Our input went back in time (the mediator removed frames stamped by a
+                    # wrong clock): so do our detections, or none could follow.
+                    detections.discard_after(element.timestamp_ns - 1, "rewound")
                 try:
                     detections.put(
                         element.timestamp_ns,

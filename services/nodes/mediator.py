@@ -37,7 +37,10 @@ frames are the decider's (``out-of-order``).
 Time and stalls: a frame stamped more than ``horizon_s`` ahead of our clock is skipped
 (``future-stamp``) before it can become the time-order reference; a new epoch of the camera
 stream (a restarted camera, our subscription registered again) restarts the time order, and
-the frames the camera stored in the gap get ``mediator-lapsed`` records. Camera and gyro
+the frames the camera stored in the gap get ``mediator-lapsed`` records. A new stream that
+starts before frames already forwarded (a camera restarted after its clock was stepped back,
+after a rogue's future stamp) removes those from ``images`` (counted skipped ``rewound``) so
+that its frames can follow at once; the detector does the same with its detections. Camera and gyro
 clocks are compared every 2 s (``ClockOffsets``); beyond ``max_clock_offset`` of the exposure
 frames are not paired (``clock-offset``). Once a flow-controlled consumer has been seen, its
 lapsed subscription counts as a full queue (``consumer-lapsed``), never as load 0.
@@ -196,9 +199,15 @@ class Mediator:
         )
         # Every frame is taken and assessed, so frames come pushed with their notification.
         self._camera = node.subscribe(
-            config.camera, queue_size=config.camera_queue, wait_s=0, push_max_bytes=PUSH_ALL
+            config.camera,
+            queue_size=config.camera_queue,
+            wait_s=0,
+            push_max_bytes=PUSH_ALL,
+            await_service=True,  # a pipeline starts every service at once
         )
-        self._gyro = GyroCache(node.subscribe(config.gyro, queue_size=256, wait_s=0))
+        self._gyro = GyroCache(
+            node.subscribe(config.gyro, queue_size=256, wait_s=0, await_service=True)
+        )
         self._offsets = ClockOffsets(
             node, split_target(config.camera)[0], split_target(config.gyro)[0]
         )
@@ -243,7 +252,17 @@ class Mediator:
             # A new epoch of the camera's stream (it restarted, or our subscription was
             # registered again): its frames are judged afresh, not against the old ones.
             self.log.info("camera stream started over (seq %d): time order restarts", note.seq)
-            self.decider.restart_order(self._newest_put_ns)
+            floor = self._newest_put_ns
+            if floor is not None and note.timestamp_ns <= floor:
+                # It starts before frames we forwarded: those were stamped by a clock now
+                # known to be wrong (a camera restarted after its clock was stepped back, a
+                # rogue's future stamp). Kept, they would hold every later frame out of the
+                # detector's time-ordered buffer for as long as the error.
+                self.images.discard_after(note.timestamp_ns - 1, "rewound")
+                floor = self.images.series.newest_ns or 0
+                self._newest_put_ns = floor or None
+            self.decider.restart_order(floor)
+            self._offsets.forget()  # maybe another process, another clock
             self._record_missed(note.timestamp_ns)
         self._camera_seq = note.seq
         if note.timestamp_ns > now_ns() + self._horizon_ns:
@@ -408,10 +427,11 @@ class Mediator:
         agree = measured is None or abs(measured[0]) - measured[1] <= limit_ns
         if agree != self._offset_ok:
             self._offset_ok = agree
-            assert measured is not None
-            if agree:
+            if agree and measured is None:  # a source restarted: its clock not measured yet
+                self.log.warning("camera or gyro started over: paired again until measured")
+            elif agree and measured is not None:
                 self.log.warning("camera and gyro clocks agree again (%+.1f ms)", measured[0] / 1e6)
-            else:
+            elif measured is not None:
                 self.log.warning(
                     "camera clock is %+.3f s (+-%.3f) off the gyro's, more than %g of the "
                     "%.0f ms exposure: frames are not paired with gyro samples (clock-offset) "

@@ -297,7 +297,7 @@ def open_gyro_source(spec: SourceSpec) -> GyroSource:
 
 def add_source_arguments(parser: argparse.ArgumentParser, *, device: bool) -> None:
     """--source and how to play it, shared by camera and gyro."""
-    from services.lib.argtypes import positive_float, positive_int
+    from services.lib.argtypes import non_negative_int, positive_float, positive_int
 
     kinds = list(KINDS) if device else [k for k in KINDS if k != "device"]
     parser.add_argument("--source", choices=kinds, default="sim", help="where data comes from")
@@ -306,7 +306,9 @@ def add_source_arguments(parser: argparse.ArgumentParser, *, device: bool) -> No
         help="dataset directory (replay), cache directory (prerendered)"
         + (" or device index/URL" if device else ""),
     )
-    parser.add_argument("--seed", type=int, default=1, help="simulator seed (sim, prerendered)")
+    parser.add_argument(
+        "--seed", type=non_negative_int, default=1, help="simulator seed (sim, prerendered)"
+    )
     parser.add_argument(
         "--floor",
         default="default",

@@ -29,7 +29,7 @@ import time
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TextIO
 
 from middleware import BufferInfo, ConfigError, FramegateError, NetworkConfig, Node
 from services.launch import (
@@ -201,8 +201,8 @@ def _gain_text(filtered: int, uncontrolled: int) -> str:
 
 # Printed once above the status lines: what each group means.
 STATUS_LEGEND = (
-    "cam: frames, rate, late skips | med: frames the mediator forwarded (in), left out (out),\n"
-    "load | markers: recognitions behind the mediator vs by the uncontrolled detector, gain"
+    "cam: frames, rate, late skips | med: frames the mediator forwarded (fwd) and left out\n"
+    "(left), load | found: markers recognized behind the mediator vs uncontrolled, gain"
 )
 
 
@@ -213,8 +213,8 @@ def status_line(counts: dict[str, Any], seen: dict[str, int], elapsed_s: float) 
     filtered, raw = seen.get(FILTERED, 0), seen.get(UNCONTROLLED, 0)
     line = (
         f"{elapsed_s:5.1f}s cam {counts['frames']:5d} {counts['camera_hz']:4.1f}/s "
-        f"{counts['late']:4d} late | med {counts['accepted']:5d} in {counts['rejected']:5d} "
-        f"out load {counts['load']:.2f} | markers {filtered:5d} vs {raw:5d} "
+        f"{counts['late']:4d} late | med {counts['accepted']:5d} fwd {counts['rejected']:5d} "
+        f"left load {counts['load']:.2f} | found {filtered:5d} vs {raw:5d} "
         f"{_gain_text(filtered, raw)}"
     )
     return line[:STATUS_COLUMNS]
@@ -245,15 +245,40 @@ class MarkerTally:
         return sum(self.seen.values())
 
 
+def refuse_if_running(node: Node, names: list[str]) -> None:
+    """ConfigError if a service of the demo is live already (another demo or a launch on
+    this rendezvous): ours would fail to offer their names and be restarted again and again,
+    while the status and the summary read the other pipeline's buffers."""
+    live = set(node.live_services())
+    taken = [name for name in names if name in live]
+    if not taken:
+        return
+    where = {i.service: f"pid {i.pid} on host {i.host}" for i in node.services(timeout_s=1.0)}
+    first = taken[0]
+    raise ConfigError(
+        f"service {first!r} is live already ({where.get(first, 'another process')}): another "
+        "demo or launch runs on this rendezvous; stop it, or give this demo its own "
+        "(FRAMEGATE_LOCAL_PORT=7448 framegate demo)"
+    )
+
+
 def run_demo(
-    config: DemoConfig, network: NetworkConfig, stop: threading.Event | None = None
+    config: DemoConfig,
+    network: NetworkConfig,
+    stop: threading.Event | None = None,
+    *,
+    status_out: TextIO | None = None,
 ) -> dict[str, Any]:
-    """Run the pipeline for ``duration_s`` (or until ``stop``) with a status line per second;
-    return a summary read from the services' buffers."""
+    """Run the pipeline for ``duration_s`` (or until ``stop``) with a status line per second
+    on ``status_out`` (stdout; stderr when stdout carries JSON); return a summary read from
+    the services' buffers."""
     stop = stop or threading.Event()
+    out = status_out or sys.stdout
+    specs = process_specs(demo_deployment(config), None, network)
+    with Node(network=network) as node:  # before minutes of rendering, not after
+        refuse_if_running(node, [spec.name for spec in specs])
     if not prerender(config, stop):
         return {}
-    specs = process_specs(demo_deployment(config), None, network)
     supervisor = Supervisor(specs, quiet=not config.show_logs)
     started = time.monotonic()
     last_print = 0.0
@@ -275,12 +300,13 @@ def run_demo(
             last_print = now
             refresh()
             seen = {name: t.total for name, t in tallies.items()}
-            print(status_line(counts, seen, now - started), flush=True)
+            print(status_line(counts, seen, now - started), file=out, flush=True)
             # The last reading is taken while the services still run.
             if now - started >= config.duration_s - 1.0:
                 stop.set()
 
-        print(STATUS_LEGEND, flush=True)
+        refuse_if_running(node, [spec.name for spec in specs])  # one started while we rendered
+        print(STATUS_LEGEND, file=out, flush=True)
         supervisor.start()
         try:
             supervisor.run(None, on_tick=tick, stop=stop)
@@ -293,6 +319,8 @@ def run_demo(
         "source": config.source,
         "floor": config.floor,
         "restarts": supervisor.restarts(),
+        # Children that died by a signal or found their name taken: the CLI exits 1.
+        "failures": supervisor.failures(),
         "markers": {
             name: {
                 "filtered": tallies[FILTERED].seen[name],
@@ -307,6 +335,27 @@ def run_demo(
     }
 
 
+# Below this share of its frames the camera did not keep its rate (it warns at the same 90 %).
+KEPT_RATE_SHARE = 0.9
+
+
+def _late_note(summary: dict[str, Any]) -> str:
+    """A line saying why the camera skipped many frames, or "". The demo hides the services'
+    logs, so the camera's own warning (below 90 % of its rate) is not seen without --logs."""
+    frames, late = summary["frames"], summary["late"]
+    if frames + late == 0 or frames >= KEPT_RATE_SHARE * (frames + late):
+        return ""
+    why = (
+        "rendering live is too slow here; --source prerendered keeps the rate"
+        if summary["source"] == "sim"
+        else "the machine is busy; --logs shows the camera's own warning"
+    )
+    kept_pct = 100 * frames / (frames + late)
+    return (
+        f"              it kept {kept_pct:.0f} % of its frames (below 90 %):\n              {why}\n"
+    )
+
+
 def print_summary(summary: dict[str, Any]) -> None:
     """The summary as a short table: recognitions per marker, filtered vs uncontrolled."""
     if not summary:
@@ -316,6 +365,7 @@ def print_summary(summary: dict[str, Any]) -> None:
         f"\nsummary after {summary['duration_s']} s ({summary['source']} camera, "
         f"{summary['floor']} floor, policy {summary['policy']}):\n"
         f"  camera      {summary['frames']} frames, {summary['late']} skipped late\n"
+        f"{_late_note(summary)}"
         f"  mediator    {summary['accepted']} forwarded, {summary['rejected']} left out "
         f"(load {summary['load']:.2f})\n"
         f"  detectors   {summary['processed_filtered']} frames processed behind the "

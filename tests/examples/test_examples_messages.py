@@ -90,3 +90,63 @@ def test_query_with_a_bad_range_is_one_line() -> None:
     finally:
         offer.kill()
         offer.wait()
+
+
+@pytest.mark.parametrize(
+    ("script", "args", "expected"),
+    [
+        ("offer.py", ("--period-s", "nan"), "argument --period-s: must be a number of seconds >= 0"),  # noqa: E501
+        ("offer.py", ("--period-s", "-1"), "argument --period-s: must be a number of seconds >= 0"),
+        ("offer.py", ("--wait-s", "inf"), "argument --wait-s: must be a number of seconds >= 0"),
+        ("offer.py", ("--count", "-3"), "argument --count: must be an integer >= 0"),
+        ("subscribe.py", ("--delay-s", "nan"), "argument --delay-s: must be a number of seconds >= 0"),  # noqa: E501
+        ("subscribe.py", ("--count", "-1"), "argument --count: must be an integer >= 1"),
+        ("subscribe.py", ("--queue", "0"), "argument --queue: must be an integer >= 1"),
+    ],
+)  # fmt: skip
+def test_flag_values_that_would_crash_or_do_nothing_are_refused_as_parsed(
+    script: str, args: tuple[str, ...], expected: str
+) -> None:
+    proc = _start(script, "--connect", f"tcp/127.0.0.1:{free_port()}", *args)
+    _out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 2, err  # argparse's own usage error
+    assert "Traceback" not in err and expected in err, err
+
+
+def test_subscribe_to_an_example_that_is_not_running_says_so() -> None:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    with subprocess.Popen(  # something to connect to, but no example service
+        [sys.executable, "-m", "services.cli", "router", "--listen", endpoint],
+        env=child_env(),
+        cwd=REPO,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    ) as router:
+        try:
+            err = _one_line_error(_start("subscribe.py", "--connect", endpoint, "--count", "1"))
+        finally:
+            router.send_signal(signal.SIGINT)
+            router.wait(timeout=30)
+    assert "service 'example' is not live" in err and "offer.py" in err, err
+
+
+def test_subscribe_and_query_show_a_binary_payload_by_its_size() -> None:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    sub = _start("subscribe.py", "t/img", "--connect", endpoint, "--count", "2")
+    pub = subprocess.Popen(  # 64x48 mono8 test frames: no text to print
+        [sys.executable, "-m", "services.cli", "pub", "t/img", "--kind", "frame", "--count", "3",
+         "--rate", "5", "--wait-subscribers", "1", "--timeout", "60", "--linger", "30",
+         "--listen", endpoint],
+        env=child_env(), cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        out, err = sub.communicate(timeout=90)
+        assert sub.returncode == 0 and "Traceback" not in err, err
+        assert out.count(": 3072 bytes") == 2, out
+        query = _start("query.py", "t/img", "--connect", endpoint, "--range", "[now(-60s)..]")
+        out, err = query.communicate(timeout=60)
+        assert query.returncode == 0 and "Traceback" not in err, err
+        assert out.count(": 3072 bytes") >= 2 and "\\x" not in out, out
+    finally:
+        pub.kill()
+        pub.wait()

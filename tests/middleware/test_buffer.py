@@ -152,3 +152,21 @@ def test_batches_evict_exactly_as_single_appends_by_the_rule(
     expected = _kept_by_rule(elements, r)
     assert series.range() == expected
     assert series.total_bytes == sum(e.size_bytes for e in expected)
+
+
+@given(
+    st.lists(st.integers(1, 1000), unique=True).map(sorted),
+    st.integers(0, 1001),
+    st.integers(1, 5),
+)
+def test_discard_after_removes_exactly_the_newer_and_lets_older_stamps_follow(
+    stamps: list[int], cut: int, keep: int
+) -> None:
+    series = _series(stamps, Retention(max_count=keep, max_bytes=None))
+    held = [e.timestamp_ns for e in series.range()]
+    removed = series.discard_after(cut)
+    assert [e.timestamp_ns for e in removed] == [t for t in held if t > cut]
+    assert [e.timestamp_ns for e in series.range()] == [t for t in held if t <= cut]
+    assert series.total_bytes == 2 * len(series)  # b"p" + b"m" each
+    series.append(DataObject(cut + 1, b"p", b"m"))  # stamps continue from the cut
+    assert series.newest_ns == cut + 1

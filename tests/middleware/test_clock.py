@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
-from middleware import SteadyClock
+import pytest
+
+from middleware import SteadyClock, _clock
 from middleware._clock import SLEW_RATE
+from middleware._timerange import parse_time_range
 
 S = 1_000_000_000
 
@@ -60,3 +63,20 @@ def test_small_drift_is_not_a_step_and_readings_strictly_increase() -> None:
     clocks.wall += 10_000_000  # 10 ms: NTP slewing, not a step
     clock.now_ns()
     assert steps == []
+
+
+def test_a_time_query_now_continues_across_a_backward_step(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """``[now(-2s)..]`` after a backward step of the system clock still means the last 2 s
+    of stamps: ``now()`` is the process clock, which did not go back with the system's."""
+    clocks = FakeClocks()
+    clock = SteadyClock(wall=lambda: clocks.wall, monotonic=lambda: clocks.mono)
+    monkeypatch.setattr(_clock, "CLOCK", clock)
+    stamped = _clock.now_ns()  # an element stamped just before the step
+    clocks.wall -= 60 * S  # chrony's makestep, backward
+    clocks.advance(S // 2)
+    window = parse_time_range("[now(-2s)..]")
+    assert window.start_ns is not None
+    assert window.start_ns <= stamped < window.start_ns + 2 * S, (window, stamped)
+    assert abs(window.start_ns - (stamped + S // 2 - 2 * S)) < S // 10

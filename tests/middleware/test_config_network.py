@@ -15,7 +15,7 @@ import pytest
 import zenoh
 
 from middleware import ConfigError, NetworkConfig, Node, check_name
-from middleware._config import listening_endpoints
+from middleware._config import listening_endpoints, zenoh_message
 from tests.conftest import REPO, NodeProcess, child_env, free_port, wait_until
 
 
@@ -152,3 +152,17 @@ def test_peers_given_only_connect_mesh_through_a_loopback_hub(
     for process in (producer, consumer):
         ips = _listeners(process.proc.pid)
         assert ips and all(ipaddress.ip_address(ip).is_loopback for ip in ips), ips
+
+
+def test_a_zenoh_error_reads_without_rust_source_paths(tmp_path: Path) -> None:
+    path = tmp_path / "bad.json5"
+    path.write_text('{ connect: { endpoints: ["bogus"] } }')
+    with pytest.raises(zenoh.ZError) as info:
+        zenoh.Config.from_file(str(path))
+    assert zenoh_message(info.value) == (
+        "Endpoints must be of the form <protocol>/<address>[?<metadata>][#<config>]: bogus "
+        "(line 1, column 26)"
+    )
+    with pytest.raises(ConfigError, match=r"cannot read Zenoh config .*: Endpoints must") as bad:
+        NetworkConfig(config_file=path).zenoh_configs()
+    assert ".rs:" not in str(bad.value)

@@ -10,6 +10,7 @@ import pytest
 from middleware import (
     ConfigError,
     FlowControlRefused,
+    NetworkConfig,
     Node,
     NotFoundError,
     RegistrationRefused,
@@ -111,6 +112,16 @@ def test_an_element_stamped_beyond_the_horizon_is_refused(listen_net) -> None:
         t = now_ns()
         images.put(t, b"x", _meta(t))  # a sane stamp after it is stored
         assert images.info().rejected == 1 and images.info().count == 1
+
+
+def test_the_horizon_is_chosen_at_offer(listen_net) -> None:
+    with Node("cam", listen_net) as service:
+        images = service.offer("images", horizon_s=1.0)
+        ahead = now_ns() + 3 * 10**9  # inside the default 10 s, beyond this buffer's 1 s
+        with pytest.raises(SchemaError, match="1 s ahead"):
+            images.put(ahead, b"x", _meta(ahead))
+        with pytest.raises(ConfigError, match="horizon_s"):
+            service.offer("other", horizon_s=float("nan"))
 
 
 def test_one_timer_thread_per_node_however_many_buffers_and_subscriptions(
@@ -264,3 +275,19 @@ def test_a_flood_of_forged_messages_loses_nothing_accepted_and_blocks_nobody(
             rogue.join()
         assert taken == list(range(1, 61))
         assert sub.garbage > 0
+
+
+def test_subscribe_to_a_service_that_is_not_live_is_refused_unless_awaited(
+    listen_net, connect_net
+) -> None:
+    with Node("camera", listen_net) as service, Node(network=connect_net) as client:
+        service.offer("images")
+        with pytest.raises(NotFoundError, match=r"'camra' \(did you mean 'camera'\?\)"):
+            client.subscribe("camra/images", wait_s=0.2)
+        early = client.subscribe("later/data", wait_s=0, await_service=True)
+        with Node("later", NetworkConfig(connect=connect_net.connect)) as later:
+            data = later.offer("data")
+            assert data.wait_for_subscribers(1, timeout_s=10)  # registered when it appeared
+            data.put(1, b"x", _meta(1))
+            note = early.take(timeout_s=5)
+            assert note is not None and note.timestamp_ns == 1

@@ -147,7 +147,7 @@ def test_observer_never_refuses_and_reports_missed(
             _put(images, t)
         assert images.fill() == 0.0  # observers are not load
         assert images.info().refused == 0
-        assert images.subscriptions()[0].queued == 10
+        assert images.subscriptions()[0].queued == 2  # its queue holds 2; 8 were missed
         stats = wait_until(
             lambda: (r := observer.call("stats", target="cam/images"))["missed_total"] == 8 and r,
             5,
@@ -217,7 +217,7 @@ def test_bad_input_gets_an_error_and_the_service_keeps_answering(
             client._get("cam/images", {"bogus": "1"}, 5.0)
         with pytest.raises(QueryError, match="last='x' is not an integer"):
             client._get("cam/images", {"last": "x"}, 5.0)
-        with pytest.raises(NotFoundError, match="no buffer matching 'cam/imgs'"):
+        with pytest.raises(NotFoundError, match=r"no buffer 'imgs' \(did you mean 'images'\?\)"):
             client.query("cam/imgs")
         with pytest.raises(
             NotFoundError, match=r"no live service named 'camm' \(did you mean 'cam'"

@@ -131,7 +131,7 @@ def test_second_process_offering_a_live_name_across_processes(
     assert first.call("offer", buffer="images")["ok"]
     second = node_process("cam", "--connect", endpoint)
     refused = second.call("offer", buffer="images")
-    assert refused["error"] == "ConfigError"
+    assert refused["error"] == "NameTakenError"  # a ConfigError, with its own exit code
     assert "already offered by pid" in refused["message"], refused
     # The first keeps serving; once it is gone, a restart takes the name over.
     consumer = node_process(None, "--connect", endpoint)

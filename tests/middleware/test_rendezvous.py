@@ -2,16 +2,20 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
+import subprocess
+import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
 from middleware import NetworkConfig, Node, make_metadata
 from middleware._rendezvous import directory, known_peers
-from tests.conftest import free_port, wait_until
+from tests.conftest import REPO, child_env, free_port, wait_until
 
 
 @pytest.mark.integration
@@ -43,10 +47,10 @@ def test_dead_processes_leave_no_trace_in_the_directory(
     monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))
     folder = directory(4242)
     folder.mkdir(parents=True)
-    (folder / "999999999").write_text("tcp/127.0.0.1:5555\n")  # no such pid
-    (folder / str(os.getppid())).write_text("tcp/127.0.0.1:6666\ntcp/0.0.0.0:7777\n")
+    (folder / "999999999-1").write_text("tcp/127.0.0.1:5555\n")  # no such pid
+    (folder / f"{os.getppid()}-1").write_text("tcp/127.0.0.1:6666\ntcp/0.0.0.0:7777\n")
     assert known_peers(4242) == ["tcp/127.0.0.1:6666"]  # loopback only, the live one
-    assert not (folder / "999999999").exists()
+    assert not (folder / "999999999-1").exists()
 
 
 @pytest.mark.integration
@@ -70,3 +74,113 @@ def test_a_subscriber_resumed_after_a_stop_registers_again_and_says_why(
         images.put(1, b"x", make_metadata("generic", 1))
         assert sub.call("take", target="cam/images", timeout=5.0)["notification"]["t"] == 1
         wait_until(lambda: "did not run for" in capfd.readouterr().err, 5.0, "the stop logged")
+
+
+def _framegate(argv: list[str], port: int, runtime: Path) -> subprocess.Popen[str]:
+    env = child_env()
+    env["FRAMEGATE_LOCAL_PORT"] = str(port)
+    env["XDG_RUNTIME_DIR"] = str(runtime)
+    return subprocess.Popen(
+        [sys.executable, "-m", "services.cli", *argv],
+        cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )  # fmt: skip
+
+
+def _run(argv: list[str], port: int, runtime: Path) -> tuple[int, str, float]:
+    """``framegate ARGV`` to its end: exit code, output, seconds taken."""
+    start = time.monotonic()
+    proc = _framegate(argv, port, runtime)
+    out, _ = proc.communicate(timeout=60)
+    return proc.returncode, out, time.monotonic() - start
+
+
+def _holder_of(port: int) -> int | None:
+    """The pid listening on the rendezvous port (from /proc/net/tcp and the fd tables)."""
+    inode = None
+    for line in Path("/proc/net/tcp").read_text().splitlines()[1:]:
+        fields = line.split()
+        if fields[1] == f"0100007F:{port:04X}" and fields[3] == "0A":  # LISTEN
+            inode = fields[9]
+    if inode is None:
+        return None
+    for fd_dir in Path("/proc").glob("[0-9]*/fd"):
+        with contextlib.suppress(OSError):
+            for fd in fd_dir.iterdir():
+                with contextlib.suppress(OSError):
+                    if os.readlink(fd) == f"socket:[{inode}]":
+                        return int(fd_dir.parent.name)
+    return None
+
+
+@pytest.fixture
+def frozen_holder(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[tuple[int, Path]]:
+    """A rendezvous whose port holder (a gyro) is stopped with SIGSTOP, beside a live gyro2."""
+    port, runtime = free_port(), tmp_path / "run"
+    runtime.mkdir()
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(runtime))
+    hub = _framegate(["run", "gyro", "--source", "sim", "--loop"], port, runtime)
+    other: subprocess.Popen[str] | None = None
+    try:
+        wait_until(lambda: _holder_of(port) == hub.pid, 60, "the first gyro on the port")
+        with Node(network=NetworkConfig(local_port=port)) as probe:
+            wait_until(lambda: "gyro" in probe.live_services(), 60, "the first gyro")
+            other = _framegate(["run", "gyro", "--source", "sim", "--loop", "--name", "gyro2"],
+                               port, runtime)  # fmt: skip
+            wait_until(lambda: "gyro2" in probe.live_services(), 60, "gyro2")
+        os.kill(hub.pid, signal.SIGSTOP)
+        # Past the lease, so that the others have dropped it too.
+        wait_until(lambda: Path(f"/proc/{hub.pid}/stat").read_text().split()[2] == "T", 5, "stop")
+        yield port, runtime
+    finally:
+        os.kill(hub.pid, signal.SIGCONT)
+        for proc in (hub, other):
+            if proc is not None and proc.poll() is None:
+                proc.send_signal(signal.SIGINT)
+                try:
+                    proc.wait(timeout=20)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+                    proc.wait()
+
+
+@pytest.mark.integration
+def test_ls_query_and_watch_work_while_the_port_holder_is_frozen(
+    frozen_holder: tuple[int, Path],
+) -> None:
+    port, runtime = frozen_holder
+    code, out, _ = _run(["ls"], port, runtime)
+    assert code == 0 and "gyro2" in out, out
+    code, out, _ = _run(["query", "gyro2/rates", "--last", "1"], port, runtime)
+    assert code == 0 and "1 elements" in out, out
+    code, out, _ = _run(["watch", "gyro2/rates", "--count", "3", "--timeout", "30"], port, runtime)
+    assert code == 0 and "seq" in out, out
+
+
+@pytest.mark.integration
+def test_ls_ends_promptly_while_the_port_holder_is_frozen(frozen_holder: tuple[int, Path]) -> None:
+    code, out, took = _run(["ls"], *frozen_holder)
+    assert code == 0 and "gyro2" in out, out
+    assert took < 4.0, f"ls took {took:.1f} s"
+
+
+@pytest.mark.integration
+def test_a_process_on_two_rendezvous_ports_keeps_them_apart(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))
+    first, second = free_port(), free_port()
+    with (
+        Node(network=NetworkConfig(local_port=first)),
+        Node(network=NetworkConfig(local_port=second)),
+    ):
+
+        def announced(port: int) -> set[str]:
+            return {
+                endpoint
+                for path in directory(port).glob(f"{os.getpid()}-*")
+                for endpoint in path.read_text().split()
+            }
+
+        on_first, on_second = announced(first), announced(second)
+        assert f"tcp/127.0.0.1:{first}" in on_first and on_second, (on_first, on_second)
+        assert not on_first & on_second, (on_first, on_second)

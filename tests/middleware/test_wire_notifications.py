@@ -134,7 +134,7 @@ def test_a_subscription_counts_malformed_compact_headers_as_garbage(
         (b"xyz", _array("E.1", 1, [7, 8], [META, META], [1, 1], None, None)),  # 3 != 1 + 1
     ]
     with Node(network=listen_net) as client:
-        sub = client.subscribe("cam/images", queue_size=2, wait_s=0)
+        sub = client.subscribe("cam/images", queue_size=2, wait_s=0, await_service=True)
         key = f"framegate/@notify/cam/images/{sub.subscription_id}"
 
         def valid(seq: int) -> bytes:

@@ -1,5 +1,6 @@
-"""The ``ros2`` bridge: ROS 2 cameras and IMUs in, filtered frames and detections out, over
-rmw_zenoh's wire protocol with no ROS 2 installed.
+"""The ``ros2`` bridge: a ROS 2 node on rmw_zenoh's wire protocol, with no ROS 2 installed.
+
+ROS 2 cameras and IMUs come in, filtered frames, detections and verdicts go out.
 
 ``framegate run ros2 --image-in /camera/image_raw --imu-in /imu/data --image-out
 mediator/images=/framegate/image`` makes one ROS 2 node (``ros2 node list`` shows it) whose

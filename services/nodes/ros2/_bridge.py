@@ -28,8 +28,9 @@ and anything unforeseen with one message is logged with its traceback (``interna
 while the bridge goes on.
 
 Threads: Zenoh's callback thread only appends to the in-queues (see ``_link``); one thread
-per input decodes and puts; one thread per output takes, encodes and publishes; the caller's
-thread waits for ``stop``. Each in-queue is guarded by its condition; ``_Skips`` by its lock.
+per input decodes and puts; one thread per output takes, encodes and publishes; one watches
+for the ROS 2 router (``_link.watch_router``); the caller's thread waits for ``stop``. Each
+in-queue is guarded by its condition; ``_Skips`` by its lock.
 """
 
 from __future__ import annotations
@@ -65,8 +66,8 @@ from services.nodes.gyro import sample_elements
 
 from ._cdr import CHANNELS, DETECTIONS, IMAGE, IMU, STRING, CdrError, Codec
 from ._config import Mapping, Ros2Config
-from ._link import RosLink, RosPublisher
-from ._rmw import Attachment, type_hash
+from ._link import RosLink, RosPublisher, watch_router
+from ._rmw import Attachment, TopicCheck, dds_type_name, type_hash
 
 _NS = "{urn:framegate:1}"
 # How long an output thread waits for a notification before looking at ``stop``.
@@ -88,9 +89,7 @@ class _Skips:
             self.counts[reason] += 1
             first = self.counts[reason] == 1
         if producer is not None:
-            count_skip: Callable[[str], None] | None = getattr(producer, "count_skip", None)
-            if count_skip is not None:
-                count_skip(reason)
+            producer.count_skip(reason)
         if first:
             self._log.warning("skipping (%s; counted, warned once): %s", reason, detail)
 
@@ -336,6 +335,7 @@ class Output:
             mode=SubscriptionMode.OBSERVE,
             wait_s=0,
             push_max_bytes=PUSH_ALL,
+            await_service=True,  # the services it carries may start after it
         )
         self.published = 0
 
@@ -485,6 +485,24 @@ def run(config: Ros2Config, network: NetworkConfig, stop: threading.Event | None
             or "-",
             ", ".join(f"{o.mapping.buffer} -> {o.mapping.topic}" for o in outputs) or "-",
         )
+        expected = {
+            topic: (dds_type_name(ros_type), hashed(ros_type))
+            for topic, ros_type in (
+                *((t, r) for t, r in ((config.image_in, IMAGE), (config.imu_in, IMU)) if t),
+                *((m.topic, IMAGE) for m in config.image_out),
+                *((m.topic, DETECTIONS) for m in config.detections_out),
+                *((m.topic, STRING) for m in config.verdicts_out),
+            )
+        }
+        check = TopicCheck(link.identity.session_id, expected)
+
+        def on_token(token: str) -> None:
+            if said := check.check(token):
+                log.warning("ros2: %s", said)
+
+        link.watch_graph(on_token)
+        where = ", ".join(config.ros_connect) or "the --ros-config endpoints"
+        start("ros2-router", lambda: watch_router(link.routers, where, stop, log))
         try:
             while not stop.wait(0.5):
                 pass

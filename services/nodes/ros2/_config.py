@@ -15,6 +15,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from middleware import ConfigError, FramegateError, NetworkConfig, check_name, split_target
+from services.lib.argtypes import (
+    non_negative_float,
+    non_negative_int,
+    positive_float,
+    positive_int,
+)
 
 from ._rmw import DISTROS, History, Qos, Reliability, fully_qualified
 
@@ -169,21 +175,33 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     ros.add_argument("--ros-listen", action="append", metavar="ENDPOINT", help="listen endpoint")
     ros.add_argument("--ros-config", metavar="FILE", help="Zenoh JSON5 file for the ROS 2 session")
     ros.add_argument(
-        "--ros-distro", choices=DISTROS, default=d.ros_distro, help="type hashes of this distro"
+        "--ros-distro",
+        choices=DISTROS,
+        default=d.ros_distro,
+        help="the ROS 2 system's distro: the type hashes in keys (default %(default)s)",
     )
     ros.add_argument(
         "--domain-id",
-        type=int,
+        type=non_negative_int,
         default=int(os.environ.get("ROS_DOMAIN_ID") or 0),
         help="ROS_DOMAIN_ID (default: $ROS_DOMAIN_ID or 0)",
     )
-    ros.add_argument("--node-name", default=d.node_name, help="the bridge's ROS 2 node name")
-    ros.add_argument("--ros-namespace", default=d.ros_namespace, help="ROS 2 namespace")
+    ros.add_argument(
+        "--node-name",
+        default=d.node_name,
+        help="the bridge's ROS 2 node name (default %(default)s)",
+    )
+    ros.add_argument(
+        "--ros-namespace", default=d.ros_namespace, help="ROS 2 namespace (default %(default)s)"
+    )
     inbound = parser.add_argument_group("ROS 2 -> framegate")
     inbound.add_argument("--image-in", metavar="TOPIC", help="sensor_msgs/msg/Image -> NAME/images")
     inbound.add_argument("--imu-in", metavar="TOPIC", help="sensor_msgs/msg/Imu -> NAME/rates")
     inbound.add_argument(
-        "--exposure-ms", type=float, default=d.exposure_ms, help="exposure time of the camera"
+        "--exposure-ms",
+        type=positive_float,
+        default=d.exposure_ms,
+        help="exposure time of the camera (default %(default)s)",
     )
     inbound.add_argument("--camera-xml", help="camera description (camera metadata XML)")
     inbound.add_argument(
@@ -192,12 +210,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=d.stamp,
         help="where in the exposure header.stamp lies (default %(default)s)",
     )
-    inbound.add_argument("--gyro-batch", type=int, default=d.gyro_batch, help="IMU samples per put")
+    inbound.add_argument(
+        "--gyro-batch",
+        type=positive_int,
+        default=d.gyro_batch,
+        help="IMU samples per put (default %(default)s)",
+    )
     inbound.add_argument(
         "--gyro-wait-ms",
-        type=float,
+        type=non_negative_float,
         default=d.gyro_wait_ms,
-        help="how long a refused gyro batch waits for credit before it is dropped",
+        help="how long a refused gyro batch waits for credit before it is dropped "
+        "(default %(default)s)",
     )
     inbound.add_argument(
         "--in-reliability",
@@ -205,9 +229,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default="best_effort",
         help="QoS of the subscriptions (default: sensor data, best effort)",
     )
-    inbound.add_argument("--in-depth", type=int, default=d.in_depth, help="KEEP_LAST depth in")
     inbound.add_argument(
-        "--retention-frames", type=int, default=d.retention_frames, help="frames NAME/images keeps"
+        "--in-depth",
+        type=positive_int,
+        default=d.in_depth,
+        help="KEEP_LAST depth in (default %(default)s)",
+    )
+    inbound.add_argument(
+        "--retention-frames",
+        type=positive_int,
+        default=d.retention_frames,
+        help="frames NAME/images keeps (default %(default)s)",
     )
     outbound = parser.add_argument_group("framegate -> ROS 2")
     for flag, what in (
@@ -218,7 +250,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         outbound.add_argument(
             flag, nargs="+", action="extend", metavar="BUFFER=TOPIC", help=what + " (repeatable)"
         )
-    outbound.add_argument("--frame-id", default=d.frame_id, help="header.frame_id of outputs")
+    outbound.add_argument(
+        "--frame-id", default=d.frame_id, help="header.frame_id of outputs (default %(default)s)"
+    )
     outbound.add_argument(
         "--out-reliability",
         choices=["reliable", "best_effort"],
@@ -226,13 +260,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="QoS of the publishers (default reliable)",
     )
     outbound.add_argument(
-        "--out-depth", type=int, default=d.out_depth, help="KEEP_LAST depth out (0: keep all)"
+        "--out-depth",
+        type=non_negative_int,
+        default=d.out_depth,
+        help="KEEP_LAST depth out, 0: keep all (default %(default)s)",
     )
     outbound.add_argument(
         "--out-queue",
-        type=int,
+        type=positive_int,
         default=d.out_queue,
-        help="notification queue of each observed framegate buffer",
+        help="notification queue of each observed framegate buffer (default %(default)s)",
     )
 
 

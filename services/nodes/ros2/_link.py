@@ -8,12 +8,14 @@ subscriber with its own token. Publishers attach rmw_zenoh's per-sample attachme
 
 Threads: Zenoh's callback thread only hands each received sample's payload and attachment
 bytes to the subscription's ``on_sample`` (which must only enqueue); everything else runs
-on the caller's threads. A publisher's sequence counter is guarded by its own lock.
+on the caller's threads (``watch_router`` on one of its own, asking the session only how many
+routers it has). A publisher's sequence counter is guarded by its own lock.
 """
 
 from __future__ import annotations
 
 import contextlib
+import logging
 import threading
 import time
 from collections.abc import Callable
@@ -24,9 +26,20 @@ import zenoh
 
 from middleware import ConfigError, NetworkConfig, TransportError
 
-from ._rmw import Attachment, EntityKind, NodeIdentity, Qos, Reliability, data_key, gid
+from ._rmw import (
+    ADMIN_SPACE,
+    Attachment,
+    EntityKind,
+    NodeIdentity,
+    Qos,
+    Reliability,
+    data_key,
+    gid,
+)
 
 OnSample = Callable[[bytes, bytes | None], None]
+# How long the bridge waits for the ROS 2 router before it says none answers.
+ROUTER_WAIT_S = 3.0
 
 
 class RosPublisher:
@@ -82,8 +95,35 @@ class RosLink:
         )
         self._entities: list[RosPublisher | tuple[zenoh.Subscriber[None], zenoh.LivelinessToken]]
         self._entities = []
+        self._watchers: list[zenoh.Subscriber[None]] = []
         self._next_id = self.identity.node_id + 1
         self._node_token = self._session.liveliness().declare_token(self.identity.node_token())
+
+    def watch_graph(self, on_token: Callable[[str], None]) -> None:
+        """Call ``on_token(key)`` with the liveliness token of every ROS 2 entity of the
+        domain, present and arriving (as every rmw_zenoh node watches the graph); it runs on
+        zenoh-python's thread for this watch, one token at a time."""
+
+        def seen(sample: zenoh.Sample) -> None:
+            if sample.kind == zenoh.SampleKind.PUT:  # a new object each time: not `is`
+                on_token(str(sample.key_expr))
+
+        try:
+            watcher = self._session.liveliness().declare_subscriber(
+                f"{ADMIN_SPACE}/{self.identity.domain_id}/**",
+                zenoh.handlers.Callback(seen, indirect=True),
+                history=True,
+            )
+        except zenoh.ZError as exc:
+            raise TransportError(f"cannot watch the ROS 2 graph: {exc}") from exc
+        self._watchers.append(watcher)
+
+    def routers(self) -> int:
+        """How many Zenoh routers (``rmw_zenohd``) the session is connected to now."""
+        try:
+            return len(list(self._session.info.routers_zid()))
+        except zenoh.ZError:
+            return 0
 
     def _entity_id(self) -> int:
         entity_id, self._next_id = self._next_id, self._next_id + 1
@@ -156,6 +196,10 @@ class RosLink:
             except zenoh.ZError:
                 pass  # the session is going anyway
         self._entities.clear()
+        for watcher in self._watchers:
+            with contextlib.suppress(zenoh.ZError):
+                watcher.undeclare()
+        self._watchers.clear()
         with contextlib.suppress(zenoh.ZError):
             self._node_token.undeclare()
         self._session.close()
@@ -170,3 +214,32 @@ class RosLink:
         _tb: TracebackType | None,
     ) -> None:
         self.close()
+
+
+def watch_router(
+    routers: Callable[[], int], where: str, stop: threading.Event, log: logging.Logger
+) -> None:
+    """Warn once when no ROS 2 router answers within ROUTER_WAIT_S (as rmw_zenoh does: its
+    nodes see no other node without one), then say when one does; Zenoh keeps retrying."""
+    if stop.wait(0) or _wait_for_router(routers, stop, ROUTER_WAIT_S):
+        return
+    log.warning(
+        "ros2: no ROS 2 router at %s yet (is rmw_zenohd running? 'ros2 run rmw_zenoh_cpp "
+        "rmw_zenohd'); nothing reaches ROS 2 until one answers, still trying",
+        where,
+    )
+    if _wait_for_router(routers, stop, None):
+        log.info("ros2: connected to the ROS 2 router at %s", where)
+
+
+def _wait_for_router(
+    routers: Callable[[], int], stop: threading.Event, limit_s: float | None
+) -> bool:
+    deadline = None if limit_s is None else time.monotonic() + limit_s
+    while not stop.is_set():
+        if routers() > 0:
+            return True
+        if deadline is not None and time.monotonic() >= deadline:
+            return False
+        stop.wait(0.1)
+    return False

@@ -17,12 +17,16 @@ What a ROS 2 node using ``rmw_zenoh_cpp`` puts on Zenoh, so that the bridge look
 - QoS string: ``<reliability>:<durability>:<history>,<depth>:<deadline s>,<ns>:<lifespan
   s>,<ns>:<liveliness>,<lease s>,<ns>`` with rmw's enum numbers, each field left empty when
   it equals rmw_zenoh's default (reliable, volatile, keep-last, depth 42, infinite
-  durations, automatic liveliness): a depth-10 reliable publisher is ``::,10:,:,:,,``.
+  durations, automatic liveliness): a depth-10 reliable publisher is ``::,10:,:,:,,``. A
+  depth of 0 is first replaced by 42, as rmw_zenoh does, so keep-all is ``::2,:,:,:,,``.
 - per-sample attachment, as zenoh's ``ext`` serializer writes it: int64 sequence number,
   int64 source timestamp (ns), then the 16-byte publisher gid as a sequence (one LEB128
   length byte, 16, and the bytes) — 33 bytes, little-endian.
 - the gid of an entity is the XXH3-128 hash of its liveliness key expression, low 64 bits
   then high 64 bits, each little-endian.
+
+Other nodes' tokens are read back (:func:`parse_endpoint`) to tell a user whose topic is
+published under another type or type hash (another distro) than the bridge expects.
 
 Nothing here touches Zenoh; tests check every string against rmw_zenoh's own examples.
 """
@@ -103,10 +107,12 @@ class Qos:
         def field(value: int, default: int) -> str:
             return "" if value == default else str(int(value))
 
+        # rmw_zenoh first replaces a depth of 0 (rclcpp's keep-all) by its default depth.
+        depth = self.depth or _DEFAULT_DEPTH
         return (
             f"{field(self.reliability, Reliability.RELIABLE)}:"
             f"{field(self.durability, Durability.VOLATILE)}:"
-            f"{field(self.history, History.KEEP_LAST)},{field(self.depth, _DEFAULT_DEPTH)}:"
+            f"{field(self.history, History.KEEP_LAST)},{field(depth, _DEFAULT_DEPTH)}:"
             ",:,:,,"
         )
 
@@ -190,6 +196,72 @@ class NodeIdentity:
         return (
             f"{self._prefix(entity_id, kind)}/{mangle(topic_fqn)}/{dds_type_name(ros_type)}/"
             f"{hash_chunk}/{qos.keyexpr()}"
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class Endpoint:
+    """A publisher or subscription some ROS 2 node announced (see :func:`parse_endpoint`)."""
+
+    session_id: str
+    kind: EntityKind
+    topic: str
+    dds_type: str
+    type_hash: str
+
+
+def parse_endpoint(token: str) -> Endpoint | None:
+    """The publisher or subscription a liveliness token names; None for any other key."""
+    parts = token.split("/")
+    # Chunks after the QoS (newer rmw_zenoh may add one) do not change what is named.
+    if len(parts) < 13 or parts[0] != ADMIN_SPACE or not all(parts):
+        return None
+    kinds = {EntityKind.PUBLISHER.value, EntityKind.SUBSCRIPTION.value}
+    if parts[5] not in kinds:
+        return None
+    return Endpoint(
+        parts[2], EntityKind(parts[5]), parts[9].replace("%", "/"), parts[10], parts[11]
+    )
+
+
+class TopicCheck:
+    """Says, once per kind of mismatch, when another node's endpoint on one of the bridge's
+    topics uses another type or type hash than the bridge: their samples travel on another
+    data key, so the two never meet (the usual cause: ``--ros-distro`` is not the system's).
+
+    Feed it every liveliness token seen (one caller at a time); pure, no Zenoh.
+    """
+
+    def __init__(self, own_session_id: str, expected: dict[str, tuple[str, str]]) -> None:
+        self._own = own_session_id
+        self._expected = expected  # topic -> (DDS type name, type-hash chunk)
+        self._said: set[tuple[str, str, str]] = set()
+
+    def check(self, token: str) -> str | None:
+        """A one-line warning for a newly seen mismatch, else None."""
+        endpoint = parse_endpoint(token)
+        if endpoint is None or endpoint.session_id == self._own:
+            return None
+        expected = self._expected.get(endpoint.topic)
+        if expected is None or expected == (endpoint.dds_type, endpoint.type_hash):
+            return None
+        key = (endpoint.topic, endpoint.dds_type, endpoint.type_hash)
+        if key in self._said:
+            return None
+        self._said.add(key)
+        dds_type, hash_chunk = expected
+        role = "published" if endpoint.kind is EntityKind.PUBLISHER else "subscribed"
+        if endpoint.dds_type != dds_type:
+            hint = f"another message type: the bridge carries {dds_type} on it"
+        elif endpoint.type_hash == HUMBLE_TYPE_HASH:
+            hint = "that is a Humble system: run the bridge with --ros-distro humble"
+        elif hash_chunk == HUMBLE_TYPE_HASH:
+            hint = "that is a Jazzy or later system: give the bridge its --ros-distro"
+        else:
+            hint = "another definition of the type: check --ros-distro"
+        return (
+            f"ROS 2 topic {endpoint.topic} is {role} as {endpoint.dds_type} with type hash "
+            f"{endpoint.type_hash}, the bridge uses {hash_chunk}, so they never meet; {hint}"
         )
 
 

@@ -209,7 +209,9 @@ def fg_sub(params: dict[str, Any]) -> None:
     with Node(network=NetworkConfig(connect=(str(params["connect"]),))) as node:
 
         def consume(stream: str, target: str) -> None:
-            sub = node.subscribe(target, queue_size=4, wait_s=0, push_max_bytes=PUSH_ALL)
+            sub = node.subscribe(
+                target, queue_size=4, wait_s=0, push_max_bytes=PUSH_ALL, await_service=True
+            )
             while not stop.is_set():
                 note = sub.take(timeout_s=0.2)
                 if note is None:

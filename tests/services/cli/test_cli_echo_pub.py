@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import socket
 import time
 
@@ -50,6 +51,20 @@ def test_echo_prints_typed_fields_of_what_pub_publishes(cli: Cli, endpoint: str)
     assert first["kind"] == "frame" and first["fields"]["width_px"] == 64
     assert isinstance(first["fields"]["exposure_ns"], int)
     assert first["payload_bytes"] == 64 * 48 and first["payload"].startswith("3072 bytes, 64x48")
+
+
+@pytest.mark.integration
+def test_pub_json_prints_one_object_per_element_then_done(cli: Cli, endpoint: str) -> None:
+    pub = cli.start(
+        "pub", "t/j", "--kind", "generic", "--count", "2", "--rate", "50", "--linger", "0",
+        "--json", "--listen", endpoint, connect=False,
+    )  # fmt: skip
+    out, err = pub.communicate(timeout=60)
+    assert pub.returncode == 0, err
+    rows = [json.loads(line) for line in out.splitlines()]
+    assert [r["event"] for r in rows] == ["published", "published", "done"], out
+    assert [r["index"] for r in rows[:2]] == [1, 2] and rows[2]["published"] == 2
+    assert all(isinstance(r["timestamp_ns"], int) for r in rows[:2])
 
 
 @pytest.mark.integration

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import subprocess
 import sys
@@ -61,6 +62,16 @@ def _framegate(*args: str) -> subprocess.CompletedProcess[str]:
         (("echo", "camera/images", "--count", "-1"), "argument --count: must be an integer > 0"),
         (("pub", "t/x", "--kind", "fram"), "(did you mean frame?)"),
         (("launch", "deploy/local.yaml", "--status", "0"), "argument --status: must be a number > 0"),  # noqa: E501
+        (("record", "camera/images", "-o", "x.mcap", "--duration", "nan"), "argument --duration: must be a number > 0"),  # noqa: E501
+        (("view", "--duration", "-1"), "argument --duration: must be a number > 0"),
+        (("view", "--backlog", "0"), "argument --backlog: must be an integer > 0"),
+        (("play", "x.mcap", "--rate", "nan"), "argument --rate: must be a number >= 0"),
+        (("play", "x.mcap", "--start-delay", "inf"), "argument --start-delay: must be a number >= 0"),  # noqa: E501
+        (("bench", "--pairs", "0"), "argument --pairs: must be an integer > 0"),
+        (("demo", "--seed", "-1"), "argument --seed: must be an integer >= 0"),
+        (("soak", "--seed", "-2"), "argument --seed: must be an integer >= 0"),
+        (("simulate", "--seed", "-1", "--out", "x"), "argument --seed: must be an integer >= 0"),
+        (("experiment", "--out", "x", "--seeds", "-1"), "argument --seeds: must be an integer >= 0"),  # noqa: E501
         ((), "name a command"),
     ],
 )  # fmt: skip
@@ -73,6 +84,21 @@ def test_mistakes_are_one_line_with_exit_1(args: tuple[str, ...], expected: str)
     assert "Traceback" not in result.stderr
 
 
+def test_an_endpoint_without_a_port_is_named_with_exit_1() -> None:
+    for endpoint in ("tcp/abc", "tcp/127.0.0.1:1,bogus"):
+        result = _framegate("ls", "--connect", endpoint)
+        assert result.returncode == 1, result
+        assert result.stderr == f"error: cannot reach {endpoint} (no port number: write " + (
+            "tcp/HOST:PORT); is the router or service running there?\n"
+        ), result.stderr
+
+
+def test_ls_says_where_it_looked_when_it_finds_nobody() -> None:
+    result = _framegate("ls", "--connect", "udp/127.0.0.1:1", "--timeout", "0.5")
+    assert result.returncode == 0, result
+    assert result.stdout == "no live services via udp/127.0.0.1:1\n", result.stdout
+
+
 def test_an_unreachable_connect_endpoint_is_named_with_exit_1() -> None:
     endpoint = f"tcp/127.0.0.1:{free_port()}"  # nobody listens there
     for args in (("ls",), ("info", "camera/images", "--timeout", "1")):
@@ -83,10 +109,29 @@ def test_an_unreachable_connect_endpoint_is_named_with_exit_1() -> None:
 
 
 @pytest.mark.parametrize(
+    ("args", "expected"),
+    [
+        (("--connect", "bogus"), "error: bad endpoint 'bogus' to connect to: write PROTOCOL/"),
+        (("--listen", "tcp/"), "error: bad endpoint 'tcp/' to listen on: write PROTOCOL/"),
+        (("--connect", "foo/bar"), "error: cannot open a Zenoh session (foo/bar): Unicast not"),
+    ],
+)
+def test_a_bad_endpoint_is_one_line_naming_it_without_zenoh_source_paths(
+    args: tuple[str, ...], expected: str
+) -> None:
+    result = _framegate("ls", *args)
+    assert result.returncode == 1, result
+    assert result.stderr.startswith(expected), result.stderr
+    assert len(result.stderr.splitlines()) == 1, result.stderr
+    assert ".rs:" not in result.stderr and ".cargo" not in result.stderr, result.stderr
+
+
+@pytest.mark.parametrize(
     "code",
     [
         "main(['--help'])",
         "main(['ls', '--help'])",
+        "main(['--version'])",
         "main(['info', '--help'])",
         "build_parser('ls').parse_args(['ls'])",
         # ls run to its end (nobody answers there): what it imports to look counts too.
@@ -124,3 +169,35 @@ def test_help_lists_every_command_and_each_has_a_parser() -> None:
     for name in COMMANDS:  # each summary's module exists and registers that very command
         args = build_parser(name).parse_args([name, *REQUIRED.get(name, ())])
         assert args.command == name and callable(args.func), name
+
+
+# Number flags whose range a later check states in one line (a port, a JPEG quality).
+RANGE_CHECKED_LATER = {("view", "--port"), ("view", "--jpeg")}
+
+
+def _number_flags(parser: argparse.ArgumentParser) -> list[str]:
+    return [
+        action.option_strings[-1]
+        for action in parser._actions
+        if action.type in (int, float) and action.option_strings
+    ]
+
+
+@pytest.mark.parametrize("command", list(COMMANDS))
+def test_every_number_flag_is_checked_as_it_is_parsed(command: str) -> None:
+    # A plain int/float type lets nan, inf, 0 or -5 through to fail later, or to do nothing.
+    sub = next(
+        a for a in build_parser(command)._actions if isinstance(a, argparse._SubParsersAction)
+    )
+    unchecked = [
+        flag for flag in _number_flags(sub.choices[command])
+        if (command, flag) not in RANGE_CHECKED_LATER
+    ]  # fmt: skip
+    assert not unchecked, f"framegate {command}: {unchecked} take plain int/float"
+
+
+@pytest.mark.parametrize("args", [("--version",), ("ls", "--version")])
+def test_version_prints_the_installed_version_and_exits_0(args: tuple[str, ...]) -> None:
+    result = _framegate(*args)
+    assert result.returncode == 0 and result.stderr == "", result
+    assert result.stdout.startswith("framegate ") and len(result.stdout.splitlines()) == 1

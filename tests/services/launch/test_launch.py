@@ -115,6 +115,40 @@ def test_supervisor_restarts_a_crashing_process_and_stops_cleanly(tmp_path: Path
         os.kill(pid, 0)
 
 
+@pytest.mark.integration
+def test_a_service_whose_name_is_taken_exits_4_and_is_not_restarted(listen_net) -> None:
+    """A copy of a running deploy file (or any second instance) must not storm the host
+    with restarts that cannot succeed while the first instance lives."""
+    from middleware import EXIT_NAME_TAKEN, Node
+
+    with Node("gyro", listen_net) as first:
+        first.offer("rates")
+        argv = (
+            sys.executable, "-m", "services.cli", "run", "gyro", "--source", "sim",
+            "--connect", listen_net.listen[0],
+        )  # fmt: skip
+        lines: list[str] = []
+        supervisor = Supervisor([ProcessSpec("gyro", argv)], colour=False, out=lines.append)
+        supervisor.start()
+        try:
+            wait_until(
+                lambda: (supervisor.poll(), supervisor.name_taken())[1] == ["gyro"],
+                60,
+                "the second gyro to give up",
+            )
+            # Polled on for a while: it is not started again.
+            deadline = time.monotonic() + 1.0
+            while time.monotonic() < deadline:
+                supervisor.poll()
+                time.sleep(0.05)
+            assert supervisor.restarts()["gyro"] == 0 and supervisor.pids()["gyro"] is None
+        finally:
+            supervisor.stop()
+    assert EXIT_NAME_TAKEN == 4
+    assert any("already offered by pid" in line for line in lines), lines
+    assert any("not restarting" in line for line in lines), lines
+
+
 def test_flags_outrank_the_deploy_file() -> None:
     from dataclasses import replace
 

@@ -90,6 +90,14 @@ def test_service_keeps_the_contract(name: str) -> None:
 
 
 @pytest.mark.parametrize("name", SERVICES)
+def test_run_help_describes_each_service_in_whole_sentences(name: str) -> None:
+    from services.nodes import describe
+
+    line = describe(name)  # what ``framegate run NAME --help`` shows first
+    assert line.endswith(".") and "\n" not in line, line
+
+
+@pytest.mark.parametrize("name", SERVICES)
 def test_every_config_field_has_a_flag(name: str) -> None:
     fields = set(_leaves(_config(name, []))) - NOT_APPLICABLE.get(name, set())
     missing = fields - _settable_fields(name)

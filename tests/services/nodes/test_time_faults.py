@@ -79,7 +79,9 @@ class Recorded:
         self.node.close()
 
 
-def _start(argv: list[str], port: int, env: dict[str, str] | None = None) -> subprocess.Popen[str]:
+def _start(
+    argv: list[str], port: int, env: dict[str, str] | None = None, log: Path | None = None
+) -> subprocess.Popen[str]:
     env = dict(env or child_env())
     env["FRAMEGATE_LOCAL_PORT"] = str(port)
     return subprocess.Popen(
@@ -88,7 +90,7 @@ def _start(argv: list[str], port: int, env: dict[str, str] | None = None) -> sub
         env=env,
         stdin=subprocess.PIPE,
         stdout=subprocess.PIPE,
-        stderr=subprocess.DEVNULL,
+        stderr=log.open("w") if log is not None else subprocess.DEVNULL,
         text=True,
     )
 
@@ -141,6 +143,82 @@ def test_a_future_stamped_rogue_frame_is_skipped_and_decisions_resume(
         recorded.close()
 
 
+def test_a_rogue_frame_9_s_ahead_does_not_stop_forwarding_after_it(
+    tmp_path: Path, shim: Path
+) -> None:
+    """Inside the horizon, so forwarded (and detected); the real camera that follows starts
+    9 s earlier: the mediator and the detector remove what the wrong clock stamped and
+    the real frames go through at once, to the detector's detections."""
+    port = free_port()
+    offset = tmp_path / "offset"
+    step_clock(offset, 9 * S)
+    recorded = Recorded(port, MediatorConfig(gyro_missing=GyroMissing.ACCEPT, gyro_wait_ms=0))
+    detector = _start(["-m", "services.cli", "run", "detector", "--input", "mediator/images"], port)
+    rogue = _start(["-c", ROGUE, str(port)], port, shifted_clock_env(child_env(), shim, offset))
+    camera = None
+    try:
+        assert rogue.stdout is not None
+        assert rogue.stdout.readline().strip() == "put"
+        recorded.step_until(lambda: recorded.records, 30, "the rogue frame's record")
+        assert recorded.records[0].accepted, recorded.reasons()  # forwarded
+        rogue_ns = recorded.records[0].frame_timestamp_ns
+        node = recorded.node
+        wait_until(lambda: node.latest("detector/detections"), 30, "the rogue's detection")
+        _stop(rogue)
+        camera = _start(CAMERA, port)
+        recorded.step_until(lambda: len(recorded.records) >= 6, 90, "the camera's frames")
+        assert "out-of-order" not in recorded.reasons(1), recorded.reasons()
+        assert any(r.accepted for r in recorded.records[1:]), recorded.reasons()
+        assert recorded.mediator.images.info().skipped == {"rewound": 1}
+        detected = wait_until(
+            lambda: [
+                e.timestamp_ns
+                for e in node.query("detector/detections", last=10)
+                if e.timestamp_ns < rogue_ns
+            ],
+            30,
+            "detections of the real camera's frames",
+        )
+        assert all(t < rogue_ns for t in detected)
+        assert node.buffer_info("detector/detections").skipped == {"rewound": 1}
+    finally:
+        _stop(rogue, detector, *([camera] if camera else []))
+        recorded.close()
+
+
+def test_a_camera_after_a_rogue_an_hour_ahead_is_paired_with_gyro_at_once(
+    tmp_path: Path, shim: Path
+) -> None:
+    """The rogue's clock (+1 h off the gyro's) is measured; the real camera that follows is
+    another process with another clock: its frames are not judged by the rogue's offset."""
+    port = free_port()
+    offset = tmp_path / "offset"
+    step_clock(offset, 3600 * S)
+    recorded = Recorded(port, MediatorConfig())
+    gyro = _start(GYRO, port)
+    rogue = _start(["-c", ROGUE, str(port)], port, shifted_clock_env(child_env(), shim, offset))
+    camera = None
+    try:
+        assert rogue.stdout is not None
+        assert rogue.stdout.readline().strip() == "put"
+
+        def rogue_measured() -> bool:
+            measured = recorded.mediator._offsets.current()
+            return measured is not None and measured[0] > 3000 * S
+
+        recorded.step_until(rogue_measured, 30, "the rogue's clock offset measured")
+        assert recorded.reasons() == ["future-stamp"]
+        _stop(rogue)
+        camera = _start(CAMERA, port)
+        recorded.step_until(lambda: len(recorded.records) >= 6, 90, "the camera's frames")
+        later = recorded.reasons(1)
+        assert "clock-offset" not in later and "out-of-order" not in later, later
+        assert any(r.quality is not None for r in recorded.records[1:]), later  # paired
+    finally:
+        _stop(rogue, gyro, *([camera] if camera else []))
+        recorded.close()
+
+
 def test_camera_and_gyro_clocks_5_s_apart_are_not_paired(tmp_path: Path, shim: Path) -> None:
     port = free_port()
     offset = tmp_path / "offset"
@@ -190,13 +268,18 @@ def test_a_stopped_detector_loses_no_accepted_frame_without_a_record(pipe: Pipel
     wait_until(lambda: pipe.counter("detector/detections") >= 3, 90, "detections\n" + pipe.log())
     pid = pipe.pid("detector")
     assert pid is not None
+    # Audited from before the stop to after it (cursors), so no frame of the gap can leave
+    # the camera's retention unseen.
+    audit = Audit()
+    audit.check(pipe.node)
     os.kill(pid, signal.SIGSTOP)
     try:
         # Past the lease the subscription lapses: the mediator must say so, not forward.
+        # ... and keep saying so for as long as it is stopped (ten frames, not one).
         wait_until(
-            lambda: any(r.reason == "consumer-lapsed" for r in _decisions(pipe)),
-            30,
-            "a consumer-lapsed record\n" + pipe.log(),
+            lambda: sum(r.reason == "consumer-lapsed" for r in _decisions(pipe)) >= 10,
+            60,
+            "consumer-lapsed records\n" + pipe.log(),
         )
     finally:
         os.kill(pid, signal.SIGCONT)
@@ -206,11 +289,11 @@ def test_a_stopped_detector_loses_no_accepted_frame_without_a_record(pipe: Pipel
         60,
         "detections after SIGCONT\n" + pipe.log(),
     )
-    audit = Audit()
     audit.check(pipe.node)
     summary = audit.summary()
     assert summary["lost"]["accepted_without_detection"] == 0, summary
-    assert summary["decision_reasons"].get("consumer-lapsed", 0) >= 1, summary
+    assert summary["lost"]["frames_without_decision"] == 0, summary
+    assert summary["decision_reasons"].get("consumer-lapsed", 0) >= 10, summary
 
 
 def _puts(node: Node, target: str) -> int:
@@ -226,7 +309,8 @@ def test_camera_and_gyro_keep_producing_across_wall_clock_steps(tmp_path: Path, 
     offset = tmp_path / "offset"
     step_clock(offset, 0)
     env = shifted_clock_env(child_env(), shim, offset)
-    camera, gyro = _start(CAMERA, port, env), _start(GYRO, port, env)
+    logs = {name: tmp_path / f"{name}.log" for name in ("camera", "gyro")}
+    camera, gyro = _start(CAMERA, port, env, logs["camera"]), _start(GYRO, port, env, logs["gyro"])
     try:
         with Node(network=NetworkConfig(local_port=port)) as node:
             wait_until(lambda: _puts(node, "camera/images") >= 2, 90, "camera frames")
@@ -246,8 +330,29 @@ def test_camera_and_gyro_keep_producing_across_wall_clock_steps(tmp_path: Path, 
                     10,
                     f"gyro samples after a step to {step_s} s",
                 )
+            # Each step is seen once, with its size: in the log and in the service's info.
+            for name in ("camera", "gyro"):
+                info = node.service_info(name)
+                assert info.clock_steps == 2, info
+                assert info.clock_lead_ns is not None and 0 <= info.clock_lead_ns < S // 10, info
+            # ... and in what a user reads: `framegate ls` and `framegate info`.
+            cli_env = {**child_env(), "FRAMEGATE_LOCAL_PORT": str(port)}
+            for argv in (["ls"], ["info", "camera/images"]):
+                shown = subprocess.run(
+                    [sys.executable, "-m", "services.cli", *argv],
+                    env=cli_env,
+                    capture_output=True,
+                    text=True,
+                    timeout=60,
+                )
+                assert shown.returncode == 0, shown.stderr
+                assert "clock stepped 2x" in shown.stdout, shown.stdout
     finally:
         _stop(camera, gyro)
+    for name, log in logs.items():
+        text = log.read_text()
+        assert text.count("stepped backward by 20.000 s") == 1, (name, text)
+        assert text.count("stepped forward by 20.000 s") == 1, (name, text)
 
 
 def test_a_stopped_mediator_records_every_frame_stored_meanwhile(pipe: Pipeline) -> None:
@@ -255,6 +360,8 @@ def test_a_stopped_mediator_records_every_frame_stored_meanwhile(pipe: Pipeline)
     pid = pipe.pid("mediator")
     assert pid is not None
     stored = pipe.counter("camera/images")
+    audit = Audit()
+    audit.check(pipe.node)  # from before the stop: every frame of the gap is seen
     os.kill(pid, signal.SIGSTOP)
     try:
         # Past the lease the camera stores frames nobody takes.
@@ -268,7 +375,7 @@ def test_a_stopped_mediator_records_every_frame_stored_meanwhile(pipe: Pipeline)
     )
     decided = len(_decisions(pipe))
     wait_until(lambda: len(_decisions(pipe)) >= decided + 3, 30, "decisions to go on")
-    audit = Audit()
     audit.check(pipe.node)
     summary = audit.summary()
     assert summary["lost"]["frames_without_decision"] == 0, summary
+    assert summary["lost"]["accepted_without_detection"] == 0, summary

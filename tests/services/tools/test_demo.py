@@ -1,12 +1,17 @@
-"""The demo's status line, summary, policies, pipeline and approach cache (no processes)."""
+"""The demo's status line, summary, policies, pipeline and approach cache; one short live run."""
 
 from __future__ import annotations
 
+import json
+import signal
+import subprocess
+import sys
 from pathlib import Path
 
+import psutil
 import pytest
 
-from middleware import ConfigError
+from middleware import ConfigError, NetworkConfig, Node
 from services.cli import build_parser
 from services.lib.decisions import POLICIES
 from services.lib.sim import ScenarioConfig, cached_dataset, scenario_hash
@@ -22,6 +27,7 @@ from services.tools.demo import (
     print_summary,
     status_line,
 )
+from tests.conftest import REPO, child_env, free_port, wait_until
 
 
 def test_status_line_fits_100_columns_even_with_large_counts() -> None:
@@ -29,7 +35,7 @@ def test_status_line_fits_100_columns_even_with_large_counts() -> None:
     counts.update(frames=99_999, camera_hz=15.0, late=9_999, accepted=99_999, rejected=99_999)
     line = status_line(counts, {"detector": 99_999, UNCONTROLLED: 9_999}, 999.9)
     assert len(line) <= STATUS_COLUMNS == 100
-    assert line.endswith("| markers 99999 vs  9999 +900%")
+    assert line.endswith("| found 99999 vs  9999 +900%")
     assert all(len(legend) <= 100 for legend in STATUS_LEGEND.splitlines())
 
 
@@ -37,8 +43,8 @@ def test_status_line_shows_late_skips_load_and_the_gain() -> None:
     counts = Status().counts()
     counts.update(frames=300, camera_hz=14.9, late=7, accepted=120, rejected=180, load=0.5)
     line = status_line(counts, {"detector": 33, UNCONTROLLED: 30}, 20.0)
-    assert "   7 late" in line and "120 in   180 out load 0.50" in line
-    assert line.endswith("markers    33 vs    30  +10%")
+    assert "   7 late" in line and "120 fwd   180 left load 0.50" in line
+    assert line.endswith("found    33 vs    30  +10%")
     assert status_line(counts, {}, 1.0).endswith("  n/a")
 
 
@@ -106,3 +112,137 @@ def test_a_damaged_prerendered_cache_is_one_clear_error(tmp_path: Path) -> None:
     (tmp_path / scenario_hash(spec.scenario())).mkdir()  # an empty, damaged entry
     with pytest.raises(ConfigError, match=r"unreadable .*delete it"):
         open_frame_source(spec)
+
+
+@pytest.mark.parametrize(
+    ("source", "frames", "late", "expected"),
+    [
+        ("sim", 124, 129, "it kept 49 % of its frames (below 90 %):\n              rendering live"),
+        (
+            "prerendered",
+            500,
+            100,
+            "it kept 83 % of its frames (below 90 %):\n              the machine",
+        ),
+        ("prerendered", 593, 28, None),
+    ],
+)
+def test_summary_says_why_when_the_camera_did_not_keep_its_rate(
+    capsys: pytest.CaptureFixture[str], source: str, frames: int, late: int, expected: str | None
+) -> None:
+    counts = Status().counts()
+    counts.update(frames=frames, late=late)
+    print_summary(
+        {
+            **counts,
+            "duration_s": 20.3,
+            "source": source,
+            "floor": "rough",
+            "policy": "paper",
+            "markers": {},
+            "recognitions_filtered": 0,
+            "recognitions_uncontrolled": 0,
+        }
+    )
+    out = capsys.readouterr().out
+    if expected is None:
+        assert "it kept" not in out, out
+    else:
+        assert expected in out, out
+
+
+@pytest.mark.integration
+def test_a_short_live_demo_prints_status_lines_and_the_side_by_side_summary() -> None:
+    env = child_env()
+    env["FRAMEGATE_LOCAL_PORT"] = str(free_port())
+    result = subprocess.run(
+        [sys.executable, "-m", "services.cli", "demo", "--source", "sim", "--duration", "8"],
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert result.returncode == 0 and "Traceback" not in result.stderr, result
+    lines = result.stdout.splitlines()
+    status = [line for line in lines if " late | med " in line]
+    assert status and all(len(line) <= STATUS_COLUMNS for line in status), result.stdout
+    assert "(sim camera, rough floor, policy paper)" in result.stdout
+    table = lines[next(i for i, line in enumerate(lines) if line.split()[:1] == ["recognitions"]) :]
+    assert table[0].split() == ["recognitions", "filtered", "uncontrolled", "gain"], table
+    assert table[-1].split()[0] == "total", table
+
+
+@pytest.mark.integration
+def test_a_demo_beside_a_live_pipeline_on_its_rendezvous_refuses_in_one_line() -> None:
+    port = free_port()
+    env = child_env()
+    env["FRAMEGATE_LOCAL_PORT"] = str(port)
+    with Node("camera", NetworkConfig(local_port=port)) as other:  # another pipeline's camera
+        other.offer("images", kind="frame")
+        result = subprocess.run(
+            [sys.executable, "-m", "services.cli", "demo", "--source", "sim", "--duration", "5"],
+            cwd=REPO,
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=120,
+            check=False,
+        )
+    assert result.returncode == 1, result
+    assert result.stderr.startswith("error: service 'camera' is live already (pid "), result
+    assert len(result.stderr.splitlines()) == 1 and "FRAMEGATE_LOCAL_PORT" in result.stderr
+    assert " late | med " not in result.stdout  # it read no other pipeline's numbers
+
+
+@pytest.mark.integration
+def test_demo_json_prints_only_the_summary_on_stdout() -> None:
+    env = child_env()
+    env["FRAMEGATE_LOCAL_PORT"] = str(free_port())
+    result = subprocess.run(
+        [sys.executable, "-m", "services.cli", "demo", "--source", "sim", "--duration", "5",
+         "--json"],
+        cwd=REPO, env=env, capture_output=True, text=True, timeout=120, check=False,
+    )  # fmt: skip
+    assert result.returncode == 0, result
+    summary = json.loads(result.stdout)  # no status line mixed in
+    assert summary["source"] == "sim" and "gain_pct" in summary and "markers" in summary
+    assert " late | med " in result.stderr  # the status lines went to stderr
+
+
+def _child(parent: psutil.Process, *argv: str) -> psutil.Process | None:
+    """The descendant of ``parent`` whose command line holds ``argv`` in a row, if any."""
+    for child in parent.children(recursive=True):
+        try:
+            cmdline = child.cmdline()
+        except psutil.Error:
+            continue
+        if any(cmdline[i : i + len(argv)] == list(argv) for i in range(len(cmdline))):
+            return child
+    return None
+
+
+@pytest.mark.integration
+def test_demo_names_a_child_that_died_by_a_signal_and_exits_1() -> None:
+    env = child_env()
+    env["FRAMEGATE_LOCAL_PORT"] = str(free_port())
+    demo = subprocess.Popen(
+        [sys.executable, "-m", "services.cli", "demo", "--source", "sim", "--duration", "3"],
+        cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        parent = psutil.Process(demo.pid)
+        detector = wait_until(
+            lambda: _child(parent, "run", "detector", "--name", "detector"), 60, "the detector"
+        )
+        detector.rlimit(psutil.RLIMIT_CORE, (0, 0))  # an abort, without a core file
+        detector.send_signal(signal.SIGABRT)
+        _out, err = demo.communicate(timeout=60)
+    finally:
+        if demo.poll() is None:
+            demo.kill()
+            demo.communicate()
+    assert demo.returncode == 1, (demo.returncode, err)
+    errors = [line for line in err.splitlines() if line.startswith("error: ")]
+    assert errors == ["error: detector died by signal SIGABRT (6)"], err

@@ -3,21 +3,26 @@ flow control ends at the bridge, and every bad message is a counted skip, never 
 
 from __future__ import annotations
 
+import json
 import logging
 import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 
 import numpy as np
 import pytest
+import zenoh
 
 from middleware import NetworkConfig, Node, Producer
+from services.nodes.ros2 import _link as link_module
 from services.nodes.ros2._bridge import ImagesIn, ImuIn, _Skips
-from services.nodes.ros2._cdr import IMU, Codec
+from services.nodes.ros2._cdr import IMAGE, IMU, Codec
 from services.nodes.ros2._config import Ros2Config
-from tests.conftest import REPO, child_env, wait_until
+from services.nodes.ros2._rmw import HUMBLE_TYPE_HASH, EntityKind, NodeIdentity, Qos
+from tests.conftest import REPO, child_env, free_port, wait_until
 
 W, H = 8, 4
 
@@ -46,7 +51,7 @@ def _image(codec: Codec, stamp_ns: int, encoding: str = "mono8") -> bytes:
 
 
 def _skipped(producer: Producer) -> dict[str, int]:
-    return dict(getattr(producer.info(), "skipped", {}))
+    return dict(producer.info().skipped)
 
 
 def test_a_refused_image_is_dropped_at_the_bridge_and_counted(
@@ -182,6 +187,17 @@ def test_imu_samples_become_gyro_elements_in_batches(
     assert imu.stored == 4
 
 
+def _lines_within(proc: subprocess.Popen[str], limit_s: float) -> Iterator[str]:
+    """The process's output lines; it is killed if they have not stopped coming by then."""
+    assert proc.stdout is not None
+    killer = threading.Timer(limit_s, proc.kill)
+    killer.start()
+    try:
+        yield from proc.stdout
+    finally:
+        killer.cancel()
+
+
 @pytest.mark.integration
 def test_sigterm_stops_the_bridge_within_two_seconds_with_exit_0(endpoint: str) -> None:
     proc = subprocess.Popen(
@@ -208,11 +224,15 @@ def test_sigterm_stops_the_bridge_within_two_seconds_with_exit_0(endpoint: str) 
     )
     try:
         assert proc.stdout is not None
-        for line in proc.stdout:
-            if "ros2: node framegate_bridge" in line:
+        seen = []
+        for line in _lines_within(proc, 30):
+            seen.append(line)
+            # Nothing listens on port 1: the bridge starts, then says no router answers.
+            if "no ROS 2 router at tcp/127.0.0.1:1" in line:
                 break
         else:
-            raise AssertionError(f"bridge exited with {proc.wait()}")
+            raise AssertionError(f"bridge exited with {proc.wait()}: {''.join(seen)}")
+        assert any("ros2: node framegate_bridge" in line for line in seen), seen
         proc.send_signal(signal.SIGTERM)
         started = time.monotonic()
         assert proc.wait(timeout=10) == 0
@@ -223,11 +243,6 @@ def test_sigterm_stops_the_bridge_within_two_seconds_with_exit_0(endpoint: str) 
             proc.wait()
 
 
-@pytest.mark.xfail(
-    not hasattr(Producer, "count_skip"),
-    reason="Producer.count_skip is not in middleware yet: skips are counted by the bridge only",
-    strict=True,
-)
 def test_skips_show_in_the_buffers_skipped_counter(node: Node, codec: Codec) -> None:
     images = ImagesIn(node, codec, Ros2Config(image_in="/cam"), _Skips(logging.getLogger()))
     images.handle(b"garbage", 1)
@@ -253,3 +268,79 @@ def test_out_images_keep_pixels_and_refuse_inconsistent_elements(codec: Codec) -
     ):
         with pytest.raises(ValueError, match=match):
             encoders.image(bad)
+
+
+def test_a_missing_ros2_router_is_said_once_and_its_arrival_too(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    monkeypatch.setattr(link_module, "ROUTER_WAIT_S", 0.2)
+    routers = [0]
+    stop = threading.Event()
+    log = logging.getLogger("test.router")
+    with caplog.at_level(logging.INFO, logger="test.router"):
+        watcher = threading.Thread(
+            target=link_module.watch_router,
+            args=(lambda: routers[0], "tcp/localhost:7447", stop, log),
+        )
+        watcher.start()
+        wait_until(lambda: "no ROS 2 router at tcp/localhost:7447" in caplog.text, 5, "warning")
+        routers[0] = 1
+        watcher.join(5)
+    assert not watcher.is_alive()
+    assert caplog.text.count("no ROS 2 router") == 1
+    assert "connected to the ROS 2 router at tcp/localhost:7447" in caplog.text
+
+
+def test_a_present_ros2_router_is_not_warned_about(caplog: pytest.LogCaptureFixture) -> None:
+    with caplog.at_level(logging.INFO, logger="test.router"):
+        link_module.watch_router(
+            lambda: 1, "tcp/localhost:7447", threading.Event(), logging.getLogger("test.router")
+        )
+    assert caplog.text == ""
+
+
+@pytest.mark.integration
+def test_a_driver_on_another_distro_is_named_with_the_flag_to_change(endpoint: str) -> None:
+    # A ROS 2 router with a Humble camera driver's publisher token on /camera/image_raw; the
+    # bridge, on its default distro (jazzy), would never meet its samples.
+    router_at = f"tcp/127.0.0.1:{free_port()}"
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"router"')
+    conf.insert_json5("listen/endpoints", json.dumps([router_at]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    with zenoh.open(conf) as router:
+        driver = NodeIdentity(0, str(router.info.zid()), "camera_driver")
+        token = router.liveliness().declare_token(
+            driver.endpoint_token(
+                1,
+                EntityKind.PUBLISHER,
+                "/camera/image_raw",
+                IMAGE,
+                HUMBLE_TYPE_HASH,
+                Qos.sensor_data(),
+            )
+        )
+        proc = subprocess.Popen(
+            [
+                *(sys.executable, "-m", "services.cli", "run", "ros2", "--listen", endpoint),
+                *("--ros-connect", router_at, "--image-in", "/camera/image_raw"),
+            ],
+            cwd=REPO,
+            env=child_env(),
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
+        try:
+            seen = []
+            for line in _lines_within(proc, 30):
+                seen.append(line)
+                if "--ros-distro humble" in line:
+                    break
+            else:
+                raise AssertionError(f"bridge exited with {proc.wait()}: {''.join(seen)}")
+            assert "/camera/image_raw is published as sensor_msgs::msg::dds_::Image_" in line
+        finally:
+            proc.terminate()
+            proc.wait(timeout=10)
+            token.undeclare()

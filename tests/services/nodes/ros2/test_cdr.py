@@ -3,12 +3,16 @@
 from __future__ import annotations
 
 import json
+import time
+import tracemalloc
 
 import numpy as np
 import pytest
 
-from middleware import ConfigError
+from middleware import ConfigError, DataObject
+from services.nodes.ros2._bridge import Encoders, frame_metadata
 from services.nodes.ros2._cdr import DETECTIONS, IMAGE, STRING, CdrError, Codec
+from services.nodes.ros2._config import Ros2Config
 
 
 @pytest.fixture(params=["humble", "jazzy"])
@@ -94,3 +98,23 @@ def test_vision_msgs_are_registered_once_per_store() -> None:
 def test_unknown_distro_is_a_config_error() -> None:
     with pytest.raises(ConfigError, match="unknown ROS 2 distro 'foxy'"):
         Codec("foxy")
+
+
+def test_encoding_a_full_frame_allocates_the_frame_once() -> None:
+    width, height = 1280, 1024
+    now = time.time_ns()
+    element = DataObject(
+        now, bytes(width * height), frame_metadata(1, now, 5, "mono8", width, height, None)
+    )
+    encode = Encoders(Codec("jazzy"), Ros2Config()).image
+    encode(element)  # warm up rosbags' generated serializers
+    tracemalloc.start()
+    try:
+        before = tracemalloc.get_traced_memory()[0]
+        message = encode(element)
+        peak = tracemalloc.get_traced_memory()[1] - before
+    finally:
+        tracemalloc.stop()
+    # The message is the one frame-sized buffer the out path makes (no second one on the way).
+    assert len(message) > width * height
+    assert peak < width * height + 64 * 1024, peak

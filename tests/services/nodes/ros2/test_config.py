@@ -48,12 +48,30 @@ def test_mappings_from_flags_and_deploy_lists() -> None:
         (["--image-out", "images=/x"], "SERVICE/BUFFER"),
         (["--image-out", "mediator/images="], "bad mapping"),
         (["--image-in", "/a b"], "bad ROS 2 topic name"),
-        (["--exposure-ms", "0"], "exposure-ms"),
-        (["--gyro-batch", "0"], "gyro-batch"),
     ],
 )
 def test_bad_flags_are_one_line_errors(argv: list[str], match: str) -> None:
     with pytest.raises(ConfigError, match=match):
+        _config(*argv)
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["--exposure-ms", "0"],
+        ["--exposure-ms", "nan"],
+        ["--gyro-batch", "0"],
+        ["--retention-frames", "0"],
+        ["--out-queue", "0"],
+        ["--in-depth", "0"],
+        ["--out-depth", "-1"],
+        ["--gyro-wait-ms", "inf"],
+        ["--domain-id", "-1"],
+    ],
+)
+def test_bad_numbers_are_refused_as_parsed(argv: list[str]) -> None:
+    """Checked by the flag's type, so a deploy file's `launch --check` refuses them too."""
+    with pytest.raises(argparse.ArgumentError, match=argv[0]):
         _config(*argv)
 
 
@@ -73,3 +91,19 @@ def test_a_ros_config_file_keeps_its_own_endpoints() -> None:
     assert _config("--ros-config", "r.json5", "--ros-connect", "tcp/h:7447").ros_connect == (
         "tcp/h:7447",
     )
+
+
+def test_run_help_describes_the_bridge_in_one_whole_line() -> None:
+    from services.nodes import describe
+
+    # ``framegate run ros2 --help`` shows the first line of the package docstring.
+    line = describe("ros2")
+    assert line.endswith(".") and "rmw_zenoh" in line, line
+
+
+def test_run_help_shows_every_default_a_flag_has() -> None:
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    text = parser.format_help()
+    for default in ("default jazzy", "default framegate_bridge", "default 10.0", "default 5"):
+        assert default in " ".join(text.split()), default

@@ -12,15 +12,19 @@ from services.nodes.ros2._rmw import (
     ATTACHMENT_BYTES,
     HUMBLE_TYPE_HASH,
     Attachment,
+    Endpoint,
     EntityKind,
+    History,
     NodeIdentity,
     Qos,
     Reliability,
+    TopicCheck,
     data_key,
     dds_type_name,
     fully_qualified,
     gid,
     mangle,
+    parse_endpoint,
     type_hash,
 )
 
@@ -79,6 +83,13 @@ def test_qos_strings_match_the_design_document() -> None:
     assert Qos(Reliability.RELIABLE, 42).keyexpr() == "::,:,:,:,,"  # all rmw_zenoh defaults
 
 
+def test_depth_zero_is_written_as_rmw_zenohs_default_depth() -> None:
+    # rmw_zenoh replaces a depth of 0 (what rclcpp's KeepAll() sets) by its default, 42,
+    # before it writes the token, so the depth field is empty like any default.
+    assert Qos(Reliability.RELIABLE, 0, History.KEEP_ALL).keyexpr() == "::2,:,:,:,,"
+    assert Qos(Reliability.BEST_EFFORT, 0).keyexpr() == "2::,:,:,:,,"
+
+
 def test_liveliness_tokens_match_the_design_document() -> None:
     listener = NodeIdentity(2, "aac3178e146ba6f1fc6e6a4085e77f21", "listener")
     assert (
@@ -131,6 +142,14 @@ def test_attachment_is_what_zenohs_serializer_writes() -> None:
     assert Attachment.decode(expected) == attachment
 
 
+def test_attachment_layout_is_the_design_documents() -> None:
+    # 8 bytes sequence number and 8 bytes source timestamp (int64, little-endian), 1 byte
+    # for the gid's length (16), then the 16 gid bytes.
+    source_gid = bytes(range(0xA0, 0xB0))
+    encoded = Attachment(1, 0x0102030405060708, source_gid).encode()
+    assert encoded == (bytes.fromhex("0100000000000000080706050403020110") + source_gid)
+
+
 @pytest.mark.parametrize("bad", [b"", bytes(32), bytes(34), bytes(16) + b"\x0f" + bytes(16)])
 def test_malformed_attachments_are_refused(bad: bytes) -> None:
     with pytest.raises(ValueError, match="attachment"):
@@ -151,3 +170,74 @@ def test_node_identity_refuses_bad_values() -> None:
         NodeIdentity(300, "ab", "n")
     with pytest.raises(ConfigError, match="node name"):
         NodeIdentity(0, "ab", "bad-name")
+
+
+def test_endpoint_tokens_parse_back_to_what_they_name() -> None:
+    talker = (
+        "@ros2_lv/2/8b20917502ee955ac4476e0266340d5c/0/10/MP/%/%/talker/%chatter/"
+        f"std_msgs::msg::dds_::String_/{STRING_HASH}/::,7:,:,:,,"
+    )
+    assert parse_endpoint(talker) == Endpoint(
+        "8b20917502ee955ac4476e0266340d5c",
+        EntityKind.PUBLISHER,
+        "/chatter",
+        "std_msgs::msg::dds_::String_",
+        STRING_HASH,
+    )
+    node = NodeIdentity(0, "ab", "cam", namespace="/robot1")
+    token = node.endpoint_token(
+        3, EntityKind.SUBSCRIPTION, "/robot1/image", "sensor_msgs/msg/Image", "x", Qos()
+    )
+    parsed = parse_endpoint(token)
+    assert parsed is not None
+    assert (parsed.kind, parsed.topic, parsed.type_hash) == (
+        EntityKind.SUBSCRIPTION,
+        "/robot1/image",
+        "x",
+    )
+
+
+@pytest.mark.parametrize(
+    "other",
+    [
+        "@ros2_lv/2/aac3178e146ba6f1fc6e6a4085e77f21/0/0/NN/%/%/listener",  # a node
+        "@ros2_lv/2/f9/0/10/SS/%/%/s/%add_two_ints/example_interfaces::srv::dds_::X_/h/::,:,:,:,,",
+        "@ros2_lv/2/ab/0/1/MP/%/%/n",  # cut short
+        "0/chatter/std_msgs::msg::dds_::String_/h",  # a data key
+    ],
+)
+def test_other_keys_are_not_endpoints(other: str) -> None:
+    assert parse_endpoint(other) is None
+
+
+def _token(session: str, kind: EntityKind, topic: str, ros_type: str, hash_: str) -> str:
+    return NodeIdentity(0, session, "driver").endpoint_token(1, kind, topic, ros_type, hash_, Qos())
+
+
+def test_a_topic_under_another_distros_hash_is_said_once_with_the_flag_to_change() -> None:
+    image_hash = Codec("jazzy").rihs01("sensor_msgs/msg/Image")
+    check = TopicCheck("own", {"/camera/image_raw": ("sensor_msgs::msg::dds_::Image_", image_hash)})
+    humble = _token(
+        "ab", EntityKind.PUBLISHER, "/camera/image_raw", "sensor_msgs/msg/Image", HUMBLE_TYPE_HASH
+    )
+    said = check.check(humble)
+    assert said is not None and "--ros-distro humble" in said and "/camera/image_raw" in said
+    assert check.check(humble) is None  # once
+    matching = _token(
+        "cd", EntityKind.PUBLISHER, "/camera/image_raw", "sensor_msgs/msg/Image", image_hash
+    )
+    assert check.check(matching) is None
+    own = _token("own", EntityKind.SUBSCRIPTION, "/camera/image_raw", "x/msg/Y", "h")
+    assert check.check(own) is None
+    elsewhere = _token("ab", EntityKind.PUBLISHER, "/other", "sensor_msgs/msg/Image", "h")
+    assert check.check(elsewhere) is None
+
+
+def test_a_humble_bridge_is_told_of_a_jazzy_subscriber_and_of_other_types() -> None:
+    check = TopicCheck("own", {"/out": ("std_msgs::msg::dds_::String_", HUMBLE_TYPE_HASH)})
+    jazzy = _token("ab", EntityKind.SUBSCRIPTION, "/out", "std_msgs/msg/String", STRING_HASH)
+    said = check.check(jazzy)
+    assert said is not None and "subscribed" in said and "Jazzy or later" in said
+    other = _token("ab", EntityKind.SUBSCRIPTION, "/out", "std_msgs/msg/Int32", "h")
+    said = check.check(other)
+    assert said is not None and "another message type" in said

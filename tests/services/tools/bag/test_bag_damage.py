@@ -12,7 +12,7 @@ import pytest
 
 from middleware import DataObject, Retention, make_metadata
 from services.tools.bag import BagError, BagWriter, recording_info
-from tests.conftest import REPO, child_env
+from tests.conftest import REPO, child_env, free_port
 
 N = 300
 
@@ -82,3 +82,45 @@ def test_not_an_mcap_file_is_a_bag_error(tmp_path: Path) -> None:
     junk.write_bytes(b"\x00" * 100)
     with pytest.raises(BagError, match="not an MCAP file"):
         recording_info(junk)
+
+
+def _play(path: Path) -> subprocess.CompletedProcess[str]:
+    """``framegate play --fast --exit-when-done`` on a private rendezvous port."""
+    env = child_env()
+    env["FRAMEGATE_LOCAL_PORT"] = str(free_port())
+    return subprocess.run(
+        [sys.executable, "-m", "services.cli", "play", str(path), "--fast", "--exit-when-done",
+         "--start-delay", "0"],
+        cwd=REPO, env=env, capture_output=True, text=True, timeout=120, check=False,
+    )  # fmt: skip
+
+
+@pytest.mark.integration
+@pytest.mark.parametrize("where", [0.1, 0.5, 0.97, 0.999])
+def test_play_of_a_flipped_byte_is_one_error_line_or_a_stated_recovery(
+    recording: Path, tmp_path: Path, where: float
+) -> None:
+    data = bytearray(recording.read_bytes())
+    data[int(len(data) * where)] ^= 0xFF
+    bad = tmp_path / "flipped.mcap"
+    bad.write_bytes(bytes(data))
+    result = _play(bad)
+    assert "Traceback" not in result.stderr, result.stderr
+    lines = result.stderr.strip().splitlines()
+    if result.returncode == 0:  # played what was whole, and said what it recovered
+        assert any("recovered" in line for line in lines), result.stderr
+    else:
+        assert result.returncode == 1, result.stderr
+        assert len(lines) == 1 and lines[0].startswith("error: "), result.stderr
+
+
+@pytest.mark.integration
+def test_play_of_a_cut_short_file_says_how_much_it_recovered(
+    recording: Path, tmp_path: Path
+) -> None:
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(recording.read_bytes()[: int(recording.stat().st_size * 0.6)])
+    result = _play(cut)
+    assert result.returncode == 0, result.stderr
+    assert "Traceback" not in result.stderr, result.stderr
+    assert any("recovered" in line for line in result.stderr.splitlines()), result.stderr

@@ -1,0 +1,55 @@
+"""launch --check as data (the plan as JSON); a launch beside live services of its names."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from middleware import NetworkConfig, Node
+from tests.conftest import REPO, child_env, free_port
+
+
+def _launch(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "services.cli", "launch", *args],
+        cwd=REPO,
+        env=env or child_env(),
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+
+
+def test_check_json_gives_each_process_with_its_command_and_starts_nothing() -> None:
+    result = _launch("deploy/local.yaml", "--check", "--json")
+    assert result.returncode == 0, result
+    plan = json.loads(result.stdout)
+    assert plan["started"] is False
+    by_name = {p["name"]: p for p in plan["processes"]}
+    assert sorted(by_name) == ["camera", "detector", "gyro", "mediator"]
+    assert by_name["camera"]["command"][:5] == ["framegate", "run", "camera", "--name", "camera"]
+    assert by_name["detector"]["type"] == "detector" and by_name["detector"]["restart"] is True
+
+
+def test_json_without_check_is_one_line_and_exit_1() -> None:
+    result = _launch("deploy/local.yaml", "--json")
+    assert result.returncode == 1, result
+    assert result.stderr.startswith("error: --json prints the plan of --check"), result
+    assert len(result.stderr.splitlines()) == 1 and result.stdout == "", result
+
+
+@pytest.mark.integration
+def test_a_launch_beside_a_live_service_of_the_same_name_refuses_in_one_line() -> None:
+    port = free_port()
+    env = child_env()
+    env["FRAMEGATE_LOCAL_PORT"] = str(port)
+    with Node("camera", NetworkConfig(local_port=port)) as other:  # e.g. a demo's camera
+        other.offer("images", kind="frame")
+        result = _launch("deploy/local.yaml", "--duration", "5", env=env)
+    assert result.returncode == 1, result
+    assert result.stderr.startswith("error: service 'camera' is live already (pid "), result
+    assert len(result.stderr.splitlines()) == 1 and "launching" not in result.stdout, result
