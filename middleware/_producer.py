@@ -239,8 +239,10 @@ class Producer:
     # -- producing -------------------------------------------------------------------------
     def put(
         self, timestamp_ns: int, payload: bytes, metadata: bytes | str, *, wait_s: float = 0.0
-    ) -> None:
-        """Store an element and notify subscribers.
+    ) -> int:
+        """Store an element and notify subscribers; how many flow-controlled subscriptions
+        were notified (0: no consumer will be told of it, e.g. one whose subscription just
+        lapsed).
 
         Raises SchemaError (metadata), DuplicateTimestampError, PayloadTooLargeError, or
         FlowControlRefused when a flow-controlled queue stays full for ``wait_s`` seconds.
@@ -248,11 +250,11 @@ class Producer:
         """
         if self._closed:
             raise FramegateError(f"buffer {self.name} is closed")
-        self._put((self._checked(timestamp_ns, payload, metadata),), wait_s)
+        return self._put((self._checked(timestamp_ns, payload, metadata),), wait_s)
 
     def put_many(
         self, elements: Sequence[tuple[int, bytes, bytes | str]], *, wait_s: float = 0.0
-    ) -> None:
+    ) -> int:
         """Store a batch of ``(timestamp_ns, payload, metadata)`` elements, timestamps
         strictly increasing, and notify each subscriber once for all of them.
 
@@ -260,12 +262,12 @@ class Producer:
         subscriber has fewer than ``len(elements)`` free places (after ``wait_s``); a
         batch larger than a subscriber's queue can never fit. Each element is stored on its
         own, so queries see them exactly as if each had been ``put``. All or nothing: a
-        refused or rejected batch stores no element. Raises like ``put``.
+        refused or rejected batch stores no element. Raises and returns like ``put``.
         """
         if self._closed:
             raise FramegateError(f"buffer {self.name} is closed")
         if not elements:
-            return
+            return 0
         checked = tuple(self._checked(t, p, m) for t, p, m in elements)
         for before, after in itertools.pairwise(checked):
             if after.timestamp_ns <= before.timestamp_ns:
@@ -275,9 +277,9 @@ class Producer:
                     f"put_many: timestamp {after.timestamp_ns} follows {before.timestamp_ns} "
                     "in the batch; timestamps must strictly increase"
                 )
-        self._put(checked, wait_s)
+        return self._put(checked, wait_s)
 
-    def _put(self, elements: tuple[DataObject, ...], wait_s: float) -> None:
+    def _put(self, elements: tuple[DataObject, ...], wait_s: float) -> int:
         if wait_s > 0:
             # Checked before waiting too, so that an element that can never be stored is not
             # waited for (``_store`` checks it in any case).
@@ -295,13 +297,13 @@ class Producer:
                     self._drain_acks()
                     full = self._protocol.full(count)
                     if full is None:
-                        self._store(elements)
+                        notified = self._store(elements)
                     else:
                         self._protocol.tick(time.monotonic_ns())  # a waiting put heals losses
                     events = self._take_events()
                 self._carry_out(events)
             if full is None:
-                return
+                return notified
             # Not stored: wait for credit outside _send_lock (the loop keeps sending).
             with self._cond:
                 remaining = deadline - time.monotonic()
@@ -368,8 +370,9 @@ class Producer:
         self._horizon_at_ns = now_ns() + self.horizon_ns
         return self._horizon_at_ns
 
-    def _store(self, elements: tuple[DataObject, ...]) -> None:
-        """(under _lock) Append, count, and let the protocol notify."""
+    def _store(self, elements: tuple[DataObject, ...]) -> int:
+        """(under _lock) Append, count, and let the protocol notify; the flow-controlled
+        subscriptions notified."""
         try:
             # All or nothing: ``extend`` checks the batch (strictly increasing, checked by
             # the caller) against the series before appending any of it.
@@ -380,7 +383,7 @@ class Producer:
         self._counters.puts += len(elements)
         now = time.monotonic_ns()
         self._counters.put_times.extend([now] * len(elements))
-        self._protocol.put_many(elements, now)
+        return self._protocol.put_many(elements, now)
 
     def _carry_out(self, events: list[Event]) -> None:
         """(under _send_lock, not _lock) Send what the protocol decided; a notification that

@@ -199,15 +199,19 @@ class ProducerProtocol:
         """A flow registration without room for ``count`` more elements, or None."""
         return self._ledger.full(count)
 
-    def put_many(self, elements: tuple[DataObject, ...], now_ns: int) -> None:
+    def put_many(self, elements: tuple[DataObject, ...], now_ns: int) -> int:
         """Count stored elements (the caller checked ``full``) and queue their notifications:
-        one per registration, a batch if there are several."""
+        one per registration, a batch if there are several. How many flow-controlled
+        registrations were notified."""
         kept = tuple(
             (e.timestamp_ns, e.metadata if len(e.metadata) <= INLINE_METADATA_MAX else None)
             for e in elements
         )
+        flow = 0
         for send in self._ledger.put_many(kept, now_ns):
+            flow += send.key.mode is SubscriptionMode.FLOW
             self._events.append(self._publish(send, elements))
+        return flow
 
     def send_failed(self, key: RegistrationKey, epoch: str) -> None:
         """A notification did not leave: it stays outstanding and is resent at the next tick."""

@@ -453,8 +453,10 @@ class Mediator:
                 self._pending.pop(key, None)
             if frame is None:
                 continue
-            if verdict.action is Action.FORWARD and not self._put(frame):
+            if verdict.action is Action.FORWARD and (why := self._put(frame)) is not None:
                 verdict = self.decider.refused(verdict.frame)
+                if why == "consumer-lapsed":
+                    verdict = Verdict(verdict.frame, Action.DROP, why)
             self._record(frame, verdict, load)
         if self.decider.policy_faults > self._policy_faults_logged:
             self._policy_faults_logged = self.decider.policy_faults
@@ -464,19 +466,24 @@ class Mediator:
                 self.decider.policy_faults,
             )
 
-    def _put(self, frame: _Frame) -> bool:
+    def _put(self, frame: _Frame) -> str | None:
+        """Forward a frame: None once a consumer is told of it, else why not (``refused``;
+        ``consumer-lapsed``: stored, but the consumer we had was not registered at that
+        moment, a lapse between two looks at the load, so no notification will reach it)."""
         try:
-            self.images.put(frame.meta.timestamp_ns, frame.payload, frame.metadata)
-            self._newest_put_ns = frame.meta.timestamp_ns
-            self._queued_frames.append(frame)
-            while len(self._queued_frames) > max(1, self._consumer_capacity or 1):
-                self._queued_frames.popleft()
-            return True
+            notified = self.images.put(frame.meta.timestamp_ns, frame.payload, frame.metadata)
         except FlowControlRefused:
-            return False
+            return "refused"
         except FramegateError as exc:
             self.log.warning("cannot forward frame %d: %s", frame.meta.frame_id, exc)
-            return False
+            return "refused"
+        self._newest_put_ns = frame.meta.timestamp_ns
+        if notified == 0 and self._consumer_capacity is not None:
+            return "consumer-lapsed"
+        self._queued_frames.append(frame)
+        while len(self._queued_frames) > max(1, self._consumer_capacity or 1):
+            self._queued_frames.popleft()
+        return None
 
     def _record(self, frame: _Frame, verdict: Verdict, load: Load) -> None:
         candidate = frame.candidate

@@ -61,11 +61,12 @@ SUBSCRIBE_PATIENCE_S = 60.0
 
 def _subscribe(node: Node, target: str, **kwargs: Any) -> Subscription:
     """``node.subscribe`` that waits for the producer worker started alongside: its
-    service may be visible before the buffer is offered (NotFoundError until then)."""
+    service may not be live yet (the subscription registers when it is), or visible before
+    the buffer is offered (NotFoundError until then)."""
     deadline = time.monotonic() + SUBSCRIBE_PATIENCE_S
     while True:
         try:
-            return node.subscribe(target, **kwargs)
+            return node.subscribe(target, await_service=True, **kwargs)
         except NotFoundError:
             if time.monotonic() > deadline:
                 raise

@@ -154,6 +154,8 @@ def test_a_rogue_frame_9_s_ahead_does_not_stop_forwarding_after_it(
     step_clock(offset, 9 * S)
     recorded = Recorded(port, MediatorConfig(gyro_missing=GyroMissing.ACCEPT, gyro_wait_ms=0))
     detector = _start(["-m", "services.cli", "run", "detector", "--input", "mediator/images"], port)
+    images = recorded.mediator.images
+    wait_until(lambda: images.subscriptions(), 60, "the detector's subscription")
     rogue = _start(["-c", ROGUE, str(port)], port, shifted_clock_env(child_env(), shim, offset))
     camera = None
     try:
@@ -163,7 +165,7 @@ def test_a_rogue_frame_9_s_ahead_does_not_stop_forwarding_after_it(
         assert recorded.records[0].accepted, recorded.reasons()  # forwarded
         rogue_ns = recorded.records[0].frame_timestamp_ns
         node = recorded.node
-        wait_until(lambda: node.latest("detector/detections"), 30, "the rogue's detection")
+        wait_until(lambda: _latest(node, "detector/detections"), 60, "the rogue's detection")
         _stop(rogue)
         camera = _start(CAMERA, port)
         recorded.step_until(lambda: len(recorded.records) >= 6, 90, "the camera's frames")
@@ -294,6 +296,14 @@ def test_a_stopped_detector_loses_no_accepted_frame_without_a_record(pipe: Pipel
     assert summary["lost"]["accepted_without_detection"] == 0, summary
     assert summary["lost"]["frames_without_decision"] == 0, summary
     assert summary["decision_reasons"].get("consumer-lapsed", 0) >= 10, summary
+
+
+def _latest(node: Node, target: str) -> list[object]:
+    """The newest element, or nothing while its service is still starting."""
+    try:
+        return list(node.latest(target))
+    except FramegateError:
+        return []
 
 
 def _puts(node: Node, target: str) -> int:
