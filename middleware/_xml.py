@@ -115,8 +115,20 @@ def _check_depth(root: Any, max_depth: int) -> None:
         stack.extend((child, depth + 1) for child in element)
 
 
-@cache
+# libxml2 is not safe to enter from two threads at once for one schema: neither parsing an
+# XSD (its built-in types are set up by the first parse: two first parses at once failed with
+# "xmlSchemaPValAttrNodeValue, the given type is not a built-in type") nor validating with a
+# shared XMLSchema. One lock for both; re-entrant because validating loads the schema.
+_schema_lock = threading.RLock()
+
+
 def _schema(name: str) -> etree.XMLSchema:
+    with _schema_lock:
+        return _load_schema(name)
+
+
+@cache
+def _load_schema(name: str) -> etree.XMLSchema:
     path = schemas.schema_path(name)
     if not path.is_file():
         raise SchemaError(
@@ -127,13 +139,9 @@ def _schema(name: str) -> etree.XMLSchema:
     return etree.XMLSchema(etree.parse(str(path), parser))
 
 
-# XMLSchema objects are not safe to share between threads while validating.
-_schema_lock = threading.Lock()
-
-
 def _validate(name: str, root: Any) -> None:
-    schema = _schema(name)
     with _schema_lock:
+        schema = _schema(name)
         ok = schema.validate(root)
         if not ok:
             error = schema.error_log.last_error  # type: ignore[attr-defined]
