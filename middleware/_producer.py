@@ -31,7 +31,7 @@ import zenoh
 from ._buffer import TimeSeries
 from ._clock import now_ns
 from ._errors import DuplicateTimestampError, FlowControlRefused, FramegateError, SchemaError
-from ._inbox import Inbox
+from ._inbox import Inbox, Receiver
 from ._ledger_producer import Registration, RegistrationKey
 from ._loop import NodeLoop
 from ._protocol_producer import Event, ProducerProtocol, Publish, Retire
@@ -49,8 +49,6 @@ HORIZON_NS = 10_000_000_000
 _RATE_WINDOW = 64
 # A put that waits for credit looks again at least this often.
 _WAIT_S = 0.1
-# With no put waiting, the node's loop drains the ack inbox at least this often.
-_DRAIN_NS = 250_000_000
 # Acks honest subscribers can send between two drains: coalesced, at most a few per
 # registration and queue window (see ``AckPolicy``) plus a re-ack each per 0.5 s. A lost
 # ack costs nothing: acks are cumulative and repeated.
@@ -75,8 +73,8 @@ class Producer:
     drains them with ``try_recv`` before deciding credit; a put that waits for credit
     blocks in the channel's ``recv`` (the *receiver*; the loop rings its doorbell at its
     deadline), and with no put waiting the node's loop drains them. ``_lock`` (with
-    ``_cond`` on it) guards the protocol, the counters, the rate window, ``_receiving`` and
-    ``_wake_at_ns``; the inbox is drained under it while no receiver blocks in ``recv``.
+    ``_cond`` on it) guards the protocol, the counters, the rate window and the inbox's
+    ``Receiver``; the inbox is drained under it while no receiver blocks in ``recv``.
     ``_send_lock`` serialises carrying out the protocol's events (``put`` on the caller's
     thread, ``on_deadline`` on the node's loop), so the messages of one registration leave
     in order and a ``publisher.put`` that blocks holds only ``_send_lock``. Lock order:
@@ -122,20 +120,19 @@ class Producer:
         # Events produced by Zenoh input (greetings, refusals, retired publishers) wait for
         # the loop or the next put; this says whether any do.
         self._events_waiting = False
-        # A put blocked in the ack inbox's recv, and when it wants the doorbell.
-        self._receiving = False
-        self._wake_at_ns: int | None = None
-        self._drain_at_ns = (time.monotonic_ns() // _DRAIN_NS + 1) * _DRAIN_NS
-        self._token_sub = session.liveliness().declare_subscriber(
-            keys.subscription_tokens(service, buffer),
-            zenoh.handlers.Callback(self._on_token),
-            history=True,
-        )
         self._acks = Inbox(
             session,
             keys.acks(service, buffer),
             capacity=_ACK_INBOX,
             doorbell_key=keys.ack(service, buffer, "doorbell"),
+        )
+        # A put blocked in the ack inbox's recv, and when it wants the doorbell.
+        self._receiver = Receiver(self._acks, self._cond, loop)
+        # Declared last: its callback (history included) may run at once.
+        self._token_sub = session.liveliness().declare_subscriber(
+            keys.subscription_tokens(service, buffer),
+            zenoh.handlers.Callback(self._on_token),
+            history=True,
         )
         loop.add(self)
 
@@ -149,8 +146,7 @@ class Producer:
         with self._cond:
             self._protocol.token(str(sample.key_expr), alive, time.monotonic_ns())
             self._events_waiting = True
-            if self._receiving:  # a waiting put looks again (a gone subscriber frees it)
-                self._wake_at_ns = 0
+            self._receiver.wake()  # a waiting put looks again (a gone subscriber frees it)
             self._cond.notify_all()
         self._loop.poke(0)
 
@@ -158,7 +154,7 @@ class Producer:
     def _drain_acks(self) -> None:
         """(under _lock) Feed the protocol every ack waiting in the inbox, unless a put
         blocks in its ``recv``: then they are that put's to take."""
-        if self._receiving:
+        if self._receiver.active:
             return
         freed = False
         ack = self._protocol.ack
@@ -171,30 +167,12 @@ class Producer:
 
     def _wait_acks(self, wait_s: float) -> None:
         """(holding _lock through ``_cond``) Wait up to ``wait_s`` for acks, fed to the
-        protocol when this returns: as the receiver, blocked in the inbox's ``recv`` with
-        the loop asked to ring the doorbell at the deadline; or, when another thread is the
-        receiver already, in ``_cond`` for its news."""
-        if self._receiving:
-            self._cond.wait(wait_s)
-            return
-        self._receiving = True
-        wake_at = time.monotonic_ns() + int(wait_s * 1e9)
-        self._wake_at_ns = wake_at
-        self._lock.release()
-        sample = None
-        try:
-            self._loop.poke(wake_at)
-            sample = self._acks.recv()
-        finally:
-            self._lock.acquire()
-            self._receiving = False
-            self._wake_at_ns = None
-            if sample is not None:
-                self._protocol.ack(
-                    str(sample.key_expr), sample.payload.to_bytes(), time.monotonic_ns()
-                )
-            self._drain_acks()
-            self._cond.notify_all()  # news for other waiters, or their turn to receive
+        protocol when this returns (see ``Receiver.wait``)."""
+        sample = self._receiver.wait(wait_s)
+        if sample is not None:
+            self._protocol.ack(str(sample.key_expr), sample.payload.to_bytes(), time.monotonic_ns())
+        self._drain_acks()
+        self._cond.notify_all()  # news for other waiters, or their turn to receive
 
     # -- the node's loop ---------------------------------------------------------------------
     def next_deadline_ns(self) -> int | None:
@@ -202,7 +180,7 @@ class Producer:
             return 0
         with self._lock:
             due = self._protocol.next_deadline_ns()
-            other = self._wake_at_ns if self._receiving else self._drain_at_ns
+            other = self._receiver.deadline_ns()
         if other is not None and (due is None or other < due):
             return other
         return due
@@ -211,25 +189,17 @@ class Producer:
         """Resends that are due and events Zenoh input produced, sent from the node's loop;
         acks drained if no put waits for them; a waiting put's doorbell rung at its
         deadline."""
-        ring = False
         with self._send_lock:
             with self._lock:
                 if self._closed:
                     return
-                if self._receiving:
-                    if self._wake_at_ns is not None and self._wake_at_ns <= now_ns:
-                        self._wake_at_ns = None
-                        ring = True
-                else:
-                    self._drain_acks()
-                    self._drain_at_ns = (
-                        now_ns // _DRAIN_NS + 1
-                    ) * _DRAIN_NS  # one grid: a node's objects share a wake
+                ring, _ = self._receiver.due(now_ns)
+                self._drain_acks()  # before resending (a no-op while a put receives)
                 self._protocol.tick(now_ns)
                 events = self._take_events()
             self._carry_out(events)
         if ring:
-            self._acks.ring()
+            self._receiver.ring()
 
     def _take_events(self) -> list[Event]:
         """(under _lock)"""

@@ -23,7 +23,7 @@ from typing import Any
 import zenoh
 
 from ._errors import FramegateError, RegistrationRefused
-from ._inbox import Inbox
+from ._inbox import Inbox, Receiver
 from ._ledger_subscriber import REACK_NS, Entry, SubscriberCounters
 from ._loop import NodeLoop
 from ._protocol_subscriber import Item, SubscriberProtocol
@@ -35,10 +35,9 @@ log = logging.getLogger("framegate.middleware")
 # A push limit larger than any payload: everything travels with its notification.
 PUSH_ALL = 2**31 - 1
 _REACK_S = REACK_NS / 1e9
-# With nobody taking, the node's loop drains the inbox this often (at the latest when it
-# wakes, at least once a second): what honest traffic can bring in between is the queue's
-# credit plus a resend round or two of it, hence the inbox's capacity.
-DRAIN_NS = 250_000_000
+# With nobody taking, the node's loop drains the inbox every ``DRAIN_NS`` (0.25 s): what
+# honest traffic can bring in between is the queue's credit plus a resend round or two of
+# it, hence the inbox's capacity.
 _INBOX_SLACK = 64  # greetings, refusals, doorbells
 
 
@@ -60,8 +59,8 @@ class Subscription:
     blocks in the channel's ``recv`` (the *receiver*, one at a time; others wait in
     ``_cond`` for its news), and the node's loop rings its doorbell at its deadline. With
     nobody taking, the node's loop drains (``on_deadline``). ``_lock`` guards the protocol,
-    ``_receiving``, ``_wake_at_ns`` and ``_waiting`` (callers blocked in ``_cond``); the
-    inbox is drained under it, and only while no receiver blocks in ``recv``. Acks are
+    the inbox's ``Receiver`` and ``_waiting`` (callers blocked in ``_cond``); the inbox is
+    drained under it, and only while no receiver blocks in ``recv``. Acks are
     computed under the lock and sent after releasing it: by ``take`` on the caller's
     thread, or by the node's loop when a delayed ack falls due and the caller has not come
     back (``on_deadline``).
@@ -104,10 +103,6 @@ class Subscription:
         self._lock = threading.Lock()
         self._cond = threading.Condition(self._lock)
         self._waiting = 0
-        # A caller blocked in the inbox's recv, and when it wants the doorbell (monotonic ns).
-        self._receiving = False
-        self._wake_at_ns: int | None = None
-        self._drain_at_ns = (time.monotonic_ns() // DRAIN_NS + 1) * DRAIN_NS
         self._closed = False
         self._ack_publisher = session.declare_publisher(
             keys.ack(service, buffer, self.subscription_id),
@@ -117,6 +112,8 @@ class Subscription:
         self._inbox = Inbox(
             session, notify_key, capacity=inbox_capacity(queue_size), doorbell_key=notify_key
         )
+        # A caller blocked in the inbox's recv, and when it wants the doorbell.
+        self._receiver = Receiver(self._inbox, self._cond, loop)
         loop.add(self)
         # Declared last: once the producer sees it, notifications may flow.
         self._token = session.liveliness().declare_token(
@@ -160,7 +157,7 @@ class Subscription:
     def _drain(self) -> None:
         """(under _lock) Feed the protocol every notification waiting in the inbox, unless a
         receiver blocks in ``recv``: then the input is its to take."""
-        if self._receiving:
+        if self._receiver.active:
             return
         for sample in self._inbox.drain():
             self._feed(sample)
@@ -183,31 +180,17 @@ class Subscription:
         """(holding _lock through ``_cond``) Wait up to ``wait_s`` for Zenoh input, fed to
         the protocol when this returns: as the receiver, blocked in the inbox's ``recv``
         with the loop asked to ring the doorbell at the deadline; or, when another caller
-        is the receiver already, in ``_cond`` for its news."""
-        if self._receiving:
-            self._waiting += 1
-            try:
-                self._cond.wait(wait_s)
-            finally:
-                self._waiting -= 1
-            return
-        self._receiving = True
-        wake_at = time.monotonic_ns() + int(wait_s * 1e9)
-        self._wake_at_ns = wake_at
-        self._lock.release()
-        sample = None
+        is the receiver already, in ``_cond`` for its news (see ``Receiver.wait``)."""
+        self._waiting += 1
         try:
-            self._loop.poke(wake_at)
-            sample = self._inbox.recv()
+            sample = self._receiver.wait(wait_s)
         finally:
-            self._lock.acquire()
-            self._receiving = False
-            self._wake_at_ns = None
-            if sample is not None:
-                self._feed(sample)
-            self._drain()
-            if self._waiting:  # news for them, or their turn to receive
-                self._cond.notify_all()
+            self._waiting -= 1
+        if sample is not None:
+            self._feed(sample)
+        self._drain()
+        if self._waiting:  # news for them, or their turn to receive
+            self._cond.notify_all()
 
     def wait_registered(self, timeout_s: float) -> bool:
         """Wait until the producer greets this subscription; RegistrationRefused if it
@@ -230,7 +213,7 @@ class Subscription:
     def next_deadline_ns(self) -> int | None:
         with self._lock:
             due = self._protocol.next_deadline_ns()
-            other = self._wake_at_ns if self._receiving else self._drain_at_ns
+            other = self._receiver.deadline_ns()
         if other is not None and (due is None or other < due):
             return other
         return due
@@ -238,17 +221,10 @@ class Subscription:
     def on_deadline(self, now_ns: int) -> None:
         """Drain the inbox if nobody takes; send a delayed ack that fell due with nobody
         taking since (see ``AckPolicy``); ring the receiver's doorbell at its deadline."""
-        ring = False
         with self._lock:
-            if self._receiving:
-                if self._wake_at_ns is not None and self._wake_at_ns <= now_ns:
-                    self._wake_at_ns = None
-                    ring = True
-            elif self._drain_at_ns <= now_ns:
+            ring, drain = self._receiver.due(now_ns)
+            if drain:
                 self._drain()
-                self._drain_at_ns = (
-                    now_ns // DRAIN_NS + 1
-                ) * DRAIN_NS  # one grid: a node's objects share a wake
                 if self._waiting:
                     self._cond.notify_all()
             due = self._protocol.next_deadline_ns()
@@ -256,7 +232,7 @@ class Subscription:
             acks = self._protocol.acks(now_ns, idle=False) if ready else []
         self._send_acks(acks)
         if ring:
-            self._inbox.ring()
+            self._receiver.ring()
 
     @property
     def pending(self) -> int:
