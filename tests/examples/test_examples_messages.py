@@ -63,7 +63,8 @@ def _one_line_error(proc: subprocess.Popen[str]) -> str:
     return err
 
 
-def test_query_of_a_stopped_example_is_one_line() -> None:
+def _error_without_the_example(script: str, *args: str) -> str:
+    """The one-line error of ``script`` run against a router where no example service is."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     with subprocess.Popen(  # something to connect to, but no example service
         [sys.executable, "-m", "services.cli", "router", "--listen", endpoint],
@@ -73,11 +74,14 @@ def test_query_of_a_stopped_example_is_one_line() -> None:
         stderr=subprocess.DEVNULL,
     ) as router:
         try:
-            err = _one_line_error(_start("query.py", "--connect", endpoint))
+            return _one_line_error(_start(script, "--connect", endpoint, *args))
         finally:
             router.send_signal(signal.SIGINT)
             router.wait(timeout=30)
-    assert "example" in err
+
+
+def test_query_of_a_stopped_example_is_one_line() -> None:
+    assert "example" in _error_without_the_example("query.py")
 
 
 def test_query_with_a_bad_range_is_one_line() -> None:
@@ -114,19 +118,7 @@ def test_flag_values_that_would_crash_or_do_nothing_are_refused_as_parsed(
 
 
 def test_subscribe_to_an_example_that_is_not_running_says_so() -> None:
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    with subprocess.Popen(  # something to connect to, but no example service
-        [sys.executable, "-m", "services.cli", "router", "--listen", endpoint],
-        env=child_env(),
-        cwd=REPO,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-    ) as router:
-        try:
-            err = _one_line_error(_start("subscribe.py", "--connect", endpoint, "--count", "1"))
-        finally:
-            router.send_signal(signal.SIGINT)
-            router.wait(timeout=30)
+    err = _error_without_the_example("subscribe.py", "--count", "1")
     assert "service 'example' is not live" in err and "offer.py" in err, err
 
 

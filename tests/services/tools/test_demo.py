@@ -151,12 +151,15 @@ def test_summary_says_why_when_the_camera_did_not_keep_its_rate(
         assert expected in out, out
 
 
-@pytest.mark.integration
-def test_a_short_live_demo_prints_status_lines_and_the_side_by_side_summary() -> None:
+DEMO = [sys.executable, "-m", "services.cli", "demo"]
+
+
+def _live_demo(port: int, duration_s: int) -> subprocess.CompletedProcess[str]:
+    """``framegate demo --source sim`` on its own rendezvous port, run to its end."""
     env = child_env()
-    env["FRAMEGATE_LOCAL_PORT"] = str(free_port())
-    result = subprocess.run(
-        [sys.executable, "-m", "services.cli", "demo", "--source", "sim", "--duration", "8"],
+    env["FRAMEGATE_LOCAL_PORT"] = str(port)
+    return subprocess.run(
+        [*DEMO, "--source", "sim", "--duration", str(duration_s)],
         cwd=REPO,
         env=env,
         capture_output=True,
@@ -164,6 +167,11 @@ def test_a_short_live_demo_prints_status_lines_and_the_side_by_side_summary() ->
         timeout=120,
         check=False,
     )
+
+
+@pytest.mark.integration
+def test_a_short_live_demo_prints_status_lines_and_the_side_by_side_summary() -> None:
+    result = _live_demo(free_port(), 8)
     assert result.returncode == 0 and "Traceback" not in result.stderr, result
     lines = result.stdout.splitlines()
     status = [line for line in lines if " late | med " in line]
@@ -177,19 +185,9 @@ def test_a_short_live_demo_prints_status_lines_and_the_side_by_side_summary() ->
 @pytest.mark.integration
 def test_a_demo_beside_a_live_pipeline_on_its_rendezvous_refuses_in_one_line() -> None:
     port = free_port()
-    env = child_env()
-    env["FRAMEGATE_LOCAL_PORT"] = str(port)
     with Node("camera", NetworkConfig(local_port=port)) as other:  # another pipeline's camera
         other.offer("images", kind="frame")
-        result = subprocess.run(
-            [sys.executable, "-m", "services.cli", "demo", "--source", "sim", "--duration", "5"],
-            cwd=REPO,
-            env=env,
-            capture_output=True,
-            text=True,
-            timeout=120,
-            check=False,
-        )
+        result = _live_demo(port, 5)
     assert result.returncode == 1, result
     assert result.stderr.startswith("error: service 'camera' is live already (pid "), result
     assert len(result.stderr.splitlines()) == 1 and "FRAMEGATE_LOCAL_PORT" in result.stderr
