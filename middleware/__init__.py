@@ -37,9 +37,11 @@ from ._records import (
     DataObject,
     Notification,
     Retention,
+    Rewind,
     ServiceInfo,
     SubscriptionInfo,
     SubscriptionMode,
+    tightest_flow,
 )
 from ._subscription import PUSH_ALL, Subscription
 from ._timerange import TimeRange, parse_duration_ns, parse_time_ns, parse_time_range
@@ -69,6 +71,7 @@ __all__ = [
     "QueryError",
     "RegistrationRefused",
     "Retention",
+    "Rewind",
     "SchemaError",
     "ServiceInfo",
     "SteadyClock",
@@ -90,5 +93,6 @@ __all__ = [
     "parse_untrusted",
     "register_kind",
     "split_target",
+    "tightest_flow",
     "validate_metadata",
 ]

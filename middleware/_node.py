@@ -52,6 +52,7 @@ from ._records import (
     BufferInfo,
     DataObject,
     Retention,
+    Rewind,
     ServiceInfo,
     SubscriptionInfo,
     SubscriptionMode,
@@ -524,6 +525,7 @@ def _service_info(body: dict[str, Any], start_ns: int, end_ns: int) -> ServiceIn
                 subscriptions=subs,
                 skipped={str(k): int(v) for k, v in b.get("skipped", {}).items()},
                 refused_subscriptions=int(b.get("refused_subscriptions", 0)),
+                rewinds=tuple(Rewind.from_json(r) for r in b.get("rewinds", [])[:64]),
             )
         )
     sample = ClockSample.from_times(start_ns, int(body["clock_ns"]), end_ns)

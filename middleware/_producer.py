@@ -35,7 +35,14 @@ from ._inbox import Inbox, Receiver
 from ._ledger_producer import Registration, RegistrationKey
 from ._loop import NodeLoop
 from ._protocol_producer import Event, ProducerProtocol, Publish, Retire
-from ._records import BufferInfo, DataObject, Retention, SubscriptionInfo
+from ._records import (
+    BufferInfo,
+    DataObject,
+    Retention,
+    Rewind,
+    SubscriptionInfo,
+    tightest_flow,
+)
 from ._shapes import ShapeChecker
 from ._wire import Keys
 from ._xml import XmlLimits
@@ -53,6 +60,8 @@ _WAIT_S = 0.1
 # registration and queue window (see ``AckPolicy``) plus a re-ack each per 0.5 s. A lost
 # ack costs nothing: acks are cumulative and repeated.
 _ACK_INBOX = 8192
+# Rewinds ``info`` lists (each one is also counted in ``skipped``).
+_REWINDS_KEPT = 16
 
 
 @dataclass
@@ -62,6 +71,8 @@ class _Counters:
     rejected: int = 0
     skipped: dict[str, int] = field(default_factory=dict)
     put_times: deque[int] = field(default_factory=lambda: deque(maxlen=_RATE_WINDOW))
+    # The latest rewinds, for ``info``; older ones stay counted in ``skipped``.
+    rewinds: deque[Rewind] = field(default_factory=lambda: deque(maxlen=_REWINDS_KEPT))
 
 
 class Producer:
@@ -398,19 +409,29 @@ class Producer:
 
     def discard_after(self, timestamp_ns: int, reason: str) -> int:
         """Remove the elements stamped after ``timestamp_ns`` so that later puts may be
-        stamped from there on; how many there were. Counted in ``info`` as skipped by
-        ``reason`` and logged.
+        stamped from there on; how many there were. Reaches back at most ``horizon_ns``
+        from the newest element (an earlier ``timestamp_ns`` is raised to that bound).
+        Counted in ``info`` as skipped by ``reason`` and recorded there as a ``Rewind``
+        (stamp range, count, cause); logged.
 
-        For a stage whose input started over earlier in time (a camera restarted after its
-        clock was stepped back, a rogue's future stamp): the removed elements came from a
-        clock now known to be wrong. Subscribers that were notified of them keep what was
-        pushed to them; a fetch of a removed one finds nothing.
+        For a stage whose input started over earlier in time because the *source's* clock
+        was wrong (a camera restarted after its clock was stepped back, a rogue's future
+        stamp): the caller decides that from the source's own restart and clock records,
+        never from one element. Subscribers that were notified of the removed elements keep
+        what was pushed to them; a fetch of a removed one finds nothing.
         """
         with self._lock:
+            newest = self.series.newest_ns
+            if newest is not None:
+                timestamp_ns = max(timestamp_ns, newest - self.horizon_ns)
             removed = self.series.discard_after(timestamp_ns)
             if removed:
                 skipped = self._counters.skipped
                 skipped[reason] = skipped.get(reason, 0) + len(removed)
+                stamps = [e.timestamp_ns for e in removed]
+                self._counters.rewinds.append(
+                    Rewind(timestamp_ns, len(removed), min(stamps), max(stamps), reason)
+                )
         if removed:
             log.warning(
                 "%s: %d elements stamped after %d removed (%s): stamps continue from there",
@@ -430,13 +451,10 @@ class Producer:
 
     # -- reading state -------------------------------------------------------------------
     def fill(self) -> float:
-        """The fullest flow-controlled subscription's queued/N in [0, 1]; 0 with none.
-
-        This is the paper's load indicator, read by the mediator.
-        """
-        with self._lock:
-            self._drain_acks()
-            return self._protocol.fill()
+        """The paper's load indicator: queued/N in [0, 1] of the flow-controlled
+        subscription that will refuse first (``tightest_flow``); 0 with none."""
+        tightest = tightest_flow(self.subscriptions())
+        return tightest.fill if tightest is not None else 0.0
 
     def subscriptions(self) -> list[SubscriptionInfo]:
         """Every live subscription (registration) as this producer counts it."""
@@ -475,6 +493,7 @@ class Producer:
             times = list(c.put_times)
             puts, refused, rejected = c.puts, c.refused, c.rejected
             skipped = dict(c.skipped)
+            rewinds = tuple(c.rewinds)
             subs = tuple(self._protocol.subscriptions())
             protocol = self._protocol.counters
         span_ns = times[-1] - times[0] if times else 0
@@ -498,6 +517,7 @@ class Producer:
             subscriptions=subs,
             skipped=skipped,
             refused_subscriptions=protocol.refused_registrations,
+            rewinds=rewinds,
         )
 
     def close(self) -> None:

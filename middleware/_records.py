@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import enum
+from collections.abc import Iterable
 from dataclasses import dataclass, field
+from typing import Any
 
 
 @dataclass(frozen=True, slots=True)
@@ -103,6 +105,39 @@ class SubscriptionInfo:
         return min(1.0, self.queued / self.queue_size)
 
 
+def tightest_flow(subscriptions: Iterable[SubscriptionInfo]) -> SubscriptionInfo | None:
+    """The flow-controlled subscription that will refuse the producer first (fewest free
+    slots; the fullest of those), or None with none: whose ``fill`` is *the* load
+    indicator (``Producer.fill``, the mediator's load, the demo's)."""
+    flows = [s for s in subscriptions if s.mode is SubscriptionMode.FLOW]
+    return min(flows, key=lambda s: (s.queue_size - s.queued, -s.fill), default=None)
+
+
+@dataclass(frozen=True, slots=True)
+class Rewind:
+    """Elements a producer removed because its input started over earlier in time
+    (``Producer.discard_after``): every element stamped after ``after_ns``, ``count`` of
+    them from ``first_ns`` to ``last_ns`` (None: there were none), and why."""
+
+    after_ns: int
+    count: int
+    first_ns: int | None
+    last_ns: int | None
+    cause: str
+
+    @classmethod
+    def from_json(cls, data: dict[str, Any]) -> Rewind:
+        """A rewind as ``info`` encodes it (``dataclasses.asdict``)."""
+        first, last = data["first_ns"], data["last_ns"]
+        return cls(
+            int(data["after_ns"]),
+            int(data["count"]),
+            None if first is None else int(first),
+            None if last is None else int(last),
+            str(data["cause"]),
+        )
+
+
 @dataclass(frozen=True, slots=True)
 class BufferInfo:
     """What ``info`` reports of one buffer."""
@@ -125,6 +160,8 @@ class BufferInfo:
     skipped: dict[str, int] = field(default_factory=dict)
     # Subscription tokens this producer refused (a limit: slots or the queue budget).
     refused_subscriptions: int = 0
+    # The latest rewinds (``Producer.discard_after``), oldest first: what was removed.
+    rewinds: tuple[Rewind, ...] = field(default=())
 
     @property
     def name(self) -> str:

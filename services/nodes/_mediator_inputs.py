@@ -1,27 +1,18 @@
-"""The mediator's inputs and readings: the gyro cache, the detector's load and the clock
-offset between camera and gyro (see ``services.nodes.mediator``, which re-exports them).
+"""The mediator's inputs: the gyro cache and the clock offset between camera and gyro (see
+``services.nodes.mediator``, which re-exports them).
 """
 
 from __future__ import annotations
 
 import collections
-import contextlib
 import itertools
 import threading
-import time
 
 import numpy as np
 
-from middleware import (
-    FramegateError,
-    Node,
-    Producer,
-    Subscription,
-    SubscriptionInfo,
-    SubscriptionMode,
-)
-from services.lib.decisions import Load
+from middleware import FramegateError, Node, Notification, Subscription
 from services.lib.quality import GyroSamples
+from services.lib.rewind import SourceClock
 
 # A batch whose newest sample is this much older than the newest kept: the gyro restarted.
 _GYRO_RESTART_NS = 10_000_000_000
@@ -61,38 +52,38 @@ def merge_batch(
 
 
 # Gyro notifications taken at once: a few of the gyro's batches of samples.
-_GYRO_TAKE_MAX = 64
+GYRO_TAKE_MAX = 64
 
 
 class GyroCache:
-    """Recent gyro batches, fed by a thread that takes gyro notifications at once."""
+    """Recent gyro batches; fed with the gyro's notifications (``feed``), read by pairing.
 
-    def __init__(self, sub: Subscription, keep_ns: int = 10_000_000_000) -> None:
-        self._sub = sub
+    Threads: ``_lock`` guards the batch list, so the feeding and the reading may run on
+    different threads (they run on one in the mediator).
+    """
+
+    def __init__(self, keep_ns: int = 10_000_000_000) -> None:
         self._keep_ns = keep_ns
         self._batches: list[GyroSamples] = []
-        self._cond = threading.Condition()
-        self._stop = threading.Event()
+        self._lock = threading.Lock()
         self.dropped = collections.Counter[str]()
-        self._thread = threading.Thread(target=self._run, daemon=True, name="gyro-cache")
-        self._thread.start()
 
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            # The gyro puts its samples as elements in batches (put_many); taking up to a
-            # batch's worth at once and joining them keeps the cache at batch granularity
-            # and sends one ack per call.
-            notes = self._sub.take_many(_GYRO_TAKE_MAX, timeout_s=0.2)
-            parts: list[GyroSamples] = []
-            for note in notes:
-                try:
-                    parts.append(GyroSamples.from_bytes(self._sub.fetch(note).payload))
-                except (FramegateError, ValueError, OverflowError):
-                    self.dropped["bad-batch"] += 1
-            if parts:
-                self._add_parts(parts)
+    def feed(self, sub: Subscription, notes: list[Notification]) -> None:
+        """Add the batches of gyro notifications taken together.
 
-    def _add_parts(self, parts: list[GyroSamples]) -> None:
+        The gyro puts its samples as elements in batches (put_many); taking up to a
+        batch's worth at once and joining them keeps the cache at batch granularity.
+        """
+        parts: list[GyroSamples] = []
+        for note in notes:
+            try:
+                parts.append(GyroSamples.from_bytes(sub.fetch(note).payload))
+            except (FramegateError, ValueError, OverflowError):
+                self.dropped["bad-batch"] += 1
+        if parts:
+            self.add_parts(parts)
+
+    def add_parts(self, parts: list[GyroSamples]) -> None:
         """Add consecutive parts; joined when in order, one by one (trimmed) when not."""
         ordered = all(len(p) for p in parts) and all(
             int(a.t_ns[-1]) < int(b.t_ns[0]) for a, b in itertools.pairwise(parts)
@@ -105,31 +96,24 @@ class GyroCache:
 
     def add(self, batch: GyroSamples) -> None:
         """Keep what is new in ``batch`` (see ``merge_batch``)."""
-        with self._cond:
+        with self._lock:
             self._batches, outcome = merge_batch(self._batches, batch, self._keep_ns)
             if outcome is not None:
                 self.dropped[outcome] += 1
-            self._cond.notify_all()
 
     @property
     def newest_ns(self) -> int | None:
-        with self._cond:
+        with self._lock:
             return int(self._batches[-1].t_ns[-1]) if self._batches else None
 
-    def wait_covering(self, end_ns: int, timeout_s: float) -> bool:
-        """Wait until a sample at or after ``end_ns`` (gyro clock) has arrived."""
-        deadline = time.monotonic() + timeout_s
-        with self._cond:
-            while not self._batches or self._batches[-1].t_ns[-1] < end_ns:
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    return False
-                self._cond.wait(remaining)
-            return True
+    def times_ns(self) -> list[int]:
+        """Every sample time kept, oldest first (for tests and reports)."""
+        with self._lock:
+            return [int(t) for b in self._batches for t in b.t_ns]
 
     def window(self, start_ns: int, end_ns: int, margin_ns: int = 20_000_000) -> GyroSamples:
         """Samples from batches overlapping [start - margin, end + margin]."""
-        with self._cond:
+        with self._lock:
             chosen = [
                 b
                 for b in self._batches
@@ -137,44 +121,32 @@ class GyroCache:
             ]
         return GyroSamples.concat(chosen) if chosen else GyroSamples.empty()
 
-    def stop(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=2)
-
-
-def detector_load(producer: Producer) -> Load:
-    """The flow-controlled subscription with the fewest free slots (0/0 with none)."""
-    return _tightest(producer.subscriptions())[0]
-
-
-def _tightest(subs: list[SubscriptionInfo]) -> tuple[Load, SubscriptionInfo | None]:
-    flows = [s for s in subs if s.mode is SubscriptionMode.FLOW]
-    if not flows:
-        return Load(0, 0), None
-    tightest = min(flows, key=lambda s: (s.queue_size - s.queued, -s.fill))
-    load = Load(min(tightest.queued, tightest.queue_size), tightest.queue_size, tightest.taken_ns)
-    return load, tightest
-
 
 # How often the mediator asks camera and gyro for their clocks, and how many answers count.
-_OFFSET_PERIOD_S = 2.0
+OFFSET_PERIOD_S = 2.0
 _OFFSET_SAMPLES = 5
+# How long one service may take to describe itself (a stopped one never answers).
+_ASK_TIMEOUT_S = 1.0
 
 
 class ClockOffsets:
-    """How far the camera's clock is from the gyro's, measured by asking both (a thread).
+    """How far the camera's clock is from the gyro's, measured by asking both.
 
-    Every ``_OFFSET_PERIOD_S`` the services' descriptions give each clock's offset from
-    ours and the round trip that bounds its error (NTP-style); the camera-minus-gyro
-    offset is that of the sample with the shortest round trips among the last
-    ``_OFFSET_SAMPLES``, its uncertainty half the sum of those round trips. Unknown (None)
-    until both have answered. The samples describe two particular clocks: when either
-    service is another process (restarted, or a rogue that held the name before) or its
-    clock has stepped since, they are forgotten, or a camera restarted after a clock error
-    would be judged by the clock it no longer has for up to ``_OFFSET_SAMPLES`` periods.
+    Each ``measure`` (every ``OFFSET_PERIOD_S``, and at once after ``forget``) asks the
+    services for their descriptions, which give each clock's offset from ours and the round
+    trip that bounds its error (NTP-style); the camera-minus-gyro offset is that of the
+    sample with the shortest round trips among the last ``_OFFSET_SAMPLES``, its
+    uncertainty half the sum of those round trips. Unknown (None) until both have answered.
+    The samples describe two particular clocks: when either service is another process
+    (restarted, or a rogue that held the name before) or its clock has stepped since, they
+    are forgotten, or a camera restarted after a clock error would be judged by the clock
+    it no longer has for up to ``_OFFSET_SAMPLES`` periods.
 
-    Threads: one daemon thread asks (it only calls ``Node.services``); ``_lock`` guards
-    the samples.
+    Each source's own latest clock sample is kept too (``clock``): what a rewind of the
+    mediator's output is judged by (``services.lib.rewind``).
+
+    Threads: ``measure`` may run on another thread than the readers; ``_lock`` guards the
+    samples.
     """
 
     def __init__(self, node: Node, camera: str, gyro: str) -> None:
@@ -186,38 +158,49 @@ class ClockOffsets:
         )
         # (host, pid, clock steps) of camera and gyro when the samples were taken.
         self._clocks: tuple[tuple[str, int, int | None], ...] | None = None
+        self._sources: dict[str, SourceClock] = {}
         self._lock = threading.Lock()
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True, name="clock-offsets")
-        self._thread.start()
+        self.asked = threading.Event()  # set: measure again at once (a source started over)
 
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            with contextlib.suppress(FramegateError):
-                self.measure()
-            self._stop.wait(_OFFSET_PERIOD_S)
+    def ask(self, service: str) -> SourceClock | None:
+        try:
+            info = self._node.service_info(service, timeout_s=_ASK_TIMEOUT_S)
+        except FramegateError:
+            return None
+        clock = SourceClock.of(info)
+        if clock is not None:
+            with self._lock:
+                self._sources[service] = clock
+        return clock
 
     def measure(self) -> None:
-        found = {s.service: s for s in self._node.services(timeout_s=1.0)}
-        camera, gyro = found.get(self._camera), found.get(self._gyro)
+        """Ask camera and gyro for their clocks once; a service that does not answer
+        leaves the samples as they are."""
+        self.asked.clear()
+        camera, gyro = self.ask(self._camera), self.ask(self._gyro)
         if camera is None or gyro is None:
             return
-        if camera.clock_offset_ns is None or gyro.clock_offset_ns is None:
-            return
-        offset = camera.clock_offset_ns - gyro.clock_offset_ns
-        error = ((camera.round_trip_ns or 0) + (gyro.round_trip_ns or 0)) // 2
-        clocks = tuple((s.host, s.pid, s.clock_steps) for s in (camera, gyro))
+        offset = camera.offset_ns - gyro.offset_ns
+        error = camera.error_ns + gyro.error_ns
+        clocks = (camera.identity, gyro.identity)
         with self._lock:
             if clocks != self._clocks:
                 self._samples.clear()
                 self._clocks = clocks
             self._samples.append((offset, error))
 
+    def clock(self, service: str) -> SourceClock | None:
+        """The latest clock sample of ``service`` (the camera's or the gyro's), if any."""
+        with self._lock:
+            return self._sources.get(service)
+
     def forget(self) -> None:
-        """Drop the samples (a source started over): unknown until measured again."""
+        """Drop the samples (a source started over): unknown until measured again, which
+        is asked for at once."""
         with self._lock:
             self._samples.clear()
             self._clocks = None
+        self.asked.set()
 
     def current(self) -> tuple[int, int] | None:
         """(camera - gyro offset, its uncertainty) in ns, or None while unknown: the recent
@@ -226,7 +209,3 @@ class ClockOffsets:
             if not self._samples:
                 return None
             return min(self._samples, key=lambda sample: sample[1])
-
-    def stop(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=2)

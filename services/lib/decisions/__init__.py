@@ -46,7 +46,16 @@ from ._deadline import DeadlinePolicy
 from ._decider import DEFAULT_MAX_HOLD_NS, Decider, GyroMissing, Rules
 from ._paper import PaperPolicy
 from ._policy import Policy
-from ._records import Action, Candidate, DetectorClock, Load, Verdict, View, queue_load
+from ._records import (
+    Action,
+    Candidate,
+    DetectorClock,
+    Load,
+    Verdict,
+    View,
+    queue_load,
+    tightest_load,
+)
 from ._registry import DEFAULT_POLICY, POLICIES, make_policy
 from ._replace import ReplacePolicy
 
@@ -70,4 +79,5 @@ __all__ = [
     "View",
     "make_policy",
     "queue_load",
+    "tightest_load",
 ]

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import enum
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass
 
+from middleware import SubscriptionInfo, tightest_flow
 from services.lib.quality import QualityInputError
 
 
@@ -76,6 +78,19 @@ class Load:
     def idle(self) -> bool:
         """Nothing waits for the detector: the next frame it needs must come now."""
         return self.queued == 0
+
+
+def tightest_load(
+    subscriptions: Iterable[SubscriptionInfo],
+) -> tuple[Load, SubscriptionInfo | None]:
+    """The detector's load from a producer's subscriptions: that of the flow-controlled
+    subscription that will refuse first (``middleware.tightest_flow``, as ``Producer.fill``
+    reads it), and that subscription; Load(0, 0) and None without one."""
+    tightest = tightest_flow(subscriptions)
+    if tightest is None:
+        return Load(0, 0), None
+    queued = min(tightest.queued, tightest.queue_size)
+    return Load(queued, tightest.queue_size, tightest.taken_ns), tightest
 
 
 def queue_load(pending: int, capacity: int) -> float:

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import time
 
 import numpy as np
 import pytest
@@ -149,23 +148,12 @@ def test_every_mediator_setting_has_a_flag() -> None:
     assert SERVICE.config_from_args(parser.parse_args([])) == MediatorConfig()
 
 
-class _NoNotes:
-    """A subscription that never has a notification (the cache is fed by hand)."""
-
-    def take_many(self, max_count: int, *, timeout_s: float | None = None) -> list[object]:
-        time.sleep(0.01)
-        return []
-
-
 def test_gyro_cache_joins_in_order_samples_and_trims_overlapping_ones() -> None:
-    cache = GyroCache(_NoNotes())  # type: ignore[arg-type]
-    try:
-        # One-sample elements taken together become one batch of the cache.
-        cache._add_parts([_batch(0, 1), _batch(1, 1), _batch(2, 1)])
-        assert _times_ms(cache._batches) == [0, 1, 2] and len(cache._batches) == 1
-        # A re-delivered and an overlapping part: the late one dropped, the overlap trimmed.
-        cache._add_parts([_batch(5, 2), _batch(1, 1), _batch(6, 3)])
-        assert _times_ms(cache._batches) == [0, 1, 2, 5, 6, 7, 8]
-        assert cache.dropped["late-batch"] == 1 and cache.dropped["overlap"] == 1
-    finally:
-        cache.stop()
+    cache = GyroCache()
+    # One-sample elements taken together become one batch of the cache.
+    cache.add_parts([_batch(0, 1), _batch(1, 1), _batch(2, 1)])
+    assert [t // MS for t in cache.times_ns()] == [0, 1, 2] and len(cache._batches) == 1
+    # A re-delivered and an overlapping part: the late one dropped, the overlap trimmed.
+    cache.add_parts([_batch(5, 2), _batch(1, 1), _batch(6, 3)])
+    assert [t // MS for t in cache.times_ns()] == [0, 1, 2, 5, 6, 7, 8]
+    assert cache.dropped["late-batch"] == 1 and cache.dropped["overlap"] == 1

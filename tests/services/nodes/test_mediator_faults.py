@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 
 from middleware import NetworkConfig, Node, Producer, Retention, make_metadata
-from services.lib.decisions import GyroMissing
+from services.lib.decisions import GyroMissing, Load, tightest_load
 from services.lib.messages import frame_metadata
 from services.lib.quality import Exposure
-from services.nodes.mediator import Mediator, MediatorConfig, detector_load
+from services.nodes.mediator import Mediator, MediatorConfig
 from tests.conftest import wait_until
 
 MS = 1_000_000
@@ -95,6 +95,10 @@ def test_frames_with_a_wrong_payload_size_are_skipped_and_good_ones_still_go(
         assert sum(b"bad-payload-size" in m for m in reasons) == 2
     finally:
         mediator.close()
+
+
+def detector_load(images: Producer) -> Load:
+    return tightest_load(images.subscriptions())[0]
 
 
 def test_the_detector_load_carries_when_the_producer_saw_the_last_take(

@@ -56,13 +56,13 @@ class Recorded:
         self.node = Node("mediator", NetworkConfig(local_port=port))
         self.mediator = Mediator(self.node, config, "mediator")
         self.records: list[DecisionRecord] = []
-        write = self.mediator._write
+        write = self.mediator.out.write
 
         def keep(record: DecisionRecord) -> None:
             self.records.append(record)
             write(record)
 
-        self.mediator._write = keep  # type: ignore[method-assign]
+        self.mediator.out.write = keep  # type: ignore[method-assign]
 
     def step_until(self, done: object, timeout_s: float, what: str) -> None:
         def stepped() -> bool:

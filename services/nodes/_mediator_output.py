@@ -1,0 +1,188 @@
+"""The mediator's outputs: the decider's verdicts carried out (see ``services.nodes.mediator``).
+
+Frames forwarded go to mediator/images, whose flow-controlled subscriber (the detector) is
+the load indicator; every decision goes to mediator/decisions. A record never waits and
+never raises out of the mediator: one refused (a subscriber flow-controls the buffer) or
+rejected is counted (``decisions_dropped``, logged) and dropped.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+from dataclasses import dataclass
+
+from middleware import FlowControlRefused, FramegateError, Node, Producer, Retention, now_ns
+from services.lib.decisions import Action, Candidate, Decider, Load, Verdict, tightest_load
+from services.lib.messages import DecisionRecord, FrameMeta
+from services.nodes._runtime import Monotonic
+
+
+@dataclass(frozen=True, slots=True)
+class Frame:
+    """A frame the decider knows: its candidate, and the bytes to forward it with."""
+
+    meta: FrameMeta
+    payload: bytes
+    metadata: bytes
+    candidate: Candidate
+
+
+class Output:
+    """mediator/images and mediator/decisions, and the frames whose bytes are kept."""
+
+    def __init__(self, node: Node, *, policy: str, b0_px: float, log: logging.Logger) -> None:
+        self.images: Producer = node.offer(
+            "images", kind="frame", retention=Retention(max_count=64, max_bytes=256 * 2**20)
+        )
+        self.decisions: Producer = node.offer(
+            "decisions", kind="decision", retention=Retention(max_count=100_000)
+        )
+        self.log = log
+        self._policy = policy
+        self._b0_px = b0_px
+        self.newest_put_ns: int | None = None
+        # The flow-controlled consumer (the detector): whether one was ever seen, whether
+        # its subscription has lapsed, and the frames last seen waiting in its queue.
+        self._consumer_capacity: int | None = None
+        self.lapsed = False
+        self._queued_frames: collections.deque[Frame] = collections.deque()
+        self.last_load = Load(0, 0)
+        self._keys = Monotonic()
+        self.pending: dict[int, Frame] = {}  # frames the decider holds, by key
+        self.skipped = collections.Counter[str]()
+        self.decisions_dropped = 0
+        self._policy_faults_logged = 0
+
+    def load(self) -> Load:
+        """The detector's load; full while the subscription of a consumer we had lapsed.
+
+        A flow-controlled consumer that stops answering (stopped, frozen, partitioned)
+        loses its subscription after the lease; to the producer that looks like no
+        consumer at all (load 0), and frames forwarded then are lost without a trace.
+        So once a flow-controlled consumer has been seen, its absence means full: frames
+        are recorded ``consumer-lapsed`` (not forwarded) until a consumer is back, and the
+        frames that were waiting in its queue when it lapsed get a ``consumer-lapsed``
+        record too. A mediator that never had one (uncontrolled wiring) forwards as before.
+        """
+        load, tightest = tightest_load(self.images.subscriptions())
+        if tightest is not None:
+            if self.lapsed:
+                self.lapsed = False
+                self.log.warning("the detector's subscription is back: forwarding again")
+            self._consumer_capacity = tightest.queue_size
+            self.last_load = load
+            return load
+        if self._consumer_capacity is None:
+            return load
+        full = Load(self._consumer_capacity, self._consumer_capacity)
+        if not self.lapsed:
+            self.lapsed = True
+            queued = self.last_load.queued
+            waiting = list(self._queued_frames)[-queued:] if queued else []
+            self.log.warning(
+                "the detector's subscription lapsed (a stopped or unreachable consumer); "
+                "frames are recorded consumer-lapsed, not forwarded, until it is back "
+                "(%d forwarded frames were waiting in its queue)",
+                len(waiting),
+            )
+            for frame in waiting:
+                self.record(frame, Verdict(frame.candidate, Action.DROP, "consumer-lapsed"), full)
+            self._queued_frames.clear()
+        self.last_load = full
+        return full
+
+    def carry_out(self, decider: Decider, verdicts: list[Verdict], load: Load) -> None:
+        """Put forwarded frames, record every verdict with the load the decider saw."""
+        for verdict in verdicts:
+            key = verdict.frame.timestamp_ns
+            frame = self.pending.get(key)
+            if verdict.action is not Action.HOLD:
+                self.pending.pop(key, None)
+            if frame is None:
+                continue
+            if verdict.action is Action.FORWARD and (why := self._put(frame)) is not None:
+                verdict = decider.refused(verdict.frame)
+                if why == "consumer-lapsed":
+                    verdict = Verdict(verdict.frame, Action.DROP, why)
+            self.record(frame, verdict, load)
+        if decider.policy_faults > self._policy_faults_logged:
+            self._policy_faults_logged = decider.policy_faults
+            self.log.warning(
+                "policy %s broke its contract (%d times so far)",
+                self._policy,
+                decider.policy_faults,
+            )
+
+    def _put(self, frame: Frame) -> str | None:
+        """Forward a frame: None once a consumer is told of it, else why not (``refused``;
+        ``consumer-lapsed``: stored, but the consumer we had was not registered at that
+        moment, a lapse between two looks at the load, so no notification will reach it)."""
+        try:
+            notified = self.images.put(frame.meta.timestamp_ns, frame.payload, frame.metadata)
+        except FlowControlRefused:
+            return "refused"
+        except FramegateError as exc:
+            self.log.warning("cannot forward frame %d: %s", frame.meta.frame_id, exc)
+            return "refused"
+        self.newest_put_ns = frame.meta.timestamp_ns
+        if notified == 0 and self._consumer_capacity is not None:
+            return "consumer-lapsed"
+        self._queued_frames.append(frame)
+        while len(self._queued_frames) > max(1, self._consumer_capacity or 1):
+            self._queued_frames.popleft()
+        return None
+
+    def record(self, frame: Frame, verdict: Verdict, load: Load) -> None:
+        candidate = frame.candidate
+        self.write(
+            DecisionRecord(
+                frame_timestamp_ns=candidate.timestamp_ns,
+                frame_id=candidate.frame_id,
+                blur_px=candidate.blur_px,
+                quality=candidate.q,
+                load=load.fill,
+                accepted=verdict.action is Action.FORWARD,
+                reason=verdict.reason,
+                policy=self._policy,
+                b0_px=self._b0_px,
+                latency_ns=now_ns() - frame.meta.exposure.end_ns,
+            )
+        )
+
+    def count(self, reason: str) -> None:
+        """Count a frame decided without a quality for ``reason`` (``info``'s skipped)."""
+        self.skipped[reason] += 1
+        self.images.count_skip(reason)
+
+    def skip(self, key_ns: int, frame_id: int, reason: str, detail: str) -> None:
+        """A frame not decided at all (bad, late, lapsed): counted, logged sparsely, recorded."""
+        self.count(reason)
+        count = self.skipped[reason]
+        if count & (count - 1) == 0:  # 1, 2, 4, 8...: visible, never a flood
+            self.log.warning("skipping frame %d (%s, %d so far): %s", key_ns, reason, count, detail)
+        self.write(
+            DecisionRecord(
+                frame_timestamp_ns=key_ns,
+                frame_id=frame_id,
+                blur_px=None,
+                quality=None,
+                load=self.last_load.fill,
+                accepted=False,
+                reason=reason,
+                policy=self._policy,
+                b0_px=self._b0_px,
+                latency_ns=0,
+            )
+        )
+
+    def write(self, record: DecisionRecord) -> None:
+        """Put a decision record; a refusal or rejection is counted, never raised."""
+        key = self._keys.next()
+        try:
+            self.decisions.put(key, b"", record.metadata(key))
+        except FramegateError as exc:
+            self.decisions_dropped += 1
+            n = self.decisions_dropped
+            if n & (n - 1) == 0:
+                self.log.warning("decision record dropped (%d so far): %s", n, exc)
