@@ -123,6 +123,8 @@ def _print_buffer(service: ServiceInfo, b: BufferInfo) -> None:
     print(f"  rate           {b.rate_hz:.1f} Hz")
     skipped = "".join(f", skipped {reason} {n}" for reason, n in sorted(b.skipped.items()))
     print(f"  producer       puts {b.puts}, refused {b.refused}, rejected {b.rejected}{skipped}")
+    for w in b.rewinds:  # what a rewind removed is shown, never only logged
+        print(f"  rewound        {w.count} after {format_ns(w.after_ns)} ({w.cause})")
     if not b.subscriptions:
         print("  subscriptions  none")
         return

@@ -1,0 +1,47 @@
+"""When a stage may remove what it put: only for a step of the source's own clock."""
+
+from __future__ import annotations
+
+import pytest
+
+from services.lib.rewind import SourceClock, rewind_after
+
+S = 1_000_000_000
+MS = 1_000_000
+HORIZON = 10 * S
+NEWEST = 1_000 * S
+
+
+def _clock(offset_ns: int, pid: int = 1, steps: int | None = 0) -> SourceClock:
+    return SourceClock("host", pid, steps, offset_ns, MS)
+
+
+def test_a_camera_whose_old_clock_ran_ahead_is_rewound_to_its_new_start() -> None:
+    # A rogue (or a camera) 9 s ahead, then the real camera: 4 s back from the newest put.
+    check = rewind_after(NEWEST, NEWEST - 4 * S, _clock(9 * S), _clock(0, pid=2), HORIZON)
+    assert check.after_ns == NEWEST - 4 * S - 1
+
+
+@pytest.mark.parametrize(
+    ("first_ns", "before", "after", "why"),
+    [
+        # A rogue's single stale put: another process, but its clock is right.
+        (NEWEST - 3600 * S, _clock(0), _clock(0, pid=2), "not-a-clock-step"),
+        (1, _clock(0), _clock(0, pid=2), "not-a-clock-step"),
+        # A camera restarted with its clock 5 s behind: the frames before were right.
+        (NEWEST - 3 * S, _clock(0), _clock(-5 * S, pid=2), "new-clock-further-off"),
+        # The same process and clock: its stamps never go back, one element proves nothing.
+        (NEWEST - 3 * S, _clock(9 * S), _clock(9 * S), "same-clock"),
+        # Not measured: nothing is known, nothing removed.
+        (NEWEST - 3 * S, None, _clock(0, pid=2), "clock-unknown"),
+        (NEWEST - 3 * S, _clock(9 * S), None, "clock-unknown"),
+        # Further back than the producer's horizon, even if the clocks explain it.
+        (NEWEST - 60 * S, _clock(70 * S), _clock(0, pid=2), "beyond-horizon"),
+        (NEWEST + 1, _clock(0), _clock(0, pid=2), "in-order"),
+    ],
+)
+def test_nothing_is_removed_unless_the_source_clock_stepped_back(
+    first_ns: int, before: SourceClock | None, after: SourceClock | None, why: str
+) -> None:
+    check = rewind_after(NEWEST, first_ns, before, after, HORIZON)
+    assert (check.after_ns, check.why) == (None, why)

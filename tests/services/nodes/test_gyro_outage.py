@@ -1,0 +1,80 @@
+"""A stopped gyro never throttles the camera: the mediator decides uncovered frames by its
+gyro-missing rule without waiting for each, so its queue from the camera keeps draining.
+
+Real processes (``framegate launch`` of the whole pipeline on a private port); the camera's
+own counters (``info``) are compared between a window with the gyro alive and one with it
+stopped, in the same run: shares, never absolute times.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from services.launch import pipeline_yaml
+from tests.conftest import wait_until
+from tests.services.nodes.pipeline import Pipeline
+
+pytestmark = pytest.mark.integration
+
+# Frames the camera offers (stored + refused) per measured window: a few seconds at 15 fps.
+WINDOW_FRAMES = 45
+
+
+@pytest.fixture
+def pipe(tmp_path: Path) -> Iterator[Pipeline]:
+    # A long wait for coverage: waited per frame, it would let the mediator take at most
+    # 2.5 frames/s of the camera's 15, whatever the machine's speed.
+    overrides = {"camera": {"seed": 3}, "gyro": {"seed": 3}, "mediator": {"gyro_wait_ms": 400}}
+    pipeline = Pipeline(tmp_path, pipeline_yaml(overrides))
+    yield pipeline
+    pipeline.close()
+
+
+def _offered(pipe: Pipeline) -> tuple[int, int]:
+    info = pipe.info("camera/images")
+    return info.puts + info.refused, info.refused
+
+
+def _refused_share(pipe: Pipeline) -> float:
+    """The share of the next ``WINDOW_FRAMES`` frames the camera made that flow control
+    refused (the mediator's queue from the camera was full)."""
+    offered0, refused0 = _offered(pipe)
+    wait_until(
+        lambda: _offered(pipe)[0] >= offered0 + WINDOW_FRAMES,
+        120,
+        f"{WINDOW_FRAMES} frames from the camera\n" + pipe.log(),
+    )
+    offered1, refused1 = _offered(pipe)
+    return (refused1 - refused0) / (offered1 - offered0)
+
+
+def _gyro_missing_decisions(pipe: Pipeline) -> int:
+    return sum(
+        b"gyro-missing" in e.metadata for e in pipe.node.query("mediator/decisions", last=30)
+    )
+
+
+def test_a_stopped_gyro_does_not_make_the_camera_drop_frames(pipe: Pipeline) -> None:
+    wait_until(
+        lambda: pipe.counter("detector/detections") >= 5, 120, "the pipeline to run\n" + pipe.log()
+    )
+    alive = _refused_share(pipe)
+    gyro = pipe.pid("gyro")
+    assert gyro is not None
+    os.kill(gyro, signal.SIGSTOP)
+    try:
+        # The outage is noticed: frames are decided by the gyro-missing rule.
+        wait_until(lambda: _gyro_missing_decisions(pipe) >= 5, 60, "gyro-missing decisions")
+        stopped = _refused_share(pipe)
+        assert _gyro_missing_decisions(pipe) >= 5  # still out during the window
+    finally:
+        os.kill(gyro, signal.SIGCONT)
+    print(f"camera frames refused: {alive:.0%} with the gyro alive, {stopped:.0%} stopped")
+    # Waiting 400 ms for each frame took at most 2.5 of the camera's 15 frames/s: most
+    # refused. Without the waits the share is that of the gyro alive.
+    assert stopped <= alive + 0.15, (alive, stopped)
