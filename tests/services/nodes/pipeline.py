@@ -58,6 +58,13 @@ class Pipeline:
         except FramegateError:
             return -1
 
+    def subscription_ids(self, target: str) -> set[str] | None:
+        """Ids of the subscriptions a buffer's producer counts; None while it is not live."""
+        try:
+            return {s.subscription_id for s in self.info(target).subscriptions}
+        except FramegateError:
+            return None
+
     def pid(self, service: str) -> int | None:
         """The service's pid, or None while it is not live (e.g. restarting)."""
         try:
