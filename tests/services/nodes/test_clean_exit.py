@@ -18,6 +18,7 @@ import pytest
 
 from middleware import FramegateError, NetworkConfig, Node
 from tests.conftest import free_port, start_framegate, wait_until
+from tests.helpers.timing import scaled
 from tests.services.nodes.pipeline import Pipeline
 
 pytestmark = pytest.mark.integration
@@ -91,7 +92,7 @@ def _check(results: list[tuple[int, float, str]], what: str) -> None:
         assert "terminate called" not in out, out
     # "~2 s" is the contract; the generous bound only catches a stop that hangs.
     slowest = max(took for _code, took, _out in results)
-    assert slowest < 10, f"slowest stop took {slowest:.1f} s"
+    assert slowest < scaled(20), f"slowest stop took {slowest:.1f} s"
 
 
 @pytest.mark.slow
@@ -151,4 +152,5 @@ def test_twenty_signals_stop_launches_of_a_rendering_camera_with_exit_0(tmp_path
         finally:
             pipe.close()
     assert len(stops) == 20
-    assert max(stops) < 10, f"slowest launch stop took {max(stops):.1f} s"
+    # As above: the bound catches a hang, not a slow machine.
+    assert max(stops) < scaled(20), f"slowest launch stop took {max(stops):.1f} s"
