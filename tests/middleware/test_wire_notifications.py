@@ -6,7 +6,7 @@ from typing import Any
 
 import msgpack
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from middleware import NetworkConfig, Node, make_metadata
@@ -113,6 +113,7 @@ def _well_typed(head: Header | BatchHeader) -> bool:
     )
 
 
+@settings(deadline=None)  # no wall-clock bound per example
 @given(st.one_of(st.binary(max_size=64), st.lists(_values, min_size=6, max_size=8).map(_array)))
 def test_any_input_decodes_to_a_well_typed_header_or_a_value_error(raw: bytes) -> None:
     try:
