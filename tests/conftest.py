@@ -150,7 +150,7 @@ class NodeProcess:
         if self.proc.poll() is None:
             try:
                 self.call("exit")
-                self.proc.wait(timeout=5)
+                self.proc.wait(timeout=scaled(5))
             except (OSError, AssertionError, subprocess.TimeoutExpired, ValueError):
                 self.proc.kill()
                 self.proc.wait()

@@ -86,7 +86,7 @@ def _offered_with_consumer(
     with Node("cam", listen_net) as node:
         images = node.offer("images")
         consumer = _consumer(node_process, endpoint, queue=queue, mode=mode)
-        assert images.wait_for_subscribers(1, timeout_s=5)
+        assert images.wait_for_subscribers(1, timeout_s=scaled(5))
         yield images, consumer
 
 
@@ -244,12 +244,12 @@ def test_client_resubscribes_when_its_service_restarts(
         wait_until(lambda: "cam" in client.live_services(), 5, "the producer service")
         sub = client.subscribe("cam/images", queue_size=2)
         assert first.call("put", buffer="images", t=1)["ok"]
-        assert sub.take(timeout_s=5).timestamp_ns == 1  # type: ignore[union-attr]
+        assert sub.take(timeout_s=scaled(5)).timestamp_ns == 1  # type: ignore[union-attr]
         first.kill()
         second = _start_producer(node_process, endpoint)
         assert second.call("wait_subscribers", buffer="images", count=1, timeout=5)["registered"]
         assert second.call("put", buffer="images", t=5)["ok"]
-        note = sub.take(timeout_s=5)
+        note = sub.take(timeout_s=scaled(5))
         assert note is not None and note.timestamp_ns == 5
         assert sub.fetch(note).payload == b"p5"
 
@@ -286,8 +286,14 @@ def test_payloads_are_pushed_up_to_the_subscription_limit(
                 "put", buffer="images", t=t, payload=base64.b64encode(payload).decode()
             )
             assert reply["ok"], reply
-        small_pushed, big_pushed = pushed.take(timeout_s=5), pushed.take(timeout_s=5)
-        small_fetched, big_fetched = fetched.take(timeout_s=5), fetched.take(timeout_s=5)
+        small_pushed, big_pushed = (
+            pushed.take(timeout_s=scaled(5)),
+            pushed.take(timeout_s=scaled(5)),
+        )
+        small_fetched, big_fetched = (
+            fetched.take(timeout_s=scaled(5)),
+            fetched.take(timeout_s=scaled(5)),
+        )
         assert small_pushed and big_pushed and small_fetched and big_fetched
         assert big_pushed.element is not None and big_pushed.element.payload == big
         assert small_fetched.element is not None  # small ones ride along by default

@@ -138,7 +138,7 @@ def frozen_holder(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[t
             if proc is not None and proc.poll() is None:
                 proc.send_signal(signal.SIGINT)
                 try:
-                    proc.wait(timeout=20)
+                    proc.wait(timeout=scaled(20))
                 except subprocess.TimeoutExpired:
                     proc.kill()
                     proc.wait()

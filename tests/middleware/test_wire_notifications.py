@@ -19,6 +19,7 @@ from middleware._wire import (
 )
 from tests.conftest import wait_until
 from tests.helpers.raw_zenoh import open_session
+from tests.helpers.timing import scaled
 
 META = make_metadata("generic", 7)
 
@@ -147,7 +148,7 @@ def test_a_subscription_counts_malformed_compact_headers_as_garbage(
             for payload, attachment in garbage:
                 rogue.put(key, payload, attachment=attachment)
             rogue.put(key, b"p2", attachment=valid(2))  # one link: it arrives after the rest
-            notes = [sub.take(timeout_s=5), sub.take(timeout_s=5)]
+            notes = [sub.take(timeout_s=scaled(5)), sub.take(timeout_s=scaled(5))]
         assert [(n.timestamp_ns, n.element.payload) for n in notes if n and n.element] == [
             (1, b"p1"),
             (2, b"p2"),

@@ -15,6 +15,7 @@ from middleware import (
     parse_untrusted,
     validate_metadata,
 )
+from tests.helpers.timing import scaled
 
 NS = 'xmlns="urn:framegate:1"'
 
@@ -334,6 +335,6 @@ def test_schemas_loaded_first_from_several_threads_at_once_all_compile() -> None
             env=child_env(),
             capture_output=True,
             text=True,
-            timeout=60,
+            timeout=scaled(60),
         )
         assert run.stdout.strip() == "[]", run.stdout + run.stderr

@@ -110,7 +110,7 @@ def test_router_does_not_open_a_plain_tcp_listener(certs: Certs) -> None:
         env=child_env(),
         capture_output=True,
         text=True,
-        timeout=30,
+        timeout=scaled(30),
     )
     assert done.returncode == 1
     assert "Unsupported protocol: tcp" in done.stderr

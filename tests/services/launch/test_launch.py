@@ -100,7 +100,7 @@ def test_supervisor_restarts_a_crashing_process_and_stops_cleanly(tmp_path: Path
     )
     supervisor.start()
     try:
-        deadline = time.monotonic() + 20
+        deadline = time.monotonic() + scaled(20)
         while time.monotonic() < deadline and supervisor.restarts()["crashy"] < 2:
             supervisor.poll()
             time.sleep(0.05)

@@ -30,7 +30,7 @@ _LATE: dict[str, int] = {}
 
 def _stored(node: Node, target: str) -> bool:
     try:
-        info = node.buffer_info(target, timeout_s=2.0)
+        info = node.buffer_info(target, timeout_s=scaled(2.0))
     except FramegateError:
         return False
     _LATE[target] = info.skipped.get("late", 0)
@@ -55,7 +55,7 @@ class _Watched:
         sent = time.monotonic()
         self.proc.send_signal(signum)
         try:
-            code = self.proc.wait(timeout=20)
+            code = self.proc.wait(timeout=scaled(20))
         except subprocess.TimeoutExpired as exc:
             self.proc.kill()
             self.proc.wait()
@@ -137,7 +137,7 @@ def test_twenty_signals_stop_launches_of_a_rendering_camera_with_exit_0(tmp_path
             wait_until(lambda p=pipe: p.counter("camera/images") > 0, 90, "a stored frame")
             sent = time.monotonic()
             pipe.proc.send_signal(signum)
-            code = pipe.proc.wait(timeout=20)
+            code = pipe.proc.wait(timeout=scaled(20))
             stops.append(time.monotonic() - sent)
             # The camera ended its run itself: its totals are its last line.
             wait_until(

@@ -14,6 +14,7 @@ from middleware import DataObject, FramegateError
 from services.launch import pipeline_yaml
 from services.lib.messages import DecisionRecord
 from tests.conftest import wait_until
+from tests.helpers.timing import scaled
 from tests.services.nodes.pipeline import Pipeline
 
 pytestmark = pytest.mark.integration
@@ -40,7 +41,7 @@ def pipe(tmp_path: Path) -> Iterator[Pipeline]:
 
 def _snapshot(pipe: Pipeline, target: str) -> dict[int, DataObject]:
     try:
-        return {e.timestamp_ns: e for e in pipe.node.query(target, timeout_s=5)}
+        return {e.timestamp_ns: e for e in pipe.node.query(target, timeout_s=scaled(5))}
     except FramegateError:
         return {}
 
@@ -102,7 +103,7 @@ def test_each_service_killed_in_turn_recovers_and_survivors_lose_nothing(pipe: P
 def _lapsed(pipe: Pipeline) -> int:
     """How many frames the mediator recorded as not forwarded because its consumer lapsed."""
     try:
-        found = pipe.node.query("mediator/decisions", time_range="[0..]", timeout_s=10)
+        found = pipe.node.query("mediator/decisions", time_range="[0..]", timeout_s=scaled(10))
     except FramegateError:
         return 0
     return sum(DecisionRecord.from_metadata(e.metadata).reason == "consumer-lapsed" for e in found)

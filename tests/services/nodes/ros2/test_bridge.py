@@ -68,7 +68,7 @@ def test_a_refused_image_is_dropped_at_the_bridge_and_counted(
     info = images.producer.info()
     assert (info.puts, info.refused) == (1, 1)
     assert (images.stored, images.dropped) == (1, 1)
-    note = sub.take(timeout_s=5)
+    note = sub.take(timeout_s=scaled(5))
     assert note is not None and note.timestamp_ns == now
 
 
@@ -191,7 +191,7 @@ def test_imu_samples_become_gyro_elements_in_batches(
 def _lines_within(proc: subprocess.Popen[str], limit_s: float) -> Iterator[str]:
     """The process's output lines; it is killed if they have not stopped coming by then."""
     assert proc.stdout is not None
-    killer = threading.Timer(limit_s, proc.kill)
+    killer = threading.Timer(scaled(limit_s), proc.kill)
     killer.start()
     try:
         yield from proc.stdout
@@ -346,5 +346,5 @@ def test_a_driver_on_another_distro_is_named_with_the_flag_to_change(endpoint: s
             assert "/camera/image_raw is published as sensor_msgs::msg::dds_::Image_" in line
         finally:
             proc.terminate()
-            proc.wait(timeout=10)
+            proc.wait(timeout=scaled(10))
             token.undeclare()
