@@ -24,7 +24,7 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager, suppress
 from typing import Any
 
@@ -46,7 +46,7 @@ from ._errors import (
     QueryError,
     TransportError,
 )
-from ._loop import NodeLoop
+from ._executor import BUDGET, Executor, Timer
 from ._producer import HORIZON_NS, Producer
 from ._records import (
     BufferInfo,
@@ -58,7 +58,7 @@ from ._records import (
 )
 from ._rendezvous import announce, live_nodes, withdraw
 from ._service import ServiceEndpoint
-from ._subscription import Subscription
+from ._subscription import Handler, Subscription
 from ._timerange import TimeRange
 from ._wire import ERR_NOT_FOUND, Keys, decode_element
 from ._xml import DEFAULT_LIMITS, XmlLimits
@@ -69,6 +69,8 @@ _DEFAULT_INLINE_BYTES = 64 * 1024
 # A fresh session needs a moment to learn the network's liveliness tokens and queryables;
 # discovery asked earlier sees only part of it (measured: 2-3 of 4 services, through a router).
 _SETTLE_S = 0.3
+# How often ``spin`` looks whether the node closed or a handler failed.
+_SPIN_SLICE_S = 0.25
 
 
 @contextmanager
@@ -116,7 +118,7 @@ class Node:
             if local
             else None
         )
-        self._loop = NodeLoop(self.name or "client", on_stall=self._stalled)
+        self._executor = Executor(self.name or "client", on_stall=self._stalled)
         self._opened = time.monotonic()
         self._endpoint: ServiceEndpoint | None = None
         self._subscriptions: list[Subscription] = []
@@ -161,7 +163,7 @@ class Node:
                 retention=retention or Retention(),
                 inline_max_bytes=inline_max_bytes,
                 xml_limits=xml_limits,
-                loop=self._loop,
+                executor=self._executor,
                 horizon_ns=int(horizon_s * 1e9),
             )
             self._endpoint.add(producer)
@@ -204,7 +206,7 @@ class Node:
                 mode=mode,
                 fetch=self._fetch_exact,
                 prefetch=(self._start_exact, self._finish_exact),
-                loop=self._loop,
+                executor=self._executor,
                 push_max_bytes=-1 if push_max_bytes is None else max(0, push_max_bytes),
                 holder=self.name,
                 on_close=self._forget,
@@ -214,6 +216,42 @@ class Node:
         if wait_s > 0:
             self._wait_registered(sub, wait_s)
         return sub
+
+    # -- the executor ---------------------------------------------------------------------------
+    def on(self, subscription: Subscription, handler: Handler, *, max_batch: int = BUDGET) -> None:
+        """Run ``handler(notifications)`` on the node's executor whenever notifications of
+        ``subscription`` are queued, with at most ``max_batch`` at a time (taken, so they
+        left the queue, before the handler runs). ``take`` is then not for this
+        subscription. A handler that raises is logged and ends ``spin`` with its error."""
+        subscription.handle(handler, max_batch)
+
+    def every(self, period_s: float, fn: Callable[[int], object]) -> Timer:
+        """Run ``fn(now_ns)`` (monotonic ns) on the executor every ``period_s``, the first
+        time one period from now; a run that falls a period behind is skipped, never made
+        up in a burst. ``.cancel()`` on the returned handle stops it."""
+        if not (math.isfinite(period_s) and period_s > 0):
+            raise ConfigError(f"period_s must be a finite number of seconds > 0, got {period_s}")
+        period_ns = max(1, int(period_s * 1e9))
+        return self._executor.schedule(fn, time.monotonic_ns() + period_ns, period_ns)
+
+    def at(self, deadline_ns: int, fn: Callable[[int], object]) -> Timer:
+        """Run ``fn(now_ns)`` once on the executor at ``deadline_ns`` (``time.monotonic_ns``
+        clock; at once if it has passed). ``.cancel()`` on the returned handle withdraws it."""
+        return self._executor.schedule(fn, int(deadline_ns))
+
+    def spin(self, stop: threading.Event) -> None:
+        """Block the calling thread (a service's main thread) until ``stop`` is set or the
+        node closes, while the executor runs what is registered. Raises the first error a
+        handler raised (the node stays open: leaving its ``with`` closes it)."""
+        executor = self._executor
+        while not stop.is_set() and not self._closed:
+            if executor.error is not None:
+                raise executor.error
+            # A signal handler's stop.set() ends the wait at once; a close or a handler's
+            # error from another thread is seen within one slice.
+            stop.wait(_SPIN_SLICE_S)
+        if executor.error is not None and not stop.is_set():
+            raise executor.error
 
     def _forget(self, sub: Subscription) -> None:
         with self._lock:
@@ -458,7 +496,7 @@ class Node:
             sub.close()
         if self._endpoint is not None:
             self._endpoint.close()
-        self._loop.close()
+        self._executor.close()
         withdraw(self._announced)
         with suppress(zenoh.ZError):
             self._session.close()
