@@ -22,7 +22,7 @@ import secrets
 import threading
 import time
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -137,6 +137,7 @@ class Producer:
         self._publishers: dict[RegistrationKey, Any] = {}
         self._counters = _Counters()
         self._closed = False
+        self._on_change: Callable[[], object] | None = None
         executor.add(self)
         self._acks = Inbox(
             session,
@@ -185,11 +186,20 @@ class Producer:
             with self._lock:
                 if self._closed:
                     return False
-                if self._feed(budget):
+                changed = self._feed(budget)
+                if changed:
                     self._cond.notify_all()
                 events = self._protocol.events()
             self._carry_out(events)
+        if changed and self._on_change is not None:
+            self._on_change()
         return bool(len(self._acks) or len(self._tokens))
+
+    def on_change(self, fn: Callable[[], object] | None) -> None:
+        """Run ``fn()`` on the node's executor after input changed what a put would see
+        (a subscriber took something and freed credit, came or went): e.g. the mediator's
+        held frames may go now. None removes it."""
+        self._on_change = fn
 
     def next_deadline_ns(self) -> int | None:
         with self._lock:

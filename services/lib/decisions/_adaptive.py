@@ -191,6 +191,23 @@ class AdaptivePolicy:
         self._lags.append(frame.arrived_ns - frame.timestamp_ns)
         return self._verdicts([*view.held, frame], frame, view)
 
+    def next_due_ns(self, view: View) -> int | None:
+        service = view.detector.service_ns
+        if not view.held or service is None or view.load.queued > 0:
+            return None  # idle-only or committing on queue levels: only input changes it
+        # ``_decide`` compares now with these: when the detector needs work, the next
+        # frame's expected decision and the longest idle wait.
+        needs_at = self._needs_at_ns(view, service)
+        period = self._period_ns or service
+        last = self._last_arrival_ns if self._last_arrival_ns is not None else view.now_ns
+        times = [
+            needs_at,
+            needs_at + self.params.slack_ns,
+            last + period + self.margin_ns(),
+            needs_at + int(self.params.idle_wait * period),
+        ]
+        return min((t for t in times if t > view.now_ns), default=None)
+
     def on_tick(self, view: View) -> Sequence[Verdict]:
         if not view.held:
             return ()

@@ -139,6 +139,17 @@ class DeadlinePolicy:
             return [*out, self._forward(best, view, "deadline")]
         return [*out, Verdict(frame, Action.HOLD, "held")] if best is frame else out
 
+    def next_due_ns(self, view: View) -> int | None:
+        if not view.held or (service := self._service_ns(view)) is None:
+            return None  # without a clock it forwards only when the queue empties (input)
+        best = self._pick(view.held)
+        period = self._period_ns or service
+        times = [self._needs_at_ns(view) - self.params.slack_ns]
+        times.append(best.arrived_ns + view.max_hold_ns - period)
+        if best.timestamp_ns == self._waiting_ns:
+            times.append(best.arrived_ns + period)
+        return min((t for t in times if t > view.now_ns), default=None)
+
     def on_tick(self, view: View) -> Sequence[Verdict]:
         if not view.held:
             return ()

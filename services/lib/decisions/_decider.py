@@ -125,6 +125,17 @@ class Decider:
         out += self._expire(now_ns)
         return out
 
+    def next_due_ns(self, now_ns: int) -> int | None:
+        """When ``tick`` may decide something with no new input: the policy's next due time
+        or a held frame's maximum hold, whichever comes first (None: nothing is held)."""
+        if not self._held:
+            return None
+        times = [f.arrived_ns + self.rules.max_hold_ns for f in self._held]
+        due = self.policy.next_due_ns(self.view(now_ns))
+        if due is not None:
+            times.append(due)
+        return max(now_ns + 1, min(times))
+
     def restart_order(self, floor_ns: int | None = None) -> None:
         """The source started over (a new producer epoch, a clock step): forget the newest
         frame seen. ``floor_ns``: the newest key the detector's buffer holds, below which

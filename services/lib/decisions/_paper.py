@@ -22,3 +22,6 @@ class PaperPolicy:
 
     def on_tick(self, view: View) -> Sequence[Verdict]:
         return ()
+
+    def next_due_ns(self, view: View) -> int | None:
+        return None  # holds nothing

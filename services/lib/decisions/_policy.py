@@ -31,3 +31,10 @@ class Policy(Protocol):
     def on_tick(self, view: View) -> Sequence[Verdict]:
         """Decide on held frames as time passes or the detector's queue drains."""
         ...
+
+    def next_due_ns(self, view: View) -> int | None:
+        """The next time after ``view.now_ns`` at which ``on_tick`` may decide otherwise
+        with no new input (no frame, no change of the detector's queue); None if only new
+        input can change it. The mediator asks ``on_tick`` at these times, never on a poll
+        (the decider adds each held frame's maximum hold itself)."""
+        ...

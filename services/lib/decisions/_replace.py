@@ -48,6 +48,9 @@ class ReplacePolicy:
             return [Verdict(worst, Action.DROP, "replaced"), Verdict(frame, Action.HOLD, "held")]
         return [Verdict(frame, Action.DROP, "worse-than-held")]
 
+    def next_due_ns(self, view: View) -> int | None:
+        return None  # a free slot (new input) or the maximum hold (the decider's) only
+
     def on_tick(self, view: View) -> Sequence[Verdict]:
         out: list[Verdict] = []
         held = list(view.held)

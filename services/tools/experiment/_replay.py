@@ -7,9 +7,10 @@ puts every frame as it arrives (the camera's flow control); a mediator run feeds
 frame to a causal policy (``services.lib.decisions.Policy``) and applies its verdicts the
 way the mediator does: held frames stay with the mediator, a held frame older than
 ``max_hold_ns`` is dropped as stale, FORWARD puts the frame (or loses it to a full queue),
-and while frames are held the policy is asked again every ``tick_ns`` and whenever the
-detector takes a frame. Nothing here runs processes or touches the clock: a replay of 319
-frames takes milliseconds, so sweeps over queues, service times and policies are cheap.
+and while frames are held the policy is asked again whenever the detector takes a frame and
+at the times the decider names (``Decider.next_due_ns``), as the mediator does. Nothing
+here runs processes or touches the clock: a replay of 319 frames takes milliseconds, so
+sweeps over queues, service times and policies are cheap.
 """
 
 from __future__ import annotations
@@ -41,13 +42,12 @@ class QueueModel:
     queue: int
     service_ns: int
     max_hold_ns: int = 250_000_000
-    tick_ns: int = 5_000_000
 
     def __post_init__(self) -> None:
-        if self.queue < 1 or self.service_ns <= 0 or self.tick_ns <= 0:
+        if self.queue < 1 or self.service_ns <= 0:
             raise ExperimentError(
                 f"replay needs queue >= 1 and positive times, got N={self.queue}, "
-                f"service {self.service_ns} ns, tick {self.tick_ns} ns"
+                f"service {self.service_ns} ns"
             )
 
 
@@ -115,10 +115,10 @@ def replay_policy(
 
     ``latencies_ns`` (frame id -> ns from exposure end to the mediator's decision, e.g. a
     real run's decision records) makes the mediator decide each frame that much after its
-    exposure ended (never before the previous decision), and, as the real mediator, it is
-    blocked from the frame's arrival until then: it waits for the gyro to cover the
-    exposure, so no held frame goes out meanwhile. Without them every frame is decided the
-    moment it arrives."""
+    exposure ended (never before the previous decision); as in the real mediator, held
+    frames may go out meanwhile (a frame waits for its gyro samples on a deadline of its
+    own, not by blocking the mediator). Without them every frame is decided the moment it
+    arrives."""
     decider = Decider(policy, Rules(max_hold_ns=model.max_hold_ns))
     detector = _Detector(model)
 
@@ -134,33 +134,31 @@ def replay_policy(
         taken = detector.takes_ns[-1] if detector.takes_ns else None
         return Load(len(detector.waiting), model.queue, taken)
 
-    def run_until(limit_ns: int, next_tick_ns: int) -> None:
-        # The mediator asks again every tick while it holds frames, and sees each take.
+    last = [-(2**62)]  # the time of the last look
+
+    def run_until(limit_ns: int) -> None:
+        # The mediator sees each take, and asks again when the decider says it may decide
+        # otherwise with no new input.
         while True:
             take = detector.next_event_ns()
-            tick = next_tick_ns if decider.held else None
-            now = min((t for t in (take, tick) if t is not None), default=None)
+            due = decider.next_due_ns(last[0]) if decider.held else None
+            now = min((t for t in (take, due) if t is not None), default=None)
             if now is None or now >= limit_ns:
                 return
+            last[0] = now
             detector.advance(now)
             carry_out(decider.tick(load(), now), now)
-            if now == tick:
-                next_tick_ns = now + model.tick_ns
 
-    next_tick = 0
     decided = -(2**62)
     for frame in frames:
         latency = latencies_ns.get(frame.frame_id, 0) if latencies_ns is not None else 0
-        # Ticks run until the frame arrives (or the last decision, if that was later); then
-        # the mediator waits for its gyro samples.
-        run_until(max(frame.arrival_ns, decided), next_tick)
         now = max(frame.arrival_ns + max(0, latency), decided)
-        decided = now
+        run_until(now)  # held frames go out while this one waits for its gyro samples
+        decided = last[0] = now
         detector.advance(now)
         candidate = Candidate(frame.arrival_ns, frame.frame_id, frame.quality, now, frame.blur_px)
         carry_out(decider.frame(candidate, load(), now), now)
-        next_tick = now + model.tick_ns
     end = max(frames[-1].arrival_ns, decided) if frames else 0
-    run_until(end + 2 * model.max_hold_ns, next_tick)
+    run_until(end + 2 * model.max_hold_ns)
     detector.advance(2**62)
     return tuple(detector.processed)

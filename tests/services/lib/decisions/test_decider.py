@@ -37,6 +37,9 @@ class HoldEverything:
         self.views.append(view)
         return [Verdict(frame, Action.HOLD, "held")]
 
+    def next_due_ns(self, view: View) -> int | None:
+        return None
+
     def on_tick(self, view: View) -> Sequence[Verdict]:
         return ()
 
@@ -57,6 +60,9 @@ class Broken:
             Verdict(frame, Action.DROP, "twice"),
             Verdict(frame, Action.FORWARD, "twice"),
         ]
+
+    def next_due_ns(self, view: View) -> int | None:
+        return None
 
     def on_tick(self, view: View) -> Sequence[Verdict]:
         return [Verdict(self.stranger, Action.DROP, "not-mine")]

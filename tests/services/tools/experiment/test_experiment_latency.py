@@ -38,6 +38,9 @@ class _Recorder:
         self.decided[frame.frame_id] = view.now_ns
         return [Verdict(frame, Action.HOLD, "held")]
 
+    def next_due_ns(self, view: View) -> int | None:
+        return None
+
     def on_tick(self, view: View) -> Sequence[Verdict]:
         self.ticks.append(view.now_ns)
         return [Verdict(f, Action.FORWARD, "go") for f in view.held]
