@@ -125,8 +125,10 @@ class GyroCache:
 # How often the mediator asks camera and gyro for their clocks, and how many answers count.
 OFFSET_PERIOD_S = 2.0
 _OFFSET_SAMPLES = 5
-# How long one service may take to describe itself (a stopped one never answers).
-_ASK_TIMEOUT_S = 1.0
+# How long one service may take to describe itself (a stopped one never answers). The
+# question is asked on the mediator's executor, so this bounds how long a stopped camera or
+# gyro can hold it up every OFFSET_PERIOD_S: far less than the camera queue lasts (8 frames).
+_ASK_TIMEOUT_S = 0.25
 
 
 class ClockOffsets:
@@ -145,8 +147,8 @@ class ClockOffsets:
     Each source's own latest clock sample is kept too (``clock``): what a rewind of the
     mediator's output is judged by (``services.lib.rewind``).
 
-    Threads: ``measure`` may run on another thread than the readers; ``_lock`` guards the
-    samples.
+    Threads: ``measure`` may run on another thread than the readers (the tests'); ``_lock``
+    guards the samples.
     """
 
     def __init__(self, node: Node, camera: str, gyro: str) -> None:

@@ -9,9 +9,9 @@ nothing: the gyro-missing rule decides them at once. So a dead, stopped or late 
 slows the mediator below the camera's rate.
 
 A frame is paired only while camera and gyro clocks are known to agree: after a camera or
-gyro restart, until their clocks have been measured again, frames are unpaired
-(``clock-unmeasured``), and beyond ``max_clock_offset`` of the exposure they are unpaired
-(``clock-offset``); the gyro-missing rule decides both.
+gyro restart, frames wait (as for coverage) for their clocks to be measured again, and are
+unpaired (``clock-unmeasured``) if that takes longer; beyond ``max_clock_offset`` of the
+exposure they are unpaired (``clock-offset``); the gyro-missing rule decides both.
 
 Nothing here waits or starts a thread: the caller feeds frames (``add``) and asks at its own
 times, with its monotonic clock, what is ready (``ready``) and when to ask next
@@ -178,7 +178,9 @@ class Pairing:
         camera = meta.camera
         if camera is None:
             return Paired(frame, None, None)
-        clock = self._clocks(meta)
+        clock = self._clocks(meta, due)
+        if clock == "wait":
+            return None  # the clocks are being measured: wait for that as for coverage
         if clock is not None:
             return Paired(frame, None, None, clock)
         start = meta.exposure.start_ns + camera.gyro_time_offset_ns
@@ -216,19 +218,22 @@ class Pairing:
             )
         self._gyro_ok = False
 
-    def _clocks(self, meta: FrameMeta) -> str | None:
+    def _clocks(self, meta: FrameMeta, due: bool) -> str | None:
         """Why camera and gyro stamps cannot be paired now, or None when they can.
 
         Pairing looks up the gyro samples stamped during the frame's exposure; if the two
         clocks disagree by more than ``max_clock_offset`` of the exposure, those samples
         are of another moment (``clock-offset``); until both clocks have been measured
-        (at start, after either restarted) that is not known (``clock-unmeasured``; with no
+        (at start, after either restarted) that is not known: the frame waits for the
+        measurement as for coverage (``wait``), and when due is ``clock-unmeasured`` (with no
         gyro sample at all, the frame is simply not covered). Warned once per episode.
         """
         measured = self.offsets.current()
         if measured is None and self.gyro.newest_ns is None:
             return None  # no gyro sample at all: nothing to pair with (gyro missing)
         if measured is None:
+            if not due:
+                return "wait"
             if not self._unmeasured_logged:
                 self._unmeasured_logged = True
                 self._log.warning(

@@ -61,10 +61,12 @@ Modules: ``_mediator_config`` (settings and flags), ``_mediator_inputs`` (gyro c
 offsets), ``_mediator_pairing`` (frame + gyro -> quality), ``_mediator_output`` (verdicts
 carried out and recorded); this one routes between them.
 
-Threads: the handlers (``on_camera``, ``on_gyro``, ``on_time``) own every piece of state;
-``step`` runs them on the caller's thread. The gyro feed and the clock measurements run on
-one thread of their own each (they only touch the gyro cache and the clock samples, both
-guarded by their locks). Zenoh's threads only feed the middleware's queues.
+Threads: none of its own. The handlers (``on_camera``, ``on_gyro``, ``on_time``, the clock
+measurements) run on the node's executor (``attach``): camera and gyro notifications as
+they come, the detector's takes (``Producer.on_change``), one deadline at a time for what is
+due next (a frame's gyro wait ends, a policy's hold: ``Decider.next_due_ns``), the clocks
+every 2 s. Tests may drive the same handlers with ``step`` on their own thread instead.
+Zenoh's threads only feed the middleware's inboxes.
 """
 
 from __future__ import annotations
@@ -73,6 +75,7 @@ import argparse
 import contextlib
 import threading
 import time
+from typing import Protocol
 
 from middleware import (
     PUSH_ALL,
@@ -86,7 +89,7 @@ from middleware import (
 from services.lib.decisions import Action, Candidate, Decider, Rules, Verdict, make_policy
 from services.lib.messages import read_frame_metadata
 from services.lib.quality import BlurOptions
-from services.lib.rewind import rewind_after
+from services.lib.rewind import SourceClock, rewind_after
 from services.nodes._contract import Service, ServiceEntry
 from services.nodes._mediator_config import MediatorConfig, add_arguments
 from services.nodes._mediator_inputs import (
@@ -107,8 +110,18 @@ from services.nodes._mediator_pairing import (
 )
 from services.nodes._runtime import setup_logging
 
-# While frames are held or wait for the gyro, look this often whether they are due.
-_HOLD_POLL_S = 0.005
+
+class _Deadline(Protocol):
+    """What ``Node.at`` returns."""
+
+    def cancel(self) -> None: ...
+
+
+# step() only (tests without the executor): how often it looks for gyro samples while a
+# frame waits for them; on the executor gyro notifications run their handler at once.
+_GYRO_LOOK_S = 0.005
+# step() only: gyro batches taken per step at most (its queue holds 256 notifications).
+_GYRO_ROUNDS = 8
 
 
 class Mediator:
@@ -145,6 +158,7 @@ class Mediator:
         self._horizon_ns = int(config.horizon_s * 1e9)
         self._node = node
         self._camera_seq: int | None = None
+        self._stream_clock: SourceClock | None = None  # the camera's, when its stream began
         self._newest_camera_ns: int | None = None
         self.decider = Decider(
             make_policy(config.policy),
@@ -154,8 +168,10 @@ class Mediator:
                 max_hold_ns=int(config.max_hold_ms * 1e6),
             ),
         )
-        self._stop = threading.Event()
-        self._threads: list[threading.Thread] = []
+        self._attached = False
+        self._timer: _Deadline | None = None
+        self._timer_at: int | None = None
+        self._measure_at = 0  # step(): when to measure the clocks next
 
     @property
     def skipped(self) -> dict[str, int]:
@@ -212,11 +228,10 @@ class Mediator:
             self.out.carry_out(self.decider, self.decider.tick(load, now), load)
 
     def next_deadline_ns(self) -> int | None:
-        """When ``on_time`` has work next without any input (None: only on input)."""
-        due = [d for d in (self.pairing.next_deadline_ns(),) if d is not None]
-        if self.decider.held:
-            due.append(time.monotonic_ns() + int(_HOLD_POLL_S * 1e9))
-        return min(due, default=None)
+        """When ``on_time`` has work next without any input (None: only on input): a
+        frame's gyro wait ends, or the decider may decide on held frames."""
+        due = (self.pairing.next_deadline_ns(), self.decider.next_due_ns(time.monotonic_ns()))
+        return min((d for d in due if d is not None), default=None)
 
     # -- one frame --------------------------------------------------------------------------
     def _read(self, note: Notification) -> Waiting:
@@ -259,8 +274,10 @@ class Mediator:
     def _started_over(self, note: Notification) -> None:
         """The first frame, or a new epoch of the camera's stream (it restarted, or our
         subscription was registered again): its frames are judged afresh."""
-        before = self._offsets.clock(self._camera_name)
-        after = self._offsets.ask(self._camera_name)  # its first clock sample, before pairing
+        # The clock of the stream that ends, sampled when it started (a periodic sample may
+        # already be of the new process), and the new one's first sample, before pairing.
+        before = self._stream_clock
+        after = self._stream_clock = self._offsets.ask(self._camera_name)
         if self._camera_seq is None:
             return
         self.log.info("camera stream started over (seq %d): time order restarts", note.seq)
@@ -286,7 +303,9 @@ class Mediator:
                     check.why,
                 )
         self.decider.restart_order(floor)
-        self._offsets.forget()  # maybe another process, another clock
+        self._offsets.forget()  # maybe another process, another clock: measured at once
+        if self._attached:
+            self._node.at(time.monotonic_ns(), self._measure)
         self._record_missed(note.timestamp_ns)
 
     def _record_missed(self, until_ns: int) -> None:
@@ -322,45 +341,88 @@ class Mediator:
                 len(missed),
             )
 
-    # -- driving it with threads (until the node runs handlers itself) ---------------------
-    def start(self) -> None:
-        """Start the gyro feed and the clock measurements (each on a thread of its own)."""
-        for name, target in (("gyro-feed", self._feed_gyro), ("clock-offsets", self._measure)):
-            thread = threading.Thread(target=target, name=name, daemon=True)
-            thread.start()
-            self._threads.append(thread)
+    # -- driving it ---------------------------------------------------------------------
+    def attach(self) -> None:
+        """Register the handlers on the node's executor (``run``): camera and gyro
+        notifications, the detector's takes (``Producer.on_change``), the clock
+        measurements every ``OFFSET_PERIOD_S``, and one deadline at a time for what is due
+        next (a frame's gyro wait, a hold). Nothing polls."""
+        self._attached = True
 
-    def _feed_gyro(self) -> None:
-        while not self._stop.is_set():
-            notes = self._gyro_sub.take_many(GYRO_TAKE_MAX, timeout_s=0.2)
-            if notes:
-                self.gyro.feed(self._gyro_sub, notes)
+        def camera(notes: list[Notification]) -> None:
+            for note in notes:
+                self.on_camera(note)
+            self._schedule()
 
-    def _measure(self) -> None:
-        while not self._stop.is_set():
-            with contextlib.suppress(FramegateError):
-                self._offsets.measure()
-            self._offsets.asked.wait(OFFSET_PERIOD_S)
+        def gyro(notes: list[Notification]) -> None:
+            self.on_gyro(notes)
+            self._schedule()
+
+        def taken() -> None:
+            if self.decider.held:
+                self.on_time(time.monotonic_ns())
+                self._schedule()
+
+        self._node.on(self._camera, camera)
+        self._node.on(self._gyro_sub, gyro, max_batch=GYRO_TAKE_MAX)
+        self.images.on_change(taken)
+        self._node.every(OFFSET_PERIOD_S, self._measure)
+        self._node.at(time.monotonic_ns(), self._measure)
+
+    def _measure(self, now: int) -> None:
+        with contextlib.suppress(FramegateError):
+            self._offsets.measure()
+        if self.pairing.waiting:  # frames may have waited for this measurement
+            self.on_time(now)
+            if self._attached:
+                self._schedule()
+
+    def _schedule(self) -> None:
+        """Keep one deadline on the executor, at ``next_deadline_ns``."""
+        due = self.next_deadline_ns()
+        if self._timer is not None and self._timer_at == due:
+            return
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+        if due is not None:
+            self._timer, self._timer_at = self._node.at(due, self._on_timer), due
+
+    def _on_timer(self, now: int) -> None:
+        self._timer = None
+        self.on_time(now)
+        self._schedule()
 
     def step(self, timeout_s: float = 0.5) -> None:
-        """Take one camera notification (or time out) and handle it. Never raises for input."""
-        if not self._threads:
-            self.start()
-        deadline = self.next_deadline_ns()
+        """Without the executor (tests): measure clocks when due, take what the gyro has,
+        then one camera notification or, until something is due, nothing. Never raises for
+        input."""
+        now = time.monotonic_ns()
+        if self._offsets.asked.is_set() or now >= self._measure_at:
+            self._measure(now)
+            self._measure_at = now + int(OFFSET_PERIOD_S * 1e9)
+        for _ in range(_GYRO_ROUNDS):  # what the gyro sent since the last step
+            notes = self._gyro_sub.take_many(GYRO_TAKE_MAX, timeout_s=0)
+            if not notes:
+                break
+            self.on_gyro(notes)
         wait = timeout_s
-        if deadline is not None or self.pairing.waiting:
-            wait = min(timeout_s, _HOLD_POLL_S)
+        due = self.next_deadline_ns()
+        if due is not None:
+            wait = min(wait, max(0.0, (due - time.monotonic_ns()) / 1e9))
+        if self.pairing.waiting:
+            wait = min(wait, _GYRO_LOOK_S)  # gyro samples are only seen at the next step
         note = self._camera.take(timeout_s=wait)
         if note is None:
             self.on_time(time.monotonic_ns())
-            return
-        self.on_camera(note)
+        else:
+            self.on_camera(note)
 
     def close(self) -> None:
-        self._stop.set()
-        self._offsets.asked.set()
-        for thread in self._threads:
-            thread.join(timeout=2)
+        """Stop the deadlines and the load callback (the node closes the subscriptions)."""
+        self.images.on_change(None)
+        if self._timer is not None:
+            self._timer.cancel()
 
 
 def config_from_args(args: argparse.Namespace) -> MediatorConfig:
@@ -398,10 +460,9 @@ def run(config: MediatorConfig, network: NetworkConfig, stop: threading.Event | 
             config.policy,
             config.b0_px,
         )
-        mediator.start()
+        mediator.attach()
         try:
-            while not stop.is_set():
-                mediator.step()
+            node.spin(stop)
         except KeyboardInterrupt:
             pass
         finally:
