@@ -180,8 +180,11 @@ class ClockOffsets:
         leaves the samples as they are."""
         self.asked.clear()
         camera, gyro = self.ask(self._camera), self.ask(self._gyro)
-        if camera is None or gyro is None:
-            return
+        if camera is not None and gyro is not None:
+            self.add(camera, gyro)
+
+    def add(self, camera: SourceClock, gyro: SourceClock) -> None:
+        """One sample of both clocks (``measure``'s, or a test's)."""
         offset = camera.offset_ns - gyro.offset_ns
         error = camera.error_ns + gyro.error_ns
         clocks = (camera.identity, gyro.identity)

@@ -1,0 +1,97 @@
+"""The mediator as handlers, fed by the test on its own thread with its own times: no
+executor, no camera or gyro process, no thread waits for anything."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+
+from middleware import DataObject, NetworkConfig, Node, Notification
+from services.lib.camera_model import CameraModel
+from services.lib.decisions import GyroMissing
+from services.lib.messages import DecisionRecord, frame_metadata
+from services.lib.quality import Exposure, GyroSamples
+from services.lib.rewind import SourceClock
+from services.nodes.mediator import Mediator, MediatorConfig
+from tests.conftest import free_port
+
+MS = 1_000_000
+IMAGE = np.zeros((48, 64), dtype=np.uint8)
+CAMERA = CameraModel(width_px=64, height_px=48, fx_px=50.0, fy_px=50.0, cx_px=32.0, cy_px=24.0)
+WAIT_MS = 150.0
+
+
+class Fed:
+    """A mediator whose handlers the test calls, and the decisions it recorded."""
+
+    def __init__(self, node: Node) -> None:
+        config = MediatorConfig(gyro_missing=GyroMissing.REJECT, gyro_wait_ms=WAIT_MS)
+        self.mediator = Mediator(node, config, "mediator")
+        self.records: list[DecisionRecord] = []
+        write = self.mediator.out.write
+
+        def keep(record: DecisionRecord) -> None:
+            self.records.append(record)
+            write(record)
+
+        self.mediator.out.write = keep  # type: ignore[method-assign]
+        clock = SourceClock("host", 1, 0, 0, 100_000)
+        self.mediator._offsets.add(clock, clock)  # both clocks measured: they agree
+        self.seq = 0
+
+    def frame(self, start_ms: int) -> None:
+        self.seq += 1
+        exposure = Exposure(start_ms * MS, 10 * MS)
+        metadata = frame_metadata(self.seq, exposure, IMAGE, CAMERA)
+        element = DataObject(exposure.start_ns, IMAGE.tobytes(), metadata)
+        note = Notification("camera", "images", exposure.start_ns, self.seq, element=element)
+        self.mediator.on_camera(note)
+
+    def gyro(self, first_ms: int, last_ms: int) -> None:
+        t = np.arange(first_ms * MS, (last_ms + 1) * MS, MS, dtype=np.int64)
+        samples = GyroSamples(t, np.full((t.size, 3), 0.1))
+        element = DataObject(int(t[-1]), samples.to_bytes(), b"")
+        note = Notification("gyro", "rates", int(t[-1]), self.seq, element=element)
+        self.mediator.on_gyro([note])
+
+    def reasons(self) -> list[str]:
+        return [r.reason for r in self.records]
+
+
+@pytest.fixture
+def fed() -> Iterator[Fed]:
+    with Node("mediator", NetworkConfig(local_port=free_port())) as node:
+        yield Fed(node)
+
+
+def test_a_frame_waits_for_gyro_coverage_and_is_decided_when_it_comes(fed: Fed) -> None:
+    fed.gyro(0, 5)
+    fed.frame(10)
+    assert fed.records == [] and fed.mediator.pairing.waiting == 1
+    due = fed.mediator.next_deadline_ns()
+    assert due is not None and due > time.monotonic_ns()  # the frame's own gyro deadline
+    fed.gyro(6, 40)  # covers the exposure (10..20 ms)
+    assert len(fed.records) == 1 and fed.records[0].quality is not None, fed.reasons()
+    assert fed.mediator.pairing.waiting == 0
+
+
+def test_while_the_gyro_is_out_frames_are_decided_at_once(fed: Fed) -> None:
+    fed.gyro(0, 5)
+    fed.frame(10)
+    fed.frame(80)  # waits behind the first one, on a deadline of its own
+    assert fed.records == [] and fed.mediator.pairing.waiting == 2
+    fed.mediator.on_time(time.monotonic_ns() + int(WAIT_MS * MS))  # both deadlines passed
+    assert fed.reasons() == ["gyro-missing-reject"] * 2
+    # No sample since: the gyro is out, and a new frame waits for nothing.
+    fed.frame(150)
+    assert fed.reasons() == ["gyro-missing-reject"] * 3
+    assert fed.mediator.next_deadline_ns() is None
+    # Samples again: frames wait for coverage again, and are paired.
+    fed.gyro(6, 200)
+    fed.frame(210)
+    assert len(fed.records) == 3 and fed.mediator.pairing.waiting == 1
+    fed.gyro(201, 260)
+    assert len(fed.records) == 4 and fed.records[-1].quality is not None, fed.reasons()
