@@ -17,8 +17,9 @@ Measured:
   byte-identical (payload and metadata) to the camera's copy; nothing is in
   mediator/images that the mediator did not accept; every accepted frame older than the
   newest detection has a detection; decisions and detections stored are all queryable;
-- refusals and drops: camera/images and gyro/rates refused by flow control, frames the
-  camera skipped late, the mediator's decisions by reason;
+- refusals and drops, from the producers' own counters (``info``, never the logs):
+  camera/images and gyro/rates refused by flow control, frames the camera skipped late,
+  subscriptions refused, the mediator's decisions by reason;
 - stalls (goal: none): a stage whose input keeps coming while its output stands still for
   30 s; the timeline of counters and queue fills and the services' logs go into the report.
 """
@@ -27,7 +28,6 @@ from __future__ import annotations
 
 import hashlib
 import os
-import re
 import shutil
 import socket
 import statistics
@@ -45,10 +45,6 @@ from services.launch import Deployment, Supervisor, pipeline, process_specs
 from services.lib.messages import DecisionRecord
 
 MIB = 2**20
-_CAMERA_LOG = re.compile(r"camera: (\d+) frames stored, (\d+) dropped .*, (\d+) skipped late")
-_GYRO_LOG = re.compile(r"gyro: (\d+) batches stored, (\d+) dropped")
-# A producer saw a subscription's liveliness token go (a dead, stopped or starved client).
-_GONE_LOG = re.compile(r"(\S+/\S+): subscription \S+ gone")
 # A camera frame still undecided this long after it was exposed counts as lost.
 _UNDECIDED_AFTER_NS = 30_000_000_000
 # A stage whose input grows while its output stands still this long is stalled.
@@ -349,33 +345,22 @@ def _buffers(node: Node) -> dict[str, BufferInfo]:
         return {}
 
 
-def _elements(
-    buffers: dict[str, BufferInfo], logs: list[str], running: int, elapsed_s: float
-) -> dict[str, Any]:
-    """Counters per buffer, with what only the logs say (``logs[:running]``: before stop)."""
+def _elements(buffers: dict[str, BufferInfo], elapsed_s: float) -> dict[str, Any]:
+    """The producers' own counters per buffer (``info``): stored, refused, rejected, kept,
+    skipped by reason (the camera's ``late``), subscriptions refused."""
 
-    def counters(name: str) -> dict[str, Any]:
-        info = buffers.get(name)
-        if info is None:
-            return {"puts": None}
+    def counters(info: BufferInfo) -> dict[str, Any]:
         return {
             "puts": info.puts,
             "refused": info.refused,
             "rejected": info.rejected,
             "count": info.count,
+            "skipped": dict(info.skipped),
+            "refused_subscriptions": info.refused_subscriptions,
             "per_s": round(info.puts / elapsed_s, 2) if elapsed_s > 0 else 0.0,
         }
 
-    out = {name: counters(name) for name in sorted(buffers)}
-    for index, line in enumerate(logs):
-        if match := _CAMERA_LOG.search(line):
-            out.setdefault("camera/images", {})["skipped_late"] = int(match.group(3))
-        if match := _GYRO_LOG.search(line):
-            out.setdefault("gyro/rates", {})["dropped_after_wait"] = int(match.group(2))
-        if index < running and (match := _GONE_LOG.search(line)):
-            buffer = out.setdefault(match.group(1), {})
-            buffer["subscriptions_gone"] = buffer.get("subscriptions_gone", 0) + 1
-    return out
+    return {name: counters(buffers[name]) for name in sorted(buffers)}
 
 
 def run_soak(config: SoakConfig, stop: threading.Event | None = None) -> dict[str, Any]:
@@ -407,13 +392,11 @@ def run_soak(config: SoakConfig, stop: threading.Event | None = None) -> dict[st
     check_errors: list[str] = []
     timeline: list[dict[str, Any]] = []
     stall_stacks: dict[str, str] = {}  # at the first stall, where every process is
-    running = 0
     with Node(network=network) as node:
         supervisor.start()
 
         def tick() -> None:
-            nonlocal buffers, filled_at, running
-            running = len(logs)  # lines after the last tick come from stopping
+            nonlocal buffers, filled_at
             elapsed = time.monotonic() - started
             if elapsed >= due["sample"]:
                 due["sample"] += config.sample_s
@@ -472,7 +455,7 @@ def run_soak(config: SoakConfig, stop: threading.Event | None = None) -> dict[st
         "duration_s": round(elapsed, 1),
         "processes": processes,
         "memory_samples": {name: s.samples for name, s in memory.items()},
-        "elements": _elements(buffers, logs, running, elapsed),
+        "elements": _elements(buffers, elapsed),
         "audit": audit_summary,
         "unqueryable": unqueryable,
         "lost_total": lost_total,
@@ -527,10 +510,9 @@ def format_report(report: dict[str, Any]) -> str:
         "elements",
         f"  camera/images      {cam.get('puts')} stored ({cam.get('per_s')}/s), "
         f"{cam.get('refused')} refused by flow control, "
-        f"{cam.get('skipped_late', '?')} skipped late",
+        f"{cam.get('skipped', {}).get('late', 0)} skipped late",
         f"  gyro/rates         {gyro.get('puts')} stored ({gyro.get('per_s')}/s), "
-        f"{gyro.get('refused')} refused, "
-        f"{gyro.get('dropped_after_wait', '?')} dropped after waiting",
+        f"{gyro.get('refused')} refused (dropped after waiting for credit)",
         f"  mediator           {audit['frames_decided']} frames decided: {reasons}",
         f"  mediator/images    {med.get('puts')} stored, {med.get('refused')} refused "
         "(detector's queue full)",
@@ -558,10 +540,10 @@ def format_report(report: dict[str, Any]) -> str:
     lines.append(f"  {'total':<62} {report['lost_total']}")
     restarts = {k: v for k, v in report["restarts"].items() if v}
     goals = report["goals"]
-    gone = ", ".join(
-        f"{name} {counts['subscriptions_gone']}"
+    refusals = ", ".join(
+        f"{name} {counts['refused_subscriptions']}"
         for name, counts in el.items()
-        if counts.get("subscriptions_gone")
+        if counts.get("refused_subscriptions")
     )
     stalls = ", ".join(
         f"{x['stage']} {x['from_s']:.0f}-{x['to_s']:.0f} s ({x['input_meanwhile']} inputs)"
@@ -571,7 +553,7 @@ def format_report(report: dict[str, Any]) -> str:
         "",
         f"restarts: {restarts or 'none'}",
         f"stalls: {stalls or 'none'}",
-        f"subscription tokens lost by producers (liveliness): {gone or 'none'}",
+        f"subscriptions refused by producers: {refusals or 'none'}",
         "goals: "
         + ", ".join(
             f"{name} {'ok' if goals[key] else 'MISSED'}"
