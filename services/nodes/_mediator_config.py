@@ -1,114 +1,71 @@
-"""The mediator's configuration: one field per setting, one flag per field."""
+"""The mediator's configuration: each setting written once, with its flag and help
+(``services.lib.settings``)."""
 
 from __future__ import annotations
 
 import argparse
 from dataclasses import dataclass
 
+from services.lib.argtypes import non_negative_float, positive_float, positive_int, unit_float
 from services.lib.decisions import DEFAULT_POLICY, POLICIES, GyroMissing
 from services.lib.quality import DEFAULT_B0_PX, BlurMode
+from services.lib.settings import add_flags, from_args, setting
 
 
 @dataclass(frozen=True, slots=True)
 class MediatorConfig:
     """Everything the mediator can be told (one flag per field)."""
 
-    name: str = "mediator"
-    camera: str = "camera/images"
-    gyro: str = "gyro/rates"
-    camera_queue: int = 8
-    b0_px: float = DEFAULT_B0_PX
-    q_min: float = 0.0
-    policy: str = DEFAULT_POLICY
-    gyro_missing: GyroMissing = GyroMissing.DEFAULT
-    gyro_wait_ms: float = 150.0
-    blur_mode: BlurMode = BlurMode.DEFAULT
-    max_hold_ms: float = 250.0
-    horizon_s: float = 10.0
-    max_clock_offset: float = 0.5
+    name: str = setting("mediator", "service name")
+    camera: str = setting("camera/images", "frames to filter (SERVICE/BUFFER)")
+    gyro: str = setting("gyro/rates", "gyro batches (SERVICE/BUFFER)")
+    camera_queue: int = setting(
+        8, "notification queue on the camera (deep: never stall it)", parse=positive_int
+    )
+    b0_px: float = setting(
+        DEFAULT_B0_PX,
+        "blur scale b0 in pixels: q = exp(-blur/b0)",
+        parse=positive_float,
+        aliases=("--b0",),
+    )
+    q_min: float = setting(0.0, "minimum quality", parse=unit_float)
+    policy: str = setting(
+        DEFAULT_POLICY,
+        "paper: q > load; replace: hold the sharpest frames, one per free slot",
+        choices=sorted(POLICIES),
+    )
+    gyro_missing: GyroMissing = setting(
+        GyroMissing.DEFAULT, "frames without gyro coverage: idle = accept only when idle"
+    )
+    gyro_wait_ms: float = setting(
+        150.0,
+        "how long a frame waits for gyro coverage after it arrived",
+        parse=non_negative_float,
+    )
+    blur_mode: BlurMode = setting(
+        BlurMode.DEFAULT,
+        "where blur is measured (paper: center)",
+        choices=[m.value for m in BlurMode if m is not BlurMode.POINT],
+    )
+    max_hold_ms: float = setting(
+        250.0, "longest a frame may be held for the detector", parse=non_negative_float
+    )
+    horizon_s: float = setting(
+        10.0, "frames stamped further ahead of our clock are skipped", parse=positive_float
+    )
+    max_clock_offset: float = setting(
+        0.5,
+        "camera-gyro clock offset allowed, as a fraction of the exposure",
+        parse=positive_float,
+    )
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The mediator's flags (``framegate run mediator --help``): one per config field."""
-    from services.lib.argtypes import non_negative_float, positive_float, positive_int, unit_float
-
-    d = MediatorConfig()
-    parser.add_argument("--name", default=d.name, help="service name (default %(default)s)")
-    parser.add_argument("--camera", default=d.camera, help="frames to filter (SERVICE/BUFFER)")
-    parser.add_argument("--gyro", default=d.gyro, help="gyro batches (SERVICE/BUFFER)")
-    parser.add_argument(
-        "--camera-queue",
-        type=positive_int,
-        default=d.camera_queue,
-        help="notification queue on the camera (deep: never stall it)",
-    )
-    parser.add_argument(
-        "--b0",
-        type=positive_float,
-        default=d.b0_px,
-        dest="b0_px",
-        help="blur scale b0 in pixels: q = exp(-blur/b0) (default %(default)s)",
-    )
-    parser.add_argument("--q-min", type=unit_float, default=d.q_min, help="minimum quality")
-    parser.add_argument(
-        "--policy",
-        choices=sorted(POLICIES),
-        default=d.policy,
-        help="paper: q > load; replace: hold the sharpest frames, one per free slot",
-    )
-    parser.add_argument(
-        "--gyro-missing",
-        choices=[g.value for g in GyroMissing],
-        default=d.gyro_missing.value,
-        help="frames without gyro coverage: idle = accept only when idle",
-    )
-    parser.add_argument(
-        "--gyro-wait-ms",
-        type=non_negative_float,
-        default=d.gyro_wait_ms,
-        help="how long to wait for gyro coverage after exposure end",
-    )
-    parser.add_argument(
-        "--blur-mode",
-        choices=[m.value for m in BlurMode if m is not BlurMode.POINT],
-        default=d.blur_mode.value,
-        help="where blur is measured (paper: center)",
-    )
-    parser.add_argument(
-        "--max-hold-ms",
-        type=non_negative_float,
-        default=d.max_hold_ms,
-        help="longest a frame may be held for the detector (default %(default)s)",
-    )
-    parser.add_argument(
-        "--horizon-s",
-        type=positive_float,
-        default=d.horizon_s,
-        help="frames stamped further ahead of our clock are skipped (default %(default)s)",
-    )
-    parser.add_argument(
-        "--max-clock-offset",
-        type=positive_float,
-        default=d.max_clock_offset,
-        help="camera-gyro clock offset allowed, as a fraction of the exposure (default "
-        "%(default)s)",
-    )
+    add_flags(parser, MediatorConfig)
 
 
 def config_from_args(args: argparse.Namespace) -> MediatorConfig:
     """The config the parsed flags describe."""
-    return MediatorConfig(
-        name=args.name,
-        camera=args.camera,
-        gyro=args.gyro,
-        camera_queue=args.camera_queue,
-        b0_px=args.b0_px,
-        q_min=args.q_min,
-        policy=args.policy,
-        gyro_missing=GyroMissing(args.gyro_missing),
-        gyro_wait_ms=args.gyro_wait_ms,
-        blur_mode=BlurMode(args.blur_mode),
-        max_hold_ms=args.max_hold_ms,
-        horizon_s=args.horizon_s,
-        max_clock_offset=args.max_clock_offset,
-    )
+    config: MediatorConfig = from_args(MediatorConfig, args)
+    return config

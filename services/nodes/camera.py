@@ -29,8 +29,10 @@ import numpy as np
 import numpy.typing as npt
 
 from middleware import FlowControlRefused, FramegateError, NetworkConfig, Node, Retention
+from services.lib.argtypes import positive_float, positive_int
 from services.lib.messages import frame_metadata
 from services.lib.quality import Exposure
+from services.lib.settings import add_flags, from_args, setting
 from services.nodes._contract import Service, ServiceEntry
 from services.nodes._runtime import (
     Timeline,
@@ -39,7 +41,12 @@ from services.nodes._runtime import (
     start_at_ns,
     unless_stopped,
 )
-from services.nodes.sources import SourceSpec, open_frame_source
+from services.nodes.sources import (
+    SourceSpec,
+    add_source_arguments,
+    open_frame_source,
+    source_from_args,
+)
 
 
 @dataclass(frozen=True, slots=True)
@@ -47,10 +54,12 @@ class CameraConfig:
     """Everything the camera can be told."""
 
     source: SourceSpec
-    name: str = "camera"
-    lossless: bool = False
-    lossless_wait_s: float = 60.0
-    retention_frames: int = 64
+    name: str = setting("camera", "service name")
+    lossless: bool = setting(False, "wait for flow-control credit instead of dropping frames")
+    lossless_wait_s: float = setting(
+        60.0, "with --lossless: how long one frame waits for credit", parse=positive_float
+    )
+    retention_frames: int = setting(64, "how many frames camera/images keeps", parse=positive_int)
 
 
 def run(config: CameraConfig, network: NetworkConfig, stop: threading.Event | None = None) -> int:
@@ -198,41 +207,14 @@ class RateWatch:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """The camera's flags (``framegate run camera --help``)."""
-    from services.lib.argtypes import positive_float, positive_int
-    from services.nodes.sources import add_source_arguments
-
-    parser.add_argument("--name", default="camera", help="service name (default %(default)s)")
+    """The camera's flags (``framegate run camera --help``): one per config field."""
+    add_flags(parser, CameraConfig)
     add_source_arguments(parser, device=True)
-    parser.add_argument(
-        "--lossless",
-        action="store_true",
-        help="wait for flow-control credit instead of dropping frames",
-    )
-    parser.add_argument(
-        "--lossless-wait-s",
-        type=positive_float,
-        default=60.0,
-        help="with --lossless: how long one frame waits for credit (default %(default)s)",
-    )
-    parser.add_argument(
-        "--retention-frames",
-        type=positive_int,
-        default=64,
-        help="how many frames camera/images keeps",
-    )
 
 
 def config_from_args(args: argparse.Namespace) -> CameraConfig:
-    from services.nodes.sources import source_from_args
-
-    return CameraConfig(
-        source=source_from_args(args),
-        name=args.name,
-        lossless=args.lossless,
-        lossless_wait_s=args.lossless_wait_s,
-        retention_frames=args.retention_frames,
-    )
+    config: CameraConfig = from_args(CameraConfig, args, source=source_from_args(args))
+    return config
 
 
 SERVICE: Service[CameraConfig] = ServiceEntry(

@@ -28,8 +28,10 @@ from middleware import (
     Retention,
     SubscriptionMode,
 )
+from services.lib.argtypes import non_negative_float, positive_float, positive_int
 from services.lib.messages import gyro_metadata
 from services.lib.quality import GyroSamples
+from services.lib.settings import add_flags, from_args, setting
 from services.nodes._contract import Service, ServiceEntry
 from services.nodes._runtime import (
     Timeline,
@@ -37,7 +39,12 @@ from services.nodes._runtime import (
     setup_logging,
     start_at_ns,
 )
-from services.nodes.sources import SourceSpec, open_gyro_source
+from services.nodes.sources import (
+    SourceSpec,
+    add_source_arguments,
+    open_gyro_source,
+    source_from_args,
+)
 
 # Batches older than this when their time comes are skipped, not sent.
 _STALE_NS = 500_000_000
@@ -48,10 +55,16 @@ class GyroConfig:
     """Everything the gyro service can be told."""
 
     source: SourceSpec
-    name: str = "gyro"
-    batch: int = 10
-    wait_ms: float = 50.0
-    retention_s: float = 30.0
+    name: str = setting("gyro", "service name")
+    batch: int = setting(10, "samples per message (put_many batch)", parse=positive_int)
+    wait_ms: float = setting(
+        50.0,
+        "how long a refused batch waits for credit before it is dropped",
+        parse=non_negative_float,
+    )
+    retention_s: float = setting(
+        30.0, "how many seconds of batches gyro/rates keeps", parse=positive_float
+    )
 
 
 def run(config: GyroConfig, network: NetworkConfig, stop: threading.Event | None = None) -> int:
@@ -123,39 +136,14 @@ def _split(
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """The gyro's flags (``framegate run gyro --help``)."""
-    from services.lib.argtypes import non_negative_float, positive_float, positive_int
-    from services.nodes.sources import add_source_arguments
-
-    parser.add_argument("--name", default="gyro", help="service name (default %(default)s)")
+    """The gyro's flags (``framegate run gyro --help``): one per config field."""
+    add_flags(parser, GyroConfig)
     add_source_arguments(parser, device=False)
-    parser.add_argument(
-        "--batch", type=positive_int, default=10, help="samples per message (put_many batch)"
-    )
-    parser.add_argument(
-        "--wait-ms",
-        type=non_negative_float,
-        default=50.0,
-        help="how long a refused batch waits for credit before it is dropped",
-    )
-    parser.add_argument(
-        "--retention-s",
-        type=positive_float,
-        default=30.0,
-        help="how many seconds of batches gyro/rates keeps (default %(default)s)",
-    )
 
 
 def config_from_args(args: argparse.Namespace) -> GyroConfig:
-    from services.nodes.sources import source_from_args
-
-    return GyroConfig(
-        source=source_from_args(args),
-        name=args.name,
-        batch=args.batch,
-        wait_ms=args.wait_ms,
-        retention_s=args.retention_s,
-    )
+    config: GyroConfig = from_args(GyroConfig, args, source=source_from_args(args))
+    return config
 
 
 SERVICE: Service[GyroConfig] = ServiceEntry(

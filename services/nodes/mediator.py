@@ -71,7 +71,6 @@ Zenoh's threads only feed the middleware's inboxes.
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import threading
 import time
@@ -91,7 +90,7 @@ from services.lib.messages import read_frame_metadata
 from services.lib.quality import BlurOptions
 from services.lib.rewind import SourceClock, rewind_after
 from services.nodes._contract import Service, ServiceEntry
-from services.nodes._mediator_config import MediatorConfig, add_arguments
+from services.nodes._mediator_config import MediatorConfig, add_arguments, config_from_args
 from services.nodes._mediator_inputs import (
     GYRO_TAKE_MAX,
     OFFSET_PERIOD_S,
@@ -423,28 +422,6 @@ class Mediator:
         self.images.on_change(None)
         if self._timer is not None:
             self._timer.cancel()
-
-
-def config_from_args(args: argparse.Namespace) -> MediatorConfig:
-    """The config the parsed flags describe."""
-    from services.lib.decisions import GyroMissing
-    from services.lib.quality import BlurMode
-
-    return MediatorConfig(
-        name=args.name,
-        camera=args.camera,
-        gyro=args.gyro,
-        camera_queue=args.camera_queue,
-        b0_px=args.b0_px,
-        q_min=args.q_min,
-        policy=args.policy,
-        gyro_missing=GyroMissing(args.gyro_missing),
-        gyro_wait_ms=args.gyro_wait_ms,
-        blur_mode=BlurMode(args.blur_mode),
-        max_hold_ms=args.max_hold_ms,
-        horizon_s=args.horizon_s,
-        max_clock_offset=args.max_clock_offset,
-    )
 
 
 def run(config: MediatorConfig, network: NetworkConfig, stop: threading.Event | None = None) -> int:

@@ -25,7 +25,9 @@ import numpy as np
 import numpy.typing as npt
 
 from middleware import ConfigError
+from services.lib.argtypes import non_negative_int, positive_float, positive_int
 from services.lib.camera_model import CameraModel
+from services.lib.settings import add_flags, from_args, setting
 
 # Where frames come from; ``prerendered``'s optional path is its cache directory.
 KINDS = ("sim", "prerendered", "replay", "device")
@@ -35,17 +37,26 @@ KINDS = ("sim", "prerendered", "replay", "device")
 class SourceSpec:
     """Which source, and how to play it."""
 
-    kind: str = "sim"
-    path: str | None = None
-    seed: int = 1
-    rate: float = 1.0
-    loop: bool = False
-    frames: int | None = None
-    start_at_ns: int | None = None
-    exit_when_done: bool = False
-    exposure_ms: float = 30.0
-    camera_xml: str | None = None
-    floor: str = "default"
+    kind: str = setting("sim", "where data comes from", flag="--source", choices=KINDS)
+    path: str | None = setting(
+        None, "dataset directory (replay), cache directory (prerendered) or device index/URL"
+    )
+    seed: int = setting(1, "simulator seed (sim, prerendered)", parse=non_negative_int)
+    rate: float = setting(1.0, "replay speed factor", parse=positive_float)
+    loop: bool = setting(False, "start over at the end")
+    frames: int | None = setting(None, "play only the first N frames", parse=positive_int)
+    start_at_ns: int | None = setting(
+        None,
+        "wall-clock ns of replay time zero (default: $FRAMEGATE_START_AT_NS or now)",
+        flag="--start-at",
+        parse=int,
+    )
+    exit_when_done: bool = setting(False, "exit after the last element")
+    exposure_ms: float = setting(30.0, "exposure time of a device camera", parse=positive_float)
+    camera_xml: str | None = setting(None, "camera description (camera metadata XML)")
+    floor: str = setting(
+        "default", "floor of the simulated approach (sim, prerendered): smooth, default or rough"
+    )
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
@@ -295,56 +306,16 @@ def open_gyro_source(spec: SourceSpec) -> GyroSource:
     return GyroSource(spec)
 
 
-def add_source_arguments(parser: argparse.ArgumentParser, *, device: bool) -> None:
-    """--source and how to play it, shared by camera and gyro."""
-    from services.lib.argtypes import non_negative_int, positive_float, positive_int
+# What only a camera device has.
+_DEVICE_ONLY = ("exposure_ms", "camera_xml")
 
+
+def add_source_arguments(parser: argparse.ArgumentParser, *, device: bool) -> None:
+    """--source and how to play it, shared by camera and gyro (a gyro has no device)."""
     kinds = list(KINDS) if device else [k for k in KINDS if k != "device"]
-    parser.add_argument("--source", choices=kinds, default="sim", help="where data comes from")
-    parser.add_argument(
-        "--path",
-        help="dataset directory (replay), cache directory (prerendered)"
-        + (" or device index/URL" if device else ""),
-    )
-    parser.add_argument(
-        "--seed", type=non_negative_int, default=1, help="simulator seed (sim, prerendered)"
-    )
-    parser.add_argument(
-        "--floor",
-        default="default",
-        help="floor of the simulated approach (sim, prerendered): smooth, default or rough",
-    )
-    parser.add_argument("--rate", type=positive_float, default=1.0, help="replay speed factor")
-    parser.add_argument("--loop", action="store_true", help="start over at the end")
-    parser.add_argument("--frames", type=positive_int, help="play only the first N frames")
-    parser.add_argument(
-        "--start-at",
-        type=int,
-        dest="start_at_ns",
-        help="wall-clock ns of replay time zero (default: $FRAMEGATE_START_AT_NS or now)",
-    )
-    parser.add_argument("--exit-when-done", action="store_true", help="exit after the last element")
-    if device:
-        parser.add_argument(
-            "--exposure-ms",
-            type=positive_float,
-            default=30.0,
-            help="exposure time of a device camera",
-        )
-        parser.add_argument("--camera-xml", help="camera description (camera metadata XML)")
+    add_flags(parser, SourceSpec, skip=() if device else _DEVICE_ONLY, choices={"kind": kinds})
 
 
 def source_from_args(args: argparse.Namespace) -> SourceSpec:
-    return SourceSpec(
-        kind=args.source,
-        path=args.path,
-        seed=args.seed,
-        rate=args.rate,
-        loop=args.loop,
-        frames=args.frames,
-        start_at_ns=args.start_at_ns,
-        exit_when_done=args.exit_when_done,
-        exposure_ms=getattr(args, "exposure_ms", 30.0),
-        camera_xml=getattr(args, "camera_xml", None),
-        floor=args.floor,
-    )
+    spec: SourceSpec = from_args(SourceSpec, args)
+    return spec
