@@ -11,7 +11,15 @@ from ._deploy import (
     parse_deployment,
 )
 from ._lock import LaunchLock, lock_path, runtime_dir
-from ._pipeline import PIPELINE, ArgValue, pipeline, pipeline_args, pipeline_yaml
+from ._pipeline import (
+    PIPELINE,
+    ArgValue,
+    free_port,
+    pipeline,
+    pipeline_args,
+    pipeline_yaml,
+    private_specs,
+)
 from ._plan import process_specs
 from ._supervisor import ProcessSpec, Supervisor, exit_text
 
@@ -27,12 +35,14 @@ __all__ = [
     "ServiceSpec",
     "Supervisor",
     "exit_text",
+    "free_port",
     "load_deployment",
     "lock_path",
     "parse_deployment",
     "pipeline",
     "pipeline_args",
     "pipeline_yaml",
+    "private_specs",
     "process_specs",
     "runtime_dir",
 ]

@@ -3,6 +3,10 @@ lists, and the per-use overrides demo, soak, experiment and the tests apply to i
 
     deployment = pipeline({"detector": {"service_factor": None}, "mediator": None})
 
+A private run (soak, faults, the bench's working point, the experiment, tests) starts a
+deployment's processes meeting only each other on a loopback port of their own
+(``free_port``, ``private_specs``).
+
 An override maps a service to the args to change (a value of None drops that flag), or to
 None to leave the service out. ``tests/services/launch/test_pipeline_definition.py`` checks
 that deploy/local.yaml says the same as ``pipeline()``.
@@ -10,13 +14,17 @@ that deploy/local.yaml says the same as ``pipeline()``.
 
 from __future__ import annotations
 
+import socket
 from collections.abc import Mapping
+from dataclasses import replace
 
 import yaml
 
-from middleware import ConfigError
+from middleware import ConfigError, NetworkConfig
 
 from ._deploy import LOCAL_HOST, Deployment, HostSpec, ServiceSpec
+from ._plan import process_specs
+from ._supervisor import ProcessSpec
 
 ArgValue = str | int | float | bool | None
 # Service name (= its type) -> its args, as in deploy/local.yaml.
@@ -74,3 +82,26 @@ def pipeline_yaml(overrides: Overrides | None = None) -> str:
     """The pipeline as deploy-file text (for ``framegate launch``)."""
     services = {svc: {"args": args} for svc, args in pipeline_args(overrides).items()}
     return yaml.safe_dump({"version": 1, "services": services}, sort_keys=False)
+
+
+# Network settings a caller's environment might carry; a private run's children must meet
+# only each other.
+CLEARED_ENV = ("FRAMEGATE_CONNECT", "FRAMEGATE_LISTEN", "FRAMEGATE_CONFIG", "FRAMEGATE_NAMESPACE")
+
+
+def free_port() -> int:
+    """A loopback TCP port nobody listens on right now (a private rendezvous)."""
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+def private_specs(
+    deployment: Deployment, port: int, *, start_at_ns: int | None = None
+) -> list[ProcessSpec]:
+    """The deployment's processes on this host, meeting only each other (and a client
+    ``Node(network=NetworkConfig(local_port=port))``) on the loopback rendezvous ``port``,
+    whatever the caller's environment says."""
+    specs = process_specs(deployment, None, NetworkConfig(local_port=port), start_at_ns=start_at_ns)
+    extra = (("FRAMEGATE_LOCAL_PORT", str(port)), *((name, "") for name in CLEARED_ENV))
+    return [replace(spec, env=(*spec.env, *extra)) for spec in specs]

@@ -15,13 +15,13 @@ import os
 import signal
 import threading
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from middleware import FramegateError, NetworkConfig, Node
-from services.launch import Supervisor, pipeline, process_specs
+from services.launch import Supervisor, free_port, pipeline, private_specs
 from services.launch._supervisor import HEALTHY_AFTER_S
 from services.tools.bench import BenchError
 
@@ -88,15 +88,10 @@ def _rest(seconds: float, stop: threading.Event, supervisor: Supervisor) -> None
 
 def run_faults(config: FaultConfig, stop: threading.Event | None = None) -> dict[str, Any]:
     """Kill each service ``config.kills`` times; restart seconds per service and summary."""
-    from services.tools.soak import free_port
-
     stop = stop or threading.Event()
     port = config.port or free_port()
     network = NetworkConfig(local_port=port)
-    specs = [
-        replace(spec, env=(*spec.env, ("FRAMEGATE_LOCAL_PORT", str(port))))
-        for spec in process_specs(pipeline(name="faults"), None, network)
-    ]
+    specs = private_specs(pipeline(name="faults"), port)
     supervisor = Supervisor(specs, colour=False, quiet=not config.show_logs)
     restarts_s: dict[str, list[float]] = {name: [] for name in OUTPUT}
     with Node(network=network) as node:

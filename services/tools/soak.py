@@ -35,13 +35,13 @@ import subprocess
 import threading
 import time
 from collections import Counter
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import psutil
 
 from middleware import BufferInfo, FramegateError, NetworkConfig, Node
-from services.launch import Deployment, Supervisor, pipeline, process_specs
+from services.launch import Deployment, Supervisor, free_port, pipeline, private_specs
 from services.lib.messages import DecisionRecord
 
 MIB = 2**20
@@ -267,13 +267,6 @@ class Audit:
 # -- the run -------------------------------------------------------------------------------
 
 
-def free_port() -> int:
-    """A loopback TCP port nobody listens on right now."""
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
-
-
 def _full(buffers: dict[str, BufferInfo]) -> bool:
     """True once the count-limited image buffers hold as many elements as they keep."""
     for name in ("camera/images", "mediator/images"):
@@ -367,11 +360,7 @@ def run_soak(config: SoakConfig, stop: threading.Event | None = None) -> dict[st
     """Run the pipeline for ``duration_s``; return the report (JSON-ready; the CLI prints it)."""
     port = config.port or free_port()
     network = NetworkConfig(local_port=port)
-    # The children find the private rendezvous through the environment, as under launch.
-    specs = [
-        replace(spec, env=(*spec.env, ("FRAMEGATE_LOCAL_PORT", str(port))))
-        for spec in process_specs(soak_deployment(config), None, network)
-    ]
+    specs = private_specs(soak_deployment(config), port)
     logs: list[str] = []
 
     def keep(line: str) -> None:

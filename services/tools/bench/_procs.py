@@ -11,7 +11,6 @@ import contextlib
 import json
 import os
 import queue
-import socket
 import subprocess
 import sys
 import threading
@@ -34,9 +33,9 @@ class BenchError(FramegateError):
 
 def free_endpoint() -> str:
     """``tcp/127.0.0.1:<port>`` with a port nobody listens on right now."""
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return f"tcp/127.0.0.1:{sock.getsockname()[1]}"
+    from services.launch import free_port  # not at import: workers import this module
+
+    return f"tcp/127.0.0.1:{free_port()}"
 
 
 def _env() -> dict[str, str]:

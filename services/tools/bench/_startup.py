@@ -26,9 +26,10 @@ from collections.abc import Sequence
 import psutil
 
 from middleware import RENDEZVOUS_DELAY_MS, NetworkConfig
+from services.launch import free_port
 
 from ._options import BenchOptions
-from ._procs import BenchError, WorkerGroup, free_endpoint
+from ._procs import BenchError, WorkerGroup
 from ._records import Goal, Row, ScenarioResult
 
 STARTUP_SERVICES = 4
@@ -106,7 +107,7 @@ def startup_rows() -> dict[str, Row]:
 
 def run_startup(options: BenchOptions) -> ScenarioResult:
     runs = QUICK_STARTUP_RUNS if options.quick else STARTUP_RUNS
-    port = int(free_endpoint().rsplit(":", 1)[1])
+    port = free_port()
     # The raw side is a peer of its own: it knows framegate's key layout, as _raw does.
     namespace = NetworkConfig().namespace
     services = [f"startup{i}" for i in range(STARTUP_SERVICES)]

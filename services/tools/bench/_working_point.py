@@ -28,14 +28,14 @@ from __future__ import annotations
 
 import tempfile
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import psutil
 
 from middleware import FramegateError, NetworkConfig, Node
-from services.launch import Supervisor, pipeline, process_specs
+from services.launch import Supervisor, free_port, pipeline, private_specs
 from services.lib.sim import ScenarioConfig, simulate
 
 from ._options import BenchOptions
@@ -172,7 +172,7 @@ def _run_pipeline(
     dataset: Path, options: BenchOptions, window_s: float
 ) -> tuple[dict[str, float], list[Stream]]:
     """Run the four services; their CPU % over the window and the streams' measured rates."""
-    port = int(free_endpoint().rsplit(":", 1)[1])
+    port = free_port()
     network = NetworkConfig(local_port=port)
     replay = {"source": "replay", "path": str(dataset), "seed": None, "loop": True}
     deployment = pipeline(
@@ -184,10 +184,7 @@ def _run_pipeline(
         name="working-point",
         restart=False,
     )
-    specs = [
-        replace(spec, env=(*spec.env, ("FRAMEGATE_LOCAL_PORT", str(port))))
-        for spec in process_specs(deployment, None, network)
-    ]
+    specs = private_specs(deployment, port)
     logs: list[str] = []
     supervisor = Supervisor(specs, colour=False, out=logs.append, quiet=True)
     with Node(network=network) as node:

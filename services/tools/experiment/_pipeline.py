@@ -9,7 +9,6 @@ result from the services' own buffers before it stops them.
 from __future__ import annotations
 
 import os
-import socket
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -22,10 +21,10 @@ from middleware import BufferInfo, FramegateError, NetworkConfig, Node
 from services.launch import (
     ArgValue,
     Deployment,
-    ProcessSpec,
     Supervisor,
+    free_port,
     pipeline,
-    process_specs,
+    private_specs,
 )
 from services.lib.messages import DecisionRecord
 from services.lib.sim import Dataset
@@ -42,8 +41,6 @@ _PRODUCERS = ("camera", "gyro")
 # The `all` run is about every frame, not time: at half speed a busy machine does not make
 # the camera fall a frame behind (and skip it).
 _ALL_RATE = 0.5
-# Network settings a caller's environment might carry; children must meet only each other.
-_CLEARED_ENV = ("FRAMEGATE_CONNECT", "FRAMEGATE_LISTEN", "FRAMEGATE_CONFIG", "FRAMEGATE_NAMESPACE")
 
 
 @dataclass(frozen=True, slots=True)
@@ -56,12 +53,6 @@ class RunSettings:
     startup_s: float
     progress: bool = True
     log_dir: Path | None = None
-
-
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 def _frame_period_ms(dataset: Dataset) -> float:
@@ -99,12 +90,6 @@ def deployment_for(kind: RunKind, dataset: Dataset, settings: RunSettings) -> De
         name=f"experiment-{kind.value}",
         restart=False,
     )
-
-
-def _specs(deployment: Deployment, port: int, start_at_ns: int) -> list[ProcessSpec]:
-    specs = process_specs(deployment, None, NetworkConfig(local_port=port), start_at_ns=start_at_ns)
-    extra = (("FRAMEGATE_LOCAL_PORT", str(port)), *((name, "") for name in _CLEARED_ENV))
-    return [replace(spec, env=(*spec.env, *extra)) for spec in specs]
 
 
 class _Watch:
@@ -208,7 +193,7 @@ def _attempt(
     what = f"seed {seed} {kind.value}"
     frames = len(dataset)
     rate = _ALL_RATE if kind is RunKind.ALL else 1.0
-    port = _free_port()
+    port = free_port()
     lines: list[str] = []
     load_before = os.getloadavg()[0]
     psutil.cpu_percent(interval=None)  # starts the machine-wide CPU measurement
@@ -217,7 +202,7 @@ def _attempt(
     # This client is the first on the port, so it is the rendezvous hub for the whole run.
     with Node(network=NetworkConfig(local_port=port)) as node:
         consumers = Supervisor(
-            [s for s in _specs(deployment, port, 0) if s.name not in _PRODUCERS],
+            [s for s in private_specs(deployment, port, start_at_ns=0) if s.name not in _PRODUCERS],
             colour=False,
             out=lines.append,
         )
@@ -228,7 +213,11 @@ def _attempt(
             _wait_consumers(watch, kind)
             start_at_ns = time.time_ns() + int(startup_s * 1e9)
             producers = Supervisor(
-                [s for s in _specs(deployment, port, start_at_ns) if s.name in _PRODUCERS],
+                [
+                    s
+                    for s in private_specs(deployment, port, start_at_ns=start_at_ns)
+                    if s.name in _PRODUCERS
+                ],
                 colour=False,
                 out=lines.append,
             )
