@@ -32,7 +32,7 @@ from ._buffer import TimeSeries
 from ._clock import now_ns
 from ._errors import DuplicateTimestampError, FlowControlRefused, FramegateError, SchemaError
 from ._executor import BUDGET as _BUDGET
-from ._executor import Executor
+from ._executor import Executor, Wake, remaining_s
 from ._inbox import Inbox
 from ._ledger_producer import RegistrationKey
 from ._protocol_producer import Event, ProducerProtocol, Publish, Retire
@@ -48,7 +48,8 @@ log = logging.getLogger("framegate.middleware")
 HORIZON_NS = 10_000_000_000
 # Rate over the last this-many puts.
 _RATE_WINDOW = 64
-# A put that waits for credit looks again at least this often.
+# A put that waits for credit looks again at least this often (it is woken at once when an
+# ack arrives; this only bounds what a missed wake-up could cost).
 _WAIT_S = 0.1
 # Acks honest subscribers can send between two turns of the executor: coalesced, at most a
 # few per registration and queue window (see ``AckPolicy``) plus a re-ack each per 0.5 s. A
@@ -75,18 +76,17 @@ class Producer:
     """A buffer offered by this process. Create with ``Node.offer``.
 
     Threads (see docs/threads.md): Zenoh's threads only append acks and subscription
-    tokens to this producer's two bounded inboxes and signal the node's executor. The
-    executor feeds a bounded batch of them to the protocol per turn (``run_ready``),
-    resends when the protocol's deadline is due (``on_deadline``), and carries out the
-    protocol's events. ``put`` runs on the caller's thread: it feeds a bounded batch of
-    waiting acks itself (so its credit is current), decides, and sends its own
-    notifications. ``_lock`` (with ``_cond`` on it) guards the protocol, the counters and
-    the rate window, and is held only for bounded work (one batch); a waiting ``put``
-    waits in ``_cond``, which the executor notifies when credit frees. ``_send_lock``
-    serialises carrying out the protocol's events, so the messages of one registration
-    leave in order and a ``publisher.put`` that blocks holds only ``_send_lock``; a put
-    with ``wait_s`` waits for it at most until its deadline. Lock order: ``_send_lock``,
-    then ``_lock``.
+    tokens to this producer's two bounded inboxes. A token signals the node's executor,
+    which feeds it to the protocol and sends the greeting or refusal (``run_ready``). Acks
+    wait until someone needs credit: a ``put`` feeds a bounded batch itself before it
+    decides, as do ``fill`` and ``info``; a waiting put is woken by the ack's arrival
+    (``Wake``); the executor feeds them before a resend (``on_deadline``) and works off
+    a backlog of a batch or more (a flood) in bounded batches, turn by turn. ``_lock``
+    (with ``_cond`` on it) guards the protocol, the counters, the rate window and the
+    ``Wake`` counts, and is held only for bounded work. ``_send_lock`` serialises carrying
+    out the protocol's events, so the messages of one registration leave in order and a
+    ``publisher.put`` that blocks holds only ``_send_lock``; a put with ``wait_s`` waits
+    for it no longer than its deadline. Lock order: ``_send_lock``, then ``_lock``.
     """
 
     def __init__(
@@ -127,14 +127,18 @@ class Producer:
         self._counters = _Counters()
         self._closed = False
         executor.add(self)
+        self._wake = Wake(self, self._cond, executor, lambda: len(self._acks))
+        # Acks are fed by whoever needs credit next (a put, ``fill``, the executor before a
+        # resend); only a waiting put, or a backlog, wakes anyone (``Wake``).
         self._acks = Inbox(
             session,
             keys.acks(service, buffer),
             capacity=_ACK_INBOX,
             max_bytes=ACK_MAX_BYTES,
-            signal=self._signal,
+            signal=self._wake.signal,
         )
-        # Declared last: its callback (history included) may run at once.
+        # Declared last: its callback (history included) may run at once. A token is the
+        # executor's at once: a new subscriber waits for its greeting.
         self._tokens = Inbox(
             session,
             keys.subscription_tokens(service, buffer),
@@ -174,38 +178,28 @@ class Producer:
             with self._lock:
                 if self._closed:
                     return False
-                if self._feed(budget):
+                if self._feed(budget) and self._wake.threads:
                     self._cond.notify_all()
                 events = self._protocol.events()
             self._carry_out(events)
-        return bool(len(self._acks) or len(self._tokens))
+        return len(self._tokens) > 0 or len(self._acks) >= budget
 
     def next_deadline_ns(self) -> int | None:
         with self._lock:
             return self._protocol.next_deadline_ns()
 
     def on_deadline(self, now_ns: int) -> None:
-        """(the executor) Resends that are due."""
+        """(the executor) Resends that are due, once the acks waiting have been fed (the
+        inbox's capacity bounds them)."""
         with self._send_lock:
             with self._lock:
                 if self._closed:
                     return
+                if self._feed(_ACK_INBOX) and self._wake.threads:
+                    self._cond.notify_all()
                 self._protocol.tick(now_ns)
                 events = self._protocol.events()
             self._carry_out(events)
-
-    def _wait(self, remaining_s: float) -> None:
-        """(holding _lock through ``_cond``) Wait for news of credit: in ``_cond``, which the
-        executor notifies; on the executor itself (a handler's put), for this producer's next
-        input, handled inline by the caller's next turn."""
-        if not self._executor.on_thread:
-            self._cond.wait(min(remaining_s, _WAIT_S))
-            return
-        self._cond.release()
-        try:
-            self._executor.wait_for(self, remaining_s)
-        finally:
-            self._cond.acquire()
 
     def put(
         self, timestamp_ns: int, payload: bytes, metadata: bytes | str, *, wait_s: float = 0.0
@@ -294,12 +288,16 @@ class Producer:
                     raise FlowControlRefused(refusal.message(elements[0].timestamp_ns))
                 # Not stored: wait for credit outside _send_lock (the executor keeps sending).
                 with self._cond:
-                    self._feed(_BUDGET)
-                    if self._protocol.admit(count, may_wait=False) is not None:
-                        self._wait(deadline - time.monotonic())
+                    self._wake.wait(
+                        lambda: self._has_room(count), min(remaining_s(deadline), _WAIT_S)
+                    )
         finally:
-            if self._executor.on_thread and (len(self._acks) or len(self._tokens)):
-                self._executor.signal(self)  # input claimed while waiting, left for the turn
+            self._wake.left_over(len(self._acks) + len(self._tokens))
+
+    def _has_room(self, count: int) -> bool:
+        """(under _lock) Whether ``count`` elements fit now, after feeding a batch."""
+        self._feed(_BUDGET)
+        return self._protocol.admit(count, may_wait=False) is None
 
     def _checked(self, timestamp_ns: int, payload: bytes, metadata: bytes | str) -> DataObject:
         # The common case (int, bytes, bytes) costs three type checks; the rest is converted.
@@ -446,19 +444,19 @@ class Producer:
     def wait_for_subscribers(self, count: int, *, timeout_s: float) -> bool:
         """Wait until at least ``count`` subscriptions are registered."""
         deadline = time.monotonic() + timeout_s
+
+        def enough() -> bool:
+            self._feed(_BUDGET)
+            return len(self._protocol.registrations()) >= count
+
         try:
             with self._cond:
-                while True:
-                    self._feed(_BUDGET)
-                    if len(self._protocol.registrations()) >= count:
-                        return True
-                    remaining = deadline - time.monotonic()
-                    if remaining <= 0:
+                while not self._wake.wait(enough, remaining_s(deadline)):
+                    if time.monotonic() >= deadline:
                         return False
-                    self._wait(remaining)
+                return True
         finally:
-            if self._executor.on_thread and (len(self._acks) or len(self._tokens)):
-                self._executor.signal(self)
+            self._wake.left_over(len(self._acks) + len(self._tokens))
 
     def info(self) -> BufferInfo:
         """Retention, size, span, rate, counters and subscriptions."""
