@@ -147,3 +147,6 @@ class ServiceInfo:
     # clock it runs while slewing back (see the README's time model); None from old peers.
     clock_steps: int | None = None
     clock_lead_ns: int | None = None
+    # The names of the service process's Python threads (docs/threads.md); None from old
+    # peers.
+    threads: tuple[str, ...] | None = None
