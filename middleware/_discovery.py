@@ -176,6 +176,7 @@ def _service_info(body: dict[str, Any], start_ns: int, end_ns: int) -> ServiceIn
                 subscriptions=subs,
                 skipped={str(k): int(v) for k, v in b.get("skipped", {}).items()},
                 refused_subscriptions=int(b.get("refused_subscriptions", 0)),
+                dropped_messages=int(b.get("dropped_messages", 0)),
             )
         )
     sample = ClockSample.from_times(start_ns, int(body["clock_ns"]), end_ns)

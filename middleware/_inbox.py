@@ -103,6 +103,11 @@ class Inbox:
     def __len__(self) -> int:
         return len(self._items)
 
+    @property
+    def dropped(self) -> int:
+        """Samples dropped unread, for their size or by newer ones."""
+        return self.oversize + self.overflow
+
     def take(self, budget: int) -> list[zenoh.Sample]:
         """Up to ``budget`` samples, oldest first (never blocks)."""
         items = self._items

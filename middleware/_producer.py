@@ -29,15 +29,14 @@ from typing import Any
 import zenoh
 
 from ._buffer import TimeSeries
-from ._clock import now_ns
-from ._errors import DuplicateTimestampError, FlowControlRefused, FramegateError, SchemaError
+from ._element_check import ElementCheck
+from ._errors import DuplicateTimestampError, FlowControlRefused, FramegateError
 from ._executor import BUDGET as _BUDGET
 from ._executor import Executor, Wake, remaining_s
 from ._inbox import Inbox
 from ._ledger_producer import RegistrationKey
 from ._protocol_producer import Event, ProducerProtocol, Publish, Retire
 from ._records import BufferInfo, DataObject, Retention, SubscriptionInfo
-from ._shapes import ShapeChecker
 from ._wire import Keys
 from ._xml import XmlLimits
 
@@ -109,9 +108,7 @@ class Producer:
         self.series = TimeSeries(retention)
         self.inline_max_bytes = inline_max_bytes
         self.horizon_ns = horizon_ns
-        self._horizon_at_ns = 0  # the largest stamp accepted without reading the clock
-        # Validates each element's metadata, in full once per document shape.
-        self._metadata = ShapeChecker(kind, xml_limits)
+        self._check = ElementCheck(self.name_of(service, buffer), kind, xml_limits, horizon_ns)
         self._session = session
         self._executor = executor
         self.scheduled = False  # the executor's flag (see ``Source``)
@@ -150,7 +147,11 @@ class Producer:
 
     @property
     def name(self) -> str:
-        return f"{self.service}/{self.buffer}"
+        return self.name_of(self.service, self.buffer)
+
+    @staticmethod
+    def name_of(service: str, buffer: str) -> str:
+        return f"{service}/{buffer}"
 
     def _signal(self) -> None:
         """(Zenoh's thread) New input: the executor's turn (a lock only when not yet due)."""
@@ -300,42 +301,12 @@ class Producer:
         return self._protocol.admit(count, may_wait=False) is None
 
     def _checked(self, timestamp_ns: int, payload: bytes, metadata: bytes | str) -> DataObject:
-        # The common case (int, bytes, bytes) costs three type checks; the rest is converted.
-        if not (type(payload) is bytes and type(metadata) is bytes and type(timestamp_ns) is int):
-            try:
-                _check_types(timestamp_ns, payload, metadata)
-            except SchemaError:
-                with self._lock:
-                    self._counters.rejected += 1
-                raise
-            metadata = metadata.encode("utf-8") if isinstance(metadata, str) else bytes(metadata)
-            payload = bytes(payload)
-        meta: bytes = metadata  # type: ignore[assignment]
         try:
-            if not 0 <= timestamp_ns < 2**63:
-                _check_types(timestamp_ns, payload, meta)
-            # The clock is read only when a stamp passes the last bound seen (stamps are
-            # near now, so that is about once per horizon).
-            if timestamp_ns > self._horizon_at_ns and timestamp_ns > self._horizon_now():
-                raise SchemaError(
-                    f"timestamp {timestamp_ns} is {(timestamp_ns - now_ns()) / 1e9:.1f} s ahead "
-                    f"of this process's clock; {self.name} refuses elements more than "
-                    f"{self.horizon_ns / 1e9:g} s ahead (stamp with middleware.now_ns())"
-                )
-            declared = self._metadata.timestamp_ns(meta)
-            if declared != timestamp_ns:
-                raise SchemaError(
-                    f"metadata says timestamp_ns={declared} but the element's key is {timestamp_ns}"
-                )
+            return self._check(timestamp_ns, payload, metadata)
         except FramegateError:
             with self._lock:
                 self._counters.rejected += 1
             raise
-        return DataObject(timestamp_ns, payload, meta)
-
-    def _horizon_now(self) -> int:
-        self._horizon_at_ns = now_ns() + self.horizon_ns
-        return self._horizon_at_ns
 
     def _store(self, elements: tuple[DataObject, ...]) -> int:
         """(under _lock) Append, count, and let the protocol notify; the flow-controlled
@@ -489,6 +460,7 @@ class Producer:
             subscriptions=subs,
             skipped=skipped,
             refused_subscriptions=protocol.refused_registrations,
+            dropped_messages=self._acks.dropped + self._tokens.dropped,
         )
 
     def close(self) -> None:
@@ -505,17 +477,3 @@ class Producer:
                 events = self._protocol.events()
                 self._cond.notify_all()
             self._carry_out(events)
-
-
-def _check_types(timestamp_ns: object, payload: object, metadata: object) -> None:
-    """Wrong-typed arguments get a message, not a TypeError from deep inside."""
-    if not isinstance(timestamp_ns, int) or isinstance(timestamp_ns, bool):
-        raise SchemaError(
-            f"timestamp_ns must be an int (ns since the epoch), got {type(timestamp_ns).__name__}"
-        )
-    if not 0 <= timestamp_ns < 2**63:
-        raise SchemaError(f"timestamp_ns {timestamp_ns} is outside 0 .. 2**63-1")
-    if not isinstance(payload, bytes | bytearray | memoryview):
-        raise SchemaError(f"payload must be bytes, got {type(payload).__name__}")
-    if not isinstance(metadata, bytes | bytearray | str):
-        raise SchemaError(f"metadata must be XML as bytes or str, got {type(metadata).__name__}")

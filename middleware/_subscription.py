@@ -148,12 +148,18 @@ class Subscription:
             return self._protocol.counters()
 
     @property
+    def dropped(self) -> int:
+        """Messages dropped unread: larger than this subscription's notifications can be,
+        or pushed out of its full inbox by newer ones (a flood; what was lost of honest
+        traffic is resent, or counted in ``missed_total`` for an observer)."""
+        return self._inbox.dropped
+
+    @property
     def garbage(self) -> int:
-        """Messages on this subscription's key that were not notifications, with those
-        dropped unread for their size."""
+        """Messages on this subscription's key that were not notifications."""
         with self._lock:
             self._feed(BUDGET)
-            return self._protocol.garbage + self._inbox.oversize
+            return self._protocol.garbage
 
     # -- input (on the executor, or inline on a caller that looks) ------------------
     def _feed(self, budget: int) -> None:
