@@ -29,6 +29,8 @@ from ._wire import Keys
 # A fresh session needs a moment to learn the network's liveliness tokens and queryables;
 # discovery asked earlier sees only part of it (measured: 2-3 of 4 services, through a router).
 _SETTLE_S = 0.3
+# Thread names an @info reply may list (a peer's list is cut here, not trusted to be short).
+_MAX_THREADS = 256
 
 
 def split_target(target: str) -> tuple[str, str]:
@@ -182,6 +184,7 @@ def _service_info(body: dict[str, Any], start_ns: int, end_ns: int) -> ServiceIn
                 skipped={str(k): int(v) for k, v in b.get("skipped", {}).items()},
                 refused_subscriptions=int(b.get("refused_subscriptions", 0)),
                 rewinds=tuple(Rewind.from_json(r) for r in b.get("rewinds", [])[:64]),
+                dropped_messages=int(b.get("dropped_messages", 0)),
             )
         )
     sample = ClockSample.from_times(start_ns, int(body["clock_ns"]), end_ns)
@@ -196,4 +199,12 @@ def _service_info(body: dict[str, Any], start_ns: int, end_ns: int) -> ServiceIn
         round_trip_ns=sample.round_trip_ns,
         clock_steps=int(clock["steps"]) if isinstance(clock, dict) else None,
         clock_lead_ns=int(clock["lead_ns"]) if isinstance(clock, dict) else None,
+        threads=_names(body.get("threads")),
     )
+
+
+def _names(value: Any) -> tuple[str, ...] | None:
+    """A list of strings as a tuple; None for anything else (an old or odd peer)."""
+    if isinstance(value, list) and all(isinstance(v, str) for v in value):
+        return tuple(value[:_MAX_THREADS])
+    return None

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import enum
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -126,6 +126,14 @@ class Rewind:
     cause: str
 
     @classmethod
+    def of(cls, after_ns: int, removed: Sequence[DataObject], cause: str) -> Rewind:
+        """The record of ``removed`` (what ``discard_after(after_ns)`` took away)."""
+        stamps = [e.timestamp_ns for e in removed]
+        return cls(
+            after_ns, len(stamps), min(stamps, default=None), max(stamps, default=None), cause
+        )
+
+    @classmethod
     def from_json(cls, data: dict[str, Any]) -> Rewind:
         """A rewind as ``info`` encodes it (``dataclasses.asdict``)."""
         first, last = data["first_ns"], data["last_ns"]
@@ -162,6 +170,9 @@ class BufferInfo:
     refused_subscriptions: int = 0
     # The latest rewinds (``Producer.discard_after``), oldest first: what was removed.
     rewinds: tuple[Rewind, ...] = field(default=())
+    # Control messages (acks, subscription tokens) dropped unread: larger than their format
+    # allows, or pushed out of a full inbox by newer ones (a flood).
+    dropped_messages: int = 0
 
     @property
     def name(self) -> str:
@@ -184,3 +195,6 @@ class ServiceInfo:
     # clock it runs while slewing back (see the README's time model); None from old peers.
     clock_steps: int | None = None
     clock_lead_ns: int | None = None
+    # The names of the service process's Python threads (docs/threads.md); None from old
+    # peers.
+    threads: tuple[str, ...] | None = None
