@@ -9,15 +9,22 @@ elements, and a batch larger than one could never be accepted). Buffering rule: 
 that may lose nothing waits — when flow control refuses a batch, the gyro waits up to
 ``--wait-ms`` for credit (a sensor FIFO would buffer too), then drops the batch and counts
 its samples.
+
+Threads: none of its own; each batch is put by a deadline on the node's executor
+(``GyroPump``), and the main thread waits in ``Node.spin``.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import logging
 import threading
+import time
 from dataclasses import dataclass
 
 import numpy as np
+import numpy.typing as npt
 
 from middleware import (
     FlowControlRefused,
@@ -33,13 +40,9 @@ from services.lib.messages import gyro_metadata
 from services.lib.quality import GyroSamples
 from services.lib.settings import add_flags, from_args, setting
 from services.nodes._contract import Service, ServiceEntry
-from services.nodes._runtime import (
-    Timeline,
-    serve_until_stopped,
-    setup_logging,
-    start_at_ns,
-)
+from services.nodes._runtime import Timeline, setup_logging, start_at_ns
 from services.nodes.sources import (
+    GyroSource,
     SourceSpec,
     add_source_arguments,
     open_gyro_source,
@@ -80,36 +83,77 @@ def run(config: GyroConfig, network: NetworkConfig, stop: threading.Event | None
             kind="gyro",
             retention=Retention(max_count=None, max_age_ns=int(config.retention_s * 1e9)),
         )
-        timeline = Timeline(start_at_ns(config.source.start_at_ns))
         log.info(
             "gyro: %s -> %s/rates (batches of %d)", source.description, config.name, config.batch
         )
-        stored = dropped = 0
-        try:
-            for t_rel, w in source.batches(config.batch, stop):
-                rel = [source.scale(int(t)) for t in t_rel]
-                # A sensor cannot deliver the past: a restarted or stalled gyro resumes now.
-                if timeline.late_ns(rel[-1]) > _STALE_NS:
-                    rates.count_skip("late", len(rel))
-                    continue
-                if not timeline.sleep_until(rel[-1], stop):
-                    break
-                t_wall = np.asarray(timeline.stamps_ns(rel), np.int64)
-                samples = sample_elements(t_wall, w, period_ns=source.scale(source.period_ns))
-                for batch in _split(samples, _flow_queue_limit(rates, config.batch)):
-                    try:
-                        rates.put_many(batch, wait_s=config.wait_ms / 1e3)
-                        stored += len(batch)
-                    except FlowControlRefused:
-                        dropped += len(batch)
-                    except FramegateError as exc:
-                        log.warning("gyro batch not stored: %s", exc)
-        except KeyboardInterrupt:
-            pass
-        log.info("gyro: %d samples stored, %d dropped", stored, dropped)
-        if not config.source.exit_when_done:
-            serve_until_stopped(stop)
+        pump = GyroPump(node, rates, source, config, stop, log)
+        pump.start()
+        with contextlib.suppress(KeyboardInterrupt):
+            node.spin(stop)
+        log.info("gyro: %d samples stored, %d dropped", pump.stored, pump.dropped)
     return 0
+
+
+class GyroPump:
+    """Puts each batch when its time comes: a deadline on the node's executor per batch
+    (``Node.at``), no thread or sleep of its own. When the source ends the buffer keeps
+    answering queries until stopped, or the service exits (``--exit-when-done``)."""
+
+    def __init__(
+        self,
+        node: Node,
+        rates: Producer,
+        source: GyroSource,
+        config: GyroConfig,
+        stop: threading.Event,
+        log: logging.Logger,
+    ) -> None:
+        self._node = node
+        self._rates = rates
+        self._source = source
+        self._config = config
+        self._stop = stop
+        self._log = log
+        self._timeline = Timeline(start_at_ns(config.source.start_at_ns))
+        self._batches = iter(source.batches(config.batch, stop))
+        self._pending: tuple[list[int], npt.NDArray[np.float64]] | None = None
+        self.stored = self.dropped = 0
+
+    def start(self) -> None:
+        self._node.at(time.monotonic_ns(), self.on_time)
+
+    def on_time(self, now: int) -> None:
+        """Put every batch that is due; then a deadline for the next one."""
+        if self._pending is not None:
+            rel, w = self._pending
+            self._pending = None
+            self._put(rel, w)
+        for t_rel, w in self._batches:
+            rel = [self._source.scale(int(t)) for t in t_rel]
+            late = self._timeline.late_ns(rel[-1])
+            # A sensor cannot deliver the past: a restarted or stalled gyro resumes now.
+            if late > _STALE_NS:
+                self._rates.count_skip("late", len(rel))
+                continue
+            if late < 0:  # not yet: its time is a deadline on the executor
+                self._pending = (rel, w)
+                self._node.at(now - late, self.on_time)
+                return
+            self._put(rel, w)
+        if self._config.source.exit_when_done:
+            self._stop.set()
+
+    def _put(self, rel: list[int], w: npt.NDArray[np.float64]) -> None:
+        t_wall = np.asarray(self._timeline.stamps_ns(rel), np.int64)
+        samples = sample_elements(t_wall, w, period_ns=self._source.scale(self._source.period_ns))
+        for batch in _split(samples, _flow_queue_limit(self._rates, self._config.batch)):
+            try:
+                self._rates.put_many(batch, wait_s=self._config.wait_ms / 1e3)
+                self.stored += len(batch)
+            except FlowControlRefused:
+                self.dropped += len(batch)
+            except FramegateError as exc:
+                self._log.warning("gyro batch not stored: %s", exc)
 
 
 def sample_elements(

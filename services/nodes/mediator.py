@@ -171,6 +171,9 @@ class Mediator:
         self._timer: _Deadline | None = None
         self._timer_at: int | None = None
         self._measure_at = 0  # step(): when to measure the clocks next
+        # Camera notifications taken and the newest gyro sample, at the last measurement.
+        self._camera_notes = 0
+        self._seen: tuple[int | None, int | None] = (0, None)
 
     @property
     def skipped(self) -> dict[str, int]:
@@ -187,6 +190,7 @@ class Mediator:
     # -- handlers ---------------------------------------------------------------------------
     def on_camera(self, note: Notification) -> None:
         """One camera notification. Never raises for input."""
+        self._camera_notes += 1
         if self._camera_seq is None or note.seq <= self._camera_seq:
             self._started_over(note)
         self._camera_seq = note.seq
@@ -215,7 +219,18 @@ class Mediator:
     def on_gyro(self, notes: list[Notification]) -> None:
         """Gyro notifications taken together: frames they cover may be decided now."""
         self.gyro.feed(self._gyro_sub, notes)
-        self.on_time(time.monotonic_ns())
+        now = time.monotonic_ns()
+        if self.pairing.waiting and self._offsets.current() is None:
+            self._measure_soon(now)  # frames wait for the clocks, which can be asked now
+        self.on_time(now)
+
+    def _measure_soon(self, now: int) -> None:
+        """Measure the clocks at once (once: until that measurement ran)."""
+        if self._offsets.asked.is_set():
+            return
+        self._offsets.asked.set()
+        if self._attached:
+            self._node.at(now, self._measure)
 
     def on_time(self, now: int) -> None:
         """Frames paired or due are decided, held frames may go out or go stale."""
@@ -303,8 +318,7 @@ class Mediator:
                 )
         self.decider.restart_order(floor)
         self._offsets.forget()  # maybe another process, another clock: measured at once
-        if self._attached:
-            self._node.at(time.monotonic_ns(), self._measure)
+        self._measure_soon(time.monotonic_ns())
         self._record_missed(note.timestamp_ns)
 
     def _record_missed(self, until_ns: int) -> None:
@@ -369,8 +383,16 @@ class Mediator:
         self._node.at(time.monotonic_ns(), self._measure)
 
     def _measure(self, now: int) -> None:
+        # Only a source whose data came since the last measurement is asked: a stopped one
+        # would hold the executor for the whole timeout.
+        seen = (self._camera_notes, self.gyro.newest_ns)
+        alive = [
+            new != old or self._offsets.asked.is_set()
+            for new, old in zip(seen, self._seen, strict=True)
+        ]
+        self._seen = seen
         with contextlib.suppress(FramegateError):
-            self._offsets.measure()
+            self._offsets.measure(camera_alive=alive[0], gyro_alive=alive[1])
         if self.pairing.waiting:  # frames may have waited for this measurement
             self.on_time(now)
             if self._attached:
