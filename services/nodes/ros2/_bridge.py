@@ -56,6 +56,7 @@ from middleware import (
     SubscriptionMode,
     field_text,
     make_metadata,
+    now_ns,
     parse_untrusted,
     validate_metadata,
 )
@@ -64,10 +65,13 @@ from services.lib.messages import DecisionRecord
 from services.nodes._runtime import setup_logging
 from services.nodes.gyro import sample_elements
 
-from ._cdr import CHANNELS, DETECTIONS, IMAGE, IMU, STRING, CdrError, Codec
+from ._camera_info import CAMERA_INFO, TF_MESSAGE, TF_STATIC, CameraSource
+from ._cdr import CHANNELS, DETECTIONS, IMAGE, IMU, STRING, CdrError, Codec, StampError
 from ._config import Mapping, Ros2Config
 from ._link import RosLink, RosPublisher, watch_router
-from ._rmw import Attachment, TopicCheck, dds_type_name, type_hash
+from ._rmw import Attachment, Durability, Qos, Reliability, TopicCheck, dds_type_name, type_hash
+from ._sequence import SequenceWatch
+from ._stamps import StampGate
 
 _NS = "{urn:framegate:1}"
 # How long an output thread waits for a notification before looking at ``stop``.
@@ -84,12 +88,12 @@ class _Skips:
         self._lock = threading.Lock()
         self.counts: collections.Counter[str] = collections.Counter()
 
-    def count(self, producer: Producer | None, reason: str, detail: str) -> None:
+    def count(self, producer: Producer | None, reason: str, detail: str, n: int = 1) -> None:
         with self._lock:
-            self.counts[reason] += 1
-            first = self.counts[reason] == 1
+            first = self.counts[reason] == 0
+            self.counts[reason] += n
         if producer is not None:
-            producer.count_skip(reason)
+            producer.count_skip(reason, n)
         if first:
             self._log.warning("skipping (%s; counted, warned once): %s", reason, detail)
 
@@ -164,10 +168,37 @@ def _sequence(attachment: bytes | None, fallback: int) -> int:
         return fallback
 
 
+def _count_lost(producer: Producer, watch: SequenceWatch, skips: _Skips) -> None:
+    """Count in ``producer`` the samples ``watch`` found lost in transport."""
+    losses = watch.take_lost()
+    if losses.lost:
+        skips.count(
+            producer,
+            "lost-in-transport",
+            f"{losses.lost} samples of {watch.topic} never arrived (a gap in their publisher's "
+            "sequence numbers)",
+            losses.lost,
+        )
+    if losses.jumps:
+        skips.count(
+            producer,
+            "sequence-jump",
+            f"a publisher of {watch.topic} jumped in its sequence numbers",
+            losses.jumps,
+        )
+
+
 class ImagesIn:
     """ROS 2 images → NAME/images (see the module docstring for the rules)."""
 
-    def __init__(self, node: Node, codec: Codec, config: Ros2Config, skips: _Skips) -> None:
+    def __init__(
+        self,
+        node: Node,
+        codec: Codec,
+        config: Ros2Config,
+        skips: _Skips,
+        cameras: CameraSource | None = None,
+    ) -> None:
         self.producer = node.offer(
             "images",
             kind="frame",
@@ -175,17 +206,33 @@ class ImagesIn:
         )
         self._codec, self._config, self._skips = codec, config, skips
         self.camera = _camera(config)
+        self.cameras = cameras or CameraSource(
+            codec,
+            logging.getLogger("framegate.ros2"),
+            image_topic=config.image_in or "",
+            info_topic=config.camera_info_topic,
+            imu_topic=config.imu_in,
+            override=self.camera,
+            rotation=config.imu_to_camera,
+        )
         self.queue = _InQueue(
             config.in_depth,
             lambda: skips.count(self.producer, "in-queue-full", "the in-queue was full"),
         )
-        self._last_key = 0
+        self.sequence = SequenceWatch(config.image_in or "")
+        self.gate = StampGate(self.producer.horizon_ns, "image")
         self.stored = self.dropped = 0
+
+    def on_sample(self, payload: bytes, attachment: bytes | None) -> None:
+        """Zenoh's callback: note the sequence number, enqueue."""
+        self.sequence.observe(attachment)
+        self.queue.put(payload, attachment)
 
     def run(self, stop: threading.Event) -> None:
         count = 0
         while not stop.is_set():
             item = self.queue.get(_POLL_S)
+            _count_lost(self.producer, self.sequence, self._skips)
             if item is not None:
                 count += 1
                 try:
@@ -199,11 +246,19 @@ class ImagesIn:
         skip = self._skips.count
         try:
             image = self._codec.decode_image(raw)
+        except StampError as exc:
+            skip(self.producer, "bad-stamp", str(exc))
+            return
         except CdrError as exc:
             reason = "bad-cdr" if str(exc).startswith("not a CDR") else "bad-image"
             skip(self.producer, reason, str(exc))
             return
-        camera = self.camera
+        camera = self.cameras.for_image(
+            image.frame_id,
+            image.width,
+            image.height,
+            lambda reason, detail: skip(self.producer, reason, detail),
+        )
         if camera is not None and (camera.width_px, camera.height_px) != (
             image.width,
             image.height,
@@ -215,12 +270,9 @@ class ImagesIn:
             )
             return
         key = self._config.start_ns(image.stamp_ns)
-        if image.stamp_ns <= 0 or key <= 0:
-            skip(self.producer, "bad-stamp", f"header.stamp {image.stamp_ns} ns")
-            return
-        if key <= self._last_key:
-            reason = "duplicate-stamp" if key == self._last_key else "out-of-order"
-            skip(self.producer, reason, f"stamp {image.stamp_ns} ns after {self._last_key} ns")
+        refusal = self.gate.check(key, now_ns())  # key <= stamp: a bad stamp is a bad key
+        if refusal is not None:
+            skip(self.producer, refusal.reason, refusal.detail)
             return
         metadata = frame_metadata(
             frame_id,
@@ -239,29 +291,49 @@ class ImagesIn:
             self.dropped += 1  # dropped at the bridge, counted in images.info().refused
         except FramegateError as exc:
             skip(None, "rejected", f"frame at {key} ns: {exc}")  # the producer counted it
-        self._last_key = key
+            return  # not remembered: a rejected stamp must not hold back the next ones
+        # Remembered only now, accepted (refused by flow control means a valid stamp).
+        self.gate.accept(key)
 
 
 class ImuIn:
     """ROS 2 IMU samples → one-sample ``gyro`` elements of NAME/rates, in batches."""
 
-    def __init__(self, node: Node, codec: Codec, config: Ros2Config, skips: _Skips) -> None:
+    def __init__(
+        self,
+        node: Node,
+        codec: Codec,
+        config: Ros2Config,
+        skips: _Skips,
+        cameras: CameraSource | None = None,
+    ) -> None:
         self.producer = node.offer(
             "rates", kind="gyro", retention=Retention(max_count=None, max_age_ns=30_000_000_000)
         )
         self._codec, self._config, self._skips = codec, config, skips
+        self._cameras = cameras  # told the IMU's frame, for the rotation to the camera
+        self._frame = ""
         self.queue = _InQueue(
             max(config.in_depth, 4 * config.gyro_batch),
             lambda: skips.count(self.producer, "in-queue-full", "the IMU in-queue was full"),
         )
+        self.sequence = SequenceWatch(config.imu_in or "")
+        # A sample is accepted into the batch only within the producer's horizon, which the
+        # batch's put checks again: so a stamp is remembered only once it can be stored.
+        self.gate = StampGate(self.producer.horizon_ns, "IMU")
         self._pending: list[tuple[int, tuple[float, float, float]]] = []
-        self._last_ns = 0
         self._period_ns = 0
         self.stored = self.dropped = 0
+
+    def on_sample(self, payload: bytes, attachment: bytes | None) -> None:
+        """Zenoh's callback: note the sequence number, enqueue."""
+        self.sequence.observe(attachment)
+        self.queue.put(payload, attachment)
 
     def run(self, stop: threading.Event) -> None:
         while not stop.is_set():
             item = self.queue.get(_IMU_IDLE_S)
+            _count_lost(self.producer, self.sequence, self._skips)
             if item is None:
                 self.flush()
                 continue
@@ -275,21 +347,25 @@ class ImuIn:
 
     def add(self, raw: bytes) -> None:
         try:
-            t_ns, rates = self._codec.decode_imu(raw)
+            t_ns, rates, frame_id = self._codec.decode_imu_frame(raw)
+        except StampError as exc:
+            self._skips.count(self.producer, "bad-stamp", str(exc))
+            return
         except CdrError as exc:
             self._skips.count(self.producer, "bad-cdr", str(exc))
             return
-        if t_ns <= 0:
-            self._skips.count(self.producer, "bad-stamp", f"header.stamp {t_ns} ns")
+        refusal = self.gate.check(t_ns, now_ns())
+        if refusal is not None:
+            self._skips.count(self.producer, refusal.reason, refusal.detail)
             return
-        if t_ns <= self._last_ns:
-            reason = "duplicate-stamp" if t_ns == self._last_ns else "out-of-order"
-            self._skips.count(self.producer, reason, f"IMU stamp {t_ns} ns after {self._last_ns}")
-            return
-        if self._last_ns:
-            step = t_ns - self._last_ns
+        if frame_id != self._frame and self._cameras is not None:
+            self._frame = frame_id
+            self._cameras.set_imu_frame(frame_id)
+        last = self.gate.last_ns
+        if last:
+            step = t_ns - last
             self._period_ns = step if not self._period_ns else (3 * self._period_ns + step) // 4
-        self._last_ns = t_ns
+        self.gate.accept(t_ns)
         self._pending.append((t_ns, rates))
 
     def flush(self) -> None:
@@ -422,6 +498,36 @@ class Encoders:
         return self._codec.encode_string(fields)
 
 
+# /tf_static as tf2_ros' static listener subscribes to it: reliable, transient local.
+_TF_STATIC_QOS = Qos(Reliability.RELIABLE, 100, durability=Durability.TRANSIENT_LOCAL)
+
+
+def _subscribe_camera(
+    link: RosLink, cameras: CameraSource, config: Ros2Config, hashed: Callable[[str], str]
+) -> None:
+    """Subscribe to what the camera description is built from (nothing with --camera-xml)."""
+    topic = config.camera_info_topic
+    if cameras.wants_camera_info and topic:
+        link.subscribe(
+            topic, CAMERA_INFO, hashed(CAMERA_INFO), config.in_qos, cameras.on_camera_info
+        )
+    if cameras.wants_tf:
+        link.subscribe(TF_STATIC, TF_MESSAGE, hashed(TF_MESSAGE), _TF_STATIC_QOS, cameras.on_tf)
+
+
+def _settle_graph(link: RosLink, watches: list[SequenceWatch], stop: threading.Event) -> None:
+    """Once connected to the ROS 2 router, take the graph as it is: a publisher announced
+    after that started after the bridge, and its first lost samples are counted."""
+    while link.routers() == 0:
+        if stop.wait(0.1):
+            return
+    for token in link.graph():
+        for watch in watches:
+            watch.announce(token)
+    for watch in watches:
+        watch.settle()
+
+
 def run(config: Ros2Config, network: NetworkConfig, stop: threading.Event | None = None) -> int:
     """Bridge until ``stop`` is set or KeyboardInterrupt."""
     stop = stop or threading.Event()
@@ -449,13 +555,26 @@ def run(config: Ros2Config, network: NetworkConfig, stop: threading.Event | None
         ) as link,
     ):
         images = imu = None
+        cameras = CameraSource(
+            codec,
+            log,
+            image_topic=config.image_in or "",
+            info_topic=config.camera_info_topic,
+            imu_topic=config.imu_in,
+            override=_camera(config),
+            rotation=config.imu_to_camera,
+        )
+        watches: list[SequenceWatch] = []
         if config.image_in:
-            images = ImagesIn(node, codec, config, skips)
-            link.subscribe(config.image_in, IMAGE, hashed(IMAGE), config.in_qos, images.queue.put)
+            images = ImagesIn(node, codec, config, skips, cameras)
+            link.subscribe(config.image_in, IMAGE, hashed(IMAGE), config.in_qos, images.on_sample)
+            watches.append(images.sequence)
             start("ros2-images-in", lambda: images.run(stop))  # type: ignore[union-attr]
+            _subscribe_camera(link, cameras, config, hashed)
         if config.imu_in:
-            imu = ImuIn(node, codec, config, skips)
-            link.subscribe(config.imu_in, IMU, hashed(IMU), config.in_qos, imu.queue.put)
+            imu = ImuIn(node, codec, config, skips, cameras)
+            link.subscribe(config.imu_in, IMU, hashed(IMU), config.in_qos, imu.on_sample)
+            watches.append(imu.sequence)
             start("ros2-imu-in", lambda: imu.run(stop))  # type: ignore[union-attr]
         encoders = Encoders(codec, config)
         outputs: list[Output] = []
@@ -485,10 +604,19 @@ def run(config: Ros2Config, network: NetworkConfig, stop: threading.Event | None
             or "-",
             ", ".join(f"{o.mapping.buffer} -> {o.mapping.topic}" for o in outputs) or "-",
         )
+        inputs = (
+            (config.image_in, IMAGE),
+            (config.imu_in, IMU),
+            (
+                config.image_in and cameras.wants_camera_info and config.camera_info_topic,
+                CAMERA_INFO,
+            ),
+            (config.image_in and cameras.wants_tf and TF_STATIC, TF_MESSAGE),
+        )
         expected = {
             topic: (dds_type_name(ros_type), hashed(ros_type))
             for topic, ros_type in (
-                *((t, r) for t, r in ((config.image_in, IMAGE), (config.imu_in, IMU)) if t),
+                *((t, r) for t, r in inputs if t),
                 *((m.topic, IMAGE) for m in config.image_out),
                 *((m.topic, DETECTIONS) for m in config.detections_out),
                 *((m.topic, STRING) for m in config.verdicts_out),
@@ -497,10 +625,13 @@ def run(config: Ros2Config, network: NetworkConfig, stop: threading.Event | None
         check = TopicCheck(link.identity.session_id, expected)
 
         def on_token(token: str) -> None:
+            for watch in watches:
+                watch.announce(token)
             if said := check.check(token):
                 log.warning("ros2: %s", said)
 
         link.watch_graph(on_token)
+        start("ros2-graph", lambda: _settle_graph(link, watches, stop))
         where = ", ".join(config.ros_connect) or "the --ros-config endpoints"
         start("ros2-router", lambda: watch_router(link.routers, where, stop, log))
         try:
