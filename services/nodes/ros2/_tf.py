@@ -82,7 +82,8 @@ class StaticTransforms:
         for transform in transforms:
             if len(kept) >= MAX_FRAMES:
                 break
-            kept[transform.child] = transform
+            parent, child = frame(transform.parent), frame(transform.child)
+            kept[child] = Transform(parent, child, transform.rotation)
         self._latest.pop(broadcaster, None)
         self._latest[broadcaster] = kept
         while len(self._latest) > MAX_BROADCASTERS:
