@@ -286,7 +286,7 @@ def run(config: Ros2Config, network: NetworkConfig, stop: threading.Event | None
                 log.warning("ros2: %s", said)
 
         link.watch_graph(on_token)
-        start("ros2-graph", lambda: _settle_graph(link, watches, stop))
+        start("ros2-graph", lambda: _settle_graph(link, watches, stop, log))
         where = ", ".join(config.ros_connect) or "the --ros-config endpoints"
         start("ros2-router", lambda: watch_router(link.routers, where, stop, log))
         try:

@@ -373,14 +373,22 @@ def _subscribe_camera(
         link.subscribe(TF_STATIC, TF_MESSAGE, hashed(TF_MESSAGE), _TF_STATIC_QOS, cameras.on_tf)
 
 
-def _settle_graph(link: RosLink, watches: list[SequenceWatch], stop: threading.Event) -> None:
+def _settle_graph(
+    link: RosLink, watches: list[SequenceWatch], stop: threading.Event, log: logging.Logger
+) -> None:
     """Once connected to the ROS 2 router, take the graph as it is: a publisher announced
     after that started after the bridge, and its first lost samples are counted."""
     while link.routers() == 0:
         if stop.wait(0.1):
             return
-    for token in link.graph():
+    tokens = link.graph()
+    for token in tokens:
         for watch in watches:
             watch.announce(token)
     for watch in watches:
         watch.settle()
+    log.info(
+        "ros2: ROS graph taken (%d entities); the first samples of publishers starting from "
+        "now are counted if lost",
+        len(tokens),
+    )

@@ -207,3 +207,23 @@ def test_an_image_with_nanosec_beyond_a_second_is_a_bad_stamp(node: Node, codec:
     images = ImagesIn(node, codec, Ros2Config(image_in="/cam"), skips)
     images.handle(bytes(raw), 1)
     assert skips.counts == {"bad-stamp": 1}
+
+
+def test_the_example_camera_xml_is_what_the_optical_frame_convention_gives() -> None:
+    from services.nodes.ros2._tf import StaticTransforms, Transform, rotation_from_quaternion
+    from tests.conftest import REPO
+
+    example = CameraModel.from_xml((REPO / "examples" / "ros2_camera.xml").read_bytes())
+    tree = StaticTransforms()
+    optical = rotation_from_quaternion(-0.5, 0.5, -0.5, 0.5)  # REP 103's optical frame
+    identity = rotation_from_quaternion(0.0, 0.0, 0.0, 1.0)
+    tree.update(
+        b"urdf",
+        [
+            Transform("camera_link", "camera_optical_frame", optical),
+            Transform("camera_link", "imu_link", identity),
+        ],
+    )
+    rotation = tree.rotation("camera_optical_frame", "imu_link")
+    assert rotation is not None
+    assert np.allclose(rotation, example.gyro_to_camera)
