@@ -88,6 +88,13 @@ class _InQueue:
                 self._cond.wait(timeout_s)
             return self._items.popleft() if self._items else None
 
+    def clear(self) -> int:
+        """Drop what waits (the bridge is stopping); how many there were."""
+        with self._cond:
+            count = len(self._items)
+            self._items.clear()
+            return count
+
 
 def frame_metadata(
     frame_id: int,
@@ -205,6 +212,10 @@ class ImagesIn:
                 except Exception as exc:  # one message must never stop the bridge
                     logging.getLogger("framegate.ros2").exception("image: unexpected error")
                     self._skips.count(self.producer, "internal-error", repr(exc))
+        if left := self.queue.clear():  # received, never put: counted as well
+            self._skips.count(
+                self.producer, "stopped", f"{left} images when the bridge stopped", left
+            )
 
     def handle(self, raw: bytes, frame_id: int) -> None:
         """Decode, check and put one image; every failure is a counted skip."""
@@ -309,6 +320,9 @@ class ImuIn:
             except Exception as exc:  # one message must never stop the bridge
                 logging.getLogger("framegate.ros2").exception("IMU: unexpected error")
                 self._skips.count(self.producer, "internal-error", repr(exc))
+        self.flush()  # what was accepted goes out (or is counted as refused)
+        if left := self.queue.clear():
+            self._skips.count(self.producer, "stopped", f"{left} IMU samples at the stop", left)
 
     def add(self, raw: bytes) -> None:
         try:
