@@ -61,10 +61,11 @@ from ._inputs import (
     ImuIn,
     _camera,
     _settle_graph,
-    _Skips,
     _subscribe_camera,
     frame_metadata,
 )
+from ._inputs import _InQueue as _InQueue  # re-exported: other loops queue the same way
+from ._inputs import _Skips as _Skips
 from ._link import RosLink, RosPublisher, watch_router
 from ._rmw import TopicCheck, dds_type_name, type_hash
 from ._sequence import SequenceWatch
@@ -231,6 +232,16 @@ def run(config: Ros2Config, network: NetworkConfig, stop: threading.Event | None
             link.subscribe(config.imu_in, IMU, hashed(IMU), config.in_qos, imu.on_sample)
             watches.append(imu.sequence)
             start("ros2-imu-in", lambda: imu.run(stop))  # type: ignore[union-attr]
+        # The input topics and their types (the graph check warns about other types).
+        inputs = (
+            (config.image_in, IMAGE),
+            (config.imu_in, IMU),
+            (
+                config.image_in and cameras.wants_camera_info and config.camera_info_topic,
+                CAMERA_INFO,
+            ),
+            (config.image_in and cameras.wants_tf and TF_STATIC, TF_MESSAGE),
+        )
         encoders = Encoders(codec, config)
         outputs: list[Output] = []
         for mappings, ros_type, encode in (
@@ -258,15 +269,6 @@ def run(config: Ros2Config, network: NetworkConfig, stop: threading.Event | None
             )
             or "-",
             ", ".join(f"{o.mapping.buffer} -> {o.mapping.topic}" for o in outputs) or "-",
-        )
-        inputs = (
-            (config.image_in, IMAGE),
-            (config.imu_in, IMU),
-            (
-                config.image_in and cameras.wants_camera_info and config.camera_info_topic,
-                CAMERA_INFO,
-            ),
-            (config.image_in and cameras.wants_tf and TF_STATIC, TF_MESSAGE),
         )
         expected = {
             topic: (dds_type_name(ros_type), hashed(ros_type))

@@ -98,24 +98,15 @@ class Ros2Config:
         ):
             if value < 1:
                 raise ConfigError(f"{flag} must be >= 1, got {value}")
-        if self.in_depth < 1 or self.out_depth < 0:
-            raise ConfigError("--in-depth must be >= 1 and --out-depth >= 0 (0 = keep all)")
-        if not self.ros_namespace.startswith("/"):
-            raise ConfigError(f"--ros-namespace must start with '/', got {self.ros_namespace!r}")
         if self.imu_to_camera is not None and len(self.imu_to_camera) != 9:
             raise ConfigError(
                 f"--imu-to-camera takes 9 numbers (a row-major 3x3 rotation), got "
                 f"{len(self.imu_to_camera)}"
             )
-
-    @property
-    def camera_info_topic(self) -> str | None:
-        """The CameraInfo topic read for the intrinsics (None: none is read)."""
-        if self.camera_info is not None:
-            return self.camera_info or None
-        if self.image_in is None:
-            return None
-        return self.image_in.rsplit("/", 1)[0] + "/camera_info"  # image_transport's layout
+        if self.in_depth < 1 or self.out_depth < 0:
+            raise ConfigError("--in-depth must be >= 1 and --out-depth >= 0 (0 = keep all)")
+        if not self.ros_namespace.startswith("/"):
+            raise ConfigError(f"--ros-namespace must start with '/', got {self.ros_namespace!r}")
 
     def check_has_work(self) -> None:
         """ConfigError when no topic is mapped either way (checked when the bridge starts)."""
@@ -136,6 +127,15 @@ class Ros2Config:
     @property
     def in_qos(self) -> Qos:
         return Qos(self.in_reliability, self.in_depth)
+
+    @property
+    def camera_info_topic(self) -> str | None:
+        """The CameraInfo topic read for the intrinsics (None: none is read)."""
+        if self.camera_info is not None:
+            return self.camera_info or None
+        if self.image_in is None:
+            return None
+        return self.image_in.rsplit("/", 1)[0] + "/camera_info"  # image_transport's layout
 
     @property
     def out_qos(self) -> Qos:
