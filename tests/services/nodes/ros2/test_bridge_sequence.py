@@ -5,84 +5,27 @@ publisher that was there before the bridge is counted from its first sample seen
 
 from __future__ import annotations
 
-import json
 import logging
 import threading
-import time
 from collections.abc import Iterator
-from typing import Any
 
 import pytest
 import zenoh
 
 from middleware import FramegateError, NetworkConfig, Node
 from services.nodes.ros2._bridge import run
-from services.nodes.ros2._cdr import IMAGE, Codec
+from services.nodes.ros2._cdr import Codec
 from services.nodes.ros2._config import Ros2Config
-from services.nodes.ros2._rmw import (
-    Attachment,
-    EntityKind,
-    NodeIdentity,
-    Qos,
-    data_key,
-    gid,
-    type_hash,
-)
-from tests.conftest import free_port, wait_until
+from tests.conftest import wait_until
+from tests.services.nodes.ros2.ros_graph import TOPIC, Driver, Lines, ros_router, zenoh_config
 
 pytestmark = pytest.mark.integration
-
-TOPIC = "/camera/image_raw"
-
-
-class _Lines(logging.Handler):
-    def __init__(self) -> None:
-        super().__init__()
-        self.lines: list[str] = []
-
-    def emit(self, record: logging.LogRecord) -> None:
-        self.lines.append(record.getMessage())
-
-
-def _config(mode: str, endpoint: str, *, listen: bool) -> zenoh.Config:
-    conf = zenoh.Config()
-    values: dict[str, Any] = {"mode": mode, "scouting/multicast/enabled": False}
-    values["listen/endpoints" if listen else "connect/endpoints"] = [endpoint]
-    if not listen:
-        values["listen/endpoints"] = ["tcp/127.0.0.1:0"]
-    for key, value in values.items():
-        conf.insert_json5(key, json.dumps(value))
-    return conf
-
-
-class Driver:
-    """One camera driver node with one image publisher (its token, its numbers)."""
-
-    def __init__(self, session: zenoh.Session, codec: Codec, name: str) -> None:
-        hash_chunk = type_hash(codec.rihs01(IMAGE), "jazzy")
-        node = NodeIdentity(0, str(session.info.zid()), name)
-        token = node.endpoint_token(
-            1, EntityKind.PUBLISHER, TOPIC, IMAGE, hash_chunk, Qos.sensor_data()
-        )
-        self._token = session.liveliness().declare_token(token)
-        self._publisher = session.declare_publisher(data_key(0, TOPIC, IMAGE, hash_chunk))
-        self._gid, self._codec = gid(token), codec
-
-    def publish(self, sequence: int) -> None:
-        cdr = self._codec.encode_image(time.time_ns(), "camera", 8, 4, "mono8", bytes(32))
-        attachment = Attachment(sequence, time.time_ns(), self._gid).encode()
-        self._publisher.put(cdr, attachment=attachment)
-
-    def close(self) -> None:
-        self._token.undeclare()
-        self._publisher.undeclare()
 
 
 @pytest.fixture
 def router() -> Iterator[tuple[zenoh.Session, str]]:
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    with zenoh.open(_config("router", endpoint, listen=True)) as session:
-        yield session, endpoint
+    with ros_router() as found:
+        yield found
 
 
 def test_a_publisher_started_after_the_bridge_has_every_number_stored_or_counted(
@@ -91,7 +34,7 @@ def test_a_publisher_started_after_the_bridge_has_every_number_stored_or_counted
     session, ros_endpoint = router
     codec = Codec("jazzy")
     before = Driver(session, codec, "old_driver")  # there before the bridge
-    lines = _Lines()
+    lines = Lines()
     logging.getLogger("framegate.ros2").addHandler(lines)
     stop = threading.Event()
     config = Ros2Config(ros_connect=(ros_endpoint,), image_in=TOPIC, camera_info="", in_depth=16)
@@ -110,7 +53,7 @@ def test_a_publisher_started_after_the_bridge_has_every_number_stored_or_counted
             wait_until(lambda: any("ROS graph taken" in m for m in lines.lines), 60, "the graph")
             before.publish(1000)  # its first sample seen: counting starts, nothing lost
             wait_until(lambda: counted()[0] >= 1, 30, "the old driver's image")
-            with zenoh.open(_config("peer", ros_endpoint, listen=False)) as late:
+            with zenoh.open(zenoh_config("peer", ros_endpoint, listen=False)) as late:
                 driver = Driver(late, codec, "new_driver")
                 # Its first two samples never left (as when a new session does not know the
                 # bridge's subscription yet); the next are sent at once, as a driver does.
