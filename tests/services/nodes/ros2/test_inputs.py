@@ -159,11 +159,19 @@ def test_camera_xml_and_the_rotation_flag_override_ros2(
 
 def test_rectified_topics_read_p_and_binning_divides(codec: Codec) -> None:
     camera = CameraModel(320, 240, 300.0, 310.0, 160.0, 120.0)
-    raw = camera_info(codec, camera, 1, binning=2)
-    for rectified in (False, True):
-        found = intrinsics(codec, raw, rectified)
-        assert (found.width_px, found.height_px, found.fx_px, found.fy_px) == (320, 240, 300, 310)
-        assert (found.cx_px, found.cy_px) == (160.0, 120.0)
+    message = codec.store.deserialize_cdr(
+        camera_info(codec, camera, 1, binning=2), "sensor_msgs/msg/CameraInfo"
+    )
+    # P, of the rectified image, differs from K: another focal length and centre.
+    p = np.array([500.0, 0, 330, 0, 0, 520, 250, 0, 0, 0, 1, 0])
+    raw = bytes(
+        codec.store.serialize_cdr(dataclasses.replace(message, p=p), "sensor_msgs/msg/CameraInfo")
+    )
+    raw_k = intrinsics(codec, raw, rectified=False)
+    assert (raw_k.width_px, raw_k.height_px) == (320, 240)
+    assert (raw_k.fx_px, raw_k.fy_px, raw_k.cx_px, raw_k.cy_px) == (300, 310, 160, 120)
+    rect = intrinsics(codec, raw, rectified=True)
+    assert (rect.fx_px, rect.fy_px, rect.cx_px, rect.cy_px) == (250, 260, 165, 125)
 
 
 def test_one_future_stamp_does_not_poison_later_images(node: Node, codec: Codec) -> None:
@@ -227,3 +235,26 @@ def test_the_example_camera_xml_is_what_the_optical_frame_convention_gives() -> 
     rotation = tree.rotation("camera_optical_frame", "imu_link")
     assert rotation is not None
     assert np.allclose(rotation, example.gyro_to_camera)
+
+
+def test_the_camera_info_topic_is_beside_the_image_topic_unless_told() -> None:
+    import argparse
+
+    from middleware import ConfigError
+    from services.nodes.ros2._config import add_arguments, config_from_args
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+
+    def parse(*argv: str) -> Ros2Config:
+        return config_from_args(parser.parse_args(list(argv)))
+
+    found = parse("--image-in", "/robot/cam/image_rect", "--imu-to-camera", *"100010001")
+    assert found.camera_info_topic == "/robot/cam/camera_info"
+    assert found.imu_to_camera == (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
+    assert parse("--image-in", "/image_raw").camera_info_topic == "/camera_info"
+    assert parse("--image-in", "/c/image_raw", "--camera-info", "").camera_info_topic is None
+    told = parse("--ros-namespace", "/r", "--image-in", "img", "--camera-info", "info")
+    assert told.camera_info_topic == "/r/info"
+    with pytest.raises(ConfigError, match="--imu-to-camera takes 9 numbers"):
+        Ros2Config(imu_to_camera=(1.0, 0.0))
