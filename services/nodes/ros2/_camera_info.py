@@ -75,7 +75,7 @@ class Intrinsics:
     cy_px: float
 
 
-class Uncalibrated(ValueError):
+class Uncalibrated(CdrError):
     """A CameraInfo of an uncalibrated camera (its matrix starts with 0)."""
 
 
@@ -151,6 +151,10 @@ class CameraSource:
         self._tf_dropped = 0
         self._imu_frame: str | None = None
         self._tf = StaticTransforms()
+        self._tf_version = 0
+        self._rotation_found: tuple[tuple[Any, ...], tuple[float, ...] | None] = ((), None)
+        self._info_body = b""
+        self._info_found: Intrinsics | CdrError = CdrError("no CameraInfo yet")
         self._intrinsics: Intrinsics | None = None
         self._info_problem: str | None = None  # why the last CameraInfo was not taken
         self._model: CameraModel | None = None
@@ -204,6 +208,7 @@ class CameraSource:
         for broadcaster, raw in tf_raw:
             try:
                 self._tf.update(broadcaster, transforms(self._codec, raw))
+                self._tf_version += 1
             except CdrError as exc:
                 skip("bad-tf", str(exc))
         if info_raw is not None:
@@ -215,15 +220,27 @@ class CameraSource:
             self._intrinsics = None  # the images changed size: wait for a new CameraInfo
         return self._describe(frame(image_frame), imu_frame, width, height)
 
+    def _decoded(self, raw: bytes) -> Intrinsics | CdrError:
+        """The CameraInfo's intrinsics or why there are none. Drivers send the same
+        CameraInfo with every image: but for the stamp (bytes 4..12, after the 4-byte CDR
+        header) a repeat is the same bytes, and is not decoded again."""
+        body = raw[:4] + raw[12:]
+        if body != self._info_body:
+            try:
+                self._info_found = intrinsics(self._codec, raw, self._rectified)
+            except CdrError as exc:
+                self._info_found = exc
+            self._info_body = body
+        return self._info_found
+
     def _read_info(self, raw: bytes, width: int, height: int, skip: CountSkip) -> None:
-        try:
-            found = intrinsics(self._codec, raw, self._rectified)
-        except Uncalibrated as exc:
-            self._info_problem = f"a calibrated CameraInfo on {self._info_topic} ({exc})"
+        found = self._decoded(raw)
+        if isinstance(found, Uncalibrated):
+            self._info_problem = f"a calibrated CameraInfo on {self._info_topic} ({found})"
             self._intrinsics = None
             return
-        except CdrError as exc:
-            skip("bad-camera-info", f"{self._info_topic}: {exc}")
+        if isinstance(found, CdrError):
+            skip("bad-camera-info", f"{self._info_topic}: {found}")
             return
         if (found.width_px, found.height_px) != (width, height):
             skip(
@@ -260,7 +277,10 @@ class CameraSource:
                     else "--imu-to-camera (no --imu-in names the IMU frame)"
                 )
             else:
-                rotation = self._tf.rotation(image_frame, imu_frame)
+                tf_key = (self._tf_version, image_frame, imu_frame)
+                if self._rotation_found[0] != tf_key:  # composed again only when it may change
+                    self._rotation_found = (tf_key, self._tf.rotation(image_frame, imu_frame))
+                rotation = self._rotation_found[1]
                 if rotation is None:
                     missing.append(
                         f"the transform from {imu_frame} to {image_frame} on {TF_STATIC} "
