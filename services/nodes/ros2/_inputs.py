@@ -1,6 +1,10 @@
 """The bridge's inputs: ROS 2 images and IMU samples into NAME/images and NAME/rates, with
 the camera description (``_camera_info``), sequence gaps (``_sequence``) and stamp order
 (``_stamps``) of each; the buffering rules and skip reasons are ``_bridge``'s docstring.
+Beside those: ``future-stamp`` (beyond the producer's horizon), ``lost-in-transport`` and
+``sequence-jump`` (``_sequence``), ``camera-info-mismatch``, ``bad-camera-info``, ``bad-tf``,
+``tf-queue-full`` (``_camera_info``), and ``stopped`` for what was still queued when the
+bridge stopped: every image received is stored, refused or counted under a reason.
 
 Threads: Zenoh's callback thread only notes the sample's sequence number and appends to the
 in-queue (``on_sample``); one worker per input decodes and puts. Each in-queue is guarded by
