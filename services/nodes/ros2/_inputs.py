@@ -406,7 +406,8 @@ def _settle_graph(
     for watch in watches:
         watch.settle()
     log.info(
-        "ros2: ROS graph taken (%d entities); the first samples of publishers starting from "
-        "now are counted if lost",
+        "ros2: ROS graph taken by %s (%d entities); the first samples of publishers starting "
+        "from now are counted if lost",
+        link.identity.node_name,
         len(tokens),
     )

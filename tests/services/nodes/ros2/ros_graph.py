@@ -66,15 +66,15 @@ class Driver:
         self._token = session.liveliness().declare_token(token)
         self._publisher = session.declare_publisher(data_key(0, topic, ros_type, hash_chunk))
         self._gid, self._codec = gid(token), codec
-        self._sequence = 0
+        self.sequence = 0  # the last number published
 
     def publish(self, sequence: int | None = None, cdr: bytes | None = None) -> None:
         """One sample (an 8x4 image stamped now unless ``cdr``), numbered ``sequence`` or
         the next number."""
-        self._sequence = sequence if sequence is not None else self._sequence + 1
+        self.sequence = sequence if sequence is not None else self.sequence + 1
         if cdr is None:
             cdr = self._codec.encode_image(time.time_ns(), "camera", 8, 4, "mono8", bytes(32))
-        attachment = Attachment(self._sequence, time.time_ns(), self._gid).encode()
+        attachment = Attachment(self.sequence, time.time_ns(), self._gid).encode()
         self._publisher.put(cdr, attachment=attachment)
 
     def close(self) -> None:
