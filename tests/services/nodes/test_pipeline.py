@@ -76,6 +76,7 @@ def test_slow_detector_gets_detections_and_mediator_rejects_blurred_frames(
     assert found, "no marker was ever detected"
 
 
+@pytest.mark.slow
 def test_fast_detector_is_idle_so_every_frame_is_accepted(
     pipeline_factory: type[Pipeline],
 ) -> None:
