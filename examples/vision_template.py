@@ -46,7 +46,8 @@ def _templates() -> list[tuple[int, npt.NDArray[np.uint8]]]:
         marker, _CELL_PX, _CELL_PX, _CELL_PX, _CELL_PX, cv2.BORDER_CONSTANT, value=255
     )
     return [
-        (side, cv2.resize(framed, (side, side), interpolation=cv2.INTER_AREA)) for side in SIDES_PX
+        (side, np.asarray(cv2.resize(framed, (side, side), interpolation=cv2.INTER_AREA), np.uint8))
+        for side in SIDES_PX
     ]
 
 

@@ -19,8 +19,9 @@ def brightest(image: npt.NDArray[np.uint8], frame: FrameMeta) -> list[Box]:
 
 
 def slow(image: npt.NDArray[np.uint8], frame: FrameMeta) -> list[Box]:
-    """As ``brightest``, but busy for 4 frame periods (15 fps) of wall time per frame."""
-    time.sleep(4 / 15)
+    """As ``brightest``, but busy for 1 s per frame: 15 frame periods at 15 fps, and slower
+    than the camera even on a machine so loaded that it renders only a few frames a second."""
+    time.sleep(1.0)
     return brightest(image, frame)
 
 
