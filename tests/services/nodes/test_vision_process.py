@@ -2,13 +2,31 @@
 
 from __future__ import annotations
 
+import logging
+import signal
+import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
+import numpy as np
 import pytest
 
-from middleware import SubscriptionMode
-from tests.conftest import wait_until
+from middleware import (
+    DataObject,
+    FramegateError,
+    NetworkConfig,
+    Node,
+    Notification,
+    SubscriptionMode,
+    now_ns,
+)
+from services.lib.messages import frame_metadata
+from services.lib.quality import Exposure
+from services.lib.vision import ResultKind
+from services.nodes.vision import Runner, RunnerSpec, VisionStep
+from tests.conftest import free_port, start_framegate, wait_until
+from tests.services.nodes import vision_handlers
 from tests.services.nodes.pipeline import Pipeline
 
 pytestmark = pytest.mark.integration
@@ -34,7 +52,7 @@ def pipeline(tmp_path: Path) -> Iterator[list[Pipeline]]:
 def _skipped(pipe: Pipeline, target: str, reason: str) -> int:
     try:
         return int(pipe.info(target).skipped.get(reason, 0))
-    except Exception:
+    except FramegateError:
         return 0
 
 
@@ -105,3 +123,77 @@ def test_a_slower_handler_is_sent_fewer_frames_from_the_same_camera_and_gyro(
     assert slow < fast, (slow, fast)
     decisions = pipe.info("mediator-slow/decisions").puts
     assert decisions > slow, (decisions, slow)
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_a_stop_ends_the_runner_with_exit_0_while_its_handler_is_busy(signum: int) -> None:
+    port = free_port()
+    camera = start_framegate(["run", "camera", "--seed", "3", "--loop"], local_port=port)
+    vision = start_framegate(
+        ["run", "vision", "--handler", f"{HANDLERS}:stuck", "--input", "camera/images"],
+        local_port=port,
+    )
+    try:
+        with Node(network=NetworkConfig(local_port=port)) as node:
+            # The camera is refused once the runner's queue is full: the handler is busy.
+            wait_until(
+                lambda: _refused(node, "camera/images") > 0, 90, "the runner's queue to fill"
+            )
+        sent = time.monotonic()
+        vision.send_signal(signum)
+        out, _ = vision.communicate(timeout=60)
+        took_s = time.monotonic() - sent
+        assert vision.returncode == 0, out
+        # Far less than the handler's 600 s: the stop did not wait for it.
+        assert took_s < 60, took_s
+    finally:
+        for proc in (vision, camera):
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+
+
+def _refused(node: Node, target: str) -> int:
+    try:
+        return node.buffer_info(target, timeout_s=2.0).refused
+    except FramegateError:
+        return 0
+
+
+def test_results_are_removed_only_when_the_input_producer_itself_went_back() -> None:
+    net = NetworkConfig(local_port=free_port())
+    log = logging.getLogger("test.vision.rewind")
+    with Node("src", net) as src_node, Node("vision", net) as node:
+        images = src_node.offer("images", kind="frame")
+        output = node.offer("detections", kind="detections")
+        spec = RunnerSpec("vision", "src/images", 2, "detections", ResultKind.DETECTIONS)
+        step = VisionStep(vision_handlers.brightest, ResultKind.DETECTIONS, "src/images", log)
+        runner = Runner(spec, step, node, output, threading.Event())
+        base_ns = now_ns() - 3_600 * 10**9
+
+        def frame(frame_id: int) -> Notification:
+            image = np.full((8, 8), frame_id, np.uint8)
+            stamp = base_ns + frame_id * 10**9
+            meta = frame_metadata(frame_id, Exposure(stamp, 1_000_000), image, None)
+            element = DataObject(stamp, image.tobytes(), meta)
+            if images.series.newest_ns is None or stamp > images.series.newest_ns:
+                images.put(stamp, element.payload, meta)
+            return Notification("src", "images", stamp, frame_id, meta, element)
+
+        def handle(frame_id: int) -> None:
+            runner.handle([frame(frame_id)], lambda note: note.element)  # type: ignore[arg-type,return-value]
+
+        for frame_id in (10, 20, 30):
+            handle(frame_id)
+        assert len(output.series) == 3
+        # One stale element while its producer still holds newer ones: skipped, nothing gone.
+        handle(15)
+        assert len(output.series) == 3
+        assert output.info().skipped == {"out-of-order": 1}
+        # The producer went back (it removed its frames after 12, as a mediator does after a
+        # camera restarted with its clock behind): our results after the new frame follow.
+        images.discard_after(base_ns + 12 * 10**9, "rewound")
+        handle(16)
+        stamps = [e.timestamp_ns - base_ns for e in node.query("vision/detections")]
+        assert stamps == [10 * 10**9, 16 * 10**9]
+        assert output.info().skipped == {"out-of-order": 1, "rewound": 2}

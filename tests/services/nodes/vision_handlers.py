@@ -36,3 +36,9 @@ def histogram(image: npt.NDArray[np.uint8], frame: FrameMeta) -> Output:
     """A generic result: the 16-bin histogram as the payload, the mean as a field."""
     counts, _edges = np.histogram(image, bins=16, range=(0, 256))
     return Output(counts.astype("<u4").tobytes(), {"mean": float(image.mean())})
+
+
+def stuck(image: npt.NDArray[np.uint8], frame: FrameMeta) -> list[Box]:
+    """Never returns in any test's lifetime: a stop must not wait for it."""
+    time.sleep(600)
+    return []
