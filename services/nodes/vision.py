@@ -1,4 +1,5 @@
-"""Your own vision function behind the mediator: ``framegate run vision --handler MOD:FN``.
+"""Your own vision function behind the mediator, as its flow-controlled consumer: the
+mediator forwards fewer, sharper frames the slower it is (docs/vision.md).
 
 The handler (see ``services/lib/vision.py`` for what it receives and returns) runs as a
 flow-controlled consumer of ``mediator/images``: the fill of this subscription's queue is
