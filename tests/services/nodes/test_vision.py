@@ -16,6 +16,7 @@ from services.lib.quality import Exposure
 from services.lib.vision import Box, FrameMeta, Output, ResultKind
 from services.nodes.vision import Encoded, Skipped, VisionStep, load_handler, result_kind
 from tests.conftest import REPO, child_env
+from tests.helpers.timing import scaled
 from tests.services.nodes import vision_handlers
 
 LOG = logging.getLogger("test.vision")
@@ -137,7 +138,7 @@ def _framegate(*argv: str, cwd: Path = REPO) -> subprocess.CompletedProcess[str]
         text=True,
         cwd=cwd,
         env=child_env(),
-        timeout=120,
+        timeout=scaled(120),
     )
 
 
