@@ -28,9 +28,14 @@ a producer's strictly increasing buffer allows only after it removed the later e
 after the new element removed (counted ``rewound``), mirroring what the producer removed.
 One stale element while the producer still holds newer ones is ``out-of-order``.
 
-Threads: the node's thread runs the loop; the handler runs on a worker thread only so that
-a stop is honoured while it is inside native code (``unless_stopped``), one call at a time.
-:class:`VisionStep` is the per-frame work with no I/O, called directly by tests.
+Threads: the service's main thread runs the loop (take one notification, process, put);
+the handler runs on a short-lived worker thread (``unless_stopped``), one call at a time,
+only so that a stop is honoured while it is inside native code. The loop is deliberately not
+a handler on the node's executor: a vision function runs for a frame period or more, and
+there it would hold up the node's other duties (acks to watchers of the results, resends)
+for that long. ``Runner.handle`` has an executor handler's shape (a batch of notifications)
+should that trade be wanted. :class:`VisionStep` is the per-frame work with no I/O, called
+directly by tests.
 """
 
 from __future__ import annotations
@@ -280,11 +285,7 @@ class Runner:
             except FramegateError as exc:
                 self._count(self.step.skip("bad-frame", f"frame {note.timestamp_ns}: {exc}"))
                 continue
-            started = time.monotonic()
             outcome = self.step.process(element.timestamp_ns, element.payload, element.metadata)
-            remaining = self.spec.processing_floor_s - (time.monotonic() - started)
-            if remaining > 0 and self.stop.wait(remaining):
-                return
             if isinstance(outcome, Skipped):
                 self._count(outcome)
                 continue
@@ -329,8 +330,14 @@ def serve(spec: RunnerSpec, handler: Handler, network: NetworkConfig, stop: thre
 
     def call(work: Callable[[], object]) -> object:
         # On a worker thread, so a stop is honoured while the handler is in native code.
+        started = time.monotonic()
         result = unless_stopped(lambda: (True, work()), stop)
         if result is None:
+            raise _Stopped
+        # Emulated load: the frame occupies the runner at least this long, and its
+        # processing_ns says so.
+        remaining = spec.processing_floor_s - (time.monotonic() - started)
+        if remaining > 0 and stop.wait(remaining):
             raise _Stopped
         return result[1]
 
