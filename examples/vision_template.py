@@ -2,7 +2,8 @@
 
 ``find_marker`` looks for the board's large ArUco marker (id 0 of ``DICT_4X4_50``) by
 matching its picture at 8 sizes over the whole frame (``cv2.matchTemplate``): real work,
-about 1.5 frame periods per frame at 15 fps on a 2-core machine, no emulated delay. Run it
+about 1.5 frame periods per frame at 15 fps on an otherwise idle 2-core machine, no
+emulated delay. Run it
 behind the mediator (from the repository root)::
 
     framegate launch examples/vision.yaml          # camera, gyro, mediator, this handler
@@ -32,7 +33,7 @@ from services.lib.vision import Box, FrameMeta
 
 MARKER_ID = 0
 # Marker sides tried, in pixels (with its white margin): from far away to close up.
-SIDES_PX = tuple(int(s) for s in np.geomspace(40, 320, 8))
+SIDES_PX = tuple(int(s) for s in np.geomspace(28, 320, 8))
 # Normalised correlation below this is "not found".
 MIN_SCORE = 0.6
 # The marker's picture: 6x6 cells drawn 10 px each, in a white margin of 1 cell.
