@@ -3,8 +3,7 @@
 ``find_marker`` looks for the board's large ArUco marker (id 0 of ``DICT_4X4_50``) by
 matching its picture at 8 sizes over the whole frame (``cv2.matchTemplate``): real work,
 about 1.5 frame periods per frame at 15 fps on an otherwise idle 2-core machine, no
-emulated delay. Run it
-behind the mediator (from the repository root)::
+emulated delay. Run it behind the mediator (from the repository root)::
 
     framegate launch examples/vision.yaml          # camera, gyro, mediator, this handler
     framegate info vision/detections               # its results, skips and processing
