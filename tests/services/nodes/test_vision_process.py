@@ -198,3 +198,35 @@ def test_results_are_removed_only_when_the_input_producer_itself_went_back() -> 
         stamps = [e.timestamp_ns - base_ns for e in node.query("vision/detections")]
         assert stamps == [10 * 10**9, 16 * 10**9]
         assert output.info().skipped == {"out-of-order": 1, "rewound": 2}
+
+
+def test_a_handler_returning_output_fills_a_generic_results_buffer() -> None:
+    port = free_port()
+    camera = start_framegate(["run", "camera", "--seed", "3", "--loop"], local_port=port)
+    vision = start_framegate(
+        ["run", "vision", "--handler", f"{HANDLERS}:histogram", "--input", "camera/images"],
+        local_port=port,
+    )
+    try:
+        with Node(network=NetworkConfig(local_port=port)) as node:
+            elements = wait_until(
+                lambda: _elements(node, "vision/results"), 90, "the handler's results"
+            )
+            assert node.buffer_info("vision/results").kind == "generic"
+            element = elements[-1]
+            assert len(element.payload) == 16 * 4  # the histogram
+            assert b"<mean>" in element.metadata and b"<frame_id>" in element.metadata
+            assert (
+                node.get("camera/images", element.timestamp_ns).timestamp_ns == element.timestamp_ns
+            )
+    finally:
+        for proc in (vision, camera):
+            proc.send_signal(signal.SIGTERM)
+            proc.communicate(timeout=scaled(30))
+
+
+def _elements(node: Node, target: str) -> list[DataObject]:
+    try:
+        return node.query(target)
+    except FramegateError:
+        return []
