@@ -32,8 +32,9 @@ Threads: the service's main thread runs the loop (take one notification, process
 the handler runs on a short-lived worker thread (``unless_stopped``), one call at a time,
 only so that a stop is honoured while it is inside native code. The loop is deliberately not
 a handler on the node's executor: a vision function runs for a frame period or more, and
-there it would hold up the node's other duties (acks to watchers of the results, resends)
-for that long. ``Runner.handle`` has an executor handler's shape (a batch of notifications)
+there it would hold up the node's other duties for that long -- among them a delayed ack of
+the frame just taken, so the mediator would read the queue fuller than it is while the
+handler runs, and acks and resends for watchers of the results. ``Runner.handle`` has an executor handler's shape (a batch of notifications)
 should that trade be wanted. :class:`VisionStep` is the per-frame work with no I/O, called
 directly by tests.
 """
