@@ -34,9 +34,9 @@ only so that a stop is honoured while it is inside native code. The loop is deli
 a handler on the node's executor: a vision function runs for a frame period or more, and
 there it would hold up the node's other duties for that long -- among them a delayed ack of
 the frame just taken, so the mediator would read the queue fuller than it is while the
-handler runs, and acks and resends for watchers of the results. ``Runner.handle`` has an executor handler's shape (a batch of notifications)
-should that trade be wanted. :class:`VisionStep` is the per-frame work with no I/O, called
-directly by tests.
+handler runs, and acks and resends for watchers of the results. ``Runner.handle`` has an
+executor handler's shape (a batch of notifications) should that trade be wanted.
+:class:`VisionStep` is the per-frame work with no I/O, called directly by tests.
 """
 
 from __future__ import annotations
@@ -44,6 +44,7 @@ from __future__ import annotations
 import argparse
 import collections
 import importlib
+import importlib.util
 import inspect
 import logging
 import os
@@ -53,6 +54,8 @@ import time
 import typing
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
+from types import ModuleType
 
 import numpy as np
 import numpy.typing as npt
@@ -113,19 +116,28 @@ class RunnerSpec:
 
 # -- loading a handler ---------------------------------------------------------------------
 def load_handler(spec: str) -> Handler:
-    """The callable ``spec`` (``package.module:function`` or ``module:Class.method``) names.
+    """The callable ``spec`` names: ``package.module:function``, ``module:Class.method``,
+    or ``path/to/file.py:function``.
 
     ConfigError, naming what is wrong, if the module cannot be imported (any exception
     while importing it counts), the name is missing or not callable. The current directory
-    is importable, as for ``python -m``.
+    is importable, as for ``python -m``; so is a file's own directory (its siblings).
     """
-    module_name, sep, attr_path = spec.partition(":")
+    module_name, sep, attr_path = spec.rpartition(":")
     if not sep or not module_name or not attr_path:
-        raise ConfigError(f"handler {spec!r} must be 'package.module:function'")
+        raise ConfigError(
+            f"handler {spec!r} must be 'package.module:function' or 'file.py:function'"
+        )
     if os.getcwd() not in sys.path and "" not in sys.path:
         sys.path.insert(0, os.getcwd())
     try:
-        target: object = importlib.import_module(module_name)
+        target: object = (
+            _import_file(Path(module_name))
+            if module_name.endswith(".py")
+            else importlib.import_module(module_name)
+        )
+    except ConfigError:
+        raise
     except Exception as exc:  # a user's module may raise anything while it loads
         raise ConfigError(
             f"handler {spec!r}: cannot import {module_name!r}: {type(exc).__name__}: {exc}"
@@ -141,6 +153,34 @@ def load_handler(spec: str) -> Handler:
             "it must be callable as handler(image, frame)"
         )
     return typing.cast(Handler, target)
+
+
+# Handler files loaded by path, so that one named twice (flag check, then run) loads once.
+_FILES: dict[Path, ModuleType] = {}
+
+
+def _import_file(path: Path) -> ModuleType:
+    """The module in ``path``, loaded under a name of its own (so a file called
+    ``json.py`` is that file, not the standard library's)."""
+    path = path.resolve()
+    if path in _FILES:
+        return _FILES[path]
+    if not path.is_file():
+        raise ConfigError(f"handler file {str(path)!r} does not exist")
+    if str(path.parent) not in sys.path:
+        sys.path.insert(0, str(path.parent))
+    name = f"_framegate_handler_{len(_FILES)}_{path.stem}"
+    spec = importlib.util.spec_from_file_location(name, path)
+    assert spec is not None and spec.loader is not None  # a .py path always has a loader
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module  # dataclasses and pickling look their module up here
+    try:
+        spec.loader.exec_module(module)
+    except BaseException:
+        del sys.modules[name]
+        raise
+    _FILES[path] = module
+    return module
 
 
 def handler_argument(spec: str) -> str:
@@ -406,7 +446,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=d.handler,
         metavar="MODULE:FUNCTION",
         help="your function handler(image, frame) -> list[Box] | Output | None "
-        "(services/lib/vision.py); the current directory is importable",
+        "(services/lib/vision.py), as package.module:function or file.py:function; "
+        "the current directory is importable",
     )
     parser.add_argument(
         "--input",

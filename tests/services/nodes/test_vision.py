@@ -165,3 +165,25 @@ def test_launch_check_names_the_deploy_line_of_a_bad_handler(tmp_path: Path) -> 
     result = _framegate("launch", str(deploy), "--check")
     assert result.returncode == 1, result
     assert f"{deploy}:5" in result.stderr and "cannot import 'nosuch.module'" in result.stderr
+
+
+def test_a_handler_is_loaded_from_a_file_with_its_siblings_importable(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(sys, "path", list(sys.path))  # the file's directory is added
+    (tmp_path / "helper_of_json_py.py").write_text("LABEL = 7\n")
+    # Named like a standard module on purpose: the file is loaded, not the library.
+    (tmp_path / "json.py").write_text(
+        "from helper_of_json_py import LABEL\n"
+        "LOADS = []\n"
+        "LOADS.append(1)\n"
+        "def find(image, frame):\n"
+        "    return LABEL\n"
+    )
+    spec = f"{tmp_path / 'json.py'}:find"
+    handler = load_handler(spec)
+    assert handler(np.zeros((1, 1), np.uint8), None) == 7  # type: ignore[arg-type]
+    assert load_handler(spec) is handler
+    assert sys.modules[handler.__module__].LOADS == [1]  # loaded once for both
+    with pytest.raises(ConfigError, match="does not exist"):
+        load_handler(f"{tmp_path / 'missing.py'}:find")
