@@ -21,7 +21,8 @@ from middleware import NetworkConfig
 from services.lib.markers import detect_markers
 from services.lib.vision import Box, FrameMeta, ResultKind
 from services.nodes._contract import Service, ServiceEntry
-from services.nodes.vision import Image, RunnerSpec, serve
+from services.nodes._vision_handler import Image
+from services.nodes.vision import RunnerSpec, serve
 
 
 @dataclass(frozen=True, slots=True)

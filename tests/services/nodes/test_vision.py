@@ -14,7 +14,8 @@ from middleware import ConfigError
 from services.lib.messages import frame_metadata, read_detections
 from services.lib.quality import Exposure
 from services.lib.vision import Box, FrameMeta, Output, ResultKind
-from services.nodes.vision import Encoded, Skipped, VisionStep, load_handler, result_kind
+from services.nodes._vision_handler import load_handler, result_kind
+from services.nodes.vision import Encoded, Skipped, VisionStep
 from tests.conftest import REPO, child_env
 from tests.helpers.timing import scaled
 from tests.services.nodes import vision_handlers
