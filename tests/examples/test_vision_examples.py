@@ -36,6 +36,7 @@ def test_the_vision_deploy_file_checks() -> None:
 
 
 @pytest.mark.integration
+@pytest.mark.slow
 def test_the_compare_example_measures_both_handlers_from_one_camera() -> None:
     result = _run("examples/vision_compare.py", "--seconds", "4", "--warmup-s", "1", timeout_s=300)
     assert result.returncode == 0, result

@@ -90,6 +90,7 @@ def test_a_handler_named_on_the_command_line_runs_behind_the_mediator_and_its_er
     assert len(warned) == 1, pipe.log()
 
 
+@pytest.mark.slow
 def test_a_slower_handler_is_sent_fewer_frames_from_the_same_camera_and_gyro(
     tmp_path: Path, pipeline: list[Pipeline]
 ) -> None:
