@@ -267,6 +267,7 @@ def _decisions(pipe: Pipeline) -> list[DecisionRecord]:
     return [DecisionRecord.from_metadata(e.metadata) for e in found]
 
 
+@pytest.mark.slow
 def test_a_stopped_detector_loses_no_accepted_frame_without_a_record(pipe: Pipeline) -> None:
     wait_until(lambda: pipe.counter("detector/detections") >= 3, 90, "detections\n" + pipe.log())
     pid = pipe.pid("detector")
