@@ -21,6 +21,15 @@ from services.lib.quality import Exposure, GyroSamples
 FRAME_CHANNELS = {"mono8": 1, "bgr8": 3, "rgb8": 3}
 
 
+class FrameError(SchemaError):
+    """A frame no consumer could use, whatever its XSD allowed; ``reason`` names the check
+    (``bad-size``, ``bad-exposure``, ``bad-encoding``, ``bad-payload-size``, ...)."""
+
+    def __init__(self, reason: str, detail: str) -> None:
+        super().__init__(detail)
+        self.reason = reason
+
+
 @dataclass(frozen=True, slots=True)
 class FrameMeta:
     """What a frame's metadata says."""
@@ -42,13 +51,26 @@ def frame_metadata(
 ) -> bytes:
     """``frame`` metadata for an image exposed over ``exposure`` (key = exposure start)."""
     encoding = "mono8" if image.ndim == 2 else "bgr8"
+    height, width = int(image.shape[0]), int(image.shape[1])
+    return frame_metadata_of(frame_id, exposure, encoding, width, height, camera)
+
+
+def frame_metadata_of(
+    frame_id: int,
+    exposure: Exposure,
+    encoding: str,
+    width_px: int,
+    height_px: int,
+    camera: CameraModel | None,
+) -> bytes:
+    """``frame`` metadata from its fields (a source with no image array, e.g. a bridge)."""
     fields: dict[str, Any] = {
         "frame_id": frame_id,
         "exposure_start_ns": exposure.start_ns,
         "exposure_ns": exposure.duration_ns,
         "encoding": encoding,
-        "width_px": int(image.shape[1]),
-        "height_px": int(image.shape[0]),
+        "width_px": width_px,
+        "height_px": height_px,
     }
     if camera is not None:
         fields["camera"] = camera.camera_fields()
@@ -75,15 +97,30 @@ def read_frame_metadata(metadata: bytes) -> FrameMeta:
     )
 
 
-def decode_image(payload: bytes, meta: FrameMeta) -> npt.NDArray[np.uint8]:
-    """The image as a read-only array view of the payload (no copy)."""
-    channels = FRAME_CHANNELS[meta.encoding]
+def check_frame(meta: FrameMeta, payload_bytes: int) -> None:
+    """The one check of a frame's size, exposure and encoding against its payload:
+    FrameError for a frame no consumer could use, whatever its XSD allowed."""
+    if meta.width_px <= 0 or meta.height_px <= 0:
+        raise FrameError("bad-size", f"size {meta.width_px}x{meta.height_px}")
+    if meta.exposure.duration_ns <= 0:
+        raise FrameError("bad-exposure", f"exposure of {meta.exposure.duration_ns} ns")
+    channels = FRAME_CHANNELS.get(meta.encoding)
+    if channels is None:
+        raise FrameError("bad-encoding", f"encoding {meta.encoding!r}")
     expected = meta.width_px * meta.height_px * channels
-    if len(payload) != expected:
-        raise SchemaError(
-            f"frame {meta.frame_id}: payload is {len(payload)} bytes, metadata says "
-            f"{meta.width_px}x{meta.height_px} {meta.encoding} = {expected}"
+    if payload_bytes != expected:
+        raise FrameError(
+            "bad-payload-size",
+            f"frame {meta.frame_id}: payload is {payload_bytes} bytes, metadata says "
+            f"{meta.width_px}x{meta.height_px} {meta.encoding} = {expected}",
         )
+
+
+def decode_image(payload: bytes, meta: FrameMeta) -> npt.NDArray[np.uint8]:
+    """The image as a read-only array view of the payload (no copy); FrameError if the
+    payload does not hold the frame its metadata describes."""
+    check_frame(meta, len(payload))
+    channels = FRAME_CHANNELS[meta.encoding]
     shape = (meta.height_px, meta.width_px) if channels == 1 else (meta.height_px, meta.width_px, 3)
     return np.frombuffer(payload, dtype=np.uint8).reshape(shape)
 

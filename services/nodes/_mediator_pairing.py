@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from middleware import FramegateError
-from services.lib.messages import FRAME_CHANNELS, FrameMeta
+from services.lib.messages import FrameError, FrameMeta
 from services.lib.quality import (
     BlurOptions,
     CoverageError,
@@ -42,30 +42,9 @@ from services.nodes._mediator_inputs import ClockOffsets, GyroCache
 MAX_WAITING = 64
 
 
-class BadFrame(Exception):
-    """A frame the mediator skips; ``reason`` goes into its decision record."""
-
-    def __init__(self, reason: str, detail: str) -> None:
-        super().__init__(detail)
-        self.reason = reason
-
-
-def check_frame(meta: FrameMeta, payload_bytes: int) -> None:
-    """Raise BadFrame for a frame no detector could use, whatever its XSD allowed."""
-    if meta.width_px <= 0 or meta.height_px <= 0:
-        raise BadFrame("bad-size", f"size {meta.width_px}x{meta.height_px}")
-    if meta.exposure.duration_ns <= 0:
-        raise BadFrame("bad-exposure", f"exposure of {meta.exposure.duration_ns} ns")
-    channels = FRAME_CHANNELS.get(meta.encoding)
-    if channels is None:
-        raise BadFrame("bad-encoding", f"encoding {meta.encoding!r}")
-    expected = meta.width_px * meta.height_px * channels
-    if payload_bytes != expected:
-        raise BadFrame(
-            "bad-payload-size",
-            f"payload of {payload_bytes} bytes, {meta.width_px}x{meta.height_px} "
-            f"{meta.encoding} needs {expected}",
-        )
+# A frame the mediator skips; ``reason`` goes into its decision record. The frame checks
+# are the one shared ``check_frame`` (services.lib.messages).
+BadFrame = FrameError
 
 
 def blur_quality(

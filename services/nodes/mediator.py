@@ -86,7 +86,7 @@ from middleware import (
     split_target,
 )
 from services.lib.decisions import Action, Candidate, Decider, Rules, Verdict, make_policy
-from services.lib.messages import read_frame_metadata
+from services.lib.messages import check_frame, read_frame_metadata
 from services.lib.quality import BlurOptions
 from services.lib.rewind import SourceClock, rewind_after
 from services.nodes._contract import Service, ServiceEntry
@@ -105,7 +105,6 @@ from services.nodes._mediator_pairing import (
     Pairing,
     Waiting,
     blur_quality,
-    check_frame,
 )
 from services.nodes._runtime import setup_logging
 
