@@ -11,12 +11,17 @@ of the nominal rate the camera warns once, with its render/read time and the CPU
 Sources (services/nodes/sources.py): ``sim`` renders live from the simulator, ``replay DIR``
 plays a dataset at real-time pace (``--rate``) with timestamps rebased onto the wall clock,
 ``device N|URL`` reads a cv2.VideoCapture.
+
+Threads: none of its own beyond ``unless-stopped`` (a render or read a stop must not wait
+for); each frame is made and put from a deadline on the node's executor (``CameraPump``),
+and the main thread waits in ``Node.spin``.
 """
 
 from __future__ import annotations
 
 import argparse
 import collections
+import contextlib
 import logging
 import os
 import statistics
@@ -28,20 +33,24 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from middleware import FlowControlRefused, FramegateError, NetworkConfig, Node, Retention
+from middleware import (
+    FlowControlRefused,
+    FramegateError,
+    NetworkConfig,
+    Node,
+    Producer,
+    Retention,
+)
 from services.lib.argtypes import positive_float, positive_int
 from services.lib.messages import frame_metadata
 from services.lib.quality import Exposure
 from services.lib.settings import add_flags, from_args, setting
 from services.nodes._contract import Service, ServiceEntry
-from services.nodes._runtime import (
-    Timeline,
-    serve_until_stopped,
-    setup_logging,
-    start_at_ns,
-    unless_stopped,
-)
+from services.nodes._runtime import Timeline, setup_logging, start_at_ns, unless_stopped
 from services.nodes.sources import (
+    DeviceSource,
+    FrameSource,
+    SourceFrame,
     SourceSpec,
     add_source_arguments,
     open_frame_source,
@@ -77,7 +86,6 @@ def run(config: CameraConfig, network: NetworkConfig, stop: threading.Event | No
         )
         info = node.offer("info", kind="camera", retention=Retention(max_count=4))
         t0_wall = start_at_ns(config.source.start_at_ns) if source.relative else 0
-        timeline = Timeline(t0_wall)
         info.put(
             max(1, t0_wall),
             b"",
@@ -88,55 +96,103 @@ def run(config: CameraConfig, network: NetworkConfig, stop: threading.Event | No
             ),
         )
         log.info("camera: %s -> %s/images", source.description, config.name)
-        rate = RateWatch(source.frame_period_ns, config.source.rate if source.relative else 1.0)
-        produced = dropped = 0
-        try:
-            for frame in source.frames(stop):
-                if source.relative:
-                    start_rel = source.scale(frame.exposure_start_ns)
-                    end_rel = start_rel + frame.exposure_ns
-                    # A real camera cannot deliver a frame late: if rendering or reading fell
-                    # a frame period behind, this frame is skipped (and counted) instead.
-                    if timeline.late_ns(end_rel) > rate.period_ns:
-                        images.count_skip("late")
-                        rate.late(log)
-                        continue
-                    image = rate.timed_load(frame.load, stop)
-                    # The image exists once its exposure has ended, not before.
-                    if image is None or not timeline.sleep_until(end_rel, stop):
-                        break
-                    exposure = Exposure(timeline.stamp_ns(start_rel), frame.exposure_ns)
-                else:
-                    image = rate.timed_load(frame.load, stop)
-                    if image is None:
-                        break
-                    exposure = Exposure(frame.exposure_start_ns, frame.exposure_ns)
-                rate.made(log)
-                metadata = frame_metadata(frame.frame_id, exposure, image, source.camera)
-                try:
-                    images.put(
-                        exposure.start_ns,
-                        image.tobytes(),
-                        metadata,
-                        wait_s=config.lossless_wait_s if config.lossless else 0.0,
-                    )
-                    produced += 1
-                except FlowControlRefused:
-                    dropped += 1  # dropped at the source, counted in images.info().refused
-                except FramegateError as exc:
-                    log.warning("frame %d not stored: %s", frame.frame_id, exc)
-        except KeyboardInterrupt:
-            pass
+        pump = CameraPump(node, images, source, config, Timeline(t0_wall), stop, log)
+        pump.start()
+        with contextlib.suppress(KeyboardInterrupt):
+            node.spin(stop)
         log.info(
             "camera: %d frames stored, %d dropped at the source (flow control), %d skipped late",
-            produced,
-            dropped,
-            rate.late_total,
+            pump.produced,
+            pump.dropped,
+            pump.rate.late_total,
         )
-        # A finished replay keeps serving its buffers until stopped.
-        if config.source.kind != "device" and not config.source.exit_when_done:
-            serve_until_stopped(stop)
     return 0
+
+
+class CameraPump:
+    """Makes each frame when its time comes, on the node's executor: a ``Node.at`` deadline
+    per frame (rendered or read, then put once its exposure has ended), no sleeping loop.
+    A finished replay keeps serving its buffers until stopped; a device's end, or
+    ``--exit-when-done``, stops the service."""
+
+    def __init__(
+        self,
+        node: Node,
+        images: Producer,
+        source: FrameSource | DeviceSource,
+        config: CameraConfig,
+        timeline: Timeline,
+        stop: threading.Event,
+        log: logging.Logger,
+    ) -> None:
+        self._node = node
+        self._images = images
+        self._source = source
+        self._config = config
+        self._timeline = timeline
+        self._stop = stop
+        self._log = log
+        self._frames = iter(source.frames(stop))
+        self.rate = RateWatch(
+            source.frame_period_ns, config.source.rate if source.relative else 1.0
+        )
+        # A frame made and waiting for its exposure to end: (frame, image, start_rel).
+        self._made: tuple[SourceFrame, npt.NDArray[np.uint8], int] | None = None
+        self.produced = self.dropped = 0
+
+    def start(self) -> None:
+        self._node.at(time.monotonic_ns(), self.on_time)
+
+    def on_time(self, now: int) -> None:
+        """Put the frame whose exposure has ended, make the next one, and come back when
+        its exposure ends (a device: at once, its read waits for the frame)."""
+        if self._made is not None:
+            frame, image, start_rel = self._made
+            self._made = None
+            exposure = Exposure(self._timeline.stamp_ns(start_rel), frame.exposure_ns)
+            self._put(frame, image, exposure)
+        for frame in self._frames:
+            if not self._source.relative:
+                read = self.rate.timed_load(frame.load, self._stop)
+                if read is None:
+                    return
+                self._put(frame, read, Exposure(frame.exposure_start_ns, frame.exposure_ns))
+                self._node.at(time.monotonic_ns(), self.on_time)  # others' turn between reads
+                return
+            start_rel = self._source.scale(frame.exposure_start_ns)
+            end_rel = start_rel + frame.exposure_ns
+            # A real camera cannot deliver a frame late: if rendering or reading fell a
+            # frame period behind, this frame is skipped (and counted) instead.
+            if self._timeline.late_ns(end_rel) > self.rate.period_ns:
+                self._images.count_skip("late")
+                self.rate.late(self._log)
+                continue
+            made = self.rate.timed_load(frame.load, self._stop)
+            if made is None:
+                return  # stopped while rendering
+            # The image exists once its exposure has ended, not before.
+            self._made = (frame, made, start_rel)
+            self._node.at(time.monotonic_ns() - self._timeline.late_ns(end_rel), self.on_time)
+            return
+        if self._config.source.kind == "device" or self._config.source.exit_when_done:
+            self._stop.set()
+
+    def _put(self, frame: SourceFrame, image: npt.NDArray[np.uint8], exposure: Exposure) -> None:
+        self.rate.made(self._log)
+        metadata = frame_metadata(frame.frame_id, exposure, image, self._source.camera)
+        config = self._config
+        try:
+            self._images.put(
+                exposure.start_ns,
+                image.tobytes(),
+                metadata,
+                wait_s=config.lossless_wait_s if config.lossless else 0.0,
+            )
+            self.produced += 1
+        except FlowControlRefused:
+            self.dropped += 1  # dropped at the source, counted in images.info().refused
+        except FramegateError as exc:
+            self._log.warning("frame %d not stored: %s", frame.frame_id, exc)
 
 
 # The share of its nominal rate below which a source says it cannot keep up.

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import pytest
 
+from middleware import FramegateError
 from services.launch import pipeline_yaml
 from tests.conftest import wait_until
 from tests.services.nodes.pipeline import Pipeline
@@ -36,8 +37,18 @@ def pipe(tmp_path: Path) -> Iterator[Pipeline]:
 
 
 def _offered(pipe: Pipeline) -> tuple[int, int]:
-    info = pipe.info("camera/images")
-    return info.puts + info.refused, info.refused
+    """Frames the camera offered and those refused (asked again while a busy machine
+    leaves its description unanswered)."""
+
+    def counts() -> tuple[int, int] | None:
+        try:
+            info = pipe.info("camera/images")
+        except FramegateError:
+            return None
+        return info.puts + info.refused, info.refused
+
+    found: tuple[int, int] = wait_until(counts, 60, "the camera's counters")
+    return found
 
 
 def _refused_share(pipe: Pipeline) -> float:
