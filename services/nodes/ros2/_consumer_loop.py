@@ -1,0 +1,327 @@
+"""An unmodified ROS 2 vision node as a flow-controlled consumer of a framegate buffer.
+
+``--consumer-done /yolo/detections --consumer-queue N`` turns the ``--image-out`` mapping
+of the node's input (``mediator/images=/camera/image_sharp``) from an observer into a loop:
+
+- the *gate*, a flow-controlled subscription of the buffer with queue N (no payloads), is
+  the ROS 2 node as framegate sees it. Its notifications are taken only when the node is
+  done with an image: a result whose ``header.stamp`` equals the image's arrived, or
+  ``--consumer-timeout-ms`` passed. So its queue holds exactly the node's outstanding
+  images, the producer (the mediator) sees that fill as the consumer's load, and it cannot
+  put more than N images the node has not answered (flow control, the paper's rule: the
+  mediator leaves frames out, nothing here drops).
+- the *feed*, an observing subscription of the same buffer (payloads pushed), brings each
+  element, which is published to ROS 2 as a ``sensor_msgs/msg/Image`` and recorded in
+  :class:`Outstanding`. Every element the feed gets is resolved exactly once (answered,
+  timed out, or not publishable), and each resolution takes one notification off the gate.
+- the result topic's type and type hash come from its publishers' liveliness tokens; its
+  messages are read only as far as their leading ``std_msgs/Header``.
+
+Counted, never silent (``framegate info NAME/results``, ``skipped``): ``consumer-timeout``
+(an image never answered; its slot freed), ``late-result``, ``unmatched-result``,
+``bad-result`` (no readable header), ``result-queue-full``, ``missed-image`` (the feed lost
+a notification: its gate entry is freed), ``not-published``, ``unmatched-gate`` (a gate
+entry no image of the feed accounts for, e.g. across a producer restart, freed after the
+timeout). Each answered image becomes one element of NAME/results (key: the image's),
+with how long the node took and how long the loop took to free its slot.
+
+Threads: Zenoh's callback thread only enqueues results (``_InQueue``) and reads tokens
+(``on_token``, under ``_lock``); the *feed* thread takes, encodes and publishes images; the
+*resolver* thread declares the result subscription once its type is known, matches results,
+expires slots and takes gate notifications. ``_lock`` guards the ledger, ``_debt``
+(resolutions not yet paid by a gate take) and the type discovery.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+from middleware import (
+    PUSH_ALL,
+    FramegateError,
+    Node,
+    Retention,
+    SubscriptionMode,
+    make_metadata,
+)
+
+from ._bridge import _InQueue, _Skips
+from ._config import Mapping, Ros2Config
+from ._consumer import ConsumerCounts, DoneTopic, HeaderError, Outstanding, Resolved, decode_header
+from ._link import RosLink, RosPublisher
+from ._rmw import Attachment, Qos
+
+log = logging.getLogger("framegate.ros2")
+
+_POLL_S = 0.2
+# The resolver wakes at least this often while it owes the gate a take whose notification
+# has not arrived yet (the gate's and the feed's notifications of one put race).
+_RETRY_S = 0.02
+# Results waiting for the resolver; a node answers at most one per image it was sent.
+_RESULTS_DEPTH = 64
+
+
+class ConsumerLoop:
+    """One ROS 2 node in the loop (see the module docstring)."""
+
+    def __init__(
+        self,
+        node: Node,
+        link: RosLink,
+        publisher: RosPublisher,
+        mapping: Mapping,
+        encode: Callable[[Any], bytes | bytearray | None],
+        config: Ros2Config,
+        skips: _Skips,
+    ) -> None:
+        assert config.consumer_done is not None
+        self.mapping = mapping
+        self._node, self._link, self._publisher = node, link, publisher
+        self._encode, self._config, self._skips = encode, config, skips
+        queue = config.consumer_queue
+        self.results = node.offer("results", kind="generic", retention=Retention(max_count=10_000))
+        # The feed first: an element the gate holds but the feed missed would hold a slot
+        # until the timeout; one the feed has and the gate missed costs nothing lasting.
+        self._feed = node.subscribe(
+            mapping.buffer,
+            queue_size=max(8, 2 * queue),
+            mode=SubscriptionMode.OBSERVE,
+            wait_s=0,
+            push_max_bytes=PUSH_ALL,
+            await_service=True,
+        )
+        self._gate = node.subscribe(
+            mapping.buffer,
+            queue_size=queue,
+            mode=SubscriptionMode.FLOW,
+            wait_s=0,
+            push_max_bytes=0,  # the feed brings the payloads
+            await_service=True,
+        )
+        self._lock = threading.Lock()
+        self._ledger = Outstanding(queue, int(config.consumer_timeout_ms * 1e6))
+        self._debt = 0
+        self._debt_since_ns: int | None = None
+        self._surplus_since_ns: int | None = None
+        self._done = DoneTopic(config.consumer_done)
+        self._subscribed = False
+        self._answers = _InQueue(
+            _RESULTS_DEPTH,
+            lambda: skips.count(self.results, "result-queue-full", "the result queue was full"),
+        )
+        self.published = 0
+
+    # -- the ROS graph (Zenoh's thread) ------------------------------------------------------
+    def on_token(self, token: str) -> None:
+        with self._lock:
+            remark = self._done.feed(token)
+        if remark:
+            log.warning("ros2: consumer result topic %s", remark)
+
+    # -- feed: images out --------------------------------------------------------------------
+    def run_feed(self, stop: threading.Event) -> None:
+        while not stop.is_set():
+            note = self._feed.take(timeout_s=_POLL_S)
+            if note is None:
+                continue
+            try:
+                self._publish(note)
+            except Exception as exc:  # one element must never stop the bridge
+                log.exception("consumer feed: unexpected error")
+                self._skips.count(self.results, "internal-error", repr(exc))
+                self._resolved_without_image(1)
+
+    def _publish(self, note: Any) -> None:
+        if note.missed:
+            self._skips.count(
+                self.results, "missed-image", f"{note.missed} notification(s) of {note.buffer}"
+            )
+            self._resolved_without_image(note.missed)
+        try:
+            element = self._feed.fetch(note)
+            cdr = self._encode(element)
+        except (FramegateError, ValueError, KeyError, TypeError) as exc:
+            what = f"{self.mapping.buffer} at {note.timestamp_ns}: {exc}"
+            self._skips.count(self.results, "not-published", what)
+            self._resolved_without_image(1)
+            return
+        if cdr is None:
+            self._resolved_without_image(1)
+            return
+        stamp = self._config.stamp_ns(element.timestamp_ns)
+        # Recorded before publishing: the node may answer before publish() returns.
+        with self._lock:
+            added = self._ledger.add(stamp, time.monotonic_ns())
+        if not added:
+            self._skips.count(self.results, "not-published", f"no free slot for {stamp} ns")
+            self._resolved_without_image(1)
+            return
+        try:
+            self._publisher.publish(cdr)
+            self.published += 1
+        except FramegateError as exc:
+            with self._lock:
+                self._ledger.withdraw(stamp)
+            self._skips.count(self.results, "not-published", str(exc))
+            self._resolved_without_image(1)
+
+    def _resolved_without_image(self, count: int) -> None:
+        with self._lock:
+            self._owe(count)
+
+    def _owe(self, count: int) -> None:
+        """(under _lock)"""
+        if count and not self._debt:
+            self._debt_since_ns = time.monotonic_ns()
+        self._debt += count
+
+    # -- resolver: results in, slots freed ---------------------------------------------------
+    def run_resolver(self, stop: threading.Event) -> None:
+        waiting_said = False
+        while not stop.is_set():
+            if not self._subscribed:
+                with self._lock:
+                    found = self._done.found
+                if found is not None:
+                    self._subscribe(found.ros_type, found.type_hash)
+                elif not waiting_said:
+                    waiting_said = True
+                    log.info(
+                        "ros2: waiting for a publisher of %s (its type is read from its "
+                        "liveliness token); until then images to %s free their slot after "
+                        "%.0f ms",
+                        self._done.topic,
+                        self.mapping.topic,
+                        self._config.consumer_timeout_ms,
+                    )
+            try:
+                self._turn()
+            except Exception as exc:  # never stop resolving: the gate would stay full
+                log.exception("consumer resolver: unexpected error")
+                self._skips.count(self.results, "internal-error", repr(exc))
+
+    def _subscribe(self, ros_type: str, type_hash: str) -> None:
+        topic = self._done.topic
+        self._link.subscribe(topic, ros_type, type_hash, Qos(), self._answers.put)
+        self._subscribed = True
+        log.info("ros2: consumer results on %s as %s (%s)", topic, ros_type, type_hash)
+
+    def _turn(self) -> None:
+        """Wait for a result or the next deadline, then free what is resolved."""
+        with self._lock:
+            deadline = self._ledger.next_deadline_ns()
+            owing = self._debt > 0
+        wait_s = _RETRY_S if owing or not self._subscribed else _POLL_S
+        if deadline is not None:
+            wait_s = min(wait_s, max(0.0, (deadline - time.monotonic_ns()) / 1e9))
+        item = self._answers.get(wait_s)
+        answered: list[tuple[Resolved, int]] = []
+        while item is not None:
+            if (done := self._answer(*item)) is not None:
+                answered.append(done)
+            item = self._answers.get(0)
+        now = time.monotonic_ns()
+        with self._lock:
+            expired = self._ledger.expire(now)
+            self._owe(len(answered) + len(expired))
+        for gone in expired:
+            self._skips.count(
+                self.results,
+                "consumer-timeout",
+                f"no result on {self._done.topic} within {self._config.consumer_timeout_ms} ms "
+                f"for the image stamped {gone.stamp_ns} ns",
+            )
+        released_ns = self._pay(now)
+        for resolved, sent_ns in answered:
+            self._record(resolved, sent_ns, released_ns)
+
+    def _answer(self, raw: bytes, attachment: bytes | None) -> tuple[Resolved, int] | None:
+        """Match one result; (the image it answers, the result's source wall time)."""
+        try:
+            header = decode_header(raw)
+        except HeaderError as exc:
+            with self._lock:
+                self._ledger.bad_result()
+            self._skips.count(self.results, "bad-result", str(exc))
+            return None
+        with self._lock:
+            resolved = self._ledger.answer(header.stamp_ns, time.monotonic_ns())
+        if isinstance(resolved, str):
+            reason = f"{resolved}-result"
+            self._skips.count(
+                self.results, reason, f"result stamped {header.stamp_ns} ns ({header.frame_id})"
+            )
+            return None
+        sent_ns = time.time_ns()
+        if attachment is not None:
+            # A result without rmw_zenoh's attachment still frees its slot.
+            with contextlib.suppress(ValueError):
+                sent_ns = Attachment.decode(attachment).source_timestamp_ns
+        return resolved, sent_ns
+
+    def _pay(self, now_ns: int) -> int:
+        """Take one gate notification per resolution owed; the wall time it was done."""
+        with self._lock:
+            owed = self._debt
+        taken = self._gate.take_many(owed, timeout_s=0) if owed else []
+        released_ns = time.time_ns()
+        timeout_ns = self._ledger.timeout_ns
+        with self._lock:
+            self._debt -= len(taken)
+            if self._debt <= 0:
+                self._debt, self._debt_since_ns = 0, None
+            elif self._debt_since_ns is not None and now_ns - self._debt_since_ns > timeout_ns:
+                # Resolutions no gate notification came for (the feed saw a put the gate
+                # did not, e.g. before the gate registered): owing them would free the next
+                # image's slot as soon as it arrives.
+                self._debt, self._debt_since_ns = 0, None
+            surplus = self._gate_surplus()
+        if surplus:
+            self._free_surplus(surplus, now_ns, timeout_ns)
+        return released_ns
+
+    def _gate_surplus(self) -> int:
+        """(under _lock) Gate notifications no image accounts for, if any."""
+        if self._debt:
+            return 0
+        return max(0, self._gate.pending - len(self._ledger) - self._feed.pending)
+
+    def _free_surplus(self, surplus: int, now_ns: int, timeout_ns: int) -> None:
+        if self._surplus_since_ns is None:
+            self._surplus_since_ns = now_ns
+            return
+        if now_ns - self._surplus_since_ns <= timeout_ns:
+            return
+        self._surplus_since_ns = None
+        for note in self._gate.take_many(surplus, timeout_s=0):
+            self._skips.count(
+                self.results,
+                "unmatched-gate",
+                f"a gate notification of {self.mapping.buffer} at {note.timestamp_ns} ns "
+                "without an image",
+            )
+
+    def _record(self, resolved: Resolved, sent_ns: int, released_ns: int) -> None:
+        key = self._config.start_ns(resolved.stamp_ns)
+        fields = {
+            "stamp_ns": resolved.stamp_ns,
+            "answer_ns": resolved.resolved_ns - resolved.published_ns,
+            "release_ns": max(0, released_ns - sent_ns),
+        }
+        try:
+            self.results.put(key, b"", make_metadata("generic", key, fields))
+        except FramegateError as exc:
+            self._skips.count(self.results, "not-recorded", f"result of {key} ns: {exc}")
+
+    def counts(self) -> ConsumerCounts:
+        with self._lock:
+            return self._ledger.counts()
+
+    def close(self) -> None:
+        for sub in (self._gate, self._feed):
+            sub.close()
