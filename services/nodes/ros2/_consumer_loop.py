@@ -22,8 +22,10 @@ Counted, never silent (``framegate info NAME/results``, ``skipped``): ``consumer
 ``bad-result`` (no readable header), ``result-queue-full``, ``missed-image`` (the feed lost
 a notification: its gate entry is freed), ``not-published``, ``unmatched-gate`` (a gate
 entry no image of the feed accounts for, e.g. across a producer restart, freed after the
-timeout). Each answered image becomes one element of NAME/results (key: the image's),
-with how long the node took and how long the loop took to free its slot.
+timeout), ``not-recorded`` (an answer out of stamp order: its slot is freed, its element
+not stored), ``internal-error``. Each answered image becomes one element of NAME/results
+(key: the image's), with how long the node took and how long the loop took to free its
+slot.
 
 Threads: Zenoh's callback thread only enqueues results (``_InQueue``) and reads tokens
 (``on_token``, under ``_lock``); the *feed* thread takes, encodes and publishes images; the
@@ -283,6 +285,8 @@ class ConsumerLoop:
             surplus = self._gate_surplus()
         if surplus:
             self._free_surplus(surplus, now_ns, timeout_ns)
+        else:  # only a surplus that lasts is one: an image between feed and ledger is not
+            self._surplus_since_ns = None
         return released_ns
 
     def _gate_surplus(self) -> int:
