@@ -33,6 +33,7 @@ import sys
 import threading
 import time
 from collections import Counter
+from dataclasses import replace
 from typing import Any
 
 from ._options import BenchOptions
@@ -181,7 +182,12 @@ def _one_run(window_s: float, period_s: float, progress: Any) -> dict[str, Any]:
         try:
             for vision in nodes.values():
                 vision.wait_ready(60)
-            supervisor = Supervisor(process_specs(deployment, None, network), quiet=True)
+            # The children find the private rendezvous through the environment, as soak's.
+            specs = [
+                replace(spec, env=(*spec.env, ("FRAMEGATE_LOCAL_PORT", str(network.local_port))))
+                for spec in process_specs(deployment, None, network)
+            ]
+            supervisor = Supervisor(specs, quiet=True)
             started = time.monotonic()
             with Node(network=network) as client:
                 # Counting starts once both nodes have answered an image: they then see the
