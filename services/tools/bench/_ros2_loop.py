@@ -14,11 +14,12 @@ router standing in for ``rmw_zenohd``, opened by this process):
 Two identical ROS 2 vision nodes (``_ros2_node``: plain Zenoh speaking rmw_zenoh's format,
 framegate's marker detector, ``SERVICE_FACTOR`` frame periods per image, results as
 ``vision_msgs/msg/Detection2DArray`` with the image's header) subscribe one to each. The
-uncontrolled one keeps the newest ``QUEUE`` images (ROS 2 KEEP_LAST), dropping blindly
-while busy. Rows: recognitions per board marker and in total (raw = uncontrolled,
-framegate = in the loop: their ratio is 1 + the gain), images each processed, and the
-loop's own cost per image: from the node publishing its result to the bridge taking the
-gate's notification (which sends the ack that frees the slot at the mediator), p50.
+uncontrolled one keeps the newest ``QUEUE - 1`` images waiting (ROS 2 KEEP_LAST) besides
+the one it works on, dropping blindly while busy. Rows: recognitions per board marker and
+in total (raw = uncontrolled, framegate = in the loop: their ratio is 1 + the gain), images
+each processed, and the loop's own cost per image: from the node publishing its result to
+the bridge taking the gate's notification (which sends the ack that frees the slot at the
+mediator), p50.
 
 A pair is one run of ``window`` seconds with both nodes on the same camera at once: at
 least ``WINDOW_S`` (``QUICK_WINDOW_S`` with --quick), or ``--duration`` if longer.
@@ -44,8 +45,12 @@ from ._stats import percentile
 WINDOW_S = 45.0
 QUICK_WINDOW_S = 15.0
 SERVICE_FACTOR = 1.6
-QUEUE = 2
-RELEASE_P50_GOAL_US = 2000.0
+# The node may hold 3 images without a result: the one it works on and 2 waiting, what the
+# demo's detector holds with its queue of 2 (it takes a frame out of its queue before working
+# on it, the ROS 2 node's slot is freed only by its result).
+QUEUE = 3
+# The loop's cost per image should be a small share of a frame period (5 %).
+RELEASE_SHARE_GOAL = 0.05
 LOOP_TOPIC, RAW_TOPIC = "/camera/image_sharp", "/camera/image_raw"
 
 
@@ -175,7 +180,7 @@ def _one_run(window_s: float, period_s: float, progress: Any) -> dict[str, Any]:
                     "name": "vision_raw",
                     "image_topic": RAW_TOPIC,
                     "result_topic": "/vision/raw/detections",
-                    "depth": QUEUE,
+                    "depth": QUEUE - 1,  # + the one it works on: as many as the loop's
                 }
             ),
         }
@@ -187,7 +192,9 @@ def _one_run(window_s: float, period_s: float, progress: Any) -> dict[str, Any]:
                 replace(spec, env=(*spec.env, ("FRAMEGATE_LOCAL_PORT", str(network.local_port))))
                 for spec in process_specs(deployment, None, network)
             ]
-            supervisor = Supervisor(specs, quiet=True)
+            logs: list[str] = []
+            supervisor = Supervisor(specs, colour=False, out=logs.append)
+            out["logs"] = logs
             started = time.monotonic()
             with Node(network=network) as client:
                 # Counting starts once both nodes have answered an image: they then see the
@@ -225,6 +232,7 @@ def _one_run(window_s: float, period_s: float, progress: Any) -> dict[str, Any]:
 
                 supervisor.start()
                 supervisor.run(None, on_tick=watch, stop=stop)
+                out["restarts"] = {k: v for k, v in supervisor.restarts().items() if v}
         finally:
             for vision in nodes.values():
                 vision.close()
@@ -262,7 +270,7 @@ def run_ros2_loop(options: BenchOptions) -> ScenarioResult:
             "window_s": window_s,
             "service_time_s": round(SERVICE_FACTOR * period_s, 4),
             "consumer_queue": QUEUE,
-            "raw": f"a ROS 2 node on the camera's images (KEEP_LAST {QUEUE}), uncontrolled",
+            "raw": f"a ROS 2 node on the camera's images (KEEP_LAST {QUEUE - 1}), uncontrolled",
             "framegate": "the same node behind the mediator, in the bridge's loop",
         },
     )
@@ -295,6 +303,7 @@ def run_ros2_loop(options: BenchOptions) -> ScenarioResult:
                 "camera_frames": run["camera"].puts,
                 "forwarded": mediator.puts,
                 "skipped": dict(results.skipped),
+                "restarts": run["restarts"],
             }
         )
         if run["release_us"]:
@@ -313,12 +322,12 @@ def run_ros2_loop(options: BenchOptions) -> ScenarioResult:
         rows["total"].goal = ratio_goal(rows["total"], 1.0, at_least=True, what="recognitions")
         rows["total"].note = "ratio = 1 + the gain of the loop over the uncontrolled node"
     if "release" in rows:
-        measured = rows["release"].median("framegate")
+        limit_us = round(RELEASE_SHARE_GOAL * period_s * 1e6)
         rows["release"].goal = Goal(
-            f"loop release p50 <= {RELEASE_P50_GOAL_US:g} us",
-            RELEASE_P50_GOAL_US,
+            f"loop release p50 <= {limit_us:g} us ({RELEASE_SHARE_GOAL:.0%} of a frame period)",
+            limit_us,
             False,
-            measured,
+            rows["release"].median("framegate"),
         )
         rows["release"].note = "result published by the node -> gate taken (ack) in the bridge"
     order = ["total", "processed", "release"]
