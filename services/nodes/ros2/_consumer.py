@@ -244,3 +244,60 @@ class Outstanding:
             self._bad,
             len(self._open),
         )
+
+
+class GateBook:
+    """What the bridge owes its gate subscription, pure (the caller serialises calls).
+
+    Every image the feed brings is resolved once (answered, timed out, not publishable), and
+    each resolution is *owed* one take of the gate, whose queue then holds exactly the
+    images the node has not answered. Two mismatches can only come from the two
+    subscriptions registering or re-registering at different moments (start, a producer
+    restart), and both are settled after ``timeout_ns``:
+
+    - a debt no gate notification comes for (the feed saw a put the gate did not): kept, it
+      would free the next image's slot the moment it arrives; it is cancelled.
+    - a *surplus*, gate notifications no image accounts for (the gate saw a put the feed did
+      not): kept, it would hold a slot for ever; it is freed once it has lasted the whole
+      timeout (an image on its way between the feed and the ledger is one only briefly).
+    """
+
+    def __init__(self, timeout_ns: int) -> None:
+        self.timeout_ns = timeout_ns
+        self.debt = 0
+        self._debt_since_ns: int | None = None
+        self._surplus_since_ns: int | None = None
+
+    def owe(self, count: int, now_ns: int) -> None:
+        """``count`` images were resolved: as many gate takes are due."""
+        if count > 0 and not self.debt:
+            self._debt_since_ns = now_ns
+        self.debt += max(0, count)
+
+    def taken(self, count: int, now_ns: int) -> int:
+        """``count`` gate notifications were taken for the debt; the debt cancelled (> 0
+        once what is still owed has waited longer than the timeout for its notification)."""
+        self.debt = max(0, self.debt - count)
+        if not self.debt:
+            self._debt_since_ns = None
+            return 0
+        if self._debt_since_ns is not None and now_ns - self._debt_since_ns > self.timeout_ns:
+            cancelled, self.debt, self._debt_since_ns = self.debt, 0, None
+            return cancelled
+        return 0
+
+    def surplus(self, gate_queued: int, accounted: int, now_ns: int) -> int:
+        """Gate notifications to free now: ``gate_queued`` minus the ``accounted`` images
+        (open in the ledger or waiting in the feed), once that surplus has lasted the
+        timeout; 0 while a debt is being paid or the surplus is young."""
+        extra = gate_queued - accounted if not self.debt else 0
+        if extra <= 0:
+            self._surplus_since_ns = None
+            return 0
+        if self._surplus_since_ns is None:
+            self._surplus_since_ns = now_ns
+            return 0
+        if now_ns - self._surplus_since_ns <= self.timeout_ns:
+            return 0
+        self._surplus_since_ns = None
+        return extra

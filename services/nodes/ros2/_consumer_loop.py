@@ -22,7 +22,8 @@ Counted, never silent (``framegate info NAME/results``, ``skipped``): ``consumer
 ``bad-result`` (no readable header), ``result-queue-full``, ``missed-image`` (the feed lost
 a notification: its gate entry is freed), ``not-published``, ``unmatched-gate`` (a gate
 entry no image of the feed accounts for, e.g. across a producer restart, freed after the
-timeout), ``not-recorded`` (an answer out of stamp order: its slot is freed, its element
+timeout), ``ungated-image`` (an image the gate never counted, e.g. at start: nothing
+to free), ``not-recorded`` (an answer out of stamp order: its slot is freed, its element
 not stored), ``internal-error``. Each answered image becomes one element of NAME/results
 (key: the image's), with how long the node took and how long the loop took to free its
 slot.
@@ -30,7 +31,7 @@ slot.
 Threads: Zenoh's callback thread only enqueues results (``_InQueue``) and reads tokens
 (``on_token``, under ``_lock``); the *feed* thread takes, encodes and publishes images; the
 *resolver* thread declares the result subscription once its type is known, matches results,
-expires slots and takes gate notifications. ``_lock`` guards the ledger, ``_debt``
+expires slots and takes gate notifications. ``_lock`` guards the ledger, the ``GateBook``
 (resolutions not yet paid by a gate take) and the type discovery.
 """
 
@@ -54,7 +55,15 @@ from middleware import (
 
 from ._bridge import _InQueue, _Skips
 from ._config import Mapping, Ros2Config
-from ._consumer import ConsumerCounts, DoneTopic, HeaderError, Outstanding, Resolved, decode_header
+from ._consumer import (
+    ConsumerCounts,
+    DoneTopic,
+    GateBook,
+    HeaderError,
+    Outstanding,
+    Resolved,
+    decode_header,
+)
 from ._link import RosLink, RosPublisher
 from ._rmw import Attachment, Qos
 
@@ -107,9 +116,7 @@ class ConsumerLoop:
         )
         self._lock = threading.Lock()
         self._ledger = Outstanding(queue, int(config.consumer_timeout_ms * 1e6))
-        self._debt = 0
-        self._debt_since_ns: int | None = None
-        self._surplus_since_ns: int | None = None
+        self._book = GateBook(self._ledger.timeout_ns)
         self._done = DoneTopic(config.consumer_done)
         self._subscribed = False
         self._answers = _InQueue(
@@ -174,13 +181,7 @@ class ConsumerLoop:
 
     def _resolved_without_image(self, count: int) -> None:
         with self._lock:
-            self._owe(count)
-
-    def _owe(self, count: int) -> None:
-        """(under _lock)"""
-        if count and not self._debt:
-            self._debt_since_ns = time.monotonic_ns()
-        self._debt += count
+            self._book.owe(count, time.monotonic_ns())
 
     # -- resolver: results in, slots freed ---------------------------------------------------
     def run_resolver(self, stop: threading.Event) -> None:
@@ -217,7 +218,7 @@ class ConsumerLoop:
         """Wait for a result or the next deadline, then free what is resolved."""
         with self._lock:
             deadline = self._ledger.next_deadline_ns()
-            owing = self._debt > 0
+            owing = self._book.debt > 0
         wait_s = _RETRY_S if owing or not self._subscribed else _POLL_S
         if deadline is not None:
             wait_s = min(wait_s, max(0.0, (deadline - time.monotonic_ns()) / 1e9))
@@ -230,7 +231,7 @@ class ConsumerLoop:
         now = time.monotonic_ns()
         with self._lock:
             expired = self._ledger.expire(now)
-            self._owe(len(answered) + len(expired))
+            self._book.owe(len(answered) + len(expired), now)
         for gone in expired:
             self._skips.count(
                 self.results,
@@ -267,48 +268,30 @@ class ConsumerLoop:
         return resolved, sent_ns
 
     def _pay(self, now_ns: int) -> int:
-        """Take one gate notification per resolution owed; the wall time it was done."""
+        """Take one gate notification per resolution owed, settle mismatches (see
+        ``GateBook``); the wall time the takes were done."""
         with self._lock:
-            owed = self._debt
+            owed = self._book.debt
         taken = self._gate.take_many(owed, timeout_s=0) if owed else []
         released_ns = time.time_ns()
-        timeout_ns = self._ledger.timeout_ns
         with self._lock:
-            self._debt -= len(taken)
-            if self._debt <= 0:
-                self._debt, self._debt_since_ns = 0, None
-            elif self._debt_since_ns is not None and now_ns - self._debt_since_ns > timeout_ns:
-                # Resolutions no gate notification came for (the feed saw a put the gate
-                # did not, e.g. before the gate registered): owing them would free the next
-                # image's slot as soon as it arrives.
-                self._debt, self._debt_since_ns = 0, None
-            surplus = self._gate_surplus()
-        if surplus:
-            self._free_surplus(surplus, now_ns, timeout_ns)
-        else:  # only a surplus that lasts is one: an image between feed and ledger is not
-            self._surplus_since_ns = None
-        return released_ns
-
-    def _gate_surplus(self) -> int:
-        """(under _lock) Gate notifications no image accounts for, if any."""
-        if self._debt:
-            return 0
-        return max(0, self._gate.pending - len(self._ledger) - self._feed.pending)
-
-    def _free_surplus(self, surplus: int, now_ns: int, timeout_ns: int) -> None:
-        if self._surplus_since_ns is None:
-            self._surplus_since_ns = now_ns
-            return
-        if now_ns - self._surplus_since_ns <= timeout_ns:
-            return
-        self._surplus_since_ns = None
-        for note in self._gate.take_many(surplus, timeout_s=0):
+            cancelled = self._book.taken(len(taken), now_ns)
+            accounted = len(self._ledger) + self._feed.pending
+            extra = self._book.surplus(self._gate.pending, accounted, now_ns)
+        for _ in range(cancelled):
+            self._skips.count(
+                self.results,
+                "ungated-image",
+                f"an image of {self.mapping.buffer} the gate never counted (registration)",
+            )
+        for note in self._gate.take_many(extra, timeout_s=0) if extra else []:
             self._skips.count(
                 self.results,
                 "unmatched-gate",
                 f"a gate notification of {self.mapping.buffer} at {note.timestamp_ns} ns "
                 "without an image",
             )
+        return released_ns
 
     def _record(self, resolved: Resolved, sent_ns: int, released_ns: int) -> None:
         key = self._config.start_ns(resolved.stamp_ns)

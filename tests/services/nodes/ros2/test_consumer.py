@@ -15,6 +15,7 @@ from services.nodes.ros2._config import Mapping, Ros2Config
 from services.nodes.ros2._consumer import (
     ConsumerCounts,
     DoneTopic,
+    GateBook,
     Header,
     HeaderError,
     Outstanding,
@@ -150,3 +151,38 @@ def test_the_loop_needs_one_image_out_mapping_or_its_name() -> None:
     assert config.consumer_mapping == two[1]
     with pytest.raises(ConfigError, match="--consumer-queue"):
         Ros2Config(image_out=one, consumer_done="/det", consumer_queue=0)
+
+
+def test_each_resolution_is_owed_one_gate_take() -> None:
+    book = GateBook(100)
+    book.owe(2, 0)
+    assert book.debt == 2
+    assert book.taken(1, 10) == 0 and book.debt == 1  # one notification not there yet
+    assert book.taken(1, 20) == 0 and book.debt == 0
+
+
+def test_a_debt_no_gate_notification_comes_for_is_cancelled_after_the_timeout() -> None:
+    book = GateBook(100)
+    book.owe(1, 0)
+    assert book.taken(0, 100) == 0 and book.debt == 1
+    assert book.taken(0, 101) == 1 and book.debt == 0
+    book.owe(1, 200)  # a new debt starts its own clock
+    assert book.taken(0, 250) == 0 and book.debt == 1
+
+
+def test_only_a_surplus_that_lasts_the_timeout_is_freed() -> None:
+    book = GateBook(100)
+    assert book.surplus(3, 3, 0) == 0
+    assert book.surplus(4, 3, 10) == 0  # an image between the feed and the ledger
+    assert book.surplus(3, 3, 50) == 0  # gone: its clock restarts
+    assert book.surplus(4, 3, 120) == 0
+    assert book.surplus(4, 3, 220) == 0
+    assert book.surplus(5, 3, 221) == 2
+    assert book.surplus(5, 3, 222) == 0  # freed: a new surplus starts its own clock
+
+
+def test_no_surplus_is_freed_while_a_debt_is_paid() -> None:
+    book = GateBook(100)
+    book.owe(1, 0)
+    assert book.surplus(2, 0, 0) == 0
+    assert book.surplus(2, 0, 500) == 0
