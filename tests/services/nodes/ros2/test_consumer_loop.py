@@ -20,7 +20,15 @@ import numpy as np
 import pytest
 import zenoh
 
-from middleware import FlowControlRefused, NetworkConfig, Node, Producer, SubscriptionMode
+from middleware import (
+    FlowControlRefused,
+    FramegateError,
+    NetworkConfig,
+    Node,
+    Producer,
+    SubscriptionMode,
+)
+from services.lib.messages import DecisionRecord
 from services.nodes.ros2._bridge import frame_metadata
 from tests.conftest import REPO, child_env, free_port, wait_until
 
@@ -228,3 +236,83 @@ def test_a_node_that_never_answers_frees_its_slots_after_the_timeout_counted(
             vision.close()
             bridge.close()
         assert bridge.proc.returncode == 0, bridge.log()
+
+
+@pytest.mark.slow
+def test_the_mediator_decides_with_the_ros2_nodes_load(
+    listen_net: NetworkConfig, endpoint: str, ros_router: tuple[str, zenoh.Session]
+) -> None:
+    # No gyro: every frame falls under the gyro-missing rule, forwarded only while the
+    # consumer is idle, so each decision shows the load the mediator read.
+    ros_at, _router = ros_router
+    with Node("cam", listen_net) as node:
+        camera = node.offer("images", kind="frame")
+        mediator = Proc(
+            [
+                *(sys.executable, "-m", "services.cli", "run", "mediator", "--connect", endpoint),
+                *("--camera", "cam/images", "--gyro", "gyro/rates", "--gyro-wait-ms", "10"),
+            ]
+        )
+        bridge = Proc(
+            [
+                *(sys.executable, "-m", "services.cli", "run", "ros2", "--connect", endpoint),
+                *("--ros-connect", ros_at, "--image-out", "mediator/images=/vision/in"),
+                *("--consumer-done", "/vision/out", "--consumer-queue", "2"),
+                *("--consumer-timeout-ms", "60000"),
+            ]
+        )
+        vision = VisionNode(ros_at, service_time_s=5.0)
+        try:
+            assert vision.events.get(timeout=60).get("ready"), vision.log()
+            wait_until(
+                lambda: _flow_queued(node) == 0 and camera.subscriptions(),
+                60,
+                "the mediator and the bridge's gate\n" + mediator.log() + bridge.log(),
+            )
+            wait_until(
+                lambda: any("consumer results on /vision/out" in t for t in bridge.text),
+                60,
+                "the result type\n" + bridge.log(),
+            )
+            now = time.time_ns()
+            _put(camera, now)  # idle node: forwarded
+            wait_until(lambda: vision.outstanding == 1, 60, "the image at the node")
+            wait_until(lambda: _flow_queued(node) == 1, 30, "the mediator to see it")
+            _put(camera, now + 1_000_000)  # the node works on one: not idle, left out
+            first = wait_until(lambda: _decisions(node, 2), 30, "two decisions")
+            wait_until(lambda: vision.outstanding == 0, 60, "the node's answer")
+            wait_until(lambda: _flow_queued(node) == 0, 30, "the slot freed")
+            _put(camera, now + 2_000_000)  # idle again: forwarded
+            decisions = wait_until(lambda: _decisions(node, 3), 30, "three decisions")
+            assert first == decisions[:2]
+            assert [(d.accepted, d.load) for d in decisions] == [
+                (True, 0.0),
+                (False, 0.5),
+                (True, 0.0),
+            ], decisions
+            wait_until(lambda: vision.outstanding == 1, 60, "the third image at the node")
+            assert vision.received == [now, now + 2_000_000]
+        finally:
+            vision.close()
+            bridge.close()
+            mediator.close()
+
+
+def _flow_queued(node: Node) -> int | None:
+    """The queue of the one flow-controlled subscriber of mediator/images, as its producer
+    counts it (what ``framegate info`` shows and the mediator reads), else None."""
+    try:
+        info = node.buffer_info("mediator/images", timeout_s=2.0)
+    except FramegateError:
+        return None
+    flow = [s for s in info.subscriptions if s.mode is SubscriptionMode.FLOW]
+    return flow[0].queued if len(flow) == 1 and flow[0].node == "ros2" else None
+
+
+def _decisions(node: Node, count: int) -> list[DecisionRecord] | None:
+    try:
+        elements = node.query("mediator/decisions")
+    except FramegateError:
+        return None
+    records = [DecisionRecord.from_metadata(e.metadata) for e in elements]
+    return records if len(records) >= count else None
