@@ -31,6 +31,7 @@ from middleware import (
 from services.lib.messages import DecisionRecord
 from services.nodes.ros2._bridge import frame_metadata
 from tests.conftest import REPO, child_env, free_port, wait_until
+from tests.helpers.timing import scaled
 
 pytestmark = [pytest.mark.integration]
 
@@ -70,7 +71,7 @@ class Proc:
         if self.proc.poll() is None:
             self.proc.terminate()
             try:
-                self.proc.wait(timeout=10)
+                self.proc.wait(timeout=scaled(10))
             except subprocess.TimeoutExpired:
                 self.proc.kill()
                 self.proc.wait()
@@ -144,7 +145,7 @@ def _put(images: Producer, stamp_ns: int) -> None:
 
 
 def _ready(images: Producer, bridge: Proc, vision: VisionNode) -> None:
-    assert vision.events.get(timeout=60).get("ready"), vision.log()
+    assert vision.events.get(timeout=scaled(60)).get("ready"), vision.log()
     wait_until(
         lambda: len(images.subscriptions()) == 2 and _gate(images) is not None,
         60,
@@ -263,7 +264,7 @@ def test_the_mediator_decides_with_the_ros2_nodes_load(
         )
         vision = VisionNode(ros_at, service_time_s=5.0)
         try:
-            assert vision.events.get(timeout=60).get("ready"), vision.log()
+            assert vision.events.get(timeout=scaled(60)).get("ready"), vision.log()
             wait_until(
                 lambda: _flow_queued(node) == 0 and camera.subscriptions(),
                 60,
