@@ -470,7 +470,9 @@ def run(config: Ros2Config, network: NetworkConfig, stop: threading.Event | None
                     mapping.topic, ros_type, hashed(ros_type), config.out_qos
                 )
                 if mapping == config.consumer_mapping:
-                    consumer = _start_consumer(node, link, publisher, encode, config, skips)
+                    consumer = _start_consumer(
+                        node, link, publisher, encode, config, skips, start, stop
+                    )
                     continue
                 output = Output(node, publisher, mapping, encode, config)
                 outputs.append(output)
@@ -541,12 +543,15 @@ def _start_consumer(
     encode: Callable[[Any], bytes | bytearray | None],
     config: Ros2Config,
     skips: _Skips,
+    start: Callable[[str, Callable[[], None]], None],
+    stop: threading.Event,
 ) -> Any:
-    """The ``--consumer-done`` loop on the node's input mapping, run by its executor."""
+    """The ``--consumer-done`` loop on the node's input mapping, its two threads started."""
     from ._consumer_loop import ConsumerLoop  # it builds on this module's queue and skips
 
     mapping = config.consumer_mapping
     assert mapping is not None
     consumer = ConsumerLoop(node, link, publisher, mapping, encode, config, skips)
-    consumer.start()  # on the node's executor
+    start(f"ros2-feed-{mapping.topic}", lambda: consumer.run_feed(stop))
+    start("ros2-consumer-results", lambda: consumer.run_resolver(stop))
     return consumer

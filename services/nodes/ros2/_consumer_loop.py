@@ -28,12 +28,10 @@ not stored), ``internal-error``. Each answered image becomes one element of NAME
 (key: the image's), with how long the node took and how long the loop took to free its
 slot.
 
-Threads: everything runs on the node's executor (``Node.on`` for the feed, ``Node.every``
-for the slots' deadlines, ``Node.at`` at once for each result): it takes, encodes and
-publishes images, declares the result subscription once its type is known, matches
-results, expires slots and takes gate notifications (never waiting: ``take_many`` with no
-timeout). Zenoh's threads only enqueue results (``_InQueue``) and read tokens
-(``on_token``, under ``_lock``). ``_lock`` guards the ledger, the ``GateBook``
+Threads: Zenoh's callback thread only enqueues results (``_InQueue``) and reads tokens
+(``on_token``, under ``_lock``); the *feed* thread takes, encodes and publishes images; the
+*resolver* thread declares the result subscription once its type is known, matches results,
+expires slots and takes gate notifications. ``_lock`` guards the ledger, the ``GateBook``
 (resolutions not yet paid by a gate take) and the type discovery.
 """
 
@@ -50,7 +48,6 @@ from middleware import (
     PUSH_ALL,
     FramegateError,
     Node,
-    Notification,
     Retention,
     SubscriptionMode,
     make_metadata,
@@ -72,10 +69,10 @@ from ._rmw import Attachment, Qos
 
 log = logging.getLogger("framegate.ros2")
 
-# Besides each result, the executor looks at the slots this often: for timeouts, for a
-# gate notification that came after its image's result (the gate's and the feed's
-# notifications of one put race), for the result type.
-_TICK_S = 0.05
+_POLL_S = 0.2
+# The resolver wakes at least this often while it owes the gate a take whose notification
+# has not arrived yet (the gate's and the feed's notifications of one put race).
+_RETRY_S = 0.02
 # Results waiting for the resolver; a node answers at most one per image it was sent.
 _RESULTS_DEPTH = 64
 
@@ -122,8 +119,6 @@ class ConsumerLoop:
         self._book = GateBook(self._ledger.timeout_ns)
         self._done = DoneTopic(config.consumer_done)
         self._subscribed = False
-        self._waiting_said = False
-        self._tick: Any = None
         self._answers = _InQueue(
             _RESULTS_DEPTH,
             lambda: skips.count(self.results, "result-queue-full", "the result queue was full"),
@@ -138,13 +133,11 @@ class ConsumerLoop:
             log.warning("ros2: consumer result topic %s", remark)
 
     # -- feed: images out --------------------------------------------------------------------
-    def start(self) -> None:
-        """Register the loop's work on the node's executor (see the module docstring)."""
-        self._node.on(self._feed, self._on_images, max_batch=self._config.consumer_queue)
-        self._tick = self._node.every(_TICK_S, self._on_tick)
-
-    def _on_images(self, notes: list[Notification]) -> None:
-        for note in notes:
+    def run_feed(self, stop: threading.Event) -> None:
+        while not stop.is_set():
+            note = self._feed.take(timeout_s=_POLL_S)
+            if note is None:
+                continue
             try:
                 self._publish(note)
             except Exception as exc:  # one element must never stop the bridge
@@ -191,45 +184,45 @@ class ConsumerLoop:
             self._book.owe(count, time.monotonic_ns())
 
     # -- resolver: results in, slots freed ---------------------------------------------------
-    def _on_result(self, raw: bytes, attachment: bytes | None) -> None:
-        """(Zenoh's thread) Queue a result and have the executor match it at once."""
-        self._answers.put(raw, attachment)
-        self._node.at(0, self._on_tick)
-
-    def _on_tick(self, _now_ns: int) -> None:
-        """(executor) Learn the result type, match results, expire slots, pay the gate."""
-        try:
+    def run_resolver(self, stop: threading.Event) -> None:
+        waiting_said = False
+        while not stop.is_set():
             if not self._subscribed:
-                self._discover()
-            self._turn()
-        except Exception as exc:  # never stop resolving: the gate would stay full
-            log.exception("consumer loop: unexpected error")
-            self._skips.count(self.results, "internal-error", repr(exc))
-
-    def _discover(self) -> None:
-        with self._lock:
-            found = self._done.found
-        if found is not None:
-            self._subscribe(found.ros_type, found.type_hash)
-        elif not self._waiting_said:
-            self._waiting_said = True
-            log.info(
-                "ros2: waiting for a publisher of %s (its type is read from its liveliness "
-                "token); until then images to %s free their slot after %.0f ms",
-                self._done.topic,
-                self.mapping.topic,
-                self._config.consumer_timeout_ms,
-            )
+                with self._lock:
+                    found = self._done.found
+                if found is not None:
+                    self._subscribe(found.ros_type, found.type_hash)
+                elif not waiting_said:
+                    waiting_said = True
+                    log.info(
+                        "ros2: waiting for a publisher of %s (its type is read from its "
+                        "liveliness token); until then images to %s free their slot after "
+                        "%.0f ms",
+                        self._done.topic,
+                        self.mapping.topic,
+                        self._config.consumer_timeout_ms,
+                    )
+            try:
+                self._turn()
+            except Exception as exc:  # never stop resolving: the gate would stay full
+                log.exception("consumer resolver: unexpected error")
+                self._skips.count(self.results, "internal-error", repr(exc))
 
     def _subscribe(self, ros_type: str, type_hash: str) -> None:
         topic = self._done.topic
-        self._link.subscribe(topic, ros_type, type_hash, Qos(), self._on_result)
+        self._link.subscribe(topic, ros_type, type_hash, Qos(), self._answers.put)
         self._subscribed = True
         log.info("ros2: consumer results on %s as %s (%s)", topic, ros_type, type_hash)
 
     def _turn(self) -> None:
-        """Match the results waiting, expire slots, free what is resolved (never waits)."""
-        item = self._answers.get(0)
+        """Wait for a result or the next deadline, then free what is resolved."""
+        with self._lock:
+            deadline = self._ledger.next_deadline_ns()
+            owing = self._book.debt > 0
+        wait_s = _RETRY_S if owing or not self._subscribed else _POLL_S
+        if deadline is not None:
+            wait_s = min(wait_s, max(0.0, (deadline - time.monotonic_ns()) / 1e9))
+        item = self._answers.get(wait_s)
         answered: list[tuple[Resolved, int]] = []
         while item is not None:
             if (done := self._answer(*item)) is not None:
@@ -317,7 +310,5 @@ class ConsumerLoop:
             return self._ledger.counts()
 
     def close(self) -> None:
-        if self._tick is not None:
-            self._tick.cancel()
         for sub in (self._gate, self._feed):
             sub.close()
