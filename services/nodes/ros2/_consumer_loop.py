@@ -38,9 +38,9 @@ Why threads of its own, not the node's executor (as the rest of the bridge): on 
 executor thread a result waited behind the encoding and publishing of an image (a copy of
 the frame, milliseconds on a loaded machine), so its slot was freed later and the mediator
 saw the node busy longer. Measured alternately on the same loaded 2-core machine
-(``framegate bench ros2-loop``): with the executor the node in the loop processed 10-15 %
-fewer images than the uncontrolled one and gained -2 to +13 %; with these two threads it
-processed as many and gained +11 to +26 %.
+(``framegate bench ros2-loop``, 5 runs each): with the executor the node in the loop
+processed 4-15 % fewer images than the uncontrolled one and gained -2 to +13 %; with these
+two threads it processed about as many (within 5 %) and gained +11 to +26 %.
 """
 
 from __future__ import annotations
