@@ -28,13 +28,13 @@ not stored), ``internal-error``. Each answered image becomes one element of NAME
 (key: the image's), with how long the node took and how long the loop took to free its
 slot.
 
-Threads: Zenoh's callback thread only enqueues results (``_InQueue``) and reads tokens
-(``on_token``, under ``_lock``); the *feed* thread takes, encodes and publishes images; the
-*resolver* thread declares the result subscription once its type is known, matches results,
-expires slots and takes gate notifications. ``_lock`` guards the ledger, the ``GateBook``
-(resolutions not yet paid by a gate take) and the type discovery.
+Threads: Zenoh's callback thread only enqueues results (a bounded ``queue.Queue``) and
+reads tokens (``on_token``, under ``_lock``); the *feed* thread takes, encodes and publishes
+images; the *resolver* thread declares the result subscription once its type is known,
+matches results, expires slots and takes gate notifications. ``_lock`` guards the ledger,
+the ``GateBook`` (resolutions not yet paid by a gate take) and the type discovery.
 
-Why threads of its own, not the node's executor (as the rest of the bridge): on the one
+Why threads of its own rather than the node's executor (``Node.on``/``at``): on its one
 executor thread a result waited behind the encoding and publishing of an image (a copy of
 the frame, milliseconds on a loaded machine), so its slot was freed later and the mediator
 saw the node busy longer. Measured alternately on the same loaded 2-core machine
@@ -47,21 +47,22 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import queue
 import threading
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import Any, Protocol
 
 from middleware import (
     PUSH_ALL,
     FramegateError,
     Node,
+    Producer,
     Retention,
     SubscriptionMode,
     make_metadata,
 )
 
-from ._bridge import _InQueue, _Skips
 from ._config import Mapping, Ros2Config
 from ._consumer import (
     ConsumerCounts,
@@ -76,6 +77,14 @@ from ._link import RosLink, RosPublisher
 from ._rmw import Attachment, Qos
 
 log = logging.getLogger("framegate.ros2")
+
+
+class Skips(Protocol):
+    """The bridge's counted skips (``_bridge._Skips``): into a producer's ``skipped``, with
+    one warning per reason."""
+
+    def count(self, producer: Producer | None, reason: str, detail: str) -> None: ...
+
 
 _POLL_S = 0.2
 # The resolver wakes at least this often while it owes the gate a take whose notification
@@ -96,19 +105,19 @@ class ConsumerLoop:
         mapping: Mapping,
         encode: Callable[[Any], bytes | bytearray | None],
         config: Ros2Config,
-        skips: _Skips,
+        skips: Skips,
     ) -> None:
         assert config.consumer_done is not None
         self.mapping = mapping
         self._node, self._link, self._publisher = node, link, publisher
         self._encode, self._config, self._skips = encode, config, skips
-        queue = config.consumer_queue
+        depth = config.consumer_queue
         self.results = node.offer("results", kind="generic", retention=Retention(max_count=10_000))
         # The feed first: an element the gate holds but the feed missed would hold a slot
         # until the timeout; one the feed has and the gate missed costs nothing lasting.
         self._feed = node.subscribe(
             mapping.buffer,
-            queue_size=max(8, 2 * queue),
+            queue_size=max(8, 2 * depth),
             mode=SubscriptionMode.OBSERVE,
             wait_s=0,
             push_max_bytes=PUSH_ALL,
@@ -116,21 +125,19 @@ class ConsumerLoop:
         )
         self._gate = node.subscribe(
             mapping.buffer,
-            queue_size=queue,
+            queue_size=depth,
             mode=SubscriptionMode.FLOW,
             wait_s=0,
             push_max_bytes=0,  # the feed brings the payloads
             await_service=True,
         )
         self._lock = threading.Lock()
-        self._ledger = Outstanding(queue, int(config.consumer_timeout_ms * 1e6))
+        self._ledger = Outstanding(depth, int(config.consumer_timeout_ms * 1e6))
         self._book = GateBook(self._ledger.timeout_ns)
         self._done = DoneTopic(config.consumer_done)
         self._subscribed = False
-        self._answers = _InQueue(
-            _RESULTS_DEPTH,
-            lambda: skips.count(self.results, "result-queue-full", "the result queue was full"),
-        )
+        # A full queue refuses the newest result, counted (see _on_result).
+        self._answers: queue.Queue[tuple[bytes, bytes | None]] = queue.Queue(_RESULTS_DEPTH)
         self.published = 0
 
     # -- the ROS graph (Zenoh's thread) ------------------------------------------------------
@@ -218,9 +225,24 @@ class ConsumerLoop:
 
     def _subscribe(self, ros_type: str, type_hash: str) -> None:
         topic = self._done.topic
-        self._link.subscribe(topic, ros_type, type_hash, Qos(), self._answers.put)
+        self._link.subscribe(topic, ros_type, type_hash, Qos(), self._on_result)
         self._subscribed = True
         log.info("ros2: consumer results on %s as %s (%s)", topic, ros_type, type_hash)
+
+    def _on_result(self, raw: bytes, attachment: bytes | None) -> None:
+        """(Zenoh's thread) Only enqueue."""
+        try:
+            self._answers.put_nowait((raw, attachment))
+        except queue.Full:
+            self._skips.count(self.results, "result-queue-full", "the result queue was full")
+
+    def _next_result(self, wait_s: float) -> tuple[bytes, bytes | None] | None:
+        try:
+            if wait_s > 0:
+                return self._answers.get(timeout=wait_s)
+            return self._answers.get_nowait()
+        except queue.Empty:
+            return None
 
     def _turn(self) -> None:
         """Wait for a result or the next deadline, then free what is resolved."""
@@ -230,12 +252,12 @@ class ConsumerLoop:
         wait_s = _RETRY_S if owing or not self._subscribed else _POLL_S
         if deadline is not None:
             wait_s = min(wait_s, max(0.0, (deadline - time.monotonic_ns()) / 1e9))
-        item = self._answers.get(wait_s)
+        item = self._next_result(wait_s)
         answered: list[tuple[Resolved, int]] = []
         while item is not None:
             if (done := self._answer(*item)) is not None:
                 answered.append(done)
-            item = self._answers.get(0)
+            item = self._next_result(0)
         now = time.monotonic_ns()
         with self._lock:
             expired = self._ledger.expire(now)
