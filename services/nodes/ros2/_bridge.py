@@ -547,7 +547,7 @@ def _start_consumer(
     stop: threading.Event,
 ) -> Any:
     """The ``--consumer-done`` loop on the node's input mapping, its two threads started."""
-    from ._consumer_loop import ConsumerLoop  # it builds on this module's queue and skips
+    from ._consumer_loop import ConsumerLoop  # only a bridge with --consumer-done needs it
 
     mapping = config.consumer_mapping
     assert mapping is not None
