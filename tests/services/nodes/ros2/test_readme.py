@@ -12,14 +12,15 @@ from services.nodes import service
 from tests.conftest import REPO, child_env
 from tests.helpers.timing import scaled
 
-README = REPO / "docs" / "ros2-bridge.md"  # the README links it: the bridge's reference
+# The bridge's reference page (the paragraph moved there from the README).
+README = REPO / "docs" / "ros2-bridge.md"
 SAME_AS = "`deploy/ros2.yaml` runs the same as these three commands:"
 
 
 def _readme_commands() -> list[list[str]]:
     """The ``framegate run`` lines of the code block after SAME_AS (continuations joined)."""
     text = README.read_text()
-    assert SAME_AS in text, "docs/ros2-bridge.md lost the paragraph this test checks"
+    assert SAME_AS in text, f"{README.name} lost the paragraph this test checks"
     block = text.split(SAME_AS, 1)[1].split("```bash\n", 1)[1].split("```", 1)[0]
     return [shlex.split(line) for line in block.replace("\\\n", " ").splitlines() if line.strip()]
 
