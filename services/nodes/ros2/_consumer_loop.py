@@ -35,12 +35,13 @@ matches results, expires slots and takes gate notifications. ``_lock`` guards th
 the ``GateBook`` (resolutions not yet paid by a gate take) and the type discovery.
 
 Why threads of its own rather than the node's executor (``Node.on``/``at``): on its one
-executor thread a result waited behind the encoding and publishing of an image (a copy of
-the frame, milliseconds on a loaded machine), so its slot was freed later and the mediator
-saw the node busy longer. Measured alternately on the same loaded 2-core machine
-(``framegate bench ros2-loop``, 5 runs each): with the executor the node in the loop
-processed 4-15 % fewer images than the uncontrolled one and gained -2 to +13 %; with these
-two threads it processed about as many (within 5 %) and gained +11 to +26 %.
+executor thread a result waits behind the encoding and publishing of an image (a copy of
+the frame, milliseconds on a loaded machine), so its slot is freed later and the mediator
+sees the node busy longer. Measured on the same loaded 2-core machine (``framegate bench
+ros2-loop``, runs alternated): with the executor (7 runs) the node in the loop gained -2 to
++13 % (median +6.5 %) and processed 3-15 % fewer images than the uncontrolled one; with these
+two threads (8 runs) +5 to +26 % (median +14 %) and 0-10 % fewer. The ranges overlap at
+that load; the medians decided.
 """
 
 from __future__ import annotations
