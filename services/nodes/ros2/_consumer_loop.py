@@ -40,7 +40,7 @@ the frame, milliseconds on a loaded machine), so its slot is freed later and the
 sees the node busy longer. Measured on the same loaded 2-core machine (``framegate bench
 ros2-loop``, runs alternated): with the executor (7 runs) the node in the loop gained -2 to
 +13 % (median +6.5 %) and processed 3-15 % fewer images than the uncontrolled one; with these
-two threads (8 runs) +5 to +26 % (median +14 %) and 0-10 % fewer. The ranges overlap at
+two threads (9 runs) +5 to +26 % (median +14 %) and 0-10 % fewer. The ranges overlap at
 that load; the medians decided.
 """
 
