@@ -24,9 +24,10 @@ pytestmark = pytest.mark.integration
 # What the default pipeline (and the demo) runs; SERVICES also lists the ROS 2 bridge.
 PIPELINE = ("camera", "gyro", "mediator", "detector")
 
-# The goal is 2 s (0.4-0.9 s measured on an idle machine); the bound tolerates a loaded
-# test machine while still failing a process that keeps running after the signal.
-STOP_WITHIN_S = 5.0
+# The goal is 2 s (0.4-0.9 s measured on an idle machine; by design no wait outlasts it);
+# the bound only fails a process that keeps running after the signal, on a machine ten
+# times slower too (scaled by FRAMEGATE_TEST_TIMEOUT_SCALE).
+STOP_WITHIN_S = scaled(20.0)
 STARTUP_S = 60.0
 
 
