@@ -102,6 +102,8 @@ class NetworkConfig:
         check_name(self.namespace, "namespace")
         if self.mode not in ("peer", "client", "router"):
             raise ConfigError(f"bad mode {self.mode!r}: use peer, client or router")
+        if not 0 < self.local_port < 65536:
+            raise ConfigError(f"local port {self.local_port} is not a port number: use 1..65535")
         if self.lease_ms < 100:
             raise ConfigError(f"lease_ms {self.lease_ms} is too small; use >= 100")
 
@@ -123,7 +125,7 @@ class NetworkConfig:
         if env.get("FRAMEGATE_NAMESPACE"):
             changes["namespace"] = env["FRAMEGATE_NAMESPACE"]
         if env.get("FRAMEGATE_LOCAL_PORT"):
-            changes["local_port"] = _int(env["FRAMEGATE_LOCAL_PORT"], "FRAMEGATE_LOCAL_PORT")
+            changes["local_port"] = _port(env["FRAMEGATE_LOCAL_PORT"], "FRAMEGATE_LOCAL_PORT")
         return replace(self, **changes) if changes else self
 
     def with_args(self, args: argparse.Namespace) -> NetworkConfig:
@@ -307,6 +309,14 @@ def _int(value: str, what: str) -> int:
         return int(value)
     except ValueError as exc:
         raise ConfigError(f"{what} must be an integer, got {value!r}") from exc
+
+
+def _port(value: str, what: str) -> int:
+    """A TCP port number (1..65535), or ConfigError naming ``what``."""
+    port = _int(value, what)
+    if not 0 < port < 65536:
+        raise ConfigError(f"{what}={value} is not a port number: use 1..65535")
+    return port
 
 
 def add_network_arguments(parser: argparse.ArgumentParser) -> None:

@@ -202,18 +202,21 @@ def run(args: argparse.Namespace) -> int:
         else:
             print_plan(deployment, args.host, specs)
         return 0
-    with LaunchLock(args.file, args.host):
-        return _launch(args, deployment, specs)
-
-
-def _launch(args: argparse.Namespace, deployment: Deployment, specs: list[ProcessSpec]) -> int:
-    stop = stop_on_signals()
     chosen = [s for s in deployment.for_host(args.host) if s.type != "router"]
     net = network(args, deployment.network_for(chosen[0]) if chosen else None)
-    _refuse_if_running(net, [s.name for s in chosen])
+    with LaunchLock(args.file, args.host, net):
+        return _launch(args, specs, net, [s.name for s in chosen])
+
+
+def _launch(
+    args: argparse.Namespace, specs: list[ProcessSpec], net: NetworkConfig, names: list[str]
+) -> int:
+    stop = stop_on_signals()
+    _refuse_if_running(net, names)
+    if stop.is_set():  # stopped while checking: start nothing
+        return 0
     supervisor = Supervisor(specs, colour=False if args.no_colour else None)
-    names = ", ".join(s.name for s in specs)
-    print(f"launching {names} (Ctrl-C stops everything)", flush=True)
+    print(f"launching {', '.join(s.name for s in specs)} (Ctrl-C stops everything)", flush=True)
     status_stop = threading.Event()
     status: threading.Thread | None = None
     if args.status is not None:
@@ -222,16 +225,18 @@ def _launch(args: argparse.Namespace, deployment: Deployment, specs: list[Proces
             args=(supervisor, net, args.status, status_stop, lambda t: print(t, flush=True)),
             name="fg-launch-status",
         )
-    supervisor.start()
-    if status is not None:
-        status.start()
     try:
+        # Inside the try: a second signal while children are being started still stops
+        # every child started so far (a first one only sets `stop`).
+        supervisor.start()
+        if status is not None:
+            status.start()
         supervisor.run(args.duration, stop=stop)
     except KeyboardInterrupt:  # a second Ctrl-C while stopping
         supervisor.stop(timeout_s=0.0)
     finally:
         # Joined, not left as a daemon: its Zenoh session must close before finalisation.
         status_stop.set()
-        if status is not None:
+        if status is not None and status.is_alive():
             status.join()
     return report_failures(supervisor.failures())
