@@ -95,3 +95,41 @@ def test_a_connect_port_that_is_no_port_is_said_so() -> None:
     result = _framegate("ls", "--connect", "tcp/127.0.0.1:99999")
     assert result.returncode == 1, result
     assert "99999 is not a port number" in result.stderr, result
+
+
+def test_router_listens_on_the_rendezvous_port_the_environment_names() -> None:
+    port = free_port()
+    router = start_framegate(["router"], local_port=port)  # FRAMEGATE_LOCAL_PORT=port
+    try:
+        assert router.stdout is not None
+        line = router.stdout.readline()
+        assert line == f"router listening on tcp/127.0.0.1:{port}\n", line
+        socket.create_connection(("127.0.0.1", port), timeout=TIMEOUT_S).close()
+    finally:
+        router.terminate()
+        router.communicate(timeout=TIMEOUT_S)
+
+
+def test_a_second_view_on_a_taken_port_is_one_line_naming_the_flag() -> None:
+    env = child_env()
+    env["FRAMEGATE_VIEW_PORT"] = str(free_port())
+    env["FRAMEGATE_LOCAL_PORT"] = str(free_port())
+    first = subprocess.Popen(
+        [sys.executable, "-m", "services.cli", "view"],
+        cwd=REPO,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    try:
+        assert first.stdout is not None
+        line = first.stdout.readline()
+        assert line.startswith(f"serving Foxglove on ws://127.0.0.1:{env['FRAMEGATE_VIEW_PORT']}")
+        second = _framegate("view", env=env)
+        assert second.returncode == 1, second
+        assert second.stderr.count("\n") == 1, second
+        assert "the port is taken" in second.stderr and "--port" in second.stderr, second
+    finally:
+        first.terminate()
+        first.communicate(timeout=TIMEOUT_S)
