@@ -177,6 +177,30 @@ class NetworkConfig:
             return configs
         return [self._build(listen=list(self.listen), connect=list(self.connect))]
 
+    def check_files(self) -> None:
+        """ConfigError naming the first file this configuration needs and cannot read: the
+        Zenoh config file (which must also parse) and every TLS certificate and key it
+        names. Zenoh itself reads the certificates only when a session opens."""
+        if self.config_file is None:
+            return
+        conf = self.zenoh_configs()[0]  # ConfigError naming the file if it cannot be read
+        try:
+            tls = json.loads(conf.get_json("transport/link/tls"))
+        except (zenoh.ZError, ValueError):
+            return  # no TLS section: nothing more to read
+        for key, value in sorted(tls.items() if isinstance(tls, dict) else ()):
+            # *_base64 keys hold the certificate itself; the others name a file.
+            if not isinstance(value, str) or not key.endswith(("_certificate", "_private_key")):
+                continue
+            try:
+                with open(value, "rb"):
+                    pass
+            except OSError as exc:
+                raise ConfigError(
+                    f"cannot read {value}, the {key} of Zenoh config {self.config_file}: "
+                    f"{exc.strerror or exc}"
+                ) from exc
+
     def _build(self, *, listen: list[str], connect: list[str]) -> zenoh.Config:
         try:
             conf = (
