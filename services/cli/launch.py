@@ -205,16 +205,40 @@ def run(args: argparse.Namespace) -> int:
     chosen = [s for s in deployment.for_host(args.host) if s.type != "router"]
     net = network(args, deployment.network_for(chosen[0]) if chosen else None)
     with LaunchLock(args.file, args.host, net):
-        return _launch(args, specs, net, [s.name for s in chosen])
+        return _launch(args, deployment, net)
 
 
-def _launch(
-    args: argparse.Namespace, specs: list[ProcessSpec], net: NetworkConfig, names: list[str]
-) -> int:
+def _prerender(deployment: Deployment, host: str | None, stop: threading.Event) -> bool:
+    """Render each approach a ``prerendered`` camera or gyro of this host plays, once, with
+    the demo's progress bar and cache, before anything starts; False if stopped."""
+    from services.nodes import service
+    from services.tools.demo import prerender_approach
+
+    done: set[tuple[int, str, str | None]] = set()
+    for svc in deployment.for_host(host):
+        if svc.type not in ("camera", "gyro"):
+            continue
+        parser = argparse.ArgumentParser(add_help=False)
+        service(svc.type).add_arguments(parser)
+        parsed, _ = parser.parse_known_args(list(svc.args))  # checked by _plan already
+        key = (parsed.seed, parsed.floor, parsed.path)
+        if parsed.source != "prerendered" or key in done:
+            continue
+        done.add(key)
+        cache = Path(parsed.path) if parsed.path else None
+        if not prerender_approach(parsed.seed, parsed.floor, cache, stop):
+            return False
+    return True
+
+
+def _launch(args: argparse.Namespace, deployment: Deployment, net: NetworkConfig) -> int:
     stop = stop_on_signals()
-    _refuse_if_running(net, names)
-    if stop.is_set():  # stopped while checking: start nothing
-        return 0
+    _refuse_if_running(net, [s.name for s in deployment.for_host(args.host) if s.type != "router"])
+    if stop.is_set() or not _prerender(deployment, args.host, stop):
+        return 0  # stopped while checking or rendering: start nothing
+    # Planned again after the rendering: the processes share a start instant, which a plan
+    # made before minutes of rendering would have put that far in the past.
+    _, specs = _plan(args)
     supervisor = Supervisor(specs, colour=False if args.no_colour else None)
     print(f"launching {', '.join(s.name for s in specs)} (Ctrl-C stops everything)", flush=True)
     status_stop = threading.Event()

@@ -3,6 +3,7 @@ starts: Zenoh configs and the certificates in them, camera descriptions, replaye
 
 from __future__ import annotations
 
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -11,7 +12,7 @@ import pytest
 
 from middleware import ConfigError, NetworkConfig
 from services.launch import parse_deployment, process_specs
-from tests.conftest import REPO, child_env
+from tests.conftest import REPO, child_env, free_port, wait_until
 
 _TLS_CONFIG = """{
   mode: "client",
@@ -112,3 +113,39 @@ def test_check_of_the_secure_deploy_file_without_its_certificates_fails_in_one_l
         result
     )
     assert result.stderr.count("\n") == 1, result
+
+
+@pytest.mark.integration
+def test_launch_renders_a_prerendered_approach_first_and_a_stop_there_starts_nothing(
+    tmp_path: Path,
+) -> None:
+    cache = tmp_path / "cache"
+    deploy = tmp_path / "d.yaml"
+    deploy.write_text(
+        f"services:\n  camera:\n    args: {{source: prerendered, seed: 5, path: {cache}}}\n"
+    )
+    env = child_env()
+    env["FRAMEGATE_LOCAL_PORT"] = str(free_port())
+    env["FRAMEGATE_RUNTIME_DIR"] = str(tmp_path / "run")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "services.cli", "launch", str(deploy)],
+        cwd=REPO,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert proc.stderr is not None
+        line = proc.stderr.readline()  # before any service starts: the one-time render
+        assert line.startswith(f"rendering the approach once (cached in {cache})"), line
+        wait_until(lambda: any(cache.glob("*.partial-*")), 300, "the render to begin")
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0, (out, err)
+    assert "launching" not in out, out
+    assert not list(cache.glob("*.partial-*")), "a stopped render leaves no partial directory"
