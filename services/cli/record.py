@@ -133,6 +133,15 @@ def run(args: argparse.Namespace) -> int:
                     discover()
 
             stopped_ns = _wait(recorders, args.duration, step)
+            waiting, waiting_bytes = queue.backlog()
+            if waiting and not args.json:
+                # A disk or compressor slower than the buffers: say why the end takes a while.
+                print(
+                    f"stopped; writing the {waiting} elements ({format_bytes(waiting_bytes)}) "
+                    "fetched but not yet written",
+                    file=sys.stderr,
+                    flush=True,
+                )
             queue.close()  # what was fetched is written before the summary
             for recorder in recorders:
                 recorder.progress.missed = recorder.sub.missed_total

@@ -130,6 +130,11 @@ class WriteQueue:
                 if progress.first_ns is None:
                     progress.first_ns = element.timestamp_ns
 
+    def backlog(self) -> tuple[int, int]:
+        """Elements and bytes fetched and not yet written."""
+        with self._cond:
+            return len(self._items), self._bytes
+
     def close(self) -> None:
         """Write what is queued, then end the writer thread."""
         with self._cond:
