@@ -29,15 +29,15 @@ from typing import Any
 import zenoh
 
 from ._buffer import TimeSeries
-from ._clock import now_ns
-from ._errors import DuplicateTimestampError, FlowControlRefused, FramegateError, SchemaError
-from ._inbox import Inbox, Receiver
-from ._ledger_producer import Registration, RegistrationKey
-from ._loop import NodeLoop
+from ._element_check import ElementCheck
+from ._errors import DuplicateTimestampError, FlowControlRefused, FramegateError
+from ._executor import BUDGET as _BUDGET
+from ._executor import Executor, Wake, remaining_s
+from ._inbox import Inbox
+from ._ledger_producer import RegistrationKey
 from ._protocol_producer import Event, ProducerProtocol, Publish, Retire
 from ._rate import put_rate_hz
 from ._records import BufferInfo, DataObject, Retention, SubscriptionInfo
-from ._shapes import ShapeChecker
 from ._wire import Keys
 from ._xml import XmlLimits
 
@@ -48,12 +48,19 @@ log = logging.getLogger("framegate.middleware")
 HORIZON_NS = 10_000_000_000
 # Rate over the last this-many puts.
 _RATE_WINDOW = 64
-# A put that waits for credit looks again at least this often.
+# A put that waits for credit looks again at least this often (it is woken at once when an
+# ack arrives; this only bounds what a missed wake-up could cost).
 _WAIT_S = 0.1
-# Acks honest subscribers can send between two drains: coalesced, at most a few per
-# registration and queue window (see ``AckPolicy``) plus a re-ack each per 0.5 s. A lost
-# ack costs nothing: acks are cumulative and repeated.
+# Acks honest subscribers can send between two turns of the executor: coalesced, at most a
+# few per registration and queue window (see ``AckPolicy``) plus a re-ack each per 0.5 s. A
+# lost ack costs nothing: acks are cumulative and repeated.
 _ACK_INBOX = 8192
+# An ack is msgpack {"e": epoch, "s": seq}: a few dozen bytes. Anything larger is not an ack
+# and is dropped before it is buffered, so the ack inbox holds at most 8192 x 256 B.
+ACK_MAX_BYTES = 256
+# Token changes waiting for the executor (tokens come and go at human rates; a churning
+# peer's excess is dropped and counted, see ``Inbox``).
+_TOKEN_INBOX = 4096
 
 
 @dataclass
@@ -68,18 +75,18 @@ class _Counters:
 class Producer:
     """A buffer offered by this process. Create with ``Node.offer``.
 
-    Threads (see the README's *Threads*): ``_on_token`` runs on zenoh-python's callback
-    thread (tokens are rare); it feeds the protocol under ``_lock`` and wakes whoever waits,
-    and never calls Zenoh. Acks wait in the ``Inbox`` (a Zenoh channel) until ``put``
-    drains them with ``try_recv`` before deciding credit; a put that waits for credit
-    blocks in the channel's ``recv`` (the *receiver*; the loop rings its doorbell at its
-    deadline), and with no put waiting the node's loop drains them. ``_lock`` (with
-    ``_cond`` on it) guards the protocol, the counters, the rate window and the inbox's
-    ``Receiver``; the inbox is drained under it while no receiver blocks in ``recv``.
-    ``_send_lock`` serialises carrying out the protocol's events (``put`` on the caller's
-    thread, ``on_deadline`` on the node's loop), so the messages of one registration leave
-    in order and a ``publisher.put`` that blocks holds only ``_send_lock``. Lock order:
-    ``_send_lock``, then ``_lock``.
+    Threads (see docs/threads.md): Zenoh's threads only append acks and subscription
+    tokens to this producer's two bounded inboxes. A token signals the node's executor,
+    which feeds it to the protocol and sends the greeting or refusal (``run_ready``). Acks
+    wait until someone needs credit: a ``put`` feeds a bounded batch itself before it
+    decides, as do ``fill`` and ``info``; a waiting put is woken by the ack's arrival
+    (``Wake``); the executor feeds them before a resend (``on_deadline``) and works off
+    a backlog of a batch or more (a flood) in bounded batches, turn by turn. ``_lock``
+    (with ``_cond`` on it) guards the protocol, the counters, the rate window and the
+    ``Wake`` counts, and is held only for bounded work. ``_send_lock`` serialises carrying
+    out the protocol's events, so the messages of one registration leave in order and a
+    ``publisher.put`` that blocks holds only ``_send_lock``; a put with ``wait_s`` waits
+    for it no longer than its deadline. Lock order: ``_send_lock``, then ``_lock``.
     """
 
     def __init__(
@@ -93,7 +100,7 @@ class Producer:
         retention: Retention,
         inline_max_bytes: int,
         xml_limits: XmlLimits,
-        loop: NodeLoop,
+        executor: Executor,
         horizon_ns: int = HORIZON_NS,
     ) -> None:
         self.service = service
@@ -102,11 +109,10 @@ class Producer:
         self.series = TimeSeries(retention)
         self.inline_max_bytes = inline_max_bytes
         self.horizon_ns = horizon_ns
-        self._horizon_at_ns = 0  # the largest stamp accepted without reading the clock
-        # Validates each element's metadata, in full once per document shape.
-        self._metadata = ShapeChecker(kind, xml_limits)
+        self._check = ElementCheck(self.name_of(service, buffer), kind, xml_limits, horizon_ns)
         self._session = session
-        self._loop = loop
+        self._executor = executor
+        self.scheduled = False  # the executor's flag (see ``Source``)
         # A new epoch per producer instance; each registration gets "<epoch>.<n>".
         self.epoch = secrets.token_hex(6)
         self._lock = threading.Lock()
@@ -118,96 +124,85 @@ class Producer:
         self._publishers: dict[RegistrationKey, Any] = {}
         self._counters = _Counters()
         self._closed = False
-        # Events produced by Zenoh input (greetings, refusals, retired publishers) wait for
-        # the loop or the next put; this says whether any do.
-        self._events_waiting = False
+        executor.add(self)
+        self._wake = Wake(self, self._cond, executor, lambda: len(self._acks))
+        # Acks are fed by whoever needs credit next (a put, ``fill``, the executor before a
+        # resend); only a waiting put, or a backlog, wakes anyone (``Wake``).
         self._acks = Inbox(
             session,
             keys.acks(service, buffer),
             capacity=_ACK_INBOX,
-            doorbell_key=keys.ack(service, buffer, "doorbell"),
+            max_bytes=ACK_MAX_BYTES,
+            signal=self._wake.signal,
         )
-        # A put blocked in the ack inbox's recv, and when it wants the doorbell.
-        self._receiver = Receiver(self._acks, self._cond, loop)
-        # Declared last: its callback (history included) may run at once.
-        self._token_sub = session.liveliness().declare_subscriber(
+        # Declared last: its callback (history included) may run at once. A token is the
+        # executor's at once: a new subscriber waits for its greeting.
+        self._tokens = Inbox(
+            session,
             keys.subscription_tokens(service, buffer),
-            zenoh.handlers.Callback(self._on_token),
-            history=True,
+            capacity=_TOKEN_INBOX,
+            max_bytes=0,  # a token is its key; it carries no payload
+            signal=self._signal,
+            liveliness=True,
         )
-        loop.add(self)
 
     @property
     def name(self) -> str:
-        return f"{self.service}/{self.buffer}"
+        return self.name_of(self.service, self.buffer)
 
-    # -- Zenoh input (zenoh-python's callback threads: short, never call Zenoh) -----------
-    def _on_token(self, sample: zenoh.Sample) -> None:
-        alive = sample.kind == zenoh.SampleKind.PUT
-        with self._cond:
-            self._protocol.token(str(sample.key_expr), alive, time.monotonic_ns())
-            self._events_waiting = True
-            self._receiver.wake()  # a waiting put looks again (a gone subscriber frees it)
-            self._cond.notify_all()
-        self._loop.poke(0)
+    @staticmethod
+    def name_of(service: str, buffer: str) -> str:
+        return f"{service}/{buffer}"
 
-    # -- acks (under _lock, on the thread that needs them) ---------------------------------
-    def _drain_acks(self) -> None:
-        """(under _lock) Feed the protocol every ack waiting in the inbox, unless a put
-        blocks in its ``recv``: then they are that put's to take."""
-        if self._receiver.active:
-            return
-        freed = False
+    def _signal(self) -> None:
+        """(Zenoh's thread) New input: the executor's turn (a lock only when not yet due)."""
+        if not self.scheduled:
+            self._executor.signal(self)
+
+    # -- input (on the executor, or inline on a caller that needs current credit) ----------
+    def _feed(self, budget: int) -> bool:
+        """(under _lock) Feed the protocol at most ``budget`` acks and as many tokens; True
+        if anything changed for a waiting put (credit freed, a subscriber came or went)."""
+        changed = False
         ack = self._protocol.ack
-        now = 0
-        for sample in self._acks.drain():
-            now = now or time.monotonic_ns()
-            freed |= ack(str(sample.key_expr), sample.payload.to_bytes(), now)
-        if freed:
-            self._cond.notify_all()
+        now = time.monotonic_ns()
+        for sample in self._acks.take(budget):
+            changed |= ack(str(sample.key_expr), sample.payload.to_bytes(), now)
+        for sample in self._tokens.take(budget):
+            alive = sample.kind == zenoh.SampleKind.PUT
+            self._protocol.token(str(sample.key_expr), alive, now)
+            changed = True
+        return changed
 
-    def _wait_acks(self, wait_s: float) -> None:
-        """(holding _lock through ``_cond``) Wait up to ``wait_s`` for acks, fed to the
-        protocol when this returns (see ``Receiver.wait``)."""
-        sample = self._receiver.wait(wait_s)
-        if sample is not None:
-            self._protocol.ack(str(sample.key_expr), sample.payload.to_bytes(), time.monotonic_ns())
-        self._drain_acks()
-        self._cond.notify_all()  # news for other waiters, or their turn to receive
+    def run_ready(self, budget: int) -> bool:
+        """(the executor) A bounded batch of input; the events it produced carried out."""
+        with self._send_lock:
+            with self._lock:
+                if self._closed:
+                    return False
+                if self._feed(budget) and self._wake.threads:
+                    self._cond.notify_all()
+                events = self._protocol.events()
+            self._carry_out(events)
+        return len(self._tokens) > 0 or len(self._acks) >= budget
 
-    # -- the node's loop ---------------------------------------------------------------------
     def next_deadline_ns(self) -> int | None:
-        if self._events_waiting:
-            return 0
         with self._lock:
-            due = self._protocol.next_deadline_ns()
-            other = self._receiver.deadline_ns()
-        if other is not None and (due is None or other < due):
-            return other
-        return due
+            return self._protocol.next_deadline_ns()
 
     def on_deadline(self, now_ns: int) -> None:
-        """Resends that are due and events Zenoh input produced, sent from the node's loop;
-        acks drained if no put waits for them; a waiting put's doorbell rung at its
-        deadline."""
+        """(the executor) Resends that are due, once the acks waiting have been fed (the
+        inbox's capacity bounds them)."""
         with self._send_lock:
             with self._lock:
                 if self._closed:
                     return
-                ring, _ = self._receiver.due(now_ns)
-                self._drain_acks()  # before resending (a no-op while a put receives)
+                if self._feed(_ACK_INBOX) and self._wake.threads:
+                    self._cond.notify_all()
                 self._protocol.tick(now_ns)
-                events = self._take_events()
+                events = self._protocol.events()
             self._carry_out(events)
-        if ring:
-            self._receiver.ring()
 
-    def _take_events(self) -> list[Event]:
-        """(under _lock)"""
-        self._events_waiting = False
-        return self._protocol.events()
-
-    # -- producing -------------------------------------------------------------------------
     def put(
         self, timestamp_ns: int, payload: bytes, metadata: bytes | str, *, wait_s: float = 0.0
     ) -> int:
@@ -262,84 +257,57 @@ class Producer:
                 raise
         count = len(elements)
         deadline = time.monotonic() + wait_s
-        while True:
-            with self._send_lock:
-                with self._cond:
-                    self._drain_acks()
-                    full = self._protocol.full(count)
-                    if full is None:
-                        notified = self._store(elements)
-                    else:
-                        self._protocol.tick(time.monotonic_ns())  # a waiting put heals losses
-                    events = self._take_events()
-                self._carry_out(events)
-            if full is None:
-                return notified
-            # Not stored: wait for credit outside _send_lock (the loop keeps sending).
-            with self._cond:
+        try:
+            while True:
+                # A put without wait_s waits for a send in progress, as before; one with a
+                # deadline waits for it no longer than that.
                 remaining = deadline - time.monotonic()
-                if remaining <= 0 or count > full.key.queue_size:
-                    self._counters.refused += count
-                    raise FlowControlRefused(self._refusal(full, elements))
-                self._drain_acks()
-                if self._protocol.full(count) is not None:
-                    self._wait_acks(min(remaining, _WAIT_S))
+                if not self._send_lock.acquire(timeout=max(0.0, remaining) if wait_s > 0 else -1):
+                    with self._lock:
+                        self._counters.refused += count
+                        refusal = self._protocol.admit(count, may_wait=False)
+                    raise FlowControlRefused(
+                        refusal.message(elements[0].timestamp_ns)
+                        if refusal is not None
+                        else f"{self.name}: could not send within wait_s={wait_s:g}"
+                    )
+                try:
+                    with self._cond:
+                        self._feed(_BUDGET)  # credit as of now
+                        remaining = deadline - time.monotonic()
+                        refusal = self._protocol.admit(count, may_wait=remaining > 0)
+                        if refusal is None:
+                            notified = self._store(elements)
+                        elif not refusal.wait:
+                            self._counters.refused += count
+                        events = self._protocol.events()
+                    self._carry_out(events)
+                finally:
+                    self._send_lock.release()
+                if refusal is None:
+                    return notified
+                if not refusal.wait:
+                    raise FlowControlRefused(refusal.message(elements[0].timestamp_ns))
+                # Not stored: wait for credit outside _send_lock (the executor keeps sending).
+                with self._cond:
+                    self._wake.wait(
+                        lambda: self._has_room(count), min(remaining_s(deadline), _WAIT_S)
+                    )
+        finally:
+            self._wake.left_over(len(self._acks) + len(self._tokens))
 
-    def _refusal(self, full: Registration[Any], elements: tuple[DataObject, ...]) -> str:
-        k, count, first = full.key, len(elements), elements[0].timestamp_ns
-        if count == 1:
-            return (
-                f"{self.name}: subscriber {k.sub_id} has {full.queued}/{k.queue_size} "
-                f"notifications queued; element {first} was not stored (drop it, or put "
-                "with wait_s to wait)"
-            )
-        if count > k.queue_size:
-            advice = f"it can never fit: put batches of at most {k.queue_size}"
-        else:
-            advice = "drop it, or put_many with wait_s to wait"
-        return (
-            f"{self.name}: subscriber {k.sub_id} has {full.queued}/{k.queue_size} "
-            f"notifications queued, no room for a batch of {count}; no element of the batch "
-            f"(from {first}) was stored ({advice})"
-        )
+    def _has_room(self, count: int) -> bool:
+        """(under _lock) Whether ``count`` elements fit now, after feeding a batch."""
+        self._feed(_BUDGET)
+        return self._protocol.admit(count, may_wait=False) is None
 
     def _checked(self, timestamp_ns: int, payload: bytes, metadata: bytes | str) -> DataObject:
-        # The common case (int, bytes, bytes) costs three type checks; the rest is converted.
-        if not (type(payload) is bytes and type(metadata) is bytes and type(timestamp_ns) is int):
-            try:
-                _check_types(timestamp_ns, payload, metadata)
-            except SchemaError:
-                with self._lock:
-                    self._counters.rejected += 1
-                raise
-            metadata = metadata.encode("utf-8") if isinstance(metadata, str) else bytes(metadata)
-            payload = bytes(payload)
-        meta: bytes = metadata  # type: ignore[assignment]
         try:
-            if not 0 <= timestamp_ns < 2**63:
-                _check_types(timestamp_ns, payload, meta)
-            # The clock is read only when a stamp passes the last bound seen (stamps are
-            # near now, so that is about once per horizon).
-            if timestamp_ns > self._horizon_at_ns and timestamp_ns > self._horizon_now():
-                raise SchemaError(
-                    f"timestamp {timestamp_ns} is {(timestamp_ns - now_ns()) / 1e9:.1f} s ahead "
-                    f"of this process's clock; {self.name} refuses elements more than "
-                    f"{self.horizon_ns / 1e9:g} s ahead (stamp with middleware.now_ns())"
-                )
-            declared = self._metadata.timestamp_ns(meta)
-            if declared != timestamp_ns:
-                raise SchemaError(
-                    f"metadata says timestamp_ns={declared} but the element's key is {timestamp_ns}"
-                )
+            return self._check(timestamp_ns, payload, metadata)
         except FramegateError:
             with self._lock:
                 self._counters.rejected += 1
             raise
-        return DataObject(timestamp_ns, payload, meta)
-
-    def _horizon_now(self) -> int:
-        self._horizon_at_ns = now_ns() + self.horizon_ns
-        return self._horizon_at_ns
 
     def _store(self, elements: tuple[DataObject, ...]) -> int:
         """(under _lock) Append, count, and let the protocol notify; the flow-controlled
@@ -368,7 +336,7 @@ class Producer:
                 continue
             assert type(event) is Publish
             try:
-                if event.epoch is None:  # a control message: rare, never blocks
+                if event.control:
                     self._session.put(
                         event.keyexpr,
                         event.payload,
@@ -436,42 +404,36 @@ class Producer:
         This is the paper's load indicator, read by the mediator.
         """
         with self._lock:
-            self._drain_acks()
+            self._feed(_BUDGET)  # the load as of now, not as of the executor's last turn
             return self._protocol.fill()
 
     def subscriptions(self) -> list[SubscriptionInfo]:
         """Every live subscription (registration) as this producer counts it."""
         with self._lock:
-            self._drain_acks()
+            self._feed(_BUDGET)
             return self._protocol.subscriptions()
 
     def wait_for_subscribers(self, count: int, *, timeout_s: float) -> bool:
         """Wait until at least ``count`` subscriptions are registered."""
         deadline = time.monotonic() + timeout_s
-        with self._cond:
-            while len(self._protocol.registrations()) < count:
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    return False
-                self._cond.wait(remaining)
-            return True
 
-    def wait_fill_below(self, limit: float, *, timeout_s: float) -> bool:
-        """Wait until ``fill()`` < ``limit`` (e.g. a consumer took a notification)."""
-        deadline = time.monotonic() + timeout_s
-        with self._cond:
-            self._drain_acks()
-            while self._protocol.fill() >= limit:
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    return False
-                self._wait_acks(min(remaining, _WAIT_S))
-            return True
+        def enough() -> bool:
+            self._feed(_BUDGET)
+            return len(self._protocol.registrations()) >= count
+
+        try:
+            with self._cond:
+                while not self._wake.wait(enough, remaining_s(deadline)):
+                    if time.monotonic() >= deadline:
+                        return False
+                return True
+        finally:
+            self._wake.left_over(len(self._acks) + len(self._tokens))
 
     def info(self) -> BufferInfo:
         """Retention, size, span, rate, counters and subscriptions."""
         with self._lock:
-            self._drain_acks()
+            self._feed(_BUDGET)
             c = self._counters
             times = list(c.put_times)
             puts, refused, rejected = c.puts, c.refused, c.rejected
@@ -495,34 +457,20 @@ class Producer:
             subscriptions=subs,
             skipped=skipped,
             refused_subscriptions=protocol.refused_registrations,
+            dropped_messages=self._acks.dropped + self._tokens.dropped,
         )
 
     def close(self) -> None:
         """Stop serving; subscribers see the service token go."""
         if self._closed:
             return
-        self._loop.remove(self)
+        self._executor.remove(self)
+        self._acks.close()
+        self._tokens.close()
         with self._send_lock:
             with self._cond:
                 self._closed = True
                 self._protocol.close()
-                events = self._take_events()
+                events = self._protocol.events()
                 self._cond.notify_all()
             self._carry_out(events)
-        self._acks.close()
-        with contextlib.suppress(zenoh.ZError):
-            self._token_sub.undeclare()
-
-
-def _check_types(timestamp_ns: object, payload: object, metadata: object) -> None:
-    """Wrong-typed arguments get a message, not a TypeError from deep inside."""
-    if not isinstance(timestamp_ns, int) or isinstance(timestamp_ns, bool):
-        raise SchemaError(
-            f"timestamp_ns must be an int (ns since the epoch), got {type(timestamp_ns).__name__}"
-        )
-    if not 0 <= timestamp_ns < 2**63:
-        raise SchemaError(f"timestamp_ns {timestamp_ns} is outside 0 .. 2**63-1")
-    if not isinstance(payload, bytes | bytearray | memoryview):
-        raise SchemaError(f"payload must be bytes, got {type(payload).__name__}")
-    if not isinstance(metadata, bytes | bytearray | str):
-        raise SchemaError(f"metadata must be XML as bytes or str, got {type(metadata).__name__}")

@@ -6,16 +6,17 @@ place it is built), the limits on what it may ask for (checked before any token 
 declared, so ``subscribe`` refuses at once), decoding and judging each notification
 (the pure ``SubscriberLedger`` keeps the rules), the producer's greeting or refusal, and
 when acks leave (coalesced, delayed, repeated while idle). ``next_deadline_ns`` tells the
-node's loop when a delayed ack falls due for a caller that does not come back to take.
+node's executor when a delayed ack falls due for a caller that does not come back to take.
 """
 
 from __future__ import annotations
 
+from collections.abc import Container
 from typing import Any
 
 from ._errors import ConfigError
 from ._ledger_subscriber import AckPolicy, Entry, SubscriberCounters, SubscriberLedger
-from ._protocol_producer import QUEUE_BUDGET
+from ._protocol_producer import INLINE_METADATA_MAX, QUEUE_BUDGET
 from ._records import SubscriptionMode
 from ._wire import (
     MAX_QUEUE_SIZE,
@@ -31,6 +32,8 @@ from ._wire import (
 # ZBytes for a single element, turned into bytes by ``take`` on the caller's thread; bytes
 # cut out of a batch).
 Item = tuple[int, bytes | None, Any]
+# Room for a notification header's fields besides its metadata (epoch, seq, descriptor, ...).
+_HEADER_SLACK = 1024
 
 
 def check_request(mode: SubscriptionMode, queue_size: int, push_max_bytes: int) -> None:
@@ -62,6 +65,7 @@ class SubscriberProtocol:
         check_request(mode, queue_size, push_max_bytes)
         self.mode = mode
         self.queue_size = queue_size
+        self.push_max_bytes = push_max_bytes
         self.descriptor = descriptor_of(mode, queue_size, push_max_bytes)
         self.ledger: SubscriberLedger[Item] = SubscriberLedger(
             mode, queue_size, self.descriptor, policy=policy or AckPolicy.for_queue(queue_size)
@@ -70,8 +74,9 @@ class SubscriberProtocol:
         # The producer's answer to our token: its registration's epoch, or why it refused.
         self.registered: str | None = None
         self.refusal: str | None = None
-        self.ignored_controls = 0
         self.registrations = 0  # greetings under distinct epochs
+        # Fetch ahead: set once the consumer had to query for an element (see ``fetch_ahead``).
+        self.fetching = False
 
     # -- input -----------------------------------------------------------------------------
     def receive(self, attachment: bytes | None, payload: Any) -> bool:
@@ -107,8 +112,8 @@ class SubscriberProtocol:
 
     def _control(self, control: Control) -> None:
         if control.descriptor != self.descriptor:
-            self.ignored_controls += 1
-        elif control.kind == "hello":
+            return  # meant for another registration of this key: not ours to judge
+        if control.kind == "hello":
             if self.registered is not None and self.registered != control.text:
                 self.registrations += 1  # a producer restart, or our token had lapsed
             elif self.registered is None:
@@ -117,8 +122,7 @@ class SubscriberProtocol:
             self.refusal = None
         elif self.registered is None:
             self.refusal = control.text
-        else:  # a refusal after a greeting: a forgery or an old message; the greeting stands
-            self.ignored_controls += 1
+        # else: a refusal after a greeting, a forgery or an old message: the greeting stands
 
     # -- taking and acking -----------------------------------------------------------------
     def take_many(self, max_count: int) -> list[Entry[Item]]:
@@ -136,6 +140,24 @@ class SubscriberProtocol:
     def next_deadline_ns(self) -> int | None:
         """When a delayed ack falls due with nobody taking (None: none waits)."""
         return self.ledger.flush_at_ns()
+
+    def fetch_ahead(self, taken_missing: list[int], inflight: Container[int]) -> list[int]:
+        """The stamps whose queries to start now, once ``fetching``: the taken notifications
+        that came without their element (``taken_missing``) and every queued one, oldest
+        first, less those in flight, at most a queue's worth."""
+        queued = [e.item[0] for e in self.ledger.queued() if e.item[2] is None]
+        wanted = [t for t in taken_missing + queued if t not in inflight]
+        return wanted[: self.queue_size]
+
+    def max_message_bytes(self) -> int:
+        """The largest message (payload and header) an honest producer sends this
+        subscription; a larger one is garbage, dropped before it is buffered. Unbounded
+        while the push limit is the producer's (``push_max_bytes`` -1), and for observers
+        (a batch of any length may reach them)."""
+        if self.push_max_bytes < 0 or self.mode is not SubscriptionMode.FLOW:
+            return 1 << 62
+        per_element = self.push_max_bytes + INLINE_METADATA_MAX + _HEADER_SLACK
+        return self.queue_size * per_element + _HEADER_SLACK
 
     # -- reading ---------------------------------------------------------------------------
     def __len__(self) -> int:

@@ -125,6 +125,9 @@ class BufferInfo:
     skipped: dict[str, int] = field(default_factory=dict)
     # Subscription tokens this producer refused (a limit: slots or the queue budget).
     refused_subscriptions: int = 0
+    # Control messages (acks, subscription tokens) dropped unread: larger than their format
+    # allows, or pushed out of a full inbox by newer ones (a flood).
+    dropped_messages: int = 0
 
     @property
     def name(self) -> str:
@@ -147,3 +150,6 @@ class ServiceInfo:
     # clock it runs while slewing back (see the README's time model); None from old peers.
     clock_steps: int | None = None
     clock_lead_ns: int | None = None
+    # The names of the service process's Python threads (docs/threads.md); None from old
+    # peers.
+    threads: tuple[str, ...] | None = None
