@@ -69,7 +69,7 @@ def register(subparsers: Any) -> None:
     parser.epilog = (
         "As ros2 topic hz, the average rate and min/max/std dev are of arrivals here; "
         "'stamps' is the rate of the elements' timestamps (the source's clock), which "
-        "differs during `play --rate` or when a source catches up. --json prints JSON "
+        "differs during play --rate or when a source catches up. --json prints JSON "
         "Lines (rate_hz: arrivals, stamp_rate_hz: stamps): one report per interval, the "
         "last one with event=summary."
     )
