@@ -101,8 +101,21 @@ def build_parser(only: str | None = None) -> FramegateParser:
 _STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 
+# Set by the first stop signal. Python ignores an exception raised in some callbacks (the
+# import system's module-lock weakref callback, a __del__), so a signal during an import
+# may not interrupt it: before the command runs, ``_main`` checks this too.
+_requested = [False]
+
+
 def _interrupt(_signum: int, _frame: FrameType | None) -> None:
+    _requested[0] = True
     raise KeyboardInterrupt
+
+
+def _quiet_unraisable(unraisable: Any) -> None:
+    """Python's report of an exception it ignored, except our own stop (taken later)."""
+    if not isinstance(unraisable.exc_value, KeyboardInterrupt):
+        sys.__unraisablehook__(unraisable)
 
 
 _Handler = Callable[[int, FrameType | None], Any] | int | None
@@ -150,6 +163,8 @@ def _by_interrupt(exc: BaseException) -> bool:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``framegate`` console script."""
     previous = _catch_stop_signals()  # first: before any command module is imported
+    unraisable = sys.unraisablehook
+    sys.unraisablehook = _quiet_unraisable
     try:
         return _main(argv)
     except KeyboardInterrupt:
@@ -161,6 +176,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         raise
     finally:
         if argv is not None:  # called in-process (tests): leave the caller's handlers as they were
+            sys.unraisablehook = unraisable
             for signum, handler in previous.items():
                 signal.signal(signum, handler)
 
@@ -176,6 +192,8 @@ def _main(argv: Sequence[str] | None) -> int:
         args = parser.parse_args(words)
     except SystemExit as exc:  # --help (0) or a one-line mistake (1)
         return int(exc.code or 0)
+    if _requested[0]:  # stopped during the imports, where the interrupt may be swallowed
+        raise KeyboardInterrupt
     if not getattr(args, "func", None):
         parser.print_usage(sys.stderr)
         print_error("name a command; framegate --help lists them")

@@ -122,21 +122,23 @@ def test_a_signal_in_the_first_second_exits_0_and_leaves_nothing(
     _signal_early(argv, signum, delay_s, tmp_path)
 
 
+COMMANDS = [
+    ["run", "camera", "--source", "sim", "--loop"],
+    ["ls"],
+    ["hz", "cam/log"],
+    ["echo", "cam/log"],
+    ["query", "cam/log"],
+    ["record", "cam/log", "-o", "out.mcap"],
+    ["view", "cam/log", "--port", "0"],
+    ["router", "--listen", "tcp/127.0.0.1:0"],
+    ["watch", "cam/log"],
+    ["pub", "tmp/x", "--kind", "generic", "--count", "100"],
+    ["demo", "--duration", "60"],
+]
+
+
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["INT", "TERM"])
-@pytest.mark.parametrize(
-    "argv",
-    [
-        ["run", "camera", "--source", "sim", "--loop"],
-        ["ls"],
-        ["hz", "cam/log"],
-        ["echo", "cam/log"],
-        ["query", "cam/log"],
-        ["record", "cam/log", "-o", "out.mcap"],
-        ["view", "cam/log", "--port", "0"],
-        ["router", "--listen", "tcp/127.0.0.1:0"],
-    ],
-    ids=["run-camera", "ls", "hz", "echo", "query", "record", "view", "router"],
-)
+@pytest.mark.parametrize("argv", COMMANDS, ids=["-".join(a[:2]) for a in COMMANDS])
 def test_every_command_exits_0_on_a_signal_at_its_first_instant(
     argv: list[str], signum: int, tmp_path: Path
 ) -> None:
