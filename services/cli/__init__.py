@@ -122,13 +122,8 @@ _Handler = Callable[[int, FrameType | None], Any] | int | None
 
 
 def _catch_stop_signals() -> dict[signal.Signals, _Handler]:
-    """SIGINT and SIGTERM raise KeyboardInterrupt from here on; the previous handlers.
-
-    Unblocks them too: a signal that arrived while they were blocked (a launcher stopping
-    a service that was still starting) is delivered now, to this handler."""
-    previous = {signum: signal.signal(signum, _interrupt) for signum in _STOP_SIGNALS}
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, _STOP_SIGNALS)
-    return previous
+    """SIGINT and SIGTERM raise KeyboardInterrupt from here on; the previous handlers."""
+    return {signum: signal.signal(signum, _interrupt) for signum in _STOP_SIGNALS}
 
 
 def _stopped(console: bool) -> int:
@@ -162,10 +157,14 @@ def _by_interrupt(exc: BaseException) -> bool:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``framegate`` console script."""
-    previous = _catch_stop_signals()  # first: before any command module is imported
+    previous: dict[signal.Signals, _Handler] = {}
     unraisable = sys.unraisablehook
-    sys.unraisablehook = _quiet_unraisable
-    try:
+    try:  # from the very first line: Python's own SIGINT handler raises until ours is in
+        previous = _catch_stop_signals()  # first: before any command module is imported
+        sys.unraisablehook = _quiet_unraisable
+        # A signal that arrived while the two were blocked (a launcher stopping a service
+        # that was still starting) is delivered here, to the handler, inside this try.
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, _STOP_SIGNALS)
         return _main(argv)
     except KeyboardInterrupt:
         # Ctrl-C or SIGTERM: a stop the user asked for, not a failure (see the CLI reference).
