@@ -65,6 +65,9 @@ class Ros2Config:
     imu_in: str | None = None
     exposure_ms: float = 10.0
     camera_xml: Path | None = None
+    # None: the camera_info topic beside image_in (image_transport); "" reads none.
+    camera_info: str | None = None
+    imu_to_camera: tuple[float, ...] | None = None  # row-major R, v_camera = R @ v_imu
     stamp: str = "start"
     gyro_batch: int = 10
     gyro_wait_ms: float = 50.0
@@ -79,6 +82,11 @@ class Ros2Config:
     out_reliability: Reliability = Reliability.RELIABLE
     out_depth: int = 10
     out_queue: int = 8
+    # the loop: a ROS 2 node's results free its slots (see _consumer_loop)
+    consumer_done: str | None = None
+    consumer_input: str | None = None
+    consumer_queue: int = 2
+    consumer_timeout_ms: float = 1000.0
 
     def __post_init__(self) -> None:
         check_name(self.name, "service")
@@ -95,10 +103,46 @@ class Ros2Config:
         ):
             if value < 1:
                 raise ConfigError(f"{flag} must be >= 1, got {value}")
+        if self.imu_to_camera is not None and len(self.imu_to_camera) != 9:
+            raise ConfigError(
+                f"--imu-to-camera takes 9 numbers (a row-major 3x3 rotation), got "
+                f"{len(self.imu_to_camera)}"
+            )
         if self.in_depth < 1 or self.out_depth < 0:
             raise ConfigError("--in-depth must be >= 1 and --out-depth >= 0 (0 = keep all)")
         if not self.ros_namespace.startswith("/"):
             raise ConfigError(f"--ros-namespace must start with '/', got {self.ros_namespace!r}")
+        self._check_consumer()
+
+    def _check_consumer(self) -> None:
+        if self.consumer_queue < 1:
+            raise ConfigError(f"--consumer-queue must be >= 1, got {self.consumer_queue}")
+        if not self.consumer_timeout_ms > 0:
+            raise ConfigError(f"--consumer-timeout-ms must be > 0, got {self.consumer_timeout_ms}")
+        if self.consumer_done is not None:
+            self.consumer_mapping  # noqa: B018 -- raises ConfigError when there is none
+
+    @property
+    def consumer_mapping(self) -> Mapping | None:
+        """The ``--image-out`` mapping whose ROS 2 node closes the loop (None without
+        ``--consumer-done``): the one of ``--consumer-input``, else the only one."""
+        if self.consumer_done is None:
+            return None
+        if self.consumer_input is not None:
+            for mapping in self.image_out:
+                if mapping.buffer == self.consumer_input:
+                    return mapping
+            raise ConfigError(
+                f"--consumer-input {self.consumer_input}: not an --image-out buffer "
+                f"({', '.join(m.buffer for m in self.image_out) or 'none given'})"
+            )
+        if len(self.image_out) != 1:
+            raise ConfigError(
+                "--consumer-done needs the node's input: one --image-out mapping "
+                "(e.g. mediator/images=/camera/image_sharp), or --consumer-input BUFFER "
+                "naming one of several"
+            )
+        return self.image_out[0]
 
     def check_has_work(self) -> None:
         """ConfigError when no topic is mapped either way (checked when the bridge starts)."""
@@ -119,6 +163,15 @@ class Ros2Config:
     @property
     def in_qos(self) -> Qos:
         return Qos(self.in_reliability, self.in_depth)
+
+    @property
+    def camera_info_topic(self) -> str | None:
+        """The CameraInfo topic read for the intrinsics (None: none is read)."""
+        if self.camera_info is not None:
+            return self.camera_info or None
+        if self.image_in is None:
+            return None
+        return self.image_in.rsplit("/", 1)[0] + "/camera_info"  # image_transport's layout
 
     @property
     def out_qos(self) -> Qos:
@@ -203,7 +256,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=d.exposure_ms,
         help="exposure time of the camera (default %(default)s)",
     )
-    inbound.add_argument("--camera-xml", help="camera description (camera metadata XML)")
+    inbound.add_argument(
+        "--camera-xml",
+        help="camera description (camera metadata XML); overrides CameraInfo and /tf_static",
+    )
+    inbound.add_argument(
+        "--camera-info",
+        metavar="TOPIC",
+        help="sensor_msgs/msg/CameraInfo giving the intrinsics (default: camera_info beside "
+        "--image-in, as image_transport names it; '' reads none)",
+    )
+    inbound.add_argument(
+        "--imu-to-camera",
+        nargs=9,
+        type=float,
+        metavar="R",
+        help="rotation R (row-major, v_camera = R v_imu) instead of the one /tf_static gives "
+        "between the IMU's and the image's header.frame_id",
+    )
     inbound.add_argument(
         "--stamp",
         choices=STAMPS,
@@ -271,6 +341,33 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=d.out_queue,
         help="notification queue of each observed framegate buffer (default %(default)s)",
     )
+    loop = parser.add_argument_group(
+        "a ROS 2 node in the loop (its results free its slots: the mediator sees its load)"
+    )
+    loop.add_argument(
+        "--consumer-done",
+        metavar="TOPIC",
+        help="the node's result topic: any message whose first field is a std_msgs/Header "
+        "copied from the input image (type read from the ROS graph)",
+    )
+    loop.add_argument(
+        "--consumer-input",
+        metavar="BUFFER",
+        help="the --image-out buffer the node subscribes to (default: the only one)",
+    )
+    loop.add_argument(
+        "--consumer-queue",
+        type=positive_int,
+        default=d.consumer_queue,
+        help="images the node may hold without a result (default %(default)s)",
+    )
+    loop.add_argument(
+        "--consumer-timeout-ms",
+        type=positive_float,
+        default=d.consumer_timeout_ms,
+        help="an image without a result frees its slot after this long, counted "
+        "(default %(default)s)",
+    )
 
 
 def config_from_args(args: argparse.Namespace) -> Ros2Config:
@@ -297,6 +394,8 @@ def config_from_args(args: argparse.Namespace) -> Ros2Config:
         imu_in=topic(args.imu_in),
         exposure_ms=args.exposure_ms,
         camera_xml=Path(args.camera_xml) if args.camera_xml else None,
+        camera_info=topic(args.camera_info) if args.camera_info else args.camera_info,
+        imu_to_camera=tuple(args.imu_to_camera) if args.imu_to_camera else None,
         stamp=args.stamp,
         gyro_batch=args.gyro_batch,
         gyro_wait_ms=args.gyro_wait_ms,
@@ -310,4 +409,8 @@ def config_from_args(args: argparse.Namespace) -> Ros2Config:
         out_reliability=_reliability(args.out_reliability),
         out_depth=args.out_depth,
         out_queue=args.out_queue,
+        consumer_done=topic(args.consumer_done),
+        consumer_input=args.consumer_input,
+        consumer_queue=args.consumer_queue,
+        consumer_timeout_ms=args.consumer_timeout_ms,
     )
