@@ -36,6 +36,8 @@ if TYPE_CHECKING:
     from services.tools.bag import BagWriter, Recorder, WriteQueue
 
 DEFAULT_QUEUE = 64
+# At the stop, a write backlog this large (about a second of raw frames) is worth a line.
+SAY_BACKLOG_BYTES = 16 * 2**20
 
 
 def register(subparsers: Any) -> None:
@@ -134,7 +136,7 @@ def run(args: argparse.Namespace) -> int:
 
             stopped_ns = _wait(recorders, args.duration, step)
             waiting, waiting_bytes = queue.backlog()
-            if waiting and not args.json:
+            if waiting_bytes >= SAY_BACKLOG_BYTES and not args.json:
                 # A disk or compressor slower than the buffers: say why the end takes a while.
                 print(
                     f"stopped; writing the {waiting} elements ({format_bytes(waiting_bytes)}) "
