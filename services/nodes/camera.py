@@ -133,6 +133,10 @@ class CameraPump:
         self._stop = stop
         self._log = log
         self._frames = iter(source.frames(stop))
+        # Where on the shared timeline this camera begins: a camera restarted mid-run, or
+        # one that opened its source after the start instant, joins there. Frames due
+        # before were never its to make: skipped, not counted late.
+        self._joined_rel = timeline.late_ns(0)
         self.rate = RateWatch(
             source.frame_period_ns, config.source.rate if source.relative else 1.0
         )
@@ -161,6 +165,8 @@ class CameraPump:
                 return
             start_rel = self._source.scale(frame.exposure_start_ns)
             end_rel = start_rel + frame.exposure_ns
+            if end_rel < self._joined_rel:
+                continue
             # A real camera cannot deliver a frame late: if rendering or reading fell a
             # frame period behind, this frame is skipped (and counted) instead.
             if self._timeline.late_ns(end_rel) > self.rate.period_ns:
