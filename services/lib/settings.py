@@ -38,6 +38,7 @@ class Setting:
     parse: Callable[[str], Any] | None = None
     aliases: tuple[str, ...] = ()
     choices: tuple[str, ...] | None = None  # for an enum: the values offered (None: all)
+    dest: str | None = None  # the parsed args' attribute (default: the field's name)
 
 
 def setting(
@@ -48,10 +49,11 @@ def setting(
     parse: Callable[[str], Any] | None = None,
     aliases: tuple[str, ...] = (),
     choices: Iterable[str] | None = None,
+    dest: str | None = None,
 ) -> Any:
     """A config field with its default and how it is set from the command line."""
     chosen = tuple(choices) if choices is not None else None
-    meta = Setting(help, flag, parse, aliases, chosen)
+    meta = Setting(help, flag, parse, aliases, chosen, dest)
     return dataclasses.field(default=default, metadata={_KEY: meta})
 
 
@@ -86,7 +88,7 @@ def add_flags(
         default = f.default
         names = [flag_of(f, meta), *meta.aliases]
         shown = "" if default is None or isinstance(default, bool) else " (default %(default)s)"
-        kwargs: dict[str, Any] = {"dest": f.name, "help": meta.help + shown}
+        kwargs: dict[str, Any] = {"dest": meta.dest or f.name, "help": meta.help + shown}
         if isinstance(default, bool):
             kwargs["action"] = "store_true"
         elif isinstance(default, enum.Enum):
@@ -109,10 +111,10 @@ def from_args(config_type: type[Any], args: argparse.Namespace, **given: Any) ->
     settings (or overrides them). A setting without a flag here (skipped) keeps its
     default."""
     values: dict[str, Any] = {}
-    for f, _meta in settings(config_type):
+    for f, meta in settings(config_type):
         if f.name in given:
             continue
-        value = getattr(args, f.name, f.default)
+        value = getattr(args, meta.dest or f.name, f.default)
         if isinstance(f.default, enum.Enum) and not isinstance(value, enum.Enum):
             value = type(f.default)(value)
         values[f.name] = value

@@ -37,7 +37,9 @@ KINDS = ("sim", "prerendered", "replay", "device")
 class SourceSpec:
     """Which source, and how to play it."""
 
-    kind: str = setting("sim", "where data comes from", flag="--source", choices=KINDS)
+    kind: str = setting(
+        "sim", "where data comes from", flag="--source", choices=KINDS, dest="source"
+    )
     path: str | None = setting(
         None, "dataset directory (replay), cache directory (prerendered) or device index/URL"
     )
