@@ -127,23 +127,13 @@ class Producer:
         self._wake = Wake(self, self._cond, executor, lambda: len(self._acks))
         # Acks are fed by whoever needs credit next (a put, ``fill``, the executor before a
         # resend); only a waiting put, or a backlog, wakes anyone (``Wake``).
-        self._acks = Inbox(
-            session,
-            keys.acks(service, buffer),
-            capacity=_ACK_INBOX,
-            max_bytes=ACK_MAX_BYTES,
-            signal=self._wake.signal,
-        )
-        # Declared last: its callback (history included) may run at once. A token is the
-        # executor's at once: a new subscriber waits for its greeting.
-        self._tokens = Inbox(
-            session,
-            keys.subscription_tokens(service, buffer),
-            capacity=_TOKEN_INBOX,
-            max_bytes=0,  # a token is its key; it carries no payload
-            signal=self._signal,
-            liveliness=True,
-        )
+        self._acks = Inbox(capacity=_ACK_INBOX, max_bytes=ACK_MAX_BYTES, signal=self._wake.signal)
+        # A token is the executor's at once: a new subscriber waits for its greeting. A token
+        # is its key; it carries no payload.
+        self._tokens = Inbox(capacity=_TOKEN_INBOX, max_bytes=0, signal=self._signal)
+        self._acks.declare(session, keys.acks(service, buffer))
+        # Declared last: its callback (history included) may run at once.
+        self._tokens.declare(session, keys.subscription_tokens(service, buffer), liveliness=True)
 
     @property
     def name(self) -> str:

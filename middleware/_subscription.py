@@ -110,12 +110,11 @@ class Subscription:
         executor.add(self)
         self._wake = Wake(self, self._cond, executor, lambda: len(self._inbox))
         self._inbox = Inbox(
-            session,
-            keys.notify(service, buffer, self.subscription_id),
             capacity=inbox_capacity(queue_size),
             max_bytes=self._protocol.max_message_bytes(),
             signal=self._wake.signal,
         )
+        self._inbox.declare(session, keys.notify(service, buffer, self.subscription_id))
         # Declared last: once the producer sees it, notifications may flow.
         self._token = session.liveliness().declare_token(
             keys.subscription_token(
