@@ -180,13 +180,13 @@ class Producer:
             return self._protocol.next_deadline_ns()
 
     def on_deadline(self, now_ns: int) -> None:
-        """(the executor) Resends that are due, once the acks waiting have been fed (the
-        inbox's capacity bounds them)."""
+        """(the executor) Resends that are due, once a batch of waiting acks has been fed
+        (more than a batch is a backlog, fed turn by turn: ``Wake``)."""
         with self._send_lock:
             with self._lock:
                 if self._closed:
                     return
-                if self._feed(_ACK_INBOX) and self._wake.threads:
+                if self._feed(_BUDGET) and self._wake.threads:
                     self._cond.notify_all()
                 self._protocol.tick(now_ns)
                 events = self._protocol.events()

@@ -95,3 +95,25 @@ def test_oversize_acks_are_never_buffered(listen_net, connect_net, endpoint) -> 
         with flooding(endpoint, key, 1 << 20, processes=2):
             wait_until(lambda: images.info().dropped_messages > 50, 60, "oversize acks counted")
             assert len(images._acks) == 0
+
+
+def test_a_flooded_subscription_does_not_starve_the_others(
+    listen_net, connect_net, endpoint
+) -> None:
+    """Garbage floods one subscription's notification key from two processes; the node's
+    executor still serves the other subscription's handler (round robin, bounded batches)."""
+    with Node("cam", listen_net) as service, Node(network=connect_net) as client:
+        flooded, calm = service.offer("flooded"), service.offer("calm")
+        victim = client.subscribe("cam/flooded", queue_size=2)
+        sub = client.subscribe("cam/calm", queue_size=4)
+        seen: list[int] = []
+        client.on(victim, lambda notes: None)
+        client.on(sub, lambda notes: seen.extend(n.timestamp_ns for n in notes))
+        key = f"framegate/@notify/cam/flooded/{victim.subscription_id}"
+        with flooding(endpoint, key, 16, processes=2):
+            wait_until(lambda: victim.garbage > 1000, 60, "the flood under way")
+            for t in range(1, 41):
+                calm.put(t, b"x", _meta(t), wait_s=scaled(20))
+            wait_until(lambda: len(seen) == 40, 60, "every calm notification handled")
+        assert seen == list(range(1, 41))
+        del flooded
