@@ -88,14 +88,17 @@ def test_one_signal_stops_a_service(
 ) -> None:
     # camera and gyro: the simulator; the ROS 2 bridge needs a topic and a router address
     # (nobody answers there: it must stop all the same).
-    extra = {
+    # vision needs a handler to run.
+    extras = {
         "ros2": [
-            *("--image-in", "/camera/image_raw"),
-            *("--ros-connect", f"tcp/127.0.0.1:{free_port()}"),
+            "--image-in",
+            "/camera/image_raw",
+            "--ros-connect",
+            f"tcp/127.0.0.1:{free_port()}",
         ],
-        # A vision service needs its handler (the detector's own, here).
-        "vision": ["--handler", "services.nodes.detector:detect_aruco"],
-    }.get(service, [])
+        "vision": ["--handler", "tests.services.nodes.vision_handlers:brightest"],
+    }
+    extra = extras.get(service, [])
     proc = start_framegate(["run", service, *extra], local_port=port)
     try:
         wait_until(lambda: _pid_of(client, service) == proc.pid, STARTUP_S, f"{service} up")
