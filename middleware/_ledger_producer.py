@@ -35,11 +35,13 @@ Messages in, and what they do in every state:
     moves nothing while notifications are outstanding is an idle subscriber's repeat: the
     outstanding ones are due again (a lost notification heals).
 ``put_many(n elements, now)`` (``put`` is ``n = 1``)
-    the queue is counted in elements: refused, whole, while a flow registration has
-    ``sent - acked + n > queue_size`` (``full(n)``; nothing of the batch is counted);
-    otherwise every registration gets seqs ``sent + 1 .. sent + n`` and one ``Send`` that
-    covers them all (one notification for the batch). Each element stays outstanding on its
-    own seq, so acks and resends work per element as if it had come alone.
+    ``stored`` (the producer's element count; every registration's notifications carry the
+    ``base`` it had when they registered) grows by n. The queue is counted in elements:
+    refused, whole, while a flow registration has ``sent - acked + n > queue_size``
+    (``full(n)``; nothing of the batch is counted); otherwise every registration gets seqs
+    ``sent + 1 .. sent + n`` and one ``Send`` that covers them all (one notification for
+    the batch). Each element stays outstanding on its own seq, so acks and resends work per
+    element as if it had come alone.
 ``tick(now)``
     flow registrations with outstanding notifications and no progress for
     ``RETRANSMIT_NS`` get them again (``Send(..., again=True)``), oldest first, one element
@@ -115,6 +117,10 @@ class Registration(Generic[H]):
     taken_ns: int | None = None
     # Set by a failed send or an idle subscriber's repeated ack: resend at the next tick.
     resend_now: bool = False
+    # Elements the producer had stored when this registration was made: seq s is the
+    # producer's element number base + s, so a subscriber whose registration lapsed and came
+    # back under a new epoch counts what was stored in between (``missed``).
+    base: int = 0
 
     @property
     def queued(self) -> int:
@@ -140,6 +146,7 @@ class Send(Generic[H]):
     acked: int
     headers: tuple[H, ...]
     again: bool = False
+    base: int = 0
 
     @property
     def count(self) -> int:
@@ -164,6 +171,8 @@ class ProducerLedger(Generic[H]):
         self._regs: dict[RegistrationKey, Registration[H]] = {}
         self._by_epoch: dict[str, Registration[H]] = {}
         self._count = 0
+        # Elements stored so far (``put_many`` counts them): a new registration's base.
+        self.stored = 0
         self.counters = ProducerCounters()
 
     # -- tokens ----------------------------------------------------------------------------
@@ -175,7 +184,9 @@ class ProducerLedger(Generic[H]):
             self.counters.refused_registrations += 1
             return None
         self._count += 1
-        reg: Registration[H] = Registration(key, f"{self.epoch}.{self._count}", progress_ns=now_ns)
+        reg: Registration[H] = Registration(
+            key, f"{self.epoch}.{self._count}", progress_ns=now_ns, base=self.stored
+        )
         self._regs[key] = reg
         self._by_epoch[reg.epoch] = reg
         return reg
@@ -229,6 +240,7 @@ class ProducerLedger(Generic[H]):
         if self.full(count) is not None:
             raise RuntimeError("put while a flow-controlled queue has no room for it")
         sends: list[Send[H]] = []
+        self.stored += count
         for reg in self._regs.values():
             first = reg.sent + 1
             reg.sent += count
@@ -236,7 +248,7 @@ class ProducerLedger(Generic[H]):
                 if not reg.outstanding:
                     reg.progress_ns = now_ns  # the retransmit clock starts now
                 reg.outstanding.extend(zip(range(first, first + count), headers, strict=True))
-            sends.append(Send(reg.key, reg.epoch, first, reg.acked, headers))
+            sends.append(Send(reg.key, reg.epoch, first, reg.acked, headers, base=reg.base))
         return sends
 
     def send_failed(self, key: RegistrationKey, epoch: str) -> None:
@@ -256,7 +268,7 @@ class ProducerLedger(Generic[H]):
             reg.resend_now = False
             reg.progress_ns = now_ns  # at most one resend per period while nothing moves
             sends.extend(
-                Send(reg.key, reg.epoch, seq, reg.acked, (header,), again=True)
+                Send(reg.key, reg.epoch, seq, reg.acked, (header,), again=True, base=reg.base)
                 for seq, header in reg.outstanding
             )
         return sends

@@ -19,7 +19,6 @@ wait that a caller must bound (``Producer.wait_for_subscribers``) has no default
 from __future__ import annotations
 
 import difflib
-import json
 import logging
 import math
 import threading
@@ -30,7 +29,7 @@ from typing import Any
 
 import zenoh
 
-from ._clock import ClockSample, now_ns
+from ._clock import now_ns
 from ._config import (
     ENDPOINT_FORM,
     RENDEZVOUS_WAIT_S,
@@ -39,6 +38,7 @@ from ._config import (
     listening_endpoints,
     zenoh_message,
 )
+from ._decode import decode_service_info
 from ._errors import (
     ConfigError,
     FramegateError,
@@ -53,11 +53,10 @@ from ._records import (
     DataObject,
     Retention,
     ServiceInfo,
-    SubscriptionInfo,
     SubscriptionMode,
 )
 from ._rendezvous import announce, live_nodes, withdraw
-from ._service import ServiceEndpoint
+from ._service import ServiceEndpoint, answering_sessions
 from ._subscription import Subscription
 from ._timerange import TimeRange
 from ._wire import ERR_NOT_FOUND, Keys, decode_element
@@ -208,12 +207,20 @@ class Node:
                 push_max_bytes=-1 if push_max_bytes is None else max(0, push_max_bytes),
                 holder=self.name,
                 on_close=self._forget,
+                producer_ids=self._producer_ids,
             )
         with self._lock:
             self._subscriptions.append(sub)
         if wait_s > 0:
             self._wait_registered(sub, wait_s)
         return sub
+
+    def _producer_ids(self, service: str) -> frozenset[str]:
+        """The Zenoh sessions that answer as ``service`` (empty if none does)."""
+        try:
+            return answering_sessions(self._session, self.keys, service)
+        except zenoh.ZError:
+            return frozenset()
 
     def _forget(self, sub: Subscription) -> None:
         with self._lock:
@@ -228,6 +235,8 @@ class Node:
         deadline = time.monotonic() + wait_s
         missing: NotFoundError | None = None
         while time.monotonic() < deadline:
+            if sub.needs_producer:  # a refusal counts only from the service's own session
+                sub.trust_producer(self._producer_ids(sub.service))
             try:
                 if sub.wait_registered(min(0.25, max(0.0, deadline - time.monotonic()))):
                     return
@@ -397,9 +406,12 @@ class Node:
         for reply in replies:
             if reply.ok is None:
                 continue
+            raw = reply.ok.payload.to_bytes()
+            name = str(reply.ok.key_expr).rsplit("/", 1)[-1]
             try:
-                out.append(_service_info(json.loads(reply.ok.payload.to_bytes()), start, end))
-            except (ValueError, KeyError, TypeError):
+                out.append(decode_service_info(raw, start, end, service=name))
+            except QueryError as exc:
+                log.debug("left out a service description: %s", exc)
                 continue  # a peer that answers garbage is left out, not fatal
         return sorted(out, key=lambda s: s.service)
 
@@ -411,7 +423,8 @@ class Node:
         end = now_ns()
         for reply in replies:
             if reply.ok is not None:
-                return _service_info(json.loads(reply.ok.payload.to_bytes()), start, end)
+                raw = reply.ok.payload.to_bytes()
+                return decode_service_info(raw, start, end, service=service)
         self._require_service(service)
         raise NotFoundError(f"service {service!r} did not answer within {timeout_s} s")
 
@@ -491,51 +504,3 @@ def _error_from_reply(target: str, text: str) -> QueryError:
     if text == "Timeout":
         return QueryError(f"query of {target} timed out; is the service overloaded or unreachable?")
     return QueryError(f"{target}: {text.split(':', 1)[1].strip() if ':' in text else text}")
-
-
-def _service_info(body: dict[str, Any], start_ns: int, end_ns: int) -> ServiceInfo:
-    buffers = []
-    for b in body["buffers"]:
-        subs = tuple(
-            SubscriptionInfo(
-                s["id"],
-                SubscriptionMode(s["mode"]),
-                int(s["queue_size"]),
-                int(s["queued"]),
-                node=s.get("node"),
-                host=s.get("host"),
-            )
-            for s in b["subscriptions"]
-        )
-        buffers.append(
-            BufferInfo(
-                service=b["service"],
-                buffer=b["buffer"],
-                kind=b["kind"],
-                retention=Retention(**b["retention"]),
-                count=b["count"],
-                payload_bytes=b["payload_bytes"],
-                oldest_ns=b["oldest_ns"],
-                newest_ns=b["newest_ns"],
-                rate_hz=b["rate_hz"],
-                puts=b["puts"],
-                refused=b["refused"],
-                rejected=b["rejected"],
-                subscriptions=subs,
-                skipped={str(k): int(v) for k, v in b.get("skipped", {}).items()},
-                refused_subscriptions=int(b.get("refused_subscriptions", 0)),
-            )
-        )
-    sample = ClockSample.from_times(start_ns, int(body["clock_ns"]), end_ns)
-    clock = body.get("clock")
-    return ServiceInfo(
-        service=body["service"],
-        host=body["host"],
-        pid=int(body["pid"]),
-        clock_ns=int(body["clock_ns"]),
-        buffers=tuple(buffers),
-        clock_offset_ns=sample.offset_ns,
-        round_trip_ns=sample.round_trip_ns,
-        clock_steps=int(clock["steps"]) if isinstance(clock, dict) else None,
-        clock_lead_ns=int(clock["lead_ns"]) if isinstance(clock, dict) else None,
-    )

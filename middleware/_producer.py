@@ -373,6 +373,8 @@ class Producer:
                         event.payload,
                         attachment=event.attachment,
                         congestion_control=zenoh.CongestionControl.DROP,
+                        # Whose it is: a subscriber trusts a refusal only from our session.
+                        source_info=zenoh.SourceInfo(self._session.id, 0),
                     )
                     continue
                 publisher = self._publishers.get(event.key)
@@ -498,6 +500,7 @@ class Producer:
             subscriptions=subs,
             skipped=skipped,
             refused_subscriptions=protocol.refused_registrations,
+            limits=self._protocol.limits(),
         )
 
     def close(self) -> None:

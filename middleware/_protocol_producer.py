@@ -9,7 +9,8 @@ Zenoh layer (``Producer``) only feeds it (``token``, ``ack``, ``put_many``, ``ti
 carries out what ``events()`` returns; ``next_deadline_ns()`` tells the node's loop when
 to call ``tick``. The credit rules themselves are the pure ``ProducerLedger``.
 
-Limits (every resource a peer can make a producer hold is bounded here):
+Limits (every resource a peer can make a producer hold is bounded here; docs/limits.md
+states them for users and ``info`` reports them as ``BufferLimits``):
 
 - Registration slots: ``MAX_FLOW_REGISTRATIONS`` flow-controlled and, separately,
   ``MAX_OBSERVE_REGISTRATIONS`` observers, so a crowd of observers can never take the slot
@@ -20,8 +21,25 @@ Limits (every resource a peer can make a producer hold is bounded here):
   exceed ``QUEUE_BUDGET``; a token that would exceed it is refused. So the headers kept for
   resending are at most ``QUEUE_BUDGET`` (each holding at most ``INLINE_METADATA_MAX`` bytes
   of metadata), whatever the peers ask for.
+- Fair shares: one *holder* (the ``<node>~<host>`` a token names: the peer as the protocol
+  sees it) may hold at most half of what the other holders leave free, of the queue budget
+  and of each pool of slots. Why half of the free part and not a fixed quota: a fixed
+  quota either starves a lone big consumer (a recorder with a deep queue) or lets a few
+  holders take everything; with half of what is free, the first greedy holder gets half,
+  and whoever asks next still finds the other half, whatever order they come in. A single
+  flow queue can therefore be at most ``FLOW_QUEUE_MAX`` (half the budget). Holder names
+  are what tokens say: a peer that forges many holder names gets ever smaller halves
+  (after k names, 2^-k of the budget is left to the next), which needs the secure profile
+  to close (only a consumer's certificate may declare flow tokens).
+- Large pushes: a subscriber may ask for payloads above the producer's ``inline_max_bytes``
+  to travel with its notifications; at most ``LARGE_PUSH_PER_HOLDER`` registrations of one
+  holder and ``LARGE_PUSH_TOTAL`` in all get that (first come), the others get the
+  producer's default (they fetch the larger ones). So no peer can make a put copy its
+  payload to hundreds of registrations.
 - Resends are paced: at most ``RESEND_BURST`` notifications of one registration per tick,
   the rest ``RESEND_PACE_NS`` later, never a whole window at once.
+- Tokens cost O(1) amortised work each (one table look-up, the shares kept as running
+  sums per holder), so token churn at any rate costs the producer bounded work per token.
 
 Every refusal reaches the subscriber as a control message on its notification key
 (``["refused", descriptor, reason]``; see ``_wire``) and is counted; an accepted
@@ -34,7 +52,7 @@ import logging
 from dataclasses import dataclass, field
 
 from ._ledger_producer import ProducerLedger, Registration, RegistrationKey, Send
-from ._records import DataObject, SubscriptionInfo, SubscriptionMode
+from ._records import BufferLimits, DataObject, SubscriptionInfo, SubscriptionMode
 from ._wire import (
     Keys,
     decode_ack,
@@ -50,9 +68,16 @@ MAX_FLOW_REGISTRATIONS = 256
 MAX_OBSERVE_REGISTRATIONS = 256
 # Sum of the queue sizes of all flow registrations of one producer (see the module doc).
 QUEUE_BUDGET = 1 << 16
+# The largest flow queue one subscriber can get: a holder's fair share of an idle producer.
+FLOW_QUEUE_MAX = QUEUE_BUDGET // 2
+# Registrations that get payloads above the producer's inline limit pushed (module doc).
+LARGE_PUSH_PER_HOLDER = 4
+LARGE_PUSH_TOTAL = 16
 # Metadata rides along with notifications (and is kept for resends) up to this size.
 INLINE_METADATA_MAX = 8 * 1024
 RESEND_BURST = 16
+# Distinct refusal reasons counted by text (their count is bounded: a peer chooses them).
+_REFUSAL_REASONS = 64
 RESEND_PACE_NS = 5_000_000
 
 
@@ -95,6 +120,42 @@ class ProtocolCounters:
 _Kept = tuple[int, bytes | None]  # (timestamp_ns, metadata or None when too large)
 
 
+@dataclass(slots=True)
+class _Share:
+    """What one holder (or all of them, the totals) holds: running sums, so that judging a
+    token costs O(1) whatever the table holds."""
+
+    flow: int = 0
+    observe: int = 0
+    queue: int = 0  # queue sizes of its flow registrations, summed
+    large_push: int = 0  # registrations that get payloads above the inline limit pushed
+
+    def slots(self, mode: SubscriptionMode) -> int:
+        return self.flow if mode is SubscriptionMode.FLOW else self.observe
+
+    def add(self, key: RegistrationKey, large_push: bool, sign: int) -> None:
+        if key.mode is SubscriptionMode.FLOW:
+            self.flow += sign
+            self.queue += sign * key.queue_size
+        else:
+            self.observe += sign
+        self.large_push += sign * large_push
+
+    def empty(self) -> bool:
+        return not (self.flow or self.observe)
+
+
+def fair_share(limit: int, others: int) -> int:
+    """What one holder may hold of ``limit`` while the others hold ``others``: half of what
+    they leave free, rounded up (so a lone holder of a pool of 1 still gets it)."""
+    return (max(0, limit - others) + 1) // 2
+
+
+def holder_of(node: str | None, host: str | None) -> str:
+    """A token's holder as the shares count it: its ``<node>~<host>`` chunk."""
+    return f"{node or ''}~{host or ''}"
+
+
 class ProducerProtocol:
     """One buffer's producer protocol. Not thread-safe: the caller serialises every call."""
 
@@ -125,6 +186,11 @@ class ProducerProtocol:
         # Registrations whose resend was cut at RESEND_BURST: when to go on.
         self._paced: dict[RegistrationKey, tuple[int, int]] = {}  # key -> (when, next seq)
         self._holders: dict[RegistrationKey, tuple[str | None, str | None]] = {}
+        # Fair shares (module doc): per holder and in total; the push limit each registration
+        # actually gets (its own, or the producer's inline limit beyond the large-push caps).
+        self._shares: dict[str, _Share] = {}
+        self._total = _Share()
+        self._push_limit: dict[RegistrationKey, int] = {}
         self.counters = ProtocolCounters()
 
     # -- input -----------------------------------------------------------------------------
@@ -140,17 +206,19 @@ class ProducerProtocol:
         if not alive:
             gone = self._ledger.token_delete(key)
             if gone is not None:
-                self._paced.pop(key, None)
-                self._holders.pop(key, None)
+                self._forget(key)
                 self._events.append(Retire(key))
                 log.debug("%s: subscription %s withdrawn", self.name, key.sub_id)
             return
         if self._ledger.get(key) is not None:
             return  # a repeat (history and live both deliver it)
-        reason = self._refusal(key)
+        node, host = parsed[4:]
+        holder = holder_of(node, host)
+        reason = self._refusal(key, holder)
         if reason is not None:
             self.counters.refused_registrations += 1
-            self.counters.refusals[reason] = self.counters.refusals.get(reason, 0) + 1
+            if len(self.counters.refusals) < _REFUSAL_REASONS or reason in self.counters.refusals:
+                self.counters.refusals[reason] = self.counters.refusals.get(reason, 0) + 1
             log.debug("%s: refused subscription %s: %s", self.name, key.sub_id, reason)
             self._control(key, encode_control("refused", key.descriptor, reason))
             return
@@ -158,27 +226,83 @@ class ProducerProtocol:
         if reg is None:  # the ledger's own table bound; unreachable under the limits above
             self.counters.refused_registrations += 1
             return
-        self._holders[key] = parsed[4:]
+        self._holders[key] = (node, host)
+        share = self._shares.setdefault(holder, _Share())
+        large = key.push_max_bytes > self.inline_max_bytes and (
+            share.large_push < LARGE_PUSH_PER_HOLDER and self._total.large_push < LARGE_PUSH_TOTAL
+        )
+        share.add(key, large, 1)
+        self._total.add(key, large, 1)
+        if key.push_max_bytes >= 0:
+            self._push_limit[key] = (
+                key.push_max_bytes if large else min(key.push_max_bytes, self.inline_max_bytes)
+            )
         log.debug("%s: subscription %s registered as %s", self.name, key.sub_id, reg.epoch)
         self._control(key, encode_control("hello", key.descriptor, reg.epoch))
 
-    def _refusal(self, key: RegistrationKey) -> str | None:
-        regs = self._ledger.registrations()
-        same_mode = sum(1 for r in regs if r.key.mode is key.mode)
-        if same_mode >= self._max[key.mode]:
+    def _forget(self, key: RegistrationKey) -> None:
+        """Drop what the protocol keeps beside the ledger for a registration that is gone."""
+        self._paced.pop(key, None)
+        node, host = self._holders.pop(key, (None, None))
+        limit = self._push_limit.pop(key, None)
+        large = limit is not None and limit > self.inline_max_bytes
+        holder = holder_of(node, host)
+        share = self._shares.get(holder)
+        if share is not None:
+            share.add(key, large, -1)
+            if share.empty():
+                del self._shares[holder]
+        self._total.add(key, large, -1)
+
+    def _refusal(self, key: RegistrationKey, holder: str) -> str | None:
+        """Why ``holder`` may not register ``key`` (None: it may), naming the limit, what it
+        holds and the largest holder."""
+        mode, total = key.mode, self._total
+        mine = self._shares.get(holder, _Share())
+        used = total.slots(mode)
+        if used >= self._max[mode]:
             return (
-                f"{self.name} holds {same_mode} {key.mode.value} subscriptions, its limit; "
-                "close unused subscriptions"
+                f"{self.name} holds {used} {mode.value} subscriptions, its limit; the largest "
+                f"holder is {self._largest(mode)}; close unused subscriptions"
             )
-        if key.mode is SubscriptionMode.FLOW:
-            used = sum(r.key.queue_size for r in regs if r.flow)
-            if used + key.queue_size > self._budget:
+        slots = fair_share(self._max[mode], used - mine.slots(mode))
+        if mine.slots(mode) + 1 > slots:
+            return (
+                f"{holder} holds {mine.slots(mode)} {mode.value} subscriptions of {self.name}, "
+                f"its fair share (half of the {self._max[mode] - used + mine.slots(mode)} "
+                f"others leave free); close unused subscriptions"
+            )
+        if mode is SubscriptionMode.FLOW:
+            if total.queue + key.queue_size > self._budget:
                 return (
                     f"queue size {key.queue_size} exceeds what {self.name} can still hold "
-                    f"for flow control ({self._budget - used} of {self._budget}); "
-                    "subscribe with a smaller queue"
+                    f"for flow control ({self._budget - total.queue} of {self._budget}); the "
+                    f"largest holder is {self._largest(mode)}; subscribe with a smaller queue"
+                )
+            share = fair_share(self._budget, total.queue - mine.queue)
+            if mine.queue + key.queue_size > share:
+                return (
+                    f"queue size {key.queue_size} exceeds the fair share of {holder} in "
+                    f"{self.name}'s flow-control budget: at most {share} (half of the "
+                    f"{self._budget - total.queue + mine.queue} of {self._budget} others "
+                    f"leave free), {mine.queue} held already; the largest holder is "
+                    f"{self._largest(mode)}; subscribe with a smaller queue"
                 )
         return None
+
+    def _largest(self, mode: SubscriptionMode) -> str:
+        """The holder with the most of ``mode`` (queue for flow, slots for observe), for a
+        refusal's message. Only on refusals: O(holders), and holders <= registrations."""
+        flow = mode is SubscriptionMode.FLOW
+
+        def size(share: _Share) -> int:
+            return share.queue if flow else share.observe
+
+        if not self._shares:
+            return "nobody"
+        holder, share = max(self._shares.items(), key=lambda item: size(item[1]))
+        what = f"queue {share.queue} in {share.flow}" if flow else f"{share.observe}"
+        return f"{holder} ({what} subscriptions)"
 
     def ack(self, keyexpr: str, payload: bytes, now_ns: int) -> bool:
         """An ack arrived on ``keyexpr``; True if it freed credit."""
@@ -242,7 +366,7 @@ class ProducerProtocol:
             if sent == RESEND_BURST:
                 self._paced[reg.key] = (now_ns + RESEND_PACE_NS, seq)
                 return
-            again = Send(reg.key, reg.epoch, seq, reg.acked, (kept,), again=True)
+            again = Send(reg.key, reg.epoch, seq, reg.acked, (kept,), again=True, base=reg.base)
             self._events.append(self._publish(again, ()))
             sent += 1
 
@@ -272,7 +396,7 @@ class ProducerProtocol:
         """The wire form of ``send``: ``elements`` are the stored elements (with payloads)
         when it is a first send; a resend carries no payload (the subscriber fetches)."""
         key = send.key
-        limit = self.inline_max_bytes if key.push_max_bytes < 0 else key.push_max_bytes
+        limit = self._push_limit.get(key, self.inline_max_bytes)
         block = key.mode is SubscriptionMode.FLOW
         if send.count > 1:
             pushed = all(len(e.payload) <= limit for e in elements)
@@ -284,6 +408,7 @@ class ProducerProtocol:
                 [len(e.payload) for e in elements] if pushed else None,
                 acked=send.acked,
                 descriptor=key.descriptor,
+                base=send.base,
             )
             payload = b"".join(e.payload for e in elements) if pushed else b""
             return Publish(key, self._notify_key(key), payload, header, block, send.epoch)
@@ -298,6 +423,7 @@ class ProducerProtocol:
             pushed=pushed,
             acked=send.acked,
             descriptor=key.descriptor,
+            base=send.base,
         )
         # The payload travels as the Zenoh payload itself: no copy into msgpack, and large
         # ones go through Zenoh's shared memory on one host.
@@ -330,5 +456,16 @@ class ProducerProtocol:
     def close(self) -> None:
         """Forget every registration; their publishers are retired."""
         for reg in self._ledger.clear():
+            self._forget(reg.key)
             self._events.append(Retire(reg.key))
-        self._paced.clear()
+
+    def limits(self) -> BufferLimits:
+        """The limits this producer applies to subscriptions, as ``info`` reports them."""
+        return BufferLimits(
+            flow_registrations=self._max[SubscriptionMode.FLOW],
+            observe_registrations=self._max[SubscriptionMode.OBSERVE],
+            queue_budget=self._budget,
+            flow_queue_max=fair_share(self._budget, 0),
+            large_push_per_holder=LARGE_PUSH_PER_HOLDER,
+            large_push_total=LARGE_PUSH_TOTAL,
+        )

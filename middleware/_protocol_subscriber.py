@@ -7,15 +7,31 @@ declared, so ``subscribe`` refuses at once), decoding and judging each notificat
 (the pure ``SubscriberLedger`` keeps the rules), the producer's greeting or refusal, and
 when acks leave (coalesced, delayed, repeated while idle). ``next_deadline_ns`` tells the
 node's loop when a delayed ack falls due for a caller that does not come back to take.
+
+Refusals are trusted only from the producer's own session: the Zenoh layer passes each
+control message's sender (the Zenoh session id the producer stamps on it as its source)
+and, once known, the ids of the sessions that answer as the service
+(``trust_producer``); a refusal from any other session is ignored and counted. A refused
+subscription tries again every ``RETRY_NS`` (the Zenoh layer declares its token anew when
+``retry_due`` says so): the holder it lost to may leave.
+
+Lapses are counted: every notification carries its registration's ``base`` (the elements
+the producer had stored when it registered us), so seq s is the producer's element number
+``base + s``. When a new registration of the same producer instance (epoch
+``<instance>.<n>``) starts, the elements stored between the last one of the previous
+registration and its first were never notified (our token had lapsed, e.g. a link that
+dropped and came back): they are counted in ``missed`` on the next notification taken
+and reported once (``lapse_news``).
 """
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from typing import Any
 
 from ._errors import ConfigError
 from ._ledger_subscriber import AckPolicy, Entry, SubscriberCounters, SubscriberLedger
-from ._protocol_producer import QUEUE_BUDGET
+from ._protocol_producer import FLOW_QUEUE_MAX
 from ._records import SubscriptionMode
 from ._wire import (
     MAX_QUEUE_SIZE,
@@ -32,17 +48,22 @@ from ._wire import (
 # cut out of a batch).
 Item = tuple[int, bytes | None, Any]
 
+# A refused subscription declares its token again this often.
+RETRY_NS = 2_000_000_000
+# Producer instances whose highest element number is remembered (for counting lapses).
+_INSTANCES = 8
+
 
 def check_request(mode: SubscriptionMode, queue_size: int, push_max_bytes: int) -> None:
     """Refuse what no producer would register, with the limit named."""
     if type(queue_size) is not int or queue_size < 1:
         raise ConfigError(f"queue_size must be an integer >= 1, got {queue_size!r}")
-    limit = QUEUE_BUDGET if mode is SubscriptionMode.FLOW else MAX_QUEUE_SIZE
+    limit = FLOW_QUEUE_MAX if mode is SubscriptionMode.FLOW else MAX_QUEUE_SIZE
     if queue_size > limit:
         raise ConfigError(
             f"queue_size {queue_size} exceeds the {mode.value} limit of {limit} (a producer "
-            "keeps every un-acked notification of a flow-controlled subscriber); "
-            "choose a smaller queue"
+            "keeps every un-acked notification of a flow-controlled subscriber, and one "
+            "subscriber may hold at most half of its budget); choose a smaller queue"
         )
     if push_max_bytes < -1:
         raise ConfigError(f"push_max_bytes must be >= 0, got {push_max_bytes}")
@@ -67,21 +88,34 @@ class SubscriberProtocol:
             mode, queue_size, self.descriptor, policy=policy or AckPolicy.for_queue(queue_size)
         )
         self.garbage = 0
-        # The producer's answer to our token: its registration's epoch, or why it refused.
+        # The producer's answer to our token: its registration's epoch, or why it refused
+        # and which session said so (judged once the producer's sessions are known).
         self.registered: str | None = None
-        self.refusal: str | None = None
+        self._refusal: tuple[str, str | None] | None = None
+        self._producer_ids: frozenset[str] | None = None
+        self._refusal_reported = False
+        self._retry_at_ns: int | None = None
         self.ignored_controls = 0
         self.registrations = 0  # greetings under distinct epochs
+        # Lapses: the epoch of the last notification queued and its base; per producer
+        # instance the highest element number queued; elements counted as never notified.
+        self._epoch: str | None = None
+        self._base = 0
+        self._high: OrderedDict[str, int] = OrderedDict()
+        self._lapsed = 0
 
     # -- input -----------------------------------------------------------------------------
-    def receive(self, attachment: bytes | None, payload: Any) -> bool:
+    def receive(self, attachment: bytes | None, payload: Any, sender: str | None = None) -> bool:
         """One notification (or control message) as it arrived; True if something was
-        queued. ``payload`` is the Zenoh payload (anything with ``to_bytes()``, or bytes)."""
+        queued. ``payload`` is the Zenoh payload (anything with ``to_bytes()``, or bytes);
+        ``sender`` the Zenoh session id the message names as its source (None: none)."""
         try:
             if attachment is None:
                 raise ValueError("notification without a header")
             head = decode_notification_header(attachment)
             if type(head) is Header:
+                if head.epoch != self._epoch and head.base is not None:
+                    return self._first_of_epoch(head, [_item(head, payload)])
                 metadata = head.metadata
                 pushed = payload if head.pushed and metadata is not None else None
                 return self.ledger.receive(
@@ -92,6 +126,8 @@ class SubscriberProtocol:
                 )
             if type(head) is BatchHeader:
                 items = _batch_items(head, payload)
+                if head.epoch != self._epoch and head.base is not None:
+                    return self._first_of_epoch(head, items)
                 return (
                     self.ledger.receive_many(
                         head.epoch, head.seq, items, descriptor=head.descriptor
@@ -99,13 +135,51 @@ class SubscriberProtocol:
                     > 0
                 )
             assert type(head) is Control
-            self._control(head)
+            self._control(head, sender)
             return False
         except Exception:  # garbage on our key is counted, never raised
             self.garbage += 1
             return False
 
-    def _control(self, control: Control) -> None:
+    def _first_of_epoch(self, head: Header | BatchHeader, items: list[Item]) -> bool:
+        """A notification of another epoch than the last one queued: queue it as usual and,
+        if it starts a later registration of the same producer instance, count the elements
+        stored before that registration and after the last one queued as missed (our token
+        had lapsed meanwhile)."""
+        assert head.base is not None
+        ledger = self.ledger
+        if self._epoch is not None:
+            old = ledger.track(self._epoch)
+            if old is not None:
+                self._raise_high(self._epoch, self._base + old.last)
+        new = ledger.track(head.epoch) is None
+        before = len(ledger)
+        queued = ledger.receive_many(head.epoch, head.seq, items, descriptor=head.descriptor)
+        track = ledger.track(head.epoch)
+        if not queued or track is None:
+            return False
+        high = self._high.get(head.epoch.rpartition(".")[0])
+        if new and high is not None and head.base > high:
+            gap = head.base - high
+            ledger.note_missed(gap, before)
+            self._lapsed += gap
+        self._epoch, self._base = head.epoch, head.base
+        self._raise_high(head.epoch, head.base + track.last)
+        return True
+
+    def _raise_high(self, epoch: str, number: int) -> None:
+        instance = epoch.rpartition(".")[0]
+        self._high[instance] = max(number, self._high.get(instance, 0))
+        self._high.move_to_end(instance)
+        if len(self._high) > _INSTANCES:
+            self._high.popitem(last=False)
+
+    def lapse_news(self) -> int:
+        """Elements counted as never notified since the last call (to log once each)."""
+        lapsed, self._lapsed = self._lapsed, 0
+        return lapsed
+
+    def _control(self, control: Control, sender: str | None) -> None:
         if control.descriptor != self.descriptor:
             self.ignored_controls += 1
         elif control.kind == "hello":
@@ -114,11 +188,59 @@ class SubscriberProtocol:
             elif self.registered is None:
                 self.registrations = 1
             self.registered = control.text
-            self.refusal = None
+            self._refusal = None
+            self._retry_at_ns = None
         elif self.registered is None:
-            self.refusal = control.text
+            self._refusal = (control.text, sender)
+            self._judge_refusal()
         else:  # a refusal after a greeting: a forgery or an old message; the greeting stands
             self.ignored_controls += 1
+
+    # -- refusals --------------------------------------------------------------------------
+    def trust_producer(self, session_ids: frozenset[str]) -> None:
+        """The Zenoh session ids that answer as the producer's service: only their
+        refusals count."""
+        self._producer_ids = session_ids
+        self._judge_refusal()
+
+    def _judge_refusal(self) -> None:
+        if self._refusal is None or self._producer_ids is None:
+            return
+        if self._refusal[1] not in self._producer_ids:
+            self.ignored_controls += 1  # not from the producer: a forgery
+            self._refusal = None
+
+    @property
+    def refusal(self) -> str | None:
+        """Why the producer refused this subscription (None: it did not, or not yet, or
+        the refusal is not known to come from it)."""
+        if self._refusal is None or self._producer_ids is None:
+            return None
+        return self._refusal[0]
+
+    @property
+    def needs_producer(self) -> bool:
+        """A refusal waits to be judged: the Zenoh layer should ``trust_producer``."""
+        return self._refusal is not None and self._producer_ids is None
+
+    def refusal_news(self, now_ns: int) -> str | None:
+        """A refusal not reported yet (to log as an error, once); starts the retry clock."""
+        text = self.refusal
+        if text is None or self._refusal_reported:
+            return None
+        self._refusal_reported = True
+        self._retry_at_ns = now_ns + RETRY_NS
+        return text
+
+    def retry_due(self, now_ns: int) -> bool:
+        """True when a refused subscription should declare its token again (the refusal is
+        forgotten: the next answer decides; a refusal with the same reason is not reported
+        again)."""
+        if self._retry_at_ns is None or now_ns < self._retry_at_ns or self.registered:
+            return False
+        self._retry_at_ns = now_ns + RETRY_NS
+        self._refusal = None
+        return True
 
     # -- taking and acking -----------------------------------------------------------------
     def take_many(self, max_count: int) -> list[Entry[Item]]:
@@ -134,8 +256,13 @@ class SubscriberProtocol:
         return [encode_ack(epoch, seq) for epoch, seq in self.ledger.acks_due(now_ns, idle=idle)]
 
     def next_deadline_ns(self) -> int | None:
-        """When a delayed ack falls due with nobody taking (None: none waits)."""
-        return self.ledger.flush_at_ns()
+        """When a delayed ack falls due with nobody taking, or a refused subscription tries
+        again (None: none waits)."""
+        due = self.ledger.flush_at_ns()
+        retry = self._retry_at_ns if self.registered is None else None
+        if retry is not None and (due is None or retry < due):
+            return retry
+        return due
 
     # -- reading ---------------------------------------------------------------------------
     def __len__(self) -> int:
@@ -148,6 +275,11 @@ class SubscriberProtocol:
     def counters(self) -> SubscriberCounters:
         c = self.ledger.counters
         return SubscriberCounters(c.foreign, c.invalid, c.out_of_order, c.duplicates, c.refused)
+
+
+def _item(head: Header, payload: Any) -> Item:
+    pushed = payload if head.pushed and head.metadata is not None else None
+    return (head.timestamp_ns, head.metadata, pushed)
 
 
 def _batch_items(head: BatchHeader, payload: Any) -> list[Item]:

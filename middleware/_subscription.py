@@ -26,7 +26,7 @@ from ._errors import FramegateError, RegistrationRefused
 from ._inbox import Inbox, Receiver
 from ._ledger_subscriber import REACK_NS, Entry, SubscriberCounters
 from ._loop import NodeLoop
-from ._protocol_subscriber import Item, SubscriberProtocol
+from ._protocol_subscriber import RETRY_NS, Item, SubscriberProtocol
 from ._records import DataObject, Notification, SubscriptionMode
 from ._wire import Keys, holder_chunk
 
@@ -82,6 +82,7 @@ class Subscription:
         push_max_bytes: int = -1,
         holder: str | None = None,
         on_close: Callable[[Subscription], None] | None = None,
+        producer_ids: Callable[[str], frozenset[str]] | None = None,
     ) -> None:
         self._protocol = SubscriberProtocol(mode, queue_size, push_max_bytes)
         self.service = service
@@ -100,6 +101,8 @@ class Subscription:
         self.fetched_ahead = 0  # fetches answered by a query started ahead
         self._loop = loop
         self._on_close = on_close
+        # The Zenoh sessions answering as a service: asked when a refusal must be judged.
+        self._producer_ids = producer_ids
         self._lock = threading.Lock()
         self._cond = threading.Condition(self._lock)
         self._waiting = 0
@@ -115,18 +118,12 @@ class Subscription:
         # A caller blocked in the inbox's recv, and when it wants the doorbell.
         self._receiver = Receiver(self._inbox, self._cond, loop)
         loop.add(self)
-        # Declared last: once the producer sees it, notifications may flow.
-        self._token = session.liveliness().declare_token(
-            keys.subscription_token(
-                service,
-                buffer,
-                self.subscription_id,
-                mode,
-                queue_size,
-                push_max_bytes,
-                holder_chunk(holder, socket.gethostname()),
-            )
+        self._holder = holder_chunk(holder, socket.gethostname())
+        self._token_key = keys.subscription_token(
+            service, buffer, self.subscription_id, mode, queue_size, push_max_bytes, self._holder
         )
+        # Declared last: once the producer sees it, notifications may flow.
+        self._token = session.liveliness().declare_token(self._token_key)
 
     @property
     def name(self) -> str:
@@ -168,12 +165,22 @@ class Subscription:
         raw = attachment.to_bytes() if attachment is not None else None
         protocol = self._protocol
         before = protocol.registrations
-        protocol.receive(raw, sample.payload)
+        payload = sample.payload
+        # Control messages (the only ones whose sender matters) have an empty payload.
+        protocol.receive(raw, payload, None if len(payload) else _sender(sample))
         if protocol.registrations > before > 0:
             log.info(
                 "subscription to %s registered again (the producer restarted, or this "
                 "subscription had lapsed)",
                 self.name,
+            )
+        lapsed = protocol.lapse_news()
+        if lapsed:
+            log.warning(
+                "subscription to %s had lapsed: %d elements stored meanwhile were never "
+                "notified (counted in missed)",
+                self.name,
+                lapsed,
             )
 
     def _wait_input(self, wait_s: float) -> None:
@@ -191,6 +198,44 @@ class Subscription:
         self._drain()
         if self._waiting:  # news for them, or their turn to receive
             self._cond.notify_all()
+
+    def trust_producer(self, session_ids: frozenset[str]) -> None:
+        """The Zenoh sessions that answer as this subscription's service: only their
+        refusals count (see ``SubscriberProtocol``)."""
+        with self._lock:
+            self._protocol.trust_producer(session_ids)
+
+    @property
+    def needs_producer(self) -> bool:
+        """A refusal arrived that waits for ``trust_producer`` to be judged."""
+        with self._lock:
+            self._drain()
+            return self._protocol.needs_producer
+
+    def _refused(self, now_ns: int) -> None:
+        """(not under _lock; the node's loop) Log a trusted refusal once, as an error naming
+        its reason (the producer's message names the holder); declare the token again
+        when the retry falls due, so a subscription refused for a limit registers once the
+        holder it lost to leaves."""
+        with self._lock:
+            unjudged = self._protocol.needs_producer
+        if unjudged and self._producer_ids is not None:
+            self.trust_producer(self._producer_ids(self.service))
+        with self._lock:
+            news = self._protocol.refusal_news(now_ns)
+            retry = self._protocol.retry_due(now_ns)
+        if news is not None:
+            log.error(
+                "%s refused the subscription of %s: %s; retrying every %.0f s",
+                self.name,
+                self._holder,
+                news,
+                RETRY_NS / 1e9,
+            )
+        if retry and not self._closed:
+            with contextlib.suppress(zenoh.ZError):
+                self._token.undeclare()
+                self._token = self._session.liveliness().declare_token(self._token_key)
 
     def wait_registered(self, timeout_s: float) -> bool:
         """Wait until the producer greets this subscription; RegistrationRefused if it
@@ -230,7 +275,10 @@ class Subscription:
             due = self._protocol.next_deadline_ns()
             ready = due is not None and due <= now_ns
             acks = self._protocol.acks(now_ns, idle=False) if ready else []
+            refused = self._protocol.registered is None
         self._send_acks(acks)
+        if refused:
+            self._refused(now_ns)
         if ring:
             self._receiver.ring()
 
@@ -364,3 +412,9 @@ class Subscription:
 
     def __exit__(self, *_exc: Any) -> None:
         self.close()
+
+
+def _sender(sample: zenoh.Sample) -> str | None:
+    """The Zenoh session a sample names as its source (None: it names none)."""
+    info = sample.source_info
+    return str(info.source_id.zid) if info is not None else None
