@@ -7,20 +7,32 @@ import os
 import socket
 import subprocess
 import sys
-import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
-from hypothesis import settings
+from hypothesis import HealthCheck, settings
 
 from middleware import NetworkConfig
+from tests.helpers.timing import SCALE_VARIABLE, TIMEOUT_SCALE, scaled
+from tests.helpers.timing import wait_until as wait_until
 
+# The suite's hypothesis profile: no per-example deadline and no "too slow" health check.
+# Hypothesis's default deadline (200 ms an example) is a wall-clock bound that a loaded
+# machine exceeds on I/O and large inputs (XML documents, wire messages, buffers); a test's
+# own @settings still chooses its number of examples.
+settings.register_profile("framegate", deadline=None, suppress_health_check=[HealthCheck.too_slow])
+settings.load_profile("framegate")
 # ``--hypothesis-profile long``: the protocol state machine (tests/middleware/
 # test_protocol_model.py) runs 3,000 programs of up to 80 steps (over 100,000 steps) instead
 # of CI's few thousand. Registered here so that the option works from any test path.
-settings.register_profile("long", max_examples=3_000, stateful_step_count=80, deadline=None)
+settings.register_profile(
+    "long",
+    parent=settings.get_profile("framegate"),
+    max_examples=3_000,
+    stateful_step_count=80,
+)
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -32,12 +44,31 @@ def free_port() -> int:
         return int(sock.getsockname()[1])
 
 
+@pytest.hookimpl(trylast=True)
+def pytest_configure(config: pytest.Config) -> None:
+    """pytest-timeout's per-test limit (``timeout`` in pyproject) is a deadline too: scaled."""
+    env_timeout = getattr(config, "_env_timeout", None)
+    if env_timeout:
+        config._env_timeout = scaled(env_timeout)  # type: ignore[attr-defined]
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """A test's own ``@pytest.mark.timeout(S)`` is scaled as well (the closest marker wins)."""
+    if TIMEOUT_SCALE == 1.0:
+        return
+    for item in items:
+        marker = item.get_closest_marker("timeout")
+        if marker is not None and marker.args:
+            item.add_marker(pytest.mark.timeout(scaled(float(marker.args[0]))), append=False)
+
+
 @pytest.fixture(autouse=True)
 def _no_framegate_environment(monkeypatch: pytest.MonkeyPatch) -> None:
     """A developer's shell (``FRAMEGATE_CONNECT``, ``FRAMEGATE_LOCAL_PORT``...) must not leak
-    into a test or the processes it starts; a test that wants one sets it itself."""
+    into a test or the processes it starts; a test that wants one sets it itself. The suite's
+    own setting (the timeout scale) stays: helpers a test starts read it too."""
     for name in list(os.environ):
-        if name.startswith("FRAMEGATE_"):
+        if name.startswith("FRAMEGATE_") and name != SCALE_VARIABLE:
             monkeypatch.delenv(name)
 
 
@@ -55,18 +86,6 @@ def listen_net(endpoint: str) -> NetworkConfig:
 @pytest.fixture
 def connect_net(endpoint: str) -> NetworkConfig:
     return NetworkConfig(connect=(endpoint,))
-
-
-def wait_until(predicate: Callable[[], Any], timeout_s: float, what: str) -> Any:
-    """Poll ``predicate`` until it returns something truthy; fail with ``what`` on timeout."""
-    deadline = time.monotonic() + timeout_s
-    while True:
-        value = predicate()
-        if value:
-            return value
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
-        time.sleep(0.02)
 
 
 def child_env() -> dict[str, str]:
@@ -131,7 +150,7 @@ class NodeProcess:
         if self.proc.poll() is None:
             try:
                 self.call("exit")
-                self.proc.wait(timeout=5)
+                self.proc.wait(timeout=scaled(5))
             except (OSError, AssertionError, subprocess.TimeoutExpired, ValueError):
                 self.proc.kill()
                 self.proc.wait()

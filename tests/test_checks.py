@@ -9,6 +9,7 @@ import sys
 import pytest
 
 from tests.conftest import REPO
+from tests.helpers.timing import scaled
 
 
 @pytest.mark.parametrize(
@@ -23,5 +24,5 @@ from tests.conftest import REPO
 def test_static_checks_pass(command: list[str]) -> None:
     if command[0] == "ruff" and shutil.which("ruff") is None:
         command = [sys.executable, "-m", *command]
-    out = subprocess.run(command, cwd=REPO, capture_output=True, text=True, timeout=300)
+    out = subprocess.run(command, cwd=REPO, capture_output=True, text=True, timeout=scaled(300))
     assert out.returncode == 0, out.stdout + out.stderr

@@ -9,6 +9,7 @@ import sys
 import pytest
 
 from tests.conftest import REPO, child_env, free_port
+from tests.helpers.timing import scaled
 
 pytestmark = pytest.mark.integration
 
@@ -23,7 +24,7 @@ def test_api_example_runs_and_prints_what_it_says() -> None:
     env = child_env()
     env["FRAMEGATE_LOCAL_PORT"] = str(free_port())
     out = subprocess.run(
-        [sys.executable, "-c", example], env=env, capture_output=True, text=True, timeout=60
+        [sys.executable, "-c", example], env=env, capture_output=True, text=True, timeout=scaled(60)
     )
     assert out.returncode == 0, out.stderr
     assert "refused:" in out.stdout

@@ -48,7 +48,7 @@ def register(subparsers: Any) -> None:
         "offer the buffers of an MCAP recording again, then keep answering queries",
         json_flag=True,
     )
-    parser.add_argument("file", type=Path, metavar="FILE.mcap", help="made by `framegate record`")
+    parser.add_argument("file", type=Path, metavar="FILE.mcap", help="made by framegate record")
     parser.add_argument(
         "--rate",
         type=non_negative_float,

@@ -35,7 +35,9 @@ def describe(name: str) -> str:
     """First paragraph of the service module's docstring, on one line (for ``framegate run
     --help``)."""
     module = importlib.import_module(_MODULES[name])
-    return " ".join((module.__doc__ or name).strip().split("\n\n")[0].split())
+    # Docstrings use reST literals (``frame``); a terminal shows them as plain words.
+    text = (module.__doc__ or name).strip().split("\n\n")[0].replace("``", "")
+    return " ".join(text.split())
 
 
 __all__ = ["SERVICES", "Service", "describe", "exit_with_parent", "service"]

@@ -8,6 +8,7 @@ import sys
 import pytest
 
 from tests.conftest import REPO, child_env, free_port
+from tests.helpers.timing import scaled
 
 pytestmark = pytest.mark.integration
 
@@ -23,7 +24,7 @@ def _start(script: str, *args: str) -> subprocess.Popen[str]:
 
 
 def _finish(proc: subprocess.Popen[str], timeout_s: float = 60) -> str:
-    out, _ = proc.communicate(timeout=timeout_s)
+    out, _ = proc.communicate(timeout=scaled(timeout_s))
     assert proc.returncode == 0, out
     return out
 

@@ -11,6 +11,7 @@ import threading
 import pytest
 
 from tests.conftest import REPO, child_env, free_port
+from tests.helpers.timing import scaled
 
 pytestmark = pytest.mark.integration
 
@@ -43,11 +44,11 @@ def test_offer_runs_until_ctrl_c_and_then_exits_0() -> None:
     try:
         lines = _lines(offer)
         # Well past the old fixed count of 10: it keeps going until told to stop.
-        puts = [lines.get(timeout=60) for _ in range(15)]
+        puts = [lines.get(timeout=scaled(60)) for _ in range(15)]
         assert all(p.startswith("put ") for p in puts), puts
         assert offer.poll() is None
         offer.send_signal(signal.SIGINT)
-        assert offer.wait(timeout=30) == 0
+        assert offer.wait(timeout=scaled(30)) == 0
         assert offer.stderr is not None and "Traceback" not in offer.stderr.read()
     finally:
         if offer.poll() is None:
@@ -56,7 +57,7 @@ def test_offer_runs_until_ctrl_c_and_then_exits_0() -> None:
 
 
 def _one_line_error(proc: subprocess.Popen[str]) -> str:
-    _out, err = proc.communicate(timeout=60)
+    _out, err = proc.communicate(timeout=scaled(60))
     assert proc.returncode == 1, err
     assert "Traceback" not in err and len(err.splitlines()) == 1, err
     assert err.startswith("error: "), err
@@ -77,7 +78,7 @@ def _error_without_the_example(script: str, *args: str) -> str:
             return _one_line_error(_start(script, "--connect", endpoint, *args))
         finally:
             router.send_signal(signal.SIGINT)
-            router.wait(timeout=30)
+            router.wait(timeout=scaled(30))
 
 
 def test_query_of_a_stopped_example_is_one_line() -> None:
@@ -89,7 +90,7 @@ def test_query_with_a_bad_range_is_one_line() -> None:
     offer = _start("offer.py", "--listen", endpoint, "--period-s", "0.05")
     try:
         lines = _lines(offer)
-        lines.get(timeout=60)  # it is up and has put something
+        lines.get(timeout=scaled(60))  # it is up and has put something
         _one_line_error(_start("query.py", "--connect", endpoint, "--range", "[now(-1x)..]"))
     finally:
         offer.kill()
@@ -112,7 +113,7 @@ def test_flag_values_that_would_crash_or_do_nothing_are_refused_as_parsed(
     script: str, args: tuple[str, ...], expected: str
 ) -> None:
     proc = _start(script, "--connect", f"tcp/127.0.0.1:{free_port()}", *args)
-    _out, err = proc.communicate(timeout=60)
+    _out, err = proc.communicate(timeout=scaled(60))
     assert proc.returncode == 2, err  # argparse's own usage error
     assert "Traceback" not in err and expected in err, err
 
@@ -132,11 +133,11 @@ def test_subscribe_and_query_show_a_binary_payload_by_its_size() -> None:
         env=child_env(), cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
     try:
-        out, err = sub.communicate(timeout=90)
+        out, err = sub.communicate(timeout=scaled(90))
         assert sub.returncode == 0 and "Traceback" not in err, err
         assert out.count(": 3072 bytes") == 2, out
         query = _start("query.py", "t/img", "--connect", endpoint, "--range", "[now(-60s)..]")
-        out, err = query.communicate(timeout=60)
+        out, err = query.communicate(timeout=scaled(60))
         assert query.returncode == 0 and "Traceback" not in err, err
         assert out.count(": 3072 bytes") >= 2 and "\\x" not in out, out
     finally:

@@ -52,6 +52,7 @@ from middleware import (
 from services.launch import pipeline_yaml
 from services.lib.messages import DecisionRecord
 from tests.conftest import REPO, child_env
+from tests.helpers.timing import scaled
 from tests.services.nodes.pipeline import Pipeline
 
 SERVICES = ("camera", "gyro", "mediator", "detector")
@@ -208,14 +209,14 @@ class PipelineFuzzer:
         self._last_key_ns = 0
         self._frame_id = 0
         self.pids = self._wait_for_services()
-        if not self.frames.wait_for_subscribers(1, timeout_s=60):
+        if not self.frames.wait_for_subscribers(1, timeout_s=scaled(60)):
             raise AssertionError("the mediator never subscribed to " + FUZZ_CAMERA)
         if cli_watchers:
             self._start_watchers()
 
     # -- set-up ---------------------------------------------------------------------------------
     def _wait_for_services(self) -> dict[str, int]:
-        deadline = time.monotonic() + 120
+        deadline = time.monotonic() + scaled(120)
         while time.monotonic() < deadline:
             pids = {s: self.pipe.pid(s) for s in SERVICES}
             if all(pids.values()):
@@ -351,7 +352,7 @@ class PipelineFuzzer:
 
     def _play_query(self, spec: dict[str, Any]) -> None:
         try:
-            self.pipe.node.query(spec["target"], time_range=spec["range"], timeout_s=5.0)
+            self.pipe.node.query(spec["target"], time_range=spec["range"], timeout_s=scaled(5.0))
             self.tally.counts["hostile-query-answered"] += 1
         except QueryError:
             self.tally.counts["hostile-query-refused"] += 1
@@ -449,7 +450,7 @@ class PipelineFuzzer:
         machine a fresh mediator took over 5 s to decide its first frame.
         """
         before = self.pipe.counter("mediator/images")
-        deadline = time.monotonic() + within_s
+        deadline = time.monotonic() + scaled(within_s)
         tries = 0
         while time.monotonic() < deadline:
             tries += 1
@@ -459,7 +460,8 @@ class PipelineFuzzer:
                 return
             time.sleep(0.25)
         raise AssertionError(
-            f"no good frame was forwarded in {within_s:g} s ({tries} tries)\n{self.pipe.log()}"
+            f"no good frame was forwarded in {scaled(within_s):g} s ({tries} tries)\n"
+            + self.pipe.log()
         )
 
     def stop_watchers(self) -> None:
@@ -467,7 +469,7 @@ class PipelineFuzzer:
             watcher.terminate()
         for watcher in self._watchers:
             try:
-                watcher.wait(timeout=10)
+                watcher.wait(timeout=scaled(10))
             except subprocess.TimeoutExpired:
                 watcher.kill()
                 watcher.wait()

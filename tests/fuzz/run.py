@@ -25,9 +25,14 @@ import zenoh
 
 from tests.conftest import NodeProcess, free_port
 from tests.helpers.raw_zenoh import open_session
+from tests.helpers.timing import scaled
 
 SERVICE, BUFFER = "fz", "buf"
 MAX_PAYLOAD = 1 << 20
+# Deadlines, not speed goals: generous for a machine ten times slower than the development
+# VM, and scaled by FRAMEGATE_TEST_TIMEOUT_SCALE (the node driver scales what it is sent).
+TAKE_TIMEOUT_S = 30.0
+QUERY_TIMEOUT_S = 30.0
 
 
 @dataclass
@@ -44,7 +49,11 @@ class Tally:
 
 
 def _query(session: zenoh.Session, selector: Any, tally: Tally, what: str) -> None:
-    replies = list(session.get(selector, consolidation=zenoh.ConsolidationMode.NONE, timeout=5))
+    replies = list(
+        session.get(
+            selector, consolidation=zenoh.ConsolidationMode.NONE, timeout=scaled(QUERY_TIMEOUT_S)
+        )
+    )
     if not replies:
         tally.counts["query-empty"] += 1  # e.g. a key no queryable matches
         return
@@ -127,7 +136,7 @@ def run(cases: int, seed: int, endpoint: str | None = None) -> Tally:
                     valid = False
                 metadata_b64 = base64.b64encode(doc).decode()
                 reply = service.call(
-                    "put", buffer=BUFFER, t=t, metadata_b64=metadata_b64, wait_s=5, **extra
+                    "put", buffer=BUFFER, t=t, metadata_b64=metadata_b64, wait_s=30, **extra
                 )
                 if reply["ok"]:
                     _flow_takes(flow, next_t, tally)
@@ -176,8 +185,10 @@ def run(cases: int, seed: int, endpoint: str | None = None) -> Tally:
                 tally.counts["forgeries-sent"] += 1
             if case % 250 == 249 or case == cases - 1:
                 _health(service, accepted, tally)
-        legit_stats = legit.call("take", target=f"{SERVICE}/{BUFFER}", timeout=1.0)
-        if accepted and legit_stats["notification"] is None:
+        legit_stats = legit.call("take", target=f"{SERVICE}/{BUFFER}", timeout=TAKE_TIMEOUT_S)
+        if not legit_stats["ok"]:
+            tally.fail(f"the legitimate subscriber's take failed: {legit_stats}")
+        elif accepted and legit_stats["notification"] is None:
             tally.fail("the legitimate subscriber received nothing")
         flow_stats = flow.call("stats", target=f"{SERVICE}/{BUFFER}")
         if flow_stats["missed_total"]:
@@ -199,10 +210,16 @@ def _flow_takes(flow: NodeProcess, t: int, tally: Tally) -> None:
     """The flow subscriber takes notifications until element ``t``'s; forged ones may come
     first (the trusted profile cannot tell them), real ones must come in order, unmissed."""
     while True:
-        took = flow.call("take", target=f"{SERVICE}/{BUFFER}", timeout=5)
+        took = flow.call("take", target=f"{SERVICE}/{BUFFER}", timeout=TAKE_TIMEOUT_S)
+        if not took["ok"]:
+            tally.fail(f"the flow subscriber's take failed waiting for element {t}: {took}")
+            return
         note = took["notification"]
         if note is None:
-            tally.fail(f"the flow subscriber never got element {t}")
+            tally.fail(
+                f"the flow subscriber got no notification within {scaled(TAKE_TIMEOUT_S):g} s"
+                f" while waiting for element {t}"
+            )
             return
         if note["missed"]:
             tally.fail(f"the flow subscriber reported {note['missed']} missed")

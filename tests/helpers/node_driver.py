@@ -3,6 +3,8 @@
 Tests start it with ``python -m tests.helpers.node_driver NAME [--connect/--listen ...]``
 and send one JSON command per line; it answers one JSON line each:
 {"ok": true, ...} or {"ok": false, "error": "<ExceptionClass>", "message": "..."}.
+Every wait a command asks for (``timeout``, ``wait_s``) is scaled by the suite's timeout
+scale (``tests/helpers/timing.py``), which the test process passes on in the environment.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from middleware import (
     make_metadata,
     network_from_args,
 )
+from tests.helpers.timing import scaled
 
 
 def _element_json(element: Any) -> dict[str, Any]:
@@ -123,7 +126,7 @@ def _do(
             metadata = cmd["metadata"]
         else:
             metadata = make_metadata(producer.kind, t if isinstance(t, int) else 0)
-        producer.put(t, payload, metadata, wait_s=float(cmd.get("wait_s", 0)))
+        producer.put(t, payload, metadata, wait_s=scaled(float(cmd.get("wait_s", 0))))
         return {}
     if op == "fill":
         producer = producers[cmd["buffer"]]
@@ -136,7 +139,7 @@ def _do(
         }
     if op == "wait_subscribers":
         ok = producers[cmd["buffer"]].wait_for_subscribers(
-            int(cmd["count"]), timeout_s=cmd["timeout"]
+            int(cmd["count"]), timeout_s=scaled(float(cmd["timeout"]))
         )
         return {"registered": ok}
     if op == "subscribe":
@@ -149,7 +152,7 @@ def _do(
         return {"id": sub.subscription_id}
     if op == "take":
         sub = subs[cmd["target"]]
-        note = sub.take(timeout_s=float(cmd.get("timeout", 2.0)))
+        note = sub.take(timeout_s=scaled(float(cmd.get("timeout", 2.0))))
         if note is None:
             return {"notification": None, "missed_total": sub.missed_total}
         element = sub.fetch(note)

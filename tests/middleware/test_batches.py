@@ -23,6 +23,7 @@ from middleware import (
 )
 from middleware._wire import BatchHeader, decode_notification_header, encode_batch_header
 from tests.conftest import wait_until
+from tests.helpers.timing import scaled
 
 pytestmark = pytest.mark.integration
 
@@ -44,7 +45,7 @@ def _pair(
     with Node(SERVICE, listen_net) as server, Node(network=connect_net) as client:
         rates = server.offer(BUFFER)
         sub = client.subscribe(f"{SERVICE}/{BUFFER}", queue_size=queue, push_max_bytes=push)
-        assert rates.wait_for_subscribers(1, timeout_s=5)
+        assert rates.wait_for_subscribers(1, timeout_s=scaled(5))
         yield rates, sub, client
 
 
@@ -67,7 +68,7 @@ def test_a_batch_is_refused_whole_when_the_queue_lacks_room_for_all_of_it(
         with pytest.raises(FlowControlRefused, match="never fit: put batches of at most 4"):
             rates.put_many(_batch(*range(10, 15)), wait_s=5.0)  # refused at once, not waited
         wait_until(lambda: sub.pending == 4, 5, "the fourth notification")
-        assert [n.timestamp_ns for n in sub.take_many(10, timeout_s=5)] == [1, 2, 3, 4]
+        assert [n.timestamp_ns for n in sub.take_many(10, timeout_s=scaled(5))] == [1, 2, 3, 4]
 
 
 def test_a_batch_with_timestamps_out_of_order_stores_nothing(
@@ -105,7 +106,7 @@ def test_take_many_takes_a_whole_batch_with_one_ack(
         )
         rates.put_many(_batch(*range(1, 7)))
         wait_until(lambda: sub.pending == 6, 5, "six notifications queued")
-        notes = sub.take_many(10, timeout_s=5)
+        notes = sub.take_many(10, timeout_s=scaled(5))
         assert [(n.timestamp_ns, n.seq) for n in notes] == [(t, t) for t in range(1, 7)]
         wait_until(lambda: _queued(rates) == 0, 5, "the producer seeing the batch taken")
         wait_until(lambda: acks, 5, "the spy seeing the ack")
@@ -122,8 +123,8 @@ def test_single_puts_and_batches_mix_in_one_stream(
         rates.put(*_element(5))
         rates.put_many(_batch(6, 7))
         wait_until(lambda: sub.pending == 7, 5, "seven notifications queued")
-        first = sub.take(timeout_s=5)
-        rest = sub.take_many(3, timeout_s=5) + sub.take_many(10, timeout_s=5)
+        first = sub.take(timeout_s=scaled(5))
+        rest = sub.take_many(3, timeout_s=scaled(5)) + sub.take_many(10, timeout_s=scaled(5))
         notes = [first, *rest]
         assert [(n.timestamp_ns, n.seq, n.missed) for n in notes if n] == [
             (t, t, 0) for t in range(1, 8)
@@ -139,8 +140,8 @@ def test_a_batch_beyond_the_push_limit_is_fetched_element_by_element(
 ) -> None:
     with _pair(listen_net, connect_net, queue=4, push=0) as (rates, sub, _):
         rates.put_many(_batch(1, 2, 3))
-        notes = wait_until(lambda: sub.take_many(3, timeout_s=0.1), 5, "the batch")
-        notes += sub.take_many(3, timeout_s=1) if len(notes) < 3 else []
+        notes = wait_until(lambda: sub.take_many(3, timeout_s=scaled(0.1)), 5, "the batch")
+        notes += sub.take_many(3, timeout_s=scaled(1)) if len(notes) < 3 else []
         assert all(n.element is None for n in notes)
         assert [sub.fetch(n).payload for n in notes] == [b"p1", b"p2", b"p3"]
 
@@ -159,10 +160,10 @@ def test_a_flow_subscriber_taking_slowly_misses_no_element_of_many_batches(
         producer.start()
         seen: list[tuple[int, int]] = []
         while len(seen) < 90:
-            notes = sub.take_many(2, timeout_s=10)
+            notes = sub.take_many(2, timeout_s=scaled(10))
             assert notes, f"stalled after {len(seen)} elements"
             seen += [(n.timestamp_ns, n.missed) for n in notes]
-        producer.join(timeout=10)
+        producer.join(timeout=scaled(10))
         assert seen == [(t, 0) for t in range(1, 91)]
         assert rates.info().refused == 0
 
@@ -219,7 +220,7 @@ def test_a_subscriber_that_took_everything_and_went_away_frees_the_producer_at_o
     with _pair(listen_net, connect_net, queue=8) as (rates, sub, _):
         rates.put_many(_batch(1, 2, 3))
         wait_until(lambda: sub.pending == 3, 5, "three notifications queued")
-        assert len(sub.take_many(3, timeout_s=5)) == 3
+        assert len(sub.take_many(3, timeout_s=scaled(5))) == 3
         # No further take: the caller is "processing".
         wait_until(lambda: _queued(rates) == 0, 2, "the delayed ack from the flusher")
         rates.put_many(_batch(*range(4, 12)), wait_s=0.0)  # the whole queue is free again

@@ -3,7 +3,7 @@ from __future__ import annotations
 import sys
 
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from middleware import DataObject, DuplicateTimestampError, PayloadTooLargeError, Retention
@@ -79,6 +79,7 @@ def test_compaction_keeps_lookups_right() -> None:
     assert series.exact(4900) is not None and series.exact(4899) is None
 
 
+@settings(deadline=None)  # no wall-clock bound per example
 @given(
     st.lists(st.integers(0, 10_000), unique=True, max_size=60),
     st.integers(-10, 10_010),
@@ -122,6 +123,7 @@ def _kept_by_rule(elements: list[DataObject], r: Retention) -> list[DataObject]:
     return kept
 
 
+@settings(deadline=None)  # no wall-clock bound per example
 @given(
     st.lists(st.tuples(st.integers(1, 50), st.integers(0, 40)), min_size=1, max_size=80),
     st.lists(st.integers(1, 6), min_size=1, max_size=20),
@@ -154,6 +156,7 @@ def test_batches_evict_exactly_as_single_appends_by_the_rule(
     assert series.total_bytes == sum(e.size_bytes for e in expected)
 
 
+@settings(deadline=None)  # no wall-clock bound per example
 @given(
     st.lists(st.integers(1, 1000), unique=True).map(sorted),
     st.integers(0, 1001),

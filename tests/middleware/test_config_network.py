@@ -17,6 +17,7 @@ import zenoh
 from middleware import ConfigError, NetworkConfig, Node, check_name
 from middleware._config import listening_endpoints, zenoh_message
 from tests.conftest import REPO, NodeProcess, child_env, free_port, wait_until
+from tests.helpers.timing import scaled
 
 
 @pytest.mark.parametrize("name", ["camera\n", "camera\r\n", "cam\x00", "cam\tera", "\ncamera"])
@@ -111,7 +112,7 @@ def router() -> Iterator[str]:
         yield endpoint
     finally:
         proc.terminate()
-        proc.wait(timeout=10)
+        proc.wait(timeout=scaled(10))
 
 
 def _offer_and_find(producer: NodeProcess, consumer: NodeProcess) -> None:

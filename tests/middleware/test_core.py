@@ -23,6 +23,7 @@ from middleware._protocol_producer import FLOW_QUEUE_MAX
 from middleware._wire import MAX_QUEUE_SIZE, Keys
 from tests.conftest import wait_until
 from tests.helpers.raw_zenoh import open_session
+from tests.helpers.timing import scaled
 
 
 def _meta(t: int) -> bytes:
@@ -95,7 +96,7 @@ def test_observers_cannot_take_a_flow_subscribers_slot(listen_net, endpoint, con
             wait_until(lambda: images.info().refused_subscriptions >= 44, 10.0, "observers full")
             sub = client.subscribe("cam/images", queue_size=1)
             images.put(1, b"a", _meta(1))
-            assert sub.take(timeout_s=5.0) is not None
+            assert sub.take(timeout_s=scaled(5.0)) is not None
             images.put(2, b"b", _meta(2), wait_s=5.0)  # once the take's ack arrived
             with pytest.raises(FlowControlRefused):
                 images.put(3, b"c", _meta(3))  # the flow subscriber holds the producer back
@@ -151,10 +152,10 @@ def test_a_delayed_ack_leaves_without_the_caller_coming_back(listen_net, connect
         sub = client.subscribe("cam/images", queue_size=8)
         for t in range(1, 4):
             images.put(t, b"x", _meta(t))
-        assert len(sub.take_many(8, timeout_s=5.0)) >= 1
+        assert len(sub.take_many(8, timeout_s=scaled(5.0))) >= 1
         wait_until(lambda: images.fill() == 0.0 or sub.pending, 5.0, "the held ack")
         while sub.pending:
-            sub.take_many(8, timeout_s=1.0)
+            sub.take_many(8, timeout_s=scaled(1.0))
         wait_until(lambda: images.fill() == 0.0, 5.0, "producer freed by the loop's ack")
 
 
@@ -201,7 +202,7 @@ def test_a_fetching_subscription_keeps_its_queue_of_fetches_in_flight(
         producer.start()
         got: list[tuple[int, bytes]] = []
         while len(got) < 40:
-            notes = sub.take_many(8, timeout_s=5.0)
+            notes = sub.take_many(8, timeout_s=scaled(5.0))
             assert notes, "no notification within 5 s"
             for note in notes:
                 assert note.element is None  # nothing pushed: each element is fetched
@@ -262,13 +263,13 @@ def test_a_flood_of_forged_messages_loses_nothing_accepted_and_blocks_nobody(
             producer.start()
             taken: list[int] = []
             while len(taken) < 60:
-                note = sub.take(timeout_s=20.0)
+                note = sub.take(timeout_s=scaled(20.0))
                 assert note is not None, f"stalled after {taken[-3:]}"
                 if note.metadata == b"m":
                     continue  # a forgery of an epoch it had not met yet: indistinguishable
                 taken.append(note.timestamp_ns)
                 assert sub.fetch(note).payload == note.timestamp_ns.to_bytes(2, "big")
-            producer.join(timeout=20.0)
+            producer.join(timeout=scaled(20.0))
             assert not producer.is_alive()
         finally:
             stop.set()
@@ -287,7 +288,7 @@ def test_subscribe_to_a_service_that_is_not_live_is_refused_unless_awaited(
         early = client.subscribe("later/data", wait_s=0, await_service=True)
         with Node("later", NetworkConfig(connect=connect_net.connect)) as later:
             data = later.offer("data")
-            assert data.wait_for_subscribers(1, timeout_s=10)  # registered when it appeared
+            assert data.wait_for_subscribers(1, timeout_s=scaled(10))  # registered when it appeared
             data.put(1, b"x", _meta(1))
-            note = early.take(timeout_s=5)
+            note = early.take(timeout_s=scaled(5))
             assert note is not None and note.timestamp_ns == 1

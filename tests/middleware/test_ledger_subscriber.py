@@ -47,7 +47,7 @@ def _state(ledger: SubscriberLedger[int]) -> tuple[object, ...]:
     )
 
 
-@settings(max_examples=600)
+@settings(deadline=None, max_examples=600)
 @given(
     mode=st.sampled_from(list(SubscriptionMode)),
     queue_size=st.integers(1, 4),

@@ -30,6 +30,7 @@ from middleware._buffer import TimeSeries
 from middleware._records import DataObject, Retention
 from tests.conftest import wait_until
 from tests.helpers.raw_zenoh import open_session
+from tests.helpers.timing import scaled
 
 pytestmark = pytest.mark.integration
 
@@ -55,14 +56,14 @@ def _pair(
     with Node(SERVICE, listen_net) as server, Node(network=connect_net) as client:
         images = server.offer(BUFFER)
         sub = client.subscribe(f"{SERVICE}/{BUFFER}", queue_size=queue)
-        assert images.wait_for_subscribers(1, timeout_s=5)
+        assert images.wait_for_subscribers(1, timeout_s=scaled(5))
         yield images, sub, client
 
 
 def _drain(sub: Subscription, timeout_s: float = 1.0) -> list[int]:
     """Take notifications until none arrives for ``timeout_s``; their timestamps."""
     seen = []
-    while (note := sub.take(timeout_s=timeout_s)) is not None:
+    while (note := sub.take(timeout_s=scaled(timeout_s))) is not None:
         seen.append(note.timestamp_ns)
     return seen
 
@@ -103,7 +104,7 @@ def test_foreign_epoch_notification_does_not_block_a_full_producer(
         # Nothing the producer stored is lost, and once taken the producer is free again.
         assert [t for t in taken if t != FORGED_T] == [1, 2]
         _put(images, 3, wait_s=5.0)
-        note = sub.take(timeout_s=5)
+        note = sub.take(timeout_s=scaled(5))
         assert note is not None and note.timestamp_ns == 3
         assert sub.missed_total == 0
 
@@ -116,7 +117,7 @@ def test_forged_future_seq_neither_drops_real_notifications_nor_reports_missed(
             spy = _SpyEpoch(rogue, sub.subscription_id)
             wait_until(lambda: _put(images, 1) is None, 5, "the first put")
             assert spy.seen.wait(5)
-            first = sub.take(timeout_s=5)
+            first = sub.take(timeout_s=scaled(5))
             assert first is not None and first.timestamp_ns == 1
             rogue.put(
                 f"framegate/@notify/{SERVICE}/{BUFFER}/{sub.subscription_id}",
@@ -126,7 +127,7 @@ def test_forged_future_seq_neither_drops_real_notifications_nor_reports_missed(
             spy.close()
         for t in (2, 3, 4):
             _put(images, t, wait_s=5.0)
-            note = sub.take(timeout_s=5)
+            note = sub.take(timeout_s=scaled(5))
             assert note is not None and note.timestamp_ns == t, note
             assert note.missed == 0
         assert sub.missed_total == 0
@@ -149,7 +150,7 @@ def test_colliding_observe_token_cannot_remove_a_flow_subscription(
         assert left.subscription_id == sub_id and left.mode.value == "flow"
         _put(images, 1)
         assert images.fill() == pytest.approx(0.5)  # the load is still counted
-        note = sub.take(timeout_s=5)
+        note = sub.take(timeout_s=scaled(5))
         assert note is not None and note.timestamp_ns == 1
 
 
@@ -224,10 +225,10 @@ def test_failed_notification_send_does_not_lose_the_credit(
         images._session = flaky  # type: ignore[assignment]
         flaky.failures = 1
         _put(images, 1)  # stored; its notification fails to leave
-        note = sub.take(timeout_s=5)
+        note = sub.take(timeout_s=scaled(5))
         assert note is not None and note.timestamp_ns == 1
         _put(images, 2, wait_s=5.0)
-        note = sub.take(timeout_s=5)
+        note = sub.take(timeout_s=scaled(5))
         assert note is not None and note.timestamp_ns == 2
 
 
@@ -240,7 +241,7 @@ def test_notification_send_does_not_hold_the_callback_lock(
         images._session = flaky  # type: ignore[assignment]
         _put(images, 1)
         assert flaky.lock_free_during_put == [True]
-        assert sub.take(timeout_s=5) is not None
+        assert sub.take(timeout_s=scaled(5)) is not None
 
 
 def test_token_flaps_do_not_leak_publishers(
@@ -278,14 +279,17 @@ def test_a_closed_subscription_reads_and_takes_nothing_without_raising(
     # Its inbox (a Zenoh ring) raises once undeclared; a taker blocked in it is released.
     with _pair(listen_net, connect_net, 4) as (images, sub, _client):
         taken: list[object] = []
-        taker = threading.Thread(target=lambda: taken.append(sub.take(timeout_s=5)))
+        taker = threading.Thread(target=lambda: taken.append(sub.take(timeout_s=scaled(5))))
         taker.start()
         wait_until(lambda: sub._receiver.active, 5, "the taker to block in the inbox")
         sub.close()
-        taker.join(timeout=2)
+        taker.join(timeout=scaled(2))
         assert not taker.is_alive() and taken == [None]
         assert (sub.pending, sub.garbage, sub.missed_total) == (0, 0, 0)
-        assert sub.take(timeout_s=0.1) is None and sub.take_many(3, timeout_s=0.1) == []
+        assert (
+            sub.take(timeout_s=scaled(0.1)) is None
+            and sub.take_many(3, timeout_s=scaled(0.1)) == []
+        )
         images.close()
         assert images.fill() == 0.0 and images.subscriptions() == []
 

@@ -1,7 +1,7 @@
 from __future__ import annotations
 
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from middleware import QueryError, TimeRange, parse_duration_ns, parse_time_ns, parse_time_range
@@ -84,6 +84,7 @@ def test_malformed_ranges_name_the_problem(text: str, message: str | None) -> No
         parse_time_range(text, NOW)
 
 
+@settings(deadline=None)  # no wall-clock bound per example
 @given(st.integers(0, 2**62), st.integers(0, 2**40))
 def test_integer_ranges_round_trip_through_the_selector_value(start: int, length: int) -> None:
     rng = TimeRange(start, start + length)
@@ -126,11 +127,13 @@ def _check_parses_within_bounds_or_raises_query_error(text: str) -> None:
         assert rng.start_ns <= rng.end_ns
 
 
+@settings(deadline=None)  # no wall-clock bound per example
 @given(st.text(max_size=60))
 def test_any_text_parses_within_bounds_or_raises_query_error(text: str) -> None:
     _check_parses_within_bounds_or_raises_query_error(text)
 
 
+@settings(deadline=None)  # no wall-clock bound per example
 @given(
     st.lists(
         st.one_of(_PIECES, st.integers(-(2**70), 2**70).map(str), st.text(max_size=3)),
@@ -141,6 +144,7 @@ def test_range_shaped_text_parses_within_bounds_or_raises_query_error(text: str)
     _check_parses_within_bounds_or_raises_query_error(text)
 
 
+@settings(deadline=None)  # no wall-clock bound per example
 @given(
     st.sampled_from(["[", "]"]),
     st.integers(-(2**66), 2**66),

@@ -10,6 +10,7 @@ import pytest
 import zenoh
 
 from tests.conftest import NodeProcess, wait_until
+from tests.helpers.timing import scaled
 
 pytestmark = pytest.mark.integration
 
@@ -33,7 +34,7 @@ def test_raw_zenoh_client_reads_a_time_range(
             for reply in session.get(
                 "framegate/cam/images?_time=[200..400]",
                 consolidation=zenoh.ConsolidationMode.NONE,
-                timeout=2,
+                timeout=scaled(2),
             ):
                 if reply.ok is not None:
                     head = msgpack.unpackb(reply.ok.attachment.to_bytes())
@@ -46,7 +47,7 @@ def test_raw_zenoh_client_reads_a_time_range(
 
         errors = [
             r.err.payload.to_string()
-            for r in session.get("framegate/cam/images?last=zero", timeout=2)
+            for r in session.get("framegate/cam/images?last=zero", timeout=scaled(2))
             if r.err is not None
         ]
         assert errors == ["bad-query: last='zero' is not an integer"]

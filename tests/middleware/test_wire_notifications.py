@@ -6,7 +6,7 @@ from typing import Any
 
 import msgpack
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from middleware import NetworkConfig, Node, make_metadata
@@ -19,6 +19,7 @@ from middleware._wire import (
 )
 from tests.conftest import wait_until
 from tests.helpers.raw_zenoh import open_session
+from tests.helpers.timing import scaled
 
 META = make_metadata("generic", 7)
 
@@ -121,6 +122,7 @@ def _well_typed(head: Header | BatchHeader) -> bool:
     )
 
 
+@settings(deadline=None)  # no wall-clock bound per example
 @given(st.one_of(st.binary(max_size=64), st.lists(_values, min_size=6, max_size=9).map(_array)))
 def test_any_input_decodes_to_a_well_typed_header_or_a_value_error(raw: bytes) -> None:
     try:
@@ -154,7 +156,7 @@ def test_a_subscription_counts_malformed_compact_headers_as_garbage(
             for payload, attachment in garbage:
                 rogue.put(key, payload, attachment=attachment)
             rogue.put(key, b"p2", attachment=valid(2))  # one link: it arrives after the rest
-            notes = [sub.take(timeout_s=5), sub.take(timeout_s=5)]
+            notes = [sub.take(timeout_s=scaled(5)), sub.take(timeout_s=scaled(5))]
         assert [(n.timestamp_ns, n.element.payload) for n in notes if n and n.element] == [
             (1, b"p1"),
             (2, b"p2"),

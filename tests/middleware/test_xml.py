@@ -3,7 +3,7 @@ from __future__ import annotations
 import math
 
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import schemas
@@ -15,6 +15,7 @@ from middleware import (
     parse_untrusted,
     validate_metadata,
 )
+from tests.helpers.timing import scaled
 
 NS = 'xmlns="urn:framegate:1"'
 
@@ -125,6 +126,7 @@ def test_element_count_limit() -> None:
         parse_untrusted(doc, XmlLimits(max_elements=10))
 
 
+@settings(deadline=None)  # no wall-clock bound per example
 @given(
     depth=st.integers(1, 6),
     width=st.integers(0, 6),
@@ -148,6 +150,7 @@ def test_size_limits_hold_exactly_whatever_the_shortcut(
         parse_untrusted(doc, limits)
 
 
+@settings(deadline=None)  # no wall-clock bound per example
 @given(st.binary(max_size=300))
 def test_arbitrary_bytes_parse_or_raise_schema_error(data: bytes) -> None:
     try:
@@ -269,6 +272,7 @@ def test_sizes_exposures_and_rates_that_cannot_be_are_refused(
         validate_metadata(make_metadata(kind, 5, _with(fields, path, value)), kind)
 
 
+@settings(deadline=None)  # no wall-clock bound per example
 @given(st.floats(allow_nan=True, allow_infinity=True))
 def test_a_focal_length_is_valid_exactly_when_finite_and_positive(fx_px: float) -> None:
     doc = make_metadata("camera", 5, {"camera": {**CAMERA, "fx_px": fx_px}})
@@ -331,6 +335,6 @@ def test_schemas_loaded_first_from_several_threads_at_once_all_compile() -> None
             env=child_env(),
             capture_output=True,
             text=True,
-            timeout=60,
+            timeout=scaled(60),
         )
         assert run.stdout.strip() == "[]", run.stdout + run.stderr

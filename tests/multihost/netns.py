@@ -26,6 +26,7 @@ from typing import IO, Any
 import pytest
 
 from tests.conftest import REPO, child_env
+from tests.helpers.timing import scaled
 
 SUBNET = "10.213.{n}.0/24"
 NETEM_UNKNOWN = "Specified qdisc kind is unknown"
@@ -47,7 +48,7 @@ class Host:
 
 def _ip(*args: str, netns: str | None = None) -> subprocess.CompletedProcess[str]:
     cmd = ["ip", *args] if netns is None else ["ip", "netns", "exec", netns, "ip", *args]
-    return subprocess.run(cmd, capture_output=True, text=True, timeout=10)
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=scaled(10))
 
 
 def _check(result: subprocess.CompletedProcess[str]) -> None:
@@ -160,7 +161,7 @@ class Lab:
         _check(_ip("link", "set", self.base.veth, "up", netns=self.base.netns))
 
     def ping(self, src: Host, dst: Host) -> bool:
-        out = self.run(src, ["ping", "-c", "1", "-W", "1", dst.address], timeout_s=5)
+        out = self.run(src, ["ping", "-c", "1", "-W", "1", dst.address], timeout_s=scaled(5))
         return out.returncode == 0
 
     def netem(self, spec: list[str]) -> str | None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Iterator
 
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from middleware import ConfigError, NotFoundError, ServiceInfo
@@ -55,6 +55,7 @@ def test_symmetric_round_trip_gives_the_exact_offset() -> None:
     assert sample == ClockSample(offset_ns=5 * MS, round_trip_ns=1 * MS)
 
 
+@settings(deadline=None)  # no wall-clock bound per example
 @given(
     offset=st.integers(-(10**12), 10**12),
     out=st.integers(0, 10**9),

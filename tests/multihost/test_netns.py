@@ -26,6 +26,7 @@ import pytest
 from services.launch import load_deployment
 from services.lib.clock import CLOCK_WARN_NS
 from tests.conftest import REPO, wait_until
+from tests.helpers.timing import scaled
 from tests.multihost.netns import Host, Lab
 
 pytestmark = pytest.mark.integration
@@ -301,7 +302,7 @@ def test_clock_offsets_between_hosts_are_bounded_and_a_skewed_host_is_flagged(
                 "--polls",
                 "1",
             ],
-            timeout_s=60,
+            timeout_s=scaled(60),
         )
         assert probe.returncode == 0, probe.stderr
         clock = {e["service"]: e for e in json.loads(probe.stdout.splitlines()[0])["clock"]}
@@ -438,7 +439,7 @@ def test_pipeline_works_with_latency_and_loss_on_the_link(two_hosts: TwoHosts) -
                 "--polls",
                 "1",
             ],
-            timeout_s=60,
+            timeout_s=scaled(60),
         )
         clock = json.loads(probe.stdout.splitlines()[0])["clock"][0]
         note(

@@ -16,6 +16,7 @@ import zenoh
 
 from middleware import FramegateError, NetworkConfig, Node
 from tests.conftest import REPO, child_env, free_port, wait_until
+from tests.helpers.timing import scaled
 
 MAKE_CERTS = REPO / "deploy" / "tls" / "make-certs.sh"
 # The roles of deploy/secure-router.json5 plus one certificate the router knows nothing about.
@@ -37,7 +38,10 @@ def make_certs(out: Path, *names: str) -> None:
     if shutil.which("openssl") is None:
         pytest.skip("openssl is not installed: cannot generate test certificates")
     done = subprocess.run(
-        ["bash", str(MAKE_CERTS), str(out), *names], capture_output=True, text=True, timeout=60
+        ["bash", str(MAKE_CERTS), str(out), *names],
+        capture_output=True,
+        text=True,
+        timeout=scaled(60),
     )
     assert done.returncode == 0, done.stdout + done.stderr
 
@@ -118,7 +122,7 @@ def start_router(certs: Certs, config: Path | None = None) -> SecureRouter:
 def stop_router(router: SecureRouter) -> None:
     router.proc.terminate()
     try:
-        router.proc.wait(timeout=10)
+        router.proc.wait(timeout=scaled(10))
     except subprocess.TimeoutExpired:
         router.proc.kill()
         router.proc.wait()

@@ -25,6 +25,7 @@ import zenoh
 
 from middleware import FramegateError, Node, SubscriptionMode, make_metadata
 from tests.conftest import REPO, NodeProcess, child_env, wait_until
+from tests.helpers.timing import scaled
 from tests.security.conftest import SecureRouter
 
 pytestmark = pytest.mark.integration
@@ -78,7 +79,7 @@ def _ls(router: SecureRouter) -> list[dict[str, Any]]:
         env=child_env(),
         capture_output=True,
         text=True,
-        timeout=60,
+        timeout=scaled(60),
     )
     assert done.returncode == 0, done.stderr
     services: list[dict[str, Any]] = json.loads(done.stdout)["services"]
@@ -137,7 +138,7 @@ def test_cli_may_observe_but_not_hold_the_camera_back(
             assert camera.call("put", buffer="images", t=t)["ok"]
         modes = [s["mode"] for s in camera.call("fill", buffer="images")["subscriptions"]]
         assert modes == ["observe"]
-        note = observer.take(timeout_s=5)
+        note = observer.take(timeout_s=scaled(5))
         assert note is not None and note.timestamp_ns == 6 * MS
 
 
@@ -258,4 +259,4 @@ def test_the_secure_profile_runs_the_whole_pipeline(
             assert cli.get("camera/images", accepted.timestamp_ns).payload == accepted.payload
     finally:
         launch.terminate()
-        launch.wait(timeout=30)
+        launch.wait(timeout=scaled(30))

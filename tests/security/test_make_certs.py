@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 
 from middleware import Node
+from tests.helpers.timing import scaled
 from tests.security.conftest import MAKE_CERTS, Certs, make_certs, start_router, stop_router
 
 
@@ -18,7 +19,7 @@ def _run(out: Path, *names: str, **env: str) -> subprocess.CompletedProcess[str]
         ["bash", str(MAKE_CERTS), str(out), *names],
         capture_output=True,
         text=True,
-        timeout=60,
+        timeout=scaled(60),
         env={**os.environ, **env},
     )
 

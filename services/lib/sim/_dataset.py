@@ -106,10 +106,17 @@ def read_dataset(root: str | Path) -> Dataset:
     return Dataset(root, camera, frames, files, gyro, truth, scenario)
 
 
+# Shipped beside this module (package data), so the path is right in any installation.
+LAYOUT_DOC = Path(__file__).with_name("DATASET.md")
+
+
 def _need(root: Path, name: str) -> Path:
     path = root / name
     if not path.is_file():
-        raise DatasetError(f"dataset {root} has no {name}; see DATASET.md for the layout")
+        raise DatasetError(
+            f"dataset {root} has no {name}: not a dataset as `framegate simulate` writes it; "
+            f"the layout is in {LAYOUT_DOC}"
+        )
     return path
 
 

@@ -16,6 +16,7 @@ import pytest
 
 from middleware import NetworkConfig, Node, Producer, make_metadata
 from tests.conftest import REPO, child_env
+from tests.helpers.timing import scaled
 
 WIDTH, HEIGHT = 8, 6
 MS = 1_000_000
@@ -99,7 +100,7 @@ class Cli:
         ]
         results = []
         for args, proc in procs:
-            out, err = proc.communicate(timeout=timeout_s)
+            out, err = proc.communicate(timeout=scaled(timeout_s))
             results.append(Result(args, proc.returncode, out, err))
         return results
 
@@ -142,7 +143,7 @@ class LineReader:
         threading.Thread(target=pump, daemon=True).start()
 
     def json_until(self, predicate: Callable[[dict[str, Any]], bool], timeout_s: float) -> Any:
-        deadline = time.monotonic() + timeout_s
+        deadline = time.monotonic() + scaled(timeout_s)
         while True:
             remaining = deadline - time.monotonic()
             if remaining <= 0:

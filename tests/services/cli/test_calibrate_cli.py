@@ -11,6 +11,7 @@ import pytest
 
 from services.lib.sim import Bump, ScenarioConfig, simulate
 from tests.conftest import REPO, child_env
+from tests.helpers.timing import scaled
 
 
 @pytest.fixture(scope="module")
@@ -41,7 +42,7 @@ def test_calibrate_derives_b0_from_recognition_against_blur(shaky_dataset: Path)
         text=True,
         cwd=REPO,
         env=child_env(),
-        timeout=120,
+        timeout=scaled(120),
     )
     if out.returncode != 0:
         # Not enough blur in a short sequence is a user-facing, one-line answer.

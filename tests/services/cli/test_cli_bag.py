@@ -19,6 +19,7 @@ from services.lib.messages import DecisionRecord, detections_metadata, gyro_meta
 from services.lib.quality import GyroSamples
 from services.tools.bag import BagWriter, open_bag
 from tests.conftest import free_port, wait_until
+from tests.helpers.timing import scaled
 from tests.services.cli.conftest import (
     HEIGHT,
     MS,
@@ -49,8 +50,8 @@ def test_record_then_play_gives_back_identical_buffers(
             "record", "cam/images", "cam/log", "-o", str(bag), "--count", str(COUNT),
             "--queue", "1", "--json",
         )  # fmt: skip
-        assert images.wait_for_subscribers(1, timeout_s=30)
-        assert log.wait_for_subscribers(1, timeout_s=30)
+        assert images.wait_for_subscribers(1, timeout_s=scaled(30))
+        assert log.wait_for_subscribers(1, timeout_s=scaled(30))
         base = time.time_ns()
         for i in range(COUNT):  # a burst, as fast as the producer can go
             t = base + i * MS
@@ -91,7 +92,7 @@ def test_record_then_play_gives_back_identical_buffers(
             assert [(e.timestamp_ns, e.payload, e.metadata) for e in replayed] == expected
         assert client.buffer_info("cam/images").retention == retention
     player.send_signal(signal.SIGTERM)  # Ctrl-C equivalent: closes cleanly
-    assert player.wait(timeout=20) == 0
+    assert player.wait(timeout=scaled(20)) == 0
 
 
 def _elements(node: Node, target: str) -> list[tuple[int, bytes, bytes]]:
@@ -161,7 +162,7 @@ def test_play_paces_and_rebases_onto_the_wall_clock(cli: Cli, tmp_path: Path) ->
     # Metadata moved along: the envelope and the exposure start, not the exposure time.
     assert played[2].metadata == frame_metadata(recorded[2] + shift, 2)
     player.send_signal(signal.SIGTERM)
-    assert player.wait(timeout=20) == 0
+    assert player.wait(timeout=scaled(20)) == 0
 
 
 def test_record_writes_verdict_and_detection_annotations_with_foxglove_schemas(
@@ -180,7 +181,7 @@ def test_record_writes_verdict_and_detection_annotations_with_foxglove_schemas(
             "-o", str(bag), "--count", "3", "--json",
         )  # fmt: skip
         for producer in (images, decisions, detections, rates):
-            assert producer.wait_for_subscribers(1, timeout_s=30)
+            assert producer.wait_for_subscribers(1, timeout_s=scaled(30))
         for i, t in enumerate(frames):
             put_frame(images, t, i)
             # Verdict borders are drawn to the size of the frames recorded so far: let the

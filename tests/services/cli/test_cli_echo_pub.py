@@ -12,6 +12,7 @@ from middleware import NetworkConfig, Node, SubscriptionMode, validate_metadata
 from services.cli._fields import decode_metadata, typed
 from services.cli.pub import KINDS
 from tests.conftest import wait_until
+from tests.helpers.timing import scaled
 from tests.services.cli.conftest import DISCOVERY_TIMEOUT_S, Cli, LineReader, put_frame
 
 SECOND = 1_000_000_000
@@ -44,8 +45,8 @@ def test_echo_prints_typed_fields_of_what_pub_publishes(cli: Cli, endpoint: str)
         "--listen", endpoint, connect=False,
     )  # fmt: skip
     rows = [reader.json_until(lambda r: True, DISCOVERY_TIMEOUT_S * 3) for _ in range(3)]
-    assert echo.wait(timeout=60) == 0
-    assert pub.wait(timeout=60) == 0, pub.stderr.read()
+    assert echo.wait(timeout=scaled(60)) == 0
+    assert pub.wait(timeout=scaled(60)) == 0, pub.stderr.read()
     assert [r["fields"]["frame_id"] for r in rows] == [0, 1, 2]
     first = rows[0]
     assert first["kind"] == "frame" and first["fields"]["width_px"] == 64
@@ -59,7 +60,7 @@ def test_pub_json_prints_one_object_per_element_then_done(cli: Cli, endpoint: st
         "pub", "t/j", "--kind", "generic", "--count", "2", "--rate", "50", "--linger", "0",
         "--json", "--listen", endpoint, connect=False,
     )  # fmt: skip
-    out, err = pub.communicate(timeout=60)
+    out, err = pub.communicate(timeout=scaled(60))
     assert pub.returncode == 0, err
     rows = [json.loads(line) for line in out.splitlines()]
     assert [r["event"] for r in rows] == ["published", "published", "done"], out
@@ -79,7 +80,7 @@ def test_echo_field_prints_one_value_per_element(service: Node, cli: Cli) -> Non
     base = time.time_ns()
     put_frame(images, base, 7)
     put_frame(images, base + 1000, 8)
-    out, err = echo.communicate(timeout=60)
+    out, err = echo.communicate(timeout=scaled(60))
     assert echo.returncode == 0, err
     assert out.split() == ["7", "8"]
 
@@ -90,7 +91,7 @@ def test_echo_names_a_missing_field(service: Node, cli: Cli) -> None:
     echo = cli.start("echo", "cam/images", "--field", "frame_ide")
     wait_until(lambda: bool(images.subscriptions()), DISCOVERY_TIMEOUT_S * 3, "echo")
     put_frame(images, time.time_ns(), 1)
-    _out, err = echo.communicate(timeout=60)
+    _out, err = echo.communicate(timeout=scaled(60))
     assert echo.returncode == 1
     assert "no field 'frame_ide' (did you mean frame_id?)" in err, err
     assert "Traceback" not in err
@@ -103,7 +104,7 @@ def test_ls_and_info_show_the_node_and_host_of_each_subscription(
     images = service.offer("images", kind="frame")
     with Node("watcher", NetworkConfig(connect=(endpoint,))) as watcher:
         watcher.subscribe("cam/images", queue_size=3, mode=SubscriptionMode.OBSERVE)
-        assert images.wait_for_subscribers(1, timeout_s=10)
+        assert images.wait_for_subscribers(1, timeout_s=scaled(10))
         listing, info, data = cli.run_many(
             [("ls",), ("info", "cam/images"), ("info", "cam/images", "--json")]
         )

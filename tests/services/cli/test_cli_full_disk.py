@@ -13,6 +13,7 @@ import pytest
 from middleware import NetworkConfig, Node, Retention, make_metadata
 from services.tools.bag import recording_info
 from tests.conftest import wait_until
+from tests.helpers.timing import scaled
 from tests.services.cli.conftest import TIMEOUT_S, Cli
 
 pytestmark = pytest.mark.integration
@@ -43,12 +44,12 @@ def test_full_disk_stops_the_recording_with_one_line(
             "record", "cam/log", "-o", str(tiny_disk / "run.mcap"), "--compression", "none",
             "--duration", "120",
         )  # fmt: skip
-        assert log.wait_for_subscribers(1, timeout_s=30)
+        assert log.wait_for_subscribers(1, timeout_s=scaled(30))
         # 51 KiB every 0.1 s: a chunk closes each second, and the disk (1 MiB) is full
         # after a few of them.
         noise = bytes(range(256)) * 200
         t = time.time_ns()
-        deadline = time.monotonic() + 60
+        deadline = time.monotonic() + scaled(60)
         while recorder.poll() is None and time.monotonic() < deadline:
             t += 1_000_000
             log.put(t, noise, make_metadata("generic", t), wait_s=1.0)
@@ -70,7 +71,7 @@ def test_a_killed_recorder_leaves_every_chunk_it_closed(
     with Node("cam", listen_net) as service:
         log = service.offer("log", retention=Retention(max_count=1000))
         recorder = cli.start("record", "cam/log", "-o", str(out), "--duration", "120")
-        assert log.wait_for_subscribers(1, timeout_s=30)
+        assert log.wait_for_subscribers(1, timeout_s=scaled(30))
         t = time.time_ns()
         put = 0
 

@@ -22,6 +22,7 @@ from middleware import (
     make_metadata,
 )
 from tests.conftest import free_port
+from tests.helpers.timing import scaled
 from tests.services.cli.conftest import (
     HEIGHT,
     MS,
@@ -44,7 +45,7 @@ def test_info_and_query_report_what_the_buffer_holds(
     base = (time.time_ns() // SECOND - 60) * SECOND  # a minute ago, on a whole second
     with Node(network=NetworkConfig(connect=(endpoint,))) as client:
         client.subscribe("cam/images", queue_size=4, mode=SubscriptionMode.FLOW)
-        assert images.wait_for_subscribers(1, timeout_s=10)
+        assert images.wait_for_subscribers(1, timeout_s=scaled(10))
         for i in range(4):
             put_frame(images, base + i * 100 * MS, i)
         with pytest.raises(FlowControlRefused):  # nobody takes: the queue of 4 is full

@@ -10,6 +10,7 @@ import pytest
 
 from middleware import NetworkConfig, Node
 from tests.conftest import REPO, child_env, free_port
+from tests.helpers.timing import scaled
 
 
 def _launch(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
@@ -19,7 +20,7 @@ def _launch(*args: str, env: dict[str, str] | None = None) -> subprocess.Complet
         env=env or child_env(),
         capture_output=True,
         text=True,
-        timeout=120,
+        timeout=scaled(120),
         check=False,
     )
 

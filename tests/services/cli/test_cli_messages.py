@@ -11,6 +11,7 @@ import pytest
 
 from services.cli import COMMANDS, build_parser
 from tests.conftest import REPO, child_env, free_port
+from tests.helpers.timing import scaled
 
 # Modules that the listed commands must not pay for (seconds of start-up on a small machine).
 HEAVY = ("cv2", "numpy", "matplotlib", "foxglove", "foxglove_websocket", "scipy", "mcap")
@@ -40,7 +41,7 @@ def _framegate(*args: str) -> subprocess.CompletedProcess[str]:
         text=True,
         cwd=REPO,
         env=child_env(),
-        timeout=120,
+        timeout=scaled(120),
         check=False,
     )
 
@@ -153,7 +154,7 @@ def test_help_and_ls_import_nothing_heavy(code: str) -> None:
         text=True,
         cwd=REPO,
         env=child_env(),
-        timeout=120,
+        timeout=scaled(120),
         check=True,
     )
     loaded = json.loads(result.stdout.splitlines()[-1])

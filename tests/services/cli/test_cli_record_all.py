@@ -10,6 +10,7 @@ import pytest
 
 from middleware import NetworkConfig, Node, make_metadata
 from tests.conftest import wait_until
+from tests.helpers.timing import scaled
 from tests.services.cli.conftest import Cli
 
 pytestmark = pytest.mark.integration
@@ -26,15 +27,15 @@ def test_record_all_takes_every_buffer_including_a_late_one_and_info_describes_t
     with Node("cam", listen_net) as service:
         first = service.offer("a")
         recorder = cli.start("record", "--all", "-o", str(bag), "--duration", "8", "--json")
-        assert first.wait_for_subscribers(1, timeout_s=30)
+        assert first.wait_for_subscribers(1, timeout_s=scaled(30))
         late = service.offer("b")  # appears after the recording started
-        assert late.wait_for_subscribers(1, timeout_s=30), "--all never picked up cam/b"
+        assert late.wait_for_subscribers(1, timeout_s=scaled(30)), "--all never picked up cam/b"
         base = time.time_ns()
         for i in range(5):
             _put(first, base + i)
             _put(late, base + i)
         wait_until(lambda: first.info().puts == 5, 5.0, "puts")
-        out, err = recorder.communicate(timeout=60)
+        out, err = recorder.communicate(timeout=scaled(60))
         assert recorder.returncode == 0, err
     summary = json.loads(out)
     recorded = {b["name"]: b["recorded"] for b in summary["buffers"]}

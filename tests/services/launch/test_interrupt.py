@@ -16,6 +16,7 @@ from middleware import FramegateError, NetworkConfig, Node
 from services.launch import pipeline_yaml
 from services.nodes import SERVICES
 from tests.conftest import free_port, start_framegate, wait_until
+from tests.helpers.timing import scaled
 from tests.services.nodes.pipeline import Pipeline
 
 pytestmark = pytest.mark.integration
@@ -49,7 +50,7 @@ def client(port: int) -> Iterator[Node]:
 
 def _pid_of(node: Node, service: str) -> int | None:
     try:
-        return node.service_info(service, timeout_s=1.0).pid
+        return node.service_info(service, timeout_s=scaled(1.0)).pid
     except FramegateError:
         return None
 
@@ -71,7 +72,7 @@ def _stopped_in_time(proc: subprocess.Popen[str], sig: signal.Signals) -> float:
     sent = time.monotonic()
     proc.send_signal(sig)
     try:
-        proc.wait(timeout=10)
+        proc.wait(timeout=scaled(10))
     except subprocess.TimeoutExpired:
         proc.kill()
         proc.wait()
@@ -148,7 +149,7 @@ def test_services_end_with_a_killed_launcher_and_a_fresh_launch_starts_cleanly(
         assert not set(new.values()) & set(old.values())
         # One gyro answers: the last five batches are five, not ten from two gyros.
         wait_until(lambda: second.counter("gyro/rates") >= 5, 30, "gyro batches")
-        assert len(second.node.query("gyro/rates", last=5, timeout_s=3.0)) == 5
+        assert len(second.node.query("gyro/rates", last=5, timeout_s=scaled(3.0))) == 5
         assert [s.service for s in second.node.services()].count("gyro") == 1
         assert {p.pid for p in psutil.Process(second.proc.pid).children()} == set(new.values())
     finally:

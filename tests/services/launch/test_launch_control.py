@@ -24,6 +24,7 @@ from services.launch import (
     process_specs,
 )
 from tests.conftest import REPO, child_env, free_port, wait_until
+from tests.helpers.timing import scaled
 
 STARTUP_S = 60.0
 
@@ -55,7 +56,7 @@ class Launch:
         self._queue.put(None)
 
     def wait_line(self, predicate: object, timeout_s: float = STARTUP_S) -> str:
-        deadline = time.monotonic() + timeout_s
+        deadline = time.monotonic() + scaled(timeout_s)
         while (remaining := deadline - time.monotonic()) > 0:
             try:
                 line = self._queue.get(timeout=remaining)
@@ -69,8 +70,8 @@ class Launch:
         raise AssertionError(f"no such line within {timeout_s} s: {self.lines}")
 
     def finish(self, timeout_s: float = 30.0) -> int:
-        code = self.proc.wait(timeout=timeout_s)
-        while (line := self._queue.get(timeout=timeout_s)) is not None:
+        code = self.proc.wait(timeout=scaled(timeout_s))
+        while (line := self._queue.get(timeout=scaled(timeout_s))) is not None:
             self.lines.append(line)
         return code
 
@@ -128,7 +129,7 @@ def test_check_prints_the_plan_and_starts_nothing(tmp_path: Path) -> None:
         assert f"framegate run {service} --name {service}" in out, out
     assert "nothing started" in out
     with Node(network=NetworkConfig(local_port=port)) as node:
-        assert node.live_services(timeout_s=1.0) == []
+        assert node.live_services(timeout_s=scaled(1.0)) == []
 
 
 def test_check_of_a_bad_deploy_file_is_one_line_and_exit_1(tmp_path: Path) -> None:

@@ -12,6 +12,7 @@ from typing import Any
 
 from middleware import FramegateError, NetworkConfig, Node
 from tests.conftest import REPO, child_env, free_port
+from tests.helpers.timing import scaled
 
 
 class Pipeline:
@@ -42,7 +43,7 @@ class Pipeline:
             self.lines.append(line.rstrip())
 
     def info(self, target: str) -> Any:
-        return self.node.buffer_info(target, timeout_s=2.0)
+        return self.node.buffer_info(target, timeout_s=scaled(2.0))
 
     def counter(self, target: str, name: str = "puts") -> int:
         """A producer counter (puts, refused, ...) of a buffer; 0 while it is not live."""
@@ -58,10 +59,17 @@ class Pipeline:
         except FramegateError:
             return -1
 
+    def subscription_ids(self, target: str) -> set[str] | None:
+        """Ids of the subscriptions a buffer's producer counts; None while it is not live."""
+        try:
+            return {s.subscription_id for s in self.info(target).subscriptions}
+        except FramegateError:
+            return None
+
     def pid(self, service: str) -> int | None:
         """The service's pid, or None while it is not live (e.g. restarting)."""
         try:
-            return self.node.service_info(service, timeout_s=2.0).pid
+            return self.node.service_info(service, timeout_s=scaled(2.0)).pid
         except FramegateError:
             return None
 
@@ -79,7 +87,7 @@ class Pipeline:
         if self.proc.poll() is None:
             self.proc.send_signal(signal.SIGTERM)
             try:
-                self.proc.wait(timeout=15)
+                self.proc.wait(timeout=scaled(15))
             except subprocess.TimeoutExpired:
                 self.proc.kill()
                 self.proc.wait()

@@ -18,6 +18,7 @@ import pytest
 
 from middleware import FramegateError, NetworkConfig, Node
 from tests.conftest import free_port, start_framegate, wait_until
+from tests.helpers.timing import scaled
 from tests.services.nodes.pipeline import Pipeline
 
 pytestmark = pytest.mark.integration
@@ -29,7 +30,7 @@ _LATE: dict[str, int] = {}
 
 def _stored(node: Node, target: str) -> bool:
     try:
-        info = node.buffer_info(target, timeout_s=2.0)
+        info = node.buffer_info(target, timeout_s=scaled(2.0))
     except FramegateError:
         return False
     _LATE[target] = info.skipped.get("late", 0)
@@ -54,7 +55,7 @@ class _Watched:
         sent = time.monotonic()
         self.proc.send_signal(signum)
         try:
-            code = self.proc.wait(timeout=20)
+            code = self.proc.wait(timeout=scaled(20))
         except subprocess.TimeoutExpired as exc:
             self.proc.kill()
             self.proc.wait()
@@ -91,7 +92,7 @@ def _check(results: list[tuple[int, float, str]], what: str) -> None:
         assert "terminate called" not in out, out
     # "~2 s" is the contract; the generous bound only catches a stop that hangs.
     slowest = max(took for _code, took, _out in results)
-    assert slowest < 10, f"slowest stop took {slowest:.1f} s"
+    assert slowest < scaled(20), f"slowest stop took {slowest:.1f} s"
 
 
 @pytest.mark.slow
@@ -136,7 +137,7 @@ def test_twenty_signals_stop_launches_of_a_rendering_camera_with_exit_0(tmp_path
             wait_until(lambda p=pipe: p.counter("camera/images") > 0, 90, "a stored frame")
             sent = time.monotonic()
             pipe.proc.send_signal(signum)
-            code = pipe.proc.wait(timeout=20)
+            code = pipe.proc.wait(timeout=scaled(20))
             stops.append(time.monotonic() - sent)
             # The camera ended its run itself: its totals are its last line.
             wait_until(
@@ -151,4 +152,5 @@ def test_twenty_signals_stop_launches_of_a_rendering_camera_with_exit_0(tmp_path
         finally:
             pipe.close()
     assert len(stops) == 20
-    assert max(stops) < 10, f"slowest launch stop took {max(stops):.1f} s"
+    # As above: the bound catches a hang, not a slow machine.
+    assert max(stops) < scaled(20), f"slowest launch stop took {max(stops):.1f} s"

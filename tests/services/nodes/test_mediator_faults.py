@@ -18,6 +18,7 @@ from services.lib.messages import frame_metadata
 from services.lib.quality import Exposure
 from services.nodes.mediator import Mediator, MediatorConfig, detector_load
 from tests.conftest import wait_until
+from tests.helpers.timing import scaled
 
 MS = 1_000_000
 IMAGE = np.zeros((2, 4), dtype=np.uint8)
@@ -45,7 +46,7 @@ def _put_frame(images: Producer, i: int, payload: bytes | None = None) -> int:
 
 def _step_until(mediator: Mediator, done: object) -> None:
     def stepped() -> bool:
-        mediator.step(timeout_s=0.1)
+        mediator.step(timeout_s=scaled(0.1))
         return bool(done())  # type: ignore[operator]
 
     wait_until(stepped, 20, "the mediator to get through the frames")
@@ -62,7 +63,7 @@ def test_regression_a_flow_controlled_decisions_watcher_never_stops_the_mediator
     try:
         with Node("watcher", connect_net) as watcher:
             stuck = watcher.subscribe("mediator/decisions", queue_size=1)  # never takes
-            assert mediator.decisions.wait_for_subscribers(1, timeout_s=10)
+            assert mediator.decisions.wait_for_subscribers(1, timeout_s=scaled(10))
             wait_until(lambda: images.subscriptions(), 10, "the mediator's camera subscription")
             for i in range(6):
                 _put_frame(images, i)
@@ -103,11 +104,11 @@ def test_the_detector_load_carries_when_the_producer_saw_the_last_take(
     producer_node, consumer_node = nodes
     images = producer_node.offer("images", retention=Retention(max_count=4))
     with consumer_node.subscribe("camera/images", queue_size=2, wait_s=5.0) as sub:
-        assert images.wait_for_subscribers(1, timeout_s=10.0)
+        assert images.wait_for_subscribers(1, timeout_s=scaled(10.0))
         images.put(1, b"x", make_metadata("generic", 1))
         assert detector_load(images).taken_ns is None
         before = time.monotonic_ns()
-        assert sub.take(timeout_s=10.0) is not None
+        assert sub.take(timeout_s=scaled(10.0)) is not None
         wait_until(lambda: detector_load(images).taken_ns is not None, 10, "the take's ack")
         load = detector_load(images)
         assert load.queued == 0

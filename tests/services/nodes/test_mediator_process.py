@@ -12,6 +12,7 @@ import pytest
 
 from services.launch import pipeline_yaml
 from tests.conftest import REPO, child_env, wait_until
+from tests.helpers.timing import scaled
 from tests.services.nodes.pipeline import Pipeline
 
 pytestmark = pytest.mark.integration
@@ -69,7 +70,7 @@ def test_regression_slow_flow_controlled_decisions_watcher_leaves_the_mediator_f
     finally:
         watcher.send_signal(signal.SIGINT)
         try:
-            watcher.wait(timeout=10)
+            watcher.wait(timeout=scaled(10))
         except subprocess.TimeoutExpired:
             watcher.kill()
             watcher.wait()

@@ -25,6 +25,7 @@ from services.nodes.mediator import Mediator, MediatorConfig
 from services.tools.soak import Audit
 from tests.conftest import REPO, child_env, free_port, wait_until
 from tests.helpers.clock_shim import build_clock_shim, shifted_clock_env, step_clock
+from tests.helpers.timing import scaled
 from tests.services.nodes.pipeline import Pipeline
 
 pytestmark = pytest.mark.integration
@@ -40,7 +41,7 @@ from services.lib.quality import Exposure
 
 with Node("camera", NetworkConfig(local_port=int(sys.argv[1]))) as node:
     images = node.offer("images", kind="frame", retention=Retention(max_count=4))
-    assert images.wait_for_subscribers(1, timeout_s=60)
+    assert images.wait_for_subscribers(1, timeout_s=scaled(60))
     image = np.zeros((2, 4), np.uint8)
     exposure = Exposure(now_ns(), 5_000_000)  # this process's clock: an hour ahead
     images.put(exposure.start_ns, image.tobytes(), frame_metadata(1, exposure, image, None))
@@ -66,7 +67,7 @@ class Recorded:
 
     def step_until(self, done: object, timeout_s: float, what: str) -> None:
         def stepped() -> bool:
-            self.mediator.step(timeout_s=0.1)
+            self.mediator.step(timeout_s=scaled(0.1))
             return bool(done())  # type: ignore[operator]
 
         wait_until(stepped, timeout_s, what)
@@ -101,7 +102,7 @@ def _stop(*procs: subprocess.Popen[str]) -> None:
             proc.send_signal(signal.SIGINT)
     for proc in procs:
         try:
-            proc.wait(timeout=10)
+            proc.wait(timeout=scaled(10))
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait()
@@ -260,7 +261,7 @@ def pipe(tmp_path: Path) -> Iterator[Pipeline]:
 
 def _decisions(pipe: Pipeline) -> list[DecisionRecord]:
     try:
-        found = pipe.node.query("mediator/decisions", time_range="[0..]", timeout_s=10)
+        found = pipe.node.query("mediator/decisions", time_range="[0..]", timeout_s=scaled(10))
     except FramegateError:
         return []  # not live (yet, or while stopped)
     return [DecisionRecord.from_metadata(e.metadata) for e in found]
@@ -308,7 +309,7 @@ def _latest(node: Node, target: str) -> list[object]:
 
 def _puts(node: Node, target: str) -> int:
     try:
-        return node.buffer_info(target, timeout_s=2.0).puts
+        return node.buffer_info(target, timeout_s=scaled(2.0)).puts
     except FramegateError:
         return 0
 
@@ -353,7 +354,7 @@ def test_camera_and_gyro_keep_producing_across_wall_clock_steps(tmp_path: Path, 
                     env=cli_env,
                     capture_output=True,
                     text=True,
-                    timeout=60,
+                    timeout=scaled(60),
                 )
                 assert shown.returncode == 0, shown.stderr
                 assert "clock stepped 2x" in shown.stdout, shown.stdout

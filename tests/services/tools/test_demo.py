@@ -28,6 +28,7 @@ from services.tools.demo import (
     status_line,
 )
 from tests.conftest import REPO, child_env, free_port, wait_until
+from tests.helpers.timing import scaled
 
 
 def test_status_line_fits_100_columns_even_with_large_counts() -> None:
@@ -164,7 +165,7 @@ def _live_demo(port: int, duration_s: int) -> subprocess.CompletedProcess[str]:
         env=env,
         capture_output=True,
         text=True,
-        timeout=120,
+        timeout=scaled(120),
         check=False,
     )
 
@@ -201,7 +202,7 @@ def test_demo_json_prints_only_the_summary_on_stdout() -> None:
     result = subprocess.run(
         [sys.executable, "-m", "services.cli", "demo", "--source", "sim", "--duration", "5",
          "--json"],
-        cwd=REPO, env=env, capture_output=True, text=True, timeout=120, check=False,
+        cwd=REPO, env=env, capture_output=True, text=True, timeout=scaled(120), check=False,
     )  # fmt: skip
     assert result.returncode == 0, result
     summary = json.loads(result.stdout)  # no status line mixed in
@@ -236,7 +237,7 @@ def test_demo_names_a_child_that_died_by_a_signal_and_exits_1() -> None:
         )
         detector.rlimit(psutil.RLIMIT_CORE, (0, 0))  # an abort, without a core file
         detector.send_signal(signal.SIGABRT)
-        _out, err = demo.communicate(timeout=60)
+        _out, err = demo.communicate(timeout=scaled(60))
     finally:
         if demo.poll() is None:
             demo.kill()

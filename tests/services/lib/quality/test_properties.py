@@ -46,17 +46,20 @@ def test_blur_does_not_shrink_with_longer_exposure_at_constant_rates(
     assert longer >= shorter - 1e-9 * max(1.0, shorter)
 
 
+@settings(deadline=None)  # no wall-clock bound per example
 @given(blur=st.floats(0.0, math.inf), b0=st.floats(0.01, 1e6))
 def test_quality_is_in_the_unit_interval_open_at_zero(blur: float, b0: float) -> None:
     q = quality(blur, b0)
     assert 0.0 < q <= 1.0
 
 
+@settings(deadline=None)  # no wall-clock bound per example
 @given(q=st.floats(0.0, 1.0, exclude_min=True))
 def test_an_idle_consumer_accepts_every_frame_of_positive_quality(q: float) -> None:
     assert accept(q, 0.0)
 
 
+@settings(deadline=None)  # no wall-clock bound per example
 @given(q=st.floats(0.0, 1.0, exclude_min=True))
 def test_a_full_consumer_accepts_nothing(q: float) -> None:
     assert not accept(q, 1.0)

@@ -9,12 +9,13 @@ from pathlib import Path
 
 from services.lib.sim import read_dataset
 from tests.conftest import REPO
+from tests.helpers.timing import scaled
 
 
 def _simulate(*args: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
         [sys.executable, "-m", "services.cli", "simulate", *args],
-        cwd=REPO, capture_output=True, text=True, timeout=120, check=False,
+        cwd=REPO, capture_output=True, text=True, timeout=scaled(120), check=False,
     )  # fmt: skip
 
 

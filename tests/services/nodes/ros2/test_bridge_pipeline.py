@@ -30,6 +30,7 @@ from services.nodes.ros2._rmw import (
     type_hash,
 )
 from tests.conftest import REPO, child_env, free_port, wait_until
+from tests.helpers.timing import scaled
 from tests.services.nodes.pipeline import Pipeline
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
@@ -66,7 +67,7 @@ class Driver:
 
     def next(self, timeout_s: float) -> dict[str, Any]:
         try:
-            return self.lines.get(timeout=timeout_s)
+            return self.lines.get(timeout=scaled(timeout_s))
         except queue.Empty:
             assert self.proc.stderr is not None
             raise AssertionError(f"fake driver silent; exit {self.proc.poll()}") from None
@@ -81,7 +82,7 @@ class Driver:
             assert self.proc.stdin is not None
             self.proc.stdin.close()
             try:
-                self.proc.wait(timeout=10)
+                self.proc.wait(timeout=scaled(10))
             except subprocess.TimeoutExpired:
                 self.proc.kill()
                 self.proc.wait()

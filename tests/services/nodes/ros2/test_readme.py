@@ -10,6 +10,7 @@ from typing import Any
 from services.cli.run import service_parser
 from services.nodes import service
 from tests.conftest import REPO, child_env
+from tests.helpers.timing import scaled
 
 README = REPO / "README.md"
 SAME_AS = "`deploy/ros2.yaml` runs the same as these three commands:"
@@ -30,7 +31,7 @@ def _launch_commands() -> list[list[str]]:
         env=child_env(),
         capture_output=True,
         text=True,
-        timeout=60,
+        timeout=scaled(60),
         check=True,
     ).stdout
     return [shlex.split(line) for line in out.splitlines() if line.strip().startswith("framegate")]

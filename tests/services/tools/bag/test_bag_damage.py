@@ -13,6 +13,7 @@ import pytest
 from middleware import DataObject, Retention, make_metadata
 from services.tools.bag import BagError, BagWriter, recording_info
 from tests.conftest import REPO, child_env, free_port
+from tests.helpers.timing import scaled
 
 N = 300
 
@@ -58,7 +59,7 @@ def test_a_flipped_byte_is_one_error_or_a_stated_recovery(
     bad.write_bytes(bytes(data))
     result = subprocess.run(
         [sys.executable, "-m", "services.cli", "info", str(bad)],
-        cwd=REPO, env=child_env(), capture_output=True, text=True, timeout=60, check=False,
+        cwd=REPO, env=child_env(), capture_output=True, text=True, timeout=scaled(60), check=False,
     )  # fmt: skip
     assert "Traceback" not in result.stderr, result.stderr
     if result.returncode == 0:  # recovered: it says what was lost
@@ -91,7 +92,7 @@ def _play(path: Path) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
         [sys.executable, "-m", "services.cli", "play", str(path), "--fast", "--exit-when-done",
          "--start-delay", "0"],
-        cwd=REPO, env=env, capture_output=True, text=True, timeout=120, check=False,
+        cwd=REPO, env=env, capture_output=True, text=True, timeout=scaled(120), check=False,
     )  # fmt: skip
 
 

@@ -21,6 +21,7 @@ import pytest
 from services.cli import main
 from services.tools.bench import SCENARIO_NAMES, SCHEMA
 from tests.conftest import REPO, child_env, wait_until
+from tests.helpers.timing import scaled
 
 REPORT_KEYS = {"schema", "created_utc", "elapsed_s", "machine", "options", "scenarios", "goals"}
 MACHINE_KEYS = {"cpu_count", "python", "zenoh", "numpy", "msgpack", "platform"}
@@ -62,7 +63,7 @@ def test_quick_run_gives_numbers_for_every_scenario(tmp_path: Path) -> None:
         env=child_env(),
         capture_output=True,
         text=True,
-        timeout=480,
+        timeout=scaled(480),
     )
     assert done.returncode == 0, done.stdout + done.stderr[-3000:]
     report = json.loads(out.read_text())
@@ -150,8 +151,8 @@ def test_one_signal_stops_the_bench_and_its_workers_with_exit_0(signum: int) -> 
             "the bench's idle workers to start",
         )
         proc.send_signal(signum)
-        assert proc.wait(timeout=15.0) == 0
-        _gone, alive = psutil.wait_procs(workers, timeout=10.0)
+        assert proc.wait(timeout=scaled(15.0)) == 0
+        _gone, alive = psutil.wait_procs(workers, timeout=scaled(10.0))
         assert not alive, alive
     finally:
         if proc.poll() is None:

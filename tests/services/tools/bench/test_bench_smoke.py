@@ -12,6 +12,7 @@ from services.tools.bench._idle import SUBSCRIPTIONS, measure_idle, start_idle
 from services.tools.bench._procs import WorkerGroup, free_endpoint
 from services.tools.bench._raw import HANDLER_DESIGNS
 from services.tools.bench._throughput import measure
+from tests.helpers.timing import scaled
 
 pytestmark = pytest.mark.integration
 
@@ -41,7 +42,7 @@ def test_an_unknown_handler_design_fails_the_worker_with_its_name() -> None:
     with WorkerGroup() as group:
         group.start("raw-handler-sub", {"connect": free_endpoint(), "design": "carrier-pigeon"})
         with pytest.raises(BenchError, match="carrier-pigeon"):
-            group.wait_ready(timeout_s=60.0)
+            group.wait_ready(timeout_s=scaled(60.0))
 
 
 def test_idle_nodes_register_their_subscriptions_and_report_cpu() -> None:

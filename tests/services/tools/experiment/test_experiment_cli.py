@@ -13,6 +13,7 @@ import pytest
 
 from services.tools.experiment import MARKER_NAMES, OUTPUT_FILES
 from tests.conftest import REPO, child_env
+from tests.helpers.timing import scaled
 
 _PNG = b"\x89PNG\r\n\x1a\n"
 
@@ -28,11 +29,11 @@ def test_quick_experiment_writes_every_output(tmp_path: Path) -> None:
         cwd=REPO, env=child_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
     try:
-        stdout, stderr = proc.communicate(timeout=240)
+        stdout, stderr = proc.communicate(timeout=scaled(240))
     except subprocess.TimeoutExpired:
         # SIGTERM first: the experiment then stops the service processes it started.
         proc.terminate()
-        stdout, stderr = proc.communicate(timeout=30)
+        stdout, stderr = proc.communicate(timeout=scaled(30))
         pytest.fail(f"experiment --quick took over 240 s\n{stdout[-2000:]}{stderr[-2000:]}")
     assert proc.returncode == 0, stdout[-3000:] + stderr[-3000:]
     for name in OUTPUT_FILES:
@@ -81,7 +82,7 @@ def test_quick_experiment_writes_every_output(tmp_path: Path) -> None:
 def test_experiment_command_is_registered() -> None:
     result = subprocess.run(
         [sys.executable, "-m", "services.cli", "experiment", "--help"],
-        cwd=REPO, env=child_env(), capture_output=True, text=True, timeout=60, check=False,
+        cwd=REPO, env=child_env(), capture_output=True, text=True, timeout=scaled(60), check=False,
     )  # fmt: skip
     assert result.returncode == 0, result.stderr
     for flag in ("--seeds", "--out", "--queue", "--service-factor", "--b0", "--quick"):
@@ -92,7 +93,7 @@ def test_bad_flag_value_is_one_error_line(tmp_path: Path) -> None:
     result = subprocess.run(
         [sys.executable, "-m", "services.cli", "experiment", "--out", str(tmp_path), "--queue",
          "0"],
-        cwd=REPO, env=child_env(), capture_output=True, text=True, timeout=60, check=False,
+        cwd=REPO, env=child_env(), capture_output=True, text=True, timeout=scaled(60), check=False,
     )  # fmt: skip
     assert result.returncode == 1
     assert result.stderr.strip() == (

@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 
 from tests.conftest import REPO, child_env
+from tests.helpers.timing import scaled
 
 pytestmark = pytest.mark.integration
 
@@ -35,7 +36,7 @@ def test_short_soak_loses_nothing_and_reports_memory(tmp_path: Path) -> None:
         env=child_env(),
         capture_output=True,
         text=True,
-        timeout=180,
+        timeout=scaled(180),
     )
     # 3: a goal was missed, which 20 s (still warming up) may well do; this only runs it.
     assert done.returncode in (0, 3), done.stdout + done.stderr

@@ -21,6 +21,8 @@ from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from websockets.sync.client import ClientConnection, connect
 from websockets.typing import Subprotocol
 
+from tests.helpers.timing import scaled
+
 SUBPROTOCOL = Subprotocol("foxglove.sdk.v1")
 MESSAGE_DATA = 1
 # foxglove-sdk (0.30) sends a channel's advertisement to a client *before* it records the
@@ -76,7 +78,7 @@ class FoxgloveClient:
                 self.ws.send(json.dumps({"op": "subscribe", "subscriptions": again}))
 
     def wait_for_topics(self, topics: set[str], timeout_s: float) -> None:
-        deadline = time.monotonic() + timeout_s
+        deadline = time.monotonic() + scaled(timeout_s)
         while not topics <= set(self.channels):
             remaining = deadline - time.monotonic()
             if remaining <= 0:
@@ -114,7 +116,7 @@ class FoxgloveClient:
 
     def receive(self, timeout_s: float) -> Received | None:
         """The next message data frame (control messages are handled on the way)."""
-        deadline = time.monotonic() + timeout_s
+        deadline = time.monotonic() + scaled(timeout_s)
         while (remaining := deadline - time.monotonic()) > 0:
             try:
                 frame = self.ws.recv(timeout=remaining)

@@ -30,6 +30,7 @@ from middleware import NetworkConfig, Node, SubscriptionMode
 from services.lib.messages import DecisionRecord, frame_metadata
 from services.lib.quality import Exposure
 from tests.conftest import REPO, child_env, free_port
+from tests.helpers.timing import scaled
 from tests.services.nodes.pipeline import Pipeline
 from tests.services.tools.view.foxglove_client import FoxgloveClient, stamp_ns
 
@@ -96,7 +97,7 @@ def main() -> None:
     )  # fmt: skip
     try:
         client = None
-        deadline = time.monotonic() + 120
+        deadline = time.monotonic() + scaled(120)
         while client is None and time.monotonic() < deadline:
             try:
                 client = FoxgloveClient(f"ws://127.0.0.1:{ws_port}")
@@ -114,7 +115,7 @@ def main() -> None:
 
         def observe() -> None:
             while not stop.is_set():
-                note = observed.take(timeout_s=0.2)
+                note = observed.take(timeout_s=scaled(0.2))
                 if note is not None:
                     put_ns[note.timestamp_ns] = time.time_ns()
 
@@ -159,10 +160,10 @@ def main() -> None:
         watcher.close()
     finally:
         viewer.terminate()
-        viewer.wait(timeout=10)
+        viewer.wait(timeout=scaled(10))
         stop.set()
         if camera is not None:
-            camera.join(timeout=10)  # its Zenoh sessions close before the interpreter exits
+            camera.join(timeout=scaled(10))  # its Zenoh sessions close before the interpreter exits
         if pipe is not None:
             pipe.close()
 

@@ -18,6 +18,7 @@ import pytest
 from middleware import FramegateError
 from services.lib.messages import read_detections
 from tests.conftest import REPO, child_env, free_port, wait_until
+from tests.helpers.timing import scaled
 from tests.services.nodes.pipeline import Pipeline
 from tests.services.tools.view.foxglove_client import FoxgloveClient, Received, stamp_ns
 
@@ -65,10 +66,10 @@ class Viewer:
                 self.events.put(json.loads(line))
 
     def event(self, predicate: Any, timeout_s: float) -> dict[str, Any]:
-        deadline = time.monotonic() + timeout_s
+        deadline = time.monotonic() + scaled(timeout_s)
         while time.monotonic() < deadline:
             try:
-                event = self.events.get(timeout=0.5)
+                event = self.events.get(timeout=scaled(0.5))
             except queue.Empty:
                 assert self.proc.poll() is None, self.stderr_tail()
                 continue
@@ -149,7 +150,7 @@ def test_client_gets_frames_with_verdicts_detections_and_plots_and_holds_nothing
         def done() -> bool:
             return bool(images and matched and plots and markers)
 
-        deadline = time.monotonic() + DEADLINE_S
+        deadline = time.monotonic() + scaled(DEADLINE_S)
         while not done() and time.monotonic() < deadline:
             got = client.receive(timeout_s=1.0)
             if got is None:
@@ -212,7 +213,7 @@ def test_slow_and_vanished_clients_neither_slow_nor_crash_anything(
         healthy.wait_for_topics({IMAGE}, DEADLINE_S)
         healthy.subscribe([IMAGE])
         fresh = []
-        deadline = time.monotonic() + DEADLINE_S
+        deadline = time.monotonic() + scaled(DEADLINE_S)
         while len(fresh) < 10 and time.monotonic() < deadline:
             got = healthy.receive(timeout_s=1.0)
             if got is not None:
@@ -224,6 +225,6 @@ def test_slow_and_vanished_clients_neither_slow_nor_crash_anything(
     _holds_nothing_back(pipe)
     slow.ws.socket.close()
     viewer.proc.terminate()  # SIGTERM: a clean stop
-    assert viewer.proc.wait(timeout=10) == 0, viewer.stderr_tail()
+    assert viewer.proc.wait(timeout=scaled(10)) == 0, viewer.stderr_tail()
     stopped = viewer.event(lambda e: e["event"] == "stopped", 5)
     assert stopped["published"] > 0

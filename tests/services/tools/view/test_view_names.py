@@ -9,6 +9,7 @@ import pytest
 
 from middleware import NetworkConfig, Node, make_metadata
 from tests.conftest import free_port, start_framegate
+from tests.helpers.timing import scaled
 
 pytestmark = pytest.mark.integration
 
@@ -35,7 +36,7 @@ def test_a_name_no_live_service_offers_fails_with_one_line_and_a_did_you_mean(
     port: int, target: str, said: str
 ) -> None:
     proc = start_framegate(["view", target, "--port", "0", "--timeout", "2"], local_port=port)
-    out, _ = proc.communicate(timeout=60)
+    out, _ = proc.communicate(timeout=scaled(60))
     lines = out.strip().splitlines()
     assert proc.returncode == 1, out
     assert len(lines) == 1, out
