@@ -4,6 +4,23 @@ A service offers named buffers (time series of payload + XML metadata keyed by i
 nanoseconds); clients query them by time and subscribe to availability notifications with
 a queue size of their choice. While a flow-controlled subscriber's queue is full the
 producer is refused (paper §4.1). See the README's *Wire format* for the protocol.
+
+Reading order, for whoever must change something:
+
+1. ``_node`` — ``Node``: one Zenoh session, ``offer`` / ``subscribe``, and the executor API
+   (``on`` / ``every`` / ``at`` / ``spin``); its parts ``_query`` (reading by time),
+   ``_discovery`` (what is live, ``@info``) and ``_session`` (opening, Zenoh's errors).
+2. ``_executor`` — the node's one thread: what waits, what runs per turn, and how a handler
+   that blocks avoids waiting for itself. ``_inbox``: what runs on Zenoh's threads.
+3. One side of the protocol at a time, each as one object: ``_protocol_producer`` (every
+   decision a producer makes) over the pure credit rules of ``_ledger_producer``; then
+   ``_producer``, which only moves bytes and time between Zenoh and that object. The same
+   for the subscriber: ``_protocol_subscriber``, ``_ledger_subscriber``, ``_subscription``.
+4. ``_wire`` (the bytes on the wire), ``_service`` (queryables answering reads and
+   ``@info``), ``_buffer`` (the time series), ``_records`` (the typed records), then the rest
+   (``_xml``, ``_shapes``, ``_timerange``, ``_clock``, ``_config``, ``_rendezvous``).
+
+docs/threads.md says which thread runs what and what each lock guards.
 """
 
 from ._clock import ClockSample, ClockStatus, SteadyClock, now_ns
@@ -14,6 +31,7 @@ from ._config import (
     check_name,
     network_from_args,
 )
+from ._discovery import split_target
 from ._errors import (
     EXIT_NAME_TAKEN,
     ConfigError,
@@ -29,7 +47,7 @@ from ._errors import (
     TransportError,
 )
 from ._kinds import register_kind
-from ._node import Node, split_target
+from ._node import Node
 from ._producer import Producer
 from ._protocol_producer import FLOW_QUEUE_MAX, INLINE_METADATA_MAX, QUEUE_BUDGET
 from ._records import (

@@ -1,160 +1,99 @@
-"""Zenoh input as a channel drained by framegate's own threads, not a Python callback.
+"""Zenoh input as a bounded inbox per object, filled on Zenoh's thread, emptied by the node.
 
-An ``Inbox`` is a Zenoh subscriber with a ``RingChannel``: Zenoh's threads only enqueue
-each sample (no Python, no GIL), and the object that owns the inbox drains it in batches
-with ``try_recv`` on whichever thread needs the input now — a caller of ``take`` or ``put``
-before it decides, or the node's loop for an object nobody calls. A caller that must wait
-for input blocks in the channel's own ``recv`` (the GIL released), so one sample costs one
-wake-up of the thread that uses it, instead of a wake-up of zenoh-python's callback thread
-and then a second one of the waiting caller.
+An ``Inbox`` is a Zenoh subscriber with a direct callback (``indirect=False``: it runs on
+the Zenoh thread that received the sample, no extra thread). The callback only checks the
+sample's size, appends it to a bounded deque and signals the owning object to the node's
+executor; nothing else of framegate runs on Zenoh's threads. The owner empties the inbox
+in bounded batches (``take``) on the executor, or inline when a handler waits for it.
 
-``recv`` has no timeout: a receiver that must stop waiting at a deadline asks the node's
-loop to ``ring`` the doorbell then, a session-local put on the inbox's key that is never
-fed to the protocol. Closing the inbox (undeclaring the subscriber) ends every ``recv``.
+Bounds, so that a flood of any size and rate costs bounded memory and bounded work:
 
-A ring, not a FIFO: a full FIFO would block Zenoh's receive thread and stall the whole link
-(see the README's *Floods*). Its capacity is set by the owner from the protocol's credit
-bound, so honest traffic never fills it; a flood of forged messages overwrites the oldest
-samples, which the protocol recovers like any loss (resends, cumulative acks).
+- a sample larger than ``max_bytes`` (payload plus attachment) is dropped and counted
+  (``oversize``) before it is buffered: an ack is tens of bytes, a 1 MiB "ack" is garbage;
+- at ``capacity`` the oldest sample is dropped and counted (``overflow``). The owner sizes
+  the capacity from the protocol's credit bound, so honest traffic never fills it; what a
+  flood of forged messages pushes out, the protocol recovers like any loss (resends,
+  cumulative acks).
+
+A deque, not a Zenoh FIFO: a full FIFO would block Zenoh's receive thread and stall the
+whole link (see the README's *Floods*).
 """
 
 from __future__ import annotations
 
 import contextlib
 import threading
-import time
-from collections.abc import Iterator
+from collections import deque
+from collections.abc import Callable
+from typing import Any
 
 import zenoh
 
-from ._loop import NodeLoop
-
-# The attachment of a doorbell sample.
-DOORBELL = b"fg-doorbell"
-# With nobody waiting for input, the node's loop drains an inbox this often, on one grid so
-# that a node's objects share a wake.
-DRAIN_NS = 250_000_000
-
-
-def _next_drain_ns(now_ns: int) -> int:
-    return (now_ns // DRAIN_NS + 1) * DRAIN_NS
-
 
 class Inbox:
-    """One subscriber's channel. Not a lock holder: the owner serialises draining and says
-    (under its own lock) which thread, if any, is blocked in ``recv``."""
+    """One subscriber's bounded inbox; ``signal`` is called after each append."""
 
     def __init__(
-        self, session: zenoh.Session, keyexpr: str, *, capacity: int, doorbell_key: str
+        self,
+        session: zenoh.Session,
+        keyexpr: str,
+        *,
+        capacity: int,
+        max_bytes: int,
+        signal: Callable[[], None],
+        liveliness: bool = False,
     ) -> None:
-        self._session = session
-        self._doorbell_key = doorbell_key
-        self._subscriber = session.declare_subscriber(keyexpr, zenoh.handlers.RingChannel(capacity))
-        self._handler = self._subscriber.handler
+        self.capacity = capacity
+        self.max_bytes = max_bytes
+        self.overflow = 0  # samples pushed out by newer ones (a flood)
+        self.oversize = 0  # samples larger than max_bytes, never buffered
         self.closed = False
+        self._items: deque[zenoh.Sample] = deque()
+        self._signal = signal
+        self._count_lock = threading.Lock()  # the drop counters (Zenoh may use two threads)
+        handler = zenoh.handlers.Callback(self._on_sample, indirect=False)
+        if liveliness:
+            self._subscriber: Any = session.liveliness().declare_subscriber(
+                keyexpr, handler, history=True
+            )
+        else:
+            self._subscriber = session.declare_subscriber(keyexpr, handler)
 
-    def drain(self) -> Iterator[zenoh.Sample]:
-        """Every sample waiting now, oldest first, doorbells left out (never blocks);
-        nothing once closed."""
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        """(Zenoh's thread) Check the size, append, signal; never blocks, never calls Zenoh."""
         if self.closed:
             return
-        try_recv = self._handler.try_recv
-        while True:
-            try:
-                sample = try_recv()
-            except zenoh.ZError:  # closed under us: a ring's try_recv raises then
-                return
-            if sample is None:
-                return
-            attachment = sample.attachment
-            if attachment is not None and attachment.to_bytes() == DOORBELL:
-                continue
-            yield sample
-
-    def recv(self) -> zenoh.Sample | None:
-        """Block until a sample arrives (the GIL released): the sample, or None for a
-        doorbell or a closed inbox."""
-        try:
-            sample = self._handler.recv()
-        except zenoh.ZError:  # closed: the subscriber was undeclared
-            return None
+        size = len(sample.payload)
         attachment = sample.attachment
-        if attachment is not None and attachment.to_bytes() == DOORBELL:
-            return None
-        return sample
+        if attachment is not None:
+            size += len(attachment)
+        items = self._items
+        if size > self.max_bytes:
+            with self._count_lock:
+                self.oversize += 1
+            return
+        if len(items) >= self.capacity:
+            with self._count_lock, contextlib.suppress(IndexError):
+                items.popleft()
+                self.overflow += 1
+        items.append(sample)
+        self._signal()
 
-    def ring(self) -> None:
-        """Wake the thread blocked in ``recv`` (a put that never leaves this session)."""
-        with contextlib.suppress(zenoh.ZError):
-            self._session.put(
-                self._doorbell_key,
-                b"",
-                attachment=DOORBELL,
-                allowed_destination=zenoh.Locality.SESSION_LOCAL,
-            )
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def take(self, budget: int) -> list[zenoh.Sample]:
+        """Up to ``budget`` samples, oldest first (never blocks)."""
+        items = self._items
+        out: list[zenoh.Sample] = []
+        popleft = items.popleft
+        with contextlib.suppress(IndexError):
+            while len(out) < budget:
+                out.append(popleft())
+        return out
 
     def close(self) -> None:
         self.closed = True
         with contextlib.suppress(zenoh.ZError):
             self._subscriber.undeclare()
-
-
-class Receiver:
-    """Who waits for an inbox's input: at most one thread of its owner blocks in ``recv``
-    (the *receiver*), the others wait in the owner's condition for its news; the node's
-    loop rings the doorbell at the receiver's deadline and, with no receiver, drains the
-    inbox every ``DRAIN_NS``. Every field is guarded by the owner's lock (the condition's)."""
-
-    def __init__(self, inbox: Inbox, cond: threading.Condition, loop: NodeLoop) -> None:
-        self._inbox = inbox
-        self._cond = cond
-        self._loop = loop
-        self.active = False  # a thread blocks in ``recv``: the inbox's input is its to take
-        self.wake_at_ns: int | None = None  # when the loop rings its doorbell (monotonic)
-        self._drain_at_ns = _next_drain_ns(time.monotonic_ns())
-
-    def wait(self, wait_s: float) -> zenoh.Sample | None:
-        """(holding the owner's lock) Wait up to ``wait_s`` for input: as the receiver,
-        blocked in ``recv`` with the lock released, returning the sample it got (None for
-        the doorbell); or, when another thread is the receiver, in the condition (None).
-        The owner then feeds the sample, drains the rest and tells the waiters."""
-        if self.active:
-            self._cond.wait(wait_s)
-            return None
-        self.active = True
-        wake_at = time.monotonic_ns() + int(wait_s * 1e9)
-        self.wake_at_ns = wake_at
-        self._cond.release()
-        try:
-            self._loop.poke(wake_at)
-            return self._inbox.recv()
-        finally:
-            self._cond.acquire()
-            self.active = False
-            self.wake_at_ns = None
-
-    def wake(self) -> None:
-        """(under the lock) Have the receiver's doorbell rung at once (news it must see)."""
-        if self.active:
-            self.wake_at_ns = 0
-
-    def deadline_ns(self) -> int | None:
-        """(under the lock) When the loop must act: ring the receiver, or drain."""
-        return self.wake_at_ns if self.active else self._drain_at_ns
-
-    def due(self, now_ns: int) -> tuple[bool, bool]:
-        """(under the lock, on the loop) ``(ring, drain)``: whether to ring the receiver's
-        doorbell now, and whether the drain grid is due (no receiver)."""
-        if self.active:
-            if self.wake_at_ns is not None and self.wake_at_ns <= now_ns:
-                self.wake_at_ns = None
-                return True, False
-            return False, False
-        if self._drain_at_ns <= now_ns:
-            self._drain_at_ns = _next_drain_ns(now_ns)
-            return False, True
-        return False, False
-
-    def ring(self) -> None:
-        """(not under the lock) Ring the doorbell: the receiver's ``recv`` returns."""
-        self._inbox.ring()
+        self._items.clear()

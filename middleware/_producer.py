@@ -31,9 +31,10 @@ import zenoh
 from ._buffer import TimeSeries
 from ._clock import now_ns
 from ._errors import DuplicateTimestampError, FlowControlRefused, FramegateError, SchemaError
-from ._inbox import Inbox, Receiver
-from ._ledger_producer import Registration, RegistrationKey
-from ._loop import NodeLoop
+from ._executor import BUDGET as _BUDGET
+from ._executor import Executor
+from ._inbox import Inbox
+from ._ledger_producer import RegistrationKey
 from ._protocol_producer import Event, ProducerProtocol, Publish, Retire
 from ._records import BufferInfo, DataObject, Retention, SubscriptionInfo
 from ._shapes import ShapeChecker
@@ -49,10 +50,16 @@ HORIZON_NS = 10_000_000_000
 _RATE_WINDOW = 64
 # A put that waits for credit looks again at least this often.
 _WAIT_S = 0.1
-# Acks honest subscribers can send between two drains: coalesced, at most a few per
-# registration and queue window (see ``AckPolicy``) plus a re-ack each per 0.5 s. A lost
-# ack costs nothing: acks are cumulative and repeated.
+# Acks honest subscribers can send between two turns of the executor: coalesced, at most a
+# few per registration and queue window (see ``AckPolicy``) plus a re-ack each per 0.5 s. A
+# lost ack costs nothing: acks are cumulative and repeated.
 _ACK_INBOX = 8192
+# An ack is msgpack {"e": epoch, "s": seq}: a few dozen bytes. Anything larger is not an ack
+# and is dropped before it is buffered, so the ack inbox holds at most 8192 x 256 B.
+ACK_MAX_BYTES = 256
+# Token changes waiting for the executor (tokens come and go at human rates; a churning
+# peer's excess is dropped and counted, see ``Inbox``).
+_TOKEN_INBOX = 4096
 
 
 @dataclass
@@ -67,18 +74,19 @@ class _Counters:
 class Producer:
     """A buffer offered by this process. Create with ``Node.offer``.
 
-    Threads (see the README's *Threads*): ``_on_token`` runs on zenoh-python's callback
-    thread (tokens are rare); it feeds the protocol under ``_lock`` and wakes whoever waits,
-    and never calls Zenoh. Acks wait in the ``Inbox`` (a Zenoh channel) until ``put``
-    drains them with ``try_recv`` before deciding credit; a put that waits for credit
-    blocks in the channel's ``recv`` (the *receiver*; the loop rings its doorbell at its
-    deadline), and with no put waiting the node's loop drains them. ``_lock`` (with
-    ``_cond`` on it) guards the protocol, the counters, the rate window and the inbox's
-    ``Receiver``; the inbox is drained under it while no receiver blocks in ``recv``.
-    ``_send_lock`` serialises carrying out the protocol's events (``put`` on the caller's
-    thread, ``on_deadline`` on the node's loop), so the messages of one registration leave
-    in order and a ``publisher.put`` that blocks holds only ``_send_lock``. Lock order:
-    ``_send_lock``, then ``_lock``.
+    Threads (see docs/threads.md): Zenoh's threads only append acks and subscription
+    tokens to this producer's two bounded inboxes and signal the node's executor. The
+    executor feeds a bounded batch of them to the protocol per turn (``run_ready``),
+    resends when the protocol's deadline is due (``on_deadline``), and carries out the
+    protocol's events. ``put`` runs on the caller's thread: it feeds a bounded batch of
+    waiting acks itself (so its credit is current), decides, and sends its own
+    notifications. ``_lock`` (with ``_cond`` on it) guards the protocol, the counters and
+    the rate window, and is held only for bounded work (one batch); a waiting ``put``
+    waits in ``_cond``, which the executor notifies when credit frees. ``_send_lock``
+    serialises carrying out the protocol's events, so the messages of one registration
+    leave in order and a ``publisher.put`` that blocks holds only ``_send_lock``; a put
+    with ``wait_s`` waits for it at most until its deadline. Lock order: ``_send_lock``,
+    then ``_lock``.
     """
 
     def __init__(
@@ -92,7 +100,7 @@ class Producer:
         retention: Retention,
         inline_max_bytes: int,
         xml_limits: XmlLimits,
-        loop: NodeLoop,
+        executor: Executor,
         horizon_ns: int = HORIZON_NS,
     ) -> None:
         self.service = service
@@ -105,7 +113,8 @@ class Producer:
         # Validates each element's metadata, in full once per document shape.
         self._metadata = ShapeChecker(kind, xml_limits)
         self._session = session
-        self._loop = loop
+        self._executor = executor
+        self.scheduled = False  # the executor's flag (see ``Source``)
         # A new epoch per producer instance; each registration gets "<epoch>.<n>".
         self.epoch = secrets.token_hex(6)
         self._lock = threading.Lock()
@@ -117,96 +126,87 @@ class Producer:
         self._publishers: dict[RegistrationKey, Any] = {}
         self._counters = _Counters()
         self._closed = False
-        # Events produced by Zenoh input (greetings, refusals, retired publishers) wait for
-        # the loop or the next put; this says whether any do.
-        self._events_waiting = False
+        executor.add(self)
         self._acks = Inbox(
             session,
             keys.acks(service, buffer),
             capacity=_ACK_INBOX,
-            doorbell_key=keys.ack(service, buffer, "doorbell"),
+            max_bytes=ACK_MAX_BYTES,
+            signal=self._signal,
         )
-        # A put blocked in the ack inbox's recv, and when it wants the doorbell.
-        self._receiver = Receiver(self._acks, self._cond, loop)
         # Declared last: its callback (history included) may run at once.
-        self._token_sub = session.liveliness().declare_subscriber(
+        self._tokens = Inbox(
+            session,
             keys.subscription_tokens(service, buffer),
-            zenoh.handlers.Callback(self._on_token),
-            history=True,
+            capacity=_TOKEN_INBOX,
+            max_bytes=0,  # a token is its key; it carries no payload
+            signal=self._signal,
+            liveliness=True,
         )
-        loop.add(self)
 
     @property
     def name(self) -> str:
         return f"{self.service}/{self.buffer}"
 
-    # -- Zenoh input (zenoh-python's callback threads: short, never call Zenoh) -----------
-    def _on_token(self, sample: zenoh.Sample) -> None:
-        alive = sample.kind == zenoh.SampleKind.PUT
-        with self._cond:
-            self._protocol.token(str(sample.key_expr), alive, time.monotonic_ns())
-            self._events_waiting = True
-            self._receiver.wake()  # a waiting put looks again (a gone subscriber frees it)
-            self._cond.notify_all()
-        self._loop.poke(0)
+    def _signal(self) -> None:
+        """(Zenoh's thread) New input: the executor's turn (a lock only when not yet due)."""
+        if not self.scheduled:
+            self._executor.signal(self)
 
-    # -- acks (under _lock, on the thread that needs them) ---------------------------------
-    def _drain_acks(self) -> None:
-        """(under _lock) Feed the protocol every ack waiting in the inbox, unless a put
-        blocks in its ``recv``: then they are that put's to take."""
-        if self._receiver.active:
-            return
-        freed = False
+    # -- input (on the executor, or inline on a caller that needs current credit) ----------
+    def _feed(self, budget: int) -> bool:
+        """(under _lock) Feed the protocol at most ``budget`` acks and as many tokens; True
+        if anything changed for a waiting put (credit freed, a subscriber came or went)."""
+        changed = False
         ack = self._protocol.ack
-        now = 0
-        for sample in self._acks.drain():
-            now = now or time.monotonic_ns()
-            freed |= ack(str(sample.key_expr), sample.payload.to_bytes(), now)
-        if freed:
-            self._cond.notify_all()
+        now = time.monotonic_ns()
+        for sample in self._acks.take(budget):
+            changed |= ack(str(sample.key_expr), sample.payload.to_bytes(), now)
+        for sample in self._tokens.take(budget):
+            alive = sample.kind == zenoh.SampleKind.PUT
+            self._protocol.token(str(sample.key_expr), alive, now)
+            changed = True
+        return changed
 
-    def _wait_acks(self, wait_s: float) -> None:
-        """(holding _lock through ``_cond``) Wait up to ``wait_s`` for acks, fed to the
-        protocol when this returns (see ``Receiver.wait``)."""
-        sample = self._receiver.wait(wait_s)
-        if sample is not None:
-            self._protocol.ack(str(sample.key_expr), sample.payload.to_bytes(), time.monotonic_ns())
-        self._drain_acks()
-        self._cond.notify_all()  # news for other waiters, or their turn to receive
+    def run_ready(self, budget: int) -> bool:
+        """(the executor) A bounded batch of input; the events it produced carried out."""
+        with self._send_lock:
+            with self._lock:
+                if self._closed:
+                    return False
+                if self._feed(budget):
+                    self._cond.notify_all()
+                events = self._protocol.events()
+            self._carry_out(events)
+        return bool(len(self._acks) or len(self._tokens))
 
-    # -- the node's loop ---------------------------------------------------------------------
     def next_deadline_ns(self) -> int | None:
-        if self._events_waiting:
-            return 0
         with self._lock:
-            due = self._protocol.next_deadline_ns()
-            other = self._receiver.deadline_ns()
-        if other is not None and (due is None or other < due):
-            return other
-        return due
+            return self._protocol.next_deadline_ns()
 
     def on_deadline(self, now_ns: int) -> None:
-        """Resends that are due and events Zenoh input produced, sent from the node's loop;
-        acks drained if no put waits for them; a waiting put's doorbell rung at its
-        deadline."""
+        """(the executor) Resends that are due."""
         with self._send_lock:
             with self._lock:
                 if self._closed:
                     return
-                ring, _ = self._receiver.due(now_ns)
-                self._drain_acks()  # before resending (a no-op while a put receives)
                 self._protocol.tick(now_ns)
-                events = self._take_events()
+                events = self._protocol.events()
             self._carry_out(events)
-        if ring:
-            self._receiver.ring()
 
-    def _take_events(self) -> list[Event]:
-        """(under _lock)"""
-        self._events_waiting = False
-        return self._protocol.events()
+    def _wait(self, remaining_s: float) -> None:
+        """(holding _lock through ``_cond``) Wait for news of credit: in ``_cond``, which the
+        executor notifies; on the executor itself (a handler's put), for this producer's next
+        input, handled inline by the caller's next turn."""
+        if not self._executor.on_thread:
+            self._cond.wait(min(remaining_s, _WAIT_S))
+            return
+        self._cond.release()
+        try:
+            self._executor.wait_for(self, remaining_s)
+        finally:
+            self._cond.acquire()
 
-    # -- producing -------------------------------------------------------------------------
     def put(
         self, timestamp_ns: int, payload: bytes, metadata: bytes | str, *, wait_s: float = 0.0
     ) -> int:
@@ -261,46 +261,45 @@ class Producer:
                 raise
         count = len(elements)
         deadline = time.monotonic() + wait_s
-        while True:
-            with self._send_lock:
-                with self._cond:
-                    self._drain_acks()
-                    full = self._protocol.full(count)
-                    if full is None:
-                        notified = self._store(elements)
-                    else:
-                        self._protocol.tick(time.monotonic_ns())  # a waiting put heals losses
-                    events = self._take_events()
-                self._carry_out(events)
-            if full is None:
-                return notified
-            # Not stored: wait for credit outside _send_lock (the loop keeps sending).
-            with self._cond:
+        try:
+            while True:
+                # A put without wait_s waits for a send in progress, as before; one with a
+                # deadline waits for it no longer than that.
                 remaining = deadline - time.monotonic()
-                if remaining <= 0 or count > full.key.queue_size:
-                    self._counters.refused += count
-                    raise FlowControlRefused(self._refusal(full, elements))
-                self._drain_acks()
-                if self._protocol.full(count) is not None:
-                    self._wait_acks(min(remaining, _WAIT_S))
-
-    def _refusal(self, full: Registration[Any], elements: tuple[DataObject, ...]) -> str:
-        k, count, first = full.key, len(elements), elements[0].timestamp_ns
-        if count == 1:
-            return (
-                f"{self.name}: subscriber {k.sub_id} has {full.queued}/{k.queue_size} "
-                f"notifications queued; element {first} was not stored (drop it, or put "
-                "with wait_s to wait)"
-            )
-        if count > k.queue_size:
-            advice = f"it can never fit: put batches of at most {k.queue_size}"
-        else:
-            advice = "drop it, or put_many with wait_s to wait"
-        return (
-            f"{self.name}: subscriber {k.sub_id} has {full.queued}/{k.queue_size} "
-            f"notifications queued, no room for a batch of {count}; no element of the batch "
-            f"(from {first}) was stored ({advice})"
-        )
+                if not self._send_lock.acquire(timeout=max(0.0, remaining) if wait_s > 0 else -1):
+                    with self._lock:
+                        self._counters.refused += count
+                        refusal = self._protocol.admit(count, may_wait=False)
+                    raise FlowControlRefused(
+                        refusal.message(elements[0].timestamp_ns)
+                        if refusal is not None
+                        else f"{self.name}: could not send within wait_s={wait_s:g}"
+                    )
+                try:
+                    with self._cond:
+                        self._feed(_BUDGET)  # credit as of now
+                        remaining = deadline - time.monotonic()
+                        refusal = self._protocol.admit(count, may_wait=remaining > 0)
+                        if refusal is None:
+                            notified = self._store(elements)
+                        elif not refusal.wait:
+                            self._counters.refused += count
+                        events = self._protocol.events()
+                    self._carry_out(events)
+                finally:
+                    self._send_lock.release()
+                if refusal is None:
+                    return notified
+                if not refusal.wait:
+                    raise FlowControlRefused(refusal.message(elements[0].timestamp_ns))
+                # Not stored: wait for credit outside _send_lock (the executor keeps sending).
+                with self._cond:
+                    self._feed(_BUDGET)
+                    if self._protocol.admit(count, may_wait=False) is not None:
+                        self._wait(deadline - time.monotonic())
+        finally:
+            if self._executor.on_thread and (len(self._acks) or len(self._tokens)):
+                self._executor.signal(self)  # input claimed while waiting, left for the turn
 
     def _checked(self, timestamp_ns: int, payload: bytes, metadata: bytes | str) -> DataObject:
         # The common case (int, bytes, bytes) costs three type checks; the rest is converted.
@@ -367,7 +366,7 @@ class Producer:
                 continue
             assert type(event) is Publish
             try:
-                if event.epoch is None:  # a control message: rare, never blocks
+                if event.control:
                     self._session.put(
                         event.keyexpr,
                         event.payload,
@@ -437,42 +436,36 @@ class Producer:
         This is the paper's load indicator, read by the mediator.
         """
         with self._lock:
-            self._drain_acks()
+            self._feed(_BUDGET)  # the load as of now, not as of the executor's last turn
             return self._protocol.fill()
 
     def subscriptions(self) -> list[SubscriptionInfo]:
         """Every live subscription (registration) as this producer counts it."""
         with self._lock:
-            self._drain_acks()
+            self._feed(_BUDGET)
             return self._protocol.subscriptions()
 
     def wait_for_subscribers(self, count: int, *, timeout_s: float) -> bool:
         """Wait until at least ``count`` subscriptions are registered."""
         deadline = time.monotonic() + timeout_s
-        with self._cond:
-            while len(self._protocol.registrations()) < count:
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    return False
-                self._cond.wait(remaining)
-            return True
-
-    def wait_fill_below(self, limit: float, *, timeout_s: float) -> bool:
-        """Wait until ``fill()`` < ``limit`` (e.g. a consumer took a notification)."""
-        deadline = time.monotonic() + timeout_s
-        with self._cond:
-            self._drain_acks()
-            while self._protocol.fill() >= limit:
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    return False
-                self._wait_acks(min(remaining, _WAIT_S))
-            return True
+        try:
+            with self._cond:
+                while True:
+                    self._feed(_BUDGET)
+                    if len(self._protocol.registrations()) >= count:
+                        return True
+                    remaining = deadline - time.monotonic()
+                    if remaining <= 0:
+                        return False
+                    self._wait(remaining)
+        finally:
+            if self._executor.on_thread and (len(self._acks) or len(self._tokens)):
+                self._executor.signal(self)
 
     def info(self) -> BufferInfo:
         """Retention, size, span, rate, counters and subscriptions."""
         with self._lock:
-            self._drain_acks()
+            self._feed(_BUDGET)
             c = self._counters
             times = list(c.put_times)
             puts, refused, rejected = c.puts, c.refused, c.rejected
@@ -507,17 +500,16 @@ class Producer:
         """Stop serving; subscribers see the service token go."""
         if self._closed:
             return
-        self._loop.remove(self)
+        self._executor.remove(self)
+        self._acks.close()
+        self._tokens.close()
         with self._send_lock:
             with self._cond:
                 self._closed = True
                 self._protocol.close()
-                events = self._take_events()
+                events = self._protocol.events()
                 self._cond.notify_all()
             self._carry_out(events)
-        self._acks.close()
-        with contextlib.suppress(zenoh.ZError):
-            self._token_sub.undeclare()
 
 
 def _check_types(timestamp_ns: object, payload: object, metadata: object) -> None:

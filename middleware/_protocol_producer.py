@@ -96,6 +96,12 @@ class Publish:
     # reported back with it (``send_failed``).
     epoch: str | None = None
 
+    @property
+    def control(self) -> bool:
+        """A control message (greeting, refusal): rare, sent once with DROP congestion
+        control and no publisher declared; a notification leaves by its key's publisher."""
+        return self.epoch is None
+
 
 @dataclass(frozen=True, slots=True)
 class Retire:
@@ -105,6 +111,40 @@ class Retire:
 
 
 Event = Publish | Retire
+
+
+@dataclass(frozen=True, slots=True)
+class Refusal:
+    """Why ``count`` elements cannot be stored now: ``registration`` has no room for them.
+    ``wait``: the caller may wait for credit (it has time left and the batch can fit)."""
+
+    name: str
+    sub_id: str
+    queued: int
+    queue_size: int
+    count: int
+    wait: bool
+
+    @property
+    def never_fits(self) -> bool:
+        return self.count > self.queue_size
+
+    def message(self, first_ns: int) -> str:
+        """The refusal as ``FlowControlRefused`` says it (``first_ns``: the first stamp)."""
+        held = f"{self.name}: subscriber {self.sub_id} has {self.queued}/{self.queue_size}"
+        if self.count == 1:
+            return (
+                f"{held} notifications queued; element {first_ns} was not stored (drop it, "
+                "or put with wait_s to wait)"
+            )
+        if self.never_fits:
+            advice = f"it can never fit: put batches of at most {self.queue_size}"
+        else:
+            advice = "drop it, or put_many with wait_s to wait"
+        return (
+            f"{held} notifications queued, no room for a batch of {self.count}; no element "
+            f"of the batch (from {first_ns}) was stored ({advice})"
+        )
 
 
 @dataclass(slots=True)
@@ -322,6 +362,23 @@ class ProducerProtocol:
     def full(self, count: int = 1) -> Registration[_Kept] | None:
         """A flow registration without room for ``count`` more elements, or None."""
         return self._ledger.full(count)
+
+    def admit(self, count: int, *, may_wait: bool) -> Refusal | None:
+        """Whether ``count`` elements may be stored now (None), else why not and whether to
+        wait for credit: never for a batch larger than the full subscriber's queue, which
+        can never fit, nor when the caller has no time left (``may_wait``)."""
+        full = self._ledger.full(count)
+        if full is None:
+            return None
+        k = full.key
+        return Refusal(
+            self.name,
+            k.sub_id,
+            full.queued,
+            k.queue_size,
+            count,
+            wait=may_wait and count <= k.queue_size,
+        )
 
     def put_many(self, elements: tuple[DataObject, ...], now_ns: int) -> int:
         """Count stored elements (the caller checked ``full``) and queue their notifications:

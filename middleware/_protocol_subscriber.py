@@ -10,10 +10,12 @@ node's loop when a delayed ack falls due for a caller that does not come back to
 
 Refusals are trusted only from the producer's own session: the Zenoh layer passes each
 control message's sender (the Zenoh session id the producer stamps on it as its source)
-and, once known, the ids of the sessions that answer as the service
-(``trust_producer``); a refusal from any other session is ignored and counted. A refused
-subscription tries again every ``RETRY_NS`` (the Zenoh layer declares its token anew when
-``retry_due`` says so): the holder it lost to may leave.
+and, when ``judge`` asks for them, the ids of the sessions that answer as the service
+(``trust_producer``; asked again at most every ``RETRY_NS``, so a flood of forged refusals
+costs one question per period); a refusal from any other session is ignored. A refused
+subscription (or one that met a forged refusal) declares its token again every
+``RETRY_NS`` (``retry_due``) until the producer greets it: the holder it lost to may
+leave, and a real answer lost among forgeries is asked for again.
 
 Lapses are counted: every notification carries its registration's ``base`` (the elements
 the producer had stored when it registered us), so seq s is the producer's element number
@@ -27,11 +29,12 @@ and reported once (``lapse_news``).
 from __future__ import annotations
 
 from collections import OrderedDict
+from collections.abc import Container
 from typing import Any
 
 from ._errors import ConfigError
 from ._ledger_subscriber import AckPolicy, Entry, SubscriberCounters, SubscriberLedger
-from ._protocol_producer import FLOW_QUEUE_MAX
+from ._protocol_producer import FLOW_QUEUE_MAX, INLINE_METADATA_MAX
 from ._records import SubscriptionMode
 from ._wire import (
     MAX_QUEUE_SIZE,
@@ -47,6 +50,8 @@ from ._wire import (
 # ZBytes for a single element, turned into bytes by ``take`` on the caller's thread; bytes
 # cut out of a batch).
 Item = tuple[int, bytes | None, Any]
+# Room for a notification header's fields besides its metadata (epoch, seq, descriptor, ...).
+_HEADER_SLACK = 1024
 
 # A refused subscription declares its token again this often.
 RETRY_NS = 2_000_000_000
@@ -83,6 +88,7 @@ class SubscriberProtocol:
         check_request(mode, queue_size, push_max_bytes)
         self.mode = mode
         self.queue_size = queue_size
+        self.push_max_bytes = push_max_bytes
         self.descriptor = descriptor_of(mode, queue_size, push_max_bytes)
         self.ledger: SubscriberLedger[Item] = SubscriberLedger(
             mode, queue_size, self.descriptor, policy=policy or AckPolicy.for_queue(queue_size)
@@ -92,10 +98,11 @@ class SubscriberProtocol:
         # and which session said so (judged once the producer's sessions are known).
         self.registered: str | None = None
         self._refusal: tuple[str, str | None] | None = None
+        self._unjudged = False
         self._producer_ids: frozenset[str] | None = None
+        self._ids_at_ns = 0
         self._refusal_reported = False
         self._retry_at_ns: int | None = None
-        self.ignored_controls = 0
         self.registrations = 0  # greetings under distinct epochs
         # Lapses: the epoch of the last notification queued and its base; per producer
         # instance the highest element number queued; elements counted as never notified.
@@ -103,6 +110,8 @@ class SubscriberProtocol:
         self._base = 0
         self._high: OrderedDict[str, int] = OrderedDict()
         self._lapsed = 0
+        # Fetch ahead: set once the consumer had to query for an element (see ``fetch_ahead``).
+        self.fetching = False
 
     # -- input -----------------------------------------------------------------------------
     def receive(self, attachment: bytes | None, payload: Any, sender: str | None = None) -> bool:
@@ -181,8 +190,8 @@ class SubscriberProtocol:
 
     def _control(self, control: Control, sender: str | None) -> None:
         if control.descriptor != self.descriptor:
-            self.ignored_controls += 1
-        elif control.kind == "hello":
+            return  # meant for another registration of this key: not ours to judge
+        if control.kind == "hello":
             if self.registered is not None and self.registered != control.text:
                 self.registrations += 1  # a producer restart, or our token had lapsed
             elif self.registered is None:
@@ -192,54 +201,60 @@ class SubscriberProtocol:
             self._retry_at_ns = None
         elif self.registered is None:
             self._refusal = (control.text, sender)
-            self._judge_refusal()
-        else:  # a refusal after a greeting: a forgery or an old message; the greeting stands
-            self.ignored_controls += 1
+            self._unjudged = True
+        # else: a refusal after a greeting, a forgery or an old message: the greeting stands
 
     # -- refusals --------------------------------------------------------------------------
-    def trust_producer(self, session_ids: frozenset[str]) -> None:
-        """The Zenoh session ids that answer as the producer's service: only their
+    def judge(self, now_ns: int) -> bool:
+        """Judge a refusal that waits (see the module doc): kept if its sender is one of the
+        producer's sessions, else dropped (the token is declared again at the next retry,
+        in case the producer's sessions changed). True if the producer's sessions must be
+        asked first (``trust_producer``): unknown, or older than ``RETRY_NS`` and the
+        sender not among them."""
+        if not self._unjudged or self._refusal is None:
+            return False
+        ids, sender = self._producer_ids, self._refusal[1]
+        if ids is None or (sender not in ids and now_ns - self._ids_at_ns >= RETRY_NS):
+            return True
+        self._unjudged = False
+        if sender not in ids:
+            self._refusal = None  # not from the producer's session: a forgery
+        if self._retry_at_ns is None:
+            self._retry_at_ns = now_ns + RETRY_NS
+        return False
+
+    def trust_producer(self, session_ids: frozenset[str], now_ns: int) -> None:
+        """The Zenoh session ids that answer as the producer's service now: only their
         refusals count."""
         self._producer_ids = session_ids
-        self._judge_refusal()
-
-    def _judge_refusal(self) -> None:
-        if self._refusal is None or self._producer_ids is None:
-            return
-        if self._refusal[1] not in self._producer_ids:
-            self.ignored_controls += 1  # not from the producer: a forgery
-            self._refusal = None
+        self._ids_at_ns = now_ns
+        self.judge(now_ns)
 
     @property
     def refusal(self) -> str | None:
         """Why the producer refused this subscription (None: it did not, or not yet, or
-        the refusal is not known to come from it)."""
-        if self._refusal is None or self._producer_ids is None:
+        the refusal is not known to come from its session)."""
+        if self._refusal is None or self._unjudged:
             return None
         return self._refusal[0]
 
-    @property
-    def needs_producer(self) -> bool:
-        """A refusal waits to be judged: the Zenoh layer should ``trust_producer``."""
-        return self._refusal is not None and self._producer_ids is None
-
-    def refusal_news(self, now_ns: int) -> str | None:
-        """A refusal not reported yet (to log as an error, once); starts the retry clock."""
+    def refusal_news(self) -> str | None:
+        """A refusal not reported yet, to log as an error once (the same subscription
+        refused again after a retry is not reported again)."""
         text = self.refusal
         if text is None or self._refusal_reported:
             return None
         self._refusal_reported = True
-        self._retry_at_ns = now_ns + RETRY_NS
         return text
 
     def retry_due(self, now_ns: int) -> bool:
-        """True when a refused subscription should declare its token again (the refusal is
-        forgotten: the next answer decides; a refusal with the same reason is not reported
-        again)."""
+        """True when a refused subscription should declare its token again: the refusal is
+        forgotten, the producer's next answer decides."""
         if self._retry_at_ns is None or now_ns < self._retry_at_ns or self.registered:
             return False
         self._retry_at_ns = now_ns + RETRY_NS
         self._refusal = None
+        self._unjudged = False
         return True
 
     # -- taking and acking -----------------------------------------------------------------
@@ -258,11 +273,31 @@ class SubscriberProtocol:
     def next_deadline_ns(self) -> int | None:
         """When a delayed ack falls due with nobody taking, or a refused subscription tries
         again (None: none waits)."""
+        if self._unjudged:
+            return 0  # a refusal to judge: at once
         due = self.ledger.flush_at_ns()
         retry = self._retry_at_ns if self.registered is None else None
         if retry is not None and (due is None or retry < due):
             return retry
         return due
+
+    def fetch_ahead(self, taken_missing: list[int], inflight: Container[int]) -> list[int]:
+        """The stamps whose queries to start now, once ``fetching``: the taken notifications
+        that came without their element (``taken_missing``) and every queued one, oldest
+        first, less those in flight, at most a queue's worth."""
+        queued = [e.item[0] for e in self.ledger.queued() if e.item[2] is None]
+        wanted = [t for t in taken_missing + queued if t not in inflight]
+        return wanted[: self.queue_size]
+
+    def max_message_bytes(self) -> int:
+        """The largest message (payload and header) an honest producer sends this
+        subscription; a larger one is garbage, dropped before it is buffered. Unbounded
+        while the push limit is the producer's (``push_max_bytes`` -1), and for observers
+        (a batch of any length may reach them)."""
+        if self.push_max_bytes < 0 or self.mode is not SubscriptionMode.FLOW:
+            return 1 << 62
+        per_element = self.push_max_bytes + INLINE_METADATA_MAX + _HEADER_SLACK
+        return self.queue_size * per_element + _HEADER_SLACK
 
     # -- reading ---------------------------------------------------------------------------
     def __len__(self) -> int:

@@ -23,9 +23,9 @@ from typing import Any
 import zenoh
 
 from ._errors import FramegateError, RegistrationRefused
-from ._inbox import Inbox, Receiver
+from ._executor import BUDGET, Executor
+from ._inbox import Inbox
 from ._ledger_subscriber import REACK_NS, Entry, SubscriberCounters
-from ._loop import NodeLoop
 from ._protocol_subscriber import RETRY_NS, Item, SubscriberProtocol
 from ._records import DataObject, Notification, SubscriptionMode
 from ._wire import Keys, holder_chunk
@@ -35,16 +35,17 @@ log = logging.getLogger("framegate.middleware")
 # A push limit larger than any payload: everything travels with its notification.
 PUSH_ALL = 2**31 - 1
 _REACK_S = REACK_NS / 1e9
-# With nobody taking, the node's loop drains the inbox every ``DRAIN_NS`` (0.25 s): what
-# honest traffic can bring in between is the queue's credit plus a resend round or two of
-# it, hence the inbox's capacity.
-_INBOX_SLACK = 64  # greetings, refusals, doorbells
+_INBOX_SLACK = 64  # greetings, refusals
 
 
 def inbox_capacity(queue_size: int) -> int:
-    """Notifications honest traffic can leave in the inbox between two drains: the credit
-    (N), and N again per resend round (every 0.5 s), with room to spare."""
+    """Notifications honest traffic can leave in the inbox between two turns of the
+    executor: the credit (N), and N again per resend round (every 0.5 s), with room to
+    spare."""
     return 4 * queue_size + _INBOX_SLACK
+
+
+Handler = Callable[[list[Notification]], object]
 
 
 class Subscription:
@@ -53,17 +54,14 @@ class Subscription:
     Survives restarts of the producing service: the producer re-registers this subscription
     from its liveliness token under a new epoch, and the protocol tracks every epoch it meets.
 
-    Threads (see the README's *Threads*): no Python runs on Zenoh's threads for it.
-    Notifications wait in the ``Inbox`` (a Zenoh channel) until a caller of ``take`` drains
-    them with ``try_recv`` into the protocol, in one batch; a caller with nothing to take
-    blocks in the channel's ``recv`` (the *receiver*, one at a time; others wait in
-    ``_cond`` for its news), and the node's loop rings its doorbell at its deadline. With
-    nobody taking, the node's loop drains (``on_deadline``). ``_lock`` guards the protocol,
-    the inbox's ``Receiver`` and ``_waiting`` (callers blocked in ``_cond``); the inbox is
-    drained under it, and only while no receiver blocks in ``recv``. Acks are
-    computed under the lock and sent after releasing it: by ``take`` on the caller's
-    thread, or by the node's loop when a delayed ack falls due and the caller has not come
-    back (``on_deadline``).
+    Threads (see docs/threads.md): Zenoh's thread only appends each notification to the
+    bounded ``Inbox`` and signals the node's executor. The executor feeds a bounded batch
+    to the protocol per turn (``run_ready``) and then either runs the handler registered
+    with ``Node.on`` on a bounded batch of taken notifications, or wakes the callers of
+    ``take`` waiting in ``_cond``; it also sends delayed acks when they fall due
+    (``on_deadline``). ``take`` feeds a bounded batch itself before it looks, so it never
+    waits for input that has arrived. ``_lock`` guards the protocol, the fetches in flight
+    and ``_waiting``; acks are computed under it and sent after releasing it.
     """
 
     def __init__(
@@ -76,7 +74,7 @@ class Subscription:
         queue_size: int,
         mode: SubscriptionMode,
         fetch: Callable[[str, int, float], DataObject],
-        loop: NodeLoop,
+        executor: Executor,
         prefetch: tuple[Callable[[str, int, float], Any], Callable[[str, int, Any], DataObject]]
         | None = None,
         push_max_bytes: int = -1,
@@ -94,12 +92,14 @@ class Subscription:
         self._keys = keys
         self._fetch = fetch
         self._prefetch = prefetch
-        # Fetches started ahead (timestamp -> pending query), once the caller has fetched
-        # an element that did not come along: at most ``queue_size`` in flight.
-        self._fetching = False
+        # Fetches started ahead (timestamp -> pending query), at most ``queue_size`` in flight.
         self._inflight: OrderedDict[int, Any] = OrderedDict()
         self.fetched_ahead = 0  # fetches answered by a query started ahead
-        self._loop = loop
+        self._executor = executor
+        self.scheduled = False  # the executor's flag (see ``Source``)
+        self._handler: Handler | None = None
+        self._max_batch = 1
+        self._idle_ack_at_ns = 0  # with a handler: when to repeat acks while nothing comes
         self._on_close = on_close
         # The Zenoh sessions answering as a service: asked when a refusal must be judged.
         self._producer_ids = producer_ids
@@ -111,13 +111,14 @@ class Subscription:
             keys.ack(service, buffer, self.subscription_id),
             congestion_control=zenoh.CongestionControl.BLOCK,
         )
-        notify_key = keys.notify(service, buffer, self.subscription_id)
+        executor.add(self)
         self._inbox = Inbox(
-            session, notify_key, capacity=inbox_capacity(queue_size), doorbell_key=notify_key
+            session,
+            keys.notify(service, buffer, self.subscription_id),
+            capacity=inbox_capacity(queue_size),
+            max_bytes=self._protocol.max_message_bytes(),
+            signal=self._signal,
         )
-        # A caller blocked in the inbox's recv, and when it wants the doorbell.
-        self._receiver = Receiver(self._inbox, self._cond, loop)
-        loop.add(self)
         self._holder = holder_chunk(holder, socket.gethostname())
         self._token_key = keys.subscription_token(
             service, buffer, self.subscription_id, mode, queue_size, push_max_bytes, self._holder
@@ -133,47 +134,46 @@ class Subscription:
     def missed_total(self) -> int:
         """Notifications lost so far (observers only: flow control loses none)."""
         with self._lock:
-            self._drain()
+            self._feed(BUDGET)
             return self._protocol.missed_total
 
     @property
     def counters(self) -> SubscriberCounters:
         """Notifications ignored so far, by reason (foreign, duplicate, out of order, ...)."""
         with self._lock:
-            self._drain()
+            self._feed(BUDGET)
             return self._protocol.counters()
 
     @property
     def garbage(self) -> int:
-        """Messages on this subscription's key that were not notifications."""
+        """Messages on this subscription's key that were not notifications, with those
+        dropped unread for their size."""
         with self._lock:
-            self._drain()
-            return self._protocol.garbage
+            self._feed(BUDGET)
+            return self._protocol.garbage + self._inbox.oversize
 
-    # -- Zenoh input (under _lock, on the thread that needs it) ------------------------------
-    def _drain(self) -> None:
-        """(under _lock) Feed the protocol every notification waiting in the inbox, unless a
-        receiver blocks in ``recv``: then the input is its to take."""
-        if self._receiver.active:
-            return
-        for sample in self._inbox.drain():
-            self._feed(sample)
+    # -- input (on the executor, or inline on a caller that looks) ------------------
+    def _signal(self) -> None:
+        """(Zenoh's thread) New input: the executor's turn (a lock only when not yet due)."""
+        if not self.scheduled:
+            self._executor.signal(self)
 
-    def _feed(self, sample: zenoh.Sample) -> None:
-        """(under _lock)"""
-        attachment = sample.attachment
-        raw = attachment.to_bytes() if attachment is not None else None
+    def _feed(self, budget: int) -> None:
+        """(under _lock) Feed the protocol at most ``budget`` waiting notifications."""
         protocol = self._protocol
-        before = protocol.registrations
-        payload = sample.payload
-        # Control messages (the only ones whose sender matters) have an empty payload.
-        protocol.receive(raw, payload, None if len(payload) else _sender(sample))
-        if protocol.registrations > before > 0:
-            log.info(
-                "subscription to %s registered again (the producer restarted, or this "
-                "subscription had lapsed)",
-                self.name,
-            )
+        for sample in self._inbox.take(budget):
+            attachment = sample.attachment
+            raw = attachment.to_bytes() if attachment is not None else None
+            before = protocol.registrations
+            payload = sample.payload
+            # Control messages (the only ones whose sender matters) have an empty payload.
+            protocol.receive(raw, payload, None if len(payload) else _sender(sample))
+            if protocol.registrations > before > 0:
+                log.info(
+                    "subscription to %s registered again (the producer restarted, or this "
+                    "subscription had lapsed)",
+                    self.name,
+                )
         lapsed = protocol.lapse_news()
         if lapsed:
             log.warning(
@@ -183,46 +183,80 @@ class Subscription:
                 lapsed,
             )
 
-    def _wait_input(self, wait_s: float) -> None:
-        """(holding _lock through ``_cond``) Wait up to ``wait_s`` for Zenoh input, fed to
-        the protocol when this returns: as the receiver, blocked in the inbox's ``recv``
-        with the loop asked to ring the doorbell at the deadline; or, when another caller
-        is the receiver already, in ``_cond`` for its news (see ``Receiver.wait``)."""
-        self._waiting += 1
+    def _wait(self, wait_s: float) -> None:
+        """(holding _lock through ``_cond``) Wait up to ``wait_s`` for news: in ``_cond``,
+        which the executor notifies after feeding; on the executor itself (a handler that
+        takes), for this subscription's next input, fed by the caller's next look."""
+        if not self._executor.on_thread:
+            self._waiting += 1
+            try:
+                self._cond.wait(wait_s)
+            finally:
+                self._waiting -= 1
+            return
+        self._cond.release()
         try:
-            sample = self._receiver.wait(wait_s)
+            self._executor.wait_for(self, wait_s)
         finally:
-            self._waiting -= 1
-        if sample is not None:
-            self._feed(sample)
-        self._drain()
-        if self._waiting:  # news for them, or their turn to receive
-            self._cond.notify_all()
+            self._cond.acquire()
 
-    def trust_producer(self, session_ids: frozenset[str]) -> None:
-        """The Zenoh sessions that answer as this subscription's service: only their
-        refusals count (see ``SubscriberProtocol``)."""
-        with self._lock:
-            self._protocol.trust_producer(session_ids)
+    def _done_waiting(self) -> None:
+        """A handler that waited inline may leave input behind: the executor's, next turn."""
+        if self._executor.on_thread and len(self._inbox):
+            self._executor.signal(self)
 
-    @property
-    def needs_producer(self) -> bool:
-        """A refusal arrived that waits for ``trust_producer`` to be judged."""
+    def run_ready(self, budget: int) -> bool:
+        """(the executor) Feed a bounded batch; then run the handler on a bounded batch of
+        taken notifications, or wake the callers of ``take``. True if more is waiting."""
         with self._lock:
-            self._drain()
-            return self._protocol.needs_producer
+            if self._closed:
+                return False
+            self._feed(budget)
+            handler = self._handler
+            if handler is None:
+                if self._waiting:
+                    self._cond.notify_all()
+                return len(self._inbox) > 0
+        notes = self._take(self._max_batch, idle=False)
+        if notes:
+            handler(notes)
+        with self._lock:
+            return len(self._inbox) > 0 or len(self._protocol) > 0
+
+    def handle(self, handler: Handler, max_batch: int) -> None:
+        """Have the executor call ``handler`` with up to ``max_batch`` notifications each
+        time some are queued (see ``Node.on``)."""
+        if max_batch < 1:
+            raise FramegateError(f"max_batch must be >= 1, got {max_batch}")
+        with self._lock:
+            if self._handler is not None:
+                raise FramegateError(f"{self.name} already has a handler")
+            self._handler = handler
+            self._max_batch = max_batch
+            self._idle_ack_at_ns = time.monotonic_ns() + REACK_NS
+        self._executor.signal(self)  # what is queued already
+
+    def judge_refusal(self) -> None:
+        """Judge a refusal that arrived: it counts only from a session that answers as this
+        subscription's service (asked here, on the calling thread, when the protocol
+        needs it; not under ``_lock``)."""
+        now = time.monotonic_ns()
+        with self._lock:
+            self._feed(BUDGET)
+            ask = self._protocol.judge(now)
+        if ask:
+            ids = self._producer_ids(self.service) if self._producer_ids else frozenset()
+            with self._lock:
+                self._protocol.trust_producer(ids, now)
 
     def _refused(self, now_ns: int) -> None:
-        """(not under _lock; the node's loop) Log a trusted refusal once, as an error naming
-        its reason (the producer's message names the holder); declare the token again
-        when the retry falls due, so a subscription refused for a limit registers once the
-        holder it lost to leaves."""
+        """(the executor, not under _lock) Judge a refusal; log a trusted one once, as an
+        error naming its reason (the producer's message names the holder); declare the
+        token again when the retry falls due, so a subscription refused for a limit
+        registers once the holder it lost to leaves."""
+        self.judge_refusal()
         with self._lock:
-            unjudged = self._protocol.needs_producer
-        if unjudged and self._producer_ids is not None:
-            self.trust_producer(self._producer_ids(self.service))
-        with self._lock:
-            news = self._protocol.refusal_news(now_ns)
+            news = self._protocol.refusal_news()
             retry = self._protocol.retry_due(now_ns)
         if news is not None:
             log.error(
@@ -241,52 +275,53 @@ class Subscription:
         """Wait until the producer greets this subscription; RegistrationRefused if it
         refused it (naming the limit). False if neither came within ``timeout_s``."""
         deadline = time.monotonic() + timeout_s
-        with self._cond:
-            self._drain()
-            while self._protocol.registered is None:
-                if self._protocol.refusal is not None:
-                    raise RegistrationRefused(
-                        f"{self.name} refused this subscription: {self._protocol.refusal}"
-                    )
-                remaining = deadline - time.monotonic()
-                if remaining <= 0 or self._closed:
-                    return False
-                self._wait_input(remaining)
-            return True
+        try:
+            with self._cond:
+                while True:
+                    self._feed(BUDGET)
+                    if self._protocol.registered is not None:
+                        return True
+                    if self._protocol.refusal is not None:
+                        raise RegistrationRefused(
+                            f"{self.name} refused this subscription: {self._protocol.refusal}"
+                        )
+                    remaining = deadline - time.monotonic()
+                    if remaining <= 0 or self._closed:
+                        return False
+                    self._wait(remaining)
+        finally:
+            self._done_waiting()
 
-    # -- the node's loop ---------------------------------------------------------------------
+    # -- deadlines (the executor) ------------------------------------------------------
     def next_deadline_ns(self) -> int | None:
         with self._lock:
             due = self._protocol.next_deadline_ns()
-            other = self._receiver.deadline_ns()
-        if other is not None and (due is None or other < due):
-            return other
-        return due
+            if self._handler is not None and (due is None or self._idle_ack_at_ns < due):
+                due = self._idle_ack_at_ns
+            return due
 
     def on_deadline(self, now_ns: int) -> None:
-        """Drain the inbox if nobody takes; send a delayed ack that fell due with nobody
-        taking since (see ``AckPolicy``); ring the receiver's doorbell at its deadline."""
+        """Send a delayed ack that fell due with nobody taking since (see ``AckPolicy``);
+        with a handler, repeat acks while nothing comes (a lost ack heals)."""
         with self._lock:
-            ring, drain = self._receiver.due(now_ns)
-            if drain:
-                self._drain()
-                if self._waiting:
-                    self._cond.notify_all()
+            idle = False
+            if self._handler is not None and self._idle_ack_at_ns <= now_ns:
+                self._idle_ack_at_ns = now_ns + REACK_NS
+                idle = len(self._protocol) == 0
             due = self._protocol.next_deadline_ns()
-            ready = due is not None and due <= now_ns
-            acks = self._protocol.acks(now_ns, idle=False) if ready else []
+            ready = idle or (due is not None and due <= now_ns)
+            acks = self._protocol.acks(now_ns, idle=idle) if ready else []
             refused = self._protocol.registered is None
         self._send_acks(acks)
         if refused:
             self._refused(now_ns)
-        if ring:
-            self._receiver.ring()
 
+    # -- taking ----------------------------------------------------------------------------
     @property
     def pending(self) -> int:
         """Notifications waiting in this process's queue."""
         with self._lock:
-            self._drain()
+            self._feed(BUDGET)
             return len(self._protocol)
 
     def take(self, *, timeout_s: float | None = None) -> Notification | None:
@@ -302,38 +337,56 @@ class Subscription:
     def take_many(self, max_count: int, *, timeout_s: float | None = None) -> list[Notification]:
         """Take up to ``max_count`` queued notifications, oldest first, waiting up to
         ``timeout_s`` for the first ([] on timeout). They leave the queue together and cost
-        at most one cumulative ack (per producer epoch); each still names one element."""
+        at most one cumulative ack (per producer epoch); each still names one element.
+
+        Not for a subscription with a handler (``Node.on``): the executor takes for it."""
         if max_count < 1:
             raise FramegateError(f"max_count must be >= 1, got {max_count}")
+        if self._handler is not None:
+            raise FramegateError(
+                f"{self.name} has a handler (Node.on): its notifications go to the handler"
+            )
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
-        protocol = self._protocol
-        while True:
-            with self._lock:
-                self._drain()
-                entries = protocol.take_many(max_count)
-                acks = protocol.acks(time.monotonic_ns(), idle=not entries)
-                if entries:
-                    flush_at = protocol.next_deadline_ns()
-                elif not acks:
+        try:
+            while True:
+                notes = self._take(max_count, idle=True)
+                if notes:
+                    return notes
+                with self._cond:
                     if self._closed:
                         return []
+                    self._feed(BUDGET)
+                    if len(self._protocol):
+                        continue
                     wait_s = _REACK_S
                     if deadline is not None:
                         wait_s = min(deadline - time.monotonic(), _REACK_S)
                         if wait_s <= 0:
                             return []
-                    self._wait_input(wait_s)
-                    continue
-                if entries and self._waiting and len(protocol):
-                    self._cond.notify_all()  # more queued: another caller may take them
-            self._send_acks(acks)
-            if entries:
-                if flush_at is not None:
-                    self._loop.poke(flush_at)
-                notes = [self._notification(entry) for entry in entries]
-                if self._fetching:
-                    self._fetch_ahead(notes)
-                return notes
+                    self._wait(wait_s)
+        finally:
+            self._done_waiting()
+
+    def _take(self, max_count: int, *, idle: bool) -> list[Notification]:
+        """Take what is queued now (after feeding a bounded batch) and send the acks due;
+        ``idle``: nothing taken means the caller waits (acks are repeated then)."""
+        protocol = self._protocol
+        with self._lock:
+            self._feed(BUDGET)
+            entries = protocol.take_many(max_count)
+            acks = protocol.acks(time.monotonic_ns(), idle=idle and not entries)
+            flush_at = protocol.next_deadline_ns() if entries else None
+            if entries and self._waiting and len(protocol):
+                self._cond.notify_all()  # more queued: another caller may take them
+        self._send_acks(acks)
+        if not entries:
+            return []
+        if flush_at is not None:
+            self._executor.poke(flush_at)
+        notes = [self._notification(entry) for entry in entries]
+        if self._protocol.fetching:
+            self._fetch_ahead(notes)
+        return notes
 
     def _send_acks(self, acks: list[bytes]) -> None:
         for ack in acks:
@@ -371,17 +424,17 @@ class Subscription:
         if pending is not None:
             self.fetched_ahead += 1
         if pending is None or self._prefetch is None:
-            self._fetching = self._prefetch is not None
+            if self._prefetch is not None:
+                self._protocol.fetching = True
             return self._fetch(self.name, notification.timestamp_ns, timeout_s)
         return self._prefetch[1](self.name, notification.timestamp_ns, pending)
 
     def _fetch_ahead(self, taken: list[Notification]) -> None:
-        """Start the queries of taken and queued notifications that lack their element."""
+        """Start the queries the protocol says to start ahead (see ``fetch``)."""
         assert self._prefetch is not None
+        missing = [n.timestamp_ns for n in taken if n.element is None]
         with self._lock:
-            queued = [e.item[0] for e in self._protocol.ledger.queued() if e.item[2] is None]
-            wanted = [n.timestamp_ns for n in taken if n.element is None] + queued
-            start = [t for t in wanted if t not in self._inflight][: self.queue_size]
+            start = self._protocol.fetch_ahead(missing, self._inflight)
         for stamp in start:
             try:
                 pending = self._prefetch[0](self.name, stamp, 5.0)
@@ -397,10 +450,10 @@ class Subscription:
         if self._closed:
             return
         self._closed = True
-        self._loop.remove(self)
+        self._executor.remove(self)
         with self._lock:
             self._cond.notify_all()
-        self._inbox.close()  # ends a receiver's recv
+        self._inbox.close()
         for entity in (self._token, self._ack_publisher):
             with contextlib.suppress(zenoh.ZError):
                 entity.undeclare()

@@ -10,7 +10,7 @@ import zenoh
 
 import middleware
 from middleware import FramegateError, TransportError
-from middleware._node import zenoh_errors
+from middleware._session import zenoh_errors
 
 REPO = Path(__file__).resolve().parents[2]
 

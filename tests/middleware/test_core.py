@@ -125,7 +125,7 @@ def test_the_horizon_is_chosen_at_offer(listen_net) -> None:
             service.offer("other", horizon_s=float("nan"))
 
 
-def test_one_timer_thread_per_node_however_many_buffers_and_subscriptions(
+def test_one_executor_thread_per_node_however_many_buffers_and_subscriptions(
     listen_net, connect_net
 ) -> None:
     def framegate_threads() -> list[str]:
@@ -137,9 +137,9 @@ def test_one_timer_thread_per_node_however_many_buffers_and_subscriptions(
             service.offer(f"b{i}")
         subs = [client.subscribe(f"cam/b{i}", queue_size=8) for i in range(4)]
         names = [n for n in framegate_threads() if n not in before]
-        assert sorted(n for n in names if n.startswith("fg-loop")) == [
-            "fg-loop-cam",
-            "fg-loop-client",
+        assert sorted(n for n in names if n.startswith("fg-exec")) == [
+            "fg-exec-cam",
+            "fg-exec-client",
         ]
         assert not [n for n in names if n.startswith(("fg-resend", "fg-ack"))]
         del subs

@@ -276,12 +276,12 @@ def test_closed_subscriptions_leave_the_node(
 def test_a_closed_subscription_reads_and_takes_nothing_without_raising(
     listen_net: NetworkConfig, connect_net: NetworkConfig
 ) -> None:
-    # Its inbox (a Zenoh ring) raises once undeclared; a taker blocked in it is released.
+    # A taker waiting for notifications is released by the close.
     with _pair(listen_net, connect_net, 4) as (images, sub, _client):
         taken: list[object] = []
         taker = threading.Thread(target=lambda: taken.append(sub.take(timeout_s=scaled(5))))
         taker.start()
-        wait_until(lambda: sub._receiver.active, 5, "the taker to block in the inbox")
+        wait_until(lambda: sub._waiting, 5, "the taker to wait")
         sub.close()
         taker.join(timeout=scaled(2))
         assert not taker.is_alive() and taken == [None]

@@ -1,0 +1,112 @@
+"""Reading buffers by time: the query API of a node (``Node.query``, ``get``, ``nearest``,
+``latest``) and the exact fetches behind ``Subscription.fetch``.
+
+``Queries`` is a part of ``Node`` (a base class): the methods here are the node's."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import zenoh
+
+from ._discovery import Discovery, split_target
+from ._errors import NotFoundError, QueryError
+from ._records import DataObject
+from ._session import zenoh_errors
+from ._timerange import TimeRange
+from ._wire import ERR_NOT_FOUND, decode_element
+
+
+class Queries(Discovery):
+    """Elements of live buffers, by time (see ``Node``)."""
+
+    def query(
+        self,
+        target: str,
+        *,
+        time_range: TimeRange | str | None = None,
+        last: int | None = None,
+        timeout_s: float = 5.0,
+    ) -> list[DataObject]:
+        """Elements of ``service/buffer`` in a time range (``TimeRange`` or a ``_time`` string
+        such as ``[now(-2s)..]``) and/or the newest ``last``, in timestamp order."""
+        params: dict[str, str] = {}
+        if time_range is not None:
+            params["_time"] = (
+                time_range.to_selector_value() if isinstance(time_range, TimeRange) else time_range
+            )
+        if last is not None:
+            params["last"] = str(last)
+        return self._get(target, params, timeout_s)
+
+    def get(self, target: str, timestamp_ns: int, *, timeout_s: float = 5.0) -> DataObject:
+        """The element with exactly this timestamp; NotFoundError if there is none."""
+        found = self._get(target, {"ts": str(timestamp_ns)}, timeout_s)
+        if not found:
+            raise NotFoundError(f"{target} has no element with timestamp {timestamp_ns}")
+        return found[0]
+
+    def nearest(self, target: str, timestamp_ns: int, *, timeout_s: float = 5.0) -> DataObject:
+        """The element closest in time; NotFoundError if the buffer is empty."""
+        found = self._get(target, {"at": str(timestamp_ns)}, timeout_s)
+        if not found:
+            raise NotFoundError(f"{target} is empty")
+        return found[0]
+
+    def latest(self, target: str, n: int = 1, *, timeout_s: float = 5.0) -> list[DataObject]:
+        """The newest ``n`` elements, oldest first."""
+        return self._get(target, {"last": str(n)}, timeout_s)
+
+    def _fetch_exact(self, target: str, timestamp_ns: int, timeout_s: float) -> DataObject:
+        return self.get(target, timestamp_ns, timeout_s=timeout_s)
+
+    def _start_exact(self, target: str, timestamp_ns: int, timeout_s: float) -> Any:
+        """Start fetching one element (returns at once; ``_finish_exact`` collects it)."""
+        return self._start_get(target, {"ts": str(timestamp_ns)}, timeout_s)
+
+    def _finish_exact(self, target: str, timestamp_ns: int, pending: Any) -> DataObject:
+        found = self._collect(target, pending)
+        if not found:
+            raise NotFoundError(f"{target} has no element with timestamp {timestamp_ns}")
+        return found[0]
+
+    def _start_get(self, target: str, params: dict[str, str], timeout_s: float) -> Any:
+        service, buffer = split_target(target)
+        selector = zenoh.Selector(self.keys.data(service, buffer), params)
+        with zenoh_errors(f"querying {target}"):
+            return self._session.get(
+                selector, consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout_s
+            )
+
+    def _collect(self, target: str, replies: Any) -> list[DataObject]:
+        elements: list[DataObject] = []
+        with zenoh_errors(f"querying {target}"):
+            for reply in replies:
+                if reply.ok is not None:
+                    sample = reply.ok
+                    attachment = sample.attachment
+                    elements.append(
+                        decode_element(
+                            sample.payload.to_bytes(),
+                            attachment.to_bytes() if attachment is not None else None,
+                        )
+                    )
+                else:
+                    assert reply.err is not None
+                    raise _error_from_reply(target, reply.err.payload.to_string())
+        return elements
+
+    def _get(self, target: str, params: dict[str, str], timeout_s: float) -> list[DataObject]:
+        elements = self._collect(target, self._start_get(target, params, timeout_s))
+        if not elements:
+            self.buffer_info(target)  # NotFoundError, with a did-you-mean, if there is none
+        elements.sort(key=lambda e: e.timestamp_ns)
+        return elements
+
+
+def _error_from_reply(target: str, text: str) -> QueryError:
+    if text.startswith(ERR_NOT_FOUND + ":"):
+        return NotFoundError(text.split(":", 1)[1].strip())
+    if text == "Timeout":
+        return QueryError(f"query of {target} timed out; is the service overloaded or unreachable?")
+    return QueryError(f"{target}: {text.split(':', 1)[1].strip() if ':' in text else text}")
