@@ -33,7 +33,8 @@ Messages in, and what they do in every state:
     a seq beyond ``sent`` cannot move it past what was sent; an ack that moves it records
     its time (``taken_ns``: when the producer last saw the subscriber take). An ack that
     moves nothing while notifications are outstanding is an idle subscriber's repeat: the
-    outstanding ones are due again (a lost notification heals).
+    outstanding ones are due again (a lost notification heals), at most once per
+    ``REPEAT_RESEND_NS`` since the last progress or resend.
 ``put_many(n elements, now)`` (``put`` is ``n = 1``)
     ``stored`` (the producer's element count; every registration's notifications carry the
     ``base`` it had when they registered) grows by n. The queue is counted in elements:
@@ -71,6 +72,10 @@ from ._wire import descriptor_of
 MAX_REGISTRATIONS = 1024
 # Outstanding flow-control notifications are sent again after this long without progress.
 RETRANSMIT_NS = 500_000_000
+# A repeated ack makes the outstanding ones due at most this often: a peer repeating a
+# subscriber's last ack as fast as it can (the epoch and seq are on the wire) costs the
+# producer at most one resend round per period, not one per ack.
+REPEAT_RESEND_NS = 100_000_000
 
 # What the Zenoh layer wants to resend with a notification (timestamp, metadata, ...).
 H = TypeVar("H")
@@ -207,7 +212,12 @@ class ProducerLedger(Generic[H]):
             return False
         new = min(seq, reg.sent)
         if new <= reg.acked:
-            if reg.flow and reg.sent > reg.acked and seq == reg.acked:
+            if (
+                reg.flow
+                and reg.sent > reg.acked
+                and seq == reg.acked
+                and now_ns - reg.progress_ns >= REPEAT_RESEND_NS
+            ):
                 reg.resend_now = True  # an idle subscriber that lacks the rest
             return False
         reg.acked = new

@@ -278,7 +278,7 @@ class ProducerProtocol:
                 key.push_max_bytes if large else min(key.push_max_bytes, self.inline_max_bytes)
             )
         log.debug("%s: subscription %s registered as %s", self.name, key.sub_id, reg.epoch)
-        self._control(key, encode_control("hello", key.descriptor, reg.epoch))
+        self._control(key, encode_control("hello", key.descriptor, reg.epoch, reg.base))
 
     def _forget(self, key: RegistrationKey) -> None:
         """Drop what the protocol keeps beside the ledger for a registration that is gone."""

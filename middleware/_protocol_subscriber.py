@@ -197,6 +197,11 @@ class SubscriberProtocol:
             elif self.registered is None:
                 self.registrations = 1
             self.registered = control.text
+            instance = control.text.rpartition(".")[0]
+            if control.base is not None and instance not in self._high:
+                # First contact with this producer instance: what it stored before our
+                # registration was never ours; a later lapse counts from here.
+                self._raise_high(control.text, control.base)
             self._refusal = None
             self._retry_at_ns = None
         elif self.registered is None:

@@ -247,11 +247,13 @@ def decode_notification_header(raw: bytes) -> Header | BatchHeader | Control:
     mean for the protocol (epochs, seqs, descriptors) is the ledger's to judge.
     """
     body = msgpack.unpackb(raw, use_list=False)
-    if type(body) is tuple and len(body) == 3:
-        kind, descriptor, text = body
+    if type(body) is tuple and len(body) in (3, 4):
+        kind, descriptor, text, base = body if len(body) == 4 else (*body, None)
         if kind not in CONTROL_KINDS or type(descriptor) is not str or type(text) is not str:
             raise ValueError("control message is not [kind, descriptor, text]")
-        return tuple.__new__(Control, body)  # type: ignore[return-value]
+        if base is not None and (type(base) is not int or base < 0):
+            raise ValueError("control message base is not an int >= 0")
+        return Control(kind, descriptor, text, base)
     if type(body) is not tuple or len(body) not in (7, 8):
         raise ValueError("notification header is not an array of 8 (or 7)")
     if len(body) == 7:
@@ -277,8 +279,11 @@ def decode_notification_header(raw: bytes) -> Header | BatchHeader | Control:
 
 
 # Control messages travel on a subscription's notification key with an empty payload; their
-# attachment is a msgpack array of 3: ["hello", descriptor, epoch] when the producer
-# registered the subscription, ["refused", descriptor, reason] when it refused it.
+# attachment is a msgpack array: ["hello", descriptor, epoch, base] when the producer
+# registered the subscription (base: the elements it had stored then, as its notifications
+# carry it; an array of 3 without it is still read), ["refused", descriptor, reason] when
+# it refused it. The producer names its Zenoh session as the sample's source (a subscriber
+# trusts a refusal only from the session that answers as the service).
 CONTROL_KINDS = ("hello", "refused")
 
 
@@ -286,10 +291,12 @@ class Control(NamedTuple):
     kind: str
     descriptor: str
     text: str
+    base: int | None = None
 
 
-def encode_control(kind: str, descriptor: str, text: str) -> bytes:
-    return bytes(msgpack.packb((kind, descriptor, text)))
+def encode_control(kind: str, descriptor: str, text: str, base: int | None = None) -> bytes:
+    body = (kind, descriptor, text) if base is None else (kind, descriptor, text, base)
+    return bytes(msgpack.packb(body))
 
 
 def encode_ack(epoch: str, seq: int) -> bytes:
