@@ -161,7 +161,8 @@ class SubscriberProtocol:
             old = ledger.track(self._epoch)
             if old is not None:
                 self._raise_high(self._epoch, self._base + old.last)
-        new = ledger.track(head.epoch) is None
+        known = ledger.track(head.epoch)
+        new = known is None or known.last == 0  # nothing of this epoch accepted yet
         before = len(ledger)
         queued = ledger.receive_many(head.epoch, head.seq, items, descriptor=head.descriptor)
         track = ledger.track(head.epoch)

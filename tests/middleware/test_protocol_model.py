@@ -49,6 +49,7 @@ from middleware._protocol_subscriber import Item, SubscriberProtocol
 from middleware._records import DataObject, SubscriptionMode
 from middleware._wire import (
     BatchHeader,
+    Control,
     Header,
     Keys,
     decode_notification_header,
@@ -90,8 +91,9 @@ class Sub:
     taken: list[tuple[str, int, tuple[int, bytes | None, object]]] = field(default_factory=list)
     # Elements reported missed, per producer instance (the epoch's prefix).
     missed: dict[str, int] = field(default_factory=dict)
-    # Per producer instance, the elements stored before this subscriber first registered
-    # with it (what it can never be told of), and whether its token lapsed since.
+    # Per producer instance, the elements stored before the first registration of this
+    # subscriber it heard of (a greeting or a notification: what came before, it cannot
+    # be told of), and whether its token lapsed since.
     first_base: dict[str, int] = field(default_factory=dict)
     lapsed: bool = False
 
@@ -152,6 +154,7 @@ class ProtocolModel(RuleBasedStateMachine):
         for sub in self.subs:
             if sub.alive and sub.key.sub_id == msg.sub_id:
                 sub.protocol.receive(msg.attachment, msg.payload)
+                _first_contact(sub, msg.attachment)
 
     def _take_all(self, sub: Sub) -> None:
         self._record(sub, sub.protocol.take_many(1 << 20))
@@ -176,9 +179,6 @@ class ProtocolModel(RuleBasedStateMachine):
         reg = self.producer.get(key)
         if reg is not None:
             self.epochs_of.setdefault(key, set()).add(reg.epoch)
-            for sub in self.subs:
-                if sub.key == key:
-                    sub.first_base.setdefault(f"P{self.instance}", reg.base)
         self._emit()
 
     def _live(self) -> list[Sub]:
@@ -639,6 +639,23 @@ class ProtocolModel(RuleBasedStateMachine):
             for _, _, (_, meta, pushed) in sub.taken:
                 if pushed is not None and meta != FORGED:
                     assert len(pushed) <= 4, "a payload beyond the push limit was pushed"
+
+
+def _first_contact(sub: Sub, attachment: bytes) -> None:
+    """Note the base of a registration the subscriber heard of (see ``Sub.first_base``)."""
+    try:
+        head = decode_notification_header(attachment)
+    except ValueError:
+        return
+    epoch = head.text if isinstance(head, Control) else head.epoch
+    if head.base is None or (isinstance(head, Control) and head.kind != "hello"):
+        return
+    if isinstance(head, Control) and head.descriptor != sub.key.descriptor:
+        return
+    if not isinstance(head, Control) and head.descriptor not in (None, sub.key.descriptor):
+        return
+    instance = epoch.rpartition(".")[0]
+    sub.first_base[instance] = min(sub.first_base.get(instance, head.base), head.base)
 
 
 def _entries_of(sub: Sub, epoch: str) -> list[int]:
