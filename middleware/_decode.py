@@ -37,6 +37,8 @@ from ._records import (
 
 MAX_REPLY_BYTES = 4 << 20
 MAX_DEPTH = 32
+# Thread names of a service listed at most (``ServiceInfo.threads``).
+MAX_THREADS = 256
 
 T = TypeVar("T")
 # JSON strings (escapes included): removed before brackets are counted.
@@ -144,6 +146,7 @@ def _buffer(b: Any, what: str) -> BufferInfo:
         skipped={str(k): _field(skipped, k, int, what) for k in skipped},
         refused_subscriptions=_field(b, "refused_subscriptions", int, what, optional=True) or 0,
         limits=_limits(b.get("limits"), what),
+        dropped_messages=_field(b, "dropped_messages", int, what, optional=True) or 0,
     )
 
 
@@ -169,7 +172,16 @@ def decode_service_info(raw: bytes, start_ns: int, end_ns: int, *, service: str)
         round_trip_ns=sample.round_trip_ns,
         clock_steps=steps,
         clock_lead_ns=lead,
+        threads=_names(body.get("threads")),
     )
+
+
+def _names(value: Any) -> tuple[str, ...] | None:
+    """A list of strings as a tuple (at most ``MAX_THREADS``); None for anything else (an
+    old or odd peer)."""
+    if isinstance(value, list) and all(isinstance(v, str) for v in value):
+        return tuple(value[:MAX_THREADS])
+    return None
 
 
 def decode_instance(raw: bytes, service: str) -> dict[str, Any]:

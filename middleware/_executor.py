@@ -44,6 +44,11 @@ STALL_NS = 1_000_000_000
 _MAX_CATCH_UP = 1
 
 
+def remaining_s(deadline: float) -> float:
+    """Seconds left until ``deadline`` (``time.monotonic``), never negative."""
+    return max(0.0, deadline - time.monotonic())
+
+
 class Source(Protocol):
     """An object with an inbox: ``scheduled`` is the executor's (guarded by its lock)."""
 
@@ -75,6 +80,78 @@ class Timer:
     def cancel(self) -> None:
         """Stop it; a run already started finishes. Safe from any thread, and repeatable."""
         self.cancelled = True
+
+
+class Wake:
+    """How new input on one object reaches whoever needs it now, at the cost of one wake-up.
+
+    The executor when it owns the object's input (a ``Node.on`` handler: ``executor_owned``)
+    or a handler on it waits for the object (``Executor.wait_for``), or a batch or more waits;
+    else the callers
+    blocked in the object's condition (``take``, a waiting ``put``), which then feed the
+    input themselves; else nobody: the input waits in its bounded inbox for the next caller
+    that looks (a ``put``, ``fill``, ``take``, or the executor at the object's deadline).
+    ``threads`` and ``handler`` are changed under the condition's lock, and set *before*
+    the waiter's last look at the inbox, so an append that the look missed sees them.
+    """
+
+    def __init__(
+        self,
+        source: Source,
+        cond: threading.Condition,
+        executor: Executor,
+        backlog: Callable[[], int],
+    ) -> None:
+        self._source = source
+        self._cond = cond
+        self._executor = executor
+        self._backlog = backlog
+        self.executor_owned = False
+        self.threads = 0  # callers blocked in the condition
+        self.handler = False  # a handler on the executor waits for this object
+
+    def signal(self) -> None:
+        """(Zenoh's thread, after appending to the inbox) A backlog of a batch or more is
+        the executor's to work off in any case (a flood must not wait for the next caller:
+        it would push honest input out of the bounded inbox meanwhile)."""
+        if self.executor_owned or self.handler or self._backlog() >= BUDGET:
+            if not self._source.scheduled:
+                self._executor.signal(self._source)
+        elif self.threads:
+            with self._cond:
+                self._cond.notify_all()
+
+    def wait(self, ready: Callable[[], bool], timeout_s: float) -> bool:
+        """(holding the condition's lock) True if ``ready()`` (which feeds the inbox and
+        looks) is; else wait up to ``timeout_s`` for news and return False (look again)."""
+        executor = self._executor
+        on_executor = executor.on_thread
+        if on_executor:
+            self.handler = True
+        else:
+            self.threads += 1
+        try:
+            if ready():
+                return True
+            if on_executor:
+                self._cond.release()
+                try:
+                    executor.wait_for(self._source, timeout_s)
+                finally:
+                    self._cond.acquire()
+            else:
+                self._cond.wait(timeout_s)
+            return False
+        finally:
+            if on_executor:
+                self.handler = False
+            else:
+                self.threads -= 1
+
+    def left_over(self, waiting: int) -> None:
+        """(after a handler waited inline) Input it claimed but left is the executor's."""
+        if waiting and self._executor.on_thread:
+            self._executor.signal(self._source)
 
 
 class Executor:

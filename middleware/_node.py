@@ -249,7 +249,7 @@ class Node(Queries):
             raise missing
 
     def _stalled(self, late_ns: int) -> None:
-        """(the node's loop) The process did not run for ``late_ns``: say so, once."""
+        """(the node's executor) The process did not run for ``late_ns``: say so, once."""
         lease_s = self.network.lease_ms / 1000
         if late_ns / 1e9 > lease_s:
             log.warning(

@@ -29,15 +29,14 @@ from typing import Any
 import zenoh
 
 from ._buffer import TimeSeries
-from ._clock import now_ns
-from ._errors import DuplicateTimestampError, FlowControlRefused, FramegateError, SchemaError
+from ._element_check import ElementCheck
+from ._errors import DuplicateTimestampError, FlowControlRefused, FramegateError
 from ._executor import BUDGET as _BUDGET
-from ._executor import Executor
+from ._executor import Executor, Wake, remaining_s
 from ._inbox import Inbox
 from ._ledger_producer import RegistrationKey
 from ._protocol_producer import Event, ProducerProtocol, Publish, Retire
 from ._records import BufferInfo, DataObject, Retention, SubscriptionInfo
-from ._shapes import ShapeChecker
 from ._wire import Keys
 from ._xml import XmlLimits
 
@@ -48,7 +47,8 @@ log = logging.getLogger("framegate.middleware")
 HORIZON_NS = 10_000_000_000
 # Rate over the last this-many puts.
 _RATE_WINDOW = 64
-# A put that waits for credit looks again at least this often.
+# A put that waits for credit looks again at least this often (it is woken at once when an
+# ack arrives; this only bounds what a missed wake-up could cost).
 _WAIT_S = 0.1
 # Acks honest subscribers can send between two turns of the executor: coalesced, at most a
 # few per registration and queue window (see ``AckPolicy``) plus a re-ack each per 0.5 s. A
@@ -75,18 +75,17 @@ class Producer:
     """A buffer offered by this process. Create with ``Node.offer``.
 
     Threads (see docs/threads.md): Zenoh's threads only append acks and subscription
-    tokens to this producer's two bounded inboxes and signal the node's executor. The
-    executor feeds a bounded batch of them to the protocol per turn (``run_ready``),
-    resends when the protocol's deadline is due (``on_deadline``), and carries out the
-    protocol's events. ``put`` runs on the caller's thread: it feeds a bounded batch of
-    waiting acks itself (so its credit is current), decides, and sends its own
-    notifications. ``_lock`` (with ``_cond`` on it) guards the protocol, the counters and
-    the rate window, and is held only for bounded work (one batch); a waiting ``put``
-    waits in ``_cond``, which the executor notifies when credit frees. ``_send_lock``
-    serialises carrying out the protocol's events, so the messages of one registration
-    leave in order and a ``publisher.put`` that blocks holds only ``_send_lock``; a put
-    with ``wait_s`` waits for it at most until its deadline. Lock order: ``_send_lock``,
-    then ``_lock``.
+    tokens to this producer's two bounded inboxes. A token signals the node's executor,
+    which feeds it to the protocol and sends the greeting or refusal (``run_ready``). Acks
+    wait until someone needs credit: a ``put`` feeds a bounded batch itself before it
+    decides, as do ``fill`` and ``info``; a waiting put is woken by the ack's arrival
+    (``Wake``); the executor feeds them before a resend (``on_deadline``) and works off
+    a backlog of a batch or more (a flood) in bounded batches, turn by turn. ``_lock``
+    (with ``_cond`` on it) guards the protocol, the counters, the rate window and the
+    ``Wake`` counts, and is held only for bounded work. ``_send_lock`` serialises carrying
+    out the protocol's events, so the messages of one registration leave in order and a
+    ``publisher.put`` that blocks holds only ``_send_lock``; a put with ``wait_s`` waits
+    for it no longer than its deadline. Lock order: ``_send_lock``, then ``_lock``.
     """
 
     def __init__(
@@ -109,9 +108,7 @@ class Producer:
         self.series = TimeSeries(retention)
         self.inline_max_bytes = inline_max_bytes
         self.horizon_ns = horizon_ns
-        self._horizon_at_ns = 0  # the largest stamp accepted without reading the clock
-        # Validates each element's metadata, in full once per document shape.
-        self._metadata = ShapeChecker(kind, xml_limits)
+        self._check = ElementCheck(self.name_of(service, buffer), kind, xml_limits, horizon_ns)
         self._session = session
         self._executor = executor
         self.scheduled = False  # the executor's flag (see ``Source``)
@@ -127,14 +124,18 @@ class Producer:
         self._counters = _Counters()
         self._closed = False
         executor.add(self)
+        self._wake = Wake(self, self._cond, executor, lambda: len(self._acks))
+        # Acks are fed by whoever needs credit next (a put, ``fill``, the executor before a
+        # resend); only a waiting put, or a backlog, wakes anyone (``Wake``).
         self._acks = Inbox(
             session,
             keys.acks(service, buffer),
             capacity=_ACK_INBOX,
             max_bytes=ACK_MAX_BYTES,
-            signal=self._signal,
+            signal=self._wake.signal,
         )
-        # Declared last: its callback (history included) may run at once.
+        # Declared last: its callback (history included) may run at once. A token is the
+        # executor's at once: a new subscriber waits for its greeting.
         self._tokens = Inbox(
             session,
             keys.subscription_tokens(service, buffer),
@@ -146,7 +147,11 @@ class Producer:
 
     @property
     def name(self) -> str:
-        return f"{self.service}/{self.buffer}"
+        return self.name_of(self.service, self.buffer)
+
+    @staticmethod
+    def name_of(service: str, buffer: str) -> str:
+        return f"{service}/{buffer}"
 
     def _signal(self) -> None:
         """(Zenoh's thread) New input: the executor's turn (a lock only when not yet due)."""
@@ -174,38 +179,28 @@ class Producer:
             with self._lock:
                 if self._closed:
                     return False
-                if self._feed(budget):
+                if self._feed(budget) and self._wake.threads:
                     self._cond.notify_all()
                 events = self._protocol.events()
             self._carry_out(events)
-        return bool(len(self._acks) or len(self._tokens))
+        return len(self._tokens) > 0 or len(self._acks) >= budget
 
     def next_deadline_ns(self) -> int | None:
         with self._lock:
             return self._protocol.next_deadline_ns()
 
     def on_deadline(self, now_ns: int) -> None:
-        """(the executor) Resends that are due."""
+        """(the executor) Resends that are due, once the acks waiting have been fed (the
+        inbox's capacity bounds them)."""
         with self._send_lock:
             with self._lock:
                 if self._closed:
                     return
+                if self._feed(_ACK_INBOX) and self._wake.threads:
+                    self._cond.notify_all()
                 self._protocol.tick(now_ns)
                 events = self._protocol.events()
             self._carry_out(events)
-
-    def _wait(self, remaining_s: float) -> None:
-        """(holding _lock through ``_cond``) Wait for news of credit: in ``_cond``, which the
-        executor notifies; on the executor itself (a handler's put), for this producer's next
-        input, handled inline by the caller's next turn."""
-        if not self._executor.on_thread:
-            self._cond.wait(min(remaining_s, _WAIT_S))
-            return
-        self._cond.release()
-        try:
-            self._executor.wait_for(self, remaining_s)
-        finally:
-            self._cond.acquire()
 
     def put(
         self, timestamp_ns: int, payload: bytes, metadata: bytes | str, *, wait_s: float = 0.0
@@ -294,50 +289,24 @@ class Producer:
                     raise FlowControlRefused(refusal.message(elements[0].timestamp_ns))
                 # Not stored: wait for credit outside _send_lock (the executor keeps sending).
                 with self._cond:
-                    self._feed(_BUDGET)
-                    if self._protocol.admit(count, may_wait=False) is not None:
-                        self._wait(deadline - time.monotonic())
+                    self._wake.wait(
+                        lambda: self._has_room(count), min(remaining_s(deadline), _WAIT_S)
+                    )
         finally:
-            if self._executor.on_thread and (len(self._acks) or len(self._tokens)):
-                self._executor.signal(self)  # input claimed while waiting, left for the turn
+            self._wake.left_over(len(self._acks) + len(self._tokens))
+
+    def _has_room(self, count: int) -> bool:
+        """(under _lock) Whether ``count`` elements fit now, after feeding a batch."""
+        self._feed(_BUDGET)
+        return self._protocol.admit(count, may_wait=False) is None
 
     def _checked(self, timestamp_ns: int, payload: bytes, metadata: bytes | str) -> DataObject:
-        # The common case (int, bytes, bytes) costs three type checks; the rest is converted.
-        if not (type(payload) is bytes and type(metadata) is bytes and type(timestamp_ns) is int):
-            try:
-                _check_types(timestamp_ns, payload, metadata)
-            except SchemaError:
-                with self._lock:
-                    self._counters.rejected += 1
-                raise
-            metadata = metadata.encode("utf-8") if isinstance(metadata, str) else bytes(metadata)
-            payload = bytes(payload)
-        meta: bytes = metadata  # type: ignore[assignment]
         try:
-            if not 0 <= timestamp_ns < 2**63:
-                _check_types(timestamp_ns, payload, meta)
-            # The clock is read only when a stamp passes the last bound seen (stamps are
-            # near now, so that is about once per horizon).
-            if timestamp_ns > self._horizon_at_ns and timestamp_ns > self._horizon_now():
-                raise SchemaError(
-                    f"timestamp {timestamp_ns} is {(timestamp_ns - now_ns()) / 1e9:.1f} s ahead "
-                    f"of this process's clock; {self.name} refuses elements more than "
-                    f"{self.horizon_ns / 1e9:g} s ahead (stamp with middleware.now_ns())"
-                )
-            declared = self._metadata.timestamp_ns(meta)
-            if declared != timestamp_ns:
-                raise SchemaError(
-                    f"metadata says timestamp_ns={declared} but the element's key is {timestamp_ns}"
-                )
+            return self._check(timestamp_ns, payload, metadata)
         except FramegateError:
             with self._lock:
                 self._counters.rejected += 1
             raise
-        return DataObject(timestamp_ns, payload, meta)
-
-    def _horizon_now(self) -> int:
-        self._horizon_at_ns = now_ns() + self.horizon_ns
-        return self._horizon_at_ns
 
     def _store(self, elements: tuple[DataObject, ...]) -> int:
         """(under _lock) Append, count, and let the protocol notify; the flow-controlled
@@ -448,19 +417,19 @@ class Producer:
     def wait_for_subscribers(self, count: int, *, timeout_s: float) -> bool:
         """Wait until at least ``count`` subscriptions are registered."""
         deadline = time.monotonic() + timeout_s
+
+        def enough() -> bool:
+            self._feed(_BUDGET)
+            return len(self._protocol.registrations()) >= count
+
         try:
             with self._cond:
-                while True:
-                    self._feed(_BUDGET)
-                    if len(self._protocol.registrations()) >= count:
-                        return True
-                    remaining = deadline - time.monotonic()
-                    if remaining <= 0:
+                while not self._wake.wait(enough, remaining_s(deadline)):
+                    if time.monotonic() >= deadline:
                         return False
-                    self._wait(remaining)
+                return True
         finally:
-            if self._executor.on_thread and (len(self._acks) or len(self._tokens)):
-                self._executor.signal(self)
+            self._wake.left_over(len(self._acks) + len(self._tokens))
 
     def info(self) -> BufferInfo:
         """Retention, size, span, rate, counters and subscriptions."""
@@ -494,6 +463,7 @@ class Producer:
             skipped=skipped,
             refused_subscriptions=protocol.refused_registrations,
             limits=self._protocol.limits(),
+            dropped_messages=self._acks.dropped + self._tokens.dropped,
         )
 
     def close(self) -> None:
@@ -510,17 +480,3 @@ class Producer:
                 events = self._protocol.events()
                 self._cond.notify_all()
             self._carry_out(events)
-
-
-def _check_types(timestamp_ns: object, payload: object, metadata: object) -> None:
-    """Wrong-typed arguments get a message, not a TypeError from deep inside."""
-    if not isinstance(timestamp_ns, int) or isinstance(timestamp_ns, bool):
-        raise SchemaError(
-            f"timestamp_ns must be an int (ns since the epoch), got {type(timestamp_ns).__name__}"
-        )
-    if not 0 <= timestamp_ns < 2**63:
-        raise SchemaError(f"timestamp_ns {timestamp_ns} is outside 0 .. 2**63-1")
-    if not isinstance(payload, bytes | bytearray | memoryview):
-        raise SchemaError(f"payload must be bytes, got {type(payload).__name__}")
-    if not isinstance(metadata, bytes | bytearray | str):
-        raise SchemaError(f"metadata must be XML as bytes or str, got {type(metadata).__name__}")

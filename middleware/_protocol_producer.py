@@ -6,7 +6,7 @@ makes (or refuses, and why), what an ack means, whether a notification pushes th
 inlines the metadata or batches, when an outstanding notification is resent and how many
 at once, which publisher a message leaves by and when that publisher is retired. The
 Zenoh layer (``Producer``) only feeds it (``token``, ``ack``, ``put_many``, ``tick``) and
-carries out what ``events()`` returns; ``next_deadline_ns()`` tells the node's loop when
+carries out what ``events()`` returns; ``next_deadline_ns()`` tells the node's executor when
 to call ``tick``. The credit rules themselves are the pure ``ProducerLedger``.
 
 Limits (every resource a peer can make a producer hold is bounded here; docs/limits.md

@@ -6,7 +6,7 @@ place it is built), the limits on what it may ask for (checked before any token 
 declared, so ``subscribe`` refuses at once), decoding and judging each notification
 (the pure ``SubscriberLedger`` keeps the rules), the producer's greeting or refusal, and
 when acks leave (coalesced, delayed, repeated while idle). ``next_deadline_ns`` tells the
-node's loop when a delayed ack falls due for a caller that does not come back to take.
+node's executor when a delayed ack falls due for a caller that does not come back to take.
 
 Refusals are trusted only from the producer's own session: the Zenoh layer passes each
 control message's sender (the Zenoh session id the producer stamps on it as its source)

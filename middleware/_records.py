@@ -145,6 +145,9 @@ class BufferInfo:
     refused_subscriptions: int = 0
     # The limits it refuses by (None from a peer that does not report them).
     limits: BufferLimits | None = None
+    # Control messages (acks, subscription tokens) dropped unread: larger than their format
+    # allows, or pushed out of a full inbox by newer ones (a flood).
+    dropped_messages: int = 0
 
     @property
     def name(self) -> str:
@@ -167,3 +170,6 @@ class ServiceInfo:
     # clock it runs while slewing back (see the README's time model); None from old peers.
     clock_steps: int | None = None
     clock_lead_ns: int | None = None
+    # The names of the service process's Python threads (docs/threads.md); None from old
+    # peers.
+    threads: tuple[str, ...] | None = None

@@ -257,6 +257,7 @@ class ServiceEndpoint:
             "started_ns": self.started_ns,
             "buffers": [buffer_info_json(p.info()) for p in self.producers()],
             "listen": listening_endpoints(),  # so `framegate ls` shows a wide listener
+            "threads": sorted(t.name for t in threading.enumerate()),  # see docs/threads.md
         }
         query.reply(self._keys.info(self.service), json.dumps(body).encode("utf-8"))
 

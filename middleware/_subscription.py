@@ -23,7 +23,7 @@ from typing import Any
 import zenoh
 
 from ._errors import FramegateError, RegistrationRefused
-from ._executor import BUDGET, Executor
+from ._executor import BUDGET, Executor, Wake, remaining_s
 from ._inbox import Inbox
 from ._ledger_subscriber import REACK_NS, Entry, SubscriberCounters
 from ._protocol_subscriber import RETRY_NS, Item, SubscriberProtocol
@@ -55,13 +55,13 @@ class Subscription:
     from its liveliness token under a new epoch, and the protocol tracks every epoch it meets.
 
     Threads (see docs/threads.md): Zenoh's thread only appends each notification to the
-    bounded ``Inbox`` and signals the node's executor. The executor feeds a bounded batch
-    to the protocol per turn (``run_ready``) and then either runs the handler registered
-    with ``Node.on`` on a bounded batch of taken notifications, or wakes the callers of
-    ``take`` waiting in ``_cond``; it also sends delayed acks when they fall due
-    (``on_deadline``). ``take`` feeds a bounded batch itself before it looks, so it never
-    waits for input that has arrived. ``_lock`` guards the protocol, the fetches in flight
-    and ``_waiting``; acks are computed under it and sent after releasing it.
+    bounded ``Inbox`` and wakes whoever needs it (``Wake``): with a handler (``Node.on``)
+    the node's executor, which feeds a bounded batch to the protocol per turn and runs the
+    handler on a bounded batch of taken notifications (``run_ready``); else a caller of
+    ``take`` blocked in ``_cond``, which feeds the input itself. The executor also sends
+    delayed acks when they fall due (``on_deadline``) and works off a backlog nobody takes.
+    ``_lock`` guards the protocol, the fetches in flight and the ``Wake`` counts; acks are
+    computed under it and sent after releasing it.
     """
 
     def __init__(
@@ -105,19 +105,19 @@ class Subscription:
         self._producer_ids = producer_ids
         self._lock = threading.Lock()
         self._cond = threading.Condition(self._lock)
-        self._waiting = 0
         self._closed = False
         self._ack_publisher = session.declare_publisher(
             keys.ack(service, buffer, self.subscription_id),
             congestion_control=zenoh.CongestionControl.BLOCK,
         )
         executor.add(self)
+        self._wake = Wake(self, self._cond, executor, lambda: len(self._inbox))
         self._inbox = Inbox(
             session,
             keys.notify(service, buffer, self.subscription_id),
             capacity=inbox_capacity(queue_size),
             max_bytes=self._protocol.max_message_bytes(),
-            signal=self._signal,
+            signal=self._wake.signal,
         )
         self._holder = holder_chunk(holder, socket.gethostname())
         self._token_key = keys.subscription_token(
@@ -145,19 +145,20 @@ class Subscription:
             return self._protocol.counters()
 
     @property
+    def dropped(self) -> int:
+        """Messages dropped unread: larger than this subscription's notifications can be,
+        or pushed out of its full inbox by newer ones (a flood; what was lost of honest
+        traffic is resent, or counted in ``missed_total`` for an observer)."""
+        return self._inbox.dropped
+
+    @property
     def garbage(self) -> int:
-        """Messages on this subscription's key that were not notifications, with those
-        dropped unread for their size."""
+        """Messages on this subscription's key that were not notifications."""
         with self._lock:
             self._feed(BUDGET)
-            return self._protocol.garbage + self._inbox.oversize
+            return self._protocol.garbage
 
     # -- input (on the executor, or inline on a caller that looks) ------------------
-    def _signal(self) -> None:
-        """(Zenoh's thread) New input: the executor's turn (a lock only when not yet due)."""
-        if not self.scheduled:
-            self._executor.signal(self)
-
     def _feed(self, budget: int) -> None:
         """(under _lock) Feed the protocol at most ``budget`` waiting notifications."""
         protocol = self._protocol
@@ -183,28 +184,6 @@ class Subscription:
                 lapsed,
             )
 
-    def _wait(self, wait_s: float) -> None:
-        """(holding _lock through ``_cond``) Wait up to ``wait_s`` for news: in ``_cond``,
-        which the executor notifies after feeding; on the executor itself (a handler that
-        takes), for this subscription's next input, fed by the caller's next look."""
-        if not self._executor.on_thread:
-            self._waiting += 1
-            try:
-                self._cond.wait(wait_s)
-            finally:
-                self._waiting -= 1
-            return
-        self._cond.release()
-        try:
-            self._executor.wait_for(self, wait_s)
-        finally:
-            self._cond.acquire()
-
-    def _done_waiting(self) -> None:
-        """A handler that waited inline may leave input behind: the executor's, next turn."""
-        if self._executor.on_thread and len(self._inbox):
-            self._executor.signal(self)
-
     def run_ready(self, budget: int) -> bool:
         """(the executor) Feed a bounded batch; then run the handler on a bounded batch of
         taken notifications, or wake the callers of ``take``. True if more is waiting."""
@@ -214,9 +193,9 @@ class Subscription:
             self._feed(budget)
             handler = self._handler
             if handler is None:
-                if self._waiting:
+                if self._wake.threads:
                     self._cond.notify_all()
-                return len(self._inbox) > 0
+                return len(self._inbox) >= budget
         notes = self._take(self._max_batch, idle=False)
         if notes:
             handler(notes)
@@ -234,6 +213,7 @@ class Subscription:
             self._handler = handler
             self._max_batch = max_batch
             self._idle_ack_at_ns = time.monotonic_ns() + REACK_NS
+            self._wake.executor_owned = True
         self._executor.signal(self)  # what is queued already
 
     def judge_refusal(self) -> None:
@@ -275,22 +255,23 @@ class Subscription:
         """Wait until the producer greets this subscription; RegistrationRefused if it
         refused it (naming the limit). False if neither came within ``timeout_s``."""
         deadline = time.monotonic() + timeout_s
+
+        def answered() -> bool:
+            self._feed(BUDGET)
+            if self._protocol.refusal is not None and self._protocol.registered is None:
+                raise RegistrationRefused(
+                    f"{self.name} refused this subscription: {self._protocol.refusal}"
+                )
+            return self._protocol.registered is not None
+
         try:
             with self._cond:
-                while True:
-                    self._feed(BUDGET)
-                    if self._protocol.registered is not None:
-                        return True
-                    if self._protocol.refusal is not None:
-                        raise RegistrationRefused(
-                            f"{self.name} refused this subscription: {self._protocol.refusal}"
-                        )
-                    remaining = deadline - time.monotonic()
-                    if remaining <= 0 or self._closed:
+                while not self._wake.wait(answered, remaining_s(deadline)):
+                    if time.monotonic() >= deadline or self._closed:
                         return False
-                    self._wait(remaining)
+                return True
         finally:
-            self._done_waiting()
+            self._wake.left_over(len(self._inbox))
 
     # -- deadlines (the executor) ------------------------------------------------------
     def next_deadline_ns(self) -> int | None:
@@ -347,6 +328,11 @@ class Subscription:
                 f"{self.name} has a handler (Node.on): its notifications go to the handler"
             )
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
+
+        def queued() -> bool:
+            self._feed(BUDGET)
+            return len(self._protocol) > 0 or self._closed
+
         try:
             while True:
                 notes = self._take(max_count, idle=True)
@@ -355,17 +341,14 @@ class Subscription:
                 with self._cond:
                     if self._closed:
                         return []
-                    self._feed(BUDGET)
-                    if len(self._protocol):
-                        continue
                     wait_s = _REACK_S
                     if deadline is not None:
                         wait_s = min(deadline - time.monotonic(), _REACK_S)
                         if wait_s <= 0:
                             return []
-                    self._wait(wait_s)
+                    self._wake.wait(queued, wait_s)
         finally:
-            self._done_waiting()
+            self._wake.left_over(len(self._inbox))
 
     def _take(self, max_count: int, *, idle: bool) -> list[Notification]:
         """Take what is queued now (after feeding a bounded batch) and send the acks due;
@@ -376,7 +359,7 @@ class Subscription:
             entries = protocol.take_many(max_count)
             acks = protocol.acks(time.monotonic_ns(), idle=idle and not entries)
             flush_at = protocol.next_deadline_ns() if entries else None
-            if entries and self._waiting and len(protocol):
+            if entries and self._wake.threads and len(protocol):
                 self._cond.notify_all()  # more queued: another caller may take them
         self._send_acks(acks)
         if not entries:

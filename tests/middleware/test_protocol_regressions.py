@@ -281,7 +281,7 @@ def test_a_closed_subscription_reads_and_takes_nothing_without_raising(
         taken: list[object] = []
         taker = threading.Thread(target=lambda: taken.append(sub.take(timeout_s=scaled(5))))
         taker.start()
-        wait_until(lambda: sub._waiting, 5, "the taker to wait")
+        wait_until(lambda: sub._wake.threads, 5, "the taker to wait")
         sub.close()
         taker.join(timeout=scaled(2))
         assert not taker.is_alive() and taken == [None]

@@ -1,0 +1,97 @@
+"""Floods on a producer's ack key from other processes: oversize messages are dropped and
+counted before they are buffered, and ``put(wait_s=)`` returns or raises within ``wait_s``
+plus a small slack however fast the flood comes (real processes, real Zenoh)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+import pytest
+
+from middleware import FlowControlRefused, Node, make_metadata
+from middleware._producer import ACK_MAX_BYTES
+from tests.conftest import REPO, child_env, wait_until
+from tests.helpers.timing import scaled
+
+pytestmark = pytest.mark.integration
+
+_FLOODER = """
+import sys, time
+from tests.helpers.raw_zenoh import open_session
+endpoint, key, size, seconds = sys.argv[1], sys.argv[2], int(sys.argv[3]), float(sys.argv[4])
+with open_session(endpoint) as session:
+    pub = session.declare_publisher(key)
+    payload = bytes(size)
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        for _ in range(64):
+            pub.put(payload)
+"""
+
+
+@contextmanager
+def flooding(endpoint: str, key: str, size: int, processes: int) -> Iterator[None]:
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-c", _FLOODER, endpoint, key, str(size), str(scaled(60))],
+            cwd=REPO,
+            env=child_env(),
+        )
+        for _ in range(processes)
+    ]
+    try:
+        yield
+    finally:
+        for proc in procs:
+            proc.kill()
+            proc.wait()
+
+
+def _meta(t: int) -> bytes:
+    return make_metadata("generic", t)
+
+
+@pytest.mark.parametrize("size", [16, 1 << 20], ids=["16 B garbage", "1 MiB garbage"])
+def test_put_with_wait_s_returns_in_time_under_an_ack_flood(
+    listen_net, connect_net, endpoint, size
+) -> None:
+    with Node("cam", listen_net) as service, Node(network=connect_net) as client:
+        images = service.offer("images")
+        sub = client.subscribe("cam/images", queue_size=2)
+        key = f"framegate/@ack/cam/images/{sub.subscription_id}"
+        with flooding(endpoint, key, size, processes=2):
+            wait_until(
+                lambda: images.info().dropped_messages > 0 or size <= ACK_MAX_BYTES, 30, "the flood"
+            )
+            time.sleep(0.5)  # the flood under way
+            for t in (1, 2):
+                images.put(t, b"x", _meta(t), wait_s=scaled(10))  # the queue of 2 fills
+            waits = []
+            for t in (3, 4, 5):
+                start = time.monotonic()
+                with pytest.raises(FlowControlRefused):
+                    images.put(t, b"x", _meta(t), wait_s=0.5)  # nobody takes: refused
+                waits.append(time.monotonic() - start)
+            # Flow goes on: a taken notification frees its credit despite the flood.
+            assert sub.take(timeout_s=scaled(10)) is not None
+            images.put(6, b"x", _meta(6), wait_s=scaled(10))
+            info = images.info()
+        assert max(waits) < 0.5 + scaled(1.0), f"put(wait_s=0.5) took {waits}"
+        if size > ACK_MAX_BYTES:
+            assert info.dropped_messages > 0, "oversize acks are dropped and counted"
+
+
+def test_oversize_acks_are_never_buffered(listen_net, connect_net, endpoint) -> None:
+    """1 MiB acks from two processes: each is counted and dropped before it is buffered,
+    so the ack inbox holds none of them."""
+    with Node("cam", listen_net) as service, Node(network=connect_net) as client:
+        images = service.offer("images")
+        sub = client.subscribe("cam/images", queue_size=2)
+        key = f"framegate/@ack/cam/images/{sub.subscription_id}"
+        with flooding(endpoint, key, 1 << 20, processes=2):
+            wait_until(lambda: images.info().dropped_messages > 50, 60, "oversize acks counted")
+            assert len(images._acks) == 0
