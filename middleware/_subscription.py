@@ -112,6 +112,9 @@ class Subscription:
         )
         executor.add(self)
         self._wake = Wake(self, self._cond, executor, lambda: len(self._inbox))
+        # Until the producer greets it, the producer's answer is the executor's to read: a
+        # refusal must be logged and retried even when nobody takes (see ``_refused``).
+        self._wake.executor_owned = True
         self._inbox = Inbox(
             session,
             keys.notify(service, buffer, self.subscription_id),
@@ -192,6 +195,10 @@ class Subscription:
                 return False
             self._feed(budget)
             handler = self._handler
+            answered = self._protocol.registered is not None
+            self._wake.executor_owned = handler is not None or not answered
+            if self._protocol.next_deadline_ns() == 0:
+                self._executor.poke(0)  # a refusal to judge
             if handler is None:
                 if self._wake.threads:
                     self._cond.notify_all()
