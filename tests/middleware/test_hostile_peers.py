@@ -382,7 +382,8 @@ def test_an_ack_flood_neither_stalls_put_nor_grows_memory(
             assert producer.call("put", buffer="images", t=t, wait_s=10)["ok"]
             took = consumer.call("take", target="cam/images", timeout=10)
             assert took["notification"]["t"] == t
-        assert producer.call("put", buffer="images", t=100)["ok"]  # fills the queue of 1
+        # Fills the queue of 1 (once the last take's ack came through the flood).
+        assert producer.call("put", buffer="images", t=100, wait_s=10)["ok"]
         started = time.monotonic()
         refused = producer.call("put", buffer="images", t=101, wait_s=1)
         waited = time.monotonic() - started
