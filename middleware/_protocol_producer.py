@@ -51,7 +51,13 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 
-from ._ledger_producer import ProducerLedger, Registration, RegistrationKey, Send
+from ._ledger_producer import (
+    REPEAT_RESEND_NS,
+    ProducerLedger,
+    Registration,
+    RegistrationKey,
+    Send,
+)
 from ._records import BufferLimits, DataObject, SubscriptionInfo, SubscriptionMode
 from ._wire import (
     Keys,
@@ -76,6 +82,9 @@ LARGE_PUSH_TOTAL = 16
 # Metadata rides along with notifications (and is kept for resends) up to this size.
 INLINE_METADATA_MAX = 8 * 1024
 RESEND_BURST = 16
+# An ack is a msgpack map of two (``_wire.encode_ack``); keys whose last ack is remembered.
+_ACK_FIRST_BYTE = b"\x82"
+_LAST_ACKS = 1024
 # Distinct refusal reasons counted by text (their count is bounded: a peer chooses them).
 _REFUSAL_REASONS = 64
 RESEND_PACE_NS = 5_000_000
@@ -231,6 +240,8 @@ class ProducerProtocol:
         self._shares: dict[str, _Share] = {}
         self._total = _Share()
         self._push_limit: dict[RegistrationKey, int] = {}
+        # The last ack seen per ack key and when (see ``ack``), at most ``_LAST_ACKS``.
+        self._last_acks: dict[str, tuple[bytes, int]] = {}
         self.counters = ProtocolCounters()
 
     # -- input -----------------------------------------------------------------------------
@@ -345,13 +356,28 @@ class ProducerProtocol:
         return f"{holder} ({what} subscriptions)"
 
     def ack(self, keyexpr: str, payload: bytes, now_ns: int) -> bool:
-        """An ack arrived on ``keyexpr``; True if it freed credit."""
+        """An ack arrived on ``keyexpr``; True if it freed credit.
+
+        Two cheap checks come first, because a flood is made of exactly these: anything
+        that is not a msgpack map of two (an ack's first byte) is garbage without decoding
+        it, and an ack repeating the last one of its key within ``REPEAT_RESEND_NS`` can
+        change nothing (acks are cumulative; a repeat makes resends due at most that often).
+        """
+        if payload[:1] != _ACK_FIRST_BYTE:
+            self.counters.bad_messages += 1
+            return False
+        seen = self._last_acks.get(keyexpr)
+        if seen is not None and seen[0] == payload and now_ns - seen[1] < REPEAT_RESEND_NS:
+            return False
         sub_id = keyexpr.rsplit("/", 1)[-1]
         try:
             epoch, seq = decode_ack(payload)
         except Exception:  # garbage on our ack key is counted, never raised
             self.counters.bad_messages += 1
             return False
+        if len(self._last_acks) >= _LAST_ACKS:
+            self._last_acks.clear()  # a flood of keys: the cache is only a shortcut
+        self._last_acks[keyexpr] = (payload, now_ns)
         freed = self._ledger.ack(sub_id, epoch, seq, now_ns)
         if freed:
             reg = self._ledger.by_epoch(epoch)
