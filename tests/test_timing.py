@@ -4,6 +4,7 @@ hypothesis tests (a loaded machine exceeds hypothesis's default 200 ms)."""
 from __future__ import annotations
 
 import ast
+import functools
 import subprocess
 import sys
 
@@ -14,6 +15,7 @@ from tests.conftest import REPO, child_env
 from tests.helpers import timing
 
 
+@functools.cache  # parsed once, for collection and the test alike
 def _hypothesis_tests() -> list[tuple[str, ast.FunctionDef]]:
     found = []
     for path in sorted((REPO / "tests").rglob("*.py")):

@@ -1,5 +1,5 @@
-"""The service processes (camera, gyro, mediator, detector, the ROS 2 bridge) and their
-one registry.
+"""The service processes (camera, gyro, mediator, detector, your own vision code, the ROS 2
+bridge) and their one registry.
 
 ``SERVICES`` lists the service types; ``service(name)`` imports only that one's module and
 returns its :class:`~services.nodes._contract.Service`, so ``framegate ls`` never pays for
@@ -19,6 +19,7 @@ _MODULES = {
     "gyro": "services.nodes.gyro",
     "mediator": "services.nodes.mediator",
     "detector": "services.nodes.detector",
+    "vision": "services.nodes.vision",
     "ros2": "services.nodes.ros2",
 }
 SERVICES: tuple[str, ...] = tuple(_MODULES)

@@ -1,5 +1,9 @@
 """The marker detector: the robot's "expensive vision code" (paper §5.2).
 
+It is the vision runner (``services/nodes/vision.py``) with the ArUco handler
+:func:`detect_aruco` and an emulated cost; everything about queues, skips and rewinds is the
+runner's.
+
 Buffering rule: flow-controlled subscriber with queue N (default 2), as in the paper. A
 notification leaves the queue when taken, before processing, so up to N more frames may
 wait while one is processed. ``--min-processing-ms`` (or ``--service-factor`` × the frame
@@ -11,21 +15,14 @@ from __future__ import annotations
 
 import argparse
 import threading
-import time
 from dataclasses import dataclass
 
-from middleware import (
-    PUSH_ALL,
-    FramegateError,
-    NetworkConfig,
-    Node,
-    Retention,
-    SubscriptionMode,
-)
+from middleware import NetworkConfig
 from services.lib.markers import detect_markers
-from services.lib.messages import decode_image, detections_metadata, read_frame_metadata
+from services.lib.vision import Box, FrameMeta, ResultKind
 from services.nodes._contract import Service, ServiceEntry
-from services.nodes._runtime import setup_logging
+from services.nodes._vision_handler import Image
+from services.nodes.vision import RunnerSpec, serve
 
 
 @dataclass(frozen=True, slots=True)
@@ -51,72 +48,24 @@ class DetectorConfig:
         return self.min_processing_ms / 1e3
 
 
+def detect_aruco(image: Image, frame: FrameMeta) -> list[Box]:
+    """The marker detector as a vision handler: each ArUco marker found is a Box labelled
+    with its id (``framegate run vision --handler services.nodes.detector:detect_aruco``)."""
+    return [Box(d.marker_id, d.corners_px) for d in detect_markers(image)]
+
+
 def run(config: DetectorConfig, network: NetworkConfig, stop: threading.Event | None = None) -> int:
     """Run until ``stop`` is set or KeyboardInterrupt."""
-    stop = stop or threading.Event()
-    log = setup_logging(config.name)
-    with Node(config.name, network) as node:
-        detections = node.offer(
-            "detections", kind="detections", retention=Retention(max_count=100_000)
-        )
-        # Every frame given to the detector is processed: have it pushed, not fetched.
-        frames = node.subscribe(
-            config.input,
-            queue_size=config.queue,
-            mode=SubscriptionMode.OBSERVE if config.observe else SubscriptionMode.FLOW,
-            wait_s=0,
-            push_max_bytes=PUSH_ALL,
-            await_service=True,  # a pipeline starts every service at once
-        )
-        log.info(
-            "detector: %s (queue %d, processing >= %.0f ms)",
-            config.input,
-            config.queue,
-            config.processing_floor_s * 1e3,
-        )
-        try:
-            while not stop.is_set():
-                note = frames.take(timeout_s=0.5)
-                if note is None:
-                    continue
-                started = time.monotonic()
-                try:
-                    element = frames.fetch(note)
-                    meta = read_frame_metadata(element.metadata)
-                    found = detect_markers(decode_image(element.payload, meta))
-                except FramegateError as exc:
-                    log.warning("skipping frame %d: %s", note.timestamp_ns, exc)
-                    continue
-                # Emulated load: the frame occupies the processor at least this long.
-                remaining = config.processing_floor_s - (time.monotonic() - started)
-                if remaining > 0 and stop.wait(remaining):
-                    break
-                markers = [
-                    (d.marker_id, [c for corner in d.corners_px for c in corner]) for d in found
-                ]
-                processing_ns = int((time.monotonic() - started) * 1e9)
-                newest = detections.series.newest_ns
-                if newest is not None and element.timestamp_ns <= newest:
-                    # Our input went back in time (the mediator removed frames stamped by a
-                    # wrong clock): so do our detections, or none could follow.
-                    detections.discard_after(element.timestamp_ns - 1, "rewound")
-                try:
-                    detections.put(
-                        element.timestamp_ns,
-                        b"",
-                        detections_metadata(
-                            element.timestamp_ns,
-                            meta.frame_id,
-                            config.input,
-                            processing_ns,
-                            markers,
-                        ),
-                    )
-                except FramegateError as exc:
-                    log.warning("cannot store detections of frame %d: %s", meta.frame_id, exc)
-        except KeyboardInterrupt:
-            pass
-    return 0
+    spec = RunnerSpec(
+        name=config.name,
+        input=config.input,
+        queue=config.queue,
+        output="detections",
+        kind=ResultKind.DETECTIONS,
+        observe=config.observe,
+        processing_floor_s=config.processing_floor_s,
+    )
+    return serve(spec, detect_aruco, network, stop or threading.Event())
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

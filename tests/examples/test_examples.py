@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import signal
 import subprocess
 import sys
 
@@ -31,8 +32,15 @@ def _finish(proc: subprocess.Popen[str], timeout_s: float = 60) -> str:
 
 def test_offer_subscribe_and_query_examples_work_together() -> None:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    offer = _start("offer.py", "--listen", endpoint, "--count", "30", "--period-s", "0.05")
+    # Until Ctrl-C, not a count: the offer must outlive the subscriber and the query however
+    # slowly a loaded machine starts them; a refusal waits up to 60 s instead of 5.
+    offer = _start("offer.py", "--listen", endpoint, "--period-s", "0.05", "--wait-s", "60")
     try:
+        # The example subscriber gives the service 5 s to appear; a loaded machine can take
+        # longer to start the offer: start the subscriber once the service has put something.
+        assert offer.stdout is not None
+        first = offer.stdout.readline()
+        assert first.startswith("put "), first
         # A slow flow-controlled subscriber (queue 1) holds the producer back: the offer
         # example waits instead of losing, so every element it put is still in the buffer.
         sub = _start(
@@ -44,12 +52,15 @@ def test_offer_subscribe_and_query_examples_work_together() -> None:
         query = _finish(_start("query.py", "--connect", endpoint, "--range", "[now(-60s)..]"))
         found = int(query.strip().splitlines()[-1].split()[0])
         assert found >= 5, query
-        out = _finish(offer)
+        offer.send_signal(signal.SIGINT)  # Ctrl-C: the way to stop it
+        out = first + _finish(offer)
     finally:
         if offer.poll() is None:
             offer.kill()
             offer.communicate()
-    assert out.count("put ") == 30 and "refused" not in out, out
+    puts = [int(line.split()[1]) for line in out.splitlines() if line.startswith("put ")]
+    assert puts == list(range(len(puts))) and len(puts) >= 5, out
+    assert "refused" not in out, out
 
 
 def test_custom_service_example_refuses_what_its_schema_forbids() -> None:

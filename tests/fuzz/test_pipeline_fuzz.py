@@ -9,6 +9,7 @@ from tests.fuzz.pipeline import run
 pytestmark = pytest.mark.integration
 
 
+@pytest.mark.slow
 def test_every_service_survives_hostile_cameras_gyros_and_consumers() -> None:
     tally = run(300, 100, seed=0)
     assert tally.batches == 3 and tally.counts["checks"] == 3

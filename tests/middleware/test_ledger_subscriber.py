@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -47,6 +48,7 @@ def _state(ledger: SubscriberLedger[int]) -> tuple[object, ...]:
     )
 
 
+@pytest.mark.slow  # 600 programs: ~10 s alone, 26 s at load 10
 @settings(deadline=None, max_examples=600)
 @given(
     mode=st.sampled_from(list(SubscriptionMode)),

@@ -35,284 +35,46 @@ in-queue is guarded by its condition; ``_Skips`` by its lock.
 
 from __future__ import annotations
 
-import collections
-import logging
 import threading
 import time
 from collections.abc import Callable
 from typing import Any
 
-import numpy as np
-
 from middleware import (
     PUSH_ALL,
-    ConfigError,
-    FlowControlRefused,
     FramegateError,
     NetworkConfig,
     Node,
-    Producer,
-    Retention,
     SubscriptionMode,
     field_text,
-    make_metadata,
     parse_untrusted,
     validate_metadata,
 )
-from services.lib.camera_model import CameraModel
 from services.lib.messages import DecisionRecord
 from services.nodes._runtime import setup_logging
-from services.nodes.gyro import sample_elements
 
-from ._cdr import CHANNELS, DETECTIONS, IMAGE, IMU, STRING, CdrError, Codec
+from ._camera_info import CAMERA_INFO, TF_MESSAGE, TF_STATIC, CameraSource
+from ._cdr import CHANNELS, DETECTIONS, IMAGE, IMU, STRING, Codec
 from ._config import Mapping, Ros2Config
+from ._inputs import (
+    ImagesIn,
+    ImuIn,
+    _camera,
+    _settle_graph,
+    _subscribe_camera,
+    frame_metadata,
+)
+from ._inputs import _InQueue as _InQueue  # re-exported: other loops queue the same way
+from ._inputs import _Skips as _Skips
 from ._link import RosLink, RosPublisher, watch_router
-from ._rmw import Attachment, TopicCheck, dds_type_name, type_hash
+from ._rmw import TopicCheck, dds_type_name, type_hash
+from ._sequence import SequenceWatch
+
+__all__ = ["Encoders", "ImagesIn", "ImuIn", "Output", "frame_metadata", "run"]
 
 _NS = "{urn:framegate:1}"
 # How long an output thread waits for a notification before looking at ``stop``.
 _POLL_S = 0.2
-# A partial IMU batch goes out after this long without a new sample.
-_IMU_IDLE_S = 0.05
-
-
-class _Skips:
-    """Counted skips: into the producer's ``skipped`` when there is one, one warning each."""
-
-    def __init__(self, log: logging.Logger) -> None:
-        self._log = log
-        self._lock = threading.Lock()
-        self.counts: collections.Counter[str] = collections.Counter()
-
-    def count(self, producer: Producer | None, reason: str, detail: str) -> None:
-        with self._lock:
-            self.counts[reason] += 1
-            first = self.counts[reason] == 1
-        if producer is not None:
-            producer.count_skip(reason)
-        if first:
-            self._log.warning("skipping (%s; counted, warned once): %s", reason, detail)
-
-
-class _InQueue:
-    """KEEP_LAST queue between Zenoh's callback and a worker: the oldest goes when full."""
-
-    def __init__(self, depth: int, on_overflow: Callable[[], None]) -> None:
-        self._items: collections.deque[tuple[bytes, bytes | None]] = collections.deque()
-        self._depth = depth
-        self._cond = threading.Condition()
-        self._on_overflow = on_overflow
-
-    def put(self, payload: bytes, attachment: bytes | None) -> None:
-        with self._cond:
-            overflow = len(self._items) >= self._depth
-            if overflow:
-                self._items.popleft()
-            self._items.append((payload, attachment))
-            self._cond.notify()
-        if overflow:
-            self._on_overflow()
-
-    def get(self, timeout_s: float) -> tuple[bytes, bytes | None] | None:
-        with self._cond:
-            if not self._items:
-                self._cond.wait(timeout_s)
-            return self._items.popleft() if self._items else None
-
-
-def frame_metadata(
-    frame_id: int,
-    start_ns: int,
-    exposure_ns: int,
-    encoding: str,
-    width: int,
-    height: int,
-    camera: CameraModel | None,
-) -> bytes:
-    """``frame`` metadata, field for field as the camera service writes it."""
-    fields: dict[str, Any] = {
-        "frame_id": frame_id,
-        "exposure_start_ns": start_ns,
-        "exposure_ns": exposure_ns,
-        "encoding": encoding,
-        "width_px": width,
-        "height_px": height,
-    }
-    if camera is not None:
-        fields["camera"] = camera.camera_fields()
-    return make_metadata("frame", start_ns, fields)
-
-
-def _camera(config: Ros2Config) -> CameraModel | None:
-    """The ``--camera-xml`` description; ConfigError naming the file when it is unusable."""
-    if config.camera_xml is None:
-        return None
-    try:
-        return CameraModel.from_xml(config.camera_xml.read_bytes())
-    except OSError as exc:
-        raise ConfigError(f"cannot read --camera-xml {config.camera_xml}: {exc.strerror}") from exc
-    except FramegateError as exc:
-        raise ConfigError(f"--camera-xml {config.camera_xml}: {exc}") from exc
-
-
-def _sequence(attachment: bytes | None, fallback: int) -> int:
-    if attachment is None:
-        return fallback
-    try:
-        return Attachment.decode(attachment).sequence_number
-    except ValueError:
-        return fallback
-
-
-class ImagesIn:
-    """ROS 2 images → NAME/images (see the module docstring for the rules)."""
-
-    def __init__(self, node: Node, codec: Codec, config: Ros2Config, skips: _Skips) -> None:
-        self.producer = node.offer(
-            "images",
-            kind="frame",
-            retention=Retention(max_count=config.retention_frames, max_bytes=512 * 2**20),
-        )
-        self._codec, self._config, self._skips = codec, config, skips
-        self.camera = _camera(config)
-        self.queue = _InQueue(
-            config.in_depth,
-            lambda: skips.count(self.producer, "in-queue-full", "the in-queue was full"),
-        )
-        self._last_key = 0
-        self.stored = self.dropped = 0
-
-    def run(self, stop: threading.Event) -> None:
-        count = 0
-        while not stop.is_set():
-            item = self.queue.get(_POLL_S)
-            if item is not None:
-                count += 1
-                try:
-                    self.handle(item[0], _sequence(item[1], count))
-                except Exception as exc:  # one message must never stop the bridge
-                    logging.getLogger("framegate.ros2").exception("image: unexpected error")
-                    self._skips.count(self.producer, "internal-error", repr(exc))
-
-    def handle(self, raw: bytes, frame_id: int) -> None:
-        """Decode, check and put one image; every failure is a counted skip."""
-        skip = self._skips.count
-        try:
-            image = self._codec.decode_image(raw)
-        except CdrError as exc:
-            reason = "bad-cdr" if str(exc).startswith("not a CDR") else "bad-image"
-            skip(self.producer, reason, str(exc))
-            return
-        camera = self.camera
-        if camera is not None and (camera.width_px, camera.height_px) != (
-            image.width,
-            image.height,
-        ):
-            skip(
-                self.producer,
-                "camera-mismatch",
-                f"image {image.width}x{image.height}, camera {camera.width_px}x{camera.height_px}",
-            )
-            return
-        key = self._config.start_ns(image.stamp_ns)
-        if image.stamp_ns <= 0 or key <= 0:
-            skip(self.producer, "bad-stamp", f"header.stamp {image.stamp_ns} ns")
-            return
-        if key <= self._last_key:
-            reason = "duplicate-stamp" if key == self._last_key else "out-of-order"
-            skip(self.producer, reason, f"stamp {image.stamp_ns} ns after {self._last_key} ns")
-            return
-        metadata = frame_metadata(
-            frame_id,
-            key,
-            self._config.exposure_ns,
-            image.encoding,
-            image.width,
-            image.height,
-            camera,
-        )
-        try:
-            # Decoding copied nothing; this is the frame's one copy, out of the message.
-            self.producer.put(key, image.pixels(), metadata)
-            self.stored += 1
-        except FlowControlRefused:
-            self.dropped += 1  # dropped at the bridge, counted in images.info().refused
-        except FramegateError as exc:
-            skip(None, "rejected", f"frame at {key} ns: {exc}")  # the producer counted it
-        self._last_key = key
-
-
-class ImuIn:
-    """ROS 2 IMU samples → one-sample ``gyro`` elements of NAME/rates, in batches."""
-
-    def __init__(self, node: Node, codec: Codec, config: Ros2Config, skips: _Skips) -> None:
-        self.producer = node.offer(
-            "rates", kind="gyro", retention=Retention(max_count=None, max_age_ns=30_000_000_000)
-        )
-        self._codec, self._config, self._skips = codec, config, skips
-        self.queue = _InQueue(
-            max(config.in_depth, 4 * config.gyro_batch),
-            lambda: skips.count(self.producer, "in-queue-full", "the IMU in-queue was full"),
-        )
-        self._pending: list[tuple[int, tuple[float, float, float]]] = []
-        self._last_ns = 0
-        self._period_ns = 0
-        self.stored = self.dropped = 0
-
-    def run(self, stop: threading.Event) -> None:
-        while not stop.is_set():
-            item = self.queue.get(_IMU_IDLE_S)
-            if item is None:
-                self.flush()
-                continue
-            try:
-                self.add(item[0])
-                if len(self._pending) >= self._config.gyro_batch:
-                    self.flush()
-            except Exception as exc:  # one message must never stop the bridge
-                logging.getLogger("framegate.ros2").exception("IMU: unexpected error")
-                self._skips.count(self.producer, "internal-error", repr(exc))
-
-    def add(self, raw: bytes) -> None:
-        try:
-            t_ns, rates = self._codec.decode_imu(raw)
-        except CdrError as exc:
-            self._skips.count(self.producer, "bad-cdr", str(exc))
-            return
-        if t_ns <= 0:
-            self._skips.count(self.producer, "bad-stamp", f"header.stamp {t_ns} ns")
-            return
-        if t_ns <= self._last_ns:
-            reason = "duplicate-stamp" if t_ns == self._last_ns else "out-of-order"
-            self._skips.count(self.producer, reason, f"IMU stamp {t_ns} ns after {self._last_ns}")
-            return
-        if self._last_ns:
-            step = t_ns - self._last_ns
-            self._period_ns = step if not self._period_ns else (3 * self._period_ns + step) // 4
-        self._last_ns = t_ns
-        self._pending.append((t_ns, rates))
-
-    def flush(self) -> None:
-        if not self._pending:
-            return
-        t = np.asarray([s[0] for s in self._pending], dtype=np.int64)
-        w = np.asarray([s[1] for s in self._pending], dtype=np.float64)
-        self._pending = []
-        elements = sample_elements(t, w, period_ns=self._period_ns)
-        # A batch never exceeds the smallest flow-controlled queue (it could never fit).
-        queues = [
-            s.queue_size for s in self.producer.subscriptions() if s.mode is SubscriptionMode.FLOW
-        ]
-        size = max(1, min([len(elements), *queues]))
-        for i in range(0, len(elements), size):
-            batch = elements[i : i + size]
-            try:
-                self.producer.put_many(batch, wait_s=self._config.gyro_wait_ms / 1e3)
-                self.stored += len(batch)
-            except FlowControlRefused:
-                self.dropped += len(batch)
-            except FramegateError as exc:
-                self._skips.count(None, "rejected", f"IMU batch: {exc}")
 
 
 class Output:
@@ -449,14 +211,37 @@ def run(config: Ros2Config, network: NetworkConfig, stop: threading.Event | None
         ) as link,
     ):
         images = imu = None
+        cameras = CameraSource(
+            codec,
+            log,
+            image_topic=config.image_in or "",
+            info_topic=config.camera_info_topic,
+            imu_topic=config.imu_in,
+            override=_camera(config),
+            rotation=config.imu_to_camera,
+        )
+        watches: list[SequenceWatch] = []
         if config.image_in:
-            images = ImagesIn(node, codec, config, skips)
-            link.subscribe(config.image_in, IMAGE, hashed(IMAGE), config.in_qos, images.queue.put)
+            images = ImagesIn(node, codec, config, skips, cameras)
+            link.subscribe(config.image_in, IMAGE, hashed(IMAGE), config.in_qos, images.on_sample)
+            watches.append(images.sequence)
             start("ros2-images-in", lambda: images.run(stop))  # type: ignore[union-attr]
+            _subscribe_camera(link, cameras, config, hashed)
         if config.imu_in:
-            imu = ImuIn(node, codec, config, skips)
-            link.subscribe(config.imu_in, IMU, hashed(IMU), config.in_qos, imu.queue.put)
+            imu = ImuIn(node, codec, config, skips, cameras)
+            link.subscribe(config.imu_in, IMU, hashed(IMU), config.in_qos, imu.on_sample)
+            watches.append(imu.sequence)
             start("ros2-imu-in", lambda: imu.run(stop))  # type: ignore[union-attr]
+        # The input topics and their types (the graph check warns about other types).
+        inputs = (
+            (config.image_in, IMAGE),
+            (config.imu_in, IMU),
+            (
+                config.image_in and cameras.wants_camera_info and config.camera_info_topic,
+                CAMERA_INFO,
+            ),
+            (config.image_in and cameras.wants_tf and TF_STATIC, TF_MESSAGE),
+        )
         encoders = Encoders(codec, config)
         outputs: list[Output] = []
         for mappings, ros_type, encode in (
@@ -488,7 +273,7 @@ def run(config: Ros2Config, network: NetworkConfig, stop: threading.Event | None
         expected = {
             topic: (dds_type_name(ros_type), hashed(ros_type))
             for topic, ros_type in (
-                *((t, r) for t, r in ((config.image_in, IMAGE), (config.imu_in, IMU)) if t),
+                *((t, r) for t, r in inputs if t),
                 *((m.topic, IMAGE) for m in config.image_out),
                 *((m.topic, DETECTIONS) for m in config.detections_out),
                 *((m.topic, STRING) for m in config.verdicts_out),
@@ -497,10 +282,13 @@ def run(config: Ros2Config, network: NetworkConfig, stop: threading.Event | None
         check = TopicCheck(link.identity.session_id, expected)
 
         def on_token(token: str) -> None:
+            for watch in watches:
+                watch.announce(token)
             if said := check.check(token):
                 log.warning("ros2: %s", said)
 
         link.watch_graph(on_token)
+        start("ros2-graph", lambda: _settle_graph(link, watches, stop, log))
         where = ", ".join(config.ros_connect) or "the --ros-config endpoints"
         start("ros2-router", lambda: watch_router(link.routers, where, stop, log))
         try:

@@ -58,6 +58,10 @@ class CdrError(ValueError):
     """A message that cannot be what it claims: its text names the bad value."""
 
 
+class StampError(CdrError):
+    """A ``builtin_interfaces/msg/Time`` out of range (a ``bad-stamp``, not a bad message)."""
+
+
 @dataclass(frozen=True, slots=True)
 class Image:
     """A decoded ``sensor_msgs/msg/Image``: stamp, size and a view of its pixel rows."""
@@ -80,7 +84,13 @@ class Image:
 
 
 def stamp_ns(stamp: Any) -> int:
-    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+    """A ROS 2 time in ns, field by field: ``nanosec`` must be below 10^9 (4e9 is not +4 s)
+    and ``sec`` not negative (before 1970); StampError otherwise. ``sec`` is an int32, so
+    the largest stamp is in 2038; the caller's horizon check refuses such a future."""
+    sec, nanosec = int(stamp.sec), int(stamp.nanosec)
+    if not 0 <= nanosec < 1_000_000_000 or sec < 0:
+        raise StampError(f"header.stamp sec={sec} nanosec={nanosec} is not a time")
+    return sec * 1_000_000_000 + nanosec
 
 
 class Codec:
@@ -182,6 +192,11 @@ class Codec:
     # -- IMU ---------------------------------------------------------------------------------
     def decode_imu(self, raw: bytes) -> tuple[int, tuple[float, float, float]]:
         """(stamp, angular velocity in rad/s); CdrError for a malformed message."""
+        t_ns, rates, _ = self.decode_imu_frame(raw)
+        return t_ns, rates
+
+    def decode_imu_frame(self, raw: bytes) -> tuple[int, tuple[float, float, float], str]:
+        """(stamp, angular velocity in rad/s, header.frame_id); CdrError as decode_imu."""
         try:
             msg: Any = self.store.deserialize_cdr(memoryview(raw), IMU)
         except Exception as exc:
@@ -190,7 +205,7 @@ class Codec:
         rates = (float(w.x), float(w.y), float(w.z))
         if not all(np.isfinite(rates)):
             raise CdrError(f"angular velocity {rates} is not finite")
-        return stamp_ns(msg.header.stamp), rates
+        return stamp_ns(msg.header.stamp), rates, str(msg.header.frame_id)
 
     # -- detections and verdicts -------------------------------------------------------------
     def encode_detections(

@@ -65,6 +65,9 @@ class Ros2Config:
     imu_in: str | None = None
     exposure_ms: float = 10.0
     camera_xml: Path | None = None
+    # None: the camera_info topic beside image_in (image_transport); "" reads none.
+    camera_info: str | None = None
+    imu_to_camera: tuple[float, ...] | None = None  # row-major R, v_camera = R @ v_imu
     stamp: str = "start"
     gyro_batch: int = 10
     gyro_wait_ms: float = 50.0
@@ -95,6 +98,11 @@ class Ros2Config:
         ):
             if value < 1:
                 raise ConfigError(f"{flag} must be >= 1, got {value}")
+        if self.imu_to_camera is not None and len(self.imu_to_camera) != 9:
+            raise ConfigError(
+                f"--imu-to-camera takes 9 numbers (a row-major 3x3 rotation), got "
+                f"{len(self.imu_to_camera)}"
+            )
         if self.in_depth < 1 or self.out_depth < 0:
             raise ConfigError("--in-depth must be >= 1 and --out-depth >= 0 (0 = keep all)")
         if not self.ros_namespace.startswith("/"):
@@ -119,6 +127,15 @@ class Ros2Config:
     @property
     def in_qos(self) -> Qos:
         return Qos(self.in_reliability, self.in_depth)
+
+    @property
+    def camera_info_topic(self) -> str | None:
+        """The CameraInfo topic read for the intrinsics (None: none is read)."""
+        if self.camera_info is not None:
+            return self.camera_info or None
+        if self.image_in is None:
+            return None
+        return self.image_in.rsplit("/", 1)[0] + "/camera_info"  # image_transport's layout
 
     @property
     def out_qos(self) -> Qos:
@@ -203,7 +220,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=d.exposure_ms,
         help="exposure time of the camera (default %(default)s)",
     )
-    inbound.add_argument("--camera-xml", help="camera description (camera metadata XML)")
+    inbound.add_argument(
+        "--camera-xml",
+        help="camera description (camera metadata XML); overrides CameraInfo and /tf_static",
+    )
+    inbound.add_argument(
+        "--camera-info",
+        metavar="TOPIC",
+        help="sensor_msgs/msg/CameraInfo giving the intrinsics (default: camera_info beside "
+        "--image-in, as image_transport names it; '' reads none)",
+    )
+    inbound.add_argument(
+        "--imu-to-camera",
+        nargs=9,
+        type=float,
+        metavar="R",
+        help="rotation R (row-major, v_camera = R v_imu) instead of the one /tf_static gives "
+        "between the IMU's and the image's header.frame_id",
+    )
     inbound.add_argument(
         "--stamp",
         choices=STAMPS,
@@ -297,6 +331,8 @@ def config_from_args(args: argparse.Namespace) -> Ros2Config:
         imu_in=topic(args.imu_in),
         exposure_ms=args.exposure_ms,
         camera_xml=Path(args.camera_xml) if args.camera_xml else None,
+        camera_info=topic(args.camera_info) if args.camera_info else args.camera_info,
+        imu_to_camera=tuple(args.imu_to_camera) if args.imu_to_camera else None,
         stamp=args.stamp,
         gyro_batch=args.gyro_batch,
         gyro_wait_ms=args.gyro_wait_ms,

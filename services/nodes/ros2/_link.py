@@ -15,6 +15,7 @@ routers it has). A publisher's sequence counter is guarded by its own lock.
 from __future__ import annotations
 
 import contextlib
+import itertools
 import logging
 import threading
 import time
@@ -23,12 +24,14 @@ from types import TracebackType
 from typing import Any
 
 import zenoh
+import zenoh.ext
 
 from middleware import ConfigError, NetworkConfig, TransportError
 
 from ._rmw import (
     ADMIN_SPACE,
     Attachment,
+    Durability,
     EntityKind,
     NodeIdentity,
     Qos,
@@ -38,6 +41,9 @@ from ._rmw import (
 )
 
 OnSample = Callable[[bytes, bytes | None], None]
+_Subscriber = zenoh.Subscriber[None] | zenoh.ext.AdvancedSubscriber[None]
+# The most liveliness tokens one snapshot of the ROS graph keeps.
+GRAPH_MAX = 65_536
 # How long the bridge waits for the ROS 2 router before it says none answers.
 ROUTER_WAIT_S = 3.0
 
@@ -93,7 +99,7 @@ class RosLink:
         self.identity = NodeIdentity(
             domain_id, str(self._session.info.zid()), node_name, namespace=namespace
         )
-        self._entities: list[RosPublisher | tuple[zenoh.Subscriber[None], zenoh.LivelinessToken]]
+        self._entities: list[RosPublisher | tuple[_Subscriber, zenoh.LivelinessToken]]
         self._entities = []
         self._watchers: list[zenoh.Subscriber[None]] = []
         self._next_id = self.identity.node_id + 1
@@ -117,6 +123,19 @@ class RosLink:
         except zenoh.ZError as exc:
             raise TransportError(f"cannot watch the ROS 2 graph: {exc}") from exc
         self._watchers.append(watcher)
+
+    def graph(self, timeout_s: float = 2.0) -> list[str]:
+        """The liveliness tokens of the domain's ROS graph now (one query, bounded by
+        ``timeout_s``); empty when no one answers."""
+        try:
+            replies = self._session.liveliness().get(
+                f"{ADMIN_SPACE}/{self.identity.domain_id}/**", timeout=timeout_s
+            )
+            # Bounded: a peer may declare any number of tokens.
+            kept = itertools.islice((r.ok for r in replies if r.ok is not None), GRAPH_MAX)
+            return [str(sample.key_expr) for sample in kept]
+        except zenoh.ZError:
+            return []
 
     def routers(self) -> int:
         """How many Zenoh routers (``rmw_zenohd``) the session is connected to now."""
@@ -176,9 +195,23 @@ class RosLink:
 
         try:
             # indirect=True: Zenoh's own thread only queues; zenoh-python's thread runs us.
-            subscriber = self._session.declare_subscriber(
-                key, zenoh.handlers.Callback(deliver, indirect=True)
-            )
+            callback = zenoh.handlers.Callback(deliver, indirect=True)
+            subscriber: _Subscriber
+            if qos.durability is Durability.TRANSIENT_LOCAL:
+                # As rmw_zenoh's transient-local subscriptions: an advanced subscriber asks
+                # each publisher's cache for its history (a plain one would get nothing
+                # published before it), now and whenever a publisher appears later.
+                subscriber = zenoh.ext.declare_advanced_subscriber(
+                    self._session,
+                    key,
+                    callback,
+                    history=zenoh.ext.HistoryConfig(
+                        detect_late_publishers=True, max_samples=qos.depth or None
+                    ),
+                    subscriber_detection=True,
+                )
+            else:
+                subscriber = self._session.declare_subscriber(key, callback)
             token = self._session.liveliness().declare_token(token_key)
         except zenoh.ZError as exc:
             raise ConfigError(f"cannot subscribe to ROS 2 topic {topic_fqn}: {exc}") from exc

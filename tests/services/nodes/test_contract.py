@@ -23,6 +23,8 @@ NOT_APPLICABLE = {
 }
 # Flags that only make sense with another one (a replay needs its directory).
 COMPANIONS = {"--source": ["--path", "somewhere"]}
+# Flags whose value must name something that exists (a handler is imported when parsed).
+EXISTING = {"--handler": "services.nodes.detector:detect_aruco"}
 
 
 def _parser(name: str) -> argparse.ArgumentParser:
@@ -46,6 +48,8 @@ def _leaves(value: Any, prefix: str = "") -> dict[str, Any]:
 def _candidates(action: argparse.Action) -> list[list[str]]:
     """argv fragments giving ``action`` a value other than its default."""
     flag = action.option_strings[-1]
+    if flag in EXISTING:
+        return [[flag, EXISTING[flag]]]
     if action.nargs == 0:
         return [[flag]]
     if action.choices:

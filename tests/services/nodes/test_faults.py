@@ -46,6 +46,7 @@ def _snapshot(pipe: Pipeline, target: str) -> dict[int, DataObject]:
         return {}
 
 
+@pytest.mark.slow
 def test_each_service_killed_in_turn_recovers_and_survivors_lose_nothing(pipe: Pipeline) -> None:
     wait_until(
         lambda: pipe.counter("detector/detections") >= 10, 60, "the pipeline to run\n" + pipe.log()

@@ -44,6 +44,15 @@ def _decisions(pipe: Pipeline) -> list[DecisionRecord]:
     return list(final.values())
 
 
+# Frames left out by the failure rules, not by the test: a subscription that lapsed (the
+# lease is 1 s, which a loaded machine can exceed), each recorded with its reason.
+LAPSED = {"mediator-lapsed", "consumer-lapsed"}
+
+
+def _by_the_test(record: DecisionRecord) -> bool:
+    return not record.accepted and record.reason not in LAPSED
+
+
 def test_slow_detector_gets_detections_and_mediator_rejects_blurred_frames(
     pipeline_factory: type[Pipeline],
 ) -> None:
@@ -53,11 +62,11 @@ def test_slow_detector_gets_detections_and_mediator_rejects_blurred_frames(
         lambda: pipe.counter("detector/detections") >= 20, 60, "20 detections\n" + pipe.log()
     )
     decisions = wait_until(
-        lambda: (d := _decisions(pipe)) and any(not r.accepted for r in d) and d,
+        lambda: (d := _decisions(pipe)) and any(_by_the_test(r) for r in d) and d,
         40,
-        "a rejected frame",
+        "a frame rejected by the paper's test",
     )
-    rejected = [r for r in decisions if not r.accepted]
+    rejected = [r for r in decisions if _by_the_test(r)]
     # The paper's test: a rejection means q <= load (or no gyro while busy).
     for record in rejected:
         assert record.load > 0.0, record
@@ -67,6 +76,7 @@ def test_slow_detector_gets_detections_and_mediator_rejects_blurred_frames(
     assert found, "no marker was ever detected"
 
 
+@pytest.mark.slow
 def test_fast_detector_is_idle_so_every_frame_is_accepted(
     pipeline_factory: type[Pipeline],
 ) -> None:
@@ -75,7 +85,7 @@ def test_fast_detector_is_idle_so_every_frame_is_accepted(
         lambda: pipe.counter("detector/detections") >= 30, 60, "30 detections\n" + pipe.log()
     )
     decisions = _decisions(pipe)
-    idle = [r for r in decisions if r.load == 0.0]
+    idle = [r for r in decisions if r.load == 0.0 and r.reason not in LAPSED]
     assert len(idle) >= 20
     assert all(r.accepted for r in idle), [r for r in idle if not r.accepted]
 
@@ -87,7 +97,9 @@ def test_uncontrolled_wiring_drops_at_the_camera_and_never_blocks(
         "camera": {"seed": 3},
         "gyro": None,
         "mediator": None,
-        "detector": {"input": "camera/images", "service_factor": 2.5},
+        # 60 frame periods (4 s) a frame: slower than the camera on any machine, even one
+        # whose live rendering manages a frame every 2 s, so drops are certain.
+        "detector": {"input": "camera/images", "service_factor": 60.0},
     }
     pipe = pipeline_factory(pipeline_yaml(uncontrolled))  # type: ignore[call-arg]
     wait_until(lambda: pipe.counter("camera/images", "refused") >= 5, 60, "drops\n" + pipe.log())
@@ -98,7 +110,7 @@ def test_uncontrolled_wiring_drops_at_the_camera_and_never_blocks(
             pipe.counter("camera/images") > first.puts
             and pipe.counter("camera/images", "refused") > first.refused
         ),
-        10,
+        30,
         "the camera to store and drop more frames",
     )
 
@@ -111,11 +123,13 @@ def test_killed_detector_is_dropped_and_restarted(pipeline_factory: type[Pipelin
         20,
         "the slow detector to have frames queued",
     )
+    held = pipe.subscription_ids("mediator/images") or set()
     old_pid = pipe.kill("detector")
-    # The dead subscriber is dropped at once: the mediator's load falls back to zero.
+    # The dead subscriber is dropped at once (its liveliness token goes), and with it its
+    # queued frames. By id: the restarted detector subscribes anew and may queue frames.
     wait_until(
-        lambda: not any(s.queued > 0 for s in pipe.info("mediator/images").subscriptions),
-        2.0,
+        lambda: not held & (pipe.subscription_ids("mediator/images") or set()),
+        15,
         "the dead detector's subscription to go",
     )
     new_pid = wait_until(

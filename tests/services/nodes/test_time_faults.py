@@ -41,7 +41,7 @@ from services.lib.quality import Exposure
 
 with Node("camera", NetworkConfig(local_port=int(sys.argv[1]))) as node:
     images = node.offer("images", kind="frame", retention=Retention(max_count=4))
-    assert images.wait_for_subscribers(1, timeout_s=scaled(60))
+    assert images.wait_for_subscribers(1, timeout_s=60)
     image = np.zeros((2, 4), np.uint8)
     exposure = Exposure(now_ns(), 5_000_000)  # this process's clock: an hour ahead
     images.put(exposure.start_ns, image.tobytes(), frame_metadata(1, exposure, image, None))
@@ -267,6 +267,7 @@ def _decisions(pipe: Pipeline) -> list[DecisionRecord]:
     return [DecisionRecord.from_metadata(e.metadata) for e in found]
 
 
+@pytest.mark.slow
 def test_a_stopped_detector_loses_no_accepted_frame_without_a_record(pipe: Pipeline) -> None:
     wait_until(lambda: pipe.counter("detector/detections") >= 3, 90, "detections\n" + pipe.log())
     pid = pipe.pid("detector")

@@ -10,10 +10,20 @@ prints ``{"ready": true}``, waits for a line on stdin (the test's "go"), then pl
 with ``header.stamp`` = exposure start. Every sample carries rmw_zenoh's attachment. One
 JSON line per published image (``index``, ``stamp_ns``), then ``{"done": n}``; it then
 keeps the router up until stdin closes.
+
+With ``camera_info`` the driver also describes its camera as ROS 2 does: a
+``sensor_msgs/msg/CameraInfo`` on ``/camera/camera_info`` before each image, images stamped
+in ``camera_optical_frame`` and IMU samples in ``imu_link`` on the camera's clock (a ROS 2
+system has one clock), and ``/tf_static`` from two static broadcasters (rmw_zenoh's
+transient-local publishers: an advanced publisher with a cache and publisher detection):
+``robot`` publishes a two-link chain before ``ready`` (a bridge started later must fetch it
+from the cache), ``imu`` starts at ``go`` (a late publisher). ``skip_sequence`` lists image
+indices before which the image publisher's sequence number jumps by one (a lost sample).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import sys
 import time
@@ -21,11 +31,14 @@ from typing import Any
 
 import numpy as np
 import zenoh
+import zenoh.ext
 
 from services.lib.sim import Scenario, ScenarioConfig
+from services.nodes.ros2._camera_info import CAMERA_INFO, TF_MESSAGE
 from services.nodes.ros2._cdr import IMAGE, IMU, Codec
 from services.nodes.ros2._rmw import (
     Attachment,
+    Durability,
     EntityKind,
     NodeIdentity,
     Qos,
@@ -33,6 +46,7 @@ from services.nodes.ros2._rmw import (
     gid,
     type_hash,
 )
+from tests.services.nodes.ros2.ros_camera import IMAGE_FRAME, IMU_FRAME, camera_info, tf_static
 
 
 def _emit(**fields: Any) -> None:
@@ -57,6 +71,8 @@ def main(params: dict[str, Any]) -> None:
         "mode": "router",
         "listen/endpoints": [params["listen"]],
         "scouting/multicast/enabled": False,
+        # rmw_zenoh's sessions stamp samples: its transient-local publishers need it.
+        "timestamping/enabled": True,
     }.items():
         conf.insert_json5(key, json.dumps(value))
     with zenoh.open(conf) as session:
@@ -76,7 +92,23 @@ def main(params: dict[str, Any]) -> None:
                 session.declare_publisher(data_key(0, topic, ros_type, hash_chunk)),
                 gid(token),
             )
-        sequence = {IMAGE: 0, IMU: 0}
+        described = bool(params.get("camera_info"))
+        camera = dataclasses.replace(scenario.camera, gyro_time_offset_ns=0)
+        image_frame, imu_frame = (IMAGE_FRAME, IMU_FRAME) if described else ("camera", "imu")
+        gyro_shift = scenario.camera.gyro_time_offset_ns if described else 0
+        if described:
+            info_hash = type_hash(codec.rihs01(CAMERA_INFO), "jazzy")
+            token = node.endpoint_token(
+                3, EntityKind.PUBLISHER, "/camera/camera_info", CAMERA_INFO, info_hash, qos
+            )
+            tokens.append(session.liveliness().declare_token(token))
+            publishers[CAMERA_INFO] = (
+                session.declare_publisher(
+                    data_key(0, "/camera/camera_info", CAMERA_INFO, info_hash)
+                ),
+                gid(token),
+            )
+        sequence = {IMAGE: 0, IMU: 0, CAMERA_INFO: 0}
 
         def publish(ros_type: str, cdr: bytes | bytearray) -> None:
             publisher, source_gid = publishers[ros_type]
@@ -84,9 +116,39 @@ def main(params: dict[str, Any]) -> None:
             attachment = Attachment(sequence[ros_type], time.time_ns(), source_gid).encode()
             publisher.put(cdr, attachment=attachment)
 
+        broadcasts = tf_static(codec, camera.gyro_to_camera)
+        latched = Qos(depth=1, durability=Durability.TRANSIENT_LOCAL)
+
+        def broadcaster(entity_id: int, name: str) -> None:
+            # A tf2_ros StaticTransformBroadcaster on rmw_zenoh: one latched message.
+            tf_hash = type_hash(codec.rihs01(TF_MESSAGE), "jazzy")
+            owner = NodeIdentity(
+                0, str(session.info.zid()), f"{name}_broadcaster", node_id=10 * entity_id
+            )
+            token = owner.endpoint_token(
+                entity_id, EntityKind.PUBLISHER, "/tf_static", TF_MESSAGE, tf_hash, latched
+            )
+            tokens.append(session.liveliness().declare_token(token))
+            publisher = zenoh.ext.declare_advanced_publisher(
+                session,
+                data_key(0, "/tf_static", TF_MESSAGE, tf_hash),
+                cache=zenoh.ext.CacheConfig(1),
+                publisher_detection=True,
+            )
+            tf_publishers.append(publisher)
+            publisher.put(
+                broadcasts[name], attachment=Attachment(1, time.time_ns(), gid(token)).encode()
+            )
+
+        tf_publishers: list[Any] = []
+        if described:
+            broadcaster(4, "robot")
         _emit(ready=True)
         if not sys.stdin.readline():
             return  # the test ended first
+        if described:
+            broadcaster(5, "imu")
+        skip = set(params.get("skip_sequence") or ())
 
         t0 = time.time_ns() - int(infos[0].exposure_start_ns / rate) + 200_000_000
         Header, Time = (
@@ -102,7 +164,7 @@ def main(params: dict[str, Any]) -> None:
             return t0 + int(t_rel_ns / rate)
 
         def imu_cdr(t_ns: int, w: np.ndarray) -> bytes | bytearray:
-            header = Header(Time(t_ns // 10**9, t_ns % 10**9), "imu")
+            header = Header(Time(t_ns // 10**9, t_ns % 10**9), imu_frame)
             message = Imu(
                 header,
                 Quaternion(0.0, 0.0, 0.0, 1.0),
@@ -122,15 +184,19 @@ def main(params: dict[str, Any]) -> None:
         while frame < count or (g_next < len(g_t) and g_t[g_next] <= last_t):
             now = time.time_ns()
             while g_next < len(g_t) and wall(int(g_t[g_next])) <= now and g_t[g_next] <= last_t:
-                publish(IMU, imu_cdr(wall(int(g_t[g_next])), g_w[g_next]))
+                publish(IMU, imu_cdr(wall(int(g_t[g_next]) - gyro_shift), g_w[g_next]))
                 g_next += 1
             if frame < count:
                 info = infos[frame]
                 if wall(info.exposure_start_ns + info.exposure_ns) <= now:
                     stamp = wall(info.exposure_start_ns)
                     cdr = codec.encode_image(
-                        stamp, "camera", images.shape[2], images.shape[1], "mono8", images[frame]
+                        stamp, image_frame, images.shape[2], images.shape[1], "mono8", images[frame]
                     )
+                    if described:
+                        publish(CAMERA_INFO, camera_info(codec, camera, stamp))
+                    if frame in skip:
+                        sequence[IMAGE] += 1  # as if one sample had been lost on the way
                     publish(IMAGE, cdr)
                     _emit(index=frame, stamp_ns=stamp)
                     frame += 1
@@ -139,6 +205,8 @@ def main(params: dict[str, Any]) -> None:
         sys.stdin.read()  # keep the router up until the test is done
         for declared in tokens:
             declared.undeclare()
+        for publisher in tf_publishers:
+            publisher.undeclare()
 
 
 if __name__ == "__main__":

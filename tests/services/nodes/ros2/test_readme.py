@@ -1,4 +1,4 @@
-"""README *With ROS 2* says what it shows: its hand-written commands are deploy/ros2.yaml."""
+"""docs/ros2-bridge.md says what it shows: its hand-written commands are deploy/ros2.yaml."""
 
 from __future__ import annotations
 
@@ -12,14 +12,15 @@ from services.nodes import service
 from tests.conftest import REPO, child_env
 from tests.helpers.timing import scaled
 
-README = REPO / "README.md"
+# The bridge's reference page (the paragraph moved there from the README).
+README = REPO / "docs" / "ros2-bridge.md"
 SAME_AS = "`deploy/ros2.yaml` runs the same as these three commands:"
 
 
 def _readme_commands() -> list[list[str]]:
     """The ``framegate run`` lines of the code block after SAME_AS (continuations joined)."""
     text = README.read_text()
-    assert SAME_AS in text, "README *With ROS 2* lost the paragraph this test checks"
+    assert SAME_AS in text, f"{README.name} lost the paragraph this test checks"
     block = text.split(SAME_AS, 1)[1].split("```bash\n", 1)[1].split("```", 1)[0]
     return [shlex.split(line) for line in block.replace("\\\n", " ").splitlines() if line.strip()]
 

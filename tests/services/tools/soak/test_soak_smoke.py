@@ -15,6 +15,7 @@ from tests.helpers.timing import scaled
 pytestmark = pytest.mark.integration
 
 
+@pytest.mark.slow
 def test_short_soak_loses_nothing_and_reports_memory(tmp_path: Path) -> None:
     report_file = tmp_path / "soak.json"
     done = subprocess.run(

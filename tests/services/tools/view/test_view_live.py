@@ -196,6 +196,7 @@ def _stalled_client(url: str) -> FoxgloveClient:
     return slow
 
 
+@pytest.mark.slow
 def test_slow_and_vanished_clients_neither_slow_nor_crash_anything(
     pipe: Pipeline, viewer: Viewer
 ) -> None:

@@ -1,0 +1,165 @@
+"""What a vision handler receives and returns (``framegate run vision --handler ...``).
+
+A handler is any callable ``handler(image, frame) -> result``:
+
+- ``image``: the frame as a read-only NumPy ``uint8`` array, ``(height, width)`` for mono8,
+  ``(height, width, 3)`` for bgr8/rgb8 (copy it before changing it);
+- ``frame``: a :class:`FrameMeta`, everything the frame's metadata carries (``timestamp_ns``
+  = exposure start, ``frame_id``, ``exposure``, ``encoding``, ``width_px``, ``height_px``,
+  ``camera``: the intrinsics and IMU rotation when the camera sent them).
+
+It returns one of:
+
+- a list (or tuple) of :class:`Box` — what it found, possibly nothing: stored in a
+  ``detections`` buffer, one element per frame, keyed by the frame's timestamp, so a
+  frame where nothing was found is told apart from one never processed;
+- an :class:`Output` — anything else (a payload and free-form fields): stored in a
+  ``generic`` buffer; plain ``bytes`` is an ``Output`` with no fields;
+- ``None`` — no result for this frame (counted ``no-result``).
+
+The buffer's kind is chosen once, at start: from the handler's return annotation
+(``-> list[Box]`` / ``-> Output``) or ``--kind``; unannotated handlers are taken to return
+boxes. :func:`encode_result` turns a result into the element's metadata and payload, and
+raises :class:`~middleware.SchemaError` for a result that does not fit the buffer.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+from middleware import SchemaError, make_metadata
+from services.lib.messages import FrameMeta
+
+__all__ = ["Box", "FrameMeta", "Output", "ResultKind", "encode_result"]
+
+# The most boxes one frame's element holds (detections.xsd says the same).
+MAX_BOXES = 1000
+
+
+class ResultKind(enum.Enum):
+    """The kind of buffer a handler's results go to."""
+
+    DETECTIONS = "detections"
+    GENERIC = "generic"
+
+
+@dataclass(frozen=True, slots=True)
+class Box:
+    """One thing found in a frame: a label and four corners (a quadrilateral, in pixels).
+
+    ``label`` is the class or marker id; ``corners_px`` are (x, y) pairs in the image, in the
+    order the detector gives them (OpenCV: clockwise from top-left); ``score`` is the
+    detector's confidence, if it has one. An axis-aligned box: :meth:`from_xywh`.
+    """
+
+    label: int
+    corners_px: tuple[tuple[float, float], ...]
+    score: float | None = None
+
+    def __post_init__(self) -> None:
+        if isinstance(self.label, bool) or not isinstance(self.label, int) or self.label < 0:
+            raise SchemaError(f"Box label must be an int >= 0, got {self.label!r}")
+        if len(self.corners_px) != 4 or any(len(c) != 2 for c in self.corners_px):
+            raise SchemaError(f"Box needs 4 (x, y) corners, got {self.corners_px!r}")
+        numbers = [float(v) for corner in self.corners_px for v in corner]
+        if not all(math.isfinite(v) for v in numbers):
+            raise SchemaError(f"Box corners must be finite, got {self.corners_px!r}")
+        if self.score is not None and not math.isfinite(float(self.score)):
+            raise SchemaError(f"Box score must be finite, got {self.score!r}")
+
+    @classmethod
+    def from_xywh(
+        cls, label: int, x_px: float, y_px: float, width_px: float, height_px: float,
+        score: float | None = None,
+    ) -> Box:  # fmt: skip
+        """An axis-aligned box from its top-left corner and size."""
+        x0, y0, x1, y1 = float(x_px), float(y_px), float(x_px + width_px), float(y_px + height_px)
+        return cls(label, ((x0, y0), (x1, y0), (x1, y1), (x0, y1)), score)
+
+
+@dataclass(frozen=True, slots=True)
+class Output:
+    """A result that is not boxes: a payload and fields for a ``generic`` buffer.
+
+    ``fields`` become child elements of the metadata, as ``make_metadata`` writes them
+    (names must be XML names; dicts nest; lists are space-separated text).
+    """
+
+    payload: bytes = b""
+    fields: Mapping[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True, slots=True)
+class Encoded:
+    """A result as the element to put: its payload, metadata and how many boxes it holds."""
+
+    payload: bytes
+    metadata: bytes
+    boxes: int
+
+
+def encode_result(
+    result: object,
+    kind: ResultKind,
+    frame: FrameMeta,
+    source: str,
+    processing_ns: int,
+) -> Encoded | None:
+    """The element a handler's ``result`` for ``frame`` becomes in a ``kind`` buffer; None
+    for ``None`` (no result). SchemaError names what is wrong with any other result."""
+    if result is None:
+        return None
+    head: dict[str, Any] = {
+        "frame_id": frame.frame_id,
+        "source": source,
+        "processing_ns": max(0, processing_ns),
+    }
+    if kind is ResultKind.DETECTIONS:
+        boxes = _boxes(result)
+        markers = []
+        for box in boxes:
+            marker: dict[str, Any] = {
+                "id": box.label,
+                "corners_px": [float(v) for corner in box.corners_px for v in corner],
+            }
+            if box.score is not None:
+                marker["score"] = float(box.score)
+            markers.append(marker)
+        metadata = make_metadata("detections", frame.timestamp_ns, {**head, "marker": markers})
+        return Encoded(b"", metadata, len(boxes))
+    if isinstance(result, bytes | bytearray | memoryview):
+        result = Output(bytes(result))
+    if not isinstance(result, Output):
+        raise SchemaError(
+            f"a handler for a generic buffer returns Output, bytes or None, not "
+            f"{type(result).__name__}"
+        )
+    if not isinstance(result.payload, bytes | bytearray | memoryview):
+        raise SchemaError(f"Output.payload must be bytes, not {type(result.payload).__name__}")
+    fields = dict(result.fields)
+    clash = sorted(set(fields) & set(head))
+    if clash:
+        raise SchemaError(f"Output fields {clash} are set by the runner; rename them")
+    try:
+        metadata = make_metadata("generic", frame.timestamp_ns, {**head, **fields})
+    except (ValueError, TypeError) as exc:  # lxml refuses a bad element name or value
+        raise SchemaError(f"Output fields cannot be written as XML: {exc}") from exc
+    return Encoded(bytes(result.payload), metadata, 0)
+
+
+def _boxes(result: object) -> Sequence[Box]:
+    if isinstance(result, Output | bytes | bytearray | str) or not isinstance(result, Sequence):
+        raise SchemaError(
+            f"a handler for a detections buffer returns a list of Box or None, not "
+            f"{type(result).__name__} (annotate it '-> Output' or run with --kind generic)"
+        )
+    if len(result) > MAX_BOXES:
+        raise SchemaError(f"{len(result)} boxes in one frame; at most {MAX_BOXES} are stored")
+    for item in result:
+        if not isinstance(item, Box):
+            raise SchemaError(f"a detections result holds Box records, not {type(item).__name__}")
+    return result

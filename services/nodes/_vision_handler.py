@@ -1,0 +1,122 @@
+"""Loading a vision handler by name, and the kind of buffer its results go to.
+
+``framegate run vision --handler SPEC`` names the handler; :func:`handler_argument` loads it
+while the flags are parsed, so a bad name is one ``error:`` line before anything starts and
+``framegate launch --check`` names the deploy file's line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import importlib.util
+import inspect
+import os
+import sys
+import typing
+from collections.abc import Callable
+from pathlib import Path
+from types import ModuleType
+
+import numpy as np
+import numpy.typing as npt
+
+from middleware import ConfigError
+from services.lib.vision import FrameMeta, Output, ResultKind
+
+Image = npt.NDArray[np.uint8]
+Handler = Callable[[Image, FrameMeta], object]
+
+
+def load_handler(spec: str) -> Handler:
+    """The callable ``spec`` names: ``package.module:function``, ``module:Class.method``,
+    or ``path/to/file.py:function``.
+
+    ConfigError, naming what is wrong, if the module cannot be imported (any exception
+    while importing it counts), the name is missing or not callable. The current directory
+    is importable, as for ``python -m``; so is a file's own directory (its siblings).
+    """
+    module_name, sep, attr_path = spec.rpartition(":")
+    if not sep or not module_name or not attr_path:
+        raise ConfigError(
+            f"handler {spec!r} must be 'package.module:function' or 'file.py:function'"
+        )
+    if os.getcwd() not in sys.path and "" not in sys.path:
+        sys.path.insert(0, os.getcwd())
+    try:
+        target: object = (
+            _import_file(Path(module_name))
+            if module_name.endswith(".py")
+            else importlib.import_module(module_name)
+        )
+    except ConfigError:
+        raise
+    except Exception as exc:  # a user's module may raise anything while it loads
+        raise ConfigError(
+            f"handler {spec!r}: cannot import {module_name!r}: {type(exc).__name__}: {exc}"
+        ) from exc
+    for part in attr_path.split("."):
+        try:
+            target = getattr(target, part)
+        except AttributeError as exc:
+            raise ConfigError(f"handler {spec!r}: {module_name!r} has no {attr_path!r}") from exc
+    if not callable(target):
+        raise ConfigError(
+            f"handler {spec!r} is a {type(target).__name__}, not a function; "
+            "it must be callable as handler(image, frame)"
+        )
+    return typing.cast(Handler, target)
+
+
+# Handler files loaded by path, so that one named twice (flag check, then run) loads once.
+_FILES: dict[Path, ModuleType] = {}
+
+
+def _import_file(path: Path) -> ModuleType:
+    """The module in ``path``, loaded under a name of its own (so a file called
+    ``json.py`` is that file, not the standard library's)."""
+    path = path.resolve()
+    if path in _FILES:
+        return _FILES[path]
+    if not path.is_file():
+        raise ConfigError(f"handler file {str(path)!r} does not exist")
+    if str(path.parent) not in sys.path:
+        sys.path.insert(0, str(path.parent))
+    name = f"_framegate_handler_{len(_FILES)}_{path.stem}"
+    spec = importlib.util.spec_from_file_location(name, path)
+    assert spec is not None and spec.loader is not None  # a .py path always has a loader
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module  # dataclasses and pickling look their module up here
+    try:
+        spec.loader.exec_module(module)
+    except BaseException:
+        del sys.modules[name]
+        raise
+    _FILES[path] = module
+    return module
+
+
+def handler_argument(spec: str) -> str:
+    """argparse type of ``--handler``: the spec, once it names a callable (so a deploy file
+    naming a missing handler fails ``launch --check``)."""
+    try:
+        load_handler(spec)
+    except ConfigError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from exc
+    return spec
+
+
+def result_kind(handler: Handler, requested: str) -> ResultKind:
+    """The output's kind: ``requested`` unless ``auto``; then the handler's return annotation
+    (``Output`` or ``bytes`` → generic), and detections for anything else or none."""
+    if requested != "auto":
+        return ResultKind(requested)
+    # A callable object (a class with state, such as the previous frame) declares it on
+    # its __call__.
+    function = handler if inspect.isroutine(handler) else type(handler).__call__
+    try:
+        returns = typing.get_type_hints(function).get("return")
+    except Exception:  # unresolvable annotations: treat as unannotated
+        returns = None
+    options = set(typing.get_args(returns)) | {returns}
+    return ResultKind.GENERIC if options & {Output, bytes} else ResultKind.DETECTIONS

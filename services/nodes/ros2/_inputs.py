@@ -1,0 +1,413 @@
+"""The bridge's inputs: ROS 2 images and IMU samples into NAME/images and NAME/rates, with
+the camera description (``_camera_info``), sequence gaps (``_sequence``) and stamp order
+(``_stamps``) of each; the buffering rules and skip reasons are ``_bridge``'s docstring.
+Beside those: ``future-stamp`` (beyond the producer's horizon), ``lost-in-transport`` and
+``sequence-jump`` (``_sequence``), ``camera-info-mismatch``, ``bad-camera-info``, ``bad-tf``,
+``tf-queue-full`` (``_camera_info``), and ``stopped`` for what was still queued when the
+bridge stopped: every image received is stored, refused or counted under a reason.
+
+Threads: Zenoh's callback thread only notes the sample's sequence number and appends to the
+in-queue (``on_sample``); one worker per input decodes and puts. Each in-queue is guarded by
+its condition, ``_Skips`` by its lock.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import threading
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from middleware import (
+    ConfigError,
+    FlowControlRefused,
+    FramegateError,
+    Node,
+    Producer,
+    Retention,
+    SubscriptionMode,
+    make_metadata,
+    now_ns,
+)
+from services.lib.camera_model import CameraModel
+from services.nodes.gyro import sample_elements
+
+from ._camera_info import CAMERA_INFO, TF_MESSAGE, TF_STATIC, CameraSource
+from ._cdr import CdrError, Codec, StampError
+from ._config import Ros2Config
+from ._link import RosLink
+from ._rmw import Attachment, Durability, Qos, Reliability
+from ._sequence import SequenceWatch
+from ._stamps import StampGate
+
+# How long an input worker waits for a sample before looking at ``stop``.
+_POLL_S = 0.2
+# A partial IMU batch goes out after this long without a new sample.
+_IMU_IDLE_S = 0.05
+
+
+class _Skips:
+    """Counted skips: into the producer's ``skipped`` when there is one, one warning each."""
+
+    def __init__(self, log: logging.Logger) -> None:
+        self._log = log
+        self._lock = threading.Lock()
+        self.counts: collections.Counter[str] = collections.Counter()
+
+    def count(self, producer: Producer | None, reason: str, detail: str, n: int = 1) -> None:
+        with self._lock:
+            first = self.counts[reason] == 0
+            self.counts[reason] += n
+        if producer is not None:
+            producer.count_skip(reason, n)
+        if first:
+            self._log.warning("skipping (%s; counted, warned once): %s", reason, detail)
+
+
+class _InQueue:
+    """KEEP_LAST queue between Zenoh's callback and a worker: the oldest goes when full."""
+
+    def __init__(self, depth: int, on_overflow: Callable[[], None]) -> None:
+        self._items: collections.deque[tuple[bytes, bytes | None]] = collections.deque()
+        self._depth = depth
+        self._cond = threading.Condition()
+        self._on_overflow = on_overflow
+
+    def put(self, payload: bytes, attachment: bytes | None) -> None:
+        with self._cond:
+            overflow = len(self._items) >= self._depth
+            if overflow:
+                self._items.popleft()
+            self._items.append((payload, attachment))
+            self._cond.notify()
+        if overflow:
+            self._on_overflow()
+
+    def get(self, timeout_s: float) -> tuple[bytes, bytes | None] | None:
+        with self._cond:
+            if not self._items:
+                self._cond.wait(timeout_s)
+            return self._items.popleft() if self._items else None
+
+    def clear(self) -> int:
+        """Drop what waits (the bridge is stopping); how many there were."""
+        with self._cond:
+            count = len(self._items)
+            self._items.clear()
+            return count
+
+
+def frame_metadata(
+    frame_id: int,
+    start_ns: int,
+    exposure_ns: int,
+    encoding: str,
+    width: int,
+    height: int,
+    camera: CameraModel | None,
+) -> bytes:
+    """``frame`` metadata, field for field as the camera service writes it."""
+    fields: dict[str, Any] = {
+        "frame_id": frame_id,
+        "exposure_start_ns": start_ns,
+        "exposure_ns": exposure_ns,
+        "encoding": encoding,
+        "width_px": width,
+        "height_px": height,
+    }
+    if camera is not None:
+        fields["camera"] = camera.camera_fields()
+    return make_metadata("frame", start_ns, fields)
+
+
+def _camera(config: Ros2Config) -> CameraModel | None:
+    """The ``--camera-xml`` description; ConfigError naming the file when it is unusable."""
+    if config.camera_xml is None:
+        return None
+    try:
+        return CameraModel.from_xml(config.camera_xml.read_bytes())
+    except OSError as exc:
+        raise ConfigError(f"cannot read --camera-xml {config.camera_xml}: {exc.strerror}") from exc
+    except FramegateError as exc:
+        raise ConfigError(f"--camera-xml {config.camera_xml}: {exc}") from exc
+
+
+def _sequence(attachment: bytes | None, fallback: int) -> int:
+    if attachment is None:
+        return fallback
+    try:
+        return Attachment.decode(attachment).sequence_number
+    except ValueError:
+        return fallback
+
+
+def _count_lost(producer: Producer, watch: SequenceWatch, skips: _Skips) -> None:
+    """Count in ``producer`` the samples ``watch`` found lost in transport."""
+    losses = watch.take_lost()
+    if losses.lost:
+        skips.count(
+            producer,
+            "lost-in-transport",
+            f"{losses.lost} samples of {watch.topic} never arrived (a gap in their publisher's "
+            "sequence numbers)",
+            losses.lost,
+        )
+    if losses.jumps:
+        skips.count(
+            producer,
+            "sequence-jump",
+            f"a publisher of {watch.topic} jumped in its sequence numbers",
+            losses.jumps,
+        )
+
+
+class ImagesIn:
+    """ROS 2 images → NAME/images (see the module docstring for the rules)."""
+
+    def __init__(
+        self,
+        node: Node,
+        codec: Codec,
+        config: Ros2Config,
+        skips: _Skips,
+        cameras: CameraSource | None = None,
+    ) -> None:
+        self.producer = node.offer(
+            "images",
+            kind="frame",
+            retention=Retention(max_count=config.retention_frames, max_bytes=512 * 2**20),
+        )
+        self._codec, self._config, self._skips = codec, config, skips
+        self.camera = _camera(config)
+        self.cameras = cameras or CameraSource(
+            codec,
+            logging.getLogger("framegate.ros2"),
+            image_topic=config.image_in or "",
+            info_topic=config.camera_info_topic,
+            imu_topic=config.imu_in,
+            override=self.camera,
+            rotation=config.imu_to_camera,
+        )
+        self.queue = _InQueue(
+            config.in_depth,
+            lambda: skips.count(self.producer, "in-queue-full", "the in-queue was full"),
+        )
+        self.sequence = SequenceWatch(config.image_in or "")
+        self.gate = StampGate(self.producer.horizon_ns, "image")
+        self.stored = self.dropped = 0
+
+    def on_sample(self, payload: bytes, attachment: bytes | None) -> None:
+        """Zenoh's callback: note the sequence number, enqueue."""
+        self.sequence.observe(attachment)
+        self.queue.put(payload, attachment)
+
+    def run(self, stop: threading.Event) -> None:
+        count = 0
+        while not stop.is_set():
+            item = self.queue.get(_POLL_S)
+            _count_lost(self.producer, self.sequence, self._skips)
+            if item is not None:
+                count += 1
+                try:
+                    self.handle(item[0], _sequence(item[1], count))
+                except Exception as exc:  # one message must never stop the bridge
+                    logging.getLogger("framegate.ros2").exception("image: unexpected error")
+                    self._skips.count(self.producer, "internal-error", repr(exc))
+        if left := self.queue.clear():  # received, never put: counted as well
+            self._skips.count(
+                self.producer, "stopped", f"{left} images when the bridge stopped", left
+            )
+
+    def handle(self, raw: bytes, frame_id: int) -> None:
+        """Decode, check and put one image; every failure is a counted skip."""
+        skip = self._skips.count
+        try:
+            image = self._codec.decode_image(raw)
+        except StampError as exc:
+            skip(self.producer, "bad-stamp", str(exc))
+            return
+        except CdrError as exc:
+            reason = "bad-cdr" if str(exc).startswith("not a CDR") else "bad-image"
+            skip(self.producer, reason, str(exc))
+            return
+        camera = self.cameras.for_image(
+            image.frame_id,
+            image.width,
+            image.height,
+            lambda reason, detail: skip(self.producer, reason, detail),
+        )
+        if camera is not None and (camera.width_px, camera.height_px) != (
+            image.width,
+            image.height,
+        ):
+            skip(
+                self.producer,
+                "camera-mismatch",
+                f"image {image.width}x{image.height}, camera {camera.width_px}x{camera.height_px}",
+            )
+            return
+        key = self._config.start_ns(image.stamp_ns)
+        refusal = self.gate.check(key, now_ns())  # key <= stamp: a bad stamp is a bad key
+        if refusal is not None:
+            skip(self.producer, refusal.reason, refusal.detail)
+            return
+        metadata = frame_metadata(
+            frame_id,
+            key,
+            self._config.exposure_ns,
+            image.encoding,
+            image.width,
+            image.height,
+            camera,
+        )
+        try:
+            # Decoding copied nothing; this is the frame's one copy, out of the message.
+            self.producer.put(key, image.pixels(), metadata)
+            self.stored += 1
+        except FlowControlRefused:
+            self.dropped += 1  # dropped at the bridge, counted in images.info().refused
+        except FramegateError as exc:
+            skip(None, "rejected", f"frame at {key} ns: {exc}")  # the producer counted it
+            return  # not remembered: a rejected stamp must not hold back the next ones
+        # Remembered only now, accepted (refused by flow control means a valid stamp).
+        self.gate.accept(key)
+
+
+class ImuIn:
+    """ROS 2 IMU samples → one-sample ``gyro`` elements of NAME/rates, in batches."""
+
+    def __init__(
+        self,
+        node: Node,
+        codec: Codec,
+        config: Ros2Config,
+        skips: _Skips,
+        cameras: CameraSource | None = None,
+    ) -> None:
+        self.producer = node.offer(
+            "rates", kind="gyro", retention=Retention(max_count=None, max_age_ns=30_000_000_000)
+        )
+        self._codec, self._config, self._skips = codec, config, skips
+        self._cameras = cameras  # told the IMU's frame, for the rotation to the camera
+        self._frame = ""
+        self.queue = _InQueue(
+            max(config.in_depth, 4 * config.gyro_batch),
+            lambda: skips.count(self.producer, "in-queue-full", "the IMU in-queue was full"),
+        )
+        self.sequence = SequenceWatch(config.imu_in or "")
+        # A sample is accepted into the batch only within the producer's horizon, which the
+        # batch's put checks again: so a stamp is remembered only once it can be stored.
+        self.gate = StampGate(self.producer.horizon_ns, "IMU")
+        self._pending: list[tuple[int, tuple[float, float, float]]] = []
+        self._period_ns = 0
+        self.stored = self.dropped = 0
+
+    def on_sample(self, payload: bytes, attachment: bytes | None) -> None:
+        """Zenoh's callback: note the sequence number, enqueue."""
+        self.sequence.observe(attachment)
+        self.queue.put(payload, attachment)
+
+    def run(self, stop: threading.Event) -> None:
+        while not stop.is_set():
+            item = self.queue.get(_IMU_IDLE_S)
+            _count_lost(self.producer, self.sequence, self._skips)
+            if item is None:
+                self.flush()
+                continue
+            try:
+                self.add(item[0])
+                if len(self._pending) >= self._config.gyro_batch:
+                    self.flush()
+            except Exception as exc:  # one message must never stop the bridge
+                logging.getLogger("framegate.ros2").exception("IMU: unexpected error")
+                self._skips.count(self.producer, "internal-error", repr(exc))
+        self.flush()  # what was accepted goes out (or is counted as refused)
+        if left := self.queue.clear():
+            self._skips.count(self.producer, "stopped", f"{left} IMU samples at the stop", left)
+
+    def add(self, raw: bytes) -> None:
+        try:
+            t_ns, rates, frame_id = self._codec.decode_imu_frame(raw)
+        except StampError as exc:
+            self._skips.count(self.producer, "bad-stamp", str(exc))
+            return
+        except CdrError as exc:
+            self._skips.count(self.producer, "bad-cdr", str(exc))
+            return
+        refusal = self.gate.check(t_ns, now_ns())
+        if refusal is not None:
+            self._skips.count(self.producer, refusal.reason, refusal.detail)
+            return
+        if frame_id != self._frame and self._cameras is not None:
+            self._frame = frame_id
+            self._cameras.set_imu_frame(frame_id)
+        last = self.gate.last_ns
+        if last:
+            step = t_ns - last
+            self._period_ns = step if not self._period_ns else (3 * self._period_ns + step) // 4
+        self.gate.accept(t_ns)
+        self._pending.append((t_ns, rates))
+
+    def flush(self) -> None:
+        if not self._pending:
+            return
+        t = np.asarray([s[0] for s in self._pending], dtype=np.int64)
+        w = np.asarray([s[1] for s in self._pending], dtype=np.float64)
+        self._pending = []
+        elements = sample_elements(t, w, period_ns=self._period_ns)
+        # A batch never exceeds the smallest flow-controlled queue (it could never fit).
+        queues = [
+            s.queue_size for s in self.producer.subscriptions() if s.mode is SubscriptionMode.FLOW
+        ]
+        size = max(1, min([len(elements), *queues]))
+        for i in range(0, len(elements), size):
+            batch = elements[i : i + size]
+            try:
+                self.producer.put_many(batch, wait_s=self._config.gyro_wait_ms / 1e3)
+                self.stored += len(batch)
+            except FlowControlRefused:
+                self.dropped += len(batch)
+            except FramegateError as exc:
+                self._skips.count(None, "rejected", f"IMU batch: {exc}")
+
+
+# /tf_static as tf2_ros' static listener subscribes to it: reliable, transient local.
+_TF_STATIC_QOS = Qos(Reliability.RELIABLE, 100, durability=Durability.TRANSIENT_LOCAL)
+
+
+def _subscribe_camera(
+    link: RosLink, cameras: CameraSource, config: Ros2Config, hashed: Callable[[str], str]
+) -> None:
+    """Subscribe to what the camera description is built from (nothing with --camera-xml)."""
+    topic = config.camera_info_topic
+    if cameras.wants_camera_info and topic:
+        link.subscribe(
+            topic, CAMERA_INFO, hashed(CAMERA_INFO), config.in_qos, cameras.on_camera_info
+        )
+    if cameras.wants_tf:
+        link.subscribe(TF_STATIC, TF_MESSAGE, hashed(TF_MESSAGE), _TF_STATIC_QOS, cameras.on_tf)
+
+
+def _settle_graph(
+    link: RosLink, watches: list[SequenceWatch], stop: threading.Event, log: logging.Logger
+) -> None:
+    """Once connected to the ROS 2 router, take the graph as it is: a publisher announced
+    after that started after the bridge, and its first lost samples are counted."""
+    while link.routers() == 0:
+        if stop.wait(0.1):
+            return
+    tokens = link.graph()
+    for token in tokens:
+        for watch in watches:
+            watch.announce(token)
+    for watch in watches:
+        watch.settle()
+    log.info(
+        "ros2: ROS graph taken by %s (%d entities); the first samples of publishers starting "
+        "from now are counted if lost",
+        link.identity.node_name,
+        len(tokens),
+    )

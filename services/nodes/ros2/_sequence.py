@@ -1,0 +1,152 @@
+"""Samples lost between a ROS 2 publisher and the bridge, counted from rmw_zenoh's
+per-sample attachment: every publisher numbers its samples 1, 2, 3, ... and names itself by
+its gid, so a gap in one gid's numbers is that many samples lost in transport (Zenoh drops
+best-effort samples under congestion, a link can break).
+
+A publisher's *first* samples are a special case. A volatile rmw_zenoh publisher keeps no
+cache, and samples it sends before its session has learnt of the bridge's subscription are
+never sent: the bridge can count them but never get them. It counts them only for a
+publisher it saw *appear* in the ROS graph after it knew the graph (its liveliness token
+arrived after the bridge's snapshot of the graph, taken once connected to the ROS 2
+router): such a publisher started at 1, so a first sample numbered n means n - 1 lost. For
+a publisher that was already there, the first number seen is only where counting starts.
+
+:class:`SequenceTracker` is the pure state (no Zenoh, no threads); :class:`SequenceWatch`
+wraps it for the bridge. Threads: ``observe`` runs on Zenoh's callback thread and only
+updates the tracker (a dictionary look-up under ``SequenceWatch``'s lock), ``announce`` and
+``settle`` on the graph watcher's, ``take_lost`` on the input's worker, which counts the
+losses in its producer (the producer's lock is never taken on Zenoh's thread).
+"""
+
+from __future__ import annotations
+
+import collections
+import threading
+from dataclasses import dataclass
+
+from ._rmw import Attachment, EntityKind, gid, parse_endpoint
+
+# Publishers remembered at once (least recently heard forgotten first): a peer inventing a
+# gid per sample costs bounded memory. More than any robot runs on one topic.
+MAX_PUBLISHERS = 256
+# A forward jump larger than this is not counted as lost samples (a forged or reset
+# sequence, not a network gap: at 1 kHz this is 17 minutes of samples): counting starts
+# again there, and the jump itself is counted once as ``sequence-jump``.
+MAX_GAP = 1 << 20
+
+
+@dataclass(slots=True)
+class _Publisher:
+    last: int | None = None  # the highest number seen
+    first: int | None = None
+    fresh: bool | None = None  # appeared after the graph was known; None: not announced
+    start_counted: bool = False
+
+
+@dataclass(frozen=True, slots=True)
+class Losses:
+    """What the samples seen so far say was lost."""
+
+    lost: int = 0  # samples lost in transport
+    jumps: int = 0  # forward jumps too large to be losses
+
+
+class SequenceTracker:
+    """Per-gid sequence numbers → samples lost (one caller at a time)."""
+
+    def __init__(self, max_publishers: int = MAX_PUBLISHERS) -> None:
+        self._publishers: collections.OrderedDict[bytes, _Publisher] = collections.OrderedDict()
+        self._max = max_publishers
+        self.settled = False
+        self.lost = 0
+        self.jumps = 0
+
+    def _get(self, source_gid: bytes) -> _Publisher:
+        publisher = self._publishers.get(source_gid)
+        if publisher is None:
+            publisher = self._publishers[source_gid] = _Publisher()
+            if len(self._publishers) > self._max:
+                self._publishers.popitem(last=False)
+        else:
+            self._publishers.move_to_end(source_gid)
+        return publisher
+
+    def announce(self, source_gid: bytes) -> None:
+        """The publisher's liveliness token was seen: it is fresh if the graph was known."""
+        publisher = self._get(source_gid)
+        if publisher.fresh is None:
+            publisher.fresh = self.settled
+            self._count_start(publisher)
+
+    def settle(self) -> None:
+        """The graph is known: publishers announced from now on are newly started."""
+        self.settled = True
+
+    def sample(self, source_gid: bytes, sequence: int) -> None:
+        """One sample numbered ``sequence`` from ``source_gid``."""
+        if sequence < 1:
+            return  # rmw_zenoh numbers from 1: nothing to learn from this one
+        publisher = self._get(source_gid)
+        if publisher.last is None:
+            publisher.first = publisher.last = sequence
+            self._count_start(publisher)
+            return
+        gap = sequence - publisher.last - 1
+        if gap > MAX_GAP:
+            self.jumps += 1
+        elif gap > 0:
+            self.lost += gap
+        # Older or equal numbers (a duplicate, a reordering) lose nothing and change nothing.
+        if sequence > publisher.last:
+            publisher.last = sequence
+
+    def _count_start(self, publisher: _Publisher) -> None:
+        if publisher.fresh and publisher.first is not None and not publisher.start_counted:
+            publisher.start_counted = True
+            if publisher.first - 1 > MAX_GAP:
+                self.jumps += 1
+            else:
+                self.lost += publisher.first - 1
+
+
+class SequenceWatch:
+    """The sequence numbers of one ROS 2 topic's publishers (see the module docstring)."""
+
+    def __init__(self, topic_fqn: str) -> None:
+        self.topic = topic_fqn
+        self._lock = threading.Lock()
+        self._tracker = SequenceTracker()
+        self._counted = Losses()
+
+    def observe(self, attachment: bytes | None) -> None:
+        """Note one received sample's attachment (a sample without one tells nothing)."""
+        if attachment is None:
+            return
+        try:
+            decoded = Attachment.decode(attachment)
+        except ValueError:
+            return
+        with self._lock:
+            self._tracker.sample(decoded.source_gid, decoded.sequence_number)
+
+    def announce(self, token: str) -> None:
+        """A liveliness token of the ROS graph; only this topic's publishers matter."""
+        endpoint = parse_endpoint(token)
+        if endpoint is None or endpoint.kind is not EntityKind.PUBLISHER:
+            return
+        if endpoint.topic != self.topic:
+            return
+        with self._lock:
+            self._tracker.announce(gid(token))
+
+    def settle(self) -> None:
+        with self._lock:
+            self._tracker.settle()
+
+    def take_lost(self) -> Losses:
+        """Losses found since the last call."""
+        with self._lock:
+            lost, jumps = self._tracker.lost, self._tracker.jumps
+        new = Losses(lost - self._counted.lost, jumps - self._counted.jumps)
+        self._counted = Losses(lost, jumps)
+        return new

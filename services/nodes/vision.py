@@ -1,0 +1,390 @@
+"""Your own vision function behind the mediator, as its flow-controlled consumer: the
+mediator forwards fewer, sharper frames the slower it is (docs/vision.md).
+
+The handler (see ``services/lib/vision.py`` for what it receives and returns) runs as a
+flow-controlled consumer of ``mediator/images``: the fill of this subscription's queue is
+the load the mediator compares each frame's quality with, so the frames it forwards follow
+the handler's real speed. Its results are offered as ``NAME/detections`` (boxes) or
+``NAME/results`` (anything else), keyed by the frame's timestamp.
+
+Buffering rule: flow-controlled subscriber with queue N (default 2), as in the paper. A
+notification leaves the queue when taken, before processing, so up to N more frames may
+wait while one is processed. The output never waits: a result refused because a subscriber
+of the output flow-controls it is dropped (counted ``refused``), so a slow watcher of the
+results never slows the vision code or, through it, the mediator.
+
+Failures, each a counted skip of the output buffer (``framegate info NAME/detections``),
+with one warning per kind, never a crash or a stalled queue: a frame whose metadata or
+payload cannot be read (``bad-frame``), a handler that raises (``handler-error:TYPE``), a
+result that does not fit the buffer (``bad-result``), no result (``no-result``), an input
+element not after the last result (``out-of-order``). A handler that cannot be imported,
+or a name that is not callable, is refused before anything starts (one ``error:`` line,
+exit 1; ``framegate launch --check`` reports it for a deploy file).
+
+Rewinds: results are never removed because of one input element. Only when the input's
+producer itself went back -- its own newest element is older than our newest result, which
+a producer's strictly increasing buffer allows only after it removed the later elements
+(the mediator does so after a camera restarted with its clock behind) -- are the results
+after the new element removed (counted ``rewound``), mirroring what the producer removed.
+One stale element while the producer still holds newer ones is ``out-of-order``.
+
+Threads: the service's main thread runs the loop (take one notification, process, put);
+the handler runs on a short-lived worker thread (``unless_stopped``), one call at a time,
+only so that a stop is honoured while it is inside native code. The loop is deliberately not
+a handler on the node's executor: a vision function runs for a frame period or more, and
+there it would hold up the node's other duties for that long -- among them a delayed ack of
+the frame just taken, so the mediator would read the queue fuller than it is while the
+handler runs, and acks and resends for watchers of the results. ``Runner.handle`` has an
+executor handler's shape (a batch of notifications) should that trade be wanted.
+:class:`VisionStep` is the per-frame work with no I/O, called directly by tests.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from middleware import (
+    PUSH_ALL,
+    ConfigError,
+    DataObject,
+    FramegateError,
+    NetworkConfig,
+    Node,
+    Notification,
+    Producer,
+    Retention,
+    SubscriptionMode,
+)
+from services.lib.messages import decode_image, read_frame_metadata
+from services.lib.vision import Encoded, ResultKind, encode_result
+from services.nodes._contract import Service, ServiceEntry
+from services.nodes._runtime import setup_logging, unless_stopped
+from services.nodes._vision_handler import (
+    Handler,
+    handler_argument,
+    load_handler,
+    result_kind,
+)
+
+# Distinct warning kinds remembered; past this, further kinds share one (a handler raising
+# a new exception type per frame must not grow the log or this set without bound).
+_MAX_WARNING_KINDS = 64
+# How long the check "did the input's producer go back?" waits for its answer.
+_INPUT_INFO_TIMEOUT_S = 1.0
+
+
+@dataclass(frozen=True, slots=True)
+class VisionConfig:
+    """Everything ``framegate run vision`` can be told."""
+
+    name: str = "vision"
+    handler: str | None = None  # "package.module:function"
+    input: str = "mediator/images"
+    queue: int = 2
+    output: str | None = None  # default: "detections" for boxes, "results" otherwise
+    kind: str = "auto"  # auto (from the handler's return annotation), detections, generic
+    # Observe instead of taking part in flow control (see the detector's --observe).
+    observe: bool = False
+
+
+@dataclass(frozen=True, slots=True)
+class RunnerSpec:
+    """What the runner needs, whichever service (vision, detector) configured it."""
+
+    name: str
+    input: str
+    queue: int
+    output: str
+    kind: ResultKind
+    observe: bool = False
+    # Emulated load (the detector's --service-factor): each frame takes at least this long.
+    processing_floor_s: float = 0.0
+
+
+# -- the per-frame work (no I/O) -----------------------------------------------------------
+@dataclass(frozen=True, slots=True)
+class Skipped:
+    """A frame that produced no element: why (the skip reason ``info`` counts) and detail."""
+
+    reason: str
+    detail: str
+
+
+class _Stopped(BaseException):
+    """The service was stopped while the handler ran (not a handler error)."""
+
+
+def call_directly(work: Callable[[], object]) -> object:
+    return work()
+
+
+class VisionStep:
+    """One frame in, one element (or a counted skip) out; no network, no threads.
+
+    ``call`` runs the handler's invocation (the service wraps it to honour a stop); the time
+    it takes is the element's ``processing_ns``.
+    """
+
+    def __init__(
+        self,
+        handler: Handler,
+        kind: ResultKind,
+        source: str,
+        log: logging.Logger,
+        call: Callable[[Callable[[], object]], object] = call_directly,
+    ) -> None:
+        self.handler = handler
+        self.kind = kind
+        self.source = source
+        self.log = log
+        self._call = call
+        self.skipped = collections.Counter[str]()
+        self.processed = 0
+        self._warned: set[str] = set()
+
+    def process(self, timestamp_ns: int, payload: bytes, metadata: bytes) -> Encoded | Skipped:
+        """Decode the frame, run the handler, encode its result."""
+        try:
+            frame = read_frame_metadata(metadata)
+            image = decode_image(payload, frame)
+            if frame.timestamp_ns != timestamp_ns:
+                raise FramegateError(
+                    f"metadata says timestamp {frame.timestamp_ns}, element is {timestamp_ns}"
+                )
+        except (FramegateError, KeyError, ValueError) as exc:
+            return self.skip("bad-frame", f"frame {timestamp_ns}: {exc}")
+        started = time.monotonic_ns()
+        try:
+            result = self._call(lambda: self.handler(image, frame))
+        except Exception as exc:  # the user's code: any exception is one skipped frame
+            return self.skip(
+                f"handler-error:{type(exc).__name__}",
+                f"frame {frame.frame_id}: handler raised {type(exc).__name__}: {exc}",
+                exc_info=exc,
+            )
+        processing_ns = time.monotonic_ns() - started
+        self.processed += 1
+        try:
+            encoded = encode_result(result, self.kind, frame, self.source, processing_ns)
+        except FramegateError as exc:
+            return self.skip("bad-result", f"frame {frame.frame_id}: {exc}")
+        if encoded is None:
+            return self.skip("no-result", "", warn=False)
+        return encoded
+
+    def skip(
+        self, reason: str, detail: str, *, warn: bool = True, exc_info: BaseException | None = None
+    ) -> Skipped:
+        """Count ``reason``; the first time it is seen, log ``detail`` as a warning."""
+        if reason.startswith("handler-error:") and len(self._warned) >= _MAX_WARNING_KINDS:
+            reason = "handler-error:other"
+        self.skipped[reason] += 1
+        if warn and reason not in self._warned:
+            self._warned.add(reason)
+            self.log.warning(
+                "%s (skipped; further '%s' skips are counted, not logged)",
+                detail,
+                reason,
+                exc_info=exc_info,
+            )
+        return Skipped(reason, detail)
+
+
+# -- the service ---------------------------------------------------------------------------
+class Runner:
+    """The I/O around a :class:`VisionStep`: take a frame, fetch it, process, offer."""
+
+    def __init__(
+        self, spec: RunnerSpec, step: VisionStep, node: Node, output: Producer,
+        stop: threading.Event,
+    ) -> None:  # fmt: skip
+        self.spec = spec
+        self.step = step
+        self.node = node
+        self.output = output
+        self.stop = stop
+
+    def handle(
+        self, notes: list[Notification], fetch: Callable[[Notification], DataObject]
+    ) -> None:
+        """Process a batch of notifications (one per turn today; an executor handler later)."""
+        for note in notes:
+            if self.stop.is_set():
+                return
+            if not self._in_order(note.timestamp_ns):
+                continue
+            try:
+                element = fetch(note)
+            except FramegateError as exc:
+                self._count(self.step.skip("bad-frame", f"frame {note.timestamp_ns}: {exc}"))
+                continue
+            outcome = self.step.process(element.timestamp_ns, element.payload, element.metadata)
+            if isinstance(outcome, Skipped):
+                self._count(outcome)
+                continue
+            try:
+                self.output.put(note.timestamp_ns, outcome.payload, outcome.metadata)
+            except FramegateError as exc:
+                # Refused (a full flow-controlled watcher: counted by the producer) or
+                # rejected: the frame's result is lost, said once per kind.
+                self.step.skip(f"put-{type(exc).__name__}", f"cannot store the result: {exc}")
+
+    def _count(self, skipped: Skipped) -> None:
+        self.output.count_skip(skipped.reason)
+
+    def _in_order(self, timestamp_ns: int) -> bool:
+        """Whether a result for ``timestamp_ns`` can follow ours; removes our later results
+        only when the input's producer went back itself (see the module docstring)."""
+        newest = self.output.series.newest_ns
+        if newest is None or timestamp_ns > newest:
+            return True
+        try:
+            producer_newest = self.node.buffer_info(
+                self.spec.input, timeout_s=_INPUT_INFO_TIMEOUT_S
+            ).newest_ns
+        except FramegateError:
+            producer_newest = None  # cannot tell: keep what we have
+        if producer_newest is not None and producer_newest < newest:
+            self.output.discard_after(timestamp_ns - 1, "rewound")
+            return True
+        self._count(
+            self.step.skip(
+                "out-of-order",
+                f"frame {timestamp_ns} is not after the last result ({newest}) and "
+                f"{self.spec.input} still holds newer frames; skipped, nothing removed",
+            )
+        )
+        return False
+
+
+def serve(spec: RunnerSpec, handler: Handler, network: NetworkConfig, stop: threading.Event) -> int:
+    """Run ``handler`` behind ``spec.input`` until ``stop`` is set (or KeyboardInterrupt)."""
+    log = setup_logging(spec.name)
+
+    def call(work: Callable[[], object]) -> object:
+        # On a worker thread, so a stop is honoured while the handler is in native code.
+        started = time.monotonic()
+        result = unless_stopped(lambda: (True, work()), stop)
+        if result is None:
+            raise _Stopped
+        # Emulated load: the frame occupies the runner at least this long, and its
+        # processing_ns says so.
+        remaining = spec.processing_floor_s - (time.monotonic() - started)
+        if remaining > 0 and stop.wait(remaining):
+            raise _Stopped
+        return result[1]
+
+    with Node(spec.name, network) as node:
+        output = node.offer(
+            spec.output, kind=spec.kind.value, retention=Retention(max_count=100_000)
+        )
+        # Every frame given to the handler is processed: have it pushed, not fetched.
+        frames = node.subscribe(
+            spec.input,
+            queue_size=spec.queue,
+            mode=SubscriptionMode.OBSERVE if spec.observe else SubscriptionMode.FLOW,
+            wait_s=0,
+            push_max_bytes=PUSH_ALL,
+            await_service=True,  # a pipeline starts every service at once
+        )
+        step = VisionStep(handler, spec.kind, spec.input, log, call)
+        runner = Runner(spec, step, node, output, stop)
+        log.info(
+            "%s: %s -> %s/%s (%s, queue %d%s)",
+            spec.name,
+            spec.input,
+            spec.name,
+            spec.output,
+            _describe(handler),
+            spec.queue,
+            f", processing >= {spec.processing_floor_s * 1e3:.0f} ms"
+            if spec.processing_floor_s
+            else "",
+        )
+        try:
+            while not stop.is_set():
+                runner.handle(frames.take_many(1, timeout_s=0.5), frames.fetch)
+        except (KeyboardInterrupt, _Stopped):
+            pass
+    return 0
+
+
+def _describe(handler: Handler) -> str:
+    module = getattr(handler, "__module__", "?")
+    name = getattr(handler, "__qualname__", type(handler).__qualname__)
+    return f"{module}:{name}"
+
+
+def run(config: VisionConfig, network: NetworkConfig, stop: threading.Event | None = None) -> int:
+    """Load the handler and serve until ``stop`` is set."""
+    if config.handler is None:
+        raise ConfigError("framegate run vision needs --handler package.module:function")
+    handler = load_handler(config.handler)
+    kind = result_kind(handler, config.kind)
+    output = config.output or ("detections" if kind is ResultKind.DETECTIONS else "results")
+    spec = RunnerSpec(config.name, config.input, config.queue, output, kind, config.observe)
+    return serve(spec, handler, network, stop or threading.Event())
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The runner's flags (``framegate run vision --help``)."""
+    from services.lib.argtypes import positive_int
+
+    d = VisionConfig()
+    parser.add_argument("--name", default=d.name, help="service name (default %(default)s)")
+    parser.add_argument(
+        "--handler",
+        type=handler_argument,
+        default=d.handler,
+        metavar="MODULE:FUNCTION",
+        help="your function handler(image, frame) -> list[Box] | Output | None "
+        "(services/lib/vision.py), as package.module:function or file.py:function; "
+        "the current directory is importable",
+    )
+    parser.add_argument(
+        "--input",
+        default=d.input,
+        help="frames to process: mediator/images (filtered) or camera/images",
+    )
+    parser.add_argument(
+        "--queue", type=positive_int, default=d.queue, help="notification queue size N"
+    )
+    parser.add_argument(
+        "--output",
+        default=d.output,
+        help="the results buffer (default: detections for boxes, results otherwise)",
+    )
+    parser.add_argument(
+        "--kind",
+        choices=("auto", *(k.value for k in ResultKind)),
+        default=d.kind,
+        help="the results buffer's kind (default: from the handler's return annotation)",
+    )
+    parser.add_argument(
+        "--observe",
+        action="store_true",
+        help="never hold the input's producer back: a full queue misses new frames instead",
+    )
+
+
+def config_from_args(args: argparse.Namespace) -> VisionConfig:
+    return VisionConfig(
+        name=args.name,
+        handler=args.handler,
+        input=args.input,
+        queue=args.queue,
+        output=args.output,
+        kind=args.kind,
+        observe=args.observe,
+    )
+
+
+SERVICE: Service[VisionConfig] = ServiceEntry(
+    "vision", VisionConfig, add_arguments, config_from_args, run
+)

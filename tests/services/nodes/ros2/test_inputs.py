@@ -1,0 +1,260 @@
+"""The bridge's inputs with real framegate buffers (no ROS 2 session): the camera description
+built from CameraInfo and /tf_static, and stamps that cannot poison the time order."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from middleware import NetworkConfig, Node
+from services.lib.camera_model import CameraModel
+from services.lib.messages import read_frame_metadata
+from services.lib.quality import DEFAULT_B0_PX, BlurOptions, GyroSamples
+from services.lib.sim import Scenario, ScenarioConfig
+from services.nodes.mediator import blur_quality
+from services.nodes.ros2._bridge import ImagesIn, ImuIn, _Skips
+from services.nodes.ros2._camera_info import CameraSource, intrinsics
+from services.nodes.ros2._cdr import IMU, Codec
+from services.nodes.ros2._config import Ros2Config
+from services.nodes.ros2._rmw import Attachment
+from tests.services.nodes.ros2.ros_camera import IMAGE_FRAME, IMU_FRAME, camera_info, tf_static
+
+HOUR_NS = 3600 * 10**9
+
+
+@pytest.fixture
+def codec() -> Codec:
+    return Codec("jazzy")
+
+
+@pytest.fixture
+def node(listen_net: NetworkConfig) -> Iterator[Node]:
+    with Node("ros2", listen_net) as n:
+        yield n
+
+
+@pytest.fixture
+def consumer(connect_net: NetworkConfig) -> Iterator[Node]:
+    with Node(network=connect_net) as n:
+        yield n
+
+
+def _image(
+    codec: Codec, stamp_ns: int, width: int, height: int, pixels: bytes | None = None
+) -> bytes:
+    data = pixels if pixels is not None else bytes(width * height)
+    return bytes(codec.encode_image(stamp_ns, IMAGE_FRAME, width, height, "mono8", data))
+
+
+def _imu(codec: Codec, sec: int, nanosec: int, frame_id: str = IMU_FRAME) -> bytes:
+    t = codec.store.types
+    v, z = t["geometry_msgs/msg/Vector3"], np.zeros(9)
+    message = t[IMU](
+        t["std_msgs/msg/Header"](t["builtin_interfaces/msg/Time"](sec, nanosec), frame_id),
+        t["geometry_msgs/msg/Quaternion"](0, 0, 0, 1),
+        z,
+        v(0.0, 0.0, 0.1),
+        z,
+        v(0, 0, 0),
+        z,
+    )
+    return bytes(codec.store.serialize_cdr(message, IMU))
+
+
+def _broadcast(source: CameraSource, messages: dict[str, bytes]) -> None:
+    for i, raw in enumerate(messages.values()):
+        source.on_tf(raw, Attachment(1, 0, bytes([i]) * 16).encode())
+
+
+def test_cameras_from_camera_info_and_tf_blur_as_the_equivalent_camera_xml(
+    node: Node, consumer: Node, codec: Codec
+) -> None:
+    scenario = Scenario(ScenarioConfig(seed=3))
+    # ROS 2 stamps share one clock: the equivalent XML has no camera-gyro offset.
+    xml = CameraModel.from_xml(dataclasses.replace(scenario.camera, gyro_time_offset_ns=0).to_xml())
+    skips = _Skips(logging.getLogger("test"))
+    config = Ros2Config(image_in="/camera/image_raw", imu_in="/imu/data", exposure_ms=20)
+    images = ImagesIn(node, codec, config, skips)
+    imu = ImuIn(node, codec, config, skips, images.cameras)
+    now = time.time_ns()
+    # Binned 2x2: the sensor's CameraInfo, halved, describes the images.
+    images.cameras.on_camera_info(camera_info(codec, xml, now, binning=2), None)
+    _broadcast(images.cameras, tf_static(codec, xml.gyro_to_camera))
+    imu.add(_imu(codec, now // 10**9 - 1, 0))
+    images.handle(_image(codec, now, xml.width_px, xml.height_px), 1)
+    [element] = consumer.query("ros2/images")
+    meta = read_frame_metadata(element.metadata)
+    ros = meta.camera
+    assert ros is not None
+    for name in ("width_px", "height_px", "fx_px", "fy_px", "cx_px", "cy_px"):
+        assert getattr(ros, name) == pytest.approx(getattr(xml, name), rel=1e-9)
+    assert np.allclose(ros.gyro_to_camera, xml.gyro_to_camera, atol=1e-9)
+
+    # The mediator's own estimate with either description, over the scenario's motion.
+    gyro = scenario.gyro_samples()
+    samples = GyroSamples(np.asarray(gyro.t_ns), np.asarray(gyro.rate_rad_s))
+    blurs = []
+    for i in range(1, 6):
+        info = scenario.frame_info(i)
+        frame = dataclasses.replace(
+            meta,
+            exposure=dataclasses.replace(
+                meta.exposure, start_ns=info.exposure_start_ns, duration_ns=info.exposure_ns
+            ),
+        )
+        pair = [
+            blur_quality(
+                dataclasses.replace(frame, camera=c), samples, BlurOptions(), DEFAULT_B0_PX
+            )
+            for c in (ros, xml)
+        ]
+        assert pair[0] == pytest.approx(pair[1], rel=1e-6)
+        blurs.append(pair[0][0])
+    assert max(blurs) > 0.1  # the motion blurs: the comparison is not of zeros
+
+
+def test_a_wrong_size_camera_info_is_a_counted_skip_and_what_is_missing_is_said_once(
+    node: Node, codec: Codec, caplog: pytest.LogCaptureFixture
+) -> None:
+    skips = _Skips(logging.getLogger("test"))
+    camera = CameraModel(64, 48, 50.0, 50.0, 32.0, 24.0)
+    images = ImagesIn(node, codec, Ros2Config(image_in="/cam/image_raw", imu_in="/imu"), skips)
+    now = time.time_ns()
+    with caplog.at_level(logging.WARNING):
+        images.cameras.on_camera_info(camera_info(codec, camera, now, size=(640, 480)), None)
+        images.handle(_image(codec, now, 64, 48), 1)
+        images.handle(_image(codec, now + 1000, 64, 48), 2)
+        images.cameras.on_camera_info(camera_info(codec, camera, now, calibrated=False), None)
+        images.handle(_image(codec, now + 2000, 64, 48), 3)
+        images.handle(_image(codec, now + 3000, 64, 48), 4)
+    assert skips.counts == {"camera-info-mismatch": 1}
+    assert images.producer.info().skipped == {"camera-info-mismatch": 1}
+    assert images.producer.info().puts == 4  # the frames go on, without a description
+    waits = [r.getMessage() for r in caplog.records if "waiting for" in r.getMessage()]
+    assert len(waits) == 2, waits
+    assert "a CameraInfo on /cam/camera_info for 64x48 images (it says 640x480)" in waits[0]
+    assert "an IMU message on /imu to name the IMU frame (or --imu-to-camera)" in waits[0]
+    assert "K[0] is 0: the camera is uncalibrated" in waits[1]
+
+
+def test_camera_xml_and_the_rotation_flag_override_ros2(
+    node: Node, codec: Codec, tmp_path: Path
+) -> None:
+    xml = CameraModel(64, 48, 50.0, 50.0, 32.0, 24.0)
+    path = tmp_path / "camera.xml"
+    path.write_bytes(xml.to_xml())
+    flip = (1.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0, -1.0)
+    config = Ros2Config(image_in="/cam/image_raw", camera_xml=path, imu_to_camera=flip)
+    images = ImagesIn(node, codec, config, _Skips(logging.getLogger("test")))
+    assert not images.cameras.wants_camera_info and not images.cameras.wants_tf
+    found = images.cameras.for_image(IMAGE_FRAME, 64, 48, lambda r, d: None)
+    assert found is not None and found.gyro_to_camera == flip and found.fx_px == 50.0
+
+
+def test_rectified_topics_read_p_and_binning_divides(codec: Codec) -> None:
+    camera = CameraModel(320, 240, 300.0, 310.0, 160.0, 120.0)
+    message = codec.store.deserialize_cdr(
+        camera_info(codec, camera, 1, binning=2), "sensor_msgs/msg/CameraInfo"
+    )
+    # P, of the rectified image, differs from K: another focal length and centre.
+    p = np.array([500.0, 0, 330, 0, 0, 520, 250, 0, 0, 0, 1, 0])
+    raw = bytes(
+        codec.store.serialize_cdr(dataclasses.replace(message, p=p), "sensor_msgs/msg/CameraInfo")
+    )
+    raw_k = intrinsics(codec, raw, rectified=False)
+    assert (raw_k.width_px, raw_k.height_px) == (320, 240)
+    assert (raw_k.fx_px, raw_k.fy_px, raw_k.cx_px, raw_k.cy_px) == (300, 310, 160, 120)
+    rect = intrinsics(codec, raw, rectified=True)
+    assert (rect.fx_px, rect.fy_px, rect.cx_px, rect.cy_px) == (250, 260, 165, 125)
+
+
+def test_one_future_stamp_does_not_poison_later_images(node: Node, codec: Codec) -> None:
+    skips = _Skips(logging.getLogger("test"))
+    images = ImagesIn(node, codec, Ros2Config(image_in="/cam"), skips)
+    now = time.time_ns()
+    images.handle(_image(codec, now + HOUR_NS, 8, 4), 1)
+    images.handle(_image(codec, (2**31 - 1) * 10**9, 8, 4), 2)
+    images.handle(_image(codec, now, 8, 4), 3)
+    images.handle(_image(codec, now + 1_000_000, 8, 4), 4)
+    assert skips.counts == {"future-stamp": 2}
+    assert images.producer.info().puts == 2
+
+
+def test_imu_stamps_are_checked_field_by_field_and_a_future_one_does_not_poison(
+    node: Node, codec: Codec
+) -> None:
+    skips = _Skips(logging.getLogger("test"))
+    imu = ImuIn(node, codec, Ros2Config(imu_in="/imu"), skips)
+    sec = time.time_ns() // 10**9
+    imu.add(_imu(codec, sec + 3600, 0))  # an hour ahead
+    imu.add(_imu(codec, 2**31 - 1, 0))  # 2038
+    imu.add(_imu(codec, sec - 2, 4_000_000_000))  # nanosec = 4e9 is no time (not +4 s)
+    imu.add(_imu(codec, sec - 1, 0))
+    imu.add(_imu(codec, sec - 1, 5_000_000))
+    imu.flush()
+    assert skips.counts == {"future-stamp": 2, "bad-stamp": 1}
+    assert imu.stored == 2
+
+
+def test_an_image_with_nanosec_beyond_a_second_is_a_bad_stamp(node: Node, codec: Codec) -> None:
+    t = codec.store.types
+    header = t["std_msgs/msg/Header"](
+        t["builtin_interfaces/msg/Time"](time.time_ns() // 10**9 - 5, 4_000_000_000), "c"
+    )
+    raw = codec.store.serialize_cdr(
+        t["sensor_msgs/msg/Image"](header, 4, 8, "mono8", 0, 8, np.zeros(32, dtype=np.uint8)),
+        "sensor_msgs/msg/Image",
+    )
+    skips = _Skips(logging.getLogger("test"))
+    images = ImagesIn(node, codec, Ros2Config(image_in="/cam"), skips)
+    images.handle(bytes(raw), 1)
+    assert skips.counts == {"bad-stamp": 1}
+
+
+def test_the_example_camera_xml_is_what_the_optical_frame_convention_gives() -> None:
+    from services.nodes.ros2._tf import StaticTransforms, Transform, rotation_from_quaternion
+    from tests.conftest import REPO
+
+    example = CameraModel.from_xml((REPO / "examples" / "ros2_camera.xml").read_bytes())
+    tree = StaticTransforms()
+    optical = rotation_from_quaternion(-0.5, 0.5, -0.5, 0.5)  # REP 103's optical frame
+    identity = rotation_from_quaternion(0.0, 0.0, 0.0, 1.0)
+    tree.update(
+        b"urdf",
+        [
+            Transform("camera_link", "camera_optical_frame", optical),
+            Transform("camera_link", "imu_link", identity),
+        ],
+    )
+    rotation = tree.rotation("camera_optical_frame", "imu_link")
+    assert rotation is not None
+    assert np.allclose(rotation, example.gyro_to_camera)
+
+
+def test_the_camera_info_topic_is_beside_the_image_topic_unless_told() -> None:
+    import argparse
+
+    from middleware import ConfigError
+    from services.nodes.ros2._config import add_arguments, config_from_args
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+
+    def parse(*argv: str) -> Ros2Config:
+        return config_from_args(parser.parse_args(list(argv)))
+
+    found = parse("--image-in", "/robot/cam/image_rect", "--imu-to-camera", *"100010001")
+    assert found.camera_info_topic == "/robot/cam/camera_info"
+    assert found.imu_to_camera == (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
+    assert parse("--image-in", "/image_raw").camera_info_topic == "/camera_info"
+    assert parse("--image-in", "/c/image_raw", "--camera-info", "").camera_info_topic is None
+    told = parse("--ros-namespace", "/r", "--image-in", "img", "--camera-info", "info")
+    assert told.camera_info_topic == "/r/info"
+    with pytest.raises(ConfigError, match="--imu-to-camera takes 9 numbers"):
+        Ros2Config(imu_to_camera=(1.0, 0.0))

@@ -1,0 +1,75 @@
+"""Samples lost between a ROS 2 publisher and the bridge, from rmw_zenoh's sequence numbers."""
+
+from __future__ import annotations
+
+from services.nodes.ros2._rmw import Attachment, EntityKind, NodeIdentity, Qos, gid
+from services.nodes.ros2._sequence import MAX_GAP, SequenceTracker, SequenceWatch
+
+A, B = b"a" * 16, b"b" * 16
+
+
+def test_a_gap_in_one_publishers_numbers_is_counted_as_lost() -> None:
+    tracker = SequenceTracker()
+    for seq in (5, 6, 9, 10):
+        tracker.sample(A, seq)
+    assert tracker.lost == 2
+
+
+def test_publishers_are_counted_apart_and_duplicates_or_reorderings_lose_nothing() -> None:
+    tracker = SequenceTracker()
+    for source, seq in ((A, 1), (B, 100), (A, 2), (B, 101), (A, 2), (A, 1), (B, 103)):
+        tracker.sample(source, seq)
+    assert tracker.lost == 1
+
+
+def test_a_publisher_announced_after_the_graph_was_known_counts_its_first_losses() -> None:
+    tracker = SequenceTracker()
+    tracker.announce(A)  # already there when the bridge came: its numbers start anywhere
+    tracker.settle()
+    tracker.sample(A, 500)
+    tracker.announce(B)  # started after the bridge: its first sample was number 1
+    tracker.sample(B, 3)
+    assert tracker.lost == 2
+
+
+def test_a_fresh_publishers_sample_may_arrive_before_its_token() -> None:
+    tracker = SequenceTracker()
+    tracker.settle()
+    tracker.sample(B, 4)
+    assert tracker.lost == 0
+    tracker.announce(B)
+    tracker.announce(B)
+    assert tracker.lost == 3
+
+
+def test_forged_numbers_cost_bounded_memory_and_an_absurd_jump_is_not_a_loss() -> None:
+    tracker = SequenceTracker(max_publishers=8)
+    for i in range(1000):
+        tracker.sample(i.to_bytes(16, "little"), 1)
+    assert len(tracker._publishers) == 8
+    tracker.sample(A, 1)
+    tracker.sample(A, 2 + MAX_GAP + 1)
+    tracker.sample(A, 0)  # not a number rmw_zenoh writes
+    assert (tracker.lost, tracker.jumps) == (0, 1)
+
+
+def test_the_watch_reads_attachments_and_the_graphs_tokens() -> None:
+    node = NodeIdentity(0, "aa" * 16, "driver")
+    token = node.endpoint_token(
+        1, EntityKind.PUBLISHER, "/camera/image_raw", "sensor_msgs/msg/Image", "h", Qos()
+    )
+    other = node.endpoint_token(
+        2, EntityKind.PUBLISHER, "/other", "sensor_msgs/msg/Image", "h", Qos()
+    )
+    watch = SequenceWatch("/camera/image_raw")
+    watch.settle()
+    watch.announce(token)
+    watch.announce(other)
+    watch.announce("@ros2_lv/0/garbage")
+    source = gid(token)
+    for seq in (3, 4, 7):
+        watch.observe(Attachment(seq, 0, source).encode())
+    watch.observe(None)
+    watch.observe(b"short")
+    assert watch.take_lost().lost == 2 + 2
+    assert watch.take_lost().lost == 0  # each loss is taken once

@@ -1,0 +1,68 @@
+"""Rotations between frames from /tf_static, as tf2 composes them."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from services.nodes.ros2._tf import StaticTransforms, Transform, rotation_from_quaternion
+
+
+def _about(axis: str, angle: float) -> tuple[float, ...]:
+    s = math.sin(angle / 2)
+    x, y, z = (s if axis == a else 0.0 for a in "xyz")
+    return rotation_from_quaternion(x, y, z, math.cos(angle / 2))
+
+
+def _matrix(values: tuple[float, ...] | None) -> np.ndarray:
+    assert values is not None
+    return np.asarray(values).reshape(3, 3)
+
+
+def test_a_quaternion_turns_child_vectors_into_the_parent_frame() -> None:
+    # 90 degrees about z: the child's x axis is the parent's y axis.
+    r = _matrix(_about("z", math.pi / 2))
+    assert np.allclose(r @ [1, 0, 0], [0, 1, 0])
+    with pytest.raises(ValueError, match="not a rotation"):
+        rotation_from_quaternion(0.0, 0.0, 0.0, 0.0)
+    with pytest.raises(ValueError, match="not a rotation"):
+        rotation_from_quaternion(math.nan, 0.0, 0.0, 1.0)
+
+
+def test_a_two_link_chain_composes_to_the_rotation_between_its_ends() -> None:
+    tree = StaticTransforms()
+    tree.update(
+        b"robot",
+        [
+            Transform("base_link", "camera_link", _about("z", 0.3)),
+            Transform("camera_link", "/camera_optical_frame", _about("x", -math.pi / 2)),
+        ],
+    )
+    tree.update(b"imu", [Transform("base_link", "imu_link", _about("y", 0.2))])
+    # v_camera = R v_imu = (R_base_cam)^T R_base_imu v_imu
+    base_cam = _matrix(_about("z", 0.3)) @ _matrix(_about("x", -math.pi / 2))
+    expected = base_cam.T @ _matrix(_about("y", 0.2))
+    assert np.allclose(_matrix(tree.rotation("camera_optical_frame", "imu_link")), expected)
+    assert np.allclose(_matrix(tree.rotation("imu_link", "/camera_optical_frame")), expected.T)
+    assert tree.rotation("camera_optical_frame", "gps") is None
+
+
+def test_a_broadcasters_latest_message_replaces_its_previous_one() -> None:
+    tree = StaticTransforms()
+    tree.update(b"a", [Transform("base", "imu", _about("z", 0.1))])
+    tree.update(b"b", [Transform("base", "cam", _about("z", 0.0))])
+    tree.update(b"a", [Transform("base", "imu", _about("z", 0.5))])
+    assert np.allclose(_matrix(tree.rotation("cam", "imu")), _matrix(_about("z", 0.5)))
+    tree.update(b"a", [])  # broadcaster a now says nothing about imu
+    assert tree.rotation("cam", "imu") is None
+
+
+def test_a_cycle_of_transforms_ends_the_walk() -> None:
+    tree = StaticTransforms()
+    tree.update(
+        b"a",
+        [Transform("a", "b", _about("z", 0.1)), Transform("b", "a", _about("z", 0.1))],
+    )
+    assert tree.rotation("a", "c") is None

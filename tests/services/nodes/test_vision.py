@@ -1,0 +1,190 @@
+"""The vision runner's per-frame work, its handler loading and its one-line refusals."""
+
+from __future__ import annotations
+
+import logging
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from middleware import ConfigError
+from services.lib.messages import frame_metadata, read_detections
+from services.lib.quality import Exposure
+from services.lib.vision import Box, FrameMeta, Output, ResultKind
+from services.nodes._vision_handler import load_handler, result_kind
+from services.nodes.vision import Encoded, Skipped, VisionStep
+from tests.conftest import REPO, child_env
+from tests.helpers.timing import scaled
+from tests.services.nodes import vision_handlers
+
+LOG = logging.getLogger("test.vision")
+
+
+def _frame(frame_id: int, image: np.ndarray | None = None) -> tuple[int, bytes, bytes]:
+    image = np.full((12, 16), frame_id % 256, np.uint8) if image is None else image
+    start_ns = 1_000_000_000 + frame_id * 66_666_667
+    metadata = frame_metadata(frame_id, Exposure(start_ns, 30_000_000), image, None)
+    return start_ns, image.tobytes(), metadata
+
+
+def test_a_handler_gets_the_image_and_the_frame_and_its_boxes_are_the_element() -> None:
+    seen: list[tuple[tuple[int, ...], FrameMeta]] = []
+
+    def handler(image: np.ndarray, frame: FrameMeta) -> list[Box]:
+        seen.append((image.shape, frame))
+        return [Box.from_xywh(frame.frame_id, 0, 0, 2, 2)]
+
+    step = VisionStep(handler, ResultKind.DETECTIONS, "mediator/images", LOG)
+    stamp, payload, metadata = _frame(5)
+    outcome = step.process(stamp, payload, metadata)
+    assert isinstance(outcome, Encoded)
+    assert read_detections(outcome.metadata) == (5, [5])
+    ((shape, frame),) = seen
+    assert shape == (12, 16) and frame.frame_id == 5 and frame.timestamp_ns == stamp
+    assert frame.encoding == "mono8" and frame.exposure.duration_ns == 30_000_000
+
+
+def test_a_raising_handler_is_a_counted_skip_with_one_warning_per_exception_type(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    def handler(image: np.ndarray, frame: FrameMeta) -> list[Box]:
+        if frame.frame_id % 3 == 0:
+            raise KeyError(frame.frame_id)
+        if frame.frame_id % 3 == 1:
+            raise ValueError(frame.frame_id)
+        return []
+
+    step = VisionStep(handler, ResultKind.DETECTIONS, "in/put", LOG)
+    with caplog.at_level(logging.WARNING, logger="test.vision"):
+        outcomes = [step.process(*_frame(i)) for i in range(9)]
+    assert [type(o).__name__ for o in outcomes] == ["Skipped", "Skipped", "Encoded"] * 3
+    assert step.skipped == {"handler-error:KeyError": 3, "handler-error:ValueError": 3}
+    warnings = [r.getMessage() for r in caplog.records]
+    assert len(warnings) == 2, warnings
+    assert "handler raised KeyError" in warnings[0] and "handler raised ValueError" in warnings[1]
+
+
+def test_bad_frames_wrong_results_and_no_results_are_each_counted() -> None:
+    results: list[object] = [Output(b"x"), None, [Box(0, ((0, 0),) * 4)]]
+    step = VisionStep(lambda image, frame: results.pop(0), ResultKind.DETECTIONS, "a/b", LOG)
+    stamp, payload, metadata = _frame(1)
+    short = step.process(stamp, payload[:-1], metadata)
+    assert isinstance(short, Skipped) and short.reason == "bad-frame"
+    assert "payload is 191 bytes" in short.detail
+    assert isinstance(step.process(stamp, payload, b"<not xml"), Skipped)
+    assert isinstance(step.process(stamp + 1, payload, metadata), Skipped)  # key != metadata
+    assert step.process(stamp, payload, metadata).reason == "bad-result"  # type: ignore[union-attr]
+    assert step.process(stamp, payload, metadata).reason == "no-result"  # type: ignore[union-attr]
+    assert isinstance(step.process(stamp, payload, metadata), Encoded)
+    assert step.skipped == {"bad-frame": 3, "bad-result": 1, "no-result": 1}
+    assert step.processed == 3
+
+
+def test_a_generic_handler_stores_its_payload() -> None:
+    step = VisionStep(vision_handlers.histogram, ResultKind.GENERIC, "a/b", LOG)
+    outcome = step.process(*_frame(9))
+    assert isinstance(outcome, Encoded) and len(outcome.payload) == 16 * 4
+    assert b"<mean>9.0</mean>" in outcome.metadata
+
+
+class _Tracker:
+    def __call__(self, image: np.ndarray, frame: FrameMeta) -> Output:
+        return Output()
+
+
+def test_the_result_kind_comes_from_the_return_annotation_or_the_flag() -> None:
+    assert result_kind(vision_handlers.brightest, "auto") is ResultKind.DETECTIONS
+    assert result_kind(vision_handlers.histogram, "auto") is ResultKind.GENERIC
+    assert result_kind(_Tracker(), "auto") is ResultKind.GENERIC
+    assert result_kind(lambda image, frame: None, "auto") is ResultKind.DETECTIONS
+    assert result_kind(vision_handlers.brightest, "generic") is ResultKind.GENERIC
+
+
+def test_a_handler_is_loaded_by_name() -> None:
+    handler = load_handler("tests.services.nodes.vision_handlers:brightest")
+    assert handler is vision_handlers.brightest
+
+
+@pytest.mark.parametrize(
+    ("spec", "match"),
+    [
+        ("no_colon", "must be 'package.module:function'"),
+        ("tests.services.nodes.no_such_module:f", "cannot import .*ModuleNotFoundError"),
+        ("tests.services.nodes.vision_handlers:missing", "has no 'missing'"),
+        ("tests.services.nodes.vision_handlers:NOT_A_FUNCTION", "is a int, not a function"),
+    ],
+)
+def test_a_handler_that_cannot_be_loaded_is_a_config_error(spec: str, match: str) -> None:
+    with pytest.raises(ConfigError, match=match):
+        load_handler(spec)
+
+
+def test_a_module_that_raises_while_importing_is_a_config_error(tmp_path: Path) -> None:
+    (tmp_path / "broken_vision_module.py").write_text("raise RuntimeError('no camera here')\n")
+    sys.path.insert(0, str(tmp_path))
+    try:
+        with pytest.raises(ConfigError, match="RuntimeError: no camera here"):
+            load_handler("broken_vision_module:f")
+    finally:
+        sys.path.remove(str(tmp_path))
+
+
+def _framegate(*argv: str, cwd: Path = REPO) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "services.cli", *argv],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        env=child_env(),
+        timeout=scaled(120),
+    )
+
+
+@pytest.mark.parametrize(
+    ("argv", "says"),
+    [
+        (["--handler", "nosuch.module:fn"], "cannot import 'nosuch.module'"),
+        (["--handler", "tests.services.nodes.vision_handlers:NOT_A_FUNCTION"], "not a function"),
+        ([], "needs --handler"),
+    ],
+)
+def test_run_vision_refuses_a_bad_handler_in_one_line(argv: list[str], says: str) -> None:
+    result = _framegate("run", "vision", *argv)
+    assert result.returncode == 1, result
+    assert result.stderr.startswith("error: ") and says in result.stderr, result
+    assert len(result.stderr.strip().splitlines()) == 1, result.stderr
+
+
+def test_launch_check_names_the_deploy_line_of_a_bad_handler(tmp_path: Path) -> None:
+    deploy = tmp_path / "vision.yaml"
+    deploy.write_text(
+        "version: 1\nservices:\n  vision:\n    args:\n      handler: nosuch.module:fn\n"
+    )
+    result = _framegate("launch", str(deploy), "--check")
+    assert result.returncode == 1, result
+    assert f"{deploy}:5" in result.stderr and "cannot import 'nosuch.module'" in result.stderr
+
+
+def test_a_handler_is_loaded_from_a_file_with_its_siblings_importable(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(sys, "path", list(sys.path))  # the file's directory is added
+    (tmp_path / "helper_of_json_py.py").write_text("LABEL = 7\n")
+    # Named like a standard module on purpose: the file is loaded, not the library.
+    (tmp_path / "json.py").write_text(
+        "from helper_of_json_py import LABEL\n"
+        "LOADS = []\n"
+        "LOADS.append(1)\n"
+        "def find(image, frame):\n"
+        "    return LABEL\n"
+    )
+    spec = f"{tmp_path / 'json.py'}:find"
+    handler = load_handler(spec)
+    assert handler(np.zeros((1, 1), np.uint8), None) == 7  # type: ignore[arg-type]
+    assert load_handler(spec) is handler
+    assert sys.modules[handler.__module__].LOADS == [1]  # loaded once for both
+    with pytest.raises(ConfigError, match="does not exist"):
+        load_handler(f"{tmp_path / 'missing.py'}:find")

@@ -1,0 +1,233 @@
+"""``framegate run vision`` in real processes behind a real mediator (``framegate launch``)."""
+
+from __future__ import annotations
+
+import logging
+import signal
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from middleware import (
+    DataObject,
+    FramegateError,
+    NetworkConfig,
+    Node,
+    Notification,
+    SubscriptionMode,
+    now_ns,
+)
+from services.lib.messages import frame_metadata
+from services.lib.quality import Exposure
+from services.lib.vision import ResultKind
+from services.nodes.vision import Runner, RunnerSpec, VisionStep
+from tests.conftest import free_port, start_framegate, wait_until
+from tests.helpers.timing import scaled
+from tests.services.nodes import vision_handlers
+from tests.services.nodes.pipeline import Pipeline
+
+pytestmark = pytest.mark.integration
+
+HANDLERS = "tests.services.nodes.vision_handlers"
+SENSORS = """\
+version: 1
+services:
+  camera: {args: {source: sim, seed: 3, loop: true}}
+  gyro: {args: {source: sim, seed: 3, loop: true}}
+  mediator: {args: {policy: paper, b0: 5.0}}
+"""
+
+
+@pytest.fixture
+def pipeline(tmp_path: Path) -> Iterator[list[Pipeline]]:
+    started: list[Pipeline] = []
+    yield started
+    for pipe in started:
+        pipe.close()
+
+
+def _skipped(pipe: Pipeline, target: str, reason: str) -> int:
+    try:
+        return int(pipe.info(target).skipped.get(reason, 0))
+    except FramegateError:
+        return 0
+
+
+def test_a_handler_named_on_the_command_line_runs_behind_the_mediator_and_its_errors_are_counted(
+    tmp_path: Path, pipeline: list[Pipeline]
+) -> None:
+    # Odd frame ids raise ValueError: half the frames fail, the pipeline must keep going.
+    deploy = SENSORS + f"  vision: {{args: {{handler: '{HANDLERS}:odd_frames_raise'}}}}\n"
+    pipe = Pipeline(tmp_path, deploy)
+    pipeline.append(pipe)
+    reason = "handler-error:ValueError"
+    wait_until(
+        lambda: (
+            pipe.counter("vision/detections") >= 3
+            and _skipped(pipe, "vision/detections", reason) >= 3
+        ),
+        90,
+        "results and counted handler errors\n" + pipe.log(),
+    )
+    # The runner is the mediator's flow-controlled consumer: its queue is the load.
+    subs = pipe.info("mediator/images").subscriptions
+    assert [(s.node, s.mode) for s in subs] == [("vision", SubscriptionMode.FLOW)], subs
+    puts, errors = pipe.counter("vision/detections"), _skipped(pipe, "vision/detections", reason)
+    wait_until(
+        lambda: (
+            pipe.counter("vision/detections") > puts + 2
+            and _skipped(pipe, "vision/detections", reason) > errors + 2
+        ),
+        60,
+        "the runner to keep going after errors\n" + pipe.log(),
+    )
+    assert pipe.pid("vision") is not None
+    warned = [line for line in pipe.lines if "handler raised ValueError" in line]
+    assert len(warned) == 1, pipe.log()
+
+
+@pytest.mark.slow
+def test_a_slower_handler_is_sent_fewer_frames_from_the_same_camera_and_gyro(
+    tmp_path: Path, pipeline: list[Pipeline]
+) -> None:
+    # One camera and gyro; two mediators, each with its own consumer: a cheap handler and
+    # one that needs 1 s per frame.
+    deploy = SENSORS + (
+        "  mediator-slow: {type: mediator, args: {policy: paper, b0: 5.0}}\n"
+        f"  vision: {{args: {{handler: '{HANDLERS}:brightest'}}}}\n"
+        f"  vision-slow: {{type: vision, args: {{handler: '{HANDLERS}:slow', "
+        "input: mediator-slow/images}}\n"
+    )
+    pipe = Pipeline(tmp_path, deploy)
+    pipeline.append(pipe)
+    wait_until(
+        lambda: (
+            pipe.counter("vision-slow/detections") >= 3 and pipe.counter("vision/detections") >= 3
+        ),
+        90,
+        "both handlers to have results\n" + pipe.log(),
+    )
+    fast0, slow0 = pipe.counter("mediator/images"), pipe.counter("mediator-slow/images")
+    done0 = pipe.counter("vision-slow/detections")
+    wait_until(
+        lambda: pipe.counter("vision-slow/detections") >= done0 + 5,
+        120,
+        "the slow handler to process 5 more frames\n" + pipe.log(),
+    )
+    fast = pipe.counter("mediator/images") - fast0
+    slow = pipe.counter("mediator-slow/images") - slow0
+    # Over the same stretch of the same camera stream, the mediator in front of the slow
+    # handler forwarded fewer frames: its acceptance follows the handler's speed.
+    assert slow < fast, (slow, fast)
+    decisions = pipe.info("mediator-slow/decisions").puts
+    assert decisions > slow, (decisions, slow)
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_a_stop_ends_the_runner_with_exit_0_while_its_handler_is_busy(signum: int) -> None:
+    port = free_port()
+    camera = start_framegate(["run", "camera", "--seed", "3", "--loop"], local_port=port)
+    vision = start_framegate(
+        ["run", "vision", "--handler", f"{HANDLERS}:stuck", "--input", "camera/images"],
+        local_port=port,
+    )
+    try:
+        with Node(network=NetworkConfig(local_port=port)) as node:
+            # The camera is refused once the runner's queue is full: the handler is busy.
+            wait_until(
+                lambda: _refused(node, "camera/images") > 0, 90, "the runner's queue to fill"
+            )
+        sent = time.monotonic()
+        vision.send_signal(signum)
+        out, _ = vision.communicate(timeout=scaled(60))
+        took_s = time.monotonic() - sent
+        assert vision.returncode == 0, out
+        # Far less than the handler's 600 s: the stop did not wait for it.
+        assert took_s < scaled(60), took_s
+    finally:
+        for proc in (vision, camera):
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+
+
+def _refused(node: Node, target: str) -> int:
+    try:
+        return node.buffer_info(target, timeout_s=2.0).refused
+    except FramegateError:
+        return 0
+
+
+def test_results_are_removed_only_when_the_input_producer_itself_went_back() -> None:
+    net = NetworkConfig(local_port=free_port())
+    log = logging.getLogger("test.vision.rewind")
+    with Node("src", net) as src_node, Node("vision", net) as node:
+        images = src_node.offer("images", kind="frame")
+        output = node.offer("detections", kind="detections")
+        spec = RunnerSpec("vision", "src/images", 2, "detections", ResultKind.DETECTIONS)
+        step = VisionStep(vision_handlers.brightest, ResultKind.DETECTIONS, "src/images", log)
+        runner = Runner(spec, step, node, output, threading.Event())
+        base_ns = now_ns() - 3_600 * 10**9
+
+        def frame(frame_id: int) -> Notification:
+            image = np.full((8, 8), frame_id, np.uint8)
+            stamp = base_ns + frame_id * 10**9
+            meta = frame_metadata(frame_id, Exposure(stamp, 1_000_000), image, None)
+            element = DataObject(stamp, image.tobytes(), meta)
+            if images.series.newest_ns is None or stamp > images.series.newest_ns:
+                images.put(stamp, element.payload, meta)
+            return Notification("src", "images", stamp, frame_id, meta, element)
+
+        def handle(frame_id: int) -> None:
+            runner.handle([frame(frame_id)], lambda note: note.element)  # type: ignore[arg-type,return-value]
+
+        for frame_id in (10, 20, 30):
+            handle(frame_id)
+        assert len(output.series) == 3
+        # One stale element while its producer still holds newer ones: skipped, nothing gone.
+        handle(15)
+        assert len(output.series) == 3
+        assert output.info().skipped == {"out-of-order": 1}
+        # The producer went back (it removed its frames after 12, as a mediator does after a
+        # camera restarted with its clock behind): our results after the new frame follow.
+        images.discard_after(base_ns + 12 * 10**9, "rewound")
+        handle(16)
+        stamps = [e.timestamp_ns - base_ns for e in node.query("vision/detections")]
+        assert stamps == [10 * 10**9, 16 * 10**9]
+        assert output.info().skipped == {"out-of-order": 1, "rewound": 2}
+
+
+def test_a_handler_returning_output_fills_a_generic_results_buffer() -> None:
+    port = free_port()
+    camera = start_framegate(["run", "camera", "--seed", "3", "--loop"], local_port=port)
+    vision = start_framegate(
+        ["run", "vision", "--handler", f"{HANDLERS}:histogram", "--input", "camera/images"],
+        local_port=port,
+    )
+    try:
+        with Node(network=NetworkConfig(local_port=port)) as node:
+            elements = wait_until(
+                lambda: _elements(node, "vision/results"), 90, "the handler's results"
+            )
+            assert node.buffer_info("vision/results").kind == "generic"
+            element = elements[-1]
+            assert len(element.payload) == 16 * 4  # the histogram
+            assert b"<mean>" in element.metadata and b"<frame_id>" in element.metadata
+            assert (
+                node.get("camera/images", element.timestamp_ns).timestamp_ns == element.timestamp_ns
+            )
+    finally:
+        for proc in (vision, camera):
+            proc.send_signal(signal.SIGTERM)
+            proc.communicate(timeout=scaled(30))
+
+
+def _elements(node: Node, target: str) -> list[DataObject]:
+    try:
+        return node.query(target)
+    except FramegateError:
+        return []

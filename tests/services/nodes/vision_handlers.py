@@ -1,0 +1,44 @@
+"""Vision handlers the tests load by name (``--handler tests.services.nodes.vision_handlers:…``)."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import numpy.typing as npt
+
+from services.lib.vision import Box, FrameMeta, Output
+
+NOT_A_FUNCTION = 42
+
+
+def brightest(image: npt.NDArray[np.uint8], frame: FrameMeta) -> list[Box]:
+    """A cheap handler: one box around the image's brightest pixel."""
+    y, x = np.unravel_index(int(np.argmax(image)), image.shape[:2])
+    return [Box.from_xywh(0, float(x) - 2, float(y) - 2, 4, 4, score=float(image[y, x]) / 255)]
+
+
+def slow(image: npt.NDArray[np.uint8], frame: FrameMeta) -> list[Box]:
+    """As ``brightest``, but busy for 1 s per frame: 15 frame periods at 15 fps, and slower
+    than the camera even on a machine so loaded that it renders only a few frames a second."""
+    time.sleep(1.0)
+    return brightest(image, frame)
+
+
+def odd_frames_raise(image: npt.NDArray[np.uint8], frame: FrameMeta) -> list[Box]:
+    """Raises ValueError on odd frame ids; finds nothing on even ones."""
+    if frame.frame_id % 2:
+        raise ValueError(f"odd frame {frame.frame_id}")
+    return []
+
+
+def histogram(image: npt.NDArray[np.uint8], frame: FrameMeta) -> Output:
+    """A generic result: the 16-bin histogram as the payload, the mean as a field."""
+    counts, _edges = np.histogram(image, bins=16, range=(0, 256))
+    return Output(counts.astype("<u4").tobytes(), {"mean": float(image.mean())})
+
+
+def stuck(image: npt.NDArray[np.uint8], frame: FrameMeta) -> list[Box]:
+    """Never returns in any test's lifetime: a stop must not wait for it."""
+    time.sleep(600)
+    return []
