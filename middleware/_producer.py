@@ -136,6 +136,8 @@ class Producer:
         )
         # Declared last: its callback (history included) may run at once. A token is the
         # executor's at once: a new subscriber waits for its greeting.
+        self._token_keys = keys.subscription_tokens(service, buffer)
+        self._tokens_dropped = 0
         self._tokens = Inbox(
             session,
             keys.subscription_tokens(service, buffer),
@@ -171,6 +173,9 @@ class Producer:
             alive = sample.kind == zenoh.SampleKind.PUT
             self._protocol.token(str(sample.key_expr), alive, now)
             changed = True
+        if self._tokens.dropped != self._tokens_dropped:  # churn overflowed the inbox
+            self._tokens_dropped = self._tokens.dropped
+            self._protocol.tokens_lost(now)
         return changed
 
     def run_ready(self, budget: int) -> bool:
@@ -191,7 +196,17 @@ class Producer:
 
     def on_deadline(self, now_ns: int) -> None:
         """(the executor) Resends that are due, once the acks waiting have been fed (the
-        inbox's capacity bounds them)."""
+        inbox's capacity bounds them); a resync of the registrations after lost token
+        events (one liveliness query, not under the locks)."""
+        with self._lock:
+            resync = self._protocol.resync_due(now_ns)
+        if resync:
+            live: list[str] = []
+            with contextlib.suppress(zenoh.ZError):
+                replies = self._session.liveliness().get(self._token_keys, timeout=1.0)
+                live = [str(r.ok.key_expr) for r in replies if r.ok is not None]
+            with self._lock:
+                self._protocol.resync(live, time.monotonic_ns())
         with self._send_lock:
             with self._lock:
                 if self._closed:

@@ -40,6 +40,9 @@ states them for users and ``info`` reports them as ``BufferLimits``):
   the rest ``RESEND_PACE_NS`` later, never a whole window at once.
 - Tokens cost O(1) amortised work each (one table look-up, the shares kept as running
   sums per holder), so token churn at any rate costs the producer bounded work per token.
+  Token events the Zenoh layer had to drop (its inbox is bounded) are repaired by a
+  ``resync`` against the live tokens, at most every ``RESYNC_NS``: a withdrawn token whose
+  event was lost cannot hold the producer for ever, nor a live one stay unregistered.
 
 Every refusal reaches the subscriber as a control message on its notification key
 (``["refused", descriptor, reason]``; see ``_wire``) and is counted; an accepted
@@ -58,6 +61,13 @@ from ._ledger_producer import (
     RegistrationKey,
     Send,
 )
+
+# The limits live with the shares; importable from here too (the producer's side).
+from ._protocol_shares import FLOW_QUEUE_MAX as FLOW_QUEUE_MAX
+from ._protocol_shares import LARGE_PUSH_PER_HOLDER, LARGE_PUSH_TOTAL, Shares, fair_share, holder_of
+from ._protocol_shares import MAX_FLOW_REGISTRATIONS as MAX_FLOW_REGISTRATIONS
+from ._protocol_shares import MAX_OBSERVE_REGISTRATIONS as MAX_OBSERVE_REGISTRATIONS
+from ._protocol_shares import QUEUE_BUDGET as QUEUE_BUDGET
 from ._records import BufferLimits, DataObject, SubscriptionInfo, SubscriptionMode
 from ._wire import (
     Keys,
@@ -70,18 +80,13 @@ from ._wire import (
 
 log = logging.getLogger("framegate.middleware")
 
-MAX_FLOW_REGISTRATIONS = 256
-MAX_OBSERVE_REGISTRATIONS = 256
-# Sum of the queue sizes of all flow registrations of one producer (see the module doc).
-QUEUE_BUDGET = 1 << 16
-# The largest flow queue one subscriber can get: a holder's fair share of an idle producer.
-FLOW_QUEUE_MAX = QUEUE_BUDGET // 2
-# Registrations that get payloads above the producer's inline limit pushed (module doc).
-LARGE_PUSH_PER_HOLDER = 4
-LARGE_PUSH_TOTAL = 16
 # Metadata rides along with notifications (and is kept for resends) up to this size.
 INLINE_METADATA_MAX = 8 * 1024
 RESEND_BURST = 16
+# After lost token events, the table is checked against the live tokens at most this often,
+# reading at most this many of them.
+RESYNC_NS = 2_000_000_000
+RESYNC_TOKENS = 4 * (MAX_FLOW_REGISTRATIONS + MAX_OBSERVE_REGISTRATIONS)
 # An ack is a msgpack map of two (``_wire.encode_ack``); keys whose last ack is remembered.
 _ACK_FIRST_BYTE = b"\x82"
 _LAST_ACKS = 1024
@@ -169,42 +174,6 @@ class ProtocolCounters:
 _Kept = tuple[int, bytes | None]  # (timestamp_ns, metadata or None when too large)
 
 
-@dataclass(slots=True)
-class _Share:
-    """What one holder (or all of them, the totals) holds: running sums, so that judging a
-    token costs O(1) whatever the table holds."""
-
-    flow: int = 0
-    observe: int = 0
-    queue: int = 0  # queue sizes of its flow registrations, summed
-    large_push: int = 0  # registrations that get payloads above the inline limit pushed
-
-    def slots(self, mode: SubscriptionMode) -> int:
-        return self.flow if mode is SubscriptionMode.FLOW else self.observe
-
-    def add(self, key: RegistrationKey, large_push: bool, sign: int) -> None:
-        if key.mode is SubscriptionMode.FLOW:
-            self.flow += sign
-            self.queue += sign * key.queue_size
-        else:
-            self.observe += sign
-        self.large_push += sign * large_push
-
-    def empty(self) -> bool:
-        return not (self.flow or self.observe)
-
-
-def fair_share(limit: int, others: int) -> int:
-    """What one holder may hold of ``limit`` while the others hold ``others``: half of what
-    they leave free, rounded up (so a lone holder of a pool of 1 still gets it)."""
-    return (max(0, limit - others) + 1) // 2
-
-
-def holder_of(node: str | None, host: str | None) -> str:
-    """A token's holder as the shares count it: its ``<node>~<host>`` chunk."""
-    return f"{node or ''}~{host or ''}"
-
-
 class ProducerProtocol:
     """One buffer's producer protocol. Not thread-safe: the caller serialises every call."""
 
@@ -226,7 +195,6 @@ class ProducerProtocol:
         self._keys = keys
         self._service = service
         self._buffer = buffer
-        self._budget = queue_budget
         self._max = {SubscriptionMode.FLOW: max_flow, SubscriptionMode.OBSERVE: max_observe}
         self._ledger: ProducerLedger[_Kept] = ProducerLedger(
             epoch, max_registrations=max_flow + max_observe
@@ -237,9 +205,11 @@ class ProducerProtocol:
         self._holders: dict[RegistrationKey, tuple[str | None, str | None]] = {}
         # Fair shares (module doc): per holder and in total; the push limit each registration
         # actually gets (its own, or the producer's inline limit beyond the large-push caps).
-        self._shares: dict[str, _Share] = {}
-        self._total = _Share()
+        self._shares = Shares(self.name, queue_budget, max_flow, max_observe)
         self._push_limit: dict[RegistrationKey, int] = {}
+        # Lost token events: when a resync is due (None: none), when the last one was.
+        self._resync_at_ns: int | None = None
+        self._resynced_ns = -RESYNC_NS
         # The last ack seen per ack key and when (see ``ack``), at most ``_LAST_ACKS``.
         self._last_acks: dict[str, tuple[bytes, int]] = {}
         self.counters = ProtocolCounters()
@@ -265,7 +235,7 @@ class ProducerProtocol:
             return  # a repeat (history and live both deliver it)
         node, host = parsed[4:]
         holder = holder_of(node, host)
-        reason = self._refusal(key, holder)
+        reason = self._shares.refusal(key, holder)
         if reason is not None:
             self.counters.refused_registrations += 1
             if len(self.counters.refusals) < _REFUSAL_REASONS or reason in self.counters.refusals:
@@ -278,12 +248,8 @@ class ProducerProtocol:
             self.counters.refused_registrations += 1
             return
         self._holders[key] = (node, host)
-        share = self._shares.setdefault(holder, _Share())
-        large = key.push_max_bytes > self.inline_max_bytes and (
-            share.large_push < LARGE_PUSH_PER_HOLDER and self._total.large_push < LARGE_PUSH_TOTAL
-        )
-        share.add(key, large, 1)
-        self._total.add(key, large, 1)
+        large = key.push_max_bytes > self.inline_max_bytes and self._shares.large_push_free(holder)
+        self._shares.add(key, holder, large, 1)
         if key.push_max_bytes >= 0:
             self._push_limit[key] = (
                 key.push_max_bytes if large else min(key.push_max_bytes, self.inline_max_bytes)
@@ -291,69 +257,45 @@ class ProducerProtocol:
         log.debug("%s: subscription %s registered as %s", self.name, key.sub_id, reg.epoch)
         self._control(key, encode_control("hello", key.descriptor, reg.epoch, reg.base))
 
+    # -- lost token events ----------------------------------------------------------------
+    def tokens_lost(self, now_ns: int) -> None:
+        """The Zenoh layer dropped token events (its bounded inbox overflowed under churn):
+        the table may hold a registration whose token is gone (it would hold the producer
+        for ever) or lack a live one. A ``resync`` falls due, at most every ``RESYNC_NS``."""
+        if self._resync_at_ns is None:
+            self._resync_at_ns = max(now_ns, self._resynced_ns + RESYNC_NS)
+
+    def resync_due(self, now_ns: int) -> bool:
+        return self._resync_at_ns is not None and self._resync_at_ns <= now_ns
+
+    def resync(self, live_tokens: list[str], now_ns: int) -> None:
+        """The tokens live now (a liveliness query's answer, at most ``RESYNC_TOKENS`` of
+        them read): registrations without a live token go, live tokens not registered are
+        judged as if they had just appeared."""
+        self._resync_at_ns = None
+        self._resynced_ns = now_ns
+        live: dict[RegistrationKey, str] = {}
+        for keyexpr in live_tokens[:RESYNC_TOKENS]:
+            try:
+                parsed = parse_subscription_token(keyexpr)
+            except ValueError:
+                continue
+            live[RegistrationKey(*parsed[:4])] = keyexpr
+        for reg in self._ledger.registrations():
+            if reg.key not in live:
+                self._ledger.token_delete(reg.key)
+                self._forget(reg.key)
+                self._events.append(Retire(reg.key))
+        for keyexpr in live.values():
+            self.token(keyexpr, True, now_ns)
+
     def _forget(self, key: RegistrationKey) -> None:
         """Drop what the protocol keeps beside the ledger for a registration that is gone."""
         self._paced.pop(key, None)
         node, host = self._holders.pop(key, (None, None))
         limit = self._push_limit.pop(key, None)
         large = limit is not None and limit > self.inline_max_bytes
-        holder = holder_of(node, host)
-        share = self._shares.get(holder)
-        if share is not None:
-            share.add(key, large, -1)
-            if share.empty():
-                del self._shares[holder]
-        self._total.add(key, large, -1)
-
-    def _refusal(self, key: RegistrationKey, holder: str) -> str | None:
-        """Why ``holder`` may not register ``key`` (None: it may), naming the limit, what it
-        holds and the largest holder."""
-        mode, total = key.mode, self._total
-        mine = self._shares.get(holder, _Share())
-        used = total.slots(mode)
-        if used >= self._max[mode]:
-            return (
-                f"{self.name} holds {used} {mode.value} subscriptions, its limit; the largest "
-                f"holder is {self._largest(mode)}; close unused subscriptions"
-            )
-        slots = fair_share(self._max[mode], used - mine.slots(mode))
-        if mine.slots(mode) + 1 > slots:
-            return (
-                f"{holder} holds {mine.slots(mode)} {mode.value} subscriptions of {self.name}, "
-                f"its fair share (half of the {self._max[mode] - used + mine.slots(mode)} "
-                f"others leave free); close unused subscriptions"
-            )
-        if mode is SubscriptionMode.FLOW:
-            if total.queue + key.queue_size > self._budget:
-                return (
-                    f"queue size {key.queue_size} exceeds what {self.name} can still hold "
-                    f"for flow control ({self._budget - total.queue} of {self._budget}); the "
-                    f"largest holder is {self._largest(mode)}; subscribe with a smaller queue"
-                )
-            share = fair_share(self._budget, total.queue - mine.queue)
-            if mine.queue + key.queue_size > share:
-                return (
-                    f"queue size {key.queue_size} exceeds the fair share of {holder} in "
-                    f"{self.name}'s flow-control budget: at most {share} (half of the "
-                    f"{self._budget - total.queue + mine.queue} of {self._budget} others "
-                    f"leave free), {mine.queue} held already; the largest holder is "
-                    f"{self._largest(mode)}; subscribe with a smaller queue"
-                )
-        return None
-
-    def _largest(self, mode: SubscriptionMode) -> str:
-        """The holder with the most of ``mode`` (queue for flow, slots for observe), for a
-        refusal's message. Only on refusals: O(holders), and holders <= registrations."""
-        flow = mode is SubscriptionMode.FLOW
-
-        def size(share: _Share) -> int:
-            return share.queue if flow else share.observe
-
-        if not self._shares:
-            return "nobody"
-        holder, share = max(self._shares.items(), key=lambda item: size(item[1]))
-        what = f"queue {share.queue} in {share.flow}" if flow else f"{share.observe}"
-        return f"{holder} ({what} subscriptions)"
+        self._shares.add(key, holder_of(node, host), large, -1)
 
     def ack(self, keyexpr: str, payload: bytes, now_ns: int) -> bool:
         """An ack arrived on ``keyexpr``; True if it freed credit.
@@ -456,6 +398,8 @@ class ProducerProtocol:
     def next_deadline_ns(self) -> int | None:
         """When ``tick`` has work next (None: nothing outstanding)."""
         deadlines = [at for at, _ in self._paced.values()]
+        if self._resync_at_ns is not None:
+            deadlines.append(self._resync_at_ns)
         retransmit = self._ledger.next_retransmit_ns()
         if retransmit is not None:
             deadlines.append(retransmit)
@@ -547,8 +491,8 @@ class ProducerProtocol:
         return BufferLimits(
             flow_registrations=self._max[SubscriptionMode.FLOW],
             observe_registrations=self._max[SubscriptionMode.OBSERVE],
-            queue_budget=self._budget,
-            flow_queue_max=fair_share(self._budget, 0),
+            queue_budget=self._shares.budget,
+            flow_queue_max=fair_share(self._shares.budget, 0),
             large_push_per_holder=LARGE_PUSH_PER_HOLDER,
             large_push_total=LARGE_PUSH_TOTAL,
         )

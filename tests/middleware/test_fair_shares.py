@@ -111,7 +111,25 @@ def test_token_churn_leaves_no_state_behind() -> None:
             producer.token(_token(key, holder), False, round_)
         producer.events()
     assert [r.key for r in producer.registrations()] == [stay]
-    assert set(producer._shares) == {"mediator~x"}
+    assert producer._shares.holders() == {"mediator~x"}
     assert set(producer._holders) == {stay} and not producer._paced
     assert producer.counters.refused_registrations > 0
     assert len(producer.counters.refusals) <= 64
+
+
+def test_a_resync_after_lost_token_events_repairs_the_table() -> None:
+    """Token events dropped under churn: a withdrawn token's registration would hold the
+    producer for ever, a live one would never register. The resync against the live
+    tokens removes the first and registers the second."""
+    producer = _producer()
+    ghost = RegistrationKey("ghost", FLOW, 2, -1)
+    live = RegistrationKey("live", FLOW, 2, -1)
+    producer.token(_token(ghost, "churn~x"), True, 0)
+    producer.put_many((DataObject(1, b"x", b"<m/>"),), 0)
+    producer.put_many((DataObject(2, b"x", b"<m/>"),), 0)
+    assert producer.full() is not None  # the ghost, whose withdrawal was lost, holds it
+    producer.tokens_lost(0)
+    assert producer.next_deadline_ns() is not None and producer.resync_due(0)
+    producer.resync([_token(live, "mediator~x")], 0)
+    assert [r.key for r in producer.registrations()] == [live]
+    assert producer.full() is None and not producer.resync_due(0)
