@@ -102,6 +102,8 @@ class NetworkConfig:
         check_name(self.namespace, "namespace")
         if self.mode not in ("peer", "client", "router"):
             raise ConfigError(f"bad mode {self.mode!r}: use peer, client or router")
+        if not 0 < self.local_port < 65536:
+            raise ConfigError(f"local port {self.local_port} is not a port number: use 1..65535")
         if self.lease_ms < 100:
             raise ConfigError(f"lease_ms {self.lease_ms} is too small; use >= 100")
 
@@ -123,7 +125,7 @@ class NetworkConfig:
         if env.get("FRAMEGATE_NAMESPACE"):
             changes["namespace"] = env["FRAMEGATE_NAMESPACE"]
         if env.get("FRAMEGATE_LOCAL_PORT"):
-            changes["local_port"] = _int(env["FRAMEGATE_LOCAL_PORT"], "FRAMEGATE_LOCAL_PORT")
+            changes["local_port"] = _port(env["FRAMEGATE_LOCAL_PORT"], "FRAMEGATE_LOCAL_PORT")
         return replace(self, **changes) if changes else self
 
     def with_args(self, args: argparse.Namespace) -> NetworkConfig:
@@ -174,6 +176,30 @@ class NetworkConfig:
                 _insert(conf, "transport/unicast/open_timeout", RENDEZVOUS_OPEN_TIMEOUT_MS)
             return configs
         return [self._build(listen=list(self.listen), connect=list(self.connect))]
+
+    def check_files(self) -> None:
+        """ConfigError naming the first file this configuration needs and cannot read: the
+        Zenoh config file (which must also parse) and every TLS certificate and key it
+        names. Zenoh itself reads the certificates only when a session opens."""
+        if self.config_file is None:
+            return
+        conf = self.zenoh_configs()[0]  # ConfigError naming the file if it cannot be read
+        try:
+            tls = json.loads(conf.get_json("transport/link/tls"))
+        except (zenoh.ZError, ValueError):
+            return  # no TLS section: nothing more to read
+        for key, value in sorted(tls.items() if isinstance(tls, dict) else ()):
+            # *_base64 keys hold the certificate itself; the others name a file.
+            if not isinstance(value, str) or not key.endswith(("_certificate", "_private_key")):
+                continue
+            try:
+                with open(value, "rb"):
+                    pass
+            except OSError as exc:
+                raise ConfigError(
+                    f"cannot read {value}, the {key} of Zenoh config {self.config_file}: "
+                    f"{exc.strerror or exc}"
+                ) from exc
 
     def _build(self, *, listen: list[str], connect: list[str]) -> zenoh.Config:
         try:
@@ -307,6 +333,14 @@ def _int(value: str, what: str) -> int:
         return int(value)
     except ValueError as exc:
         raise ConfigError(f"{what} must be an integer, got {value!r}") from exc
+
+
+def _port(value: str, what: str) -> int:
+    """A TCP port number (1..65535), or ConfigError naming ``what``."""
+    port = _int(value, what)
+    if not 0 < port < 65536:
+        raise ConfigError(f"{what}={value} is not a port number: use 1..65535")
+    return port
 
 
 def add_network_arguments(parser: argparse.ArgumentParser) -> None:

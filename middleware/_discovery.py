@@ -69,6 +69,13 @@ class Discovery:
             names = [str(r.ok.key_expr)[len(prefix) :] for r in replies if r.ok is not None]
         return sorted(set(names))
 
+    def connected(self) -> int:
+        """How many other Zenoh sessions (peers and routers) this node is connected to now:
+        0 means nothing answered at all, which a command tells from "nothing is live"."""
+        with zenoh_errors("listing connected sessions"):
+            info = self._session.info
+            return len(list(info.peers_zid())) + len(list(info.routers_zid()))
+
     def _await_live(self, service: str, wait_s: float) -> None:
         """Return once ``service`` is live; NotFoundError (as ``_require_service``) if it is
         not within ``wait_s`` (a service being started is given that long)."""

@@ -36,6 +36,7 @@ from ._executor import Executor, Wake, remaining_s
 from ._inbox import Inbox
 from ._ledger_producer import RegistrationKey
 from ._protocol_producer import Event, ProducerProtocol, Publish, Retire
+from ._rate import put_rate_hz
 from ._records import BufferInfo, DataObject, Retention, SubscriptionInfo
 from ._wire import Keys
 from ._xml import XmlLimits
@@ -456,11 +457,7 @@ class Producer:
             skipped = dict(c.skipped)
             subs = tuple(self._protocol.subscriptions())
             protocol = self._protocol.counters
-        span_ns = times[-1] - times[0] if times else 0
-        # Elements per second; a batch's elements share one time, so the span may be 0.
-        rate = (len(times) - 1) / (span_ns / 1e9) if span_ns > 0 else 0.0
-        if times and time.monotonic_ns() - times[-1] > 5 * 1e9:
-            rate = 0.0  # stale: nothing put for a while
+        rate = put_rate_hz(times, time.monotonic_ns())
         return BufferInfo(
             service=self.service,
             buffer=self.buffer,

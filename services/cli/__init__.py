@@ -7,14 +7,27 @@ its parser and sets ``func`` to a function ``(args) -> int``. Commands catch onl
 Start-up is part of the interface: ``framegate --help`` imports no command module (the
 summaries below are enough to list them) and ``framegate CMD`` imports only CMD's module,
 so ``ls`` does not pay for OpenCV, NumPy or the Foxglove bridge.
+
+Signals are part of it too: ``main`` turns SIGINT and SIGTERM into KeyboardInterrupt
+before it imports the command's module, so a Ctrl-C or ``kill`` at any instant of a
+command's life (the imports, the parsing, the opening of a Zenoh session) ends it with
+exit code 0 and no traceback. Commands that run until stopped replace that handler with
+their own (``_common.stop_on_signals``). A process started with the two signals blocked
+(as ``launch`` starts its services, so that a stop during their start-up waits for this
+handler) gets them delivered once the handler is in place.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
+import os
+import signal
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from types import FrameType
+from typing import Any
 
 from services.lib.argtypes import FramegateParser, print_error
 
@@ -85,8 +98,89 @@ def build_parser(only: str | None = None) -> FramegateParser:
     return parser
 
 
+_STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+# Set by the first stop signal. Python ignores an exception raised in some callbacks (the
+# import system's module-lock weakref callback, a __del__), so a signal during an import
+# may not interrupt it: before the command runs, ``_main`` checks this too.
+_requested = [False]
+
+
+def _interrupt(_signum: int, _frame: FrameType | None) -> None:
+    _requested[0] = True
+    raise KeyboardInterrupt
+
+
+def _quiet_unraisable(unraisable: Any) -> None:
+    """Python's report of an exception it ignored, except our own stop (taken later)."""
+    if not isinstance(unraisable.exc_value, KeyboardInterrupt):
+        sys.__unraisablehook__(unraisable)
+
+
+_Handler = Callable[[int, FrameType | None], Any] | int | None
+
+
+def _catch_stop_signals() -> dict[signal.Signals, _Handler]:
+    """SIGINT and SIGTERM raise KeyboardInterrupt from here on; the previous handlers."""
+    return {signum: signal.signal(signum, _interrupt) for signum in _STOP_SIGNALS}
+
+
+def _stopped(console: bool) -> int:
+    """Exit code 0 for a stop by signal; a console process ends at once.
+
+    A signal may land anywhere, e.g. right after a Zenoh session opened and before its
+    ``with`` block was entered; a process whose session is left open may never finish
+    its interpreter shutdown. What a command must keep (a recording's last chunk, the
+    launcher's children) it handles in its own ``finally``, which has already run here."""
+    if console:
+        for stream in (sys.stdout, sys.stderr):
+            with contextlib.suppress(OSError, ValueError):  # a closed pipe: nothing to say
+                stream.flush()
+        os._exit(0)
+    return 0
+
+
+def _by_interrupt(exc: BaseException) -> bool:
+    """Whether ``exc`` wraps a KeyboardInterrupt: Python 3.11 turns one raised while a class
+    is being created (a dataclass field's ``__set_name__`` during an import) into a
+    RuntimeError whose cause it is."""
+    seen: set[int] = set()
+    current: BaseException | None = exc
+    while current is not None and id(current) not in seen:
+        if isinstance(current, KeyboardInterrupt):
+            return True
+        seen.add(id(current))
+        current = current.__cause__ or current.__context__
+    return False
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``framegate`` console script."""
+    previous: dict[signal.Signals, _Handler] = {}
+    unraisable = sys.unraisablehook
+    try:  # from the very first line: Python's own SIGINT handler raises until ours is in
+        previous = _catch_stop_signals()  # first: before any command module is imported
+        sys.unraisablehook = _quiet_unraisable
+        # A signal that arrived while the two were blocked (a launcher stopping a service
+        # that was still starting) is delivered here, to the handler, inside this try.
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, _STOP_SIGNALS)
+        return _main(argv)
+    except KeyboardInterrupt:
+        # Ctrl-C or SIGTERM: a stop the user asked for, not a failure (see the CLI reference).
+        return _stopped(console=argv is None)
+    except Exception as exc:
+        if _by_interrupt(exc):
+            return _stopped(console=argv is None)
+        raise
+    finally:
+        if argv is not None:  # called in-process (tests): leave the caller's handlers as they were
+            sys.unraisablehook = unraisable
+            for signum, handler in previous.items():
+                signal.signal(signum, handler)
+
+
+def _main(argv: Sequence[str] | None) -> int:
     words = list(sys.argv[1:] if argv is None else argv)
     if "--version" in words:  # after a command too: `framegate ls --version`
         print(f"framegate {_version()}")
@@ -97,19 +191,21 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = parser.parse_args(words)
     except SystemExit as exc:  # --help (0) or a one-line mistake (1)
         return int(exc.code or 0)
+    if _requested[0]:  # stopped during the imports, where the interrupt may be swallowed
+        raise KeyboardInterrupt
     if not getattr(args, "func", None):
         parser.print_usage(sys.stderr)
         print_error("name a command; framegate --help lists them")
         return 1
     try:
         return int(args.func(args))
-    except KeyboardInterrupt:
-        return 130
     except BrokenPipeError:
         # `framegate query ... | head` closed the pipe: not an error worth a traceback.
         sys.stderr.close()
         return 0
     except Exception as exc:
+        if _by_interrupt(exc):
+            raise
         # Only our own errors are a one-liner; anything else is a bug worth its traceback.
         middleware = sys.modules.get("middleware")
         if middleware is not None and isinstance(exc, middleware.FramegateError):

@@ -64,6 +64,8 @@ def unreachable(net: NetworkConfig, timeout_s: float = 1.0) -> str | None:
         host, _, port = address.split("#", 1)[0].split("?", 1)[0].rpartition(":")
         if not host or not port.isdigit():
             return f"{endpoint} (no port number: write {proto}/HOST:PORT)"
+        if not 0 < int(port) < 65536:
+            return f"{endpoint} ({port} is not a port number: use 1..65535)"
         try:
             with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s):
                 pass
@@ -71,6 +73,21 @@ def unreachable(net: NetworkConfig, timeout_s: float = 1.0) -> str | None:
             reason = exc.strerror or str(exc) or type(exc).__name__
             return f"{endpoint} ({reason})"
     return None
+
+
+def nothing_answered(node: Node, waited_s: float) -> NotFoundError | None:
+    """The error to raise when no process at all answered through the endpoints the user
+    named (``--connect``), or None: a refused or unreachable endpoint is not "no services".
+
+    Alone on the local rendezvous is a true answer (nothing runs on this host), not this."""
+    if not node.network.connect or node.connected() > 0:
+        return None
+    if bad := unreachable(node.network):
+        return NotFoundError(f"cannot reach {bad}; is the router or service running there?")
+    return NotFoundError(
+        f"nothing answered {where(node.network)} (waited {waited_s:g} s); "
+        "is a router or service running there, and is --connect right?"
+    )
 
 
 def _did_you_mean(name: str, candidates: list[str]) -> str:
@@ -90,6 +107,8 @@ def wait_for_service(node: Node, service: str, timeout_s: float) -> None:
             break
         time.sleep(0.05)
     if not live:
+        if error := nothing_answered(node, timeout_s):
+            raise error
         if bad := unreachable(node.network):
             raise NotFoundError(f"cannot reach {bad}; is the router or service running there?")
         raise NotFoundError(

@@ -19,7 +19,14 @@ from pathlib import Path
 from typing import Any
 
 from services.lib.argtypes import positive_float, positive_int
-from services.tools.bench import SCENARIO_NAMES, BenchError, BenchOptions, format_table, run_bench
+from services.tools.bench import (
+    OPT_IN_SCENARIOS,
+    SCENARIO_NAMES,
+    BenchError,
+    BenchOptions,
+    format_table,
+    run_bench,
+)
 
 from ._common import command_parser, exit_on_sigterm
 
@@ -34,7 +41,8 @@ def register(subparsers: Any) -> None:
         "scenarios",
         nargs="*",
         metavar="SCENARIO",
-        help=f"scenarios to run (default: all): {', '.join(SCENARIO_NAMES)}",
+        help=f"scenarios to run (default: all): {', '.join(SCENARIO_NAMES)}; "
+        f"only when named: {', '.join(OPT_IN_SCENARIOS)}",
     )
     parser.add_argument(
         "--duration",

@@ -1,9 +1,15 @@
 """``framegate hz``: a buffer's rate, interval jitter and bandwidth, like ``ros2 topic hz/bw``.
 
+As ``ros2 topic hz``, the headline is the *arrival* rate: how often elements reach this
+process, and min/max/std dev are of the intervals between arrivals. Beside it, named, is the
+rate of the elements' *stamps* (the source's clock): the two differ while a recording is
+played at another speed (``play --rate 0.5``: 15 Hz of stamps arrive at 7.5 Hz) or when a
+source falls behind and catches up.
+
 Buffering rule: hz only observes (``SubscriptionMode.OBSERVE``), so measuring never slows
-the producer. Missed notifications do not bias the numbers: the rate counts sequence
-numbers (every stored element gets one) over element timestamps, and jitter uses only
-intervals between consecutive elements.
+the producer. Missed notifications do not bias the numbers: both rates count sequence
+numbers (every stored element gets one) over the span, and intervals are taken only between
+consecutive elements.
 """
 
 from __future__ import annotations
@@ -61,42 +67,53 @@ def register(subparsers: Any) -> None:
     )
     add_timeout_argument(parser)
     parser.epilog = (
-        "Rate and jitter come from the elements' timestamps (the source's clock); "
-        "receive_rate_hz from arrival times here. --json prints JSON Lines: one report per "
-        "interval, the last one with event=summary."
+        "As ros2 topic hz, the average rate and min/max/std dev are of arrivals here; "
+        "'stamps' is the rate of the elements' timestamps (the source's clock), which "
+        "differs during play --rate or when a source catches up. --json prints JSON "
+        "Lines (rate_hz: arrivals, stamp_rate_hz: stamps): one report per interval, the "
+        "last one with event=summary."
     )
     parser.set_defaults(func=run)
 
 
+def _intervals(samples: list[Sample], when: str) -> list[float]:
+    """Seconds between consecutive elements (no missed one between), by ``when``."""
+    return [
+        (getattr(b, when) - getattr(a, when)) / 1e9
+        for a, b in pairwise(samples)
+        if b.seq == a.seq + 1
+    ]
+
+
 def window_stats(samples: list[Sample]) -> dict[str, Any]:
-    """Rate, interval statistics and bandwidth of a window of samples."""
+    """Arrival rate (``rate_hz``, as ``ros2 topic hz``), arrival-interval statistics, the
+    stamps' rate and jitter, and bandwidth of a window of samples."""
     out: dict[str, Any] = {
         "window": len(samples),
         "rate_hz": None,
-        "receive_rate_hz": None,
+        "receive_rate_hz": None,  # the same as rate_hz (its name before rate_hz meant it)
+        "stamp_rate_hz": None,
         "min_s": None,
         "max_s": None,
         "mean_s": None,
         "std_s": None,
+        "stamp_std_s": None,
         "mean_bytes": None,
         "bandwidth_bytes_s": None,
     }
     if len(samples) >= 2:
         first, last = samples[0], samples[-1]
         elements = last.seq - first.seq
-        span_s = (last.timestamp_ns - first.timestamp_ns) / 1e9
         arrival_s = (last.arrival_ns - first.arrival_ns) / 1e9
-        out["rate_hz"] = elements / span_s if span_s > 0 else None
-        out["receive_rate_hz"] = elements / arrival_s if arrival_s > 0 else None
-        intervals = [
-            (b.timestamp_ns - a.timestamp_ns) / 1e9
-            for a, b in pairwise(samples)
-            if b.seq == a.seq + 1
-        ]
-        if intervals:
+        stamp_s = (last.timestamp_ns - first.timestamp_ns) / 1e9
+        out["rate_hz"] = out["receive_rate_hz"] = elements / arrival_s if arrival_s > 0 else None
+        out["stamp_rate_hz"] = elements / stamp_s if stamp_s > 0 else None
+        if intervals := _intervals(samples, "arrival_ns"):
             mean = sum(intervals) / len(intervals)
             out["min_s"], out["max_s"], out["mean_s"] = min(intervals), max(intervals), mean
-            out["std_s"] = math.sqrt(sum((x - mean) ** 2 for x in intervals) / len(intervals))
+            out["std_s"] = _std(intervals, mean)
+        if stamps := _intervals(samples, "timestamp_ns"):
+            out["stamp_std_s"] = _std(stamps, sum(stamps) / len(stamps))
     sizes = [s.payload_bytes for s in samples if s.payload_bytes is not None]
     if sizes:
         out["mean_bytes"] = sum(sizes) / len(sizes)
@@ -105,11 +122,17 @@ def window_stats(samples: list[Sample]) -> dict[str, Any]:
     return out
 
 
+def _std(values: list[float], mean: float) -> float:
+    return math.sqrt(sum((x - mean) ** 2 for x in values) / len(values))
+
+
 def _print_report(stats: dict[str, Any], missed: int) -> None:
     if stats["rate_hz"] is None:
         print(f"not enough elements yet (window {stats['window']}, missed {missed})", flush=True)
         return
-    print(f"average rate: {stats['rate_hz']:.3f} Hz", flush=True)
+    stamps = stats["stamp_rate_hz"]
+    beside = f"  (stamps: {stamps:.3f} Hz)" if stamps is not None else ""
+    print(f"average rate: {stats['rate_hz']:.3f} Hz{beside}", flush=True)
     if stats["mean_s"] is not None:
         print(
             f"\tmin: {stats['min_s']:.4f}s max: {stats['max_s']:.4f}s "

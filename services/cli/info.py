@@ -164,6 +164,16 @@ def _recording(args: argparse.Namespace, path: Path) -> int:
     width = max((len(c.topic) for c in info.channels), default=0)
     for c in info.channels:
         print(channel_line(c, width))
+    if info.buffers:
+        # As `ros2 bag record` reports lost-in-transport apart from lost-in-recorder.
+        print("Recorder:")
+        name_width = max(len(b.name) for b in info.buffers)
+        for b in info.buffers:
+            print(
+                f"  {b.name:<{name_width}}  {b.recorded:>8} recorded ({b.backfilled} backfilled), "
+                f"{b.evicted} evicted before they could be fetched, "
+                f"{b.dropped} dropped by the recorder"
+            )
     return 0
 
 

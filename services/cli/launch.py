@@ -202,18 +202,45 @@ def run(args: argparse.Namespace) -> int:
         else:
             print_plan(deployment, args.host, specs)
         return 0
-    with LaunchLock(args.file, args.host):
-        return _launch(args, deployment, specs)
-
-
-def _launch(args: argparse.Namespace, deployment: Deployment, specs: list[ProcessSpec]) -> int:
-    stop = stop_on_signals()
     chosen = [s for s in deployment.for_host(args.host) if s.type != "router"]
     net = network(args, deployment.network_for(chosen[0]) if chosen else None)
-    _refuse_if_running(net, [s.name for s in chosen])
+    with LaunchLock(args.file, args.host, net):
+        return _launch(args, deployment, net)
+
+
+def _prerender(deployment: Deployment, host: str | None, stop: threading.Event) -> bool:
+    """Render each approach a ``prerendered`` camera or gyro of this host plays, once, with
+    the demo's progress bar and cache, before anything starts; False if stopped."""
+    from services.nodes import service
+    from services.tools.demo import prerender_approach
+
+    done: set[tuple[int, str, str | None]] = set()
+    for svc in deployment.for_host(host):
+        if svc.type not in ("camera", "gyro"):
+            continue
+        parser = argparse.ArgumentParser(add_help=False)
+        service(svc.type).add_arguments(parser)
+        parsed, _ = parser.parse_known_args(list(svc.args))  # checked by _plan already
+        key = (parsed.seed, parsed.floor, parsed.path)
+        if parsed.source != "prerendered" or key in done:
+            continue
+        done.add(key)
+        cache = Path(parsed.path) if parsed.path else None
+        if not prerender_approach(parsed.seed, parsed.floor, cache, stop):
+            return False
+    return True
+
+
+def _launch(args: argparse.Namespace, deployment: Deployment, net: NetworkConfig) -> int:
+    stop = stop_on_signals()
+    _refuse_if_running(net, [s.name for s in deployment.for_host(args.host) if s.type != "router"])
+    if stop.is_set() or not _prerender(deployment, args.host, stop):
+        return 0  # stopped while checking or rendering: start nothing
+    # Planned again after the rendering: the processes share a start instant, which a plan
+    # made before minutes of rendering would have put that far in the past.
+    _, specs = _plan(args)
     supervisor = Supervisor(specs, colour=False if args.no_colour else None)
-    names = ", ".join(s.name for s in specs)
-    print(f"launching {names} (Ctrl-C stops everything)", flush=True)
+    print(f"launching {', '.join(s.name for s in specs)} (Ctrl-C stops everything)", flush=True)
     status_stop = threading.Event()
     status: threading.Thread | None = None
     if args.status is not None:
@@ -222,16 +249,18 @@ def _launch(args: argparse.Namespace, deployment: Deployment, specs: list[Proces
             args=(supervisor, net, args.status, status_stop, lambda t: print(t, flush=True)),
             name="fg-launch-status",
         )
-    supervisor.start()
-    if status is not None:
-        status.start()
     try:
+        # Inside the try: a second signal while children are being started still stops
+        # every child started so far (a first one only sets `stop`).
+        supervisor.start()
+        if status is not None:
+            status.start()
         supervisor.run(args.duration, stop=stop)
     except KeyboardInterrupt:  # a second Ctrl-C while stopping
         supervisor.stop(timeout_s=0.0)
     finally:
         # Joined, not left as a daemon: its Zenoh session must close before finalisation.
         status_stop.set()
-        if status is not None:
+        if status is not None and status.is_alive():
             status.join()
     return report_failures(supervisor.failures())

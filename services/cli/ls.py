@@ -15,7 +15,7 @@ from services.lib.argtypes import positive_float, positive_int
 from services.lib.clock import CLOCK_WARN_NS, ClockEstimate, clock_warning, estimate_clocks
 
 from ._common import command_parser, format_bytes, format_ns, network, print_json
-from ._target import unreachable, where
+from ._target import nothing_answered, unreachable, where
 
 
 def register(subparsers: Any) -> None:
@@ -120,6 +120,10 @@ def run(args: argparse.Namespace) -> int:
                 timeout_s=args.timeout,
             )
         }
+        # Like `info`: an endpoint where nothing answered is an error, not an empty list.
+        silent = nothing_answered(node, args.timeout) if not infos else None
+    if silent is not None:
+        raise silent
     if not infos and (bad := unreachable(net)):
         raise NotFoundError(f"cannot reach {bad}; is the router or service running there?")
     if args.json:

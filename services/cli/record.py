@@ -1,12 +1,11 @@
 """``framegate record``: record buffers (payload + metadata + timestamps) to an MCAP file.
 
 Buffering rule: record *observes* (``SubscriptionMode.OBSERVE``), so it never slows the
-robot, yet it is lossless while the buffer's retention lasts. Notification sequence numbers
-count every stored element, so a gap says exactly how many elements were missed between two
-notifications, and one range query fetches them from the buffer's history; misses at the
-end of a burst, which no later notification reports, are fetched as soon as the
-subscription goes quiet. Only elements the buffer evicted before we could fetch them are
-lost, and they are counted.
+robot, yet it is lossless while the buffer's retention lasts: what it missed it fetches
+from the buffer's history (``services.tools.bag._recorder``). It counts apart what was
+gone from a buffer before it could be fetched (``evicted``) and what it failed to keep
+itself (``dropped``: its write queue was full), in its summary and in the file (shown by
+``framegate info FILE.mcap``).
 """
 
 from __future__ import annotations
@@ -18,20 +17,15 @@ import sys
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from middleware import (
     BufferInfo,
     ConfigError,
-    DataObject,
     FramegateError,
     Node,
-    Notification,
-    Subscription,
     SubscriptionMode,
-    TimeRange,
 )
 from services.lib.argtypes import positive_float, positive_int
 
@@ -39,11 +33,11 @@ from ._common import command_parser, exit_on_sigterm, format_bytes, network, pri
 from ._target import add_timeout_argument, resolve
 
 if TYPE_CHECKING:
-    from services.tools.bag import BagWriter
+    from services.tools.bag import BagWriter, Recorder, WriteQueue
 
 DEFAULT_QUEUE = 64
-# After this long without a notification, check the buffer for elements we never heard of.
-IDLE_PROBE_S = 1.0
+# At the stop, a write backlog this large (about a second of raw frames) is worth a line.
+SAY_BACKLOG_BYTES = 16 * 2**20
 
 
 def register(subparsers: Any) -> None:
@@ -89,156 +83,6 @@ def register(subparsers: Any) -> None:
     parser.set_defaults(func=run)
 
 
-@dataclass
-class _Progress:
-    name: str
-    kind: str
-    recorded: int = 0
-    backfilled: int = 0
-    missed: int = 0
-    lost: int = 0
-    first_ns: int | None = None
-    last_ns: int | None = None
-
-    def json(self) -> dict[str, Any]:
-        return {
-            "name": self.name,
-            "kind": self.kind,
-            "recorded": self.recorded,
-            "backfilled": self.backfilled,
-            "missed": self.missed,
-            "lost": self.lost,
-            "first_ns": self.first_ns,
-            "last_ns": self.last_ns,
-        }
-
-
-class _Recorder:
-    """Records one buffer on its own thread."""
-
-    def __init__(
-        self,
-        node: Node,
-        sub: Subscription,
-        writer: BagWriter,
-        progress: _Progress,
-        stop: threading.Event,
-        count: int | None,
-    ) -> None:
-        self.node = node
-        self.sub = sub
-        self.writer = writer
-        self.progress = progress
-        self.stop = stop
-        self.count = count
-        self.error: BaseException | None = None
-        # Sequence number of the last notification handled (0: none yet in this epoch), and
-        # timestamps that backfills wrote after its element.
-        self._anchor_seq = 0
-        self._since_anchor: list[int] = []
-        self._accounted_misses = 0
-        self._idle_since = time.monotonic()
-        self.thread = threading.Thread(target=self._run, name=f"record-{sub.name}", daemon=True)
-
-    def _full(self) -> bool:
-        return self.count is not None and self.progress.recorded >= self.count
-
-    def _run(self) -> None:
-        try:
-            while not self.stop.is_set() and not self._full():
-                note = self.sub.take(timeout_s=0.2)
-                if note is not None:
-                    self._idle_since = time.monotonic()
-                    self._on_notification(note)
-                elif self._unaccounted_misses() or self._buffer_is_ahead():
-                    # Misses are only reported by the next notification; a burst that has
-                    # ended brings none, so catch up from the buffer while it is quiet.
-                    self._backfill(None)
-            if not self._full() and (self._unaccounted_misses() or self._buffer_is_ahead(True)):
-                self._backfill(None)  # the tail missed just before the stop
-        except BaseException as exc:  # a failing file must stop the recording, not hang it
-            self.error = exc
-            self.stop.set()
-
-    def _unaccounted_misses(self) -> bool:
-        return self.sub.missed_total > self._accounted_misses
-
-    def _buffer_is_ahead(self, now: bool = False) -> bool:
-        """After a quiet second, whether the buffer holds newer elements than we wrote.
-
-        Observer notifications travel with congestion control DROP, so the last ones of a
-        burst can vanish without a later one to reveal the gap; the buffer's description
-        (no payloads) tells.
-        """
-        last_ns = self.progress.last_ns
-        if last_ns is None or (not now and time.monotonic() - self._idle_since < IDLE_PROBE_S):
-            return False
-        self._idle_since = time.monotonic()
-        try:
-            newest = self.node.buffer_info(self.sub.name).newest_ns
-        except FramegateError:
-            return False
-        return newest is not None and newest > last_ns
-
-    def _on_notification(self, note: Notification) -> None:
-        p = self.progress
-        if note.seq <= self._anchor_seq:
-            self._anchor_seq, self._since_anchor = 0, []  # the producer restarted (new epoch)
-        # Sequence numbers count every element stored since we subscribed: this many lie
-        # between the previous notification we handled and this one.
-        expected = note.seq - self._anchor_seq - 1
-        if p.last_ns is not None and note.timestamp_ns <= p.last_ns:
-            # A backfill already wrote it; it still anchors the count of what lies between.
-            between = [t for t in self._since_anchor if t < note.timestamp_ns]
-            p.lost += max(0, expected - len(between))
-            self._anchor_seq = note.seq
-            self._since_anchor = [t for t in self._since_anchor if t > note.timestamp_ns]
-            return
-        if expected > len(self._since_anchor):
-            self._backfill(note.timestamp_ns - 1, newest=expected - len(self._since_anchor))
-            if self._full():
-                return
-        p.lost += max(0, expected - len(self._since_anchor))
-        self._anchor_seq, self._since_anchor = note.seq, []
-        try:
-            element = self.sub.fetch(note)
-        except FramegateError:
-            p.lost += 1  # evicted before we could fetch it
-            return
-        self._write(element)
-
-    def _backfill(self, end_ns: int | None, newest: int | None = None) -> None:
-        """Write the elements after the last one written, up to ``end_ns`` (open: all)."""
-        p = self.progress
-        self._accounted_misses = self.sub.missed_total
-        start = None if p.last_ns is None else p.last_ns + 1
-        if start is None:
-            # Nothing written yet: only the newest few belong to this recording.
-            newest = newest if newest is not None else self._accounted_misses
-        try:
-            gap = self.node.query(
-                self.sub.name,
-                time_range=TimeRange(start, end_ns),
-                last=newest if start is None else None,
-            )
-        except FramegateError:
-            return  # what stays missing is counted as lost when the next notification comes
-        for element in gap:
-            if self._full():
-                return
-            self._write(element)
-            p.backfilled += 1
-            self._since_anchor.append(element.timestamp_ns)
-
-    def _write(self, element: DataObject) -> None:
-        self.writer.write(self.progress.name, element)
-        p = self.progress
-        p.recorded += 1
-        p.last_ns = element.timestamp_ns
-        if p.first_ns is None:
-            p.first_ns = element.timestamp_ns
-
-
 def _check(args: argparse.Namespace) -> None:
     if not args.targets and not args.all:
         raise ConfigError("name the buffers to record (SERVICE/BUFFER ...), or pass --all")
@@ -255,7 +99,7 @@ def _check(args: argparse.Namespace) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from services.tools.bag import BagWriter  # imported here: only record and play need MCAP
+    from services.tools.bag import BagWriter, WriteQueue  # imported here: MCAP only for record
 
     _check(args)
     exit_on_sigterm()
@@ -275,12 +119,13 @@ def run(args: argparse.Namespace) -> int:
         with writer:
             for b in buffers:
                 writer.add_buffer(b.service, b.buffer, kind=b.kind, retention=b.retention)
-            recorders = _start(node, writer, buffers, args)
+            queue = WriteQueue(writer)
+            recorders = _start(node, queue, buffers, args)
             started_ns = time.time_ns()
             if not args.json:
                 names = ", ".join(f"{b.name} ({b.kind})" for b in buffers)
                 print(f"recording {names} to {args.output}; Ctrl-C to stop", flush=True)
-            discover = _discover(node, writer, recorders, args)
+            discover = _discover(node, writer, queue, recorders, args)
 
             def step() -> None:
                 # A quiet buffer's last elements must not stay only in memory: a recorder
@@ -289,8 +134,17 @@ def run(args: argparse.Namespace) -> int:
                 if discover is not None:
                     discover()
 
-            _wait(recorders, args.duration, step)
-            stopped_ns = time.time_ns()
+            stopped_ns = _wait(recorders, args.duration, step)
+            waiting, waiting_bytes = queue.backlog()
+            if waiting_bytes >= SAY_BACKLOG_BYTES and not args.json:
+                # A disk or compressor slower than the buffers: say why the end takes a while.
+                print(
+                    f"stopped; writing the {waiting} elements ({format_bytes(waiting_bytes)}) "
+                    "fetched but not yet written",
+                    file=sys.stderr,
+                    flush=True,
+                )
+            queue.close()  # what was fetched is written before the summary
             for recorder in recorders:
                 recorder.progress.missed = recorder.sub.missed_total
                 recorder.sub.close()
@@ -305,34 +159,38 @@ def run(args: argparse.Namespace) -> int:
             )
             counts = writer.counts()
             derived = writer.derived_counts()
-    for recorder in recorders:
-        if recorder.error is not None:
-            if isinstance(recorder.error, FramegateError):
-                raise recorder.error
+    for error in [queue.error] + [r.error for r in recorders]:
+        if error is not None:
+            if isinstance(error, FramegateError):
+                raise error
             from services.tools.bag import BagError
 
-            raise BagError(f"recording {recorder.sub.name} failed: {recorder.error}")
+            raise BagError(f"recording to {args.output} failed: {error}")
     _summary(args, recorders, counts, derived, (stopped_ns - started_ns) / 1e9)
     return 0
 
 
 def _start(
     node: Node,
-    writer: BagWriter,
+    queue: WriteQueue,
     buffers: list[BufferInfo],
     args: argparse.Namespace,
     stop: threading.Event | None = None,
-) -> list[_Recorder]:
+) -> list[Recorder]:
+    from services.tools.bag import Progress, Recorder, latest_before
+
     stop = stop or threading.Event()
     recorders = []
     for b in buffers:
+        latest = latest_before(node, b.name)
         sub = node.subscribe(
             b.name,
             queue_size=args.queue,
             mode=SubscriptionMode.OBSERVE,
             wait_s=max(2.0, args.timeout),
         )
-        recorders.append(_Recorder(node, sub, writer, _Progress(b.name, b.kind), stop, args.count))
+        progress = Progress(b.name, b.kind)
+        recorders.append(Recorder(node, sub, queue, progress, stop, args.count, latest))
     for recorder in recorders:
         recorder.thread.start()
     return recorders
@@ -355,7 +213,11 @@ _DISCOVER_S = 2.0
 
 
 def _discover(
-    node: Node, writer: BagWriter, recorders: list[_Recorder], args: argparse.Namespace
+    node: Node,
+    writer: BagWriter,
+    queue: WriteQueue,
+    recorders: list[Recorder],
+    args: argparse.Namespace,
 ) -> Callable[[], None] | None:
     """With ``--all``: a step that starts recording buffers that appeared since."""
     if not args.all:
@@ -375,7 +237,7 @@ def _discover(
         for b in new:
             writer.add_buffer(b.service, b.buffer, kind=b.kind, retention=b.retention)
         if new:
-            recorders.extend(_start(node, writer, new, args, recorders[0].stop))
+            recorders.extend(_start(node, queue, new, args, recorders[0].stop))
             if not args.json:
                 print(f"recording {', '.join(b.name for b in new)} too", flush=True)
 
@@ -383,9 +245,11 @@ def _discover(
 
 
 def _wait(
-    recorders: list[_Recorder], duration: float | None, step: Callable[[], None] | None = None
-) -> None:
-    """Until every recorder has its count, the duration is over, an error, or Ctrl-C."""
+    recorders: list[Recorder], duration: float | None, step: Callable[[], None] | None = None
+) -> int:
+    """Until every recorder has its count, the duration is over, an error, or Ctrl-C; the
+    stop instant (wall-clock ns): nothing stamped later is recorded, everything before is
+    fetched."""
     stop = recorders[0].stop
     deadline = None if duration is None else time.monotonic() + duration
     try:
@@ -398,14 +262,18 @@ def _wait(
     except KeyboardInterrupt:
         pass
     finally:
+        stopped_ns = time.time_ns()
+        for recorder in recorders:
+            recorder.stop_ns = stopped_ns
         stop.set()
         for recorder in recorders:
             recorder.thread.join()
+    return stopped_ns
 
 
 def _summary(
     args: argparse.Namespace,
-    recorders: list[_Recorder],
+    recorders: list[Recorder],
     counts: dict[str, tuple[int, int]],
     derived: dict[str, int],
     duration_s: float,
@@ -434,10 +302,20 @@ def _summary(
     print(f"recorded {total} elements to {args.output} ({size_text}) in {duration_s:.1f} s")
     for r in recorders:
         p = r.progress
-        print(f"  {p.name:<28} {p.recorded:>7} elements ({p.backfilled} backfilled, {p.lost} lost)")
-        if p.lost:
+        print(
+            f"  {p.name:<28} {p.recorded:>7} elements ({p.backfilled} backfilled, "
+            f"{p.evicted} evicted, {p.dropped} dropped)"
+        )
+        if p.evicted:
             print(
-                f"  warning: {p.lost} elements of {p.name} were evicted before they could be "
-                "fetched; raise the buffer's retention or record fewer buffers",
+                f"  warning: {p.evicted} elements of {p.name} were evicted from the buffer "
+                "before they could be fetched; raise its retention or record fewer buffers",
+                file=sys.stderr,
+            )
+        if p.dropped:
+            print(
+                f"  warning: the recorder dropped {p.dropped} elements of {p.name}: its write "
+                "queue was full (the disk or compression too slow); try --compression lz4 "
+                "or none, or --no-images",
                 file=sys.stderr,
             )

@@ -14,6 +14,10 @@ from ._common import command_parser, network, stop_on_signals
 
 def register(subparsers: Any) -> None:
     parser = command_parser(subparsers, "router", "run a Zenoh router until Ctrl-C")
+    parser.epilog = (
+        "With no --listen (or FRAMEGATE_LISTEN, or a --config that names endpoints) it listens "
+        "on tcp/127.0.0.1:PORT, PORT being FRAMEGATE_LOCAL_PORT (default 7447)."
+    )
     parser.set_defaults(func=run)
 
 
@@ -21,8 +25,9 @@ def run(args: argparse.Namespace) -> int:
     config = network(args)
     if not config.listen and not config.config_file:
         # Loopback unless asked: a router reachable from the network is an explicit choice
-        # (`--listen tcp/0.0.0.0:7447`, or a deploy/config file that says so).
-        config = replace(config, listen=("tcp/127.0.0.1:7447",))
+        # (`--listen tcp/0.0.0.0:7447`, or a deploy/config file that says so). On the
+        # rendezvous port (FRAMEGATE_LOCAL_PORT), where this host's processes look first.
+        config = replace(config, listen=(f"tcp/127.0.0.1:{config.local_port}",))
     config = replace(config, mode="router")
     stop = stop_on_signals()
     exit_with_parent(stop)  # a router started by `launch` ends with it, however it ends

@@ -13,8 +13,10 @@ from services.tools.view import (
     DEFAULT_HOST,
     DEFAULT_PORT,
     DEFAULT_QUEUE,
+    VIEW_PORT_ENV,
     Status,
     ViewConfig,
+    default_port,
     installed_layout,
     parse_target,
     run_view,
@@ -38,7 +40,11 @@ def register(subparsers: Any) -> None:
         metavar="SERVICE/BUFFER",
         help="buffers (or whole services) to stream; default: every live buffer",
     )
-    parser.add_argument("--port", type=int, default=DEFAULT_PORT, help="WebSocket port (0: any)")
+    parser.add_argument(
+        "--port",
+        type=int,
+        help=f"WebSocket port (0: any free one; default ${VIEW_PORT_ENV}, else {DEFAULT_PORT})",
+    )
     parser.add_argument(
         "--host",
         default=DEFAULT_HOST,
@@ -81,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
     config = ViewConfig(
         targets=tuple(args.targets),
         host=args.host,
-        port=args.port,
+        port=default_port() if args.port is None else args.port,
         jpeg_quality=args.jpeg,
         queue=args.queue,
         backlog=args.backlog,

@@ -1,11 +1,13 @@
-"""One launcher per deploy file and host: a second ``launch`` refuses at once.
+"""One launcher per deploy file, host and rendezvous: a second ``launch`` refuses at once.
 
 Without it a second launcher of a running deploy file would see every service name taken
 ("already offered by pid ...") and restart its services for ever with back-off, starving
 the first launcher's camera. The lock is an ``flock`` on a file in the user's runtime
-directory, keyed by the deploy file's absolute path and the host: the kernel drops it
-when its holder dies however it dies, so a stale file of a dead launcher is simply taken
-over. The file holds the holder's pid, for the refusal message.
+directory, keyed by the deploy file's absolute path, the host and where its services meet
+(the rendezvous port, or the endpoints, Zenoh config and namespace): the same file launched
+against another rendezvous is another set of services and may run beside it. The kernel
+drops the lock when its holder dies however it dies, so a stale file of a dead launcher is
+simply taken over. The file holds the holder's pid, for the refusal message.
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ import tempfile
 from pathlib import Path
 from types import TracebackType
 
-from middleware import ConfigError
+from middleware import ConfigError, NetworkConfig
 
 RUNTIME_DIR_ENV = "FRAMEGATE_RUNTIME_DIR"
 
@@ -33,20 +35,40 @@ def runtime_dir() -> Path:
     return Path(tempfile.gettempdir()) / f"framegate-{os.getuid()}"
 
 
-def lock_path(deploy_file: str | Path, host: str | None) -> Path:
-    key = f"{Path(deploy_file).resolve()}\0{host or ''}"
+def meeting_point(network: NetworkConfig | None) -> str:
+    """Where a launch's services meet, as the lock's key sees it ('' for the default)."""
+    if network is None:
+        network = NetworkConfig()
+    if network.uses_local_default:
+        where = f"rendezvous tcp/127.0.0.1:{network.local_port}"
+    else:
+        parts = [*network.connect, *network.listen, str(network.config_file or "")]
+        where = " ".join(sorted(parts))
+    return f"{where} namespace {network.namespace}"
+
+
+def lock_path(
+    deploy_file: str | Path, host: str | None, network: NetworkConfig | None = None
+) -> Path:
+    key = f"{Path(deploy_file).resolve()}\0{host or ''}\0{meeting_point(network)}"
     digest = hashlib.sha256(key.encode()).hexdigest()[:20]
     return runtime_dir() / f"launch-{digest}.lock"
 
 
 class LaunchLock:
-    """Held while a launcher runs ``deploy_file`` for ``host``; ConfigError if another
-    live launcher holds it (naming its pid)."""
+    """Held while a launcher runs ``deploy_file`` for ``host`` on ``network``; ConfigError
+    if another live launcher holds it (naming its pid)."""
 
-    def __init__(self, deploy_file: str | Path, host: str | None = None) -> None:
+    def __init__(
+        self,
+        deploy_file: str | Path,
+        host: str | None = None,
+        network: NetworkConfig | None = None,
+    ) -> None:
         self.deploy_file = str(deploy_file)
         self.host = host
-        self.path = lock_path(deploy_file, host)
+        self.network = network
+        self.path = lock_path(deploy_file, host, network)
         self._fd: int | None = None
 
     def acquire(self) -> None:
@@ -57,7 +79,8 @@ class LaunchLock:
         except BlockingIOError:
             holder = os.pread(fd, 32, 0).decode("ascii", "replace").strip() or "?"
             os.close(fd)
-            on = f" (host {self.host})" if self.host else ""
+            on = f" (host {self.host}, {meeting_point(self.network)})" if self.host else ""
+            on = on or f" ({meeting_point(self.network)})"
             raise ConfigError(
                 f"{self.deploy_file}{on} is already launched by pid {holder}; stop that "
                 f"launcher first (kill {holder}), or give this one another deploy file"

@@ -7,8 +7,9 @@ import sys
 import time
 from collections.abc import Callable
 from dataclasses import replace
+from pathlib import Path
 
-from middleware import ConfigError, NetworkConfig
+from middleware import ConfigError, FramegateError, NetworkConfig
 from services.lib.argtypes import did_you_mean
 from services.nodes import service
 
@@ -19,12 +20,14 @@ from ._supervisor import ProcessSpec
 START_DELAY_S = 2.0
 
 
-def _check_args(spec: ServiceSpec, deployment: Deployment, text: str | None) -> None:
+def _check_args(
+    spec: ServiceSpec, deployment: Deployment, text: str | None
+) -> argparse.Namespace | None:
     """Parse a service's args with its own parser; name the deploy-file line on error."""
     if spec.type == "router":
         if spec.args:
             raise ConfigError(f"{deployment.path}: router {spec.name!r} takes no args")
-        return
+        return None
     # Exact keys only: `se: 1` must not pass as an abbreviation of --seed.
     parser = argparse.ArgumentParser(
         prog=spec.name, exit_on_error=False, add_help=False, allow_abbrev=False
@@ -59,6 +62,40 @@ def _check_args(spec: ServiceSpec, deployment: Deployment, text: str | None) -> 
             f"{deployment.path}{where}: service {spec.name!r} {what} "
             f"(see 'framegate run {spec.type} --help'; network settings go under 'network')"
         )
+    return _args
+
+
+def _check_files(
+    spec: ServiceSpec, parsed: argparse.Namespace | None, net: NetworkConfig, where: str
+) -> None:
+    """ConfigError naming the first file a service needs and cannot read: its Zenoh config
+    with the certificates in it, a ROS 2 side's config, a camera description, a replayed
+    dataset. A service that cannot start must not be started (and restarted) at all."""
+    try:
+        net.check_files()
+        if parsed is None:
+            return
+        if ros_config := getattr(parsed, "ros_config", None):
+            NetworkConfig(config_file=Path(ros_config)).check_files()
+        if camera_xml := getattr(parsed, "camera_xml", None):
+            from services.lib.camera_model import CameraModel
+
+            try:
+                CameraModel.from_xml(Path(camera_xml).read_bytes())
+            except OSError as exc:
+                message = f"cannot read camera description {camera_xml}: {exc.strerror}"
+                raise ConfigError(message) from exc
+            except FramegateError as exc:
+                raise ConfigError(f"camera description {camera_xml}: {exc}") from exc
+        if getattr(parsed, "source", None) == "replay" and parsed.path:
+            from services.lib.sim import DatasetError, read_dataset
+
+            try:
+                read_dataset(Path(parsed.path))
+            except DatasetError as exc:
+                raise ConfigError(f"dataset {parsed.path}: {exc}") from exc
+    except ConfigError as exc:
+        raise ConfigError(f"{where}: service {spec.name!r}: {exc}") from exc
 
 
 def process_specs(
@@ -77,14 +114,16 @@ def process_specs(
     start = start_at_ns if start_at_ns is not None else time.time_ns() + int(START_DELAY_S * 1e9)
     out = []
     for spec in deployment.for_host(host):
-        _check_args(spec, deployment, text)
+        parsed = _check_args(spec, deployment, text)
         net = deployment.network_for(spec, base)
         if override is not None:
             net = override(net)
+        _check_files(spec, parsed, net, deployment.path)
         if spec.type == "router":
             if not net.listen:
-                # Loopback unless the deploy file says where: no wide listener by accident.
-                net = replace(net, listen=("tcp/127.0.0.1:7447",))
+                # Loopback unless the deploy file says where: no wide listener by accident;
+                # on the rendezvous port, as `framegate router` itself.
+                net = replace(net, listen=(f"tcp/127.0.0.1:{net.local_port}",))
             argv = [sys.executable, "-m", "services.cli", "router", *net.to_args()]
         else:
             argv = [

@@ -44,6 +44,7 @@ HEALTHY_AFTER_S = 10.0
 _POLL_S = 0.05
 PARENT_PID_ENV = "FRAMEGATE_PARENT_PID"
 PARENT_FD_ENV = "FRAMEGATE_PARENT_FD"
+_STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 
 @dataclass(frozen=True, slots=True)
@@ -125,14 +126,21 @@ class Supervisor:
         env.setdefault("PYTHONUNBUFFERED", "1")
         env[PARENT_PID_ENV] = str(os.getpid())
         env[PARENT_FD_ENV] = str(self._lifeline_r)
-        running.proc = subprocess.Popen(
-            list(running.spec.argv),
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            env=env,
-            pass_fds=(self._lifeline_r,),
-            start_new_session=True,  # Ctrl-C reaches us; we decide how children stop
-        )
+        # The child starts with SIGINT and SIGTERM blocked (a signal mask survives exec) and
+        # unblocks them once its handler is in place (services.cli.main): a stop that comes
+        # while it is still starting waits for that handler instead of killing it mid-import.
+        blocked = signal.pthread_sigmask(signal.SIG_BLOCK, _STOP_SIGNALS)
+        try:
+            running.proc = subprocess.Popen(
+                list(running.spec.argv),
+                stdout=subprocess.PIPE,
+                stderr=subprocess.STDOUT,
+                env=env,
+                pass_fds=(self._lifeline_r,),
+                start_new_session=True,  # Ctrl-C reaches us; we decide how children stop
+            )
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
         running.started_at = time.monotonic()
         assert running.proc.stdout is not None
         running.pump = threading.Thread(

@@ -81,11 +81,17 @@ def run(config: CameraConfig, network: NetworkConfig, stop: threading.Event | No
         log.info("camera: %s -> %s/images", source.description, config.name)
         rate = RateWatch(source.frame_period_ns, config.source.rate if source.relative else 1.0)
         produced = dropped = 0
+        # Where on the shared timeline this camera begins: a camera restarted mid-run, or
+        # one that opened its source after the start instant, joins there. Frames due
+        # before were never its to make: skipped, not counted late.
+        joined_rel = timeline.late_ns(0)
         try:
             for frame in source.frames(stop):
                 if source.relative:
                     start_rel = source.scale(frame.exposure_start_ns)
                     end_rel = start_rel + frame.exposure_ns
+                    if end_rel < joined_rel:
+                        continue
                     # A real camera cannot deliver a frame late: if rendering or reading fell
                     # a frame period behind, this frame is skipped (and counted) instead.
                     if timeline.late_ns(end_rel) > rate.period_ns:

@@ -104,16 +104,22 @@ def demo_deployment(config: DemoConfig) -> Deployment:
 
 
 def prerender(config: DemoConfig, stop: threading.Event) -> bool:
-    """Render the approach once (progress bar on stderr) so that the camera finds it cached.
+    """Render the demo's approach once (see ``prerender_approach``); False if stopped."""
+    if config.source != "prerendered":
+        return True
+    return prerender_approach(config.seed, config.floor, config.cache, stop)
+
+
+def prerender_approach(seed: int, floor: str, cache: Path | None, stop: threading.Event) -> bool:
+    """Render the approach of ``seed`` and ``floor`` once (progress bar on stderr) so that
+    a ``prerendered`` camera and gyro find it cached (``cache``: the default user cache).
 
     The render runs in a child process, so that one Ctrl-C ends it at once (a render is
     minutes of CPU). False when ``stop`` interrupted it."""
-    if config.source != "prerendered":
-        return True
     from services.lib.sim import ScenarioConfig, approach_cache_dir, scenario_hash
 
-    scenario = ScenarioConfig(seed=config.seed).with_floor(config.floor)
-    cache = config.cache or approach_cache_dir()
+    scenario = ScenarioConfig(seed=seed).with_floor(floor)
+    cache = cache or approach_cache_dir()
     if (cache / scenario_hash(scenario)).is_dir():
         return True
     print(f"rendering the approach once (cached in {cache})", file=sys.stderr, flush=True)
@@ -124,7 +130,7 @@ def prerender(config: DemoConfig, stop: threading.Event) -> bool:
         "Path(sys.argv[3]))"
     )
     child = subprocess.Popen(
-        [sys.executable, "-c", code, str(config.seed), config.floor, str(cache)],
+        [sys.executable, "-c", code, str(seed), floor, str(cache)],
         start_new_session=True,  # our Ctrl-C handling decides when it stops
     )
     try:
@@ -274,11 +280,14 @@ def run_demo(
     the services' buffers."""
     stop = stop or threading.Event()
     out = status_out or sys.stdout
-    specs = process_specs(demo_deployment(config), None, network)
+    deployment = demo_deployment(config)
     with Node(network=network) as node:  # before minutes of rendering, not after
-        refuse_if_running(node, [spec.name for spec in specs])
+        refuse_if_running(node, [svc.name for svc in deployment.services])
     if not prerender(config, stop):
         return {}
+    # After the rendering: the specs carry the shared start instant, and a start taken
+    # before minutes of rendering would make the camera begin that far behind its timeline.
+    specs = process_specs(deployment, None, network)
     supervisor = Supervisor(specs, quiet=not config.show_logs)
     started = time.monotonic()
     last_print = 0.0

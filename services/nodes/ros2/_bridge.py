@@ -244,6 +244,7 @@ def run(config: Ros2Config, network: NetworkConfig, stop: threading.Event | None
         )
         encoders = Encoders(codec, config)
         outputs: list[Output] = []
+        consumer = None
         for mappings, ros_type, encode in (
             (config.image_out, IMAGE, encoders.image),
             (config.detections_out, DETECTIONS, encoders.detections),
@@ -253,6 +254,11 @@ def run(config: Ros2Config, network: NetworkConfig, stop: threading.Event | None
                 publisher = link.publisher(
                     mapping.topic, ros_type, hashed(ros_type), config.out_qos
                 )
+                if mapping == config.consumer_mapping:
+                    consumer = _start_consumer(
+                        node, link, publisher, encode, config, skips, start, stop
+                    )
+                    continue
                 output = Output(node, publisher, mapping, encode, config)
                 outputs.append(output)
                 start(f"ros2-out-{mapping.topic}", lambda o=output: o.run(stop, skips))  # type: ignore[misc]
@@ -270,6 +276,8 @@ def run(config: Ros2Config, network: NetworkConfig, stop: threading.Event | None
             or "-",
             ", ".join(f"{o.mapping.buffer} -> {o.mapping.topic}" for o in outputs) or "-",
         )
+        if consumer is not None:
+            link.watch_graph(consumer.on_token)
         expected = {
             topic: (dds_type_name(ros_type), hashed(ros_type))
             for topic, ros_type in (
@@ -310,4 +318,28 @@ def run(config: Ros2Config, network: NetworkConfig, stop: threading.Event | None
             sum(o.published for o in outputs),
             dict(skips.counts) or "none",
         )
+        if consumer is not None:
+            log.info("ros2: consumer loop: %s", consumer.counts())
+            consumer.close()
     return 0
+
+
+def _start_consumer(
+    node: Node,
+    link: RosLink,
+    publisher: RosPublisher,
+    encode: Callable[[Any], bytes | bytearray | None],
+    config: Ros2Config,
+    skips: _Skips,
+    start: Callable[[str, Callable[[], None]], None],
+    stop: threading.Event,
+) -> Any:
+    """The ``--consumer-done`` loop on the node's input mapping, its two threads started."""
+    from ._consumer_loop import ConsumerLoop  # only a bridge with --consumer-done needs it
+
+    mapping = config.consumer_mapping
+    assert mapping is not None
+    consumer = ConsumerLoop(node, link, publisher, mapping, encode, config, skips)
+    start(f"ros2-feed-{mapping.topic}", lambda: consumer.run_feed(stop))
+    start("ros2-consumer-results", lambda: consumer.run_resolver(stop))
+    return consumer

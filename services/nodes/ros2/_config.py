@@ -82,6 +82,11 @@ class Ros2Config:
     out_reliability: Reliability = Reliability.RELIABLE
     out_depth: int = 10
     out_queue: int = 8
+    # the loop: a ROS 2 node's results free its slots (see _consumer_loop)
+    consumer_done: str | None = None
+    consumer_input: str | None = None
+    consumer_queue: int = 2
+    consumer_timeout_ms: float = 1000.0
 
     def __post_init__(self) -> None:
         check_name(self.name, "service")
@@ -107,6 +112,37 @@ class Ros2Config:
             raise ConfigError("--in-depth must be >= 1 and --out-depth >= 0 (0 = keep all)")
         if not self.ros_namespace.startswith("/"):
             raise ConfigError(f"--ros-namespace must start with '/', got {self.ros_namespace!r}")
+        self._check_consumer()
+
+    def _check_consumer(self) -> None:
+        if self.consumer_queue < 1:
+            raise ConfigError(f"--consumer-queue must be >= 1, got {self.consumer_queue}")
+        if not self.consumer_timeout_ms > 0:
+            raise ConfigError(f"--consumer-timeout-ms must be > 0, got {self.consumer_timeout_ms}")
+        if self.consumer_done is not None:
+            self.consumer_mapping  # noqa: B018 -- raises ConfigError when there is none
+
+    @property
+    def consumer_mapping(self) -> Mapping | None:
+        """The ``--image-out`` mapping whose ROS 2 node closes the loop (None without
+        ``--consumer-done``): the one of ``--consumer-input``, else the only one."""
+        if self.consumer_done is None:
+            return None
+        if self.consumer_input is not None:
+            for mapping in self.image_out:
+                if mapping.buffer == self.consumer_input:
+                    return mapping
+            raise ConfigError(
+                f"--consumer-input {self.consumer_input}: not an --image-out buffer "
+                f"({', '.join(m.buffer for m in self.image_out) or 'none given'})"
+            )
+        if len(self.image_out) != 1:
+            raise ConfigError(
+                "--consumer-done needs the node's input: one --image-out mapping "
+                "(e.g. mediator/images=/camera/image_sharp), or --consumer-input BUFFER "
+                "naming one of several"
+            )
+        return self.image_out[0]
 
     def check_has_work(self) -> None:
         """ConfigError when no topic is mapped either way (checked when the bridge starts)."""
@@ -305,6 +341,33 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=d.out_queue,
         help="notification queue of each observed framegate buffer (default %(default)s)",
     )
+    loop = parser.add_argument_group(
+        "a ROS 2 node in the loop (its results free its slots: the mediator sees its load)"
+    )
+    loop.add_argument(
+        "--consumer-done",
+        metavar="TOPIC",
+        help="the node's result topic: any message whose first field is a std_msgs/Header "
+        "copied from the input image (type read from the ROS graph)",
+    )
+    loop.add_argument(
+        "--consumer-input",
+        metavar="BUFFER",
+        help="the --image-out buffer the node subscribes to (default: the only one)",
+    )
+    loop.add_argument(
+        "--consumer-queue",
+        type=positive_int,
+        default=d.consumer_queue,
+        help="images the node may hold without a result (default %(default)s)",
+    )
+    loop.add_argument(
+        "--consumer-timeout-ms",
+        type=positive_float,
+        default=d.consumer_timeout_ms,
+        help="an image without a result frees its slot after this long, counted "
+        "(default %(default)s)",
+    )
 
 
 def config_from_args(args: argparse.Namespace) -> Ros2Config:
@@ -346,4 +409,8 @@ def config_from_args(args: argparse.Namespace) -> Ros2Config:
         out_reliability=_reliability(args.out_reliability),
         out_depth=args.out_depth,
         out_queue=args.out_queue,
+        consumer_done=topic(args.consumer_done),
+        consumer_input=args.consumer_input,
+        consumer_queue=args.consumer_queue,
+        consumer_timeout_ms=args.consumer_timeout_ms,
     )

@@ -37,8 +37,9 @@ from ._format import (
     image_topic,
 )
 from ._frames import FrameLayout, frame_layout, metadata_kind
-from ._info import ChannelInfo, RecordingInfo, recording_info
+from ._info import BufferRecord, ChannelInfo, RecordingInfo, recording_info
 from ._reader import Bag, RecordedBuffer, open_bag
+from ._recorder import Progress, Recorder, WriteQueue, latest_before
 from ._retime import shift_element, timestamp_fields
 from ._scan import Integrity
 from ._writer import COMPRESSIONS, BagWriter
@@ -53,6 +54,7 @@ __all__ = [
     "Bag",
     "BagError",
     "BagWriter",
+    "BufferRecord",
     "ChannelInfo",
     "DerivedMessage",
     "DerivedTopic",
@@ -60,8 +62,11 @@ __all__ = [
     "FrameLayout",
     "Integrity",
     "Marker",
+    "Progress",
     "RecordedBuffer",
+    "Recorder",
     "RecordingInfo",
+    "WriteQueue",
     "annotations_topic",
     "decode_element",
     "derived_topics",
@@ -70,6 +75,7 @@ __all__ = [
     "encode_element",
     "frame_layout",
     "image_topic",
+    "latest_before",
     "metadata_json",
     "metadata_kind",
     "metadata_topic",

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -19,6 +20,57 @@ class ChannelInfo:
 
 
 @dataclass(frozen=True, slots=True)
+class BufferRecord:
+    """What the recorder said of one buffer: kept, fetched late, and the two losses."""
+
+    name: str
+    recorded: int
+    backfilled: int
+    evicted: int  # gone from the buffer before it could be fetched
+    dropped: int  # fetched, but the recorder's write queue was full
+
+    def json(self) -> dict[str, Any]:
+        return {
+            "name": self.name,
+            "recorded": self.recorded,
+            "backfilled": self.backfilled,
+            "evicted": self.evicted,
+            "dropped": self.dropped,
+        }
+
+
+# A recording's own account is small; a larger one is not ours (a file can hold anything).
+_MAX_ACCOUNT_BYTES = 1 << 20
+
+
+def recorder_account(metadata: list[Any]) -> tuple[BufferRecord, ...]:
+    """The per-buffer account ``framegate record`` left in the file's metadata (empty if
+    none, or if it cannot be read: the data itself is what counts)."""
+    for record in metadata:
+        if getattr(record, "name", None) != "framegate.recording":
+            continue
+        text = record.metadata.get("buffers", "")
+        if not isinstance(text, str) or len(text) > _MAX_ACCOUNT_BYTES:
+            return ()
+        try:
+            rows = json.loads(text)
+            return tuple(
+                BufferRecord(
+                    name=str(row["name"]),
+                    recorded=int(row["recorded"]),
+                    backfilled=int(row.get("backfilled", 0)),
+                    # Files of before the split counted both losses as "lost".
+                    evicted=int(row.get("evicted", row.get("lost", 0))),
+                    dropped=int(row.get("dropped", 0)),
+                )
+                for row in rows
+            )
+        except (ValueError, TypeError, KeyError, AttributeError, RecursionError):
+            return ()
+    return ()
+
+
+@dataclass(frozen=True, slots=True)
 class RecordingInfo:
     path: str
     size_bytes: int
@@ -30,6 +82,7 @@ class RecordingInfo:
     chunks: int
     compressions: tuple[str, ...]
     channels: tuple[ChannelInfo, ...]
+    buffers: tuple[BufferRecord, ...] = ()
 
     @property
     def duration_s(self) -> float:
@@ -53,6 +106,7 @@ class RecordingInfo:
                 {"topic": c.topic, "schema": c.schema, "kind": c.kind, "messages": c.messages}
                 for c in self.channels
             ],
+            "recorder": [b.json() for b in self.buffers],
         }
 
 
@@ -94,6 +148,7 @@ def recording_info(path: Path) -> RecordingInfo:
         chunks=found.chunks,
         compressions=tuple(sorted(found.compressions)),
         channels=channels,
+        buffers=recorder_account(found.metadata),
     )
 
 

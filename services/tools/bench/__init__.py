@@ -6,7 +6,7 @@ per side, the framegate/raw ratio and the goal it is held to. ``framegate bench`
 command; ``run_bench(BenchOptions.create(...))`` returns the JSON-ready report.
 """
 
-from ._options import SCENARIO_NAMES, BenchOptions
+from ._options import OPT_IN_SCENARIOS, SCENARIO_NAMES, BenchOptions
 from ._procs import BenchError
 from ._records import Goal, Row, ScenarioResult
 from ._report import format_table
@@ -14,6 +14,7 @@ from ._runner import SCHEMA, machine_info, run_bench
 from ._stats import Summary, median, percentile, ratio, summarize
 
 __all__ = [
+    "OPT_IN_SCENARIOS",
     "SCENARIO_NAMES",
     "SCHEMA",
     "BenchError",

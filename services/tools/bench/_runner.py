@@ -36,6 +36,7 @@ from ._query_scaling import run_query_scaling
 from ._records import ScenarioResult
 from ._report import load_warning
 from ._ros2 import run_ros2
+from ._ros2_loop import run_ros2_loop
 from ._startup import run_startup
 from ._throughput import run_batch, run_frames, run_small
 from ._working_point import run_working_point
@@ -58,6 +59,7 @@ SCENARIOS: dict[str, Callable[[BenchOptions], ScenarioResult]] = {
     "hostile": run_hostile,
     "ros2": run_ros2,
     "startup": run_startup,
+    "ros2-loop": run_ros2_loop,
 }
 
 

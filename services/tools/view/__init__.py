@@ -7,7 +7,15 @@ topics are those ``framegate record`` writes (``services.tools.bag``), so one Fo
 serves live and recorded data. The viewer observes and never slows a producer.
 """
 
-from ._config import DEFAULT_BACKLOG, DEFAULT_HOST, DEFAULT_PORT, DEFAULT_QUEUE, ViewConfig
+from ._config import (
+    DEFAULT_BACKLOG,
+    DEFAULT_HOST,
+    DEFAULT_PORT,
+    DEFAULT_QUEUE,
+    VIEW_PORT_ENV,
+    ViewConfig,
+    default_port,
+)
 from ._layout import foxglove_layout, installed_layout
 from ._server import FoxgloveServer
 from ._status import Counters, Status
@@ -18,11 +26,13 @@ __all__ = [
     "DEFAULT_HOST",
     "DEFAULT_PORT",
     "DEFAULT_QUEUE",
+    "VIEW_PORT_ENV",
     "Counters",
     "FoxgloveServer",
     "Status",
     "ViewConfig",
     "check_targets",
+    "default_port",
     "foxglove_layout",
     "installed_layout",
     "parse_target",

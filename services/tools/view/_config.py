@@ -3,11 +3,16 @@
 from __future__ import annotations
 
 import ipaddress
+import os
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 from middleware import ConfigError
 
 DEFAULT_PORT = 8765
+# The variable that moves the WebSocket port (a flag still wins): two pipelines on one
+# host, each with its own FRAMEGATE_LOCAL_PORT, then each get their own viewer port.
+VIEW_PORT_ENV = "FRAMEGATE_VIEW_PORT"
 DEFAULT_HOST = "127.0.0.1"
 # Observer queue per frame buffer: a viewer that falls behind misses notifications (counted)
 # rather than holding anything back. A few frames absorb a scheduling hiccup; more would
@@ -18,6 +23,16 @@ SMALL_QUEUE = 32
 # Messages the Foxglove server buffers per client before it drops that client's oldest
 # ones. 64 is about a second of the demo's traffic, and at most ~80 MB of raw frames.
 DEFAULT_BACKLOG = 64
+
+
+def default_port(environ: Mapping[str, str] | None = None) -> int:
+    """``$FRAMEGATE_VIEW_PORT`` if set (checked as a port), else 8765."""
+    value = (os.environ if environ is None else environ).get(VIEW_PORT_ENV)
+    if not value:
+        return DEFAULT_PORT
+    if not value.isdigit() or not 0 <= int(value) <= 65535:
+        raise ConfigError(f"{VIEW_PORT_ENV}={value} is not a port number: use 0..65535 (0: any)")
+    return int(value)
 
 
 @dataclass(frozen=True, slots=True)

@@ -23,9 +23,10 @@ from typing import Any
 import foxglove
 from foxglove.websocket import ChannelView, Client, ServerListener
 
+from middleware import ConfigError
 from services.tools.bag import DerivedMessage, DerivedTopic
 
-from ._config import ViewConfig
+from ._config import VIEW_PORT_ENV, ViewConfig
 from ._status import Counters
 
 _SLOW = re.compile(r"outbox for client (\S+) full")
@@ -91,14 +92,24 @@ class FoxgloveServer:
         self._context = foxglove.Context()
         self._channels: dict[str, foxglove.Channel] = {}
         self._lock = threading.Lock()
-        self._server = foxglove.start_server(
-            name="framegate",
-            host=config.host,
-            port=config.port,
-            server_listener=_Listener(counters),
-            context=self._context,
-            message_backlog_size=config.backlog,
-        )
+        try:
+            self._server = foxglove.start_server(
+                name="framegate",
+                host=config.host,
+                port=config.port,
+                server_listener=_Listener(counters),
+                context=self._context,
+                message_backlog_size=config.backlog,
+            )
+        except RuntimeError as exc:  # the SDK reports a bind failure as a bare RuntimeError
+            where = f"{config.host}:{config.port}"
+            if "in use" in str(exc).lower():
+                raise ConfigError(
+                    f"cannot serve Foxglove on {where}: the port is taken (another "
+                    f"`framegate view`?); choose another with --port N ({VIEW_PORT_ENV}), "
+                    "0 for any free port"
+                ) from exc
+            raise ConfigError(f"cannot serve Foxglove on {where}: {exc}") from exc
         self.host = config.host
 
     @property

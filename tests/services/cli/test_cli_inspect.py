@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import base64
 import os
+import re
 import threading
 import time
 from collections.abc import Iterator
@@ -186,3 +187,35 @@ def test_user_mistakes_give_one_line_errors(service: Node, cli: Cli, tmp_path: P
         assert len(result.stderr.strip().splitlines()) == 1, result.describe()
         assert message in result.stderr, result.describe()
         assert "Traceback" not in result.stderr
+
+
+def test_hz_headline_is_the_arrival_rate_with_the_stamps_rate_named_beside_it(
+    listen_net: NetworkConfig, cli: Cli
+) -> None:
+    # As `play --rate 0.5` does: stamps advance half as fast as the wall clock, so they
+    # are twice as dense as the arrivals.
+    with Node("cam", listen_net) as node:
+        events = node.offer("events")
+        stop = threading.Event()
+
+        def fast_stamps() -> None:
+            start = time.time_ns()
+            while not stop.wait(0.02):
+                t = start + (time.time_ns() - start) // 2
+                events.put(t, b"x", make_metadata("generic", t))
+
+        thread = threading.Thread(target=fast_stamps, daemon=True)
+        thread.start()
+        try:
+            lines = cli.run("hz", "cam/events", "--duration", "3", "--json").json_lines()
+            text = cli.run("hz", "cam/events", "--duration", "2").stdout
+        finally:
+            stop.set()
+            thread.join()
+    summary = lines[-1]
+    assert summary["stamp_rate_hz"] == pytest.approx(2 * summary["rate_hz"], rel=0.25), summary
+    assert summary["receive_rate_hz"] == summary["rate_hz"]
+    headline = [line for line in text.splitlines() if line.startswith("average rate:")][-1]
+    arrivals, stamps = (float(x) for x in re.findall(r"([0-9.]+) Hz", headline))
+    assert stamps == pytest.approx(2 * arrivals, rel=0.25), headline
+    assert "(stamps: " in headline

@@ -13,12 +13,14 @@ import pytest
 
 from middleware import NetworkConfig, Node, Producer, make_metadata
 from tests.conftest import free_port, start_framegate, wait_until
+from tests.helpers.timing import scaled
 
 pytestmark = pytest.mark.integration
 
-# The goal is 2 s; the bound tolerates a loaded test machine while still failing a command
-# that keeps running after the signal.
-STOP_WITHIN_S = 5.0
+# The goal is 2 s (by design: no wait outlasts it); the bound only fails a command that keeps
+# running after the signal, on a machine ten times slower too (scaled by
+# FRAMEGATE_TEST_TIMEOUT_SCALE).
+STOP_WITHIN_S = scaled(20.0)
 
 
 @pytest.fixture

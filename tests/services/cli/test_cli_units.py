@@ -53,12 +53,26 @@ def test_hz_statistics_skip_intervals_across_missed_elements() -> None:
         Sample(seq=5, timestamp_ns=42 * MS, arrival_ns=41 * MS, payload_bytes=200),
     ]
     stats = window_stats(samples)
-    assert stats["rate_hz"] == pytest.approx(4 / 0.042)
-    assert (stats["min_s"], stats["max_s"]) == (pytest.approx(0.010), pytest.approx(0.012))
-    assert stats["std_s"] == pytest.approx(0.001)
+    assert stats["rate_hz"] == pytest.approx(4 / 0.041)  # arrivals, as ros2 topic hz
+    assert stats["stamp_rate_hz"] == pytest.approx(4 / 0.042)
+    assert (stats["min_s"], stats["max_s"]) == (pytest.approx(0.010), pytest.approx(0.010))
+    assert stats["std_s"] == pytest.approx(0.0)
+    assert stats["stamp_std_s"] == pytest.approx(0.001)
     assert stats["mean_bytes"] == 200
-    assert stats["bandwidth_bytes_s"] == pytest.approx(200 * 4 / 0.042)
+    assert stats["bandwidth_bytes_s"] == pytest.approx(200 * 4 / 0.041)
     assert window_stats(samples[:1])["rate_hz"] is None
+
+
+def test_hz_reports_arrivals_first_and_the_stamps_rate_beside_it() -> None:
+    # A recording of 15 Hz played at half speed: stamps 66.7 ms apart arrive 133 ms apart.
+    period_ns = 1_000_000_000 // 15
+    samples = [
+        Sample(seq=i + 1, timestamp_ns=i * period_ns, arrival_ns=2 * i * period_ns, payload_bytes=1)
+        for i in range(30)
+    ]
+    stats = window_stats(samples)
+    assert stats["rate_hz"] == pytest.approx(7.5)
+    assert stats["stamp_rate_hz"] == pytest.approx(15.0)
 
 
 def _write_bag(path: Path) -> list[DataObject]:

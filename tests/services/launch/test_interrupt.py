@@ -24,9 +24,10 @@ pytestmark = pytest.mark.integration
 # What the default pipeline (and the demo) runs; SERVICES also lists the ROS 2 bridge.
 PIPELINE = ("camera", "gyro", "mediator", "detector")
 
-# The goal is 2 s (0.4-0.9 s measured on an idle machine); the bound tolerates a loaded
-# test machine while still failing a process that keeps running after the signal.
-STOP_WITHIN_S = 5.0
+# The goal is 2 s (0.4-0.9 s measured on an idle machine; by design no wait outlasts it);
+# the bound only fails a process that keeps running after the signal, on a machine ten
+# times slower too (scaled by FRAMEGATE_TEST_TIMEOUT_SCALE).
+STOP_WITHIN_S = scaled(20.0)
 STARTUP_S = 60.0
 
 
@@ -87,11 +88,17 @@ def test_one_signal_stops_a_service(
 ) -> None:
     # camera and gyro: the simulator; the ROS 2 bridge needs a topic and a router address
     # (nobody answers there: it must stop all the same).
-    extra = (
-        ["--image-in", "/camera/image_raw", "--ros-connect", f"tcp/127.0.0.1:{free_port()}"]
-        if service == "ros2"
-        else []
-    )
+    # vision needs a handler to run.
+    extras = {
+        "ros2": [
+            "--image-in",
+            "/camera/image_raw",
+            "--ros-connect",
+            f"tcp/127.0.0.1:{free_port()}",
+        ],
+        "vision": ["--handler", "tests.services.nodes.vision_handlers:brightest"],
+    }
+    extra = extras.get(service, [])
     proc = start_framegate(["run", service, *extra], local_port=port)
     try:
         wait_until(lambda: _pid_of(client, service) == proc.pid, STARTUP_S, f"{service} up")

@@ -25,7 +25,12 @@ def test_shipped_deploy_files_parse_and_plan() -> None:
     for path in (REPO / "deploy").glob("*.yaml"):
         deployment = load_deployment(path)
         for host in deployment.hosts:
-            specs = process_specs(deployment, host, NetworkConfig(), text=path.read_text())
+            try:
+                specs = process_specs(deployment, host, NetworkConfig(), text=path.read_text())
+            except ConfigError as exc:
+                # Its certificates are made by deploy/tls/make-certs.sh, not shipped.
+                assert path.name == "secure.yaml" and "deploy/tls/certs/" in str(exc), exc
+                continue
             assert all(spec.argv for spec in specs), path
 
 

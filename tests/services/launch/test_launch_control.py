@@ -149,12 +149,13 @@ def test_a_second_launch_of_a_running_deploy_file_refuses_with_the_first_pid(
     tmp_path: Path,
 ) -> None:
     deploy = _router_deploy(tmp_path)
-    first = Launch([str(deploy)], tmp_path, free_port())
+    port = free_port()
+    first = Launch([str(deploy)], tmp_path, port)
     second: Launch | None = None
     try:
         first.wait_line(lambda line: line.startswith("launching"))
         _child_pid(first)
-        second = Launch([str(deploy)], tmp_path, free_port())
+        second = Launch([str(deploy)], tmp_path, port)  # same file, host and rendezvous
         # At once, not after a restart storm: the whole process ends on its own.
         code = second.finish(timeout_s=60)
         assert code == 1, second.lines
@@ -166,6 +167,37 @@ def test_a_second_launch_of_a_running_deploy_file_refuses_with_the_first_pid(
         first.close()
         if second is not None:
             second.close()
+
+
+@pytest.mark.integration
+def test_the_same_deploy_file_launches_again_against_another_rendezvous(tmp_path: Path) -> None:
+    # Two rendezvous ports are two separate sets of services: the lock must not mix them.
+    deploy = tmp_path / "gyro.yaml"
+    deploy.write_text("version: 1\nservices:\n  gyro:\n    args: {source: sim, loop: true}\n")
+    first = Launch([str(deploy)], tmp_path, free_port())
+    second: Launch | None = None
+    try:
+        first.wait_line(lambda line: "simulated gyro" in line)
+        second = Launch([str(deploy)], tmp_path, free_port())
+        second.wait_line(lambda line: "simulated gyro" in line)
+        assert first.proc.poll() is None and second.proc.poll() is None, second.lines
+        second.proc.send_signal(signal.SIGINT)
+        assert second.finish(timeout_s=60) == 0, second.lines
+    finally:
+        first.close()
+        if second is not None:
+            second.close()
+
+
+def test_a_lock_is_per_rendezvous(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("FRAMEGATE_RUNTIME_DIR", str(tmp_path / "run"))
+    deploy = tmp_path / "d.yaml"
+    deploy.write_text("services: {}\n")
+    with LaunchLock(deploy, None, NetworkConfig(local_port=7001)):
+        with pytest.raises(ConfigError, match=r"7001.* already launched by pid"):
+            LaunchLock(deploy, None, NetworkConfig(local_port=7001)).acquire()
+        LaunchLock(deploy, None, NetworkConfig(local_port=7002)).acquire()
+        LaunchLock(deploy, None, NetworkConfig(connect=("tcp/10.0.0.2:7447",))).acquire()
 
 
 def test_a_lock_is_exclusive_and_a_dead_holders_lock_is_taken_over(

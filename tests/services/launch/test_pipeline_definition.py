@@ -16,7 +16,11 @@ def _services(deployment: Deployment) -> dict[str, tuple[str, tuple[str, ...]]]:
 
 
 def test_local_deploy_file_mirrors_the_pipeline_definition() -> None:
-    assert _services(load_deployment(REPO / "deploy" / "local.yaml")) == _services(pipeline())
+    # The one difference: a user's launch plays the approach prerendered (as the demo).
+    prerendered = {"camera": {"source": "prerendered"}, "gyro": {"source": "prerendered"}}
+    assert _services(load_deployment(REPO / "deploy" / "local.yaml")) == _services(
+        pipeline(prerendered)
+    )
 
 
 def test_pipeline_yaml_says_what_pipeline_says() -> None:

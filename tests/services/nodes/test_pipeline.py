@@ -56,11 +56,11 @@ def _by_the_test(record: DecisionRecord) -> bool:
 def test_slow_detector_gets_detections_and_mediator_rejects_blurred_frames(
     pipeline_factory: type[Pipeline],
 ) -> None:
-    # 3x the frame period: overloaded even if a busy machine slows the camera down.
-    pipe = pipeline_factory(full(3.0))  # type: ignore[call-arg]
-    wait_until(
-        lambda: pipe.counter("detector/detections") >= 20, 60, "20 detections\n" + pipe.log()
-    )
+    # 30 frame periods (2 s) a frame: overloaded even when a busy machine renders the camera
+    # at a frame every 2 s (at 3 periods, a camera slowed to 2 frames/s at load 25 left the
+    # detector idle and nothing was rejected).
+    pipe = pipeline_factory(full(30.0))  # type: ignore[call-arg]
+    wait_until(lambda: pipe.counter("detector/detections") >= 3, 60, "3 detections\n" + pipe.log())
     decisions = wait_until(
         lambda: (d := _decisions(pipe)) and any(_by_the_test(r) for r in d) and d,
         40,
@@ -72,8 +72,11 @@ def test_slow_detector_gets_detections_and_mediator_rejects_blurred_frames(
         assert record.load > 0.0, record
         if record.quality is not None:
             assert record.quality <= record.load, record
-    found = [e for e in pipe.node.query("detector/detections") if b"<marker>" in e.metadata]
-    assert found, "no marker was ever detected"
+    wait_until(
+        lambda: [e for e in pipe.node.query("detector/detections") if b"<marker>" in e.metadata],
+        90,
+        "a detected marker\n" + pipe.log(),
+    )
 
 
 @pytest.mark.slow
@@ -116,7 +119,8 @@ def test_uncontrolled_wiring_drops_at_the_camera_and_never_blocks(
 
 
 def test_killed_detector_is_dropped_and_restarted(pipeline_factory: type[Pipeline]) -> None:
-    pipe = pipeline_factory(full(3.0))  # type: ignore[call-arg]
+    # Slower than the camera on any machine (as above), so frames are certainly queued.
+    pipe = pipeline_factory(full(30.0))  # type: ignore[call-arg]
     wait_until(lambda: pipe.counter("detector/detections") >= 3, 60, "detections\n" + pipe.log())
     wait_until(
         lambda: any(s.queued > 0 for s in pipe.info("mediator/images").subscriptions),

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import zenoh
 
-from middleware import NetworkConfig, Node, Producer
+from middleware import DataObject, NetworkConfig, Node, Producer
 from services.nodes.ros2 import _link as link_module
 from services.nodes.ros2._bridge import ImagesIn, ImuIn, _Skips
 from services.nodes.ros2._cdr import IMAGE, IMU, Codec
@@ -49,6 +49,14 @@ def _image(codec: Codec, stamp_ns: int, encoding: str = "mono8") -> bytes:
     channels = 3 if encoding != "mono8" else 1
     pixels = (np.arange(W * H * channels) % 251).astype(np.uint8).tobytes()
     return bytes(codec.encode_image(stamp_ns, "cam", W, H, encoding, pixels))
+
+
+def _query(consumer: Node, target: str) -> list[DataObject]:
+    """The whole buffer, once the consumer has met its service (a query does not wait for
+    discovery, which a loaded machine can take seconds over)."""
+    service = target.split("/", 1)[0]
+    wait_until(lambda: service in consumer.live_services(), 30, f"the {service} service")
+    return consumer.query(target)
 
 
 def _skipped(producer: Producer) -> dict[str, int]:
@@ -134,7 +142,7 @@ def test_padded_rows_are_stored_without_padding(node: Node, consumer: Node, code
     )
     image = t["sensor_msgs/msg/Image"](header, H, W, "mono8", 0, W + 4, rows.reshape(-1))
     images.handle(bytes(store.serialize_cdr(image, "sensor_msgs/msg/Image")), 1)
-    [element] = consumer.query("ros2/images")
+    [element] = _query(consumer, "ros2/images")
     assert element.timestamp_ns == now
     assert element.payload == rows[:, :W].tobytes()
 
@@ -146,7 +154,7 @@ def test_stamp_at_exposure_end_keys_by_exposure_start(
     images = ImagesIn(node, codec, config, _Skips(logging.getLogger()))
     now = time.time_ns()
     images.handle(_image(codec, now), 1)
-    [element] = consumer.query("ros2/images")
+    [element] = _query(consumer, "ros2/images")
     assert element.timestamp_ns == now - 20_000_000
     assert config.stamp_ns(element.timestamp_ns) == now
     assert b"<exposure_ns>20000000</exposure_ns>" in element.metadata
@@ -182,7 +190,7 @@ def test_imu_samples_become_gyro_elements_in_batches(
     imu.add(sample(start + 2 * 5_000_000, 9.0))  # out of order
     imu.add(b"nonsense")
     imu.flush()
-    elements = consumer.query("ros2/rates")
+    elements = _query(consumer, "ros2/rates")
     assert [e.timestamp_ns for e in elements] == [start + i * 5_000_000 for i in range(4)]
     assert skips.counts == {"out-of-order": 1, "bad-cdr": 1}
     assert imu.stored == 4

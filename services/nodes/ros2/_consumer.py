@@ -1,0 +1,303 @@
+"""Closing the loop through a ROS 2 node's own results, pure: no Zenoh, no threads, no clock.
+
+A ROS 2 vision node (a detector, a tracker) that copies its input image's ``header`` into
+its results can tell the bridge, without knowing it, when it is done with an image: the
+result whose ``header.stamp`` equals the image's. :class:`Outstanding` keeps the images
+published to the node that are still without such a result (at most ``N``, the node's
+``--consumer-queue``), each with the deadline after which it frees its slot anyway
+(``--consumer-timeout-ms``); :class:`DoneTopic` learns the result topic's message type and
+type hash from the publishers' liveliness tokens (so any type whose first field is a
+``std_msgs/Header`` will do); :func:`decode_header` reads only that leading header.
+
+Matching is on the stamp alone: frame ids differ between nodes (``camera`` vs
+``camera_optical_frame``) and carry no identity; the bridge's images have strictly
+increasing stamps, so a stamp names one image.
+"""
+
+from __future__ import annotations
+
+import struct
+from collections import OrderedDict
+from dataclasses import dataclass
+
+from ._rmw import EntityKind, parse_endpoint
+
+# CDR encapsulation identifiers (first two bytes): plain CDR, big- and little-endian.
+_CDR_BE, _CDR_LE = b"\x00\x00", b"\x00\x01"
+_ENCAPSULATION_BYTES = 4
+# A frame_id longer than this is no frame name (tf2 frame ids are short): a bad message.
+MAX_FRAME_ID_BYTES = 4096
+# Expired stamps remembered, so that a result arriving after its timeout is told apart
+# from one that matches no image of ours at all.
+EXPIRED_MEMORY = 256
+
+
+class HeaderError(ValueError):
+    """A result whose leading ``std_msgs/Header`` cannot be read: the text says why."""
+
+
+@dataclass(frozen=True, slots=True)
+class Header:
+    """The leading ``std_msgs/Header`` of a result message."""
+
+    stamp_ns: int
+    frame_id: str
+
+
+def decode_header(raw: bytes) -> Header:
+    """The ``std_msgs/Header`` a CDR message starts with (stamp sec/nanosec, frame_id).
+
+    Fields of a plain-CDR struct follow each other aligned to their size from the end of the
+    4-byte encapsulation header: ``int32 sec`` at 0, ``uint32 nanosec`` at 4, the frame id's
+    ``uint32`` length (with its NUL) at 8 and its bytes from 12. HeaderError for anything
+    else, so that a peer's bytes never raise anything but that.
+    """
+    if len(raw) < _ENCAPSULATION_BYTES + 12:
+        raise HeaderError(f"{len(raw)} bytes cannot hold a CDR std_msgs/Header")
+    kind = bytes(raw[:2])
+    if kind not in (_CDR_BE, _CDR_LE):
+        raise HeaderError(f"CDR encapsulation {kind.hex()} (expected 0000 or 0001, plain CDR)")
+    order = "<" if kind == _CDR_LE else ">"
+    sec, nanosec, length = struct.unpack_from(order + "iII", raw, _ENCAPSULATION_BYTES)
+    if nanosec >= 1_000_000_000:
+        raise HeaderError(f"header.stamp.nanosec {nanosec} is not below 1e9")
+    start = _ENCAPSULATION_BYTES + 12
+    if not 1 <= length <= MAX_FRAME_ID_BYTES or start + length > len(raw):
+        raise HeaderError(f"header.frame_id of {length} bytes in a {len(raw)}-byte message")
+    text = bytes(raw[start : start + length])
+    if text[-1] != 0:
+        raise HeaderError("header.frame_id is not NUL-terminated")
+    try:
+        frame_id = text[:-1].decode()
+    except UnicodeDecodeError as exc:
+        raise HeaderError(f"header.frame_id is not UTF-8: {exc}") from exc
+    return Header(sec * 1_000_000_000 + nanosec, frame_id)
+
+
+def ros_type_of(dds_type: str) -> str:
+    """``vision_msgs::msg::dds_::Detection2DArray_`` → ``vision_msgs/msg/Detection2DArray``;
+    ValueError for a name that is not a DDS message type name."""
+    parts = dds_type.split("::")
+    if (
+        len(parts) != 4
+        or parts[2] != "dds_"
+        or not parts[3].endswith("_")
+        or not all(p.replace("_", "a").isalnum() for p in (parts[0], parts[1], parts[3]))
+        or len(parts[3]) < 2
+    ):
+        raise ValueError(f"{dds_type!r} is not a DDS type name (pkg::msg::dds_::Name_)")
+    return f"{parts[0]}/{parts[1]}/{parts[3][:-1]}"
+
+
+@dataclass(frozen=True, slots=True)
+class ResultType:
+    """The result topic's type as its publishers announce it."""
+
+    ros_type: str
+    type_hash: str
+
+
+class DoneTopic:
+    """Learns the result topic's type from the ROS graph's publisher tokens.
+
+    Feed it every liveliness token (one caller at a time). The first publisher of the topic
+    decides; a publisher announcing another type or hash later is reported once (its
+    samples travel on another data key, so the bridge cannot hear them).
+    """
+
+    def __init__(self, topic: str) -> None:
+        self.topic = topic
+        self.found: ResultType | None = None
+        self._said: set[tuple[str, str]] = set()
+
+    def feed(self, token: str) -> str | None:
+        """A one-line remark when a token disagrees with the type found first, else None."""
+        endpoint = parse_endpoint(token)
+        if endpoint is None or endpoint.kind is not EntityKind.PUBLISHER:
+            return None
+        if endpoint.topic != self.topic:
+            return None
+        try:
+            ros_type = ros_type_of(endpoint.dds_type)
+        except ValueError as exc:
+            return self._once(endpoint.dds_type, endpoint.type_hash, f"ignored: {exc}")
+        seen = ResultType(ros_type, endpoint.type_hash)
+        if self.found is None:
+            self.found = seen
+            return None
+        if seen == self.found:
+            return None
+        return self._once(
+            endpoint.dds_type,
+            endpoint.type_hash,
+            f"another publisher announces {ros_type} ({endpoint.type_hash}); the bridge "
+            f"listens to {self.found.ros_type} ({self.found.type_hash}) only",
+        )
+
+    def _once(self, dds_type: str, type_hash: str, text: str) -> str | None:
+        if (dds_type, type_hash) in self._said:
+            return None
+        self._said.add((dds_type, type_hash))
+        return f"{self.topic}: {text}"
+
+
+@dataclass(frozen=True, slots=True)
+class ConsumerCounts:
+    """What became of the images published to the node, and of its results."""
+
+    published: int = 0
+    answered: int = 0
+    timed_out: int = 0
+    late: int = 0  # results for an image whose slot had already timed out
+    unmatched: int = 0  # results whose stamp names no image of ours
+    bad: int = 0  # results whose header cannot be read
+    outstanding: int = 0
+
+
+@dataclass(frozen=True, slots=True)
+class Resolved:
+    """An image that left the node's slots: answered (with the result's arrival) or not."""
+
+    stamp_ns: int
+    published_ns: int
+    resolved_ns: int
+    answered: bool
+
+
+class Outstanding:
+    """The images published to the node and still without a result (at most ``capacity``).
+
+    Times are the caller's monotonic nanoseconds. Not thread-safe: callers serialise.
+    """
+
+    def __init__(self, capacity: int, timeout_ns: int) -> None:
+        if capacity < 1 or timeout_ns < 1:
+            raise ValueError(f"capacity {capacity} and timeout {timeout_ns} ns must be >= 1")
+        self.capacity = capacity
+        self.timeout_ns = timeout_ns
+        self._open: OrderedDict[int, int] = OrderedDict()  # stamp -> published at
+        self._expired: OrderedDict[int, None] = OrderedDict()
+        self._published = self._answered = self._timed_out = 0
+        self._late = self._unmatched = self._bad = 0
+
+    def __len__(self) -> int:
+        return len(self._open)
+
+    def add(self, stamp_ns: int, now_ns: int) -> bool:
+        """Record an image about to be published; False if its stamp is open already or
+        every slot is taken (the caller then does not publish it)."""
+        if stamp_ns in self._open or len(self._open) >= self.capacity:
+            return False
+        self._open[stamp_ns] = now_ns
+        self._published += 1
+        return True
+
+    def withdraw(self, stamp_ns: int) -> None:
+        """Forget an image whose publishing failed (it never reached the node)."""
+        if self._open.pop(stamp_ns, None) is not None:
+            self._published -= 1
+
+    def answer(self, stamp_ns: int, now_ns: int) -> Resolved | str:
+        """A result with this stamp arrived: the image it answers, or why none (``late``:
+        its slot had timed out; ``unmatched``: no image of ours, or answered already)."""
+        published = self._open.pop(stamp_ns, None)
+        if published is None:
+            if stamp_ns in self._expired:
+                self._late += 1
+                return "late"
+            self._unmatched += 1
+            return "unmatched"
+        self._answered += 1
+        return Resolved(stamp_ns, published, now_ns, True)
+
+    def bad_result(self) -> None:
+        self._bad += 1
+
+    def expire(self, now_ns: int) -> list[Resolved]:
+        """The images whose result did not come within the timeout (their slots free)."""
+        gone: list[Resolved] = []
+        while self._open:
+            stamp, published = next(iter(self._open.items()))
+            if now_ns - published < self.timeout_ns:
+                break  # published in order, so the rest are younger
+            del self._open[stamp]
+            self._expired[stamp] = None
+            if len(self._expired) > EXPIRED_MEMORY:
+                self._expired.popitem(last=False)
+            gone.append(Resolved(stamp, published, now_ns, False))
+        self._timed_out += len(gone)
+        return gone
+
+    def next_deadline_ns(self) -> int | None:
+        """When the oldest open image times out (None: none is open)."""
+        if not self._open:
+            return None
+        return next(iter(self._open.values())) + self.timeout_ns
+
+    def counts(self) -> ConsumerCounts:
+        return ConsumerCounts(
+            self._published,
+            self._answered,
+            self._timed_out,
+            self._late,
+            self._unmatched,
+            self._bad,
+            len(self._open),
+        )
+
+
+class GateBook:
+    """What the bridge owes its gate subscription, pure (the caller serialises calls).
+
+    Every image the feed brings is resolved once (answered, timed out, not publishable), and
+    each resolution is *owed* one take of the gate, whose queue then holds exactly the
+    images the node has not answered. Two mismatches can only come from the two
+    subscriptions registering or re-registering at different moments (start, a producer
+    restart), and both are settled after ``timeout_ns``:
+
+    - a debt no gate notification comes for (the feed saw a put the gate did not): kept, it
+      would free the next image's slot the moment it arrives; it is cancelled.
+    - a *surplus*, gate notifications no image accounts for (the gate saw a put the feed did
+      not): kept, it would hold a slot for ever; it is freed once it has lasted the whole
+      timeout (an image on its way between the feed and the ledger is one only briefly).
+    """
+
+    def __init__(self, timeout_ns: int) -> None:
+        self.timeout_ns = timeout_ns
+        self.debt = 0
+        self._debt_since_ns: int | None = None
+        self._surplus_since_ns: int | None = None
+
+    def owe(self, count: int, now_ns: int) -> None:
+        """``count`` images were resolved: as many gate takes are due."""
+        if count > 0 and not self.debt:
+            self._debt_since_ns = now_ns
+        self.debt += max(0, count)
+
+    def taken(self, count: int, now_ns: int) -> int:
+        """``count`` gate notifications were taken for the debt; the debt cancelled (> 0
+        once what is still owed has waited longer than the timeout for its notification)."""
+        self.debt = max(0, self.debt - count)
+        if not self.debt:
+            self._debt_since_ns = None
+            return 0
+        if self._debt_since_ns is not None and now_ns - self._debt_since_ns > self.timeout_ns:
+            cancelled, self.debt, self._debt_since_ns = self.debt, 0, None
+            return cancelled
+        return 0
+
+    def surplus(self, gate_queued: int, accounted: int, now_ns: int) -> int:
+        """Gate notifications to free now: ``gate_queued`` minus the ``accounted`` images
+        (open in the ledger or waiting in the feed), once that surplus has lasted the
+        timeout; 0 while a debt is being paid or the surplus is young."""
+        extra = gate_queued - accounted if not self.debt else 0
+        if extra <= 0:
+            self._surplus_since_ns = None
+            return 0
+        if self._surplus_since_ns is None:
+            self._surplus_since_ns = now_ns
+            return 0
+        if now_ns - self._surplus_since_ns <= self.timeout_ns:
+            return 0
+        self._surplus_since_ns = None
+        return extra

@@ -1,0 +1,302 @@
+"""Recording live buffers without losing what they still hold (``framegate record``).
+
+Buffering rule: a recorder *observes* (``SubscriptionMode.OBSERVE``), so it never slows the
+robot, and it is lossless while the buffer's retention lasts. Notification sequence numbers
+count every stored element, so a gap says exactly how many elements were missed between two
+notifications, and one range query fetches them from the buffer's history; misses at the
+end of a burst, which no later notification reports, are fetched as soon as the
+subscription goes quiet, and at the stop everything up to the stop instant is fetched.
+Each buffer's newest element at the start is recorded too (as ``ros2 bag record`` gets a
+transient-local publisher's last message): a camera description put once is in the file.
+
+Two kinds of loss are counted apart, as rosbag2 splits lost-in-transport from
+lost-in-recorder:
+
+* ``evicted``: the buffer no longer held the element when the recorder asked for it (its
+  retention was too short for how far the recorder fell behind);
+* ``dropped``: the recorder had the element and did not keep it, because its write queue
+  (elements fetched, waiting for the disk and compression) was full.
+
+Threads: one fetching thread per buffer (take notifications, fetch, backfill) puts elements
+into one bounded ``WriteQueue``; its one writer thread compresses and writes them, so a slow
+disk never delays a fetch into an eviction. ``Progress`` counters are written by the
+fetching thread of their buffer (``backfilled``, ``evicted``, ``dropped``) and by the
+writer thread (``recorded``, ``first_ns``, ``last_ns``), each under the queue's lock.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass
+from typing import Any
+
+from middleware import DataObject, FramegateError, Node, Notification, Subscription, TimeRange
+
+from ._writer import BagWriter
+
+# After this long without a notification, check the buffer for elements we never heard of.
+IDLE_PROBE_S = 1.0
+# Elements fetched and waiting to be written, at most (bytes): ~20 s of 1.3 MB frames at
+# 15 frames/s, so a disk that pauses for seconds drops nothing.
+WRITE_QUEUE_BYTES = 384 * 2**20
+# A query at the stop waits at most this long, so a recording ends soon after its duration.
+STOP_QUERY_S = 1.0
+
+
+@dataclass
+class Progress:
+    """What one buffer's recording did (see the module docstring for the two losses)."""
+
+    name: str
+    kind: str
+    recorded: int = 0
+    backfilled: int = 0
+    missed: int = 0
+    evicted: int = 0
+    dropped: int = 0
+    first_ns: int | None = None
+    last_ns: int | None = None
+
+    @property
+    def lost(self) -> int:
+        return self.evicted + self.dropped
+
+    def json(self) -> dict[str, Any]:
+        return {
+            "name": self.name,
+            "kind": self.kind,
+            "recorded": self.recorded,
+            "backfilled": self.backfilled,
+            "missed": self.missed,
+            "evicted": self.evicted,
+            "dropped": self.dropped,
+            "lost": self.lost,
+            "first_ns": self.first_ns,
+            "last_ns": self.last_ns,
+        }
+
+
+class WriteQueue:
+    """Fetched elements on their way to the file, bounded in bytes; one writer thread."""
+
+    def __init__(self, writer: BagWriter, max_bytes: int = WRITE_QUEUE_BYTES) -> None:
+        self._writer = writer
+        self._max_bytes = max_bytes
+        self._items: deque[tuple[Progress, DataObject]] = deque()
+        self._bytes = 0
+        self._closing = False
+        self._cond = threading.Condition()
+        self.error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, name="record-writer", daemon=True)
+        self._thread.start()
+
+    def put(self, progress: Progress, element: DataObject) -> bool:
+        """Queue ``element``; False (counted ``dropped``) if the queue is full."""
+        size = len(element.payload) + len(element.metadata)
+        with self._cond:
+            if self.error is not None or (self._items and self._bytes + size > self._max_bytes):
+                progress.dropped += 1
+                return False
+            self._items.append((progress, element))
+            self._bytes += size
+            self._cond.notify()
+            return True
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                while not self._items and not self._closing:
+                    self._cond.wait()
+                if not self._items:
+                    return
+                progress, element = self._items[0]
+            try:
+                self._writer.write(progress.name, element)
+            except BaseException as exc:  # a failing file stops the recording, not hangs it
+                with self._cond:
+                    self.error = exc
+                    for queued, _ in self._items:
+                        queued.dropped += 1
+                    self._items.clear()
+                    self._bytes = 0
+                return
+            with self._cond:
+                self._items.popleft()
+                self._bytes -= len(element.payload) + len(element.metadata)
+                progress.recorded += 1
+                progress.last_ns = element.timestamp_ns
+                if progress.first_ns is None:
+                    progress.first_ns = element.timestamp_ns
+
+    def backlog(self) -> tuple[int, int]:
+        """Elements and bytes fetched and not yet written."""
+        with self._cond:
+            return len(self._items), self._bytes
+
+    def close(self) -> None:
+        """Write what is queued, then end the writer thread."""
+        with self._cond:
+            self._closing = True
+            self._cond.notify()
+        self._thread.join()
+
+
+def latest_before(node: Node, target: str) -> list[DataObject]:
+    """The newest element of ``target`` now (none if empty): ask before subscribing, so
+    that nothing stored in between escapes both the query and the notifications."""
+    try:
+        return node.latest(target, 1, timeout_s=STOP_QUERY_S)
+    except FramegateError:
+        return []
+
+
+class Recorder:
+    """Records one buffer on its own thread into ``queue`` until ``stop``; see the module."""
+
+    def __init__(
+        self,
+        node: Node,
+        sub: Subscription,
+        queue: WriteQueue,
+        progress: Progress,
+        stop: threading.Event,
+        count: int | None,
+        initial: list[DataObject] | None = None,
+    ) -> None:
+        """``initial``: the buffer's newest element, queried *before* ``sub`` was made (see
+        ``latest_before``), so that everything stored after it is fetched by range."""
+        self.node = node
+        self._initial = list(initial or ())
+        self.sub = sub
+        self.queue = queue
+        self.progress = progress
+        self.stop = stop
+        self.count = count
+        # The stop instant: nothing stamped later is recorded (None: not stopped yet).
+        self.stop_ns: int | None = None
+        self.error: BaseException | None = None
+        self._fetched = 0
+        self._last_ns: int | None = None  # the newest element handed to the queue
+        # Sequence number of the last notification handled (0: none yet in this epoch), and
+        # timestamps that backfills queued after its element.
+        self._anchor_seq = 0
+        self._since_anchor: list[int] = []
+        self._accounted_misses = 0
+        self._idle_since = time.monotonic()
+        self.thread = threading.Thread(target=self._run, name=f"record-{sub.name}", daemon=True)
+
+    def _full(self) -> bool:
+        return self.count is not None and self._fetched >= self.count
+
+    def _run(self) -> None:
+        try:
+            self._latest_at_start()
+            while not self.stop.is_set() and not self._full():
+                note = self.sub.take(timeout_s=0.2)
+                if note is not None:
+                    self._idle_since = time.monotonic()
+                    self._on_notification(note)
+                elif self._unaccounted_misses() or self._buffer_is_ahead():
+                    # Misses are only reported by the next notification; a burst that has
+                    # ended brings none, so catch up from the buffer while it is quiet.
+                    self._backfill(None)
+            if not self._full():
+                self._backfill(self.stop_ns, timeout_s=STOP_QUERY_S)  # the tail up to the stop
+        except BaseException as exc:  # a failing recorder must stop the recording, not hang it
+            self.error = exc
+            self.stop.set()
+
+    def _latest_at_start(self) -> None:
+        for element in self._initial:
+            self._queue(element)
+
+    def _unaccounted_misses(self) -> bool:
+        return self.sub.missed_total > self._accounted_misses
+
+    def _buffer_is_ahead(self) -> bool:
+        """After a quiet second, whether the buffer holds newer elements than we fetched.
+
+        Observer notifications travel with congestion control DROP, so the last ones of a
+        burst can vanish without a later one to reveal the gap; the buffer's description
+        (no payloads) tells.
+        """
+        if self._last_ns is None or time.monotonic() - self._idle_since < IDLE_PROBE_S:
+            return False
+        self._idle_since = time.monotonic()
+        try:
+            newest = self.node.buffer_info(self.sub.name, timeout_s=STOP_QUERY_S).newest_ns
+        except FramegateError:
+            return False
+        return newest is not None and newest > self._last_ns
+
+    def _on_notification(self, note: Notification) -> None:
+        p = self.progress
+        if note.seq <= self._anchor_seq:
+            self._anchor_seq, self._since_anchor = 0, []  # the producer restarted (new epoch)
+        # Sequence numbers count every element stored since we subscribed: this many lie
+        # between the previous notification we handled and this one.
+        expected = note.seq - self._anchor_seq - 1
+        if self._last_ns is not None and note.timestamp_ns <= self._last_ns:
+            # A backfill already queued it; it still anchors the count of what lies between.
+            between = [t for t in self._since_anchor if t < note.timestamp_ns]
+            p.evicted += max(0, expected - len(between))
+            self._anchor_seq = note.seq
+            self._since_anchor = [t for t in self._since_anchor if t > note.timestamp_ns]
+            return
+        # The first notification of an epoch after something was recorded (the newest
+        # element at the start, or the previous epoch) cannot count what was stored in
+        # between (before the subscription, or before the restart): fetch that range too.
+        first_after = self._anchor_seq == 0 and self._last_ns is not None
+        if expected > len(self._since_anchor) or first_after:
+            self._backfill(note.timestamp_ns - 1, newest=expected - len(self._since_anchor))
+            if self._full():
+                return
+        p.evicted += max(0, expected - len(self._since_anchor))
+        self._anchor_seq, self._since_anchor = note.seq, []
+        try:
+            element = self.sub.fetch(note)
+        except FramegateError:
+            p.evicted += 1  # gone from the buffer before we could fetch it
+            return
+        self._queue(element)
+
+    def _backfill(
+        self, end_ns: int | None, newest: int | None = None, timeout_s: float = 5.0
+    ) -> None:
+        """Queue the elements after the last one queued, up to ``end_ns`` (open: all)."""
+        self._accounted_misses = self.sub.missed_total
+        start = None if self._last_ns is None else self._last_ns + 1
+        if start is None:
+            # Nothing recorded yet: only the newest few belong to this recording.
+            newest = newest if newest is not None else self._accounted_misses
+            if not newest:
+                return
+        if start is not None and end_ns is not None and end_ns < start:
+            return
+        try:
+            gap = self.node.query(
+                self.sub.name,
+                time_range=TimeRange(start, end_ns),
+                last=newest if start is None else None,
+                timeout_s=timeout_s,
+            )
+        except FramegateError:
+            return  # what stays missing is counted evicted when the next notification comes
+        for element in gap:
+            if self._full():
+                return
+            if self._queue(element):
+                self.progress.backfilled += 1
+            self._since_anchor.append(element.timestamp_ns)
+
+    def _queue(self, element: DataObject) -> bool:
+        """Hand ``element`` to the writer (unless stamped after the stop); whether kept."""
+        if self.stop_ns is not None and element.timestamp_ns > self.stop_ns:
+            return False
+        if self._last_ns is not None and element.timestamp_ns <= self._last_ns:
+            return False  # queued already (the newest at the start, notified again)
+        self._last_ns = element.timestamp_ns
+        self._fetched += 1
+        return self.queue.put(self.progress, element)

@@ -1,0 +1,135 @@
+"""``ls`` tells "nothing answered" (exit 1) from "nothing is live" (exit 0), as ``info`` does,
+and a port is checked as a port wherever one is given."""
+
+from __future__ import annotations
+
+import socket
+import subprocess
+import sys
+import threading
+from collections.abc import Iterator
+
+import pytest
+
+from tests.conftest import REPO, child_env, free_port, start_framegate
+
+pytestmark = pytest.mark.integration
+
+TIMEOUT_S = 180.0
+
+
+def _framegate(*argv: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "services.cli", *argv],
+        cwd=REPO,
+        env=env or child_env(),
+        capture_output=True,
+        text=True,
+        timeout=TIMEOUT_S,
+    )
+
+
+@pytest.fixture
+def mute_endpoint() -> Iterator[str]:
+    """A TCP port that accepts connections and never speaks Zenoh (a host behind a proxy, a
+    wrong service on the port): a TCP connect alone cannot tell it from a router."""
+    server = socket.create_server(("127.0.0.1", 0))
+    held: list[socket.socket] = []
+
+    def accept() -> None:
+        while True:
+            try:
+                conn, _ = server.accept()
+            except OSError:
+                return
+            held.append(conn)
+
+    threading.Thread(target=accept, daemon=True).start()
+    yield f"tcp/127.0.0.1:{server.getsockname()[1]}"
+    server.close()
+    for conn in held:
+        conn.close()
+
+
+def test_ls_where_nothing_answers_is_an_error_like_info(mute_endpoint: str) -> None:
+    for argv in (["ls"], ["info", "camera/images"]):
+        result = _framegate(*argv, "--connect", mute_endpoint, "--timeout", "1")
+        assert result.returncode == 1, result
+        assert result.stderr.startswith("error: nothing answered via " + mute_endpoint), result
+        assert result.stderr.count("\n") == 1 and not result.stdout, result
+
+
+def test_ls_of_a_refused_endpoint_names_it() -> None:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    result = _framegate("ls", "--connect", endpoint)
+    assert result.returncode == 1, result
+    assert f"error: cannot reach {endpoint}" in result.stderr, result
+
+
+def test_ls_of_a_live_router_with_no_services_is_an_empty_answer() -> None:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = start_framegate(["router", "--listen", endpoint], local_port=free_port())
+    try:
+        assert router.stdout is not None
+        assert "router listening" in router.stdout.readline()
+        result = _framegate("ls", "--connect", endpoint)
+        assert result.returncode == 0, result
+        assert result.stdout.startswith(f"no live services via {endpoint}"), result
+    finally:
+        router.terminate()
+        router.communicate(timeout=TIMEOUT_S)
+
+
+@pytest.mark.parametrize("value", ["99999", "0", "-1"])
+def test_a_local_port_that_is_no_port_is_one_line_naming_the_variable(value: str) -> None:
+    env = child_env()
+    env["FRAMEGATE_LOCAL_PORT"] = value
+    result = _framegate("ls", env=env)
+    assert result.returncode == 1, result
+    assert (
+        result.stderr == f"error: FRAMEGATE_LOCAL_PORT={value} is not a port number: use 1..65535\n"
+    )
+
+
+def test_a_connect_port_that_is_no_port_is_said_so() -> None:
+    result = _framegate("ls", "--connect", "tcp/127.0.0.1:99999")
+    assert result.returncode == 1, result
+    assert "99999 is not a port number" in result.stderr, result
+
+
+def test_router_listens_on_the_rendezvous_port_the_environment_names() -> None:
+    port = free_port()
+    router = start_framegate(["router"], local_port=port)  # FRAMEGATE_LOCAL_PORT=port
+    try:
+        assert router.stdout is not None
+        line = router.stdout.readline()
+        assert line == f"router listening on tcp/127.0.0.1:{port}\n", line
+        socket.create_connection(("127.0.0.1", port), timeout=TIMEOUT_S).close()
+    finally:
+        router.terminate()
+        router.communicate(timeout=TIMEOUT_S)
+
+
+def test_a_second_view_on_a_taken_port_is_one_line_naming_the_flag() -> None:
+    env = child_env()
+    env["FRAMEGATE_VIEW_PORT"] = str(free_port())
+    env["FRAMEGATE_LOCAL_PORT"] = str(free_port())
+    first = subprocess.Popen(
+        [sys.executable, "-m", "services.cli", "view"],
+        cwd=REPO,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    try:
+        assert first.stdout is not None
+        line = first.stdout.readline()
+        assert line.startswith(f"serving Foxglove on ws://127.0.0.1:{env['FRAMEGATE_VIEW_PORT']}")
+        second = _framegate("view", env=env)
+        assert second.returncode == 1, second
+        assert second.stderr.count("\n") == 1, second
+        assert "the port is taken" in second.stderr and "--port" in second.stderr, second
+    finally:
+        first.terminate()
+        first.communicate(timeout=TIMEOUT_S)

@@ -1,0 +1,151 @@
+"""``launch`` (and ``launch --check``) read every file a deploy file names before anything
+starts: Zenoh configs and the certificates in them, camera descriptions, replayed datasets."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from middleware import ConfigError, NetworkConfig
+from services.launch import parse_deployment, process_specs
+from tests.conftest import REPO, child_env, free_port, wait_until
+
+_TLS_CONFIG = """{
+  mode: "client",
+  transport: { link: { tls: {
+    root_ca_certificate: "%(dir)s/ca.pem",
+    connect_certificate: "%(dir)s/camera.pem",
+    connect_private_key: "%(dir)s/camera.key",
+  } } },
+}
+"""
+
+
+def _specs(text: str) -> None:
+    process_specs(parse_deployment(text, "d.yaml"), None, NetworkConfig(), text=text)
+
+
+def test_a_missing_zenoh_config_is_named(tmp_path: Path) -> None:
+    missing = tmp_path / "nowhere.json5"
+    text = f"services:\n  gyro:\n    network: {{config: {missing}}}\n"
+    with pytest.raises(
+        ConfigError, match=rf"d\.yaml: service 'gyro': cannot read Zenoh config {missing}"
+    ):
+        _specs(text)
+
+
+@pytest.mark.parametrize("absent", ["ca.pem", "camera.pem", "camera.key"])
+def test_a_certificate_a_zenoh_config_names_must_exist(tmp_path: Path, absent: str) -> None:
+    for name in ("ca.pem", "camera.pem", "camera.key"):
+        if name != absent:
+            (tmp_path / name).write_text("x")
+    config = tmp_path / "camera.json5"
+    config.write_text(_TLS_CONFIG % {"dir": tmp_path})
+    text = f"services:\n  camera:\n    args: {{source: sim}}\n    network: {{config: {config}}}\n"
+    with pytest.raises(
+        ConfigError, match=rf"cannot read {tmp_path / absent}, the \w+ of Zenoh config"
+    ):
+        _specs(text)
+
+
+def test_a_config_with_every_certificate_passes(tmp_path: Path) -> None:
+    for name in ("ca.pem", "camera.pem", "camera.key"):
+        (tmp_path / name).write_text("x")
+    config = tmp_path / "camera.json5"
+    config.write_text(_TLS_CONFIG % {"dir": tmp_path})
+    _specs(f"services:\n  camera:\n    args: {{source: sim}}\n    network: {{config: {config}}}\n")
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (
+            "{source: device, path: '0', camera_xml: /no/cam.xml}",
+            r"cannot read camera description /no/cam\.xml",
+        ),
+        ("{source: replay, path: /no/dataset}", r"dataset /no/dataset"),
+    ],
+)
+def test_a_file_a_service_argument_names_must_be_readable(args: str, message: str) -> None:
+    with pytest.raises(ConfigError, match=rf"d\.yaml: service 'camera': {message}"):
+        _specs(f"services:\n  camera:\n    args: {args}\n")
+
+
+def test_a_camera_description_that_is_no_camera_xml_is_refused(tmp_path: Path) -> None:
+    bad = tmp_path / "cam.xml"
+    bad.write_text("<not-metadata/>")
+    text = f"services:\n  camera:\n    args: {{source: device, path: '0', camera_xml: {bad}}}\n"
+    with pytest.raises(ConfigError, match=rf"camera description {bad}: "):
+        _specs(text)
+
+
+def test_a_ros2_side_config_must_exist() -> None:
+    text = (
+        "services:\n  ros2:\n    args: {ros_config: /no/ros.json5, image_in: /camera/image_raw}\n"
+    )
+    with pytest.raises(
+        ConfigError, match=r"service 'ros2': cannot read Zenoh config /no/ros\.json5"
+    ):
+        _specs(text)
+
+
+def test_check_of_the_secure_deploy_file_without_its_certificates_fails_in_one_line(
+    tmp_path: Path,
+) -> None:
+    # The repository ships no certificates (make-certs.sh makes them): --check must say so.
+    if (REPO / "deploy" / "tls" / "certs").exists():
+        pytest.skip("certificates were generated in this checkout")
+    result = subprocess.run(
+        [sys.executable, "-m", "services.cli", "launch", "deploy/secure.yaml", "--check"],
+        cwd=REPO,
+        env=child_env(),
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert result.returncode == 1, result
+    assert result.stdout == "", result
+    assert result.stderr.startswith("error: deploy/secure.yaml: service 'router': cannot read"), (
+        result
+    )
+    assert result.stderr.count("\n") == 1, result
+
+
+@pytest.mark.integration
+def test_launch_renders_a_prerendered_approach_first_and_a_stop_there_starts_nothing(
+    tmp_path: Path,
+) -> None:
+    cache = tmp_path / "cache"
+    deploy = tmp_path / "d.yaml"
+    deploy.write_text(
+        f"services:\n  camera:\n    args: {{source: prerendered, seed: 5, path: {cache}}}\n"
+    )
+    env = child_env()
+    env["FRAMEGATE_LOCAL_PORT"] = str(free_port())
+    env["FRAMEGATE_RUNTIME_DIR"] = str(tmp_path / "run")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "services.cli", "launch", str(deploy)],
+        cwd=REPO,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert proc.stderr is not None
+        line = proc.stderr.readline()  # before any service starts: the one-time render
+        assert line.startswith(f"rendering the approach once (cached in {cache})"), line
+        wait_until(lambda: any(cache.glob("*.partial-*")), 300, "the render to begin")
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0, (out, err)
+    assert "launching" not in out, out
+    assert not list(cache.glob("*.partial-*")), "a stopped render leaves no partial directory"

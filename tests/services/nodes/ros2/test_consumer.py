@@ -1,0 +1,189 @@
+"""The loop's pure parts: the leading header of any result, the outstanding images, and the
+result type read from the ROS graph."""
+
+from __future__ import annotations
+
+import struct
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from middleware import ConfigError
+from services.nodes.ros2._cdr import DETECTIONS, IMAGE, Codec
+from services.nodes.ros2._config import Mapping, Ros2Config
+from services.nodes.ros2._consumer import (
+    ConsumerCounts,
+    DoneTopic,
+    GateBook,
+    Header,
+    HeaderError,
+    Outstanding,
+    decode_header,
+    ros_type_of,
+)
+from services.nodes.ros2._rmw import EntityKind, NodeIdentity, Qos, dds_type_name
+
+STAMP = 1_700_000_000_123_456_789
+
+
+def test_the_header_of_a_detection_array_is_read_without_its_type() -> None:
+    codec = Codec("jazzy")
+    raw = bytes(codec.encode_detections(STAMP, "camera_optical", [(7, [0.0] * 8)]))
+    assert decode_header(raw) == Header(STAMP, "camera_optical")
+
+
+def test_the_header_of_a_big_endian_message_is_read() -> None:
+    text = b"cam\0"
+    raw = b"\x00\x00\x00\x00" + struct.pack(">iII", 12, 34, len(text)) + text
+    assert decode_header(raw) == Header(12_000_000_034, "cam")
+
+
+@pytest.mark.parametrize(
+    ("raw", "match"),
+    [
+        (b"", "cannot hold"),
+        (b"\x00\x07\x00\x00" + bytes(16), "encapsulation 0007"),
+        (b"\x00\x01\x00\x00" + struct.pack("<iII", 1, 10**9, 1) + b"\0", "nanosec"),
+        (b"\x00\x01\x00\x00" + struct.pack("<iII", 1, 0, 99) + b"ab\0", "frame_id of 99"),
+        (b"\x00\x01\x00\x00" + struct.pack("<iII", 1, 0, 0) + b"\0", "frame_id of 0"),
+        (b"\x00\x01\x00\x00" + struct.pack("<iII", 1, 0, 2) + b"ab", "NUL"),
+        (b"\x00\x01\x00\x00" + struct.pack("<iII", 1, 0, 2) + b"\xff\0", "UTF-8"),
+    ],
+)
+def test_an_unreadable_header_is_a_header_error(raw: bytes, match: str) -> None:
+    with pytest.raises(HeaderError, match=match):
+        decode_header(raw)
+
+
+@settings(deadline=None)  # pure and small: no wall-clock bound per example
+@given(st.binary(max_size=64))
+def test_any_bytes_give_a_header_or_a_header_error(raw: bytes) -> None:
+    try:
+        decode_header(raw)
+    except HeaderError:
+        pass
+
+
+def test_an_answer_frees_its_slot_and_a_second_answer_matches_nothing() -> None:
+    ledger = Outstanding(2, 1000)
+    assert ledger.add(10, 0) and ledger.add(20, 5)
+    assert not ledger.add(30, 6)  # every slot taken
+    resolved = ledger.answer(20, 50)
+    assert not isinstance(resolved, str)
+    assert (resolved.stamp_ns, resolved.resolved_ns - resolved.published_ns) == (20, 45)
+    assert ledger.answer(20, 60) == "unmatched"
+    assert ledger.answer(99, 60) == "unmatched"
+    assert len(ledger) == 1
+    assert ledger.counts() == ConsumerCounts(published=2, answered=1, unmatched=2, outstanding=1)
+
+
+def test_an_unanswered_image_times_out_once_and_its_late_answer_is_told_apart() -> None:
+    ledger = Outstanding(3, 100)
+    ledger.add(10, 0)
+    ledger.add(20, 50)
+    assert ledger.next_deadline_ns() == 100
+    assert ledger.expire(99) == []
+    gone = ledger.expire(100)
+    assert [(g.stamp_ns, g.answered) for g in gone] == [(10, False)]
+    assert ledger.next_deadline_ns() == 150
+    assert ledger.answer(10, 120) == "late"
+    assert [g.stamp_ns for g in ledger.expire(10_000)] == [20]
+    assert ledger.next_deadline_ns() is None
+    assert ledger.counts() == ConsumerCounts(published=2, timed_out=2, late=1)
+
+
+def test_a_withdrawn_image_was_never_published() -> None:
+    ledger = Outstanding(1, 100)
+    ledger.add(10, 0)
+    ledger.withdraw(10)
+    assert ledger.add(11, 1)
+    assert ledger.counts().published == 1
+
+
+def _token(topic: str, ros_type: str, hash_chunk: str, kind: EntityKind) -> str:
+    node = NodeIdentity(0, "a1b2", "yolo")
+    return node.endpoint_token(3, kind, topic, ros_type, hash_chunk, Qos())
+
+
+def test_the_result_type_comes_from_the_first_publishers_token() -> None:
+    done = DoneTopic("/yolo/detections")
+    hash_chunk = Codec("jazzy").rihs01(DETECTIONS)
+    # Subscriptions and other topics say nothing about the publisher's type.
+    assert done.feed(_token("/yolo/detections", IMAGE, "h", EntityKind.SUBSCRIPTION)) is None
+    assert done.feed(_token("/other", IMAGE, "h", EntityKind.PUBLISHER)) is None
+    assert done.feed("@ros2_lv/0/garbage") is None
+    assert done.found is None
+    assert (
+        done.feed(_token("/yolo/detections", DETECTIONS, hash_chunk, EntityKind.PUBLISHER)) is None
+    )
+    assert done.found is not None
+    assert (done.found.ros_type, done.found.type_hash) == (DETECTIONS, hash_chunk)
+    other = _token("/yolo/detections", "my_msgs/msg/Boxes", "RIHS01_00", EntityKind.PUBLISHER)
+    said = done.feed(other)
+    assert said is not None and "my_msgs/msg/Boxes" in said and DETECTIONS in said
+    assert done.feed(other) is None  # said once
+    assert done.found.ros_type == DETECTIONS
+
+
+@pytest.mark.parametrize("ros_type", [DETECTIONS, "my_msgs/msg/Done", "a_b/msg/C_d"])
+def test_dds_type_names_turn_back_into_ros_type_names(ros_type: str) -> None:
+    assert ros_type_of(dds_type_name(ros_type)) == ros_type
+
+
+@pytest.mark.parametrize(
+    "bad", ["Detection2DArray", "a::msg::Name_", "a::msg::dds_::Name", "a::b::dds_::_"]
+)
+def test_other_names_are_not_type_names(bad: str) -> None:
+    with pytest.raises(ValueError, match="not a DDS type name"):
+        ros_type_of(bad)
+
+
+def test_the_loop_needs_one_image_out_mapping_or_its_name() -> None:
+    one = (Mapping("mediator/images", "/sharp"),)
+    two = (*one, Mapping("camera/images", "/raw"))
+    assert Ros2Config(image_out=one, consumer_done="/det").consumer_mapping == one[0]
+    assert Ros2Config(image_out=one).consumer_mapping is None
+    with pytest.raises(ConfigError, match="one --image-out mapping"):
+        Ros2Config(image_out=two, consumer_done="/det")
+    with pytest.raises(ConfigError, match="not an --image-out buffer"):
+        Ros2Config(image_out=two, consumer_done="/det", consumer_input="x/y")
+    config = Ros2Config(image_out=two, consumer_done="/det", consumer_input="camera/images")
+    assert config.consumer_mapping == two[1]
+    with pytest.raises(ConfigError, match="--consumer-queue"):
+        Ros2Config(image_out=one, consumer_done="/det", consumer_queue=0)
+
+
+def test_each_resolution_is_owed_one_gate_take() -> None:
+    book = GateBook(100)
+    book.owe(2, 0)
+    assert book.debt == 2
+    assert book.taken(1, 10) == 0 and book.debt == 1  # one notification not there yet
+    assert book.taken(1, 20) == 0 and book.debt == 0
+
+
+def test_a_debt_no_gate_notification_comes_for_is_cancelled_after_the_timeout() -> None:
+    book = GateBook(100)
+    book.owe(1, 0)
+    assert book.taken(0, 100) == 0 and book.debt == 1
+    assert book.taken(0, 101) == 1 and book.debt == 0
+    book.owe(1, 200)  # a new debt starts its own clock
+    assert book.taken(0, 250) == 0 and book.debt == 1
+
+
+def test_only_a_surplus_that_lasts_the_timeout_is_freed() -> None:
+    book = GateBook(100)
+    assert book.surplus(3, 3, 0) == 0
+    assert book.surplus(4, 3, 10) == 0  # an image between the feed and the ledger
+    assert book.surplus(3, 3, 50) == 0  # gone: its clock restarts
+    assert book.surplus(4, 3, 120) == 0
+    assert book.surplus(4, 3, 220) == 0
+    assert book.surplus(5, 3, 221) == 2
+    assert book.surplus(5, 3, 222) == 0  # freed: a new surplus starts its own clock
+
+
+def test_no_surplus_is_freed_while_a_debt_is_paid() -> None:
+    book = GateBook(100)
+    book.owe(1, 0)
+    assert book.surplus(2, 0, 0) == 0
+    assert book.surplus(2, 0, 500) == 0
