@@ -131,10 +131,12 @@ class Producer:
         self._acks = Inbox(capacity=_ACK_INBOX, max_bytes=ACK_MAX_BYTES, signal=self._wake.signal)
         # A token is the executor's at once: a new subscriber waits for its greeting. A token
         # is its key; it carries no payload.
+        self._token_keys = keys.subscription_tokens(service, buffer)
+        self._tokens_dropped = 0
         self._tokens = Inbox(capacity=_TOKEN_INBOX, max_bytes=0, signal=self._signal)
         self._acks.declare(session, keys.acks(service, buffer))
         # Declared last: its callback (history included) may run at once.
-        self._tokens.declare(session, keys.subscription_tokens(service, buffer), liveliness=True)
+        self._tokens.declare(session, self._token_keys, liveliness=True)
 
     @property
     def name(self) -> str:
@@ -162,6 +164,9 @@ class Producer:
             alive = sample.kind == zenoh.SampleKind.PUT
             self._protocol.token(str(sample.key_expr), alive, now)
             changed = True
+        if self._tokens.dropped != self._tokens_dropped:  # churn overflowed the inbox
+            self._tokens_dropped = self._tokens.dropped
+            self._protocol.tokens_lost(now)
         return changed
 
     def run_ready(self, budget: int) -> bool:
@@ -182,7 +187,17 @@ class Producer:
 
     def on_deadline(self, now_ns: int) -> None:
         """(the executor) Resends that are due, once a batch of waiting acks has been fed
-        (more than a batch is a backlog, fed turn by turn: ``Wake``)."""
+        (more than a batch is a backlog, fed turn by turn: ``Wake``); a resync of the
+        registrations after lost token events (one liveliness query, not under the locks)."""
+        with self._lock:
+            resync = self._protocol.resync_due(now_ns)
+        if resync:
+            live: list[str] = []
+            with contextlib.suppress(zenoh.ZError):
+                replies = self._session.liveliness().get(self._token_keys, timeout=1.0)
+                live = [str(r.ok.key_expr) for r in replies if r.ok is not None]
+            with self._lock:
+                self._protocol.resync(live, time.monotonic_ns())
         with self._send_lock:
             with self._lock:
                 if self._closed:
@@ -332,6 +347,8 @@ class Producer:
                         event.payload,
                         attachment=event.attachment,
                         congestion_control=zenoh.CongestionControl.DROP,
+                        # Whose it is: a subscriber trusts a refusal only from our session.
+                        source_info=zenoh.SourceInfo(self._session.id, 0),
                     )
                     continue
                 publisher = self._publishers.get(event.key)
@@ -447,6 +464,7 @@ class Producer:
             subscriptions=subs,
             skipped=skipped,
             refused_subscriptions=protocol.refused_registrations,
+            limits=self._protocol.limits(),
             dropped_messages=self._acks.dropped + self._tokens.dropped,
         )
 

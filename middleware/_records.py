@@ -104,6 +104,24 @@ class SubscriptionInfo:
 
 
 @dataclass(frozen=True, slots=True)
+class BufferLimits:
+    """The limits a producer applies to subscriptions (docs/limits.md explains each).
+
+    One holder (a token's ``<node>~<host>``) may hold at most half of what the other
+    holders leave free of the queue budget and of each pool of slots."""
+
+    flow_registrations: int = 256
+    observe_registrations: int = 256
+    queue_budget: int = 1 << 16
+    # The largest flow queue one subscriber can get (a holder's share of an idle producer).
+    flow_queue_max: int = 1 << 15
+    # Registrations that get payloads above the producer's inline limit pushed.
+    large_push_per_holder: int = 4
+    large_push_total: int = 16
+    holder_share: str = "half of what other holders leave free"
+
+
+@dataclass(frozen=True, slots=True)
 class BufferInfo:
     """What ``info`` reports of one buffer."""
 
@@ -125,6 +143,8 @@ class BufferInfo:
     skipped: dict[str, int] = field(default_factory=dict)
     # Subscription tokens this producer refused (a limit: slots or the queue budget).
     refused_subscriptions: int = 0
+    # The limits it refuses by (None from a peer that does not report them).
+    limits: BufferLimits | None = None
     # Control messages (acks, subscription tokens) dropped unread: larger than their format
     # allows, or pushed out of a full inbox by newer ones (a flood).
     dropped_messages: int = 0

@@ -123,6 +123,14 @@ def _print_buffer(service: ServiceInfo, b: BufferInfo) -> None:
     print(f"  rate           {b.rate_hz:.1f} Hz")
     skipped = "".join(f", skipped {reason} {n}" for reason, n in sorted(b.skipped.items()))
     print(f"  producer       puts {b.puts}, refused {b.refused}, rejected {b.rejected}{skipped}")
+    if b.limits is not None:  # docs/limits.md
+        lim = b.limits
+        print(
+            f"  limits         {lim.flow_registrations} flow + {lim.observe_registrations} "
+            f"observe subscriptions, queue budget {lim.queue_budget} (one queue at most "
+            f"{lim.flow_queue_max}); each node~host at most half of what others leave free; "
+            f"refused {b.refused_subscriptions}"
+        )
     if not b.subscriptions:
         print("  subscriptions  none")
         return
