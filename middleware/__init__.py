@@ -49,9 +49,10 @@ from ._errors import (
 from ._kinds import register_kind
 from ._node import Node
 from ._producer import Producer
-from ._protocol_producer import INLINE_METADATA_MAX, QUEUE_BUDGET
+from ._protocol_producer import FLOW_QUEUE_MAX, INLINE_METADATA_MAX, QUEUE_BUDGET
 from ._records import (
     BufferInfo,
+    BufferLimits,
     DataObject,
     Notification,
     Retention,
@@ -67,11 +68,13 @@ from ._xml import XmlLimits, field_text, make_metadata, parse_untrusted, validat
 
 __all__ = [
     "EXIT_NAME_TAKEN",
+    "FLOW_QUEUE_MAX",
     "INLINE_METADATA_MAX",
     "PUSH_ALL",
     "QUEUE_BUDGET",
     "RENDEZVOUS_DELAY_MS",
     "BufferInfo",
+    "BufferLimits",
     "ClockSample",
     "ClockStatus",
     "ConfigError",

@@ -5,32 +5,23 @@
 from __future__ import annotations
 
 import difflib
-import json
 import time
 from contextlib import suppress
-from typing import Any
 
 import zenoh
 
-from ._clock import ClockSample, now_ns
+from ._clock import now_ns
 from ._config import NetworkConfig, check_name
+from ._decode import decode_service_info
 from ._errors import ConfigError, NotFoundError, QueryError
-from ._records import (
-    BufferInfo,
-    Retention,
-    Rewind,
-    ServiceInfo,
-    SubscriptionInfo,
-    SubscriptionMode,
-)
+from ._records import BufferInfo, ServiceInfo
+from ._service import answering_sessions
 from ._session import zenoh_errors
 from ._wire import Keys
 
 # A fresh session needs a moment to learn the network's liveliness tokens and queryables;
 # discovery asked earlier sees only part of it (measured: 2-3 of 4 services, through a router).
 _SETTLE_S = 0.3
-# Thread names an @info reply may list (a peer's list is cut here, not trusted to be short).
-_MAX_THREADS = 256
 
 
 def split_target(target: str) -> tuple[str, str]:
@@ -125,10 +116,10 @@ class Discovery:
         for reply in replies:
             if reply.ok is None:
                 continue
-            try:
-                out.append(_service_info(json.loads(reply.ok.payload.to_bytes()), start, end))
-            except (ValueError, KeyError, TypeError):
-                continue  # a peer that answers garbage is left out, not fatal
+            raw = reply.ok.payload.to_bytes()
+            name = str(reply.ok.key_expr).rsplit("/", 1)[-1]
+            with suppress(QueryError):  # a peer that answers garbage is left out, not fatal
+                out.append(decode_service_info(raw, start, end, service=name))
         return sorted(out, key=lambda s: s.service)
 
     def service_info(self, service: str, *, timeout_s: float = 2.0) -> ServiceInfo:
@@ -139,9 +130,18 @@ class Discovery:
         end = now_ns()
         for reply in replies:
             if reply.ok is not None:
-                return _service_info(json.loads(reply.ok.payload.to_bytes()), start, end)
+                raw = reply.ok.payload.to_bytes()
+                return decode_service_info(raw, start, end, service=service)
         self._require_service(service)
         raise NotFoundError(f"service {service!r} did not answer within {timeout_s} s")
+
+    def _producer_ids(self, service: str) -> frozenset[str]:
+        """The Zenoh sessions that answer as ``service`` (empty if none does): whose
+        refusals a subscription trusts."""
+        try:
+            return answering_sessions(self._session, self.keys, service)
+        except zenoh.ZError:
+            return frozenset()
 
     def buffer_info(self, target: str, *, timeout_s: float = 2.0) -> BufferInfo:
         """One buffer's description (retention, size, rate, subscriptions, counters)."""
@@ -157,61 +157,3 @@ class Discovery:
         raise NotFoundError(
             f"service {service!r} has no buffer {buffer!r}{did_you_mean}; it offers: {offered}"
         )
-
-
-def _service_info(body: dict[str, Any], start_ns: int, end_ns: int) -> ServiceInfo:
-    buffers = []
-    for b in body["buffers"]:
-        subs = tuple(
-            SubscriptionInfo(
-                s["id"],
-                SubscriptionMode(s["mode"]),
-                int(s["queue_size"]),
-                int(s["queued"]),
-                node=s.get("node"),
-                host=s.get("host"),
-            )
-            for s in b["subscriptions"]
-        )
-        buffers.append(
-            BufferInfo(
-                service=b["service"],
-                buffer=b["buffer"],
-                kind=b["kind"],
-                retention=Retention(**b["retention"]),
-                count=b["count"],
-                payload_bytes=b["payload_bytes"],
-                oldest_ns=b["oldest_ns"],
-                newest_ns=b["newest_ns"],
-                rate_hz=b["rate_hz"],
-                puts=b["puts"],
-                refused=b["refused"],
-                rejected=b["rejected"],
-                subscriptions=subs,
-                skipped={str(k): int(v) for k, v in b.get("skipped", {}).items()},
-                refused_subscriptions=int(b.get("refused_subscriptions", 0)),
-                rewinds=tuple(Rewind.from_json(r) for r in b.get("rewinds", [])[:64]),
-                dropped_messages=int(b.get("dropped_messages", 0)),
-            )
-        )
-    sample = ClockSample.from_times(start_ns, int(body["clock_ns"]), end_ns)
-    clock = body.get("clock")
-    return ServiceInfo(
-        service=body["service"],
-        host=body["host"],
-        pid=int(body["pid"]),
-        clock_ns=int(body["clock_ns"]),
-        buffers=tuple(buffers),
-        clock_offset_ns=sample.offset_ns,
-        round_trip_ns=sample.round_trip_ns,
-        clock_steps=int(clock["steps"]) if isinstance(clock, dict) else None,
-        clock_lead_ns=int(clock["lead_ns"]) if isinstance(clock, dict) else None,
-        threads=_names(body.get("threads")),
-    )
-
-
-def _names(value: Any) -> tuple[str, ...] | None:
-    """A list of strings as a tuple; None for anything else (an old or odd peer)."""
-    if isinstance(value, list) and all(isinstance(v, str) for v in value):
-        return tuple(value[:_MAX_THREADS])
-    return None

@@ -199,11 +199,13 @@ class Executor:
                 self._timed.remove(obj)
 
     def poke(self, deadline_ns: int) -> None:
-        """An object's deadline is now ``deadline_ns``: wake the executor if it sleeps past
-        it (a lock only then)."""
-        if self._sleeping and deadline_ns < self._wake_at_ns:
-            with self._cond:
-                self._cond.notify_all()
+        """An object's deadline is now ``deadline_ns``: wake the executor unless it sleeps
+        and wakes in time anyway. (Not sleeping, it may be reading the deadlines under its
+        lock right now: the lock then waits for its sleep, and the notify ends that sleep.)"""
+        if self._sleeping and deadline_ns >= self._wake_at_ns:
+            return
+        with self._cond:
+            self._cond.notify_all()
 
     def schedule(self, fn: Callable[[int], object], at_ns: int, period_ns: int = 0) -> Timer:
         timer = Timer(self, fn, at_ns, period_ns)

@@ -52,16 +52,7 @@ def _pin_thread_state() -> None:
 class Inbox:
     """One subscriber's bounded inbox; ``signal`` is called after each append."""
 
-    def __init__(
-        self,
-        session: zenoh.Session,
-        keyexpr: str,
-        *,
-        capacity: int,
-        max_bytes: int,
-        signal: Callable[[], None],
-        liveliness: bool = False,
-    ) -> None:
+    def __init__(self, *, capacity: int, max_bytes: int, signal: Callable[[], None]) -> None:
         self.capacity = capacity
         self.max_bytes = max_bytes
         self.overflow = 0  # samples pushed out by newer ones (a flood)
@@ -70,9 +61,14 @@ class Inbox:
         self._items: deque[zenoh.Sample] = deque()
         self._signal = signal
         self._count_lock = threading.Lock()  # the drop counters (Zenoh may use two threads)
+        self._subscriber: Any = None
+
+    def declare(self, session: zenoh.Session, keyexpr: str, *, liveliness: bool = False) -> None:
+        """Start receiving. Separate from the constructor because the callback may run at
+        once (a liveliness history), when the owner must already hold this inbox."""
         handler = zenoh.handlers.Callback(self._on_sample, indirect=False)
         if liveliness:
-            self._subscriber: Any = session.liveliness().declare_subscriber(
+            self._subscriber = session.liveliness().declare_subscriber(
                 keyexpr, handler, history=True
             )
         else:
@@ -120,6 +116,7 @@ class Inbox:
 
     def close(self) -> None:
         self.closed = True
-        with contextlib.suppress(zenoh.ZError):
-            self._subscriber.undeclare()
+        if self._subscriber is not None:
+            with contextlib.suppress(zenoh.ZError):
+                self._subscriber.undeclare()
         self._items.clear()

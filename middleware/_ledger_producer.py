@@ -33,13 +33,16 @@ Messages in, and what they do in every state:
     a seq beyond ``sent`` cannot move it past what was sent; an ack that moves it records
     its time (``taken_ns``: when the producer last saw the subscriber take). An ack that
     moves nothing while notifications are outstanding is an idle subscriber's repeat: the
-    outstanding ones are due again (a lost notification heals).
+    outstanding ones are due again (a lost notification heals), at most once per
+    ``REPEAT_RESEND_NS`` since the last progress or resend.
 ``put_many(n elements, now)`` (``put`` is ``n = 1``)
-    the queue is counted in elements: refused, whole, while a flow registration has
-    ``sent - acked + n > queue_size`` (``full(n)``; nothing of the batch is counted);
-    otherwise every registration gets seqs ``sent + 1 .. sent + n`` and one ``Send`` that
-    covers them all (one notification for the batch). Each element stays outstanding on its
-    own seq, so acks and resends work per element as if it had come alone.
+    ``stored`` (the producer's element count; every registration's notifications carry the
+    ``base`` it had when they registered) grows by n. The queue is counted in elements:
+    refused, whole, while a flow registration has ``sent - acked + n > queue_size``
+    (``full(n)``; nothing of the batch is counted); otherwise every registration gets seqs
+    ``sent + 1 .. sent + n`` and one ``Send`` that covers them all (one notification for
+    the batch). Each element stays outstanding on its own seq, so acks and resends work per
+    element as if it had come alone.
 ``tick(now)``
     flow registrations with outstanding notifications and no progress for
     ``RETRANSMIT_NS`` get them again (``Send(..., again=True)``), oldest first, one element
@@ -69,6 +72,10 @@ from ._wire import descriptor_of
 MAX_REGISTRATIONS = 1024
 # Outstanding flow-control notifications are sent again after this long without progress.
 RETRANSMIT_NS = 500_000_000
+# A repeated ack makes the outstanding ones due at most this often: a peer repeating a
+# subscriber's last ack as fast as it can (the epoch and seq are on the wire) costs the
+# producer at most one resend round per period, not one per ack.
+REPEAT_RESEND_NS = 100_000_000
 
 # What the Zenoh layer wants to resend with a notification (timestamp, metadata, ...).
 H = TypeVar("H")
@@ -115,6 +122,10 @@ class Registration(Generic[H]):
     taken_ns: int | None = None
     # Set by a failed send or an idle subscriber's repeated ack: resend at the next tick.
     resend_now: bool = False
+    # Elements the producer had stored when this registration was made: seq s is the
+    # producer's element number base + s, so a subscriber whose registration lapsed and came
+    # back under a new epoch counts what was stored in between (``missed``).
+    base: int = 0
 
     @property
     def queued(self) -> int:
@@ -140,6 +151,7 @@ class Send(Generic[H]):
     acked: int
     headers: tuple[H, ...]
     again: bool = False
+    base: int = 0
 
     @property
     def count(self) -> int:
@@ -164,6 +176,8 @@ class ProducerLedger(Generic[H]):
         self._regs: dict[RegistrationKey, Registration[H]] = {}
         self._by_epoch: dict[str, Registration[H]] = {}
         self._count = 0
+        # Elements stored so far (``put_many`` counts them): a new registration's base.
+        self.stored = 0
         self.counters = ProducerCounters()
 
     # -- tokens ----------------------------------------------------------------------------
@@ -175,7 +189,9 @@ class ProducerLedger(Generic[H]):
             self.counters.refused_registrations += 1
             return None
         self._count += 1
-        reg: Registration[H] = Registration(key, f"{self.epoch}.{self._count}", progress_ns=now_ns)
+        reg: Registration[H] = Registration(
+            key, f"{self.epoch}.{self._count}", progress_ns=now_ns, base=self.stored
+        )
         self._regs[key] = reg
         self._by_epoch[reg.epoch] = reg
         return reg
@@ -196,7 +212,12 @@ class ProducerLedger(Generic[H]):
             return False
         new = min(seq, reg.sent)
         if new <= reg.acked:
-            if reg.flow and reg.sent > reg.acked and seq == reg.acked:
+            if (
+                reg.flow
+                and reg.sent > reg.acked
+                and seq == reg.acked
+                and now_ns - reg.progress_ns >= REPEAT_RESEND_NS
+            ):
                 reg.resend_now = True  # an idle subscriber that lacks the rest
             return False
         reg.acked = new
@@ -229,6 +250,7 @@ class ProducerLedger(Generic[H]):
         if self.full(count) is not None:
             raise RuntimeError("put while a flow-controlled queue has no room for it")
         sends: list[Send[H]] = []
+        self.stored += count
         for reg in self._regs.values():
             first = reg.sent + 1
             reg.sent += count
@@ -236,7 +258,7 @@ class ProducerLedger(Generic[H]):
                 if not reg.outstanding:
                     reg.progress_ns = now_ns  # the retransmit clock starts now
                 reg.outstanding.extend(zip(range(first, first + count), headers, strict=True))
-            sends.append(Send(reg.key, reg.epoch, first, reg.acked, headers))
+            sends.append(Send(reg.key, reg.epoch, first, reg.acked, headers, base=reg.base))
         return sends
 
     def send_failed(self, key: RegistrationKey, epoch: str) -> None:
@@ -256,7 +278,7 @@ class ProducerLedger(Generic[H]):
             reg.resend_now = False
             reg.progress_ns = now_ns  # at most one resend per period while nothing moves
             sends.extend(
-                Send(reg.key, reg.epoch, seq, reg.acked, (header,), again=True)
+                Send(reg.key, reg.epoch, seq, reg.acked, (header,), again=True, base=reg.base)
                 for seq, header in reg.outstanding
             )
         return sends

@@ -64,8 +64,10 @@ idle only between notifications, repeats nothing, since a repeat that moves noth
 the producer resend what is merely in flight.
 
 Properties (checked by tests/middleware/test_protocol_model.py after every step): the
-queue never exceeds N; the epoch table is bounded; a flow-controlled subscription never
-reports ``missed``; every notification of a conforming producer reaches ``take`` once.
+queue never exceeds N; the epoch table is bounded; a flow-controlled subscription reports
+``missed`` only for what its caller counts with ``note_missed`` (a lapsed registration,
+see ``SubscriberProtocol``); every notification of a conforming producer reaches ``take``
+once.
 """
 
 from __future__ import annotations
@@ -187,6 +189,17 @@ class SubscriberLedger(Generic[T]):
 
     def epochs(self) -> dict[str, EpochTrack]:
         return dict(self._epochs)
+
+    def track(self, epoch: str) -> EpochTrack | None:
+        """What is known of ``epoch`` (None: not tracked now)."""
+        return self._epochs.get(epoch)
+
+    def note_missed(self, count: int, index: int) -> None:
+        """Count ``count`` elements lost before the queued notification at ``index`` (the
+        caller knows of a gap the seqs cannot show: a lapsed registration)."""
+        entry = self._queue[index]
+        self._queue[index] = entry._replace(missed=entry.missed + count)
+        self.missed_total += count
 
     # -- notifications in ------------------------------------------------------------------
     def receive(self, epoch: str, seq: int, item: T, *, descriptor: str | None) -> bool:

@@ -171,6 +171,7 @@ class Node(Queries):
                 push_max_bytes=-1 if push_max_bytes is None else max(0, push_max_bytes),
                 holder=self.name,
                 on_close=self._forget,
+                producer_ids=self._producer_ids,
             )
         with self._lock:
             self._subscriptions.append(sub)
@@ -227,6 +228,7 @@ class Node(Queries):
         deadline = time.monotonic() + wait_s
         missing: NotFoundError | None = None
         while time.monotonic() < deadline:
+            sub.judge_refusal()  # a refusal counts only from the service's own session
             try:
                 if sub.wait_registered(min(0.25, max(0.0, deadline - time.monotonic()))):
                     return

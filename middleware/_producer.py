@@ -136,30 +136,19 @@ class Producer:
         self._counters = _Counters()
         self._closed = False
         self._on_change: Callable[[], object] | None = None
-        self._declared = False  # both inboxes exist: input may be handled
         executor.add(self)
         self._wake = Wake(self, self._cond, executor, lambda: len(self._acks))
         # Acks are fed by whoever needs credit next (a put, ``fill``, the executor before a
         # resend); only a waiting put, or a backlog, wakes anyone (``Wake``).
-        self._acks = Inbox(
-            session,
-            keys.acks(service, buffer),
-            capacity=_ACK_INBOX,
-            max_bytes=ACK_MAX_BYTES,
-            signal=self._wake.signal,
-        )
-        # Declared last: its callback (history included) may run at once. A token is the
-        # executor's at once: a new subscriber waits for its greeting.
-        self._tokens = Inbox(
-            session,
-            keys.subscription_tokens(service, buffer),
-            capacity=_TOKEN_INBOX,
-            max_bytes=0,  # a token is its key; it carries no payload
-            signal=self._signal,
-            liveliness=True,
-        )
-        self._declared = True
-        self._signal()  # what arrived while the inboxes were being declared
+        self._acks = Inbox(capacity=_ACK_INBOX, max_bytes=ACK_MAX_BYTES, signal=self._wake.signal)
+        # A token is the executor's at once: a new subscriber waits for its greeting. A token
+        # is its key; it carries no payload.
+        self._token_keys = keys.subscription_tokens(service, buffer)
+        self._tokens_dropped = 0
+        self._tokens = Inbox(capacity=_TOKEN_INBOX, max_bytes=0, signal=self._signal)
+        self._acks.declare(session, keys.acks(service, buffer))
+        # Declared last: its callback (history included) may run at once.
+        self._tokens.declare(session, self._token_keys, liveliness=True)
 
     @property
     def name(self) -> str:
@@ -187,13 +176,16 @@ class Producer:
             alive = sample.kind == zenoh.SampleKind.PUT
             self._protocol.token(str(sample.key_expr), alive, now)
             changed = True
+        if self._tokens.dropped != self._tokens_dropped:  # churn overflowed the inbox
+            self._tokens_dropped = self._tokens.dropped
+            self._protocol.tokens_lost(now)
         return changed
 
     def run_ready(self, budget: int) -> bool:
         """(the executor) A bounded batch of input; the events it produced carried out."""
         with self._send_lock:
             with self._lock:
-                if self._closed or not self._declared:
+                if self._closed:
                     return False
                 changed = self._feed(budget)
                 if changed and self._wake.threads:
@@ -216,13 +208,23 @@ class Producer:
             return self._protocol.next_deadline_ns()
 
     def on_deadline(self, now_ns: int) -> None:
-        """(the executor) Resends that are due, once the acks waiting have been fed (the
-        inbox's capacity bounds them)."""
+        """(the executor) Resends that are due, once a batch of waiting acks has been fed
+        (more than a batch is a backlog, fed turn by turn: ``Wake``); a resync of the
+        registrations after lost token events (one liveliness query, not under the locks)."""
+        with self._lock:
+            resync = self._protocol.resync_due(now_ns)
+        if resync:
+            live: list[str] = []
+            with contextlib.suppress(zenoh.ZError):
+                replies = self._session.liveliness().get(self._token_keys, timeout=1.0)
+                live = [str(r.ok.key_expr) for r in replies if r.ok is not None]
+            with self._lock:
+                self._protocol.resync(live, time.monotonic_ns())
         with self._send_lock:
             with self._lock:
                 if self._closed:
                     return
-                if self._feed(_ACK_INBOX) and self._wake.threads:
+                if self._feed(_BUDGET) and self._wake.threads:
                     self._cond.notify_all()
                 self._protocol.tick(now_ns)
                 events = self._protocol.events()
@@ -367,6 +369,8 @@ class Producer:
                         event.payload,
                         attachment=event.attachment,
                         congestion_control=zenoh.CongestionControl.DROP,
+                        # Whose it is: a subscriber trusts a refusal only from our session.
+                        source_info=zenoh.SourceInfo(self._session.id, 0),
                     )
                     continue
                 publisher = self._publishers.get(event.key)
@@ -476,6 +480,7 @@ class Producer:
             skipped=skipped,
             refused_subscriptions=protocol.refused_registrations,
             rewinds=rewinds,
+            limits=self._protocol.limits(),
             dropped_messages=self._acks.dropped + self._tokens.dropped,
         )
 

@@ -9,7 +9,8 @@ Zenoh layer (``Producer``) only feeds it (``token``, ``ack``, ``put_many``, ``ti
 carries out what ``events()`` returns; ``next_deadline_ns()`` tells the node's executor when
 to call ``tick``. The credit rules themselves are the pure ``ProducerLedger``.
 
-Limits (every resource a peer can make a producer hold is bounded here):
+Limits (every resource a peer can make a producer hold is bounded here; docs/limits.md
+states them for users and ``info`` reports them as ``BufferLimits``):
 
 - Registration slots: ``MAX_FLOW_REGISTRATIONS`` flow-controlled and, separately,
   ``MAX_OBSERVE_REGISTRATIONS`` observers, so a crowd of observers can never take the slot
@@ -20,8 +21,28 @@ Limits (every resource a peer can make a producer hold is bounded here):
   exceed ``QUEUE_BUDGET``; a token that would exceed it is refused. So the headers kept for
   resending are at most ``QUEUE_BUDGET`` (each holding at most ``INLINE_METADATA_MAX`` bytes
   of metadata), whatever the peers ask for.
+- Fair shares: one *holder* (the ``<node>~<host>`` a token names: the peer as the protocol
+  sees it) may hold at most half of what the other holders leave free, of the queue budget
+  and of each pool of slots. Why half of the free part and not a fixed quota: a fixed
+  quota either starves a lone big consumer (a recorder with a deep queue) or lets a few
+  holders take everything; with half of what is free, the first greedy holder gets half,
+  and whoever asks next still finds the other half, whatever order they come in. A single
+  flow queue can therefore be at most ``FLOW_QUEUE_MAX`` (half the budget). Holder names
+  are what tokens say: a peer that forges many holder names gets ever smaller halves
+  (after k names, 2^-k of the budget is left to the next), which needs the secure profile
+  to close (only a consumer's certificate may declare flow tokens).
+- Large pushes: a subscriber may ask for payloads above the producer's ``inline_max_bytes``
+  to travel with its notifications; at most ``LARGE_PUSH_PER_HOLDER`` registrations of one
+  holder and ``LARGE_PUSH_TOTAL`` in all get that (first come), the others get the
+  producer's default (they fetch the larger ones). So no peer can make a put copy its
+  payload to hundreds of registrations.
 - Resends are paced: at most ``RESEND_BURST`` notifications of one registration per tick,
   the rest ``RESEND_PACE_NS`` later, never a whole window at once.
+- Tokens cost O(1) amortised work each (one table look-up, the shares kept as running
+  sums per holder), so token churn at any rate costs the producer bounded work per token.
+  Token events the Zenoh layer had to drop (its inbox is bounded) are repaired by a
+  ``resync`` against the live tokens, at most every ``RESYNC_NS``: a withdrawn token whose
+  event was lost cannot hold the producer for ever, nor a live one stay unregistered.
 
 Every refusal reaches the subscriber as a control message on its notification key
 (``["refused", descriptor, reason]``; see ``_wire``) and is counted; an accepted
@@ -33,8 +54,21 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 
-from ._ledger_producer import ProducerLedger, Registration, RegistrationKey, Send
-from ._records import DataObject, SubscriptionInfo, SubscriptionMode
+from ._ledger_producer import (
+    REPEAT_RESEND_NS,
+    ProducerLedger,
+    Registration,
+    RegistrationKey,
+    Send,
+)
+
+# The limits live with the shares; importable from here too (the producer's side).
+from ._protocol_shares import FLOW_QUEUE_MAX as FLOW_QUEUE_MAX
+from ._protocol_shares import LARGE_PUSH_PER_HOLDER, LARGE_PUSH_TOTAL, Shares, fair_share, holder_of
+from ._protocol_shares import MAX_FLOW_REGISTRATIONS as MAX_FLOW_REGISTRATIONS
+from ._protocol_shares import MAX_OBSERVE_REGISTRATIONS as MAX_OBSERVE_REGISTRATIONS
+from ._protocol_shares import QUEUE_BUDGET as QUEUE_BUDGET
+from ._records import BufferLimits, DataObject, SubscriptionInfo, SubscriptionMode
 from ._wire import (
     Keys,
     decode_ack,
@@ -46,13 +80,18 @@ from ._wire import (
 
 log = logging.getLogger("framegate.middleware")
 
-MAX_FLOW_REGISTRATIONS = 256
-MAX_OBSERVE_REGISTRATIONS = 256
-# Sum of the queue sizes of all flow registrations of one producer (see the module doc).
-QUEUE_BUDGET = 1 << 16
 # Metadata rides along with notifications (and is kept for resends) up to this size.
 INLINE_METADATA_MAX = 8 * 1024
 RESEND_BURST = 16
+# After lost token events, the table is checked against the live tokens at most this often,
+# reading at most this many of them.
+RESYNC_NS = 2_000_000_000
+RESYNC_TOKENS = 4 * (MAX_FLOW_REGISTRATIONS + MAX_OBSERVE_REGISTRATIONS)
+# An ack is a msgpack map of two (``_wire.encode_ack``); keys whose last ack is remembered.
+_ACK_FIRST_BYTE = b"\x82"
+_LAST_ACKS = 1024
+# Distinct refusal reasons counted by text (their count is bounded: a peer chooses them).
+_REFUSAL_REASONS = 64
 RESEND_PACE_NS = 5_000_000
 
 
@@ -156,7 +195,6 @@ class ProducerProtocol:
         self._keys = keys
         self._service = service
         self._buffer = buffer
-        self._budget = queue_budget
         self._max = {SubscriptionMode.FLOW: max_flow, SubscriptionMode.OBSERVE: max_observe}
         self._ledger: ProducerLedger[_Kept] = ProducerLedger(
             epoch, max_registrations=max_flow + max_observe
@@ -165,6 +203,15 @@ class ProducerProtocol:
         # Registrations whose resend was cut at RESEND_BURST: when to go on.
         self._paced: dict[RegistrationKey, tuple[int, int]] = {}  # key -> (when, next seq)
         self._holders: dict[RegistrationKey, tuple[str | None, str | None]] = {}
+        # Fair shares (module doc): per holder and in total; the push limit each registration
+        # actually gets (its own, or the producer's inline limit beyond the large-push caps).
+        self._shares = Shares(self.name, queue_budget, max_flow, max_observe)
+        self._push_limit: dict[RegistrationKey, int] = {}
+        # Lost token events: when a resync is due (None: none), when the last one was.
+        self._resync_at_ns: int | None = None
+        self._resynced_ns = -RESYNC_NS
+        # The last ack seen per ack key and when (see ``ack``), at most ``_LAST_ACKS``.
+        self._last_acks: dict[str, tuple[bytes, int]] = {}
         self.counters = ProtocolCounters()
 
     # -- input -----------------------------------------------------------------------------
@@ -180,17 +227,19 @@ class ProducerProtocol:
         if not alive:
             gone = self._ledger.token_delete(key)
             if gone is not None:
-                self._paced.pop(key, None)
-                self._holders.pop(key, None)
+                self._forget(key)
                 self._events.append(Retire(key))
                 log.debug("%s: subscription %s withdrawn", self.name, key.sub_id)
             return
         if self._ledger.get(key) is not None:
             return  # a repeat (history and live both deliver it)
-        reason = self._refusal(key)
+        node, host = parsed[4:]
+        holder = holder_of(node, host)
+        reason = self._shares.refusal(key, holder)
         if reason is not None:
             self.counters.refused_registrations += 1
-            self.counters.refusals[reason] = self.counters.refusals.get(reason, 0) + 1
+            if len(self.counters.refusals) < _REFUSAL_REASONS or reason in self.counters.refusals:
+                self.counters.refusals[reason] = self.counters.refusals.get(reason, 0) + 1
             log.debug("%s: refused subscription %s: %s", self.name, key.sub_id, reason)
             self._control(key, encode_control("refused", key.descriptor, reason))
             return
@@ -198,36 +247,79 @@ class ProducerProtocol:
         if reg is None:  # the ledger's own table bound; unreachable under the limits above
             self.counters.refused_registrations += 1
             return
-        self._holders[key] = parsed[4:]
-        log.debug("%s: subscription %s registered as %s", self.name, key.sub_id, reg.epoch)
-        self._control(key, encode_control("hello", key.descriptor, reg.epoch))
-
-    def _refusal(self, key: RegistrationKey) -> str | None:
-        regs = self._ledger.registrations()
-        same_mode = sum(1 for r in regs if r.key.mode is key.mode)
-        if same_mode >= self._max[key.mode]:
-            return (
-                f"{self.name} holds {same_mode} {key.mode.value} subscriptions, its limit; "
-                "close unused subscriptions"
+        self._holders[key] = (node, host)
+        large = key.push_max_bytes > self.inline_max_bytes and self._shares.large_push_free(holder)
+        self._shares.add(key, holder, large, 1)
+        if key.push_max_bytes >= 0:
+            self._push_limit[key] = (
+                key.push_max_bytes if large else min(key.push_max_bytes, self.inline_max_bytes)
             )
-        if key.mode is SubscriptionMode.FLOW:
-            used = sum(r.key.queue_size for r in regs if r.flow)
-            if used + key.queue_size > self._budget:
-                return (
-                    f"queue size {key.queue_size} exceeds what {self.name} can still hold "
-                    f"for flow control ({self._budget - used} of {self._budget}); "
-                    "subscribe with a smaller queue"
-                )
-        return None
+        log.debug("%s: subscription %s registered as %s", self.name, key.sub_id, reg.epoch)
+        self._control(key, encode_control("hello", key.descriptor, reg.epoch, reg.base))
+
+    # -- lost token events ----------------------------------------------------------------
+    def tokens_lost(self, now_ns: int) -> None:
+        """The Zenoh layer dropped token events (its bounded inbox overflowed under churn):
+        the table may hold a registration whose token is gone (it would hold the producer
+        for ever) or lack a live one. A ``resync`` falls due, at most every ``RESYNC_NS``."""
+        if self._resync_at_ns is None:
+            self._resync_at_ns = max(now_ns, self._resynced_ns + RESYNC_NS)
+
+    def resync_due(self, now_ns: int) -> bool:
+        return self._resync_at_ns is not None and self._resync_at_ns <= now_ns
+
+    def resync(self, live_tokens: list[str], now_ns: int) -> None:
+        """The tokens live now (a liveliness query's answer, at most ``RESYNC_TOKENS`` of
+        them read): registrations without a live token go, live tokens not registered are
+        judged as if they had just appeared."""
+        self._resync_at_ns = None
+        self._resynced_ns = now_ns
+        live: dict[RegistrationKey, str] = {}
+        for keyexpr in live_tokens[:RESYNC_TOKENS]:
+            try:
+                parsed = parse_subscription_token(keyexpr)
+            except ValueError:
+                continue
+            live[RegistrationKey(*parsed[:4])] = keyexpr
+        for reg in self._ledger.registrations():
+            if reg.key not in live:
+                self._ledger.token_delete(reg.key)
+                self._forget(reg.key)
+                self._events.append(Retire(reg.key))
+        for keyexpr in live.values():
+            self.token(keyexpr, True, now_ns)
+
+    def _forget(self, key: RegistrationKey) -> None:
+        """Drop what the protocol keeps beside the ledger for a registration that is gone."""
+        self._paced.pop(key, None)
+        node, host = self._holders.pop(key, (None, None))
+        limit = self._push_limit.pop(key, None)
+        large = limit is not None and limit > self.inline_max_bytes
+        self._shares.add(key, holder_of(node, host), large, -1)
 
     def ack(self, keyexpr: str, payload: bytes, now_ns: int) -> bool:
-        """An ack arrived on ``keyexpr``; True if it freed credit."""
+        """An ack arrived on ``keyexpr``; True if it freed credit.
+
+        Two cheap checks come first, because a flood is made of exactly these: anything
+        that is not a msgpack map of two (an ack's first byte) is garbage without decoding
+        it, and an ack repeating the last one of its key within ``REPEAT_RESEND_NS`` can
+        change nothing (acks are cumulative; a repeat makes resends due at most that often).
+        """
+        if payload[:1] != _ACK_FIRST_BYTE:
+            self.counters.bad_messages += 1
+            return False
+        seen = self._last_acks.get(keyexpr)
+        if seen is not None and seen[0] == payload and now_ns - seen[1] < REPEAT_RESEND_NS:
+            return False
         sub_id = keyexpr.rsplit("/", 1)[-1]
         try:
             epoch, seq = decode_ack(payload)
         except Exception:  # garbage on our ack key is counted, never raised
             self.counters.bad_messages += 1
             return False
+        if len(self._last_acks) >= _LAST_ACKS:
+            self._last_acks.clear()  # a flood of keys: the cache is only a shortcut
+        self._last_acks[keyexpr] = (payload, now_ns)
         freed = self._ledger.ack(sub_id, epoch, seq, now_ns)
         if freed:
             reg = self._ledger.by_epoch(epoch)
@@ -299,13 +391,15 @@ class ProducerProtocol:
             if sent == RESEND_BURST:
                 self._paced[reg.key] = (now_ns + RESEND_PACE_NS, seq)
                 return
-            again = Send(reg.key, reg.epoch, seq, reg.acked, (kept,), again=True)
+            again = Send(reg.key, reg.epoch, seq, reg.acked, (kept,), again=True, base=reg.base)
             self._events.append(self._publish(again, ()))
             sent += 1
 
     def next_deadline_ns(self) -> int | None:
         """When ``tick`` has work next (None: nothing outstanding)."""
         deadlines = [at for at, _ in self._paced.values()]
+        if self._resync_at_ns is not None:
+            deadlines.append(self._resync_at_ns)
         retransmit = self._ledger.next_retransmit_ns()
         if retransmit is not None:
             deadlines.append(retransmit)
@@ -329,7 +423,7 @@ class ProducerProtocol:
         """The wire form of ``send``: ``elements`` are the stored elements (with payloads)
         when it is a first send; a resend carries no payload (the subscriber fetches)."""
         key = send.key
-        limit = self.inline_max_bytes if key.push_max_bytes < 0 else key.push_max_bytes
+        limit = self._push_limit.get(key, self.inline_max_bytes)
         block = key.mode is SubscriptionMode.FLOW
         if send.count > 1:
             pushed = all(len(e.payload) <= limit for e in elements)
@@ -341,6 +435,7 @@ class ProducerProtocol:
                 [len(e.payload) for e in elements] if pushed else None,
                 acked=send.acked,
                 descriptor=key.descriptor,
+                base=send.base,
             )
             payload = b"".join(e.payload for e in elements) if pushed else b""
             return Publish(key, self._notify_key(key), payload, header, block, send.epoch)
@@ -355,6 +450,7 @@ class ProducerProtocol:
             pushed=pushed,
             acked=send.acked,
             descriptor=key.descriptor,
+            base=send.base,
         )
         # The payload travels as the Zenoh payload itself: no copy into msgpack, and large
         # ones go through Zenoh's shared memory on one host.
@@ -387,5 +483,16 @@ class ProducerProtocol:
     def close(self) -> None:
         """Forget every registration; their publishers are retired."""
         for reg in self._ledger.clear():
+            self._forget(reg.key)
             self._events.append(Retire(reg.key))
-        self._paced.clear()
+
+    def limits(self) -> BufferLimits:
+        """The limits this producer applies to subscriptions, as ``info`` reports them."""
+        return BufferLimits(
+            flow_registrations=self._max[SubscriptionMode.FLOW],
+            observe_registrations=self._max[SubscriptionMode.OBSERVE],
+            queue_budget=self._shares.budget,
+            flow_queue_max=fair_share(self._shares.budget, 0),
+            large_push_per_holder=LARGE_PUSH_PER_HOLDER,
+            large_push_total=LARGE_PUSH_TOTAL,
+        )

@@ -7,16 +7,34 @@ declared, so ``subscribe`` refuses at once), decoding and judging each notificat
 (the pure ``SubscriberLedger`` keeps the rules), the producer's greeting or refusal, and
 when acks leave (coalesced, delayed, repeated while idle). ``next_deadline_ns`` tells the
 node's executor when a delayed ack falls due for a caller that does not come back to take.
+
+Refusals are trusted only from the producer's own session: the Zenoh layer passes each
+control message's sender (the Zenoh session id the producer stamps on it as its source)
+and, when ``judge`` asks for them, the ids of the sessions that answer as the service
+(``trust_producer``; asked again at most every ``RETRY_NS``, so a flood of forged refusals
+costs one question per period); a refusal from any other session is ignored. A refused
+subscription (or one that met a forged refusal) declares its token again every
+``RETRY_NS`` (``retry_due``) until the producer greets it: the holder it lost to may
+leave, and a real answer lost among forgeries is asked for again.
+
+Lapses are counted: every notification carries its registration's ``base`` (the elements
+the producer had stored when it registered us), so seq s is the producer's element number
+``base + s``. When a new registration of the same producer instance (epoch
+``<instance>.<n>``) starts, the elements stored between the last one of the previous
+registration and its first were never notified (our token had lapsed, e.g. a link that
+dropped and came back): they are counted in ``missed`` on the next notification taken
+and reported once (``lapse_news``).
 """
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from collections.abc import Container
 from typing import Any
 
 from ._errors import ConfigError
 from ._ledger_subscriber import AckPolicy, Entry, SubscriberCounters, SubscriberLedger
-from ._protocol_producer import INLINE_METADATA_MAX, QUEUE_BUDGET
+from ._protocol_producer import FLOW_QUEUE_MAX, INLINE_METADATA_MAX
 from ._records import SubscriptionMode
 from ._wire import (
     MAX_QUEUE_SIZE,
@@ -35,17 +53,22 @@ Item = tuple[int, bytes | None, Any]
 # Room for a notification header's fields besides its metadata (epoch, seq, descriptor, ...).
 _HEADER_SLACK = 1024
 
+# A refused subscription declares its token again this often.
+RETRY_NS = 2_000_000_000
+# Producer instances whose highest element number is remembered (for counting lapses).
+_INSTANCES = 8
+
 
 def check_request(mode: SubscriptionMode, queue_size: int, push_max_bytes: int) -> None:
     """Refuse what no producer would register, with the limit named."""
     if type(queue_size) is not int or queue_size < 1:
         raise ConfigError(f"queue_size must be an integer >= 1, got {queue_size!r}")
-    limit = QUEUE_BUDGET if mode is SubscriptionMode.FLOW else MAX_QUEUE_SIZE
+    limit = FLOW_QUEUE_MAX if mode is SubscriptionMode.FLOW else MAX_QUEUE_SIZE
     if queue_size > limit:
         raise ConfigError(
             f"queue_size {queue_size} exceeds the {mode.value} limit of {limit} (a producer "
-            "keeps every un-acked notification of a flow-controlled subscriber); "
-            "choose a smaller queue"
+            "keeps every un-acked notification of a flow-controlled subscriber, and one "
+            "subscriber may hold at most half of its budget); choose a smaller queue"
         )
     if push_max_bytes < -1:
         raise ConfigError(f"push_max_bytes must be >= 0, got {push_max_bytes}")
@@ -71,22 +94,37 @@ class SubscriberProtocol:
             mode, queue_size, self.descriptor, policy=policy or AckPolicy.for_queue(queue_size)
         )
         self.garbage = 0
-        # The producer's answer to our token: its registration's epoch, or why it refused.
+        # The producer's answer to our token: its registration's epoch, or why it refused
+        # and which session said so (judged once the producer's sessions are known).
         self.registered: str | None = None
-        self.refusal: str | None = None
+        self._refusal: tuple[str, str | None] | None = None
+        self._unjudged = False
+        self._producer_ids: frozenset[str] | None = None
+        self._ids_at_ns = 0
+        self._refusal_reported = False
+        self._retry_at_ns: int | None = None
         self.registrations = 0  # greetings under distinct epochs
+        # Lapses: the epoch of the last notification queued and its base; per producer
+        # instance the highest element number queued; elements counted as never notified.
+        self._epoch: str | None = None
+        self._base = 0
+        self._high: OrderedDict[str, int] = OrderedDict()
+        self._lapsed = 0
         # Fetch ahead: set once the consumer had to query for an element (see ``fetch_ahead``).
         self.fetching = False
 
     # -- input -----------------------------------------------------------------------------
-    def receive(self, attachment: bytes | None, payload: Any) -> bool:
+    def receive(self, attachment: bytes | None, payload: Any, sender: str | None = None) -> bool:
         """One notification (or control message) as it arrived; True if something was
-        queued. ``payload`` is the Zenoh payload (anything with ``to_bytes()``, or bytes)."""
+        queued. ``payload`` is the Zenoh payload (anything with ``to_bytes()``, or bytes);
+        ``sender`` the Zenoh session id the message names as its source (None: none)."""
         try:
             if attachment is None:
                 raise ValueError("notification without a header")
             head = decode_notification_header(attachment)
             if type(head) is Header:
+                if head.epoch != self._epoch and head.base is not None:
+                    return self._first_of_epoch(head, [_item(head, payload)])
                 metadata = head.metadata
                 pushed = payload if head.pushed and metadata is not None else None
                 return self.ledger.receive(
@@ -97,6 +135,8 @@ class SubscriberProtocol:
                 )
             if type(head) is BatchHeader:
                 items = _batch_items(head, payload)
+                if head.epoch != self._epoch and head.base is not None:
+                    return self._first_of_epoch(head, items)
                 return (
                     self.ledger.receive_many(
                         head.epoch, head.seq, items, descriptor=head.descriptor
@@ -104,13 +144,52 @@ class SubscriberProtocol:
                     > 0
                 )
             assert type(head) is Control
-            self._control(head)
+            self._control(head, sender)
             return False
         except Exception:  # garbage on our key is counted, never raised
             self.garbage += 1
             return False
 
-    def _control(self, control: Control) -> None:
+    def _first_of_epoch(self, head: Header | BatchHeader, items: list[Item]) -> bool:
+        """A notification of another epoch than the last one queued: queue it as usual and,
+        if it starts a later registration of the same producer instance, count the elements
+        stored before that registration and after the last one queued as missed (our token
+        had lapsed meanwhile)."""
+        assert head.base is not None
+        ledger = self.ledger
+        if self._epoch is not None:
+            old = ledger.track(self._epoch)
+            if old is not None:
+                self._raise_high(self._epoch, self._base + old.last)
+        known = ledger.track(head.epoch)
+        new = known is None or known.last == 0  # nothing of this epoch accepted yet
+        before = len(ledger)
+        queued = ledger.receive_many(head.epoch, head.seq, items, descriptor=head.descriptor)
+        track = ledger.track(head.epoch)
+        if not queued or track is None:
+            return False
+        high = self._high.get(head.epoch.rpartition(".")[0])
+        if new and high is not None and head.base > high:
+            gap = head.base - high
+            ledger.note_missed(gap, before)
+            self._lapsed += gap
+        self._epoch, self._base = head.epoch, head.base
+        self._raise_high(head.epoch, head.base + track.last)
+        return True
+
+    def _raise_high(self, epoch: str, number: int) -> None:
+        instance = epoch.rpartition(".")[0]
+        self._high[instance] = max(number, self._high.get(instance, 0))
+        self._high.move_to_end(instance)
+        if len(self._high) > _INSTANCES:
+            self._high.popitem(last=False)
+
+    def lapse_news(self) -> int:
+        """Elements counted as never notified since the last call (to log once each)."""
+        lapsed, self._lapsed = self._lapsed, 0
+        return lapsed
+
+    def _control(self, control: Control, sender: str | None) -> None:
         if control.descriptor != self.descriptor:
             return  # meant for another registration of this key: not ours to judge
         if control.kind == "hello":
@@ -119,10 +198,70 @@ class SubscriberProtocol:
             elif self.registered is None:
                 self.registrations = 1
             self.registered = control.text
-            self.refusal = None
+            instance = control.text.rpartition(".")[0]
+            if control.base is not None and instance not in self._high:
+                # First contact with this producer instance: what it stored before our
+                # registration was never ours; a later lapse counts from here.
+                self._raise_high(control.text, control.base)
+            self._refusal = None
+            self._retry_at_ns = None
         elif self.registered is None:
-            self.refusal = control.text
+            self._refusal = (control.text, sender)
+            self._unjudged = True
         # else: a refusal after a greeting, a forgery or an old message: the greeting stands
+
+    # -- refusals --------------------------------------------------------------------------
+    def judge(self, now_ns: int) -> bool:
+        """Judge a refusal that waits (see the module doc): kept if its sender is one of the
+        producer's sessions, else dropped (the token is declared again at the next retry,
+        in case the producer's sessions changed). True if the producer's sessions must be
+        asked first (``trust_producer``): unknown, or older than ``RETRY_NS`` and the
+        sender not among them."""
+        if not self._unjudged or self._refusal is None:
+            return False
+        ids, sender = self._producer_ids, self._refusal[1]
+        if ids is None or (sender not in ids and now_ns - self._ids_at_ns >= RETRY_NS):
+            return True
+        self._unjudged = False
+        if sender not in ids:
+            self._refusal = None  # not from the producer's session: a forgery
+        if self._retry_at_ns is None:
+            self._retry_at_ns = now_ns + RETRY_NS
+        return False
+
+    def trust_producer(self, session_ids: frozenset[str], now_ns: int) -> None:
+        """The Zenoh session ids that answer as the producer's service now: only their
+        refusals count."""
+        self._producer_ids = session_ids
+        self._ids_at_ns = now_ns
+        self.judge(now_ns)
+
+    @property
+    def refusal(self) -> str | None:
+        """Why the producer refused this subscription (None: it did not, or not yet, or
+        the refusal is not known to come from its session)."""
+        if self._refusal is None or self._unjudged:
+            return None
+        return self._refusal[0]
+
+    def refusal_news(self) -> str | None:
+        """A refusal not reported yet, to log as an error once (the same subscription
+        refused again after a retry is not reported again)."""
+        text = self.refusal
+        if text is None or self._refusal_reported:
+            return None
+        self._refusal_reported = True
+        return text
+
+    def retry_due(self, now_ns: int) -> bool:
+        """True when a refused subscription should declare its token again: the refusal is
+        forgotten, the producer's next answer decides."""
+        if self._retry_at_ns is None or now_ns < self._retry_at_ns or self.registered:
+            return False
+        self._retry_at_ns = now_ns + RETRY_NS
+        self._refusal = None
+        self._unjudged = False
+        return True
 
     # -- taking and acking -----------------------------------------------------------------
     def take_many(self, max_count: int) -> list[Entry[Item]]:
@@ -138,8 +277,15 @@ class SubscriberProtocol:
         return [encode_ack(epoch, seq) for epoch, seq in self.ledger.acks_due(now_ns, idle=idle)]
 
     def next_deadline_ns(self) -> int | None:
-        """When a delayed ack falls due with nobody taking (None: none waits)."""
-        return self.ledger.flush_at_ns()
+        """When a delayed ack falls due with nobody taking, or a refused subscription tries
+        again (None: none waits)."""
+        if self._unjudged:
+            return 0  # a refusal to judge: at once
+        due = self.ledger.flush_at_ns()
+        retry = self._retry_at_ns if self.registered is None else None
+        if retry is not None and (due is None or retry < due):
+            return retry
+        return due
 
     def fetch_ahead(self, taken_missing: list[int], inflight: Container[int]) -> list[int]:
         """The stamps whose queries to start now, once ``fetching``: the taken notifications
@@ -170,6 +316,11 @@ class SubscriberProtocol:
     def counters(self) -> SubscriberCounters:
         c = self.ledger.counters
         return SubscriberCounters(c.foreign, c.invalid, c.out_of_order, c.duplicates, c.refused)
+
+
+def _item(head: Header, payload: Any) -> Item:
+    pushed = payload if head.pushed and head.metadata is not None else None
+    return (head.timestamp_ns, head.metadata, pushed)
 
 
 def _batch_items(head: BatchHeader, payload: Any) -> list[Item]:

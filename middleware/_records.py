@@ -5,7 +5,6 @@ from __future__ import annotations
 import enum
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import Any
 
 
 @dataclass(frozen=True, slots=True)
@@ -133,17 +132,23 @@ class Rewind:
             after_ns, len(stamps), min(stamps, default=None), max(stamps, default=None), cause
         )
 
-    @classmethod
-    def from_json(cls, data: dict[str, Any]) -> Rewind:
-        """A rewind as ``info`` encodes it (``dataclasses.asdict``)."""
-        first, last = data["first_ns"], data["last_ns"]
-        return cls(
-            int(data["after_ns"]),
-            int(data["count"]),
-            None if first is None else int(first),
-            None if last is None else int(last),
-            str(data["cause"]),
-        )
+
+@dataclass(frozen=True, slots=True)
+class BufferLimits:
+    """The limits a producer applies to subscriptions (docs/limits.md explains each).
+
+    One holder (a token's ``<node>~<host>``) may hold at most half of what the other
+    holders leave free of the queue budget and of each pool of slots."""
+
+    flow_registrations: int = 256
+    observe_registrations: int = 256
+    queue_budget: int = 1 << 16
+    # The largest flow queue one subscriber can get (a holder's share of an idle producer).
+    flow_queue_max: int = 1 << 15
+    # Registrations that get payloads above the producer's inline limit pushed.
+    large_push_per_holder: int = 4
+    large_push_total: int = 16
+    holder_share: str = "half of what other holders leave free"
 
 
 @dataclass(frozen=True, slots=True)
@@ -170,6 +175,8 @@ class BufferInfo:
     refused_subscriptions: int = 0
     # The latest rewinds (``Producer.discard_after``), oldest first: what was removed.
     rewinds: tuple[Rewind, ...] = field(default=())
+    # The limits it refuses by (None from a peer that does not report them).
+    limits: BufferLimits | None = None
     # Control messages (acks, subscription tokens) dropped unread: larger than their format
     # allows, or pushed out of a full inbox by newer ones (a flood).
     dropped_messages: int = 0

@@ -8,7 +8,10 @@ One producer per name: before declaring its token, an endpoint asks whether the 
 live elsewhere and refuses, naming that instance's host and pid (a restarted service whose
 old instance is dead finds no token and takes over). Two instances started at the same
 moment can both pass that check; right after declaring, each asks again and the younger one
-(later ``started_ns``, then larger instance id) withdraws with the same error.
+(later ``started_ns``, then larger instance id) withdraws with the same error. A token counts
+as "offered elsewhere" only when its holder answers as that service (a valid ``@info``
+description naming it, decoded by ``_decode``): a bare liveliness token, or one whose holder
+answers garbage, gets a one-line warning naming the token, and the service starts.
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ import zenoh
 
 from ._clock import CLOCK, now_ns
 from ._config import listening_endpoints
+from ._decode import decode_instance
 from ._errors import FramegateError, NameTakenError, NotFoundError, QueryError
 from ._producer import Producer
 from ._records import BufferInfo, DataObject
@@ -96,8 +100,10 @@ _CLAIM_TIMEOUT_S = 1.0
 
 
 def _instances(session: zenoh.Session, keys: Keys, service: str) -> list[dict[str, Any]]:
-    """Descriptions of every instance that answers for ``service`` (empty if none is live)."""
-    replies = list(session.liveliness().get(keys.service_token(service), timeout=_CLAIM_TIMEOUT_S))
+    """Descriptions of every instance that answers as ``service`` (empty if none is live, or
+    if its token's holder does not answer as that service: then a warning names the token)."""
+    token = keys.service_token(service)
+    replies = list(session.liveliness().get(token, timeout=_CLAIM_TIMEOUT_S))
     if not any(r.ok is not None for r in replies):
         return []
     found: list[dict[str, Any]] = []
@@ -107,11 +113,34 @@ def _instances(session: zenoh.Session, keys: Keys, service: str) -> list[dict[st
         if reply.ok is None:
             continue
         try:
-            body = json.loads(reply.ok.payload.to_bytes())
-            found.append({k: body.get(k) for k in ("host", "pid", "instance", "started_ns")})
-        except ValueError:
+            found.append(decode_instance(reply.ok.payload.to_bytes(), service))
+        except QueryError as exc:
+            log.debug("%s: an answer that does not count as an instance: %s", service, exc)
+    if not found:
+        log.warning(
+            "the liveliness token %s is held by a session that does not answer as %r; "
+            "starting anyway",
+            token,
+            service,
+        )
+    return found
+
+
+def answering_sessions(session: zenoh.Session, keys: Keys, service: str) -> frozenset[str]:
+    """The Zenoh session ids that answer as ``service`` (a valid description naming it):
+    whose control messages a subscriber of its buffers trusts."""
+    ids: set[str] = set()
+    for reply in session.get(
+        keys.info(service), consolidation=zenoh.ConsolidationMode.NONE, timeout=_CLAIM_TIMEOUT_S
+    ):
+        if reply.ok is None or reply.replier_id is None:
             continue
-    return found or [{"host": "an unknown host", "pid": "unknown"}]
+        try:
+            decode_instance(reply.ok.payload.to_bytes(), service)
+        except QueryError:
+            continue
+        ids.add(str(reply.replier_id.zid))
+    return frozenset(ids)
 
 
 def _taken(service: str, other: dict[str, Any]) -> NameTakenError:
@@ -162,10 +191,9 @@ class ServiceEndpoint:
             thread.start()
         mine = (self.started_ns, self.instance)
         for other in _instances(session, keys, service):
-            started, instance = other.get("started_ns"), other.get("instance")
-            valid = isinstance(started, int) and isinstance(instance, str)
+            started, instance = other["started_ns"], other["instance"]
             # The older instance keeps the name.
-            if valid and (started, instance) != mine and (started, instance) < mine:
+            if (started, instance) != mine and (started, instance) < mine:
                 self.close()
                 raise _taken(service, other)
 

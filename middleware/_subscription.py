@@ -26,7 +26,7 @@ from ._errors import FramegateError, RegistrationRefused
 from ._executor import BUDGET, Executor, Wake, remaining_s
 from ._inbox import Inbox
 from ._ledger_subscriber import REACK_NS, Entry, SubscriberCounters
-from ._protocol_subscriber import Item, SubscriberProtocol
+from ._protocol_subscriber import RETRY_NS, Item, SubscriberProtocol
 from ._records import DataObject, Notification, SubscriptionMode
 from ._wire import Keys, holder_chunk
 
@@ -80,6 +80,7 @@ class Subscription:
         push_max_bytes: int = -1,
         holder: str | None = None,
         on_close: Callable[[Subscription], None] | None = None,
+        producer_ids: Callable[[str], frozenset[str]] | None = None,
     ) -> None:
         self._protocol = SubscriberProtocol(mode, queue_size, push_max_bytes)
         self.service = service
@@ -100,6 +101,8 @@ class Subscription:
         self._max_batch = 1
         self._idle_ack_at_ns = 0  # with a handler: when to repeat acks while nothing comes
         self._on_close = on_close
+        # The Zenoh sessions answering as a service: asked when a refusal must be judged.
+        self._producer_ids = producer_ids
         self._lock = threading.Lock()
         self._cond = threading.Condition(self._lock)
         self._closed = False
@@ -109,25 +112,21 @@ class Subscription:
         )
         executor.add(self)
         self._wake = Wake(self, self._cond, executor, lambda: len(self._inbox))
+        # Until the producer greets it, the producer's answer is the executor's to read: a
+        # refusal must be logged and retried even when nobody takes (see ``_refused``).
+        self._wake.executor_owned = True
         self._inbox = Inbox(
-            session,
-            keys.notify(service, buffer, self.subscription_id),
             capacity=inbox_capacity(queue_size),
             max_bytes=self._protocol.max_message_bytes(),
             signal=self._wake.signal,
         )
-        # Declared last: once the producer sees it, notifications may flow.
-        self._token = session.liveliness().declare_token(
-            keys.subscription_token(
-                service,
-                buffer,
-                self.subscription_id,
-                mode,
-                queue_size,
-                push_max_bytes,
-                holder_chunk(holder, socket.gethostname()),
-            )
+        self._inbox.declare(session, keys.notify(service, buffer, self.subscription_id))
+        self._holder = holder_chunk(holder, socket.gethostname())
+        self._token_key = keys.subscription_token(
+            service, buffer, self.subscription_id, mode, queue_size, push_max_bytes, self._holder
         )
+        # Declared last: once the producer sees it, notifications may flow.
+        self._token = session.liveliness().declare_token(self._token_key)
 
     @property
     def name(self) -> str:
@@ -169,13 +168,23 @@ class Subscription:
             attachment = sample.attachment
             raw = attachment.to_bytes() if attachment is not None else None
             before = protocol.registrations
-            protocol.receive(raw, sample.payload)
+            payload = sample.payload
+            # Control messages (the only ones whose sender matters) have an empty payload.
+            protocol.receive(raw, payload, None if len(payload) else _sender(sample))
             if protocol.registrations > before > 0:
                 log.info(
                     "subscription to %s registered again (the producer restarted, or this "
                     "subscription had lapsed)",
                     self.name,
                 )
+        lapsed = protocol.lapse_news()
+        if lapsed:
+            log.warning(
+                "subscription to %s had lapsed: %d elements stored meanwhile were never "
+                "notified (counted in missed)",
+                self.name,
+                lapsed,
+            )
 
     def run_ready(self, budget: int) -> bool:
         """(the executor) Feed a bounded batch; then run the handler on a bounded batch of
@@ -185,6 +194,10 @@ class Subscription:
                 return False
             self._feed(budget)
             handler = self._handler
+            answered = self._protocol.registered is not None
+            self._wake.executor_owned = handler is not None or not answered
+            if self._protocol.next_deadline_ns() == 0:
+                self._executor.poke(0)  # a refusal to judge
             if handler is None:
                 if self._wake.threads:
                     self._cond.notify_all()
@@ -208,6 +221,41 @@ class Subscription:
             self._idle_ack_at_ns = time.monotonic_ns() + REACK_NS
             self._wake.executor_owned = True
         self._executor.signal(self)  # what is queued already
+
+    def judge_refusal(self) -> None:
+        """Judge a refusal that arrived: it counts only from a session that answers as this
+        subscription's service (asked here, on the calling thread, when the protocol
+        needs it; not under ``_lock``)."""
+        now = time.monotonic_ns()
+        with self._lock:
+            self._feed(BUDGET)
+            ask = self._protocol.judge(now)
+        if ask:
+            ids = self._producer_ids(self.service) if self._producer_ids else frozenset()
+            with self._lock:
+                self._protocol.trust_producer(ids, now)
+
+    def _refused(self, now_ns: int) -> None:
+        """(the executor, not under _lock) Judge a refusal; log a trusted one once, as an
+        error naming its reason (the producer's message names the holder); declare the
+        token again when the retry falls due, so a subscription refused for a limit
+        registers once the holder it lost to leaves."""
+        self.judge_refusal()
+        with self._lock:
+            news = self._protocol.refusal_news()
+            retry = self._protocol.retry_due(now_ns)
+        if news is not None:
+            log.error(
+                "%s refused the subscription of %s: %s; retrying every %.0f s",
+                self.name,
+                self._holder,
+                news,
+                RETRY_NS / 1e9,
+            )
+        if retry and not self._closed:
+            with contextlib.suppress(zenoh.ZError):
+                self._token.undeclare()
+                self._token = self._session.liveliness().declare_token(self._token_key)
 
     def wait_registered(self, timeout_s: float) -> bool:
         """Wait until the producer greets this subscription; RegistrationRefused if it
@@ -250,7 +298,10 @@ class Subscription:
             due = self._protocol.next_deadline_ns()
             ready = idle or (due is not None and due <= now_ns)
             acks = self._protocol.acks(now_ns, idle=idle) if ready else []
+            refused = self._protocol.registered is None
         self._send_acks(acks)
+        if refused:
+            self._refused(now_ns)
 
     # -- taking ----------------------------------------------------------------------------
     @property
@@ -403,3 +454,9 @@ class Subscription:
 
     def __exit__(self, *_exc: Any) -> None:
         self.close()
+
+
+def _sender(sample: zenoh.Sample) -> str | None:
+    """The Zenoh session a sample names as its source (None: it names none)."""
+    info = sample.source_info
+    return str(info.source_id.zid) if info is not None else None

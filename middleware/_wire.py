@@ -151,6 +151,7 @@ class Header(NamedTuple):
     pushed: bool
     acked: int | None
     descriptor: str | None
+    base: int | None
 
 
 class BatchHeader(NamedTuple):
@@ -163,6 +164,7 @@ class BatchHeader(NamedTuple):
     payload_sizes: tuple[int, ...] | None
     acked: int | None
     descriptor: str | None
+    base: int | None
 
 
 def encode_notification_header(
@@ -174,18 +176,22 @@ def encode_notification_header(
     pushed: bool,
     acked: int | None = None,
     descriptor: str | None = None,
+    base: int | None = None,
 ) -> bytes:
-    """The attachment of a notification, a msgpack array of 7: ``[epoch (str), seq (int, 1,
+    """The attachment of a notification, a msgpack array of 8: ``[epoch (str), seq (int, 1,
     2, ... per registration), timestamp_ns (int), metadata (bin or nil), pushed (bool: the
     Zenoh payload is the element's payload; else it is empty), acked (the producer's ack
     count when sent, the window base; int or nil), descriptor (the registration's
-    ``mode/N/push``; str or nil)]``.
+    ``mode/N/push``; str or nil), base (int >= 0 or nil: how many elements the producer
+    had stored when it made this registration, so that seq s is its element number
+    base + s)]``. An array of 7 (no base) is still read.
 
     An array, not a map: the subscriber decodes it in a third of the time, without a dict.
     """
     return bytes(
         msgpack.packb(
-            (epoch, seq, timestamp_ns, metadata, pushed, acked, descriptor), use_bin_type=True
+            (epoch, seq, timestamp_ns, metadata, pushed, acked, descriptor, base),
+            use_bin_type=True,
         )
     )
 
@@ -199,15 +205,16 @@ def encode_batch_header(
     *,
     acked: int | None = None,
     descriptor: str | None = None,
+    base: int | None = None,
 ) -> bytes:
     """The attachment of a batch notification, n elements of seqs ``seq .. seq + n - 1``: like
-    a single one, an array of 7, but ``[epoch, seq, [timestamp_ns] * n, [metadata or nil] *
-    n, [payload size] * n or nil, acked, descriptor]``. The third item being an array is what
+    a single one, an array of 8, but ``[epoch, seq, [timestamp_ns] * n, [metadata or nil] *
+    n, [payload size] * n or nil, acked, descriptor, base]``. The third item being an array is what
     makes it a batch. With payload sizes (pushed) the Zenoh payload is the elements'
     payloads one after another; without (nil) it is empty."""
     return bytes(
         msgpack.packb(
-            (epoch, seq, timestamps_ns, metadata, payload_sizes, acked, descriptor),
+            (epoch, seq, timestamps_ns, metadata, payload_sizes, acked, descriptor, base),
             use_bin_type=True,
         )
     )
@@ -240,14 +247,20 @@ def decode_notification_header(raw: bytes) -> Header | BatchHeader | Control:
     mean for the protocol (epochs, seqs, descriptors) is the ledger's to judge.
     """
     body = msgpack.unpackb(raw, use_list=False)
-    if type(body) is tuple and len(body) == 3:
-        kind, descriptor, text = body
+    if type(body) is tuple and len(body) in (3, 4):
+        kind, descriptor, text, base = body if len(body) == 4 else (*body, None)
         if kind not in CONTROL_KINDS or type(descriptor) is not str or type(text) is not str:
             raise ValueError("control message is not [kind, descriptor, text]")
-        return tuple.__new__(Control, body)  # type: ignore[return-value]
-    if type(body) is not tuple or len(body) != 7:
-        raise ValueError("notification header is not an array of 7")
-    epoch, seq, stamp, metadata, pushed, acked, descriptor = body
+        if base is not None and (type(base) is not int or base < 0):
+            raise ValueError("control message base is not an int >= 0")
+        return Control(kind, descriptor, text, base)
+    if type(body) is not tuple or len(body) not in (7, 8):
+        raise ValueError("notification header is not an array of 8 (or 7)")
+    if len(body) == 7:
+        body = (*body, None)
+    epoch, seq, stamp, metadata, pushed, acked, descriptor, base = body
+    if base is not None and (type(base) is not int or base < 0):
+        raise ValueError("notification base is not an int >= 0")
     if type(epoch) is not str or type(seq) is not int:
         raise ValueError("notification lacks epoch or seq")
     if acked is not None and type(acked) is not int:
@@ -266,8 +279,11 @@ def decode_notification_header(raw: bytes) -> Header | BatchHeader | Control:
 
 
 # Control messages travel on a subscription's notification key with an empty payload; their
-# attachment is a msgpack array of 3: ["hello", descriptor, epoch] when the producer
-# registered the subscription, ["refused", descriptor, reason] when it refused it.
+# attachment is a msgpack array: ["hello", descriptor, epoch, base] when the producer
+# registered the subscription (base: the elements it had stored then, as its notifications
+# carry it; an array of 3 without it is still read), ["refused", descriptor, reason] when
+# it refused it. The producer names its Zenoh session as the sample's source (a subscriber
+# trusts a refusal only from the session that answers as the service).
 CONTROL_KINDS = ("hello", "refused")
 
 
@@ -275,10 +291,12 @@ class Control(NamedTuple):
     kind: str
     descriptor: str
     text: str
+    base: int | None = None
 
 
-def encode_control(kind: str, descriptor: str, text: str) -> bytes:
-    return bytes(msgpack.packb((kind, descriptor, text)))
+def encode_control(kind: str, descriptor: str, text: str, base: int | None = None) -> bytes:
+    body = (kind, descriptor, text) if base is None else (kind, descriptor, text, base)
+    return bytes(msgpack.packb(body))
 
 
 def encode_ack(epoch: str, seq: int) -> bytes:

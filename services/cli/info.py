@@ -125,6 +125,14 @@ def _print_buffer(service: ServiceInfo, b: BufferInfo) -> None:
     print(f"  producer       puts {b.puts}, refused {b.refused}, rejected {b.rejected}{skipped}")
     for w in b.rewinds:  # what a rewind removed is shown, never only logged
         print(f"  rewound        {w.count} after {format_ns(w.after_ns)} ({w.cause})")
+    if b.limits is not None:  # docs/limits.md
+        lim = b.limits
+        print(
+            f"  limits         {lim.flow_registrations} flow + {lim.observe_registrations} "
+            f"observe subscriptions, queue budget {lim.queue_budget} (one queue at most "
+            f"{lim.flow_queue_max}); each node~host at most half of what others leave free; "
+            f"refused {b.refused_subscriptions}"
+        )
     if not b.subscriptions:
         print("  subscriptions  none")
         return

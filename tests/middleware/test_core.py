@@ -19,7 +19,7 @@ from middleware import (
     make_metadata,
     now_ns,
 )
-from middleware._protocol_producer import QUEUE_BUDGET
+from middleware._protocol_producer import FLOW_QUEUE_MAX
 from middleware._wire import MAX_QUEUE_SIZE, Keys
 from tests.conftest import wait_until
 from tests.helpers.raw_zenoh import open_session
@@ -33,8 +33,8 @@ def _meta(t: int) -> bytes:
 def test_a_queue_beyond_the_limit_is_refused_at_subscribe(listen_net, connect_net) -> None:
     with Node("cam", listen_net) as service, Node(network=connect_net) as client:
         service.offer("images")
-        with pytest.raises(ConfigError, match=f"exceeds the flow limit of {QUEUE_BUDGET}"):
-            client.subscribe("cam/images", queue_size=QUEUE_BUDGET + 1)
+        with pytest.raises(ConfigError, match=f"exceeds the flow limit of {FLOW_QUEUE_MAX}"):
+            client.subscribe("cam/images", queue_size=FLOW_QUEUE_MAX + 1)
         with pytest.raises(ConfigError, match="exceeds the observe limit"):
             client.subscribe(
                 "cam/images", queue_size=MAX_QUEUE_SIZE + 1, mode=SubscriptionMode.OBSERVE
@@ -46,8 +46,8 @@ def test_a_registration_beyond_the_budget_is_refused_with_its_reason(
 ) -> None:
     with Node("cam", listen_net) as service, Node(network=connect_net) as client:
         service.offer("images")
-        big = client.subscribe("cam/images", queue_size=QUEUE_BUDGET - 10)
-        with pytest.raises(RegistrationRefused, match="queue size 20 exceeds what cam/images"):
+        big = client.subscribe("cam/images", queue_size=FLOW_QUEUE_MAX - 10)
+        with pytest.raises(RegistrationRefused, match="queue size 20 exceeds the fair share"):
             client.subscribe("cam/images", queue_size=20)
         small = client.subscribe("cam/images", queue_size=10)  # what is left still fits
         info = client.buffer_info("cam/images")

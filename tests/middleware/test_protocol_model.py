@@ -6,7 +6,11 @@ One producer (restartable), several subscribers (flow and observe, joining and l
 an adversarial network that loses, duplicates, reorders and delays notifications and acks.
 A rogue injects notifications (foreign epochs, past seqs, far-future seqs of the current
 epoch, other registrations' descriptors), acks (foreign epochs, past seqs, colliding ids)
-and observe tokens with colliding or fresh ids. Tokens travel reliably (Zenoh liveliness).
+and observe tokens with colliding or fresh ids; it floods the ack key (garbage of any size,
+and a live subscriber's own last ack repeated hundreds of times) and churns tokens (bursts
+of flow and observe tokens declared and withdrawn, from one holder or many, greedy queues
+included). A live subscriber's token may lapse and come back (a link that dropped): what
+was stored meanwhile must reach ``missed``. Tokens travel reliably (Zenoh liveliness).
 The invariants are checked after every step; ``heal`` lets the network deliver again and
 checks liveness and no loss.
 
@@ -30,18 +34,22 @@ from hypothesis.database import DirectoryBasedExampleDatabase
 from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, precondition, rule
 
 from middleware._ledger_producer import RETRANSMIT_NS, RegistrationKey
-from middleware._ledger_subscriber import ACK_DELAY_NS, MAX_EPOCHS, AckPolicy
+from middleware._ledger_subscriber import ACK_DELAY_NS, MAX_EPOCHS, AckPolicy, Entry
 from middleware._protocol_producer import (
+    FLOW_QUEUE_MAX,
     MAX_FLOW_REGISTRATIONS,
     MAX_OBSERVE_REGISTRATIONS,
+    QUEUE_BUDGET,
+    RESEND_BURST,
     RESEND_PACE_NS,
     ProducerProtocol,
     Publish,
 )
-from middleware._protocol_subscriber import SubscriberProtocol
+from middleware._protocol_subscriber import Item, SubscriberProtocol
 from middleware._records import DataObject, SubscriptionMode
 from middleware._wire import (
     BatchHeader,
+    Control,
     Header,
     Keys,
     decode_notification_header,
@@ -81,11 +89,18 @@ class Sub:
     alive: bool = True
     # (epoch, seq, (timestamp_ns, metadata, pushed payload)) of every notification taken.
     taken: list[tuple[str, int, tuple[int, bytes | None, object]]] = field(default_factory=list)
+    # Elements reported missed, per producer instance (the epoch's prefix).
+    missed: dict[str, int] = field(default_factory=dict)
+    # Per producer instance, the elements stored before the first registration of this
+    # subscriber it heard of (a greeting or a notification: what came before, it cannot
+    # be told of), and whether its token lapsed since.
+    first_base: dict[str, int] = field(default_factory=dict)
+    lapsed: bool = False
 
 
-def _token(key: RegistrationKey) -> str:
+def _token(key: RegistrationKey, holder: str = "n~h") -> str:
     return KEYS.subscription_token(
-        SERVICE, BUFFER, key.sub_id, key.mode, key.queue_size, key.push_max_bytes, "n~h"
+        SERVICE, BUFFER, key.sub_id, key.mode, key.queue_size, key.push_max_bytes, holder
     )
 
 
@@ -97,6 +112,8 @@ class ProtocolModel(RuleBasedStateMachine):
         self.instance = 0
         self.producer = self._new_producer()
         self.next_t = 1
+        # Timestamps the producers before this instance used: element number = t - t0.
+        self.t0 = 0
         self.subs: list[Sub] = []
         self.rogue_tokens: list[RegistrationKey] = []
         self.net: list[Note | Ack] = []
@@ -137,21 +154,28 @@ class ProtocolModel(RuleBasedStateMachine):
         for sub in self.subs:
             if sub.alive and sub.key.sub_id == msg.sub_id:
                 sub.protocol.receive(msg.attachment, msg.payload)
+                _first_contact(sub, msg.attachment)
 
     def _take_all(self, sub: Sub) -> None:
-        for entry in sub.protocol.take_many(1 << 20):
-            sub.taken.append((entry.epoch, entry.seq, entry.item))
-            if sub.key.mode is FLOW:
-                assert entry.missed == 0, "a flow-controlled subscription reported missed"
+        self._record(sub, sub.protocol.take_many(1 << 20))
         self._acks(sub, idle=True)
+
+    def _record(self, sub: Sub, entries: list[Entry[Item]]) -> None:
+        for entry in entries:
+            sub.taken.append((entry.epoch, entry.seq, entry.item))
+            if entry.missed:
+                instance = entry.epoch.rpartition(".")[0]
+                sub.missed[instance] = sub.missed.get(instance, 0) + entry.missed
+                if sub.key.mode is FLOW:
+                    assert sub.lapsed, "a flow subscription reported missed without a lapse"
 
     def _acks(self, sub: Sub, *, idle: bool) -> None:
         keyexpr = KEYS.ack(SERVICE, BUFFER, sub.key.sub_id)
         for ack in sub.protocol.acks(self.now, idle=idle):
             self.net.append(Ack(keyexpr, ack))
 
-    def _register(self, key: RegistrationKey) -> None:
-        self.producer.token(_token(key), True, self.now)
+    def _register(self, key: RegistrationKey, holder: str = "n~h") -> None:
+        self.producer.token(_token(key, holder), True, self.now)
         reg = self.producer.get(key)
         if reg is not None:
             self.epochs_of.setdefault(key, set()).add(reg.epoch)
@@ -214,10 +238,7 @@ class ProtocolModel(RuleBasedStateMachine):
     def take(self, data: st.DataObject, count: int) -> None:
         STEPS[0] += 1
         sub = data.draw(st.sampled_from(self._live()))
-        for entry in sub.protocol.take_many(count):
-            sub.taken.append((entry.epoch, entry.seq, entry.item))
-            if sub.key.mode is FLOW:
-                assert entry.missed == 0, "a flow-controlled subscription reported missed"
+        self._record(sub, sub.protocol.take_many(count))
         self._acks(sub, idle=False)
 
     @precondition(lambda self: bool(self._live()))
@@ -286,6 +307,7 @@ class ProtocolModel(RuleBasedStateMachine):
     def restart_producer(self) -> None:
         STEPS[0] += 1
         self.instance += 1
+        self.t0 = self.next_t - 1
         self.producer = self._new_producer()
         for key in self._registered_keys():  # liveliness history re-registers every token
             self._register(key)
@@ -397,6 +419,113 @@ class ProtocolModel(RuleBasedStateMachine):
         self.producer.token(_token(key), False, self.now)
         self._emit()
 
+    @precondition(lambda self: bool(self._live()))
+    @rule(
+        data=st.data(),
+        garbage=st.integers(0, 200),
+        size=st.sampled_from([1, 16, 4096, 1 << 20]),
+        repeats=st.integers(0, 300),
+    )
+    def rogue_flood(self, data: st.DataObject, garbage: int, size: int, repeats: int) -> None:
+        """A flood on the ack key, delivered at once: ``garbage`` messages of ``size`` bytes,
+        and a live subscriber's own last ack (epoch and seq are on the wire) ``repeats``
+        times. However long it lasts, it may make each registration's outstanding
+        notifications due at most once (one paced resend round), and frees no credit."""
+        STEPS[0] += 1
+        sub = data.draw(st.sampled_from(self._live()))
+        keyexpr = KEYS.ack(SERVICE, BUFFER, sub.key.sub_id)
+        blob = bytes(size)
+        for _ in range(garbage):
+            assert not self.producer.ack(keyexpr, blob, self.now)
+        reg = self.producer.get(sub.key)
+        if reg is not None and repeats:
+            event("rogue flood: a subscriber's last ack repeated")
+            acked = reg.acked
+            for _ in range(repeats):
+                assert not self.producer.ack(keyexpr, encode_ack(reg.epoch, acked), self.now)
+            self.producer.tick(self.now)
+            resent = [e for e in self.producer.events() if isinstance(e, Publish) and e.epoch]
+            assert len(resent) <= RESEND_BURST, "a flood of repeated acks bought more resends"
+            for ev in resent:
+                self.net.append(Note(ev.keyexpr.rsplit("/", 1)[-1], ev.attachment, ev.payload))
+
+    @rule(
+        count=st.integers(1, 40),
+        holders=st.integers(1, 3),
+        queue=st.sampled_from([1, 64, FLOW_QUEUE_MAX]),
+        observe=st.booleans(),
+        put_between=st.booleans(),
+    )
+    def rogue_churn(
+        self, count: int, holders: int, queue: int, observe: bool, put_between: bool
+    ) -> None:
+        """A burst of tokens declared and then withdrawn (fresh ids, ``holders`` holder names,
+        greedy queues): shares hold throughout, and once they are gone nothing of theirs
+        remains (the invariants, and ``heal``, check the live subscribers)."""
+        STEPS[0] += 1
+        mode = OBSERVE if observe else FLOW
+        keys = [
+            (RegistrationKey(f"churn{i}", mode, queue, -1), f"rogue{i % holders}~x")
+            for i in range(count)
+        ]
+        for key, holder in keys:
+            self.producer.token(_token(key, holder), True, self.now)
+            self._check_shares()
+        self._emit()
+        if put_between and self.producer.full() is None:
+            meta = str(self.instance).encode()
+            self.producer.put_many((DataObject(self.next_t, b"", meta),), self.now)
+            self.next_t += 1
+            self._emit()
+        for key, holder in keys:
+            self.producer.token(_token(key, holder), False, self.now)
+        self._emit()
+        left = {r.key.sub_id for r in self.producer.registrations()}
+        assert not any(k.sub_id in left for k, _ in keys), "a churned token stayed registered"
+
+    @precondition(lambda self: bool(self._live()))
+    @rule(data=st.data(), puts=st.integers(0, 3))
+    def lapse(self, data: st.DataObject, puts: int) -> None:
+        """A live subscriber's token is withdrawn and declared again (its link dropped and
+        came back), with ``puts`` elements stored meanwhile: it must see them as missed."""
+        STEPS[0] += 1
+        sub = data.draw(st.sampled_from(self._live()))
+        sub.lapsed = True
+        # One producer session's messages to one key stay in order (Zenoh): what the old
+        # registration had in flight arrives (or is lost, by earlier moves) before the new
+        # registration's. Across a lapse the network may not reorder: the count of what was
+        # never notified rests on the element numbers seen so far.
+        for msg in [m for m in self.net if isinstance(m, Note) and m.sub_id == sub.key.sub_id]:
+            self.net.remove(msg)
+            self._deliver(msg)
+        self.producer.token(_token(sub.key), False, self.now)
+        self._emit()
+        meta = str(self.instance).encode()
+        for _ in range(puts):
+            if self.producer.full() is not None:
+                break
+            self.producer.put_many((DataObject(self.next_t, b"", meta),), self.now)
+            self.next_t += 1
+            self._emit()
+        self._register(sub.key)
+
+    def _check_shares(self) -> None:
+        """No holder holds more than the fair share of an idle producer, and the budget
+        and the pools hold in total."""
+        by_holder: dict[str, int] = {}
+        flow = observe = 0
+        for reg in self.producer.registrations():
+            holder = self.producer._holders.get(reg.key, (None, None))
+            name = f"{holder[0] or ''}~{holder[1] or ''}"
+            if reg.flow:
+                flow += 1
+                by_holder[name] = by_holder.get(name, 0) + reg.key.queue_size
+            else:
+                observe += 1
+        assert flow <= MAX_FLOW_REGISTRATIONS and observe <= MAX_OBSERVE_REGISTRATIONS
+        assert sum(by_holder.values()) <= QUEUE_BUDGET
+        assert all(q <= FLOW_QUEUE_MAX for q in by_holder.values()), by_holder
+
     # -- liveness --------------------------------------------------------------------------
     @rule()
     def heal(self) -> None:
@@ -433,11 +562,31 @@ class ProtocolModel(RuleBasedStateMachine):
                 event("heal: a flow subscriber that took several epochs")
             wanted = [(reg.epoch, s) for s in range(1, reg.sent + 1)]
             assert got == wanted, f"{sub.key.sub_id} lost or reordered notifications"
+            # Every element this producer instance stored since the subscriber first
+            # registered with it was taken or counted missed (a lapse loses none silently).
+            instance = f"P{self.instance}"
+            stamps = {
+                item[0]
+                for e, _, item in sub.taken
+                if e.rpartition(".")[0] == instance and item[1] != FORGED
+            }
+            # (Up to the last one taken: a gap is reported with the next element, as an
+            # observer's is.) Element numbers are the model's timestamps.
+            newest = max(stamps, default=self.t0) - self.t0
+            stored = newest - sub.first_base.get(instance, newest)
+            assert len(stamps) + sub.missed.get(instance, 0) >= stored, (
+                f"{sub.key.sub_id}: {stored} stored, {len(stamps)} taken, "
+                f"{sub.missed.get(instance, 0)} counted missed"
+            )
             for epoch, seq, item in sub.taken:
                 if epoch == reg.epoch:
                     assert item[:2] == (self.sent[(epoch, seq)], str(self.instance).encode())
 
     # -- invariants ------------------------------------------------------------------------
+    @invariant()
+    def shares_hold(self) -> None:
+        self._check_shares()
+
     @invariant()
     def queues_and_tables_are_bounded(self) -> None:
         for sub in self.subs:
@@ -497,6 +646,23 @@ class ProtocolModel(RuleBasedStateMachine):
             for _, _, (_, meta, pushed) in sub.taken:
                 if pushed is not None and meta != FORGED:
                     assert len(pushed) <= 4, "a payload beyond the push limit was pushed"
+
+
+def _first_contact(sub: Sub, attachment: bytes) -> None:
+    """Note the base of a registration the subscriber heard of (see ``Sub.first_base``)."""
+    try:
+        head = decode_notification_header(attachment)
+    except ValueError:
+        return
+    epoch = head.text if isinstance(head, Control) else head.epoch
+    if head.base is None or (isinstance(head, Control) and head.kind != "hello"):
+        return
+    if isinstance(head, Control) and head.descriptor != sub.key.descriptor:
+        return
+    if not isinstance(head, Control) and head.descriptor not in (None, sub.key.descriptor):
+        return
+    instance = epoch.rpartition(".")[0]
+    sub.first_base[instance] = min(sub.first_base.get(instance, head.base), head.base)
 
 
 def _entries_of(sub: Sub, epoch: str) -> list[int]:

@@ -29,16 +29,21 @@ def _array(*items: Any) -> bytes:
 
 
 def test_a_single_header_round_trips() -> None:
-    raw = encode_notification_header("E.1", 3, 7, META, pushed=True, acked=2, descriptor="k")
-    assert decode_notification_header(raw) == Header("E.1", 3, 7, META, True, 2, "k")
+    raw = encode_notification_header(
+        "E.1", 3, 7, META, pushed=True, acked=2, descriptor="k", base=40
+    )
+    assert decode_notification_header(raw) == Header("E.1", 3, 7, META, True, 2, "k", 40)
     bare = encode_notification_header("E.1", 3, 7, None, pushed=False)
-    assert decode_notification_header(bare) == Header("E.1", 3, 7, None, False, None, None)
+    assert decode_notification_header(bare) == Header("E.1", 3, 7, None, False, None, None, None)
+    # The array of 7 of earlier versions (no base) is still read.
+    old = _array("E.1", 3, 7, META, True, 2, "k")
+    assert decode_notification_header(old) == Header("E.1", 3, 7, META, True, 2, "k", None)
 
 
 def test_an_unpushed_batch_header_has_no_payload_sizes() -> None:
     raw = encode_batch_header("E.1", 5, [7, 8], [None, META], None)
     assert decode_notification_header(raw) == BatchHeader(
-        "E.1", 5, (7, 8), (None, META), None, None, None
+        "E.1", 5, (7, 8), (None, META), None, None, None, None
     )
 
 
@@ -50,7 +55,9 @@ def test_an_unpushed_batch_header_has_no_payload_sizes() -> None:
         (_array("E.1", 1, 7, META, True, None, None) + b"\x00", "trailing bytes"),
         (bytes(msgpack.packb({"e": "E.1", "s": 1, "t": 7, "p": True})), "the old map"),
         (_array("E.1", 1, 7, META, True, None), "6 items"),
-        (_array("E.1", 1, 7, META, True, None, None, None), "8 items"),
+        (_array("E.1", 1, 7, META, True, None, None, None, None), "9 items"),
+        (_array("E.1", 1, 7, META, True, None, None, -1), "a negative base"),
+        (_array("E.1", 1, 7, META, True, None, None, True), "base a bool"),
         (_array(b"E.1", 1, 7, META, True, None, None), "epoch as bin"),
         (_array("E.1", True, 7, META, True, None, None), "seq a bool"),
         (_array("E.1", 1.0, 7, META, True, None, None), "seq a float"),
@@ -92,6 +99,7 @@ def _well_typed(head: Header | BatchHeader) -> bool:
         and is_int(head.seq)
         and (head.acked is None or is_int(head.acked))
         and (head.descriptor is None or type(head.descriptor) is str)
+        and (head.base is None or (is_int(head.base) and head.base >= 0))
     )
     if isinstance(head, Header):
         return (
@@ -115,7 +123,7 @@ def _well_typed(head: Header | BatchHeader) -> bool:
 
 
 @settings(deadline=None)  # no wall-clock bound per example
-@given(st.one_of(st.binary(max_size=64), st.lists(_values, min_size=6, max_size=8).map(_array)))
+@given(st.one_of(st.binary(max_size=64), st.lists(_values, min_size=6, max_size=9).map(_array)))
 def test_any_input_decodes_to_a_well_typed_header_or_a_value_error(raw: bytes) -> None:
     try:
         head = decode_notification_header(raw)

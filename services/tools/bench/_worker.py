@@ -15,11 +15,17 @@ from types import FrameType
 from typing import Any
 
 from ._fg import ROLES as FG_ROLES
+from ._floods import ROLES as FLOOD_ROLES
 from ._raw import ROLES as RAW_ROLES
 from ._ros2 import ROLES as ROS2_ROLES
 from ._serve import profiled
 
-ROLES: dict[str, Callable[[dict[str, Any]], None]] = {**RAW_ROLES, **FG_ROLES, **ROS2_ROLES}
+ROLES: dict[str, Callable[[dict[str, Any]], None]] = {
+    **RAW_ROLES,
+    **FG_ROLES,
+    **ROS2_ROLES,
+    **FLOOD_ROLES,
+}
 
 
 def main(argv: list[str]) -> int:

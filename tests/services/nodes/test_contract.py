@@ -23,6 +23,13 @@ NOT_APPLICABLE = {
 }
 # Flags that only make sense with another one (a replay needs its directory).
 COMPANIONS = {"--source": ["--path", "somewhere"]}
+# Flags whose value is itself a list of words, or that need a companion to be valid.
+WHOLE = {
+    "--imu-to-camera": [["--imu-to-camera", "0", "0", "1", "-1", "0", "0", "0", "-1", "0"]],
+    "--consumer-done": [
+        ["--consumer-done", "/yolo/detections", "--image-out", "mediator/images=/camera/sharp"]
+    ],
+}
 # Flags whose value must name something that exists (a handler is imported when parsed).
 EXISTING = {"--handler": "services.nodes.detector:detect_aruco"}
 
@@ -50,6 +57,8 @@ def _candidates(action: argparse.Action) -> list[list[str]]:
     flag = action.option_strings[-1]
     if flag in EXISTING:
         return [[flag, EXISTING[flag]]]
+    if flag in WHOLE:
+        return WHOLE[flag]
     if action.nargs == 0:
         return [[flag]]
     if action.choices:

@@ -1,0 +1,394 @@
+"""Hostile peers of a producer, across real processes over Zenoh on loopback: greedy
+holders, forged refusals, fake service tokens, hostile ``@info`` answers, token churn and
+ack floods. The hostile peers are raw Zenoh sessions (in this process, or the ``flood``
+workers of ``framegate bench``, one process each)."""
+
+from __future__ import annotations
+
+import json
+import logging
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import msgpack
+import pytest
+import zenoh
+
+from middleware import (
+    FLOW_QUEUE_MAX,
+    FlowControlRefused,
+    NetworkConfig,
+    Node,
+    SubscriptionMode,
+    make_metadata,
+    now_ns,
+)
+from middleware._protocol_producer import MAX_OBSERVE_REGISTRATIONS, QUEUE_BUDGET
+from middleware._wire import Keys
+from tests.conftest import REPO, NodeProcess, child_env, wait_until
+from tests.helpers.raw_zenoh import open_session
+from tests.helpers.timing import scaled
+
+pytestmark = pytest.mark.integration
+
+KEYS = Keys("framegate")
+
+
+def _token(sub_id: str, mode: SubscriptionMode, queue: int, holder: str) -> str:
+    return KEYS.subscription_token("cam", "images", sub_id, mode, queue, -1, holder)
+
+
+def test_a_greedy_holder_leaves_room_for_a_mediator_and_a_recorder(
+    node_process: Callable[..., NodeProcess], endpoint: str
+) -> None:
+    """One peer asks for the largest queue a holder may get, then more, and holds every
+    observe slot it may: a mediator's flow subscription and a recorder's observer still
+    register, and ``info`` states the limits."""
+    producer = node_process("cam", "--listen", endpoint)
+    assert producer.call("offer", buffer="images")["ok"]
+    with (
+        open_session(endpoint) as rogue,
+        Node("mediator", NetworkConfig(connect=(endpoint,))) as mediator,
+        Node("record", NetworkConfig(connect=(endpoint,))) as record,
+    ):
+        live = rogue.liveliness()
+        tokens = [live.declare_token(_token("big", SubscriptionMode.FLOW, FLOW_QUEUE_MAX, "g~x"))]
+        tokens.append(live.declare_token(_token("big2", SubscriptionMode.FLOW, 4096, "g~x")))
+        tokens += [
+            live.declare_token(_token(f"obs{i}", SubscriptionMode.OBSERVE, 2, "g~x"))
+            for i in range(MAX_OBSERVE_REGISTRATIONS)
+        ]
+        info = wait_until(
+            lambda: (
+                (i := mediator.buffer_info("cam/images")).refused_subscriptions
+                >= 1 + MAX_OBSERVE_REGISTRATIONS // 2
+                and i
+            ),
+            scaled(15),
+            "the greedy holder's tokens judged",
+        )
+        assert info.limits is not None and info.limits.queue_budget == QUEUE_BUDGET
+        assert info.limits.flow_queue_max == FLOW_QUEUE_MAX
+        flow = mediator.subscribe("cam/images", queue_size=4, wait_s=scaled(5))
+        observer = record.subscribe(
+            "cam/images", queue_size=8, mode=SubscriptionMode.OBSERVE, wait_s=scaled(5)
+        )
+        subs = {s.subscription_id: s for s in mediator.buffer_info("cam/images").subscriptions}
+        assert flow.subscription_id in subs and observer.subscription_id in subs
+        assert subs[flow.subscription_id].node == "mediator"
+        for token in tokens:
+            token.undeclare()
+
+
+def test_a_refused_service_logs_an_error_and_registers_once_room_is_free(
+    node_process: Callable[..., NodeProcess], endpoint: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Peers with many holder names take the whole budget; a service subscribing without
+    waiting (as the mediator does) logs the refusal as an error naming the reason and
+    itself, and registers by itself once they leave."""
+    producer = node_process("cam", "--listen", endpoint)
+    assert producer.call("offer", buffer="images")["ok"]
+    with (
+        open_session(endpoint) as rogue,
+        Node("mediator", NetworkConfig(connect=(endpoint,))) as mediator,
+    ):
+        live, tokens, free, i = rogue.liveliness(), [], QUEUE_BUDGET, 0
+        while free >= 4:  # each holder takes its fair share: half of what is free
+            share = (free + 1) // 2
+            tokens.append(
+                live.declare_token(_token(f"g{i}", SubscriptionMode.FLOW, share, f"h{i}~x"))
+            )
+            free, i = free - share, i + 1
+        wait_until(
+            lambda: (
+                sum(s.queue_size for s in mediator.buffer_info("cam/images").subscriptions)
+                == QUEUE_BUDGET - free
+            ),
+            scaled(15),
+            "the budget taken",
+        )
+        with caplog.at_level(logging.ERROR, logger="framegate.middleware"):
+            sub = mediator.subscribe("cam/images", queue_size=4, wait_s=0)
+            wait_until(
+                lambda: any(
+                    "refused the subscription of mediator~" in r.message for r in caplog.records
+                ),
+                scaled(15),
+                "the refusal logged as an error",
+            )
+        [record] = [r for r in caplog.records if "refused the subscription" in r.message]
+        assert record.levelno == logging.ERROR and "queue size 4" in record.message
+        assert "largest holder is h0~x" in record.message
+        for token in tokens:
+            token.undeclare()
+        wait_until(
+            lambda: (
+                sub.subscription_id
+                in {s.subscription_id for s in mediator.buffer_info("cam/images").subscriptions}
+            ),
+            scaled(20),
+            "the refused subscription registered once the budget was free",
+        )
+
+
+def _watch_tokens(session: zenoh.Session, fn: Callable[[str], None]) -> Callable[[], None]:
+    """Call ``fn(token key)`` for every new subscription token of cam/images, on a thread."""
+    watcher = session.liveliness().declare_subscriber(
+        KEYS.subscription_tokens("cam", "images"), zenoh.handlers.FifoChannel(256)
+    )
+
+    def run() -> None:
+        for sample in watcher.handler:
+            if sample.kind == zenoh.SampleKind.PUT:
+                fn(str(sample.key_expr))
+
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+
+    def stop() -> None:
+        watcher.undeclare()
+        thread.join(timeout=5)
+
+    return stop
+
+
+def test_a_forged_refusal_does_not_refuse(listen_net: NetworkConfig, endpoint: str) -> None:
+    """A peer answers every new subscription token with a ``refused`` on its notify key,
+    before the producer's greeting: it is not from the producer's session, so it does not
+    count, and each subscription registers."""
+    with (
+        Node("cam", listen_net) as service,
+        open_session(endpoint) as rogue,
+        Node(network=NetworkConfig(connect=(endpoint,))) as client,
+    ):
+        images = service.offer("images")
+
+        def refuse(token: str) -> None:
+            parts = token.split("/")
+            sub_id, descriptor = parts[4], "/".join(parts[5:8])
+            forged = msgpack.packb(("refused", descriptor, "forged: go away"))
+            rogue.put(KEYS.notify("cam", "images", sub_id), b"", attachment=forged)
+
+        stop = _watch_tokens(rogue, refuse)
+        try:
+            for t in range(1, 6):
+                sub = client.subscribe("cam/images", queue_size=2, wait_s=scaled(10))
+                images.put(t, b"x", make_metadata("generic", t), wait_s=scaled(5))
+                note = sub.take(timeout_s=scaled(5))
+                assert note is not None and note.timestamp_ns == t
+                sub.close()
+        finally:
+            stop()
+
+
+def test_a_bare_service_token_does_not_stop_the_service(
+    node_process: Callable[..., NodeProcess], endpoint: str
+) -> None:
+    """A liveliness token ``framegate/@svc/cam`` whose holder does not answer as ``cam``
+    (no ``@info``) is not another instance: the real ``cam`` starts (with a warning)."""
+    with open_session(endpoint) as rogue:
+        token = rogue.liveliness().declare_token(KEYS.service_token("cam"))
+        service = node_process("cam", "--listen", "tcp/127.0.0.1:0", "--connect", endpoint)
+        assert service.call("offer", buffer="images")["ok"]
+        token.undeclare()
+
+
+HOSTILE_INFO = {
+    "no subscriptions": json.dumps(
+        {
+            "service": "evil",
+            "host": "h",
+            "pid": 1,
+            "clock_ns": 1,
+            "buffers": [{"buffer": "b", "service": "evil", "kind": "generic"}],
+        }
+    ).encode(),
+    "invalid UTF-8": b'{"service": "\xff\xfe"}',
+    "100,000 nested brackets": b"[" * 100_000 + b"]" * 100_000,
+}
+
+
+@contextmanager
+def _hostile_service(endpoint: str, answer: bytes) -> Iterator[None]:
+    with open_session(endpoint) as rogue:
+        token = rogue.liveliness().declare_token(KEYS.service_token("evil"))
+        queryable = rogue.declare_queryable(KEYS.info("evil"), zenoh.handlers.FifoChannel(16))
+
+        def serve() -> None:
+            for query in queryable.handler:
+                with query:
+                    query.reply(KEYS.info("evil"), answer)
+
+        thread = threading.Thread(target=serve, daemon=True)
+        thread.start()
+        try:
+            yield
+        finally:
+            queryable.undeclare()
+            token.undeclare()
+            thread.join(timeout=5)
+
+
+@pytest.mark.parametrize("case", sorted(HOSTILE_INFO))
+def test_info_of_a_hostile_service_is_one_error_line(endpoint: str, case: str) -> None:
+    with _hostile_service(endpoint, HOSTILE_INFO[case]):
+        done = subprocess.run(
+            [sys.executable, "-m", "services.cli", "info", "evil", "--connect", endpoint],
+            capture_output=True,
+            text=True,
+            cwd=REPO,
+            env=child_env(),
+            timeout=scaled(60),
+        )
+    lines = done.stderr.strip().splitlines()
+    assert done.returncode == 1, done.stderr
+    assert len(lines) == 1 and lines[0].startswith("error:"), done.stderr
+    assert "Traceback" not in done.stderr
+
+
+# -- floods and churn from worker processes -------------------------------------------------
+class _Flood:
+    """A ``flood`` worker of ``framegate bench`` (services/tools/bench/_floods.py)."""
+
+    def __init__(self, endpoint: str, **params: Any) -> None:
+        params = {"connect": endpoint, "namespace": "framegate", **params}
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "services.tools.bench._worker", "flood", json.dumps(params)],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+            cwd=REPO,
+            env=child_env(),
+        )
+        assert self.proc.stdout is not None
+        assert json.loads(self.proc.stdout.readline()).get("ready")
+
+    def stop(self) -> int:
+        assert self.proc.stdin is not None and self.proc.stdout is not None
+        self.proc.stdin.write(json.dumps({"op": "stop"}) + "\n")
+        self.proc.stdin.flush()
+        count = int(json.loads(self.proc.stdout.readline())["count"])
+        self.proc.stdin.close()
+        self.proc.wait(timeout=scaled(10))
+        return count
+
+    def kill(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait()
+
+
+@contextmanager
+def _floods(endpoint: str, count: int, **params: Any) -> Iterator[list[_Flood]]:
+    floods: list[_Flood] = []
+    try:
+        for _ in range(count):
+            floods.append(_Flood(endpoint, service="cam", buffer="images", **params))
+        yield floods
+    finally:
+        for flood in floods:
+            flood.kill()
+
+
+def _rss_mb(pid: int) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    return 0.0
+
+
+def _sequence_checked(sub: Any, expected: int, timeout_s: float) -> tuple[int, int]:
+    """Take until element ``expected``: each element's payload is its number; every one
+    must arrive or be counted in the next one's ``missed``. (received, missed)."""
+    last, received, missed = 0, 0, 0
+    deadline = time.monotonic() + timeout_s
+    while last < expected:
+        assert time.monotonic() < deadline, f"stalled at element {last} of {expected}"
+        for note in sub.take_many(64, timeout_s=1.0):
+            number = int(sub.fetch(note).payload)
+            assert number == last + 1 + note.missed, (
+                f"element {number} after {last} with missed={note.missed}: lost uncounted"
+            )
+            last, received, missed = number, received + 1, missed + note.missed
+    return received, missed
+
+
+def _produce(images: Any, count: int, stop: threading.Event) -> None:
+    """Put elements 1..count (payload = the number), each waiting for credit."""
+    number = 1
+    while number <= count and not stop.is_set():
+        t = now_ns()
+        try:
+            images.put(t, str(number).encode(), make_metadata("generic", t), wait_s=1.0)
+            number += 1
+        except FlowControlRefused:
+            continue  # a churned token held the queue: the same element again
+
+
+@pytest.mark.parametrize(("mode", "churners"), [("flow", 1), ("observe", 2)])
+def test_token_churn_loses_no_element_uncounted(
+    listen_net: NetworkConfig, endpoint: str, mode: str, churners: int
+) -> None:
+    """Tokens declared and withdrawn as fast as 1-2 processes can, beside a legitimate
+    flow subscriber that checks every element's number: each one arrives or is counted in
+    ``missed``, and the producer goes on. (A churned flow token that never takes holds the
+    producer while it lives, by the paper's rule: that costs rate, never an element.)"""
+    count = 1000
+    with (
+        Node("cam", listen_net) as service,
+        Node("consumer", NetworkConfig(connect=(endpoint,))) as consumer,
+    ):
+        images = service.offer("images")
+        sub = consumer.subscribe("cam/images", queue_size=8, wait_s=scaled(10))
+        stop = threading.Event()
+        churn = {"kind": "churn", "mode": mode, "queue_size": 2, "batch": 8}
+        with _floods(endpoint, churners, **churn) as floods:
+            producer = threading.Thread(target=_produce, args=(images, count, stop), daemon=True)
+            producer.start()
+            try:
+                received, missed = _sequence_checked(sub, count, scaled(180))
+            finally:
+                stop.set()
+                producer.join(timeout=scaled(10))
+            churned = sum(flood.stop() for flood in floods)
+        assert received + missed == count and churned > 0
+        assert sub.missed_total == missed
+
+
+@pytest.mark.parametrize(
+    ("processes", "size"), [(4, 16), (2, 1 << 20)], ids=["16 B x 4", "1 MiB x 2"]
+)
+def test_an_ack_flood_neither_stalls_put_nor_grows_memory(
+    node_process: Callable[..., NodeProcess], endpoint: str, processes: int, size: int
+) -> None:
+    """Garbage on the producer's ack keys from several processes: a put that waits for
+    credit returns within its ``wait_s`` plus slack, elements keep flowing to a consumer
+    that takes, and the producer's memory stays bounded."""
+    producer = node_process("cam", "--listen", endpoint)
+    assert producer.call("offer", buffer="images")["ok"]
+    consumer = node_process(None, "--connect", endpoint)
+    consumer.call("subscribe", target="cam/images", queue=1)
+    assert producer.call("wait_subscribers", buffer="images", count=1, timeout=5)["registered"]
+    rss_before = _rss_mb(producer.proc.pid)
+    with _floods(endpoint, processes, kind="acks", size=size):
+        time.sleep(1.0)  # the flood under way
+        for t in range(1, 21):  # the consumer takes each: credit comes back through the flood
+            assert producer.call("put", buffer="images", t=t, wait_s=10)["ok"]
+            took = consumer.call("take", target="cam/images", timeout=10)
+            assert took["notification"]["t"] == t
+        # Fills the queue of 1 (once the last take's ack came through the flood).
+        assert producer.call("put", buffer="images", t=100, wait_s=10)["ok"]
+        started = time.monotonic()
+        refused = producer.call("put", buffer="images", t=101, wait_s=1)
+        waited = time.monotonic() - started
+        rss_during = _rss_mb(producer.proc.pid)
+    assert refused["error"] == "FlowControlRefused", refused
+    assert waited < 1 + scaled(10), f"put(wait_s=1) took {waited:.1f} s under the flood"
+    # The inboxes hold at most their capacity of acks no larger than an ack can be.
+    assert rss_during - rss_before < 400, f"RSS grew {rss_during - rss_before:.0f} MB"
