@@ -173,6 +173,10 @@ def test_a_rogue_frame_9_s_ahead_does_not_stop_forwarding_after_it(
         assert "out-of-order" not in recorded.reasons(1), recorded.reasons()
         assert any(r.accepted for r in recorded.records[1:]), recorded.reasons()
         assert recorded.mediator.images.info().skipped == {"rewound": 1}
+        # ... and recorded, as any client reads it: what was removed, and why.
+        (rewind,) = node.buffer_info("mediator/images").rewinds
+        assert (rewind.count, rewind.first_ns, rewind.last_ns) == (1, rogue_ns, rogue_ns)
+        assert rewind.cause == "rewound" and rewind.after_ns < rogue_ns
         detected = wait_until(
             lambda: [
                 e.timestamp_ns
