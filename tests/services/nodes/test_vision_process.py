@@ -175,7 +175,8 @@ def test_results_are_removed_only_when_the_input_producer_itself_went_back() -> 
 
         def frame(frame_id: int) -> Notification:
             image = np.full((8, 8), frame_id, np.uint8)
-            stamp = base_ns + frame_id * 10**9
+            # 0.1 s apart: a producer rewinds at most its horizon (10 s) back.
+            stamp = base_ns + frame_id * 10**8
             meta = frame_metadata(frame_id, Exposure(stamp, 1_000_000), image, None)
             element = DataObject(stamp, image.tobytes(), meta)
             if images.series.newest_ns is None or stamp > images.series.newest_ns:
@@ -194,10 +195,10 @@ def test_results_are_removed_only_when_the_input_producer_itself_went_back() -> 
         assert output.info().skipped == {"out-of-order": 1}
         # The producer went back (it removed its frames after 12, as a mediator does after a
         # camera restarted with its clock behind): our results after the new frame follow.
-        images.discard_after(base_ns + 12 * 10**9, "rewound")
+        images.discard_after(base_ns + 12 * 10**8, "rewound")
         handle(16)
         stamps = [e.timestamp_ns - base_ns for e in node.query("vision/detections")]
-        assert stamps == [10 * 10**9, 16 * 10**9]
+        assert stamps == [10 * 10**8, 16 * 10**8]
         assert output.info().skipped == {"out-of-order": 1, "rewound": 2}
 
 
