@@ -42,7 +42,9 @@ def test_the_suite_finds_its_hypothesis_tests() -> None:
     assert len(_hypothesis_tests()) >= 20
 
 
-@pytest.mark.parametrize(("where", "node"), _hypothesis_tests(), ids=lambda v: v[:80] if isinstance(v, str) else "")
+@pytest.mark.parametrize(
+    ("where", "node"), _hypothesis_tests(), ids=lambda v: v[:80] if isinstance(v, str) else ""
+)
 def test_every_hypothesis_test_sets_its_deadline(where: str, node: ast.FunctionDef) -> None:
     assert _deadline_set(node), f"{where}: say @settings(deadline=...) (None for I/O, big input)"
 
