@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import math
+import signal
 import sys
 import time
 
@@ -65,6 +66,9 @@ def count(text: str) -> int:
 
 
 if __name__ == "__main__":
+    # Ctrl-C stops it even when its parent ignores SIGINT (a job a script put in the
+    # background starts that way, and Python then never raises KeyboardInterrupt).
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     parser = argparse.ArgumentParser(prog="offer", description=__doc__.splitlines()[0])
     add_network_arguments(parser)
     parser.add_argument("--count", type=count, default=0, help="elements to put (0: until Ctrl-C)")

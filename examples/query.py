@@ -7,6 +7,7 @@ or integer nanoseconds since the epoch).
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 
 from middleware import (
@@ -34,6 +35,9 @@ def shown(payload: bytes) -> str:
 
 
 if __name__ == "__main__":
+    # Ctrl-C stops it even when its parent ignores SIGINT (a job a script put in the
+    # background starts that way, and Python then never raises KeyboardInterrupt).
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     parser = argparse.ArgumentParser(prog="query", description=__doc__.splitlines()[0])
     add_network_arguments(parser)
     parser.add_argument("target", nargs="?", default="example/counter", help="SERVICE/BUFFER")
