@@ -78,7 +78,8 @@ class _Counters:
     refused: int = 0
     rejected: int = 0
     skipped: dict[str, int] = field(default_factory=dict)
-    put_times: deque[int] = field(default_factory=lambda: deque(maxlen=_RATE_WINDOW))
+    # (when, elements) per put or put_many: a batch is one event (``_rate``).
+    put_times: deque[tuple[int, int]] = field(default_factory=lambda: deque(maxlen=_RATE_WINDOW))
     # The latest rewinds, for ``info``; older ones stay counted in ``skipped``.
     rewinds: deque[Rewind] = field(default_factory=lambda: deque(maxlen=_REWINDS_KEPT))
 
@@ -348,7 +349,7 @@ class Producer:
             raise
         self._counters.puts += len(elements)
         now = time.monotonic_ns()
-        self._counters.put_times.extend([now] * len(elements))
+        self._counters.put_times.append((now, len(elements)))
         return self._protocol.put_many(elements, now)
 
     def _carry_out(self, events: list[Event]) -> None:

@@ -1,10 +1,12 @@
-"""The put rate a buffer reports in ``info`` and ``ls``: a pure estimate from put times.
+"""The put rate a buffer reports in ``info`` and ``ls``: a pure estimate from put events.
 
-A batch (``put_many``) stores its elements at one instant, so a window of per-element put
-times holds runs of equal times, and its oldest run may be cut anywhere. The elements put
-*at* the window's first instant arrived before the measured span began: counting them
-over that span overstates the rate (a 200 Hz IMU in batches of 10 read 210 Hz with a
-64-element window). The rate is the elements put after the first instant over the span.
+The window holds the last puts as ``(time, elements)`` events, one per ``put`` or
+``put_many``, not one time per element: a batch stores its elements at one instant, and a
+window of per-element times that one batch fills (64 elements or more) has no span to
+measure, so it read 0 Hz for a stream that kept coming. The elements of the window's first
+event were put before the measured span began: counting them over that span overstates the
+rate (a 200 Hz IMU in batches of 10 read 210 Hz). The rate is the elements put after the
+first event over the span, as ``ros2 topic hz`` counts messages and not callbacks.
 """
 
 from __future__ import annotations
@@ -15,14 +17,14 @@ from collections.abc import Sequence
 STALE_NS = 5_000_000_000
 
 
-def put_rate_hz(put_times_ns: Sequence[int], now_ns: int) -> float:
-    """Elements per second over ``put_times_ns`` (monotonic ns, oldest first, one per
-    element); 0.0 with no span to measure or nothing put for ``STALE_NS``."""
-    if not put_times_ns:
+def put_rate_hz(puts: Sequence[tuple[int, int]], now_ns: int) -> float:
+    """Elements per second over ``puts``: ``(monotonic ns, elements)`` per put, oldest
+    first; 0.0 with no span to measure or nothing put for ``STALE_NS``."""
+    if len(puts) < 2:
         return 0.0
-    first, last = put_times_ns[0], put_times_ns[-1]
+    first, last = puts[0][0], puts[-1][0]
     if last <= first or now_ns - last > STALE_NS:
         return 0.0
-    # Times are non-decreasing: the elements put at the first instant lead the window.
-    at_first = next(i for i, t in enumerate(put_times_ns) if t != first)
-    return (len(put_times_ns) - at_first) / ((last - first) / 1e9)
+    # Times are non-decreasing: every event at the first instant leads the window.
+    after_first = sum(count for t, count in puts if t != first)
+    return after_first / ((last - first) / 1e9)

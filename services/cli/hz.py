@@ -6,6 +6,12 @@ rate of the elements' *stamps* (the source's clock): the two differ while a reco
 played at another speed (``play --rate 0.5``: 15 Hz of stamps arrive at 7.5 Hz) or when a
 source falls behind and catches up.
 
+A batch (``put_many``) arrives as one: its elements are taken together and share one
+arrival instant. As ``ros2 topic hz`` counts messages, the arrival rate counts the elements
+that arrived after the window's first arrival over the span from it to the last; the window
+of arrivals holds ``--window`` of them (takes, not elements), so a producer whose batches
+are larger than the element window still spans several arrivals.
+
 Buffering rule: hz only observes (``SubscriptionMode.OBSERVE``), so measuring never slows
 the producer. Missed notifications do not bias the numbers: both rates count sequence
 numbers (every stored element gets one) over the span, and intervals are taken only between
@@ -18,17 +24,28 @@ import argparse
 import math
 import time
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass
 from itertools import pairwise
 from typing import Any
 
-from middleware import ConfigError, FramegateError, Node, SubscriptionMode
+from middleware import (
+    ConfigError,
+    FramegateError,
+    Node,
+    Notification,
+    Subscription,
+    SubscriptionMode,
+)
 from services.lib.argtypes import positive_float, positive_int
 
 from ._common import command_parser, exit_on_sigterm, format_bytes, network
 from ._target import add_timeout_argument, print_json_line, resolve
 
 DEFAULT_WINDOW = 100
+# Notifications taken at once: one arrival. Bounded so that fetching the sizes of one take
+# never holds the reports back for long.
+_TAKE_MAX = 1024
 
 
 @dataclass(frozen=True, slots=True)
@@ -52,7 +69,8 @@ def register(subparsers: Any) -> None:
         type=positive_int,
         default=DEFAULT_WINDOW,
         metavar="N",
-        help=f"statistics over the last N elements (default {DEFAULT_WINDOW})",
+        help=f"statistics over the last N elements, the rate over the last N arrivals "
+        f"(default {DEFAULT_WINDOW})",
     )
     parser.add_argument("--duration", type=positive_float, metavar="S", help="stop after S seconds")
     parser.add_argument(
@@ -85,9 +103,35 @@ def _intervals(samples: list[Sample], when: str) -> list[float]:
     ]
 
 
-def window_stats(samples: list[Sample]) -> dict[str, Any]:
-    """Arrival rate (``rate_hz``, as ``ros2 topic hz``), arrival-interval statistics, the
-    stamps' rate and jitter, and bandwidth of a window of samples."""
+def arrival_rate_hz(arrivals: Sequence[tuple[int, int]]) -> float | None:
+    """Elements per second from ``(arrival_ns, newest seq)`` per arrival, oldest first:
+    the elements that came after the first arrival (by sequence number, so missed ones
+    count) over the span from it to the last; None without a span."""
+    if len(arrivals) < 2:
+        return None
+    (first_ns, first_seq), (last_ns, last_seq) = arrivals[0], arrivals[-1]
+    if last_ns <= first_ns:
+        return None
+    return (last_seq - first_seq) / ((last_ns - first_ns) / 1e9)
+
+
+def _arrivals(samples: list[Sample]) -> list[tuple[int, int]]:
+    """One ``(arrival_ns, newest seq)`` per instant at which samples arrived together."""
+    out: list[tuple[int, int]] = []
+    for sample in samples:
+        if out and out[-1][0] == sample.arrival_ns:
+            out[-1] = (sample.arrival_ns, sample.seq)
+        else:
+            out.append((sample.arrival_ns, sample.seq))
+    return out
+
+
+def window_stats(
+    samples: list[Sample], arrivals: Sequence[tuple[int, int]] | None = None
+) -> dict[str, Any]:
+    """Arrival rate (``rate_hz``, as ``ros2 topic hz``: over ``arrivals``, by default those
+    of ``samples``), arrival-interval statistics, the stamps' rate and jitter, and
+    bandwidth of a window of samples."""
     out: dict[str, Any] = {
         "window": len(samples),
         "rate_hz": None,
@@ -104,9 +148,7 @@ def window_stats(samples: list[Sample]) -> dict[str, Any]:
     if len(samples) >= 2:
         first, last = samples[0], samples[-1]
         elements = last.seq - first.seq
-        arrival_s = (last.arrival_ns - first.arrival_ns) / 1e9
         stamp_s = (last.timestamp_ns - first.timestamp_ns) / 1e9
-        out["rate_hz"] = out["receive_rate_hz"] = elements / arrival_s if arrival_s > 0 else None
         out["stamp_rate_hz"] = elements / stamp_s if stamp_s > 0 else None
         if intervals := _intervals(samples, "arrival_ns"):
             mean = sum(intervals) / len(intervals)
@@ -114,6 +156,8 @@ def window_stats(samples: list[Sample]) -> dict[str, Any]:
             out["std_s"] = _std(intervals, mean)
         if stamps := _intervals(samples, "timestamp_ns"):
             out["stamp_std_s"] = _std(stamps, sum(stamps) / len(stamps))
+    rate = arrival_rate_hz(_arrivals(samples) if arrivals is None else arrivals)
+    out["rate_hz"] = out["receive_rate_hz"] = rate
     sizes = [s.payload_bytes for s in samples if s.payload_bytes is not None]
     if sizes:
         out["mean_bytes"] = sum(sizes) / len(sizes)
@@ -155,6 +199,7 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("--interval and --duration must be > 0 seconds")
     exit_on_sigterm()
     samples: deque[Sample] = deque(maxlen=args.window)
+    arrivals: deque[tuple[int, int]] = deque(maxlen=args.window)
     with Node(network=network(args)) as node:
         resolve(node, args.target, args.timeout)
         sub = node.subscribe(
@@ -170,33 +215,46 @@ def run(args: argparse.Namespace) -> int:
                 now = time.monotonic()
                 if now >= next_report:
                     next_report = now + args.interval
-                    _report(args, "report", list(samples), sub.missed_total)
+                    _report(args, "report", list(samples), list(arrivals), sub.missed_total)
                 wait_s = max(0.0, next_report - now)
                 if deadline is not None:
                     wait_s = min(wait_s, max(0.0, deadline - now))
-                note = sub.take(timeout_s=wait_s)
-                if note is None:
-                    continue
-                if samples and note.seq <= samples[-1].seq:
-                    samples.clear()  # the producer restarted: a new epoch counts from 1
-                size: int | None = None
-                if note.element is not None:
-                    size = len(note.element.payload)
-                else:
-                    try:  # large elements are not inline: fetch, as `ros2 topic bw` receives
-                        size = len(sub.fetch(note).payload)
-                    except FramegateError:
-                        size = None  # evicted already; the rate does not need it
-                samples.append(Sample(note.seq, note.timestamp_ns, time.monotonic_ns(), size))
+                notes = sub.take_many(_TAKE_MAX, timeout_s=wait_s)
+                arrival_ns = time.monotonic_ns()  # one instant for what came together
+                for note in notes:
+                    if samples and note.seq <= samples[-1].seq:
+                        # The producer restarted: a new epoch counts from 1.
+                        samples.clear()
+                        arrivals.clear()
+                    samples.append(
+                        Sample(note.seq, note.timestamp_ns, arrival_ns, _size(sub, note))
+                    )
+                if notes:
+                    arrivals.append((arrival_ns, samples[-1].seq))
         except KeyboardInterrupt:
             pass
         missed = sub.missed_total
-    _report(args, "summary", list(samples), missed)
+    _report(args, "summary", list(samples), list(arrivals), missed)
     return 0
 
 
-def _report(args: argparse.Namespace, event: str, samples: list[Sample], missed: int) -> None:
-    stats = window_stats(samples)
+def _size(sub: Subscription, note: Notification) -> int | None:
+    if note.element is not None:
+        return len(note.element.payload)
+    try:  # large elements are not inline: fetch, as `ros2 topic bw` receives
+        return len(sub.fetch(note).payload)
+    except FramegateError:
+        return None  # evicted already; the rate does not need it
+
+
+def _report(
+    args: argparse.Namespace,
+    event: str,
+    samples: list[Sample],
+    arrivals: list[tuple[int, int]],
+    missed: int,
+) -> None:
+    stats = window_stats(samples, arrivals)
     if args.json:
         print_json_line({"event": event, "target": args.target, "missed": missed, **stats})
     else:
