@@ -7,6 +7,7 @@ from __future__ import annotations
 import collections
 import itertools
 import threading
+import time
 
 import numpy as np
 
@@ -129,6 +130,8 @@ _OFFSET_SAMPLES = 5
 # It is asked on the mediator's executor, and only while its data keeps coming (see
 # ``measure``), so a stopped camera or gyro, which never answers, holds nothing up.
 _ASK_TIMEOUT_S = 1.0
+# A service that did not answer is asked again after 1, 2, 4 ... periods, at most this many.
+_RETRY_MAX_PERIODS = 16
 
 
 class ClockOffsets:
@@ -163,12 +166,30 @@ class ClockOffsets:
         self._sources: dict[str, SourceClock] = {}
         self._lock = threading.Lock()
         self.asked = threading.Event()  # set: measure again at once (a source started over)
+        # Per service that did not answer its last ask: (failures in a row, when to ask
+        # again regardless of data, monotonic ns). Absent: it answered.
+        self._unanswered: dict[str, tuple[int, int]] = {}
+
+    def due(self, service: str, now_ns: int) -> bool:
+        """Whether to ask ``service`` although no data of it came: it answered last time
+        (asking costs no timeout), or it did not and its back-off (one period, doubling up
+        to ``_RETRY_MAX_PERIODS``) has passed: a transient miss under load is retried, a
+        stopped process costs one timeout per back-off."""
+        missed = self._unanswered.get(service)
+        return missed is None or now_ns >= missed[1]
 
     def ask(self, service: str) -> SourceClock | None:
         try:
             info = self._node.service_info(service, timeout_s=_ASK_TIMEOUT_S)
         except FramegateError:
+            failures = self._unanswered.get(service, (0, 0))[0] + 1
+            periods = min(2 ** (failures - 1), _RETRY_MAX_PERIODS)
+            self._unanswered[service] = (
+                failures,
+                time.monotonic_ns() + int(periods * OFFSET_PERIOD_S * 1e9),
+            )
             return None
+        self._unanswered.pop(service, None)
         clock = SourceClock.of(info)
         if clock is not None:
             with self._lock:

@@ -142,7 +142,8 @@ class Mediator:
         self._gyro_sub = node.subscribe(config.gyro, queue_size=256, wait_s=0, await_service=True)
         self.gyro = GyroCache()
         self._camera_name = split_target(config.camera)[0]
-        self._offsets = ClockOffsets(node, self._camera_name, split_target(config.gyro)[0])
+        self._gyro_name = split_target(config.gyro)[0]
+        self._offsets = ClockOffsets(node, self._camera_name, self._gyro_name)
         self.pairing = Pairing(
             self.gyro,
             self._offsets,
@@ -382,12 +383,16 @@ class Mediator:
         self._node.at(time.monotonic_ns(), self._measure)
 
     def _measure(self, now: int) -> None:
-        # Only a source whose data came since the last measurement is asked: a stopped one
-        # would hold the executor for the whole timeout.
+        # A source is asked when its data came since the last measurement, or it answered
+        # the last ask, or its back-off after a miss passed (``ClockOffsets.due``): a
+        # stopped one holds the executor for the whole timeout only once per back-off. Not
+        # on data alone: a camera that sent one frame before the gyro was up (or whose one
+        # ask was missed under load) would never be asked again, its offset never measured.
         seen = (self._camera_notes, self.gyro.newest_ns)
+        names = (self._camera_name, self._gyro_name)
         alive = [
-            new != old or self._offsets.asked.is_set()
-            for new, old in zip(seen, self._seen, strict=True)
+            new != old or self._offsets.asked.is_set() or self._offsets.due(name, now)
+            for new, old, name in zip(seen, self._seen, names, strict=True)
         ]
         self._seen = seen
         with contextlib.suppress(FramegateError):
