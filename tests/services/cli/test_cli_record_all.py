@@ -34,7 +34,7 @@ def test_record_all_takes_every_buffer_including_a_late_one_and_info_describes_t
         for i in range(5):
             _put(first, base + i)
             _put(late, base + i)
-        wait_until(lambda: first.info().puts == 5, 5.0, "puts")
+        wait_until(lambda: first.info().puts == 5, 30, "puts")
         out, err = recorder.communicate(timeout=scaled(60))
         assert recorder.returncode == 0, err
     summary = json.loads(out)

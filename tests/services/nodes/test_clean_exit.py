@@ -43,7 +43,8 @@ class _Watched:
     def __init__(self, proc: subprocess.Popen[str]) -> None:
         self.proc = proc
         self.lines: list[str] = []
-        threading.Thread(target=self._pump, daemon=True).start()
+        self.pump = threading.Thread(target=self._pump, daemon=True)
+        self.pump.start()
 
     def _pump(self) -> None:
         assert self.proc.stdout is not None
@@ -74,7 +75,7 @@ def _stop_batch(
         target = f"{names[i]}/images"
         wait_until(lambda: _stored(node, target) or watched.proc.poll() is not None, 90, target)
         code, took = watched.stop(signum)
-        time.sleep(0.1)  # let the pump read the last lines
+        watched.pump.join(timeout=scaled(10))  # the last lines: read up to end of output
         results[i] = (code, took, "\n".join(watched.lines[-20:]))
 
     threads = [threading.Thread(target=one, args=(i,)) for i in range(len(start))]

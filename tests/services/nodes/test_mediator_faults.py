@@ -49,7 +49,7 @@ def _step_until(mediator: Mediator, done: object) -> None:
         mediator.step(timeout_s=scaled(0.1))
         return bool(done())  # type: ignore[operator]
 
-    wait_until(stepped, 20, "the mediator to get through the frames")
+    wait_until(stepped, 60, "the mediator to get through the frames")
 
 
 def test_regression_a_flow_controlled_decisions_watcher_never_stops_the_mediator(

@@ -137,7 +137,7 @@ def test_killed_detector_is_dropped_and_restarted(pipeline_factory: type[Pipelin
         "the dead detector's subscription to go",
     )
     new_pid = wait_until(
-        lambda: (p := pipe.pid("detector")) != old_pid and p, 20, "the detector to restart"
+        lambda: (p := pipe.pid("detector")) != old_pid and p, 60, "the detector to restart"
     )
     assert new_pid != old_pid
     before = pipe.counter("detector/detections")
@@ -155,7 +155,7 @@ def test_gyro_outage_keeps_mediator_running_and_it_recovers(
     pipe.kill("gyro")
     wait_until(
         lambda: any(r.reason.startswith("gyro-missing") for r in _decisions(pipe)),
-        20,
+        60,
         "a gyro-missing decision",
     )
     missing = [r for r in _decisions(pipe) if r.reason.startswith("gyro-missing")]

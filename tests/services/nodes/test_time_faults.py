@@ -8,6 +8,7 @@ rendezvous port. A process's wall clock is shifted with an LD_PRELOAD shim
 
 from __future__ import annotations
 
+import math
 import os
 import signal
 import subprocess
@@ -383,6 +384,13 @@ def _puts(node: Node, target: str) -> int:
         return 0
 
 
+# The clock steps of the test below, and how long each source may take to go on after
+# one (scaled like every deadline): the step stays three times the deadline, so a source
+# that stalls for the step's length cannot meet it, however far the deadlines are raised.
+STEP_WAIT_S = 20
+STEP_S = max(60, math.ceil(3 * scaled(STEP_WAIT_S)))
+
+
 def test_camera_and_gyro_keep_producing_across_wall_clock_steps(tmp_path: Path, shim: Path) -> None:
     """Only CLOCK_REALTIME steps (as chrony's makestep does): no stall, no skipped span."""
     port = free_port()
@@ -395,19 +403,20 @@ def test_camera_and_gyro_keep_producing_across_wall_clock_steps(tmp_path: Path, 
         with Node(network=NetworkConfig(local_port=port)) as node:
             wait_until(lambda: _puts(node, "camera/images") >= 2, 90, "camera frames")
             wait_until(lambda: _puts(node, "gyro/rates") >= 100, 30, "gyro samples")
-            # Back 20 s, then forward 20 s: each would stall (backward) or skip (forward)
-            # a source paced by the wall clock for 20 s; within 10 s both keep producing.
-            for step_s in (-20, 0):
+            # Back STEP_S, then forward STEP_S: each would stall (backward) or skip (forward)
+            # a source paced by the wall clock for STEP_S; both keep producing well within
+            # that (a deadline a third of it, so a slow machine has time and a stall fails).
+            for step_s in (-STEP_S, 0):
                 frames, samples = _puts(node, "camera/images"), _puts(node, "gyro/rates")
                 step_clock(offset, step_s * S)
                 wait_until(
                     lambda f=frames: _puts(node, "camera/images") >= f + 3,
-                    10,
+                    STEP_WAIT_S,
                     f"frames after a step to {step_s} s",
                 )
                 wait_until(
                     lambda n=samples: _puts(node, "gyro/rates") >= n + 200,
-                    10,
+                    STEP_WAIT_S,
                     f"gyro samples after a step to {step_s} s",
                 )
             # Each step is seen once, with its size: in the log and in the service's info.
@@ -431,8 +440,8 @@ def test_camera_and_gyro_keep_producing_across_wall_clock_steps(tmp_path: Path, 
         _stop(camera, gyro)
     for name, log in logs.items():
         text = log.read_text()
-        assert text.count("stepped backward by 20.000 s") == 1, (name, text)
-        assert text.count("stepped forward by 20.000 s") == 1, (name, text)
+        assert text.count(f"stepped backward by {STEP_S}.000 s") == 1, (name, text)
+        assert text.count(f"stepped forward by {STEP_S}.000 s") == 1, (name, text)
 
 
 def test_a_stopped_mediator_records_every_frame_stored_meanwhile(pipe: Pipeline) -> None:
