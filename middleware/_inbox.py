@@ -18,6 +18,13 @@ Bounds, so that a flood of any size and rate costs bounded memory and bounded wo
 A deque, not a Zenoh FIFO: a full FIFO would block Zenoh's receive thread and stall the
 whole link (see the README's *Floods*).
 
+A small Zenoh sample is a slice of the batch it arrived in (up to 64 KiB), and keeps all of
+it alive: 8192 held 20-byte messages, each sent in its own batch (``express``), held 580 MB
+here. A ``ControlInbox`` (a producer's acks and tokens: small by definition) therefore keeps
+only a copy of the key and payload (``Control``), never the sample, so its bytes are bounded
+by ``capacity`` x ``max_bytes``. An ``Inbox`` keeps the samples themselves (a subscription's
+notifications: copying a large payload would cost a memcpy on Zenoh's thread).
+
 Why a direct callback is cheap here: zenoh-python enters Python from its (non-Python)
 receive thread with ``PyGILState_Ensure`` and leaves with ``PyGILState_Release``; on a
 thread that owns no Python thread state, each call creates one and destroys it again,
@@ -35,7 +42,8 @@ import ctypes
 import threading
 from collections import deque
 from collections.abc import Callable
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, Generic, TypeVar
 
 import zenoh
 
@@ -49,8 +57,21 @@ def _pin_thread_state() -> None:
     ctypes.pythonapi.PyGILState_Ensure()
 
 
-class Inbox:
-    """One subscriber's bounded inbox; ``signal`` is called after each append."""
+T = TypeVar("T")
+
+
+@dataclass(frozen=True, slots=True)
+class Control:
+    """A control message detached from Zenoh's buffers: its key, its payload, and whether it
+    is a put (for a token: alive) or a delete."""
+
+    key: str
+    payload: bytes
+    alive: bool
+
+
+class _Bounded(Generic[T]):
+    """One subscriber's bounded inbox of ``T``; ``signal`` is called after each append."""
 
     def __init__(self, *, capacity: int, max_bytes: int, signal: Callable[[], None]) -> None:
         self.capacity = capacity
@@ -58,7 +79,7 @@ class Inbox:
         self.overflow = 0  # samples pushed out by newer ones (a flood)
         self.oversize = 0  # samples larger than max_bytes, never buffered
         self.closed = False
-        self._items: deque[zenoh.Sample] = deque()
+        self._items: deque[T] = deque()
         self._signal = signal
         self._count_lock = threading.Lock()  # the drop counters (Zenoh may use two threads)
         self._subscriber: Any = None
@@ -93,7 +114,7 @@ class Inbox:
             with self._count_lock, contextlib.suppress(IndexError):
                 items.popleft()
                 self.overflow += 1
-        items.append(sample)
+        items.append(self._keep(sample))
         self._signal()
 
     def __len__(self) -> int:
@@ -104,10 +125,13 @@ class Inbox:
         """Samples dropped unread, for their size or by newer ones."""
         return self.oversize + self.overflow
 
-    def take(self, budget: int) -> list[zenoh.Sample]:
-        """Up to ``budget`` samples, oldest first (never blocks)."""
+    def _keep(self, sample: zenoh.Sample) -> T:
+        raise NotImplementedError
+
+    def take(self, budget: int) -> list[T]:
+        """Up to ``budget`` items, oldest first (never blocks)."""
         items = self._items
-        out: list[zenoh.Sample] = []
+        out: list[T] = []
         popleft = items.popleft
         with contextlib.suppress(IndexError):
             while len(out) < budget:
@@ -120,3 +144,19 @@ class Inbox:
             with contextlib.suppress(zenoh.ZError):
                 self._subscriber.undeclare()
         self._items.clear()
+
+
+class Inbox(_Bounded[zenoh.Sample]):
+    """A bounded inbox of Zenoh samples (each keeps the batch it arrived in alive)."""
+
+    def _keep(self, sample: zenoh.Sample) -> zenoh.Sample:
+        return sample
+
+
+class ControlInbox(_Bounded[Control]):
+    """A bounded inbox of small control messages, copied out of Zenoh's buffers."""
+
+    def _keep(self, sample: zenoh.Sample) -> Control:
+        return Control(
+            str(sample.key_expr), sample.payload.to_bytes(), sample.kind == zenoh.SampleKind.PUT
+        )

@@ -1,0 +1,94 @@
+"""A producer's control inbox, full of small messages that each came in a batch of its own,
+holds their bytes and not Zenoh's batches (real processes, real Zenoh).
+
+A Zenoh sample of a few bytes is a slice of the batch it arrived in (up to 64 KiB) and keeps
+all of it alive; a peer that sends every 20-byte message in its own batch (``express``) made
+8192 held samples cost ~580 MB. The receiving process here fills a ``ControlInbox`` to its
+capacity while a flooder keeps sending, and reports its RSS growth; the bound asserted is a
+quarter of what pinned batches would cost, far above what the copies cost.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from tests.conftest import REPO, child_env, free_port
+from tests.helpers.timing import scaled
+
+pytestmark = pytest.mark.integration
+
+CAPACITY = 8192
+MAX_BYTES = 256
+BATCH_BYTES = 64 * 1024
+# How many times the flood turns the inbox over: pinned batches pile up over a few (580 MB
+# after 16 turns here, 3 MB with copies).
+TURNS = 16
+
+_RECEIVER = """
+import json, sys, time
+import zenoh
+from middleware._inbox import ControlInbox
+endpoint, capacity, max_bytes = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
+patience_s, TURNS = float(sys.argv[4]), int(sys.argv[5])
+def rss():
+    for line in open("/proc/self/status"):
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) * 1024
+conf = zenoh.Config()
+conf.insert_json5("mode", '"peer"')
+conf.insert_json5("scouting/multicast/enabled", "false")
+conf.insert_json5("listen/endpoints", json.dumps([endpoint]))
+with zenoh.open(conf) as session:
+    inbox = ControlInbox(capacity=capacity, max_bytes=max_bytes, signal=lambda: None)
+    inbox.declare(session, "fg/@ack/**")
+    print("ready", flush=True)
+    before = most = rss()
+    deadline = time.monotonic() + patience_s
+    while inbox.overflow < TURNS * capacity and time.monotonic() < deadline:
+        time.sleep(0.05)
+        most = max(most, rss())
+    print(json.dumps({"growth": most - before, "held": len(inbox), "overflow": inbox.overflow}))
+    inbox.close()
+"""
+
+# Each message in a batch of its own (``express``: sent at once, not gathered).
+_FLOODER = """
+import sys
+from tests.helpers.raw_zenoh import open_session
+with open_session(sys.argv[1]) as session:
+    pub = session.declare_publisher("fg/@ack/x/y/z", express=True)
+    while True:
+        pub.put(b"x" * 20)
+"""
+
+
+def test_a_full_control_inbox_holds_copies_not_zenoh_batches() -> None:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    receiver = subprocess.Popen(
+        [sys.executable, "-c", _RECEIVER, endpoint, *map(str, (CAPACITY, MAX_BYTES, 120, TURNS))],
+        cwd=REPO,
+        env=child_env(),
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    assert receiver.stdout is not None
+    flooder = None
+    try:
+        assert receiver.stdout.readline().strip() == "ready"
+        flooder = subprocess.Popen(
+            [sys.executable, "-c", _FLOODER, endpoint], cwd=REPO, env=child_env()
+        )
+        out, _ = receiver.communicate(timeout=scaled(180))
+    finally:
+        for proc in (flooder, receiver):
+            if proc is not None and proc.poll() is None:
+                proc.kill()
+                proc.wait()
+    report = json.loads(out.strip().splitlines()[-1])
+    assert report["held"] == CAPACITY, report  # full: the flood outran nobody taking
+    assert report["overflow"] >= TURNS * CAPACITY, report
+    assert report["growth"] < CAPACITY * BATCH_BYTES / 4, report
