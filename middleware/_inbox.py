@@ -59,6 +59,27 @@ def _pin_thread_state() -> None:
 
 T = TypeVar("T")
 
+# A producer's control inboxes (``ControlInbox``). Acks: what honest subscribers can send
+# between two turns of the executor (coalesced, a few per registration and queue window,
+# plus a re-ack each per 0.5 s); an ack (msgpack {"e": epoch, "s": seq}) is a few dozen
+# bytes, a larger one is dropped unread. Tokens come and go at human rates; a churning
+# peer's excess is dropped and counted. A lost ack or token costs nothing lasting: acks are
+# cumulative and repeated, a lost token change is recovered (``tokens_lost``).
+ACK_INBOX = 8192
+ACK_MAX_BYTES = 256
+TOKEN_INBOX = 4096
+# A key longer than this is no key of ours (names are short): dropped and counted.
+KEY_MAX_BYTES = 1024
+# What one held ``Control`` costs beyond its payload and key: the object and the two
+# Python objects it refers to (generous).
+CONTROL_OVERHEAD_BYTES = 256
+
+
+def control_inbox_bytes() -> int:
+    """The most a producer's two control inboxes can hold (``BufferLimits``)."""
+    per_ack = ACK_MAX_BYTES + KEY_MAX_BYTES + CONTROL_OVERHEAD_BYTES
+    return ACK_INBOX * per_ack + TOKEN_INBOX * (KEY_MAX_BYTES + CONTROL_OVERHEAD_BYTES)
+
 
 @dataclass(frozen=True, slots=True)
 class Control:
@@ -114,7 +135,12 @@ class _Bounded(Generic[T]):
             with self._count_lock, contextlib.suppress(IndexError):
                 items.popleft()
                 self.overflow += 1
-        items.append(self._keep(sample))
+        kept = self._keep(sample)
+        if kept is None:  # not ours to keep (``ControlInbox``: a key too long)
+            with self._count_lock:
+                self.oversize += 1
+            return
+        items.append(kept)
         self._signal()
 
     def __len__(self) -> int:
@@ -125,7 +151,8 @@ class _Bounded(Generic[T]):
         """Samples dropped unread, for their size or by newer ones."""
         return self.oversize + self.overflow
 
-    def _keep(self, sample: zenoh.Sample) -> T:
+    def _keep(self, sample: zenoh.Sample) -> T | None:
+        """What to hold of ``sample`` (on Zenoh's thread), or None to drop it as oversize."""
         raise NotImplementedError
 
     def take(self, budget: int) -> list[T]:
@@ -154,9 +181,11 @@ class Inbox(_Bounded[zenoh.Sample]):
 
 
 class ControlInbox(_Bounded[Control]):
-    """A bounded inbox of small control messages, copied out of Zenoh's buffers."""
+    """A bounded inbox of small control messages, copied out of Zenoh's buffers; a key
+    longer than ``KEY_MAX_BYTES`` counts as oversize."""
 
-    def _keep(self, sample: zenoh.Sample) -> Control:
-        return Control(
-            str(sample.key_expr), sample.payload.to_bytes(), sample.kind == zenoh.SampleKind.PUT
-        )
+    def _keep(self, sample: zenoh.Sample) -> Control | None:
+        key = str(sample.key_expr)
+        if len(key) > KEY_MAX_BYTES:
+            return None
+        return Control(key, sample.payload.to_bytes(), sample.kind == zenoh.SampleKind.PUT)

@@ -15,8 +15,11 @@ import subprocess
 import sys
 
 import pytest
+import zenoh
 
-from tests.conftest import REPO, child_env, free_port
+from middleware._inbox import KEY_MAX_BYTES, ControlInbox
+from tests.conftest import REPO, child_env, free_port, wait_until
+from tests.helpers.raw_zenoh import open_session
 from tests.helpers.timing import scaled
 
 pytestmark = pytest.mark.integration
@@ -66,6 +69,14 @@ with open_session(sys.argv[1]) as session:
 """
 
 
+def open_listening(endpoint: str) -> zenoh.Session:
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("listen/endpoints", json.dumps([endpoint]))
+    return zenoh.open(conf)
+
+
 def test_a_full_control_inbox_holds_copies_not_zenoh_batches() -> None:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     receiver = subprocess.Popen(
@@ -92,3 +103,25 @@ def test_a_full_control_inbox_holds_copies_not_zenoh_batches() -> None:
     assert report["held"] == CAPACITY, report  # full: the flood outran nobody taking
     assert report["overflow"] >= TURNS * CAPACITY, report
     assert report["growth"] < CAPACITY * BATCH_BYTES / 4, report
+
+
+def test_a_control_message_with_a_key_longer_than_any_of_ours_is_counted_not_held(
+    endpoint: str,
+) -> None:
+    with open_listening(endpoint) as session, open_session(endpoint) as peer:
+        inbox = ControlInbox(capacity=CAPACITY, max_bytes=MAX_BYTES, signal=lambda: None)
+        inbox.declare(session, "fg/@ack/**")
+        long_key = "fg/@ack/" + "k" * KEY_MAX_BYTES
+        # Until the link is up, puts may go nowhere: repeat both until each one counted.
+        wait_until(
+            lambda: (
+                peer.put(long_key, b"x") is None
+                and peer.put("fg/@ack/a/b/c", b"x") is None
+                and inbox.oversize > 0
+                and len(inbox) > 0
+            ),
+            30,
+            "both messages received",
+        )
+        assert {m.key for m in inbox.take(CAPACITY)} == {"fg/@ack/a/b/c"}
+        inbox.close()
