@@ -10,7 +10,8 @@ Bounds, so that a flood of any size and rate costs bounded memory and bounded wo
 
 - a sample larger than ``max_bytes`` (payload plus attachment) is dropped and counted
   (``oversize``) before it is buffered: an ack is tens of bytes, a 1 MiB "ack" is garbage;
-- at ``capacity`` the oldest sample is dropped and counted (``overflow``). The owner sizes
+- at ``capacity`` the oldest sample (in a ``ControlInbox``: the arriving one, see there) is
+  dropped and counted (``overflow``). The owner sizes
   the capacity from the protocol's credit bound, so honest traffic never fills it; what a
   flood of forged messages pushes out, the protocol recovers like any loss (resends,
   cumulative acks).
@@ -94,6 +95,9 @@ class Control:
 class _Bounded(Generic[T]):
     """One subscriber's bounded inbox of ``T``; ``signal`` is called after each append."""
 
+    # At capacity, drop the arriving sample instead of the oldest one.
+    drop_newest = False
+
     def __init__(self, *, capacity: int, max_bytes: int, signal: Callable[[], None]) -> None:
         self.capacity = capacity
         self.max_bytes = max_bytes
@@ -132,6 +136,10 @@ class _Bounded(Generic[T]):
                 self.oversize += 1
             return
         if len(items) >= self.capacity:
+            if self.drop_newest:
+                with self._count_lock:
+                    self.overflow += 1
+                return
             with self._count_lock, contextlib.suppress(IndexError):
                 items.popleft()
                 self.overflow += 1
@@ -182,7 +190,12 @@ class Inbox(_Bounded[zenoh.Sample]):
 
 class ControlInbox(_Bounded[Control]):
     """A bounded inbox of small control messages, copied out of Zenoh's buffers; a key
-    longer than ``KEY_MAX_BYTES`` counts as oversize."""
+    longer than ``KEY_MAX_BYTES`` counts as oversize. When full (only a flood fills it) it
+    drops what arrives, uncopied: a copy costs ~1 us of Zenoh's thread, paid for nothing
+    when a newer message pushes it out, and either loss is recovered alike (acks are
+    cumulative and repeated; a lost token change triggers a resync)."""
+
+    drop_newest = True
 
     def _keep(self, sample: zenoh.Sample) -> Control | None:
         key = str(sample.key_expr)

@@ -4,8 +4,9 @@ holds their bytes and not Zenoh's batches (real processes, real Zenoh).
 A Zenoh sample of a few bytes is a slice of the batch it arrived in (up to 64 KiB) and keeps
 all of it alive; a peer that sends every 20-byte message in its own batch (``express``) made
 8192 held samples cost ~580 MB. The receiving process here fills a ``ControlInbox`` to its
-capacity while a flooder keeps sending, and reports its RSS growth; the bound asserted is a
-quarter of what pinned batches would cost, far above what the copies cost.
+capacity while a flooder keeps sending and a slow owner takes some now and then, and
+reports its RSS growth; the bound asserted is a quarter of what pinned batches would cost,
+far above what the copies cost.
 """
 
 from __future__ import annotations
@@ -51,10 +52,13 @@ with zenoh.open(conf) as session:
     print("ready", flush=True)
     before = most = rss()
     deadline = time.monotonic() + patience_s
-    while inbox.overflow < TURNS * capacity and time.monotonic() < deadline:
+    taken = 0
+    enough = TURNS * capacity
+    while (inbox.overflow < enough or taken < enough // 8) and time.monotonic() < deadline:
         time.sleep(0.05)
+        taken += len(inbox.take(capacity // 8))  # a slow owner: what it holds keeps changing
         most = max(most, rss())
-    print(json.dumps({"growth": most - before, "held": len(inbox), "overflow": inbox.overflow}))
+    print(json.dumps({"growth": most - before, "taken": taken, "overflow": inbox.overflow}))
     inbox.close()
 """
 
@@ -100,7 +104,7 @@ def test_a_full_control_inbox_holds_copies_not_zenoh_batches() -> None:
                 proc.kill()
                 proc.wait()
     report = json.loads(out.strip().splitlines()[-1])
-    assert report["held"] == CAPACITY, report  # full: the flood outran nobody taking
+    assert report["taken"] >= TURNS * CAPACITY / 8, report  # what was held kept changing
     assert report["overflow"] >= TURNS * CAPACITY, report
     assert report["growth"] < CAPACITY * BATCH_BYTES / 4, report
 
