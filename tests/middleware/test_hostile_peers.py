@@ -22,6 +22,7 @@ import zenoh
 
 from middleware import (
     FLOW_QUEUE_MAX,
+    BufferInfo,
     FlowControlRefused,
     NetworkConfig,
     Node,
@@ -39,6 +40,11 @@ from tests.helpers.timing import scaled
 pytestmark = pytest.mark.integration
 
 KEYS = Keys("framegate")
+
+
+def _cam_images(node: Node) -> BufferInfo:
+    """``cam/images`` as ``node`` reads it, with a deadline for a loaded machine's answer."""
+    return node.buffer_info("cam/images", timeout_s=scaled(10.0))
 
 
 def _token(sub_id: str, mode: SubscriptionMode, queue: int, holder: str) -> str:
@@ -67,7 +73,7 @@ def test_a_greedy_holder_leaves_room_for_a_mediator_and_a_recorder(
         ]
         info = wait_until(
             lambda: (
-                (i := mediator.buffer_info("cam/images")).refused_subscriptions
+                (i := _cam_images(mediator)).refused_subscriptions
                 >= 1 + MAX_OBSERVE_REGISTRATIONS // 2
                 and i
             ),
@@ -81,7 +87,7 @@ def test_a_greedy_holder_leaves_room_for_a_mediator_and_a_recorder(
         observer = record.subscribe(
             "cam/images", queue_size=8, mode=SubscriptionMode.OBSERVE, wait_s=scaled(5)
         )
-        subs = {s.subscription_id: s for s in mediator.buffer_info("cam/images").subscriptions}
+        subs = {s.subscription_id: s for s in _cam_images(mediator).subscriptions}
         assert flow.subscription_id in subs and observer.subscription_id in subs
         assert subs[flow.subscription_id].node == "mediator"
         for token in tokens:
@@ -109,7 +115,7 @@ def test_a_refused_service_logs_an_error_and_registers_once_room_is_free(
             free, i = free - share, i + 1
         wait_until(
             lambda: (
-                sum(s.queue_size for s in mediator.buffer_info("cam/images").subscriptions)
+                sum(s.queue_size for s in _cam_images(mediator).subscriptions)
                 == QUEUE_BUDGET - free
             ),
             scaled(15),
@@ -132,7 +138,7 @@ def test_a_refused_service_logs_an_error_and_registers_once_room_is_free(
         wait_until(
             lambda: (
                 sub.subscription_id
-                in {s.subscription_id for s in mediator.buffer_info("cam/images").subscriptions}
+                in {s.subscription_id for s in _cam_images(mediator).subscriptions}
             ),
             scaled(20),
             "the refused subscription registered once the budget was free",

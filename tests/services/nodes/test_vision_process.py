@@ -214,7 +214,7 @@ def test_a_handler_returning_output_fills_a_generic_results_buffer() -> None:
             elements = wait_until(
                 lambda: _elements(node, "vision/results"), 90, "the handler's results"
             )
-            assert node.buffer_info("vision/results").kind == "generic"
+            assert node.buffer_info("vision/results", timeout_s=scaled(10.0)).kind == "generic"
             element = elements[-1]
             assert len(element.payload) == 16 * 4  # the histogram
             assert b"<mean>" in element.metadata and b"<frame_id>" in element.metadata

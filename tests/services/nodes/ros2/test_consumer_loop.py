@@ -202,7 +202,7 @@ def test_the_load_follows_the_nodes_outstanding_images_and_its_type_is_learnt(
             results = wait_until(lambda: node.query("ros2/results") or None, 30, "results")
             assert [r.timestamp_ns for r in results][:2] == [now, now + 1_000_000]
             assert b"<answer_ns>" in results[0].metadata
-            info = node.buffer_info("ros2/results")
+            info = node.buffer_info("ros2/results", timeout_s=scaled(10.0))
             assert not info.skipped, info.skipped
         finally:
             vision.close()
@@ -228,7 +228,7 @@ def test_a_node_that_never_answers_frees_its_slots_after_the_timeout_counted(
                 _put(images, now + 2_000_000)
             wait_until(lambda: vision.outstanding == 2, 30, "both images at the node")
             wait_until(lambda: _gate(images).queued == 0, 60, "the slots freed\n" + bridge.log())
-            info = node.buffer_info("ros2/results")
+            info = node.buffer_info("ros2/results", timeout_s=scaled(10.0))
             assert info.skipped == {"consumer-timeout": 2}
             assert info.puts == 0
             assert vision.answered == []
