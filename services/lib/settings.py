@@ -149,7 +149,7 @@ def _flag_kwargs(f: dataclasses.Field[Any], meta: Setting) -> dict[str, Any]:
     shown = meta.shown
     if shown is None and meta.env is not None:
         shown = f"${meta.env} or {f.default}"
-    if shown is None and meta.repeat and f.default:
+    if shown is None and meta.repeat and isinstance(f.default, tuple) and f.default:
         shown = " ".join(str(v) for v in f.default)
     if shown is not None:
         kwargs["help"] += f" (default {shown})"

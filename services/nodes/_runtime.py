@@ -12,9 +12,9 @@ import sys
 import threading
 import time
 from collections.abc import Callable
-from typing import TypeVar
+from typing import Protocol, TypeVar
 
-from middleware import ConfigError, now_ns
+from middleware import ConfigError, NetworkConfig, Node, now_ns
 
 START_AT_ENV = "FRAMEGATE_START_AT_NS"
 # Set by the launch supervisor (services/launch/_supervisor.py) for each child it starts.
@@ -22,6 +22,7 @@ PARENT_PID_ENV = "FRAMEGATE_PARENT_PID"
 PARENT_FD_ENV = "FRAMEGATE_PARENT_FD"
 _PR_SET_PDEATHSIG = 1
 T = TypeVar("T")
+S = TypeVar("S")
 # After the parent is gone, how long the service may take to stop by itself.
 _ORPHAN_GRACE_S = 1.5
 
@@ -212,6 +213,43 @@ def _exit_past_workers() -> None:
 
 # Registered at import, so it runs after every hook registered later (atexit is LIFO).
 atexit.register(_exit_past_workers)
+
+
+class Pump(Protocol):
+    """What a source service runs on its node: a deadline handler that puts what is due and
+    sets the next deadline itself, and the summary logged when the service ends."""
+
+    def on_time(self, now: int) -> None: ...
+
+    def summary(self) -> str: ...
+
+
+def run_source(
+    name: str,
+    network: NetworkConfig,
+    stop: threading.Event,
+    open_source: Callable[[], S],
+    pump: Callable[[Node, S, logging.Logger], Pump],
+) -> int:
+    """A source service's life (camera, gyro): open the source, then the node; ``pump``
+    offers the buffers and returns the pump, which runs on the node's executor from now
+    until ``stop`` is set (or Ctrl-C); its summary is logged last. Exit code 0.
+
+    The source opens before the node because opening may take seconds (a simulator's first
+    frame, a device): a stop meanwhile starts nothing, and no peer sees a service whose
+    buffers stay empty.
+    """
+    log = setup_logging(name)
+    source = open_source()
+    if stop.is_set():  # interrupted while the source was opening
+        return 0
+    with Node(name, network) as node:
+        running = pump(node, source, log)
+        node.at(time.monotonic_ns(), running.on_time)
+        with contextlib.suppress(KeyboardInterrupt):
+            node.spin(stop)
+        log.info("%s", running.summary())
+    return 0
 
 
 def serve_until_stopped(stop: threading.Event) -> None:
