@@ -20,7 +20,7 @@ default as help prints it, where the value itself would not read well; ``group``
 flag under a heading in ``--help``. A field without ``setting`` metadata (a nested config,
 e.g. the camera's source) is the service's own to fill, as is a value that depends on
 another flag (``from_args(..., field=value)``). A deploy file's service args are these
-flags' names (``deploy_keys``), and ``framegate launch`` checks them with the same parser.
+flags' names, and ``framegate launch`` checks them with the same parser.
 """
 
 from __future__ import annotations
@@ -180,14 +180,3 @@ def from_args(config_type: type[Any], args: argparse.Namespace, **given: Any) ->
             value = tuple(value)  # configs are frozen: no lists inside
         values[f.name] = value
     return config_type(**values, **given)
-
-
-def deploy_keys(config_type: type, *, skip: Iterable[str] = ()) -> set[str]:
-    """The args a deploy file may give this service (its flags, as ``seed`` for ``--seed``)."""
-    skipped = set(skip)
-    keys = set()
-    for f, meta in settings(config_type):
-        if f.name not in skipped:
-            for name in (flag_of(f, meta), *meta.aliases):
-                keys.add(name.lstrip("-").replace("-", "_"))
-    return keys

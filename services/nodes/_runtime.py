@@ -51,16 +51,6 @@ def start_at_ns(flag_value: int | None) -> int:
     return now_ns()
 
 
-def sleep_until_ns(wall_ns: int, stop: threading.Event) -> bool:
-    """Sleep until the process clock reaches ``wall_ns``; False if ``stop`` was set first."""
-    while True:
-        remaining = (wall_ns - now_ns()) / 1e9
-        if remaining <= 0:
-            return not stop.is_set()
-        if stop.wait(min(remaining, 0.5)):
-            return False
-
-
 def _wall_minus_monotonic_ns() -> int:
     """The process clock minus the monotonic clock, read as one pair (a thread switch
     between the two readings would make it off by milliseconds)."""
@@ -120,15 +110,6 @@ class Timeline:
     def late_ns(self, rel_ns: int) -> int:
         """How long ago relative time ``rel_ns`` came (negative: still to come)."""
         return time.monotonic_ns() - (self._start_mono_ns + rel_ns)
-
-    def sleep_until(self, rel_ns: int, stop: threading.Event) -> bool:
-        """Sleep until relative time ``rel_ns``; False if ``stop`` was set first."""
-        while True:
-            remaining = -self.late_ns(rel_ns) / 1e9
-            if remaining <= 0:
-                return not stop.is_set()
-            if stop.wait(min(remaining, 0.5)):
-                return False
 
 
 class Monotonic:
@@ -250,12 +231,6 @@ def run_source(
             node.spin(stop)
         log.info("%s", running.summary())
     return 0
-
-
-def serve_until_stopped(stop: threading.Event) -> None:
-    """Keep a finished source's buffers answering queries until stopped (or Ctrl-C)."""
-    with contextlib.suppress(KeyboardInterrupt):
-        stop.wait()
 
 
 def exit_with_parent(stop: threading.Event) -> None:

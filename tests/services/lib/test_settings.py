@@ -1,4 +1,4 @@
-"""A config written once: the flags, their parsing and the deploy keys follow from the fields."""
+"""A config written once: the flags and their parsing follow from the fields."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from typing import Any
 import pytest
 
 from services.lib.argtypes import non_negative_int, positive_int
-from services.lib.settings import add_flags, deploy_keys, from_args, setting
+from services.lib.settings import add_flags, from_args, setting
 
 
 class Colour(enum.Enum):
@@ -109,9 +109,3 @@ def test_help_shows_each_default_and_groups_flags() -> None:
     assert "peers (default here)" in text
     assert "levels: --level {low,very_high}" in text
     assert "play again (default" not in text  # a switch has no default to show
-
-
-def test_deploy_keys_are_the_flags_names() -> None:
-    assert deploy_keys(Example) == {
-        "name", "queue", "loop", "colour", "level", "peers", "matrix", "domain", "period_ms",
-    }  # fmt: skip
