@@ -17,7 +17,6 @@ import collections
 import logging
 import threading
 from collections.abc import Callable
-from typing import Any
 
 import numpy as np
 
@@ -29,10 +28,11 @@ from middleware import (
     Producer,
     Retention,
     SubscriptionMode,
-    make_metadata,
     now_ns,
 )
 from services.lib.camera_model import CameraModel
+from services.lib.messages import frame_metadata_of
+from services.lib.quality import Exposure
 from services.nodes.gyro import sample_elements
 
 from ._camera_info import CAMERA_INFO, TF_MESSAGE, TF_STATIC, CameraSource
@@ -98,29 +98,6 @@ class _InQueue:
             count = len(self._items)
             self._items.clear()
             return count
-
-
-def frame_metadata(
-    frame_id: int,
-    start_ns: int,
-    exposure_ns: int,
-    encoding: str,
-    width: int,
-    height: int,
-    camera: CameraModel | None,
-) -> bytes:
-    """``frame`` metadata, field for field as the camera service writes it."""
-    fields: dict[str, Any] = {
-        "frame_id": frame_id,
-        "exposure_start_ns": start_ns,
-        "exposure_ns": exposure_ns,
-        "encoding": encoding,
-        "width_px": width,
-        "height_px": height,
-    }
-    if camera is not None:
-        fields["camera"] = camera.camera_fields()
-    return make_metadata("frame", start_ns, fields)
 
 
 def _camera(config: Ros2Config) -> CameraModel | None:
@@ -289,14 +266,9 @@ class ImagesIn(_Input):
         if refusal is not None:
             skip(self.producer, refusal.reason, refusal.detail)
             return
-        metadata = frame_metadata(
-            frame_id,
-            key,
-            self._config.exposure_ns,
-            image.encoding,
-            image.width,
-            image.height,
-            camera,
+        exposure = Exposure(key, self._config.exposure_ns)
+        metadata = frame_metadata_of(
+            frame_id, exposure, image.encoding, image.width, image.height, camera
         )
         try:
             # Decoding copied nothing; this is the frame's one copy, out of the message.
