@@ -71,9 +71,19 @@ def setting(
     group: str | None = None,
 ) -> Any:
     """A config field with its default and how it is set from the command line."""
-    chosen = tuple(choices) if choices is not None else None
     meta = Setting(
-        help, flag, parse, aliases, chosen, dest, metavar, repeat, count, env, shown, group
+        help,
+        flag=flag,
+        parse=parse,
+        aliases=aliases,
+        choices=tuple(choices) if choices is not None else None,
+        dest=dest,
+        metavar=metavar,
+        repeat=repeat,
+        count=count,
+        env=env,
+        shown=shown,
+        group=group,
     )
     return dataclasses.field(default=default, metadata={_KEY: meta})
 
@@ -131,9 +141,9 @@ def _flag_kwargs(f: dataclasses.Field[Any], meta: Setting) -> dict[str, Any]:
         # A string default goes through ``type`` as a flag's value would: a bad value in
         # the environment is refused by name, as a bad flag is.
         default = os.environ[meta.env]
-    if isinstance(default, enum.Enum):
-        kwargs["choices"] = list(meta.choices or [_spelling(m) for m in type(default)])
-        default = _spelling(default)
+    if isinstance(f.default, enum.Enum):
+        kwargs["choices"] = list(meta.choices or [_spelling(m) for m in type(f.default)])
+        default = _spelling(default) if isinstance(default, enum.Enum) else default
     else:
         if meta.parse is not None:
             kwargs["type"] = meta.parse
