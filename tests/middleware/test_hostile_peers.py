@@ -29,6 +29,7 @@ from middleware import (
     make_metadata,
     now_ns,
 )
+from middleware._inbox import control_inbox_bytes
 from middleware._protocol_producer import MAX_OBSERVE_REGISTRATIONS, QUEUE_BUDGET
 from middleware._wire import Keys
 from tests.conftest import REPO, NodeProcess, child_env, wait_until
@@ -75,6 +76,7 @@ def test_a_greedy_holder_leaves_room_for_a_mediator_and_a_recorder(
         )
         assert info.limits is not None and info.limits.queue_budget == QUEUE_BUDGET
         assert info.limits.flow_queue_max == FLOW_QUEUE_MAX
+        assert info.limits.control_inbox_bytes == control_inbox_bytes()  # over the wire
         flow = mediator.subscribe("cam/images", queue_size=4, wait_s=scaled(5))
         observer = record.subscribe(
             "cam/images", queue_size=8, mode=SubscriptionMode.OBSERVE, wait_s=scaled(5)
