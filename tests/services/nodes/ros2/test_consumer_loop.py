@@ -28,8 +28,8 @@ from middleware import (
     Producer,
     SubscriptionMode,
 )
-from services.lib.messages import DecisionRecord
-from services.nodes.ros2._bridge import frame_metadata
+from services.lib.messages import DecisionRecord, frame_metadata_of
+from services.lib.quality import Exposure
 from tests.conftest import REPO, child_env, free_port, wait_until
 from tests.helpers.timing import scaled
 
@@ -141,7 +141,9 @@ def _gate(images: Producer) -> Any:
 
 def _put(images: Producer, stamp_ns: int) -> None:
     pixels = (np.arange(W * H) % 251).astype(np.uint8).tobytes()
-    images.put(stamp_ns, pixels, frame_metadata(1, stamp_ns, 1_000_000, "mono8", W, H, None))
+    images.put(
+        stamp_ns, pixels, frame_metadata_of(1, Exposure(stamp_ns, 1_000_000), "mono8", W, H, None)
+    )
 
 
 def _ready(images: Producer, bridge: Proc, vision: VisionNode) -> None:
