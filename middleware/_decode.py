@@ -122,7 +122,12 @@ def _limits(body: Any, what: str) -> BufferLimits | None:
         "large_push_total",
     )
     numbers = {name: _field(body, name, int, what) for name in names}
-    return BufferLimits(**numbers, holder_share=_field(body, "holder_share", str, what))
+    inbox = _field(body, "control_inbox_bytes", int, what, optional=True)  # newer producers
+    return BufferLimits(
+        **numbers,
+        holder_share=_field(body, "holder_share", str, what),
+        control_inbox_bytes=inbox or 0,
+    )
 
 
 # Rewinds read from one buffer's description at most (a producer lists its last 16).

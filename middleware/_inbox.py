@@ -10,13 +10,21 @@ Bounds, so that a flood of any size and rate costs bounded memory and bounded wo
 
 - a sample larger than ``max_bytes`` (payload plus attachment) is dropped and counted
   (``oversize``) before it is buffered: an ack is tens of bytes, a 1 MiB "ack" is garbage;
-- at ``capacity`` the oldest sample is dropped and counted (``overflow``). The owner sizes
+- at ``capacity`` the oldest sample (in a ``ControlInbox``: the arriving one, see there) is
+  dropped and counted (``overflow``). The owner sizes
   the capacity from the protocol's credit bound, so honest traffic never fills it; what a
   flood of forged messages pushes out, the protocol recovers like any loss (resends,
   cumulative acks).
 
 A deque, not a Zenoh FIFO: a full FIFO would block Zenoh's receive thread and stall the
 whole link (see the README's *Floods*).
+
+A small Zenoh sample is a slice of the batch it arrived in (up to 64 KiB), and keeps all of
+it alive: 8192 held 20-byte messages, each sent in its own batch (``express``), held 580 MB
+here. A ``ControlInbox`` (a producer's acks and tokens: small by definition) therefore keeps
+only a copy of the key and payload (``Control``), never the sample, so its bytes are bounded
+by ``capacity`` x ``max_bytes``. An ``Inbox`` keeps the samples themselves (a subscription's
+notifications: copying a large payload would cost a memcpy on Zenoh's thread).
 
 Why a direct callback is cheap here: zenoh-python enters Python from its (non-Python)
 receive thread with ``PyGILState_Ensure`` and leaves with ``PyGILState_Release``; on a
@@ -35,7 +43,8 @@ import ctypes
 import threading
 from collections import deque
 from collections.abc import Callable
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, Generic, TypeVar
 
 import zenoh
 
@@ -49,8 +58,45 @@ def _pin_thread_state() -> None:
     ctypes.pythonapi.PyGILState_Ensure()
 
 
-class Inbox:
-    """One subscriber's bounded inbox; ``signal`` is called after each append."""
+T = TypeVar("T")
+
+# A producer's control inboxes (``ControlInbox``). Acks: what honest subscribers can send
+# between two turns of the executor (coalesced, a few per registration and queue window,
+# plus a re-ack each per 0.5 s); an ack (msgpack {"e": epoch, "s": seq}) is a few dozen
+# bytes, a larger one is dropped unread. Tokens come and go at human rates; a churning
+# peer's excess is dropped and counted. A lost ack or token costs nothing lasting: acks are
+# cumulative and repeated, a lost token change is recovered (``tokens_lost``).
+ACK_INBOX = 8192
+ACK_MAX_BYTES = 256
+TOKEN_INBOX = 4096
+# A key longer than this is no key of ours (names are short): dropped and counted.
+KEY_MAX_BYTES = 1024
+# What one held ``Control`` costs beyond its payload and key: the object and the two
+# Python objects it refers to (generous).
+CONTROL_OVERHEAD_BYTES = 256
+
+
+def control_inbox_bytes() -> int:
+    """The most a producer's two control inboxes can hold (``BufferLimits``)."""
+    per_ack = ACK_MAX_BYTES + KEY_MAX_BYTES + CONTROL_OVERHEAD_BYTES
+    return ACK_INBOX * per_ack + TOKEN_INBOX * (KEY_MAX_BYTES + CONTROL_OVERHEAD_BYTES)
+
+
+@dataclass(frozen=True, slots=True)
+class Control:
+    """A control message detached from Zenoh's buffers: its key, its payload, and whether it
+    is a put (for a token: alive) or a delete."""
+
+    key: str
+    payload: bytes
+    alive: bool
+
+
+class _Bounded(Generic[T]):
+    """One subscriber's bounded inbox of ``T``; ``signal`` is called after each append."""
+
+    # At capacity, drop the arriving sample instead of the oldest one.
+    drop_newest = False
 
     def __init__(self, *, capacity: int, max_bytes: int, signal: Callable[[], None]) -> None:
         self.capacity = capacity
@@ -58,7 +104,7 @@ class Inbox:
         self.overflow = 0  # samples pushed out by newer ones (a flood)
         self.oversize = 0  # samples larger than max_bytes, never buffered
         self.closed = False
-        self._items: deque[zenoh.Sample] = deque()
+        self._items: deque[T] = deque()
         self._signal = signal
         self._count_lock = threading.Lock()  # the drop counters (Zenoh may use two threads)
         self._subscriber: Any = None
@@ -90,10 +136,19 @@ class Inbox:
                 self.oversize += 1
             return
         if len(items) >= self.capacity:
+            if self.drop_newest:
+                with self._count_lock:
+                    self.overflow += 1
+                return
             with self._count_lock, contextlib.suppress(IndexError):
                 items.popleft()
                 self.overflow += 1
-        items.append(sample)
+        kept = self._keep(sample)
+        if kept is None:  # not ours to keep (``ControlInbox``: a key too long)
+            with self._count_lock:
+                self.oversize += 1
+            return
+        items.append(kept)
         self._signal()
 
     def __len__(self) -> int:
@@ -104,10 +159,14 @@ class Inbox:
         """Samples dropped unread, for their size or by newer ones."""
         return self.oversize + self.overflow
 
-    def take(self, budget: int) -> list[zenoh.Sample]:
-        """Up to ``budget`` samples, oldest first (never blocks)."""
+    def _keep(self, sample: zenoh.Sample) -> T | None:
+        """What to hold of ``sample`` (on Zenoh's thread), or None to drop it as oversize."""
+        raise NotImplementedError
+
+    def take(self, budget: int) -> list[T]:
+        """Up to ``budget`` items, oldest first (never blocks)."""
         items = self._items
-        out: list[zenoh.Sample] = []
+        out: list[T] = []
         popleft = items.popleft
         with contextlib.suppress(IndexError):
             while len(out) < budget:
@@ -120,3 +179,26 @@ class Inbox:
             with contextlib.suppress(zenoh.ZError):
                 self._subscriber.undeclare()
         self._items.clear()
+
+
+class Inbox(_Bounded[zenoh.Sample]):
+    """A bounded inbox of Zenoh samples (each keeps the batch it arrived in alive)."""
+
+    def _keep(self, sample: zenoh.Sample) -> zenoh.Sample:
+        return sample
+
+
+class ControlInbox(_Bounded[Control]):
+    """A bounded inbox of small control messages, copied out of Zenoh's buffers; a key
+    longer than ``KEY_MAX_BYTES`` counts as oversize. When full (only a flood fills it) it
+    drops what arrives, uncopied: a copy costs ~1 us of Zenoh's thread, paid for nothing
+    when a newer message pushes it out, and either loss is recovered alike (acks are
+    cumulative and repeated; a lost token change triggers a resync)."""
+
+    drop_newest = True
+
+    def _keep(self, sample: zenoh.Sample) -> Control | None:
+        key = str(sample.key_expr)
+        if len(key) > KEY_MAX_BYTES:
+            return None
+        return Control(key, sample.payload.to_bytes(), sample.kind == zenoh.SampleKind.PUT)

@@ -23,7 +23,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import zenoh
@@ -33,7 +33,7 @@ from ._element_check import ElementCheck
 from ._errors import DuplicateTimestampError, FlowControlRefused, FramegateError
 from ._executor import BUDGET as _BUDGET
 from ._executor import Executor, Wake, remaining_s
-from ._inbox import Inbox
+from ._inbox import ACK_INBOX, ACK_MAX_BYTES, TOKEN_INBOX, ControlInbox, control_inbox_bytes
 from ._ledger_producer import RegistrationKey
 from ._protocol_producer import Event, ProducerProtocol, Publish, Retire
 from ._rate import put_rate_hz
@@ -58,18 +58,8 @@ _RATE_WINDOW = 64
 # A put that waits for credit looks again at least this often (it is woken at once when an
 # ack arrives; this only bounds what a missed wake-up could cost).
 _WAIT_S = 0.1
-# Acks honest subscribers can send between two turns of the executor: coalesced, at most a
-# few per registration and queue window (see ``AckPolicy``) plus a re-ack each per 0.5 s. A
-# lost ack costs nothing: acks are cumulative and repeated.
-_ACK_INBOX = 8192
 # Rewinds ``info`` lists (each one is also counted in ``skipped``).
 _REWINDS_KEPT = 16
-# An ack is msgpack {"e": epoch, "s": seq}: a few dozen bytes. Anything larger is not an ack
-# and is dropped before it is buffered, so the ack inbox holds at most 8192 x 256 B.
-ACK_MAX_BYTES = 256
-# Token changes waiting for the executor (tokens come and go at human rates; a churning
-# peer's excess is dropped and counted, see ``Inbox``).
-_TOKEN_INBOX = 4096
 
 
 @dataclass
@@ -141,12 +131,14 @@ class Producer:
         self._wake = Wake(self, self._cond, executor, lambda: len(self._acks))
         # Acks are fed by whoever needs credit next (a put, ``fill``, the executor before a
         # resend); only a waiting put, or a backlog, wakes anyone (``Wake``).
-        self._acks = Inbox(capacity=_ACK_INBOX, max_bytes=ACK_MAX_BYTES, signal=self._wake.signal)
+        self._acks = ControlInbox(
+            capacity=ACK_INBOX, max_bytes=ACK_MAX_BYTES, signal=self._wake.signal
+        )
         # A token is the executor's at once: a new subscriber waits for its greeting. A token
         # is its key; it carries no payload.
         self._token_keys = keys.subscription_tokens(service, buffer)
         self._tokens_dropped = 0
-        self._tokens = Inbox(capacity=_TOKEN_INBOX, max_bytes=0, signal=self._signal)
+        self._tokens = ControlInbox(capacity=TOKEN_INBOX, max_bytes=0, signal=self._signal)
         self._acks.declare(session, keys.acks(service, buffer))
         # Declared last: its callback (history included) may run at once.
         self._tokens.declare(session, self._token_keys, liveliness=True)
@@ -171,11 +163,10 @@ class Producer:
         changed = False
         ack = self._protocol.ack
         now = time.monotonic_ns()
-        for sample in self._acks.take(budget):
-            changed |= ack(str(sample.key_expr), sample.payload.to_bytes(), now)
-        for sample in self._tokens.take(budget):
-            alive = sample.kind == zenoh.SampleKind.PUT
-            self._protocol.token(str(sample.key_expr), alive, now)
+        for message in self._acks.take(budget):
+            changed |= ack(message.key, message.payload, now)
+        for message in self._tokens.take(budget):
+            self._protocol.token(message.key, message.alive, now)
             changed = True
         if self._tokens.dropped != self._tokens_dropped:  # churn overflowed the inbox
             self._tokens_dropped = self._tokens.dropped
@@ -481,7 +472,7 @@ class Producer:
             skipped=skipped,
             refused_subscriptions=protocol.refused_registrations,
             rewinds=rewinds,
-            limits=self._protocol.limits(),
+            limits=replace(self._protocol.limits(), control_inbox_bytes=control_inbox_bytes()),
             dropped_messages=self._acks.dropped + self._tokens.dropped,
         )
 

@@ -149,6 +149,10 @@ class BufferLimits:
     large_push_per_holder: int = 4
     large_push_total: int = 16
     holder_share: str = "half of what other holders leave free"
+    # The most the producer's control inboxes (acks, subscription tokens) hold, whatever a
+    # peer sends; 0 where a producer does not say. Zenoh's own share comes on top
+    # (docs/limits.md: its receive buffers, each local peer's shared-memory pool).
+    control_inbox_bytes: int = 0
 
 
 @dataclass(frozen=True, slots=True)

@@ -75,6 +75,20 @@ def unreachable(net: NetworkConfig, timeout_s: float = 1.0) -> str | None:
     return None
 
 
+def connected_late(node: Node, timeout_s: float) -> bool:
+    """Whether a ``--connect`` session that had no connection yet got one within
+    ``timeout_s``: a loaded router completes its handshake late (seen after 2 s at load 40),
+    and an empty answer given before it did is not the router's answer."""
+    if not node.network.connect or node.connected() > 0 or unreachable(node.network):
+        return False
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if node.connected() > 0:
+            return True
+        time.sleep(0.05)
+    return False
+
+
 def nothing_answered(node: Node, waited_s: float) -> NotFoundError | None:
     """The error to raise when no process at all answered through the endpoints the user
     named (``--connect``), or None: a refused or unreachable endpoint is not "no services".

@@ -133,6 +133,12 @@ def _print_buffer(service: ServiceInfo, b: BufferInfo) -> None:
             f"{lim.flow_queue_max}); each node~host at most half of what others leave free; "
             f"refused {b.refused_subscriptions}"
         )
+        if lim.control_inbox_bytes:
+            print(
+                f"  memory         retention, kept headers (queue budget), control inboxes at "
+                f"most {format_bytes(lim.control_inbox_bytes)}; plus Zenoh's receive buffers "
+                "and each local peer's shared-memory pool (docs/limits.md)"
+            )
     if not b.subscriptions:
         print("  subscriptions  none")
         return

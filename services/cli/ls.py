@@ -15,7 +15,7 @@ from services.lib.argtypes import positive_float, positive_int
 from services.lib.clock import CLOCK_WARN_NS, ClockEstimate, clock_warning, estimate_clocks
 
 from ._common import command_parser, format_bytes, format_ns, network, print_json
-from ._target import nothing_answered, unreachable, where
+from ._target import connected_late, nothing_answered, unreachable, where
 
 
 def register(subparsers: Any) -> None:
@@ -109,6 +109,8 @@ def run(args: argparse.Namespace) -> int:
     net = network(args)
     with Node(network=net) as node:
         infos = node.services(timeout_s=args.timeout)
+        if not infos and connected_late(node, args.timeout):
+            infos = node.services(timeout_s=args.timeout)
         # One query for every service shares one long round trip: ask each one again, but
         # only those on other hosts; the processes of this host read our own clock.
         clocks = {

@@ -10,11 +10,17 @@ flag and default, from which the flags, the parsing and the deploy-file keys fol
     config = from_args(GyroConfig, parser.parse_args(argv))
 
 A field's flag is ``--`` plus its name with dashes, unless ``flag`` says otherwise; extra
-spellings go in ``aliases``. Booleans are switches (``--loop``); enums take their values;
-``parse`` is the argparse type that checks a value (``services.lib.argtypes``). A field
-without ``setting`` metadata (a nested config, e.g. the camera's source) is the service's
-own to fill. A deploy file's service args are these flags' names (``deploy_keys``), and
-``framegate launch`` checks them with the same parser.
+spellings go in ``aliases``. Booleans are switches (``--loop``); enums take their values
+(an enum whose values are numbers, its names in lower case); ``parse`` is the argparse type
+that checks a value (``services.lib.argtypes``). ``repeat`` makes a list flag (given several
+times, or with several values: a deploy file's YAML list), ``count`` one that takes exactly
+that many values; either becomes a tuple. ``env`` names an environment variable that
+outranks the default (defaults -> deploy file -> environment -> flags); ``shown`` is the
+default as help prints it, where the value itself would not read well; ``group`` puts the
+flag under a heading in ``--help``. A field without ``setting`` metadata (a nested config,
+e.g. the camera's source) is the service's own to fill, as is a value that depends on
+another flag (``from_args(..., field=value)``). A deploy file's service args are these
+flags' names, and ``framegate launch`` checks them with the same parser.
 """
 
 from __future__ import annotations
@@ -22,6 +28,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import enum
+import os
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Any
@@ -39,6 +46,12 @@ class Setting:
     aliases: tuple[str, ...] = ()
     choices: tuple[str, ...] | None = None  # for an enum: the values offered (None: all)
     dest: str | None = None  # the parsed args' attribute (default: the field's name)
+    metavar: str | None = None
+    repeat: bool = False  # a list: the flag may be given several times, each with values
+    count: int | None = None  # exactly this many values (a 3x3 matrix: 9)
+    env: str | None = None  # an environment variable that outranks the default
+    shown: str | None = None  # the default as --help shows it (None: the value)
+    group: str | None = None  # the --help heading the flag is listed under
 
 
 def setting(
@@ -50,10 +63,28 @@ def setting(
     aliases: tuple[str, ...] = (),
     choices: Iterable[str] | None = None,
     dest: str | None = None,
+    metavar: str | None = None,
+    repeat: bool = False,
+    count: int | None = None,
+    env: str | None = None,
+    shown: str | None = None,
+    group: str | None = None,
 ) -> Any:
     """A config field with its default and how it is set from the command line."""
-    chosen = tuple(choices) if choices is not None else None
-    meta = Setting(help, flag, parse, aliases, chosen, dest)
+    meta = Setting(
+        help,
+        flag=flag,
+        parse=parse,
+        aliases=aliases,
+        choices=tuple(choices) if choices is not None else None,
+        dest=dest,
+        metavar=metavar,
+        repeat=repeat,
+        count=count,
+        env=env,
+        shown=shown,
+        group=group,
+    )
     return dataclasses.field(default=default, metadata={_KEY: meta})
 
 
@@ -82,28 +113,64 @@ def add_flags(
     ``choices`` narrows a field's choices for this parser (a gyro has no device)."""
     skipped = set(skip)
     narrowed = choices or {}
+    groups: dict[str, argparse._ArgumentGroup] = {}
     for f, meta in settings(config_type):
         if f.name in skipped:
             continue
-        default = f.default
-        names = [flag_of(f, meta), *meta.aliases]
-        shown = "" if default is None or isinstance(default, bool) else " (default %(default)s)"
-        kwargs: dict[str, Any] = {"dest": meta.dest or f.name, "help": meta.help + shown}
-        if isinstance(default, bool):
-            kwargs["action"] = "store_true"
-        elif isinstance(default, enum.Enum):
-            values = [m.value for m in type(default)]
-            kwargs["choices"] = list(meta.choices or values)
-            kwargs["default"] = default.value
-        else:
-            kwargs["default"] = default
-            if meta.parse is not None:
-                kwargs["type"] = meta.parse
-            if meta.choices is not None:
-                kwargs["choices"] = list(meta.choices)
+        kwargs = _flag_kwargs(f, meta)
         if f.name in narrowed:
             kwargs["choices"] = narrowed[f.name]
-        parser.add_argument(*names, **kwargs)
+        where: argparse.ArgumentParser | argparse._ArgumentGroup = parser
+        if meta.group is not None:
+            if meta.group not in groups:
+                groups[meta.group] = parser.add_argument_group(meta.group)
+            where = groups[meta.group]
+        where.add_argument(flag_of(f, meta), *meta.aliases, **kwargs)
+
+
+def _flag_kwargs(f: dataclasses.Field[Any], meta: Setting) -> dict[str, Any]:
+    """``add_argument``'s keywords for one setting."""
+    default = f.default
+    kwargs: dict[str, Any] = {"dest": meta.dest or f.name, "help": meta.help}
+    if meta.metavar is not None:
+        kwargs["metavar"] = meta.metavar
+    if isinstance(default, bool):
+        kwargs["action"] = "store_true"
+        return kwargs
+    if meta.env is not None and os.environ.get(meta.env):
+        # A string default goes through ``type`` as a flag's value would: a bad value in
+        # the environment is refused by name, as a bad flag is.
+        default = os.environ[meta.env]
+    if isinstance(f.default, enum.Enum):
+        kwargs["choices"] = list(meta.choices or [_spelling(m) for m in type(f.default)])
+        default = _spelling(default) if isinstance(default, enum.Enum) else default
+    else:
+        if meta.parse is not None:
+            kwargs["type"] = meta.parse
+        if meta.choices is not None:
+            kwargs["choices"] = list(meta.choices)
+    if meta.repeat:
+        # No default list: argparse would extend it instead of replacing it.
+        kwargs.update(action="extend", nargs="+", default=None)
+    else:
+        kwargs["default"] = default
+        if meta.count is not None:
+            kwargs["nargs"] = meta.count
+    shown = meta.shown
+    if shown is None and meta.env is not None:
+        shown = f"${meta.env} or {f.default}"
+    if shown is None and meta.repeat and isinstance(f.default, tuple) and f.default:
+        shown = " ".join(str(v) for v in f.default)
+    if shown is not None:
+        kwargs["help"] += f" (default {shown})"
+    elif f.default not in (None, ()) and not isinstance(f.default, bool):
+        kwargs["help"] += " (default %(default)s)"
+    return kwargs
+
+
+def _spelling(member: enum.Enum) -> str:
+    """How a flag spells an enum member: its value, or for a number its name in lower case."""
+    return member.value if isinstance(member.value, str) else member.name.lower()
 
 
 def from_args(config_type: type[Any], args: argparse.Namespace, **given: Any) -> Any:
@@ -116,17 +183,10 @@ def from_args(config_type: type[Any], args: argparse.Namespace, **given: Any) ->
             continue
         value = getattr(args, meta.dest or f.name, f.default)
         if isinstance(f.default, enum.Enum) and not isinstance(value, enum.Enum):
-            value = type(f.default)(value)
+            value = next(m for m in type(f.default) if _spelling(m) == value)
+        elif meta.repeat and value is None:
+            value = f.default  # not given
+        if isinstance(value, list):
+            value = tuple(value)  # configs are frozen: no lists inside
         values[f.name] = value
     return config_type(**values, **given)
-
-
-def deploy_keys(config_type: type, *, skip: Iterable[str] = ()) -> set[str]:
-    """The args a deploy file may give this service (its flags, as ``seed`` for ``--seed``)."""
-    skipped = set(skip)
-    keys = set()
-    for f, meta in settings(config_type):
-        if f.name not in skipped:
-            for name in (flag_of(f, meta), *meta.aliases):
-                keys.add(name.lstrip("-").replace("-", "_"))
-    return keys

@@ -12,9 +12,9 @@ import sys
 import threading
 import time
 from collections.abc import Callable
-from typing import TypeVar
+from typing import Protocol, TypeVar
 
-from middleware import ConfigError, now_ns
+from middleware import ConfigError, NetworkConfig, Node, now_ns
 
 START_AT_ENV = "FRAMEGATE_START_AT_NS"
 # Set by the launch supervisor (services/launch/_supervisor.py) for each child it starts.
@@ -22,6 +22,7 @@ PARENT_PID_ENV = "FRAMEGATE_PARENT_PID"
 PARENT_FD_ENV = "FRAMEGATE_PARENT_FD"
 _PR_SET_PDEATHSIG = 1
 T = TypeVar("T")
+S = TypeVar("S")
 # After the parent is gone, how long the service may take to stop by itself.
 _ORPHAN_GRACE_S = 1.5
 
@@ -48,16 +49,6 @@ def start_at_ns(flag_value: int | None) -> int:
         except ValueError as exc:
             raise ConfigError(f"{START_AT_ENV} must be integer ns, got {raw!r}") from exc
     return now_ns()
-
-
-def sleep_until_ns(wall_ns: int, stop: threading.Event) -> bool:
-    """Sleep until the process clock reaches ``wall_ns``; False if ``stop`` was set first."""
-    while True:
-        remaining = (wall_ns - now_ns()) / 1e9
-        if remaining <= 0:
-            return not stop.is_set()
-        if stop.wait(min(remaining, 0.5)):
-            return False
 
 
 def _wall_minus_monotonic_ns() -> int:
@@ -119,15 +110,6 @@ class Timeline:
     def late_ns(self, rel_ns: int) -> int:
         """How long ago relative time ``rel_ns`` came (negative: still to come)."""
         return time.monotonic_ns() - (self._start_mono_ns + rel_ns)
-
-    def sleep_until(self, rel_ns: int, stop: threading.Event) -> bool:
-        """Sleep until relative time ``rel_ns``; False if ``stop`` was set first."""
-        while True:
-            remaining = -self.late_ns(rel_ns) / 1e9
-            if remaining <= 0:
-                return not stop.is_set()
-            if stop.wait(min(remaining, 0.5)):
-                return False
 
 
 class Monotonic:
@@ -214,10 +196,41 @@ def _exit_past_workers() -> None:
 atexit.register(_exit_past_workers)
 
 
-def serve_until_stopped(stop: threading.Event) -> None:
-    """Keep a finished source's buffers answering queries until stopped (or Ctrl-C)."""
-    with contextlib.suppress(KeyboardInterrupt):
-        stop.wait()
+class Pump(Protocol):
+    """What a source service runs on its node: a deadline handler that puts what is due and
+    sets the next deadline itself, and the summary logged when the service ends."""
+
+    def on_time(self, now: int) -> None: ...
+
+    def summary(self) -> str: ...
+
+
+def run_source(
+    name: str,
+    network: NetworkConfig,
+    stop: threading.Event,
+    open_source: Callable[[], S],
+    pump: Callable[[Node, S, logging.Logger], Pump],
+) -> int:
+    """A source service's life (camera, gyro): open the source, then the node; ``pump``
+    offers the buffers and returns the pump, which runs on the node's executor from now
+    until ``stop`` is set (or Ctrl-C); its summary is logged last. Exit code 0.
+
+    The source opens before the node because opening may take seconds (a simulator's first
+    frame, a device): a stop meanwhile starts nothing, and no peer sees a service whose
+    buffers stay empty.
+    """
+    log = setup_logging(name)
+    source = open_source()
+    if stop.is_set():  # interrupted while the source was opening
+        return 0
+    with Node(name, network) as node:
+        running = pump(node, source, log)
+        node.at(time.monotonic_ns(), running.on_time)
+        with contextlib.suppress(KeyboardInterrupt):
+            node.spin(stop)
+        log.info("%s", running.summary())
+    return 0
 
 
 def exit_with_parent(stop: threading.Event) -> None:

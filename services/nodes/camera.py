@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import collections
-import contextlib
 import logging
 import os
 import statistics
@@ -46,7 +45,7 @@ from services.lib.messages import frame_metadata
 from services.lib.quality import Exposure
 from services.lib.settings import add_flags, from_args, setting
 from services.nodes._contract import Service, ServiceEntry
-from services.nodes._runtime import Timeline, setup_logging, start_at_ns, unless_stopped
+from services.nodes._runtime import Timeline, run_source, start_at_ns, unless_stopped
 from services.nodes.sources import (
     DeviceSource,
     FrameSource,
@@ -74,11 +73,8 @@ class CameraConfig:
 def run(config: CameraConfig, network: NetworkConfig, stop: threading.Event | None = None) -> int:
     """Produce frames until the source ends, ``stop`` is set, or KeyboardInterrupt."""
     stop = stop or threading.Event()
-    log = setup_logging(config.name)
-    source = open_frame_source(config.source)
-    if stop.is_set():  # interrupted while the source was opening
-        return 0
-    with Node(config.name, network) as node:
+
+    def pump(node: Node, source: FrameSource | DeviceSource, log: logging.Logger) -> CameraPump:
         images = node.offer(
             "images",
             kind="frame",
@@ -96,17 +92,9 @@ def run(config: CameraConfig, network: NetworkConfig, stop: threading.Event | No
             ),
         )
         log.info("camera: %s -> %s/images", source.description, config.name)
-        pump = CameraPump(node, images, source, config, Timeline(t0_wall), stop, log)
-        pump.start()
-        with contextlib.suppress(KeyboardInterrupt):
-            node.spin(stop)
-        log.info(
-            "camera: %d frames stored, %d dropped at the source (flow control), %d skipped late",
-            pump.produced,
-            pump.dropped,
-            pump.rate.late_total,
-        )
-    return 0
+        return CameraPump(node, images, source, config, Timeline(t0_wall), stop, log)
+
+    return run_source(config.name, network, stop, lambda: open_frame_source(config.source), pump)
 
 
 class CameraPump:
@@ -144,8 +132,11 @@ class CameraPump:
         self._made: tuple[SourceFrame, npt.NDArray[np.uint8], int] | None = None
         self.produced = self.dropped = 0
 
-    def start(self) -> None:
-        self._node.at(time.monotonic_ns(), self.on_time)
+    def summary(self) -> str:
+        return (
+            f"camera: {self.produced} frames stored, {self.dropped} dropped at the source "
+            f"(flow control), {self.rate.late_total} skipped late"
+        )
 
     def on_time(self, now: int) -> None:
         """Put the frame whose exposure has ended, make the next one, and come back when

@@ -18,27 +18,36 @@ import threading
 from dataclasses import dataclass
 
 from middleware import NetworkConfig
+from services.lib.argtypes import non_negative_float, positive_float
 from services.lib.markers import detect_markers
+from services.lib.settings import add_flags, from_args, setting
 from services.lib.vision import Box, FrameMeta, ResultKind
 from services.nodes._contract import Service, ServiceEntry
 from services.nodes._vision_handler import Image
-from services.nodes.vision import RunnerSpec, serve
+from services.nodes.vision import RunnerConfig, serve
 
 
 @dataclass(frozen=True, slots=True)
-class DetectorConfig:
-    """Everything the detector can be told."""
+class DetectorConfig(RunnerConfig):
+    """Everything the detector can be told: the runner's settings and an emulated cost."""
 
-    name: str = "detector"
-    input: str = "mediator/images"
-    queue: int = 2
-    min_processing_ms: float = 0.0
-    service_factor: float | None = None
-    frame_period_ms: float = 1000.0 / 15.0
-    # Observe instead of taking part in flow control: while the queue is full new frames are
-    # missed by this detector only (as a camera dropping at the source would for it alone),
-    # so a second, uncontrolled detector never holds the camera back for the others.
-    observe: bool = False
+    name: str = setting("detector", "service name")
+    min_processing_ms: float = setting(
+        0.0,
+        "emulate a slow computer: each frame takes at least this long",
+        parse=non_negative_float,
+    )
+    service_factor: float | None = setting(
+        None,
+        "emulated processing time as a multiple of the frame period",
+        parse=non_negative_float,
+    )
+    frame_period_ms: float = setting(
+        1000.0 / 15.0,
+        "frame period used by --service-factor",
+        parse=positive_float,
+        shown="15 fps",
+    )
 
     @property
     def processing_floor_s(self) -> float:
@@ -56,67 +65,18 @@ def detect_aruco(image: Image, frame: FrameMeta) -> list[Box]:
 
 def run(config: DetectorConfig, network: NetworkConfig, stop: threading.Event | None = None) -> int:
     """Run until ``stop`` is set or KeyboardInterrupt."""
-    spec = RunnerSpec(
-        name=config.name,
-        input=config.input,
-        queue=config.queue,
-        output="detections",
-        kind=ResultKind.DETECTIONS,
-        observe=config.observe,
-        processing_floor_s=config.processing_floor_s,
-    )
+    spec = config.spec("detections", ResultKind.DETECTIONS, config.processing_floor_s)
     return serve(spec, detect_aruco, network, stop or threading.Event())
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """The detector's flags (``framegate run detector --help``)."""
-    from services.lib.argtypes import non_negative_float, positive_float, positive_int
-
-    d = DetectorConfig()
-    parser.add_argument("--name", default=d.name, help="service name (default %(default)s)")
-    parser.add_argument(
-        "--input",
-        default=d.input,
-        help="frames to process: mediator/images (filtered) or camera/images",
-    )
-    parser.add_argument(
-        "--queue", type=positive_int, default=d.queue, help="notification queue size N"
-    )
-    parser.add_argument(
-        "--min-processing-ms",
-        type=non_negative_float,
-        default=d.min_processing_ms,
-        help="emulate a slow computer: each frame takes at least this long",
-    )
-    parser.add_argument(
-        "--service-factor",
-        type=non_negative_float,
-        default=None,
-        help="emulated processing time as a multiple of the frame period",
-    )
-    parser.add_argument(
-        "--frame-period-ms",
-        type=positive_float,
-        default=d.frame_period_ms,
-        help="frame period used by --service-factor (default 15 fps)",
-    )
-    parser.add_argument(
-        "--observe",
-        action="store_true",
-        help="never hold the input's producer back: a full queue misses new frames instead",
-    )
+    """The detector's flags (``framegate run detector --help``): one per config field."""
+    add_flags(parser, DetectorConfig)
 
 
 def config_from_args(args: argparse.Namespace) -> DetectorConfig:
-    return DetectorConfig(
-        name=args.name,
-        input=args.input,
-        queue=args.queue,
-        min_processing_ms=args.min_processing_ms,
-        service_factor=args.service_factor,
-        frame_period_ms=args.frame_period_ms,
-        observe=args.observe,
-    )
+    config: DetectorConfig = from_args(DetectorConfig, args)
+    return config
 
 
 SERVICE: Service[DetectorConfig] = ServiceEntry(

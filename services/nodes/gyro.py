@@ -17,10 +17,8 @@ Threads: none of its own; each batch is put by a deadline on the node's executor
 from __future__ import annotations
 
 import argparse
-import contextlib
 import logging
 import threading
-import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -40,7 +38,7 @@ from services.lib.messages import gyro_metadata
 from services.lib.quality import GyroSamples
 from services.lib.settings import add_flags, from_args, setting
 from services.nodes._contract import Service, ServiceEntry
-from services.nodes._runtime import Timeline, setup_logging, start_at_ns
+from services.nodes._runtime import Timeline, run_source, start_at_ns
 from services.nodes.sources import (
     GyroSource,
     SourceSpec,
@@ -73,11 +71,8 @@ class GyroConfig:
 def run(config: GyroConfig, network: NetworkConfig, stop: threading.Event | None = None) -> int:
     """Produce batches until the source ends, ``stop`` is set, or KeyboardInterrupt."""
     stop = stop or threading.Event()
-    log = setup_logging(config.name)
-    source = open_gyro_source(config.source)
-    if stop.is_set():  # interrupted while the source was opening
-        return 0
-    with Node(config.name, network) as node:
+
+    def pump(node: Node, source: GyroSource, log: logging.Logger) -> GyroPump:
         rates = node.offer(
             "rates",
             kind="gyro",
@@ -86,12 +81,9 @@ def run(config: GyroConfig, network: NetworkConfig, stop: threading.Event | None
         log.info(
             "gyro: %s -> %s/rates (batches of %d)", source.description, config.name, config.batch
         )
-        pump = GyroPump(node, rates, source, config, stop, log)
-        pump.start()
-        with contextlib.suppress(KeyboardInterrupt):
-            node.spin(stop)
-        log.info("gyro: %d samples stored, %d dropped", pump.stored, pump.dropped)
-    return 0
+        return GyroPump(node, rates, source, config, stop, log)
+
+    return run_source(config.name, network, stop, lambda: open_gyro_source(config.source), pump)
 
 
 class GyroPump:
@@ -119,8 +111,8 @@ class GyroPump:
         self._pending: tuple[list[int], npt.NDArray[np.float64]] | None = None
         self.stored = self.dropped = 0
 
-    def start(self) -> None:
-        self._node.at(time.monotonic_ns(), self.on_time)
+    def summary(self) -> str:
+        return f"gyro: {self.stored} samples stored, {self.dropped} dropped"
 
     def on_time(self, now: int) -> None:
         """Put every batch that is due; then a deadline for the next one."""

@@ -61,7 +61,9 @@ from middleware import (
     Retention,
     SubscriptionMode,
 )
+from services.lib.argtypes import positive_int
 from services.lib.messages import decode_image, read_frame_metadata
+from services.lib.settings import add_flags, from_args, setting
 from services.lib.vision import Encoded, ResultKind, encode_result
 from services.nodes._contract import Service, ServiceEntry
 from services.nodes._runtime import setup_logging, unless_stopped
@@ -80,17 +82,48 @@ _INPUT_INFO_TIMEOUT_S = 1.0
 
 
 @dataclass(frozen=True, slots=True)
-class VisionConfig:
+class RunnerConfig:
+    """What every vision runner is told (``framegate run vision`` and ``detector``)."""
+
+    name: str = setting("vision", "service name")
+    input: str = setting(
+        "mediator/images", "frames to process: mediator/images (filtered) or camera/images"
+    )
+    queue: int = setting(2, "notification queue size N", parse=positive_int)
+    # Observe instead of taking part in flow control: while the queue is full new frames are
+    # missed by this runner only (as a camera dropping at the source would for it alone), so
+    # a second, uncontrolled runner never holds the camera back for the others.
+    observe: bool = setting(
+        False, "never hold the input's producer back: a full queue misses new frames instead"
+    )
+
+    def spec(self, output: str, kind: ResultKind, processing_floor_s: float = 0.0) -> RunnerSpec:
+        """What the runner needs, with what this service adds."""
+        return RunnerSpec(
+            self.name, self.input, self.queue, output, kind, self.observe, processing_floor_s
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class VisionConfig(RunnerConfig):
     """Everything ``framegate run vision`` can be told."""
 
-    name: str = "vision"
-    handler: str | None = None  # "package.module:function"
-    input: str = "mediator/images"
-    queue: int = 2
-    output: str | None = None  # default: "detections" for boxes, "results" otherwise
-    kind: str = "auto"  # auto (from the handler's return annotation), detections, generic
-    # Observe instead of taking part in flow control (see the detector's --observe).
-    observe: bool = False
+    handler: str | None = setting(
+        None,
+        "your function handler(image, frame) -> list[Box] | Output | None "
+        "(services/lib/vision.py), as package.module:function or file.py:function; "
+        "the current directory is importable",
+        parse=handler_argument,
+        metavar="MODULE:FUNCTION",
+    )
+    output: str | None = setting(
+        None, "the results buffer (default: detections for boxes, results otherwise)"
+    )
+    kind: str = setting(
+        "auto",
+        "the results buffer's kind; auto: from the handler's return annotation",
+        choices=("auto", *(k.value for k in ResultKind)),
+    )
 
 
 @dataclass(frozen=True, slots=True)
@@ -328,61 +361,17 @@ def run(config: VisionConfig, network: NetworkConfig, stop: threading.Event | No
     handler = load_handler(config.handler)
     kind = result_kind(handler, config.kind)
     output = config.output or ("detections" if kind is ResultKind.DETECTIONS else "results")
-    spec = RunnerSpec(config.name, config.input, config.queue, output, kind, config.observe)
-    return serve(spec, handler, network, stop or threading.Event())
+    return serve(config.spec(output, kind), handler, network, stop or threading.Event())
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """The runner's flags (``framegate run vision --help``)."""
-    from services.lib.argtypes import positive_int
-
-    d = VisionConfig()
-    parser.add_argument("--name", default=d.name, help="service name (default %(default)s)")
-    parser.add_argument(
-        "--handler",
-        type=handler_argument,
-        default=d.handler,
-        metavar="MODULE:FUNCTION",
-        help="your function handler(image, frame) -> list[Box] | Output | None "
-        "(services/lib/vision.py), as package.module:function or file.py:function; "
-        "the current directory is importable",
-    )
-    parser.add_argument(
-        "--input",
-        default=d.input,
-        help="frames to process: mediator/images (filtered) or camera/images",
-    )
-    parser.add_argument(
-        "--queue", type=positive_int, default=d.queue, help="notification queue size N"
-    )
-    parser.add_argument(
-        "--output",
-        default=d.output,
-        help="the results buffer (default: detections for boxes, results otherwise)",
-    )
-    parser.add_argument(
-        "--kind",
-        choices=("auto", *(k.value for k in ResultKind)),
-        default=d.kind,
-        help="the results buffer's kind (default: from the handler's return annotation)",
-    )
-    parser.add_argument(
-        "--observe",
-        action="store_true",
-        help="never hold the input's producer back: a full queue misses new frames instead",
-    )
+    """The runner's flags (``framegate run vision --help``): one per config field."""
+    add_flags(parser, VisionConfig)
 
 
 def config_from_args(args: argparse.Namespace) -> VisionConfig:
-    return VisionConfig(
-        name=args.name,
-        handler=args.handler,
-        input=args.input,
-        queue=args.queue,
-        output=args.output,
-        kind=args.kind,
-        observe=args.observe,
-    )
+    config: VisionConfig = from_args(VisionConfig, args)
+    return config
 
 
 SERVICE: Service[VisionConfig] = ServiceEntry(

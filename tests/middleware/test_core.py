@@ -52,7 +52,7 @@ def test_a_registration_beyond_the_budget_is_refused_with_its_reason(
         with pytest.raises(RegistrationRefused, match="queue size 20 exceeds the fair share"):
             client.subscribe("cam/images", queue_size=20)
         small = client.subscribe("cam/images", queue_size=10)  # what is left still fits
-        info = client.buffer_info("cam/images")
+        info = client.buffer_info("cam/images", timeout_s=scaled(10.0))
         assert info.refused_subscriptions == 1
         assert {s.subscription_id for s in info.subscriptions} == {
             big.subscription_id,
@@ -219,7 +219,7 @@ def test_skips_a_service_counts_show_in_info(listen_net, connect_net) -> None:
         images = service.offer("images")
         images.count_skip("late", 3)
         images.count_skip("late")
-        assert client.buffer_info("cam/images").skipped == {"late": 4}
+        assert client.buffer_info("cam/images", timeout_s=scaled(10.0)).skipped == {"late": 4}
 
 
 # Floods the subscription's notification key and the producer's ack key with foreign-epoch

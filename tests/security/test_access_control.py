@@ -121,7 +121,7 @@ def test_reads_allowed_to_cli_still_work(camera: NodeProcess, secure_router: Sec
         assert cli.live_services() == ["camera"]
         assert [e.timestamp_ns for e in cli.query("camera/images", last=2)] == [4 * MS, 5 * MS]
         assert cli.get("camera/images", 2 * MS).payload == REAL[2 * MS]
-        info = cli.buffer_info("camera/images")
+        info = cli.buffer_info("camera/images", timeout_s=scaled(10.0))
         assert (info.count, info.puts) == (len(REAL), len(REAL))
 
 
@@ -249,7 +249,7 @@ def test_the_secure_profile_runs_the_whole_pipeline(
 
             def detections() -> int:
                 try:
-                    return cli.buffer_info("detector/detections").puts
+                    return cli.buffer_info("detector/detections", timeout_s=scaled(10.0)).puts
                 except FramegateError:
                     return 0
 

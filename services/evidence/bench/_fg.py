@@ -31,7 +31,7 @@ from middleware import (
     now_ns,
 )
 
-from ._serve import Counter, LatencyLog, paced, profiled, reply, serve, sleep_until
+from ._serve import Counter, LatencyLog, RssMeter, paced, profiled, reply, serve, sleep_until
 
 SERVICE = "bench"
 # Query-scaling elements sit this many ns apart, so a range of k elements is easy to write.
@@ -395,22 +395,22 @@ def fg_camera(params: dict[str, Any]) -> None:
     skipped, as the camera service does. Samples its own RSS while it runs.
 
     ``run`` ``{seconds}``: ticks, frames stored, refused (flow control), skipped late, failed;
-    RSS at the start, its maximum and at the end; and the buffer's subscription counts.
+    RSS at the start, its maximum and at the end (``private_growth`` and ``shared_growth``
+    since ``offer``: ``RssMeter``); and the buffer's subscription counts.
     """
     frame = bytearray(int(params["size"]))
     period_s = 1.0 / float(params["rate_hz"])
     stamp = Stamper()
-    me = psutil.Process()
     with Node(SERVICE, _network(params)) as node:
         producer = node.offer(
             str(params["buffer"]), retention=Retention(max_count=int(params["retain"]))
         )
-        offered_rss = me.memory_info().rss
+        offered = RssMeter()
 
         def run(command: dict[str, Any]) -> dict[str, Any]:
             ticks = paced(float(command["seconds"]), period_s)
             stored = refused = late = failed = 0
-            rss_start = rss_max = me.memory_info().rss
+            meter = RssMeter()
             next_rss = time.monotonic()
             errors: list[str] = []
             started = time.monotonic()
@@ -432,10 +432,10 @@ def fg_camera(params: dict[str, Any]) -> None:
                     if len(errors) < 3:
                         errors.append(str(exc))
                 if now >= next_rss:
-                    rss_max = max(rss_max, me.memory_info().rss)
+                    meter.sample()
                     next_rss = now + 0.5
             elapsed_s = time.monotonic() - started
-            rss_end = me.memory_info().rss
+            meter.sample()
             info = producer.info()
             return {
                 "ticks": len(ticks),
@@ -446,16 +446,18 @@ def fg_camera(params: dict[str, Any]) -> None:
                 "errors": errors,
                 "elapsed_s": elapsed_s,
                 "rate_hz": stored / elapsed_s if elapsed_s > 0 else 0.0,
-                "rss_offered": offered_rss,
-                "rss_start": rss_start,
-                "rss_max": max(rss_max, rss_end),
-                "rss_end": rss_end,
+                "rss_offered": offered.start_total,
+                "rss_start": meter.start_total,
+                "rss_max": meter.total_max,
+                "rss_end": meter.private + meter.shared,
+                "private_growth": meter.private_max - offered.start_private,
+                "shared_growth": meter.shared_max - offered.start_shared,
                 "buffer_bytes": info.payload_bytes,
                 "subscriptions": len(info.subscriptions),
                 "refused_subscriptions": info.refused_subscriptions,
             }
 
-        reply(ready=True, rss_offered=offered_rss)
+        reply(ready=True, rss_offered=offered.start_total)
         serve({"run": run})
 
 

@@ -13,19 +13,28 @@ Role ``flood`` (params: ``connect``, ``namespace``, ``service``, ``buffer``, ``k
 
 It floods on a thread from ``ready`` until ``stop`` or exit; ``count`` answers how many
 messages (or tokens) it sent.
+
+Role ``flood-sink`` (params: ``listen``, ``namespace``, ``service``, ``buffer``): the same
+keys as a producer's, received by plain Zenoh and dropped at once (a no-op callback on the
+ack keys, a liveliness subscriber on the subscription tokens), so that a flood aimed at it
+measures what Zenoh itself holds for the flood: its receive buffers, and the shared-memory
+pool of each local peer that sends it large messages (mapped into this process). ``run``
+``{seconds}`` samples for that long and answers its RSS growth (``RssMeter``) from ``ready``
+to the maximum seen.
 """
 
 from __future__ import annotations
 
 import itertools
 import threading
+import time
 from typing import Any
 
 import msgpack
 import zenoh
 
 from ._raw import _config
-from ._serve import reply, serve
+from ._serve import RssMeter, reply, serve
 
 
 class _Flood:
@@ -118,4 +127,36 @@ def flood(params: dict[str, Any]) -> None:
         thread.join(timeout=10.0)
 
 
-ROLES = {"flood": flood}
+def flood_sink(params: dict[str, Any]) -> None:
+    """The ``flood-sink`` role (see the module doc)."""
+    prefix = f"{params['namespace']}/@%s/{params['service']}/{params['buffer']}/**"
+
+    def drop(_sample: zenoh.Sample) -> None:
+        return None
+
+    with zenoh.open(_config(params)) as session:
+        handler = zenoh.handlers.Callback(drop, indirect=False)
+        acks = session.declare_subscriber(prefix % "ack", handler)
+        tokens = session.liveliness().declare_subscriber(
+            prefix % "sub", zenoh.handlers.Callback(drop, indirect=False)
+        )
+        meter = RssMeter()  # before any flood: its growth is from here
+        reply(ready=True)
+
+        def run(command: dict[str, Any]) -> dict[str, Any]:
+            end = time.monotonic() + float(command["seconds"])
+            while time.monotonic() < end:
+                time.sleep(0.5)
+                meter.sample()
+            return {
+                "growth": meter.total_max - meter.start_total,
+                "private_growth": meter.private_max - meter.start_private,
+                "shared_growth": meter.shared_max - meter.start_shared,
+            }
+
+        serve({"run": run})
+        acks.undeclare()
+        tokens.undeclare()
+
+
+ROLES = {"flood": flood, "flood-sink": flood_sink}

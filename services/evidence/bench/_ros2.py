@@ -174,7 +174,8 @@ def fg_pub(params: dict[str, Any]) -> None:
     """framegate producer: stream ``out`` puts to fgpub/images (the bridge observes it),
     ``fg`` to fgpub/direct (the consumer's baseline hop)."""
     from middleware import NetworkConfig, Node, Retention
-    from services.nodes.ros2._bridge import frame_metadata
+    from services.lib.messages import frame_metadata_of
+    from services.lib.quality import Exposure
 
     payload = bytes(FRAME_BYTES)
     with Node("fgpub", NetworkConfig(listen=(str(params["listen"]),))) as node:
@@ -191,7 +192,9 @@ def fg_pub(params: dict[str, Any]) -> None:
             for tick in paced(float(command["seconds"]), INTERVAL_S):
                 sleep_until(tick)
                 now = time.time_ns()
-                metadata = frame_metadata(sent, now, 1_000_000, "mono8", WIDTH, HEIGHT, None)
+                metadata = frame_metadata_of(
+                    sent, Exposure(now, 1_000_000), "mono8", WIDTH, HEIGHT, None
+                )
                 producer.put(now, payload, metadata, wait_s=1.0)
                 sent += 1
             return {"sent": sent}

@@ -144,3 +144,39 @@ class LatencyLog:
                 self._cond.wait(0.05)
             out, self._latencies[stream] = self._latencies[stream], []
         return {"latencies_us": out}
+
+
+class RssMeter:
+    """A process's resident memory, split in two, sampled by the caller and kept at its
+    maximum: ``shared`` is the shared memory mapped here (Linux ``RssShmem``: Zenoh's
+    shared-memory pools, this process's own and every local peer's that sent it a large
+    message; their pages belong to the pool's owner and are counted once per process that
+    maps them), ``private`` is the rest (what this process itself allocated)."""
+
+    def __init__(self) -> None:
+        self.private, self.shared = self.read()
+        self.start_private, self.start_shared = self.private, self.shared
+        self.private_max, self.shared_max = self.private, self.shared
+        self.start_total = self.total_max = self.private + self.shared
+
+    @staticmethod
+    def read() -> tuple[int, int]:
+        """(private, shared) resident bytes now; shared is 0 where /proc is not there."""
+        fields: dict[str, int] = {}
+        try:
+            with open("/proc/self/status", encoding="ascii") as status:
+                for line in status:
+                    key, _, value = line.partition(":")
+                    if key in ("VmRSS", "RssShmem"):
+                        fields[key] = int(value.split()[0]) * 1024
+        except OSError:
+            import psutil
+
+            return psutil.Process().memory_info().rss, 0
+        return fields["VmRSS"] - fields.get("RssShmem", 0), fields.get("RssShmem", 0)
+
+    def sample(self) -> None:
+        self.private, self.shared = self.read()
+        self.private_max = max(self.private_max, self.private)
+        self.shared_max = max(self.shared_max, self.shared)
+        self.total_max = max(self.total_max, self.private + self.shared)

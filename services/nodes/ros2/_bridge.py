@@ -62,7 +62,6 @@ from ._inputs import (
     _camera,
     _settle_graph,
     _subscribe_camera,
-    frame_metadata,
 )
 from ._inputs import _InQueue as _InQueue  # re-exported: other loops queue the same way
 from ._inputs import _Skips as _Skips
@@ -70,7 +69,7 @@ from ._link import RosLink, RosPublisher, watch_router
 from ._rmw import TopicCheck, dds_type_name, type_hash
 from ._sequence import SequenceWatch
 
-__all__ = ["Encoders", "ImagesIn", "ImuIn", "Output", "frame_metadata", "run"]
+__all__ = ["Encoders", "ImagesIn", "ImuIn", "Output", "run"]
 
 _NS = "{urn:framegate:1}"
 # How long an output thread waits for a notification before looking at ``stop``.

@@ -10,9 +10,9 @@ The ROS 2 side has its own connection flags shaped like every service's (``--ros
 from __future__ import annotations
 
 import argparse
-import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from middleware import ConfigError, FramegateError, NetworkConfig, check_name, split_target
 from services.lib.argtypes import (
@@ -21,6 +21,7 @@ from services.lib.argtypes import (
     positive_float,
     positive_int,
 )
+from services.lib.settings import add_flags, from_args, setting
 
 from ._rmw import DISTROS, History, Qos, Reliability, fully_qualified
 
@@ -48,45 +49,147 @@ class Mapping:
         return cls(buffer, fully_qualified(topic if sep else "/" + buffer, namespace))
 
 
+_NETWORK = "ROS 2 network"
+_IN = "ROS 2 -> framegate"
+_OUT = "framegate -> ROS 2"
+_LOOP = "a ROS 2 node in the loop (its results free its slots: the mediator sees its load)"
+# The mapping flags: BUFFER=TOPIC pairs, repeatable (a deploy file gives a list).
+_MAPPINGS: dict[str, Any] = {"repeat": True, "metavar": "BUFFER=TOPIC", "group": _OUT}
+
+
+def _namespace(text: str) -> str:
+    """``robot1``, ``/robot1/`` -> ``/robot1``; empty -> ``/``."""
+    inner = text.strip("/")
+    return "/" + inner if inner else "/"
+
+
 @dataclass(frozen=True, slots=True)
 class Ros2Config:
     """Everything the bridge can be told (one flag per field)."""
 
-    name: str = "ros2"
-    ros_connect: tuple[str, ...] = (DEFAULT_ROUTER,)
-    ros_listen: tuple[str, ...] = ()
-    ros_config: Path | None = None
-    ros_distro: str = "jazzy"
-    domain_id: int = 0
-    node_name: str = "framegate_bridge"
-    ros_namespace: str = "/"
+    name: str = setting("ros2", "service name")
+    ros_connect: tuple[str, ...] = setting(
+        (DEFAULT_ROUTER,),
+        "the ROS 2 system's Zenoh router, rmw_zenohd",
+        repeat=True,
+        metavar="ENDPOINT",
+        shown=f"{DEFAULT_ROUTER}, or the --ros-config file's endpoints",
+        group=_NETWORK,
+    )
+    ros_listen: tuple[str, ...] = setting(
+        (), "listen endpoint", repeat=True, metavar="ENDPOINT", group=_NETWORK
+    )
+    ros_config: Path | None = setting(
+        None, "Zenoh JSON5 file for the ROS 2 session", parse=Path, metavar="FILE", group=_NETWORK
+    )
+    ros_distro: str = setting(
+        "jazzy",
+        "the ROS 2 system's distro: the type hashes in keys",
+        choices=DISTROS,
+        group=_NETWORK,
+    )
+    domain_id: int = setting(
+        0, "ROS_DOMAIN_ID", parse=non_negative_int, env="ROS_DOMAIN_ID", group=_NETWORK
+    )
+    node_name: str = setting("framegate_bridge", "the bridge's ROS 2 node name", group=_NETWORK)
+    ros_namespace: str = setting("/", "ROS 2 namespace", parse=_namespace, group=_NETWORK)
     # in: ROS 2 camera and IMU -> framegate frame and gyro buffers
-    image_in: str | None = None
-    imu_in: str | None = None
-    exposure_ms: float = 10.0
-    camera_xml: Path | None = None
+    image_in: str | None = setting(
+        None, "sensor_msgs/msg/Image -> NAME/images", metavar="TOPIC", group=_IN
+    )
+    imu_in: str | None = setting(
+        None, "sensor_msgs/msg/Imu -> NAME/rates", metavar="TOPIC", group=_IN
+    )
+    exposure_ms: float = setting(
+        10.0, "exposure time of the camera", parse=positive_float, group=_IN
+    )
+    camera_xml: Path | None = setting(
+        None,
+        "camera description (camera metadata XML); overrides CameraInfo and /tf_static",
+        parse=Path,
+        group=_IN,
+    )
     # None: the camera_info topic beside image_in (image_transport); "" reads none.
-    camera_info: str | None = None
-    imu_to_camera: tuple[float, ...] | None = None  # row-major R, v_camera = R @ v_imu
-    stamp: str = "start"
-    gyro_batch: int = 10
-    gyro_wait_ms: float = 50.0
-    in_reliability: Reliability = Reliability.BEST_EFFORT
-    in_depth: int = 5
-    retention_frames: int = 64
+    camera_info: str | None = setting(
+        None,
+        "sensor_msgs/msg/CameraInfo giving the intrinsics",
+        metavar="TOPIC",
+        shown="camera_info beside --image-in, as image_transport names it; '' reads none",
+        group=_IN,
+    )
+    imu_to_camera: tuple[float, ...] | None = setting(
+        None,
+        "rotation R (row-major, v_camera = R v_imu) instead of the one /tf_static gives "
+        "between the IMU's and the image's header.frame_id",
+        parse=float,
+        count=9,
+        metavar="R",
+        group=_IN,
+    )
+    stamp: str = setting(
+        "start", "where in the exposure header.stamp lies", choices=STAMPS, group=_IN
+    )
+    gyro_batch: int = setting(10, "IMU samples per put", parse=positive_int, group=_IN)
+    gyro_wait_ms: float = setting(
+        50.0,
+        "how long a refused gyro batch waits for credit before it is dropped",
+        parse=non_negative_float,
+        group=_IN,
+    )
+    in_reliability: Reliability = setting(
+        Reliability.BEST_EFFORT,
+        "QoS of the subscriptions",
+        shown="sensor data, best_effort",
+        group=_IN,
+    )
+    in_depth: int = setting(5, "KEEP_LAST depth in", parse=positive_int, group=_IN)
+    retention_frames: int = setting(64, "frames NAME/images keeps", parse=positive_int, group=_IN)
     # out: framegate buffers -> ROS 2 topics
-    image_out: tuple[Mapping, ...] = ()
-    detections_out: tuple[Mapping, ...] = ()
-    verdicts_out: tuple[Mapping, ...] = ()
-    frame_id: str = "camera"
-    out_reliability: Reliability = Reliability.RELIABLE
-    out_depth: int = 10
-    out_queue: int = 8
+    image_out: tuple[Mapping, ...] = setting(
+        (), "frame buffer -> sensor_msgs/msg/Image (repeatable)", **_MAPPINGS
+    )
+    detections_out: tuple[Mapping, ...] = setting(
+        (), "detections -> vision_msgs/msg/Detection2DArray (repeatable)", **_MAPPINGS
+    )
+    verdicts_out: tuple[Mapping, ...] = setting(
+        (), "mediator decisions -> std_msgs/msg/String (JSON) (repeatable)", **_MAPPINGS
+    )
+    frame_id: str = setting("camera", "header.frame_id of outputs", group=_OUT)
+    out_reliability: Reliability = setting(
+        Reliability.RELIABLE, "QoS of the publishers", group=_OUT
+    )
+    out_depth: int = setting(
+        10, "KEEP_LAST depth out, 0: keep all", parse=non_negative_int, group=_OUT
+    )
+    out_queue: int = setting(
+        8,
+        "notification queue of each observed framegate buffer",
+        parse=positive_int,
+        group=_OUT,
+    )
     # the loop: a ROS 2 node's results free its slots (see _consumer_loop)
-    consumer_done: str | None = None
-    consumer_input: str | None = None
-    consumer_queue: int = 2
-    consumer_timeout_ms: float = 1000.0
+    consumer_done: str | None = setting(
+        None,
+        "the node's result topic: any message whose first field is a std_msgs/Header "
+        "copied from the input image (type read from the ROS graph)",
+        metavar="TOPIC",
+        group=_LOOP,
+    )
+    consumer_input: str | None = setting(
+        None,
+        "the --image-out buffer the node subscribes to (default: the only one)",
+        metavar="BUFFER",
+        group=_LOOP,
+    )
+    consumer_queue: int = setting(
+        2, "images the node may hold without a result", parse=positive_int, group=_LOOP
+    )
+    consumer_timeout_ms: float = setting(
+        1000.0,
+        "an image without a result frees its slot after this long, counted",
+        parse=positive_float,
+        group=_LOOP,
+    )
 
     def __post_init__(self) -> None:
         check_name(self.name, "service")
@@ -206,211 +309,32 @@ class Ros2Config:
         )
 
 
-def _reliability(text: str) -> Reliability:
-    try:
-        return Reliability[text.upper().replace("-", "_")]
-    except KeyError as exc:
-        raise ConfigError(f"reliability {text!r}: use reliable or best_effort") from exc
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """The bridge's flags (``framegate run ros2 --help``)."""
-    d = Ros2Config()
-    parser.add_argument("--name", default=d.name, help="service name (default %(default)s)")
-    ros = parser.add_argument_group("ROS 2 network")
-    ros.add_argument(
-        "--ros-connect",
-        action="append",
-        metavar="ENDPOINT",
-        help=f"the ROS 2 system's Zenoh router (rmw_zenohd; default {DEFAULT_ROUTER}, "
-        "or the --ros-config file's endpoints)",
-    )
-    ros.add_argument("--ros-listen", action="append", metavar="ENDPOINT", help="listen endpoint")
-    ros.add_argument("--ros-config", metavar="FILE", help="Zenoh JSON5 file for the ROS 2 session")
-    ros.add_argument(
-        "--ros-distro",
-        choices=DISTROS,
-        default=d.ros_distro,
-        help="the ROS 2 system's distro: the type hashes in keys (default %(default)s)",
-    )
-    ros.add_argument(
-        "--domain-id",
-        type=non_negative_int,
-        default=int(os.environ.get("ROS_DOMAIN_ID") or 0),
-        help="ROS_DOMAIN_ID (default: $ROS_DOMAIN_ID or 0)",
-    )
-    ros.add_argument(
-        "--node-name",
-        default=d.node_name,
-        help="the bridge's ROS 2 node name (default %(default)s)",
-    )
-    ros.add_argument(
-        "--ros-namespace", default=d.ros_namespace, help="ROS 2 namespace (default %(default)s)"
-    )
-    inbound = parser.add_argument_group("ROS 2 -> framegate")
-    inbound.add_argument("--image-in", metavar="TOPIC", help="sensor_msgs/msg/Image -> NAME/images")
-    inbound.add_argument("--imu-in", metavar="TOPIC", help="sensor_msgs/msg/Imu -> NAME/rates")
-    inbound.add_argument(
-        "--exposure-ms",
-        type=positive_float,
-        default=d.exposure_ms,
-        help="exposure time of the camera (default %(default)s)",
-    )
-    inbound.add_argument(
-        "--camera-xml",
-        help="camera description (camera metadata XML); overrides CameraInfo and /tf_static",
-    )
-    inbound.add_argument(
-        "--camera-info",
-        metavar="TOPIC",
-        help="sensor_msgs/msg/CameraInfo giving the intrinsics (default: camera_info beside "
-        "--image-in, as image_transport names it; '' reads none)",
-    )
-    inbound.add_argument(
-        "--imu-to-camera",
-        nargs=9,
-        type=float,
-        metavar="R",
-        help="rotation R (row-major, v_camera = R v_imu) instead of the one /tf_static gives "
-        "between the IMU's and the image's header.frame_id",
-    )
-    inbound.add_argument(
-        "--stamp",
-        choices=STAMPS,
-        default=d.stamp,
-        help="where in the exposure header.stamp lies (default %(default)s)",
-    )
-    inbound.add_argument(
-        "--gyro-batch",
-        type=positive_int,
-        default=d.gyro_batch,
-        help="IMU samples per put (default %(default)s)",
-    )
-    inbound.add_argument(
-        "--gyro-wait-ms",
-        type=non_negative_float,
-        default=d.gyro_wait_ms,
-        help="how long a refused gyro batch waits for credit before it is dropped "
-        "(default %(default)s)",
-    )
-    inbound.add_argument(
-        "--in-reliability",
-        choices=["reliable", "best_effort"],
-        default="best_effort",
-        help="QoS of the subscriptions (default: sensor data, best effort)",
-    )
-    inbound.add_argument(
-        "--in-depth",
-        type=positive_int,
-        default=d.in_depth,
-        help="KEEP_LAST depth in (default %(default)s)",
-    )
-    inbound.add_argument(
-        "--retention-frames",
-        type=positive_int,
-        default=d.retention_frames,
-        help="frames NAME/images keeps (default %(default)s)",
-    )
-    outbound = parser.add_argument_group("framegate -> ROS 2")
-    for flag, what in (
-        ("--image-out", "frame buffer -> sensor_msgs/msg/Image"),
-        ("--detections-out", "detections -> vision_msgs/msg/Detection2DArray"),
-        ("--verdicts-out", "mediator decisions -> std_msgs/msg/String (JSON)"),
-    ):
-        outbound.add_argument(
-            flag, nargs="+", action="extend", metavar="BUFFER=TOPIC", help=what + " (repeatable)"
-        )
-    outbound.add_argument(
-        "--frame-id", default=d.frame_id, help="header.frame_id of outputs (default %(default)s)"
-    )
-    outbound.add_argument(
-        "--out-reliability",
-        choices=["reliable", "best_effort"],
-        default="reliable",
-        help="QoS of the publishers (default reliable)",
-    )
-    outbound.add_argument(
-        "--out-depth",
-        type=non_negative_int,
-        default=d.out_depth,
-        help="KEEP_LAST depth out, 0: keep all (default %(default)s)",
-    )
-    outbound.add_argument(
-        "--out-queue",
-        type=positive_int,
-        default=d.out_queue,
-        help="notification queue of each observed framegate buffer (default %(default)s)",
-    )
-    loop = parser.add_argument_group(
-        "a ROS 2 node in the loop (its results free its slots: the mediator sees its load)"
-    )
-    loop.add_argument(
-        "--consumer-done",
-        metavar="TOPIC",
-        help="the node's result topic: any message whose first field is a std_msgs/Header "
-        "copied from the input image (type read from the ROS graph)",
-    )
-    loop.add_argument(
-        "--consumer-input",
-        metavar="BUFFER",
-        help="the --image-out buffer the node subscribes to (default: the only one)",
-    )
-    loop.add_argument(
-        "--consumer-queue",
-        type=positive_int,
-        default=d.consumer_queue,
-        help="images the node may hold without a result (default %(default)s)",
-    )
-    loop.add_argument(
-        "--consumer-timeout-ms",
-        type=positive_float,
-        default=d.consumer_timeout_ms,
-        help="an image without a result frees its slot after this long, counted "
-        "(default %(default)s)",
-    )
+    """The bridge's flags (``framegate run ros2 --help``): one per config field."""
+    add_flags(parser, Ros2Config)
 
 
 def config_from_args(args: argparse.Namespace) -> Ros2Config:
-    """The config the parsed flags describe."""
-    ns = "/" + args.ros_namespace.strip("/") if args.ros_namespace.strip("/") else "/"
+    """The config the parsed flags describe; topics and mappings in the namespace given."""
+    ns = args.ros_namespace  # already normalized by its flag
 
     def topic(value: str | None) -> str | None:
-        return fully_qualified(value, ns) if value else None
+        return fully_qualified(value, ns) if value else value  # "" (none) kept
 
     def maps(values: list[str] | None) -> tuple[Mapping, ...]:
         return tuple(Mapping.parse(v, ns) for v in values or ())
 
-    return Ros2Config(
-        name=args.name,
+    config: Ros2Config = from_args(
+        Ros2Config,
+        args,
         # A --ros-config file names its own endpoints unless --ros-connect is given too.
         ros_connect=tuple(args.ros_connect or (() if args.ros_config else (DEFAULT_ROUTER,))),
-        ros_listen=tuple(args.ros_listen or ()),
-        ros_config=Path(args.ros_config) if args.ros_config else None,
-        ros_distro=args.ros_distro,
-        domain_id=args.domain_id,
-        node_name=args.node_name,
-        ros_namespace=ns,
-        image_in=topic(args.image_in),
-        imu_in=topic(args.imu_in),
-        exposure_ms=args.exposure_ms,
-        camera_xml=Path(args.camera_xml) if args.camera_xml else None,
-        camera_info=topic(args.camera_info) if args.camera_info else args.camera_info,
-        imu_to_camera=tuple(args.imu_to_camera) if args.imu_to_camera else None,
-        stamp=args.stamp,
-        gyro_batch=args.gyro_batch,
-        gyro_wait_ms=args.gyro_wait_ms,
-        in_reliability=_reliability(args.in_reliability),
-        in_depth=args.in_depth,
-        retention_frames=args.retention_frames,
+        image_in=topic(args.image_in or None),
+        imu_in=topic(args.imu_in or None),
+        camera_info=topic(args.camera_info),
+        consumer_done=topic(args.consumer_done or None),
         image_out=maps(args.image_out),
         detections_out=maps(args.detections_out),
         verdicts_out=maps(args.verdicts_out),
-        frame_id=args.frame_id,
-        out_reliability=_reliability(args.out_reliability),
-        out_depth=args.out_depth,
-        out_queue=args.out_queue,
-        consumer_done=topic(args.consumer_done),
-        consumer_input=args.consumer_input,
-        consumer_queue=args.consumer_queue,
-        consumer_timeout_ms=args.consumer_timeout_ms,
     )
+    return config

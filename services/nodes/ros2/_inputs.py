@@ -17,7 +17,6 @@ import collections
 import logging
 import threading
 from collections.abc import Callable
-from typing import Any
 
 import numpy as np
 
@@ -29,10 +28,11 @@ from middleware import (
     Producer,
     Retention,
     SubscriptionMode,
-    make_metadata,
     now_ns,
 )
 from services.lib.camera_model import CameraModel
+from services.lib.messages import frame_metadata_of
+from services.lib.quality import Exposure
 from services.nodes.gyro import sample_elements
 
 from ._camera_info import CAMERA_INFO, TF_MESSAGE, TF_STATIC, CameraSource
@@ -100,29 +100,6 @@ class _InQueue:
             return count
 
 
-def frame_metadata(
-    frame_id: int,
-    start_ns: int,
-    exposure_ns: int,
-    encoding: str,
-    width: int,
-    height: int,
-    camera: CameraModel | None,
-) -> bytes:
-    """``frame`` metadata, field for field as the camera service writes it."""
-    fields: dict[str, Any] = {
-        "frame_id": frame_id,
-        "exposure_start_ns": start_ns,
-        "exposure_ns": exposure_ns,
-        "encoding": encoding,
-        "width_px": width,
-        "height_px": height,
-    }
-    if camera is not None:
-        fields["camera"] = camera.camera_fields()
-    return make_metadata("frame", start_ns, fields)
-
-
 def _camera(config: Ros2Config) -> CameraModel | None:
     """The ``--camera-xml`` description; ConfigError naming the file when it is unusable."""
     if config.camera_xml is None:
@@ -164,8 +141,68 @@ def _count_lost(producer: Producer, watch: SequenceWatch, skips: _Skips) -> None
         )
 
 
-class ImagesIn:
+class _Input:
+    """What both inputs share: the in-queue Zenoh's callback fills, the sequence watch, the
+    stamp gate, and the worker loop that takes each sample (``take``), finishes what is
+    pending when the input goes quiet (``idle``) and counts what the stop left queued."""
+
+    # In the log and the skip details: "image", "IMU".
+    what = ""
+    # How long the worker waits for a sample before ``idle`` and a look at ``stop``.
+    idle_s = _POLL_S
+
+    def __init__(
+        self, producer: Producer, skips: _Skips, topic: str | None, depth: int
+    ) -> None:  # fmt: skip
+        self.producer = producer
+        self._skips = skips
+        self.queue = _InQueue(
+            depth,
+            lambda: skips.count(producer, "in-queue-full", f"the {self.what} in-queue was full"),
+        )
+        self.sequence = SequenceWatch(topic or "")
+        # A stamp is remembered only once its sample can be stored (``StampGate.accept``).
+        self.gate = StampGate(producer.horizon_ns, self.what)
+        self.stored = self.dropped = 0
+
+    def on_sample(self, payload: bytes, attachment: bytes | None) -> None:
+        """Zenoh's callback: note the sequence number, enqueue."""
+        self.sequence.observe(attachment)
+        self.queue.put(payload, attachment)
+
+    def run(self, stop: threading.Event) -> None:
+        """The input's worker, until ``stop`` is set."""
+        count = 0
+        while not stop.is_set():
+            item = self.queue.get(self.idle_s)
+            _count_lost(self.producer, self.sequence, self._skips)
+            if item is None:
+                self.idle()
+                continue
+            count += 1
+            try:
+                self.take(item[0], _sequence(item[1], count))
+            except Exception as exc:  # one message must never stop the bridge
+                logging.getLogger("framegate.ros2").exception("%s: unexpected error", self.what)
+                self._skips.count(self.producer, "internal-error", repr(exc))
+        self.idle()  # what was accepted goes out (or is counted as refused)
+        if left := self.queue.clear():  # received, never put: counted as well
+            self._skips.count(
+                self.producer, "stopped", f"{left} {self.what} samples at the stop", left
+            )
+
+    def take(self, raw: bytes, sequence: int) -> None:
+        """One sample from the in-queue, with its publisher's sequence number."""
+        raise NotImplementedError
+
+    def idle(self) -> None:
+        """The input is quiet (or stopping): send what waits."""
+
+
+class ImagesIn(_Input):
     """ROS 2 images → NAME/images (see the module docstring for the rules)."""
+
+    what = "image"
 
     def __init__(
         self,
@@ -175,12 +212,13 @@ class ImagesIn:
         skips: _Skips,
         cameras: CameraSource | None = None,
     ) -> None:
-        self.producer = node.offer(
+        producer = node.offer(
             "images",
             kind="frame",
             retention=Retention(max_count=config.retention_frames, max_bytes=512 * 2**20),
         )
-        self._codec, self._config, self._skips = codec, config, skips
+        super().__init__(producer, skips, config.image_in, config.in_depth)
+        self._codec, self._config = codec, config
         self.camera = _camera(config)
         self.cameras = cameras or CameraSource(
             codec,
@@ -191,35 +229,9 @@ class ImagesIn:
             override=self.camera,
             rotation=config.imu_to_camera,
         )
-        self.queue = _InQueue(
-            config.in_depth,
-            lambda: skips.count(self.producer, "in-queue-full", "the in-queue was full"),
-        )
-        self.sequence = SequenceWatch(config.image_in or "")
-        self.gate = StampGate(self.producer.horizon_ns, "image")
-        self.stored = self.dropped = 0
 
-    def on_sample(self, payload: bytes, attachment: bytes | None) -> None:
-        """Zenoh's callback: note the sequence number, enqueue."""
-        self.sequence.observe(attachment)
-        self.queue.put(payload, attachment)
-
-    def run(self, stop: threading.Event) -> None:
-        count = 0
-        while not stop.is_set():
-            item = self.queue.get(_POLL_S)
-            _count_lost(self.producer, self.sequence, self._skips)
-            if item is not None:
-                count += 1
-                try:
-                    self.handle(item[0], _sequence(item[1], count))
-                except Exception as exc:  # one message must never stop the bridge
-                    logging.getLogger("framegate.ros2").exception("image: unexpected error")
-                    self._skips.count(self.producer, "internal-error", repr(exc))
-        if left := self.queue.clear():  # received, never put: counted as well
-            self._skips.count(
-                self.producer, "stopped", f"{left} images when the bridge stopped", left
-            )
+    def take(self, raw: bytes, sequence: int) -> None:
+        self.handle(raw, sequence)  # the frame's id is its publisher's sequence number
 
     def handle(self, raw: bytes, frame_id: int) -> None:
         """Decode, check and put one image; every failure is a counted skip."""
@@ -254,14 +266,9 @@ class ImagesIn:
         if refusal is not None:
             skip(self.producer, refusal.reason, refusal.detail)
             return
-        metadata = frame_metadata(
-            frame_id,
-            key,
-            self._config.exposure_ns,
-            image.encoding,
-            image.width,
-            image.height,
-            camera,
+        exposure = Exposure(key, self._config.exposure_ns)
+        metadata = frame_metadata_of(
+            frame_id, exposure, image.encoding, image.width, image.height, camera
         )
         try:
             # Decoding copied nothing; this is the frame's one copy, out of the message.
@@ -276,8 +283,11 @@ class ImagesIn:
         self.gate.accept(key)
 
 
-class ImuIn:
+class ImuIn(_Input):
     """ROS 2 IMU samples → one-sample ``gyro`` elements of NAME/rates, in batches."""
+
+    what = "IMU"
+    idle_s = _IMU_IDLE_S  # a partial batch goes out when the IMU is this long quiet
 
     def __init__(
         self,
@@ -287,46 +297,26 @@ class ImuIn:
         skips: _Skips,
         cameras: CameraSource | None = None,
     ) -> None:
-        self.producer = node.offer(
+        producer = node.offer(
             "rates", kind="gyro", retention=Retention(max_count=None, max_age_ns=30_000_000_000)
         )
-        self._codec, self._config, self._skips = codec, config, skips
+        # Room for several batches: samples that arrive while one batch is put are kept.
+        super().__init__(
+            producer, skips, config.imu_in, max(config.in_depth, 4 * config.gyro_batch)
+        )
+        self._codec, self._config = codec, config
         self._cameras = cameras  # told the IMU's frame, for the rotation to the camera
         self._frame = ""
-        self.queue = _InQueue(
-            max(config.in_depth, 4 * config.gyro_batch),
-            lambda: skips.count(self.producer, "in-queue-full", "the IMU in-queue was full"),
-        )
-        self.sequence = SequenceWatch(config.imu_in or "")
-        # A sample is accepted into the batch only within the producer's horizon, which the
-        # batch's put checks again: so a stamp is remembered only once it can be stored.
-        self.gate = StampGate(self.producer.horizon_ns, "IMU")
         self._pending: list[tuple[int, tuple[float, float, float]]] = []
         self._period_ns = 0
-        self.stored = self.dropped = 0
 
-    def on_sample(self, payload: bytes, attachment: bytes | None) -> None:
-        """Zenoh's callback: note the sequence number, enqueue."""
-        self.sequence.observe(attachment)
-        self.queue.put(payload, attachment)
+    def take(self, raw: bytes, sequence: int) -> None:
+        self.add(raw)
+        if len(self._pending) >= self._config.gyro_batch:
+            self.flush()
 
-    def run(self, stop: threading.Event) -> None:
-        while not stop.is_set():
-            item = self.queue.get(_IMU_IDLE_S)
-            _count_lost(self.producer, self.sequence, self._skips)
-            if item is None:
-                self.flush()
-                continue
-            try:
-                self.add(item[0])
-                if len(self._pending) >= self._config.gyro_batch:
-                    self.flush()
-            except Exception as exc:  # one message must never stop the bridge
-                logging.getLogger("framegate.ros2").exception("IMU: unexpected error")
-                self._skips.count(self.producer, "internal-error", repr(exc))
-        self.flush()  # what was accepted goes out (or is counted as refused)
-        if left := self.queue.clear():
-            self._skips.count(self.producer, "stopped", f"{left} IMU samples at the stop", left)
+    def idle(self) -> None:
+        self.flush()
 
     def add(self, raw: bytes) -> None:
         try:

@@ -90,7 +90,7 @@ def test_record_then_play_gives_back_identical_buffers(
         for buffer, expected in originals.items():
             replayed = client.query(f"cam/{buffer}", time_range=f"[{base}..]")
             assert [(e.timestamp_ns, e.payload, e.metadata) for e in replayed] == expected
-        assert client.buffer_info("cam/images").retention == retention
+        assert client.buffer_info("cam/images", timeout_s=scaled(10.0)).retention == retention
     player.send_signal(signal.SIGTERM)  # Ctrl-C equivalent: closes cleanly
     assert player.wait(timeout=scaled(20)) == 0
 

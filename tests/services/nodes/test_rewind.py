@@ -10,6 +10,7 @@ import pytest
 
 from middleware import DataObject, FramegateError, NetworkConfig, Node
 from tests.conftest import free_port, wait_until
+from tests.helpers.timing import scaled
 from tests.services.nodes.test_time_faults import CAMERA, _start, _stop
 
 pytestmark = pytest.mark.integration
@@ -95,7 +96,7 @@ def test_a_rogue_single_put_removes_no_frame_and_no_detection(stamp: str, reason
                 "detections of the real camera's frames again",
             )
             for target, before in kept.items():
-                info = node.buffer_info(target)
+                info = node.buffer_info(target, timeout_s=scaled(10.0))
                 assert "rewound" not in info.skipped and info.rewinds == (), info
                 after = _elements(node, target)
                 oldest = min(after)

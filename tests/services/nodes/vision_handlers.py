@@ -19,9 +19,10 @@ def brightest(image: npt.NDArray[np.uint8], frame: FrameMeta) -> list[Box]:
 
 
 def slow(image: npt.NDArray[np.uint8], frame: FrameMeta) -> list[Box]:
-    """As ``brightest``, but busy for 1 s per frame: 15 frame periods at 15 fps, and slower
-    than the camera even on a machine so loaded that it renders only a few frames a second."""
-    time.sleep(1.0)
+    """As ``brightest``, but busy for 2.5 s per frame: slower than the camera even on a
+    machine so loaded that it makes one frame a second (seen at load 40 on 2 cores, where a
+    1 s handler kept up with it and was rightly sent every frame)."""
+    time.sleep(2.5)
     return brightest(image, frame)
 
 

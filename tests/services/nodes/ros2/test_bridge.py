@@ -264,18 +264,23 @@ def test_skips_show_in_the_buffers_skipped_counter(node: Node, codec: Codec) -> 
 
 def test_out_images_keep_pixels_and_refuse_inconsistent_elements(codec: Codec) -> None:
     from middleware import DataObject, make_metadata
-    from services.nodes.ros2._bridge import Encoders, frame_metadata
+    from services.lib.messages import frame_metadata_of
+    from services.lib.quality import Exposure
+    from services.nodes.ros2._bridge import Encoders
 
     encoders = Encoders(codec, Ros2Config(image_out=(), frame_id="cam"))
     now = time.time_ns()
     pixels = bytes(range(W * H))
-    good = DataObject(now, pixels, frame_metadata(1, now, 5, "mono8", W, H, None))
+    good = DataObject(now, pixels, frame_metadata_of(1, Exposure(now, 5), "mono8", W, H, None))
     message = codec.decode(encoders.image(good), "sensor_msgs/msg/Image")
     assert message.data.tobytes() == pixels
     assert (message.header.stamp.sec, message.header.stamp.nanosec) == divmod(now, 10**9)
     for bad, match in (
         (DataObject(now, pixels[:-1], good.metadata), "payload of"),
-        (DataObject(now, pixels, frame_metadata(1, now, 5, "yuv422", W, H, None)), "encoding"),
+        (
+            DataObject(now, pixels, frame_metadata_of(1, Exposure(now, 5), "yuv422", W, H, None)),
+            "encoding",
+        ),
         (DataObject(now, b"", make_metadata("generic", now, {})), "kind"),
     ):
         with pytest.raises(ValueError, match=match):

@@ -10,7 +10,9 @@ import numpy as np
 import pytest
 
 from middleware import ConfigError, DataObject
-from services.nodes.ros2._bridge import Encoders, frame_metadata
+from services.lib.messages import frame_metadata_of
+from services.lib.quality import Exposure
+from services.nodes.ros2._bridge import Encoders
 from services.nodes.ros2._cdr import DETECTIONS, IMAGE, STRING, CdrError, Codec
 from services.nodes.ros2._config import Ros2Config
 
@@ -104,7 +106,9 @@ def test_encoding_a_full_frame_allocates_the_frame_once() -> None:
     width, height = 1280, 1024
     now = time.time_ns()
     element = DataObject(
-        now, bytes(width * height), frame_metadata(1, now, 5, "mono8", width, height, None)
+        now,
+        bytes(width * height),
+        frame_metadata_of(1, Exposure(now, 5), "mono8", width, height, None),
     )
     encode = Encoders(Codec("jazzy"), Ros2Config()).image
     encode(element)  # warm up rosbags' generated serializers

@@ -107,3 +107,9 @@ def test_run_help_shows_every_default_a_flag_has() -> None:
     text = parser.format_help()
     for default in ("default jazzy", "default framegate_bridge", "default 10.0", "default 5"):
         assert default in " ".join(text.split()), default
+
+
+def test_a_deploy_list_of_routers_is_taken_whole() -> None:
+    # `ros_connect: [tcp/a:7447, tcp/b:7447]` in a deploy file is one flag with two values.
+    config = _config("--ros-connect", "tcp/a:7447", "tcp/b:7447", "--ros-connect", "tcp/c:7447")
+    assert config.ros_connect == ("tcp/a:7447", "tcp/b:7447", "tcp/c:7447")

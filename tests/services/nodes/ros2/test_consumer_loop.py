@@ -28,8 +28,8 @@ from middleware import (
     Producer,
     SubscriptionMode,
 )
-from services.lib.messages import DecisionRecord
-from services.nodes.ros2._bridge import frame_metadata
+from services.lib.messages import DecisionRecord, frame_metadata_of
+from services.lib.quality import Exposure
 from tests.conftest import REPO, child_env, free_port, wait_until
 from tests.helpers.timing import scaled
 
@@ -141,7 +141,9 @@ def _gate(images: Producer) -> Any:
 
 def _put(images: Producer, stamp_ns: int) -> None:
     pixels = (np.arange(W * H) % 251).astype(np.uint8).tobytes()
-    images.put(stamp_ns, pixels, frame_metadata(1, stamp_ns, 1_000_000, "mono8", W, H, None))
+    images.put(
+        stamp_ns, pixels, frame_metadata_of(1, Exposure(stamp_ns, 1_000_000), "mono8", W, H, None)
+    )
 
 
 def _ready(images: Producer, bridge: Proc, vision: VisionNode) -> None:
@@ -202,7 +204,7 @@ def test_the_load_follows_the_nodes_outstanding_images_and_its_type_is_learnt(
             results = wait_until(lambda: node.query("ros2/results") or None, 30, "results")
             assert [r.timestamp_ns for r in results][:2] == [now, now + 1_000_000]
             assert b"<answer_ns>" in results[0].metadata
-            info = node.buffer_info("ros2/results")
+            info = node.buffer_info("ros2/results", timeout_s=scaled(10.0))
             assert not info.skipped, info.skipped
         finally:
             vision.close()
@@ -228,7 +230,7 @@ def test_a_node_that_never_answers_frees_its_slots_after_the_timeout_counted(
                 _put(images, now + 2_000_000)
             wait_until(lambda: vision.outstanding == 2, 30, "both images at the node")
             wait_until(lambda: _gate(images).queued == 0, 60, "the slots freed\n" + bridge.log())
-            info = node.buffer_info("ros2/results")
+            info = node.buffer_info("ros2/results", timeout_s=scaled(10.0))
             assert info.skipped == {"consumer-timeout": 2}
             assert info.puts == 0
             assert vision.answered == []
