@@ -30,14 +30,17 @@ def _batching(producer: Producer, log: list[tuple[int, int]]) -> Iterator[None]:
 
     def loop() -> None:
         t = time.time_ns()
-        while not stop.is_set():
+        # On a schedule, not a sleep after each put: the rate stays steady when the
+        # machine is loaded (late puts catch up), so any stretch of the run has about it.
+        due = time.monotonic()
+        while not stop.wait(max(0.0, due - time.monotonic())):
+            due += PERIOD_S
             batch = [
                 (t + i * 1000, b"r", make_metadata("generic", t + i * 1000)) for i in range(BATCH)
             ]
             producer.put_many(batch)
             log.append((time.monotonic_ns(), BATCH))
             t += BATCH * 1000
-            stop.wait(PERIOD_S)
 
     thread = threading.Thread(target=loop, daemon=True)
     thread.start()
