@@ -17,7 +17,7 @@ from services.lib.sim import Dataset
 from ._config import MARKER_NAMES, PAPER_TABLE1, ExperimentConfig, RunKind
 from ._datasets import cached_dataset, scenario_for
 from ._frames import FrameOutcome, frame_outcomes
-from ._latency import recorded_latencies
+from ._latency import decision_latencies
 from ._metrics import blur_pairs, recognized_frames
 from ._pipeline import RunSettings, run_configuration
 from ._plots import plot_gyro_exposures, plot_quality_vs_blur, plot_timeline
@@ -104,22 +104,34 @@ def seed_oracle(
 def seed_replay(
     dataset: Dataset, records: dict[RunKind, RunRecord], config: ExperimentConfig
 ) -> dict[str, dict[str, Any]]:
-    """The discrete-event replay of each mediator run on the same frames, fed the decision
-    latencies the filtered (``paper``) run recorded, beside the real run's counts: how far
-    the replay the sweep relies on is from the real pipeline (``real − replay`` per marker)."""
-    filtered = records.get(RunKind.FILTERED)
-    latencies = recorded_latencies(filtered.decisions) if filtered is not None else None
+    """The discrete-event replay of each mediator run on the same frames, beside the real
+    run's counts: how far the replay the sweep relies on is from the real pipeline
+    (``real − replay`` per marker), i.e. what the mediator's realization loses.
+
+    Each run is replayed with what its own mediator was given, so that what the machine did
+    to the pipeline around it is not counted against the policy: the frames it decided
+    (not those the camera skipped late or refused, counted as ``not_decided``), each at its
+    own decision latency and with the quality it computed (None where the gyro did not
+    cover the frame in time: the gyro-missing rule decides, as it did), and the detector's
+    service time as the detector took it (the median of its processing times, never below
+    the emulated one)."""
     frames = frame_outcomes(dataset, config.b0_px)
-    model = QueueModel(
-        queue=config.queue, service_ns=round(config.service_factor * period_ns(frames))
-    )
+    nominal_ns = round(config.service_factor * period_ns(frames))
     assert dataset.truth is not None
     out: dict[str, dict[str, Any]] = {}
     for kind, record in records.items():
         if kind.policy is None:
             continue
+        latencies = decision_latencies(record.first_decisions)
+        quality = {d.frame_id: d.quality for d in record.first_decisions}
+        seen = tuple(
+            replace(f, quality=quality[f.frame_id]) for f in frames if f.frame_id in latencies
+        )
+        taken = sorted(d.processing_ns for d in record.detections)
+        service_ns = max(nominal_ns, taken[len(taken) // 2] if taken else 0)
+        model = QueueModel(queue=config.queue, service_ns=service_ns)
         replayed = marker_counts(
-            frames, replay_policy(frames, model, make_policy(kind.policy), latencies)
+            seen, replay_policy(seen, model, make_policy(kind.policy), latencies)
         )
         real = {
             n: len(ids) for n, ids in recognized_frames(record.detections, dataset.truth).items()
@@ -129,6 +141,8 @@ def seed_replay(
             "replay": replayed,
             "real": real,
             "real_minus_replay": {n: real[n] - replayed[n] for n in MARKER_NAMES},
+            "not_decided": len(frames) - len(seen),
+            "service_ms": round(service_ns / 1e6, 1),
         }
     return out
 
@@ -141,6 +155,8 @@ def aggregate_replay(seeds: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
     for run in runs:
         rows = [seed["replay"][run] for seed in seeds if run in seed.get("replay", {})]
         out[run] = {"policy": rows[0]["policy"]}
+        for key in ("not_decided", "service_ms"):  # what the replay was given, per seed
+            out[run][key] = [row.get(key) for row in rows]
         for name in MARKER_NAMES:
             entry: dict[str, Any] = {}
             for key in ("real", "replay", "real_minus_replay"):
@@ -200,6 +216,7 @@ def _write_run(path: Path, record: RunRecord, recognized: dict[str, list[int]]) 
         "recognized": recognized,
         "detections": [asdict(d) for d in record.detections],
         "decisions": [asdict(d) for d in record.decisions],
+        "first_decisions": [asdict(d) for d in record.first_decisions],
     }
     path.write_text(json.dumps(json_safe(data)) + "\n", encoding="utf-8")
 

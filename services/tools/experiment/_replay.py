@@ -156,7 +156,10 @@ def replay_policy(
         run_until(now)  # held frames go out while this one waits for its gyro samples
         decided = last[0] = now
         detector.advance(now)
-        candidate = Candidate(frame.arrival_ns, frame.frame_id, frame.quality, now, frame.blur_px)
+        # As the mediator's: hold times count from the frame's arrival, not its decision.
+        candidate = Candidate(
+            frame.arrival_ns, frame.frame_id, frame.quality, frame.arrival_ns, frame.blur_px
+        )
         carry_out(decider.frame(candidate, load(), now), now)
     end = max(frames[-1].arrival_ns, decided) if frames else 0
     run_until(end + 2 * model.max_hold_ns)
