@@ -6,7 +6,7 @@ from __future__ import annotations
 import threading
 import time
 
-from middleware import Node, ServiceInfo
+from middleware import NetworkConfig, Node, ServiceInfo
 
 
 def _ask_from_a_handler(client: Node, service: str) -> tuple[ServiceInfo | None, str, bool]:
@@ -31,7 +31,7 @@ def _ask_from_a_handler(client: Node, service: str) -> tuple[ServiceInfo | None,
 
 
 def test_the_description_comes_later_on_the_executor_with_a_clock_sample(
-    listen_net, connect_net
+    listen_net: NetworkConfig, connect_net: NetworkConfig
 ) -> None:
     with Node("cam", listen_net) as service, Node(network=connect_net) as client:
         service.offer("images")
@@ -42,7 +42,7 @@ def test_the_description_comes_later_on_the_executor_with_a_clock_sample(
         assert info.clock_offset_ns is not None and info.round_trip_ns is not None
 
 
-def test_a_service_that_is_not_there_is_answered_with_none(listen_net) -> None:
+def test_a_service_that_is_not_there_is_answered_with_none(listen_net: NetworkConfig) -> None:
     with Node("client", listen_net) as client:
         info, thread, after_return = _ask_from_a_handler(client, "nobody")
         assert info is None and after_return and thread == "fg-exec-client"
