@@ -5,8 +5,9 @@ from __future__ import annotations
 import json
 import math
 import os
+import statistics
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
@@ -21,7 +22,7 @@ from ._latency import decision_latencies
 from ._metrics import blur_pairs, recognized_frames
 from ._pipeline import RunSettings, run_configuration
 from ._plots import plot_gyro_exposures, plot_quality_vs_blur, plot_timeline
-from ._records import RunRecord
+from ._records import FrameDetections, RunRecord
 from ._replay import QueueModel, replay_policy
 from ._stats import captured_fraction, correlations, improvement_pct, json_safe, mean_ci95
 from ._sweep import marker_counts, oracle_counts, period_ns
@@ -116,6 +117,11 @@ def seed_replay(
     processing times as it took them (``service_ms``: their mean)."""
     frames = frame_outcomes(dataset, config.b0_px)
     nominal_ns = round(config.service_factor * period_ns(frames))
+    arrival = {f.frame_id: f.arrival_ns for f in frames}
+    uncontrolled = records.get(RunKind.UNCONTROLLED)
+    overhead_ns = detector_overhead_ns(
+        uncontrolled.detections if uncontrolled is not None else (), arrival
+    )
     assert dataset.truth is not None
     out: dict[str, dict[str, Any]] = {}
     for kind, record in records.items():
@@ -127,17 +133,17 @@ def seed_replay(
             replace(f, quality=quality[f.frame_id]) for f in frames if f.frame_id in latencies
         )
         # The detector as it ran: each real frame's processing time from its arrival on
-        # (on a loaded machine it varies, 105-150 ms against 107 ms emulated, measured).
-        arrival = {f.frame_id: f.arrival_ns for f in frames}
+        # (on a loaded machine it varies, 105-150 ms against 107 ms emulated, measured),
+        # plus what each frame costs it besides (taking, fetching, putting the result).
         steps = tuple(
             sorted(
-                (arrival[d.frame_id], max(nominal_ns, d.processing_ns))
+                (arrival[d.frame_id], max(nominal_ns, d.processing_ns) + overhead_ns)
                 for d in record.detections
                 if d.frame_id in arrival
             )
         )
         model = QueueModel(queue=config.queue, service_ns=nominal_ns, service_steps=steps)
-        taken = [s for _t, s in steps]
+        taken = [s - overhead_ns for _t, s in steps]
         service_ns = sum(taken) // len(taken) if taken else nominal_ns
         replayed = marker_counts(
             seen, replay_policy(seen, model, make_policy(kind.policy), latencies)
@@ -152,8 +158,25 @@ def seed_replay(
             "real_minus_replay": {n: real[n] - replayed[n] for n in MARKER_NAMES},
             "not_decided": len(frames) - len(seen),
             "service_ms": round(service_ns / 1e6, 1),
+            "overhead_ms": round(overhead_ns / 1e6, 1),
         }
     return out
+
+
+def detector_overhead_ns(uncontrolled: Sequence[FrameDetections], arrival: dict[int, int]) -> int:
+    """What a frame costs the detector besides its processing time (taking it, fetching,
+    putting the result: 3-6 ms a frame on a loaded 2-core machine, measured), from the
+    seed's uncontrolled run, where the camera keeps its queue full so the detector never
+    idles: the time between the first and the last frame it took, per frame, less the
+    mean processing time (``uncontrolled``: that run's detections; ``arrival``: frame id ->
+    its arrival). 0 without that run."""
+    known = [d for d in uncontrolled if d.frame_id in arrival]
+    if len(known) < 2:
+        return 0
+    taken = [arrival[d.frame_id] for d in known]
+    cycle = (max(taken) - min(taken)) / (len(taken) - 1)
+    processing = statistics.fmean(d.processing_ns for d in known)
+    return max(0, round(cycle - processing))
 
 
 def aggregate_replay(seeds: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
@@ -164,7 +187,8 @@ def aggregate_replay(seeds: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
     for run in runs:
         rows = [seed["replay"][run] for seed in seeds if run in seed.get("replay", {})]
         out[run] = {"policy": rows[0]["policy"]}
-        for key in ("not_decided", "service_ms"):  # what the replay was given, per seed
+        # What the replay was given, per seed.
+        for key in ("not_decided", "service_ms", "overhead_ms"):
             out[run][key] = [row.get(key) for row in rows]
         for name in MARKER_NAMES:
             entry: dict[str, Any] = {}

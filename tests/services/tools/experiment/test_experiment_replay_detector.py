@@ -5,7 +5,9 @@ from __future__ import annotations
 import pytest
 
 from services.tools.experiment._config import ExperimentError
+from services.tools.experiment._experiment import detector_overhead_ns
 from services.tools.experiment._frames import FrameOutcome
+from services.tools.experiment._records import FrameDetections
 from services.tools.experiment._replay import QueueModel, replay_uncontrolled
 
 MS = 1_000_000
@@ -30,3 +32,15 @@ def test_a_detector_that_slowed_down_processes_fewer_frames() -> None:
 def test_a_step_without_a_positive_time_is_refused() -> None:
     with pytest.raises(ExperimentError, match="positive"):
         QueueModel(queue=2, service_ns=80 * MS, service_steps=((0, 0),))
+
+
+def test_the_detector_overhead_is_its_cycle_less_its_processing_when_never_idle() -> None:
+    # Takes 120 ms apart (the camera keeps the queue full), 110 ms processing each: 10 ms
+    # a frame go to taking, fetching and putting.
+    arrival = {i: i * 120 * MS for i in range(50)}
+    detections = [FrameDetections(i, 110 * MS, ()) for i in range(50)]
+    assert detector_overhead_ns(detections, arrival) == 10 * MS
+    assert detector_overhead_ns([], arrival) == 0
+    # Processing longer than the cycle cannot make a negative overhead.
+    slow = [FrameDetections(i, 130 * MS, ()) for i in range(50)]
+    assert detector_overhead_ns(slow, arrival) == 0
