@@ -156,7 +156,9 @@ class AdaptivePolicy:
         next_arrival = max(
             view.now_ns, (view.now_ns if arrival else last) + period + self.margin_ns()
         )
-        if next_arrival <= needs_at + p.slack_ns:
+        # It must leave the hand-over time before the detector needs it (0 in a replay).
+        handover = view.detector.handover_ns or 0
+        if next_arrival <= needs_at - handover + p.slack_ns:
             return None  # another frame comes before the detector needs one
         if self._reaches(best, p.idle_quantile, view):
             return self._forward(best, view, "deadline" if busy else "idle")
@@ -204,9 +206,11 @@ class AdaptivePolicy:
         needs_at = self._needs_at_ns(view, service)
         period = self._period_ns or service
         last = self._last_decision_ns if self._last_decision_ns is not None else view.now_ns
+        handover = view.detector.handover_ns or 0
         times = [
             needs_at,
-            needs_at + self.params.slack_ns,
+            needs_at - handover,
+            needs_at - handover + self.params.slack_ns,
             last + period + self.margin_ns(),
             needs_at + int(self.params.idle_wait * period),
         ]
