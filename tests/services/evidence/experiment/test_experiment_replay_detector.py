@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import pytest
 
-from services.tools.experiment._config import ExperimentError
-from services.tools.experiment._experiment import detector_overhead_ns
-from services.tools.experiment._frames import FrameOutcome
-from services.tools.experiment._records import FrameDetections
-from services.tools.experiment._replay import QueueModel, replay_uncontrolled
+from services.evidence.experiment._config import ExperimentError
+from services.evidence.experiment._experiment import detector_overhead_ns
+from services.evidence.experiment._frames import FrameOutcome
+from services.evidence.experiment._records import FrameDetections
+from services.evidence.experiment._replay import QueueModel, replay_uncontrolled
 
 MS = 1_000_000
 
