@@ -5,13 +5,15 @@
 from __future__ import annotations
 
 import collections
+import functools
 import itertools
 import threading
 import time
+from collections.abc import Callable
 
 import numpy as np
 
-from middleware import FramegateError, Node, Notification, Subscription
+from middleware import FramegateError, Node, Notification, ServiceInfo, Subscription
 from services.lib.quality import GyroSamples
 from services.lib.rewind import SourceClock
 
@@ -127,8 +129,9 @@ class GyroCache:
 OFFSET_PERIOD_S = 2.0
 _OFFSET_SAMPLES = 5
 # How long one service may take to describe itself (a loaded machine: 100-250 ms measured).
-# It is asked on the mediator's executor, and only while its data keeps coming (see
-# ``measure``), so a stopped camera or gyro, which never answers, holds nothing up.
+# ``measure`` does not wait for it (the answers come on the executor later), and asks only
+# while a source's data keeps coming or its back-off has passed (``due``), so a stopped
+# camera or gyro is not asked in vain every period.
 _ASK_TIMEOUT_S = 1.0
 # A service that did not answer is asked again after 1, 2, 4 ... periods, at most this many.
 _RETRY_MAX_PERIODS = 16
@@ -150,8 +153,12 @@ class ClockOffsets:
     Each source's own latest clock sample is kept too (``clock``): what a rewind of the
     mediator's output is judged by (``services.lib.rewind``).
 
-    Threads: ``measure`` may run on another thread than the readers (the tests'); ``_lock``
-    guards the samples.
+    ``measure`` never waits for the answers (on the mediator's executor a round trip would
+    hold up every frame, gyro batch and hold for 100-250 ms on a loaded machine, every
+    period): they arrive on the node's executor, and ``then`` runs once both are in.
+
+    Threads: the answers arrive on the node's executor, the readers may be another thread
+    (the tests'); ``_lock`` guards the samples.
     """
 
     def __init__(self, node: Node, camera: str, gyro: str) -> None:
@@ -166,6 +173,9 @@ class ClockOffsets:
         self._sources: dict[str, SourceClock] = {}
         self._lock = threading.Lock()
         self.asked = threading.Event()  # set: measure again at once (a source started over)
+        # Counts ``forget``: an answer to a question asked before belongs to clocks that
+        # may be gone, and is not added.
+        self._generation = 0
         # Per service that did not answer its last ask: (failures in a row, when to ask
         # again regardless of data, monotonic ns). Absent: it answered.
         self._unanswered: dict[str, tuple[int, int]] = {}
@@ -178,33 +188,79 @@ class ClockOffsets:
         missed = self._unanswered.get(service)
         return missed is None or now_ns >= missed[1]
 
+    def _answered(self, service: str, answered: bool) -> None:
+        """Keep the back-off of ``due``: cleared by an answer, doubled by a miss."""
+        if answered:
+            self._unanswered.pop(service, None)
+            return
+        failures = self._unanswered.get(service, (0, 0))[0] + 1
+        periods = min(2 ** (failures - 1), _RETRY_MAX_PERIODS)
+        self._unanswered[service] = (
+            failures,
+            time.monotonic_ns() + int(periods * OFFSET_PERIOD_S * 1e9),
+        )
+
     def ask(self, service: str) -> SourceClock | None:
         try:
             info = self._node.service_info(service, timeout_s=_ASK_TIMEOUT_S)
         except FramegateError:
-            failures = self._unanswered.get(service, (0, 0))[0] + 1
-            periods = min(2 ** (failures - 1), _RETRY_MAX_PERIODS)
-            self._unanswered[service] = (
-                failures,
-                time.monotonic_ns() + int(periods * OFFSET_PERIOD_S * 1e9),
-            )
+            self._answered(service, False)
             return None
-        self._unanswered.pop(service, None)
+        self._answered(service, True)
         clock = SourceClock.of(info)
         if clock is not None:
             with self._lock:
                 self._sources[service] = clock
         return clock
 
-    def measure(self, *, camera_alive: bool = True, gyro_alive: bool = True) -> None:
-        """Ask camera and gyro for their clocks once; a service that does not answer, or
-        whose data stopped coming (``*_alive`` False: it may be stopped and would not
-        answer either), leaves the samples as they are."""
+    def measure(
+        self,
+        *,
+        camera_alive: bool = True,
+        gyro_alive: bool = True,
+        then: Callable[[], object] | None = None,
+    ) -> None:
+        """Ask camera and gyro for their clocks once, without waiting: when both have
+        answered, on the node's executor, the sample is added and ``then()`` runs. A
+        service that does not answer, or whose data stopped coming (``*_alive`` False: it
+        may be stopped and would not answer either), leaves the samples as they are."""
         self.asked.clear()
-        camera = self.ask(self._camera) if camera_alive else None
-        gyro = self.ask(self._gyro) if gyro_alive else None
-        if camera is not None and gyro is not None:
-            self.add(camera, gyro)
+        wanted = [
+            service
+            for service, alive in ((self._camera, camera_alive), (self._gyro, gyro_alive))
+            if alive
+        ]
+        if not wanted:
+            if then is not None:
+                then()
+            return
+        answers: dict[str, SourceClock | None] = {}
+        generation = self._generation
+
+        def answered(service: str, info: ServiceInfo | None) -> None:
+            self._answered(service, info is not None)
+            clock = SourceClock.of(info) if info is not None else None
+            answers[service] = clock
+            if len(answers) < len(wanted):
+                return
+            camera, gyro = answers.get(self._camera), answers.get(self._gyro)
+            with self._lock:
+                current = generation == self._generation
+                for name, sample in ((self._camera, camera), (self._gyro, gyro)):
+                    if current and sample is not None:
+                        self._sources[name] = sample
+            if current and camera is not None and gyro is not None:
+                self.add(camera, gyro)
+            if then is not None:
+                then()
+
+        for service in wanted:
+            try:
+                self._node.ask_service_info(
+                    service, functools.partial(answered, service), timeout_s=_ASK_TIMEOUT_S
+                )
+            except FramegateError:
+                answered(service, None)
 
     def add(self, camera: SourceClock, gyro: SourceClock) -> None:
         """One sample of both clocks (``measure``'s, or a test's)."""
@@ -227,6 +283,7 @@ class ClockOffsets:
         with self._lock:
             self._samples.clear()
             self._clocks = None
+            self._generation += 1
 
     def current(self) -> tuple[int, int] | None:
         """(camera - gyro offset, its uncertainty) in ns, or None while unknown: the recent

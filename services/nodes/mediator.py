@@ -65,13 +65,13 @@ Threads: none of its own. The handlers (``on_camera``, ``on_gyro``, ``on_time``,
 measurements) run on the node's executor (``attach``): camera and gyro notifications as
 they come, the detector's takes (``Producer.on_change``), one deadline at a time for what is
 due next (a frame's gyro wait ends, a policy's hold: ``Decider.next_due_ns``), the clocks
-every 2 s. Tests may drive the same handlers with ``step`` on their own thread instead.
+every 2 s (asked without waiting: the answers run as handlers when they come). Tests may
+drive the same handlers with ``step`` on their own thread instead.
 Zenoh's threads only feed the middleware's inboxes.
 """
 
 from __future__ import annotations
 
-import contextlib
 import threading
 import time
 from typing import Protocol
@@ -395,12 +395,15 @@ class Mediator:
             for new, old, name in zip(seen, self._seen, names, strict=True)
         ]
         self._seen = seen
-        with contextlib.suppress(FramegateError):
-            self._offsets.measure(camera_alive=alive[0], gyro_alive=alive[1])
-        if self.pairing.waiting:  # frames may have waited for this measurement
-            self.on_time(now)
-            if self._attached:
-                self._schedule()
+        # The answers come later, on the executor: a round trip here would hold up every
+        # frame and every hold for that long (100-250 ms under load, every period).
+        self._offsets.measure(camera_alive=alive[0], gyro_alive=alive[1], then=self._measured)
+
+    def _measured(self) -> None:
+        """(the executor) A clock measurement is in: frames may have waited for it."""
+        if self._attached and self.pairing.waiting:
+            self.on_time(time.monotonic_ns())
+            self._schedule()
 
     def _schedule(self) -> None:
         """Keep one deadline on the executor, at ``next_deadline_ns``."""

@@ -6,8 +6,9 @@ experiment ran on (gyro batches, transport, CPU shared with the other services).
 that decides every frame the moment it arrives hides what that wait costs a policy that
 holds frames (while it waits, no held frame goes out). So the replay takes latencies:
 
-- recorded: a real run's decision records (frame id -> ``latency_ns``) of a policy that
-  never holds a frame (``paper``), whose records are written at the decision itself;
+- recorded: a real run's decision records (frame id -> ``latency_ns``): the first record of
+  each frame (``decision_latencies``; a held frame's first record is its hold), or the final
+  records of a policy that never holds a frame (``recorded_latencies``);
 - measured: drawn independently per frame from ``MEASURED_LATENCY_MS``, the 20-quantiles
   of those records (``paper`` runs, seeds 1-2, N = 2, factor 1.6), seeded, so a sweep is
   repeatable and every seed and policy sees its own fixed draw.
@@ -59,3 +60,10 @@ def recorded_latencies(decisions: Iterable[DecisionRecord]) -> dict[int, int]:
         for d in decisions
         if d.reason in _NO_HOLD_REASONS and d.latency_ns > 0
     }
+
+
+def decision_latencies(first_decisions: Iterable[DecisionRecord]) -> dict[int, int]:
+    """Frame id -> decision latency from each frame's first record, written when the mediator
+    first decided it (whatever the policy). Frames it skipped undecided (latency 0: bad
+    metadata, lapsed) are left out."""
+    return {d.frame_id: d.latency_ns for d in first_decisions if d.latency_ns > 0}

@@ -155,13 +155,24 @@ def _count(buffers: dict[str, BufferInfo], name: str, what: str = "puts") -> int
     return int(getattr(info, what)) if info is not None else 0
 
 
-def _final_decisions(node: Node) -> list[DecisionRecord]:
-    """The latest decision per frame (a held frame is decided again when it leaves)."""
+def _decisions(node: Node) -> tuple[list[DecisionRecord], list[DecisionRecord]]:
+    """The first and the latest decision per frame (a held frame is decided again when it
+    leaves; its first record was written when the mediator first decided it)."""
+    first: dict[int, DecisionRecord] = {}
     final: dict[int, DecisionRecord] = {}
     for element in node.query("mediator/decisions", timeout_s=10.0):
         record = DecisionRecord.from_metadata(element.metadata)
+        first.setdefault(record.frame_timestamp_ns, record)
         final[record.frame_timestamp_ns] = record
-    return sorted(final.values(), key=lambda r: r.frame_timestamp_ns)
+    return (
+        sorted(first.values(), key=lambda r: r.frame_timestamp_ns),
+        sorted(final.values(), key=lambda r: r.frame_timestamp_ns),
+    )
+
+
+def _final_decisions(node: Node) -> list[DecisionRecord]:
+    """The latest decision per frame."""
+    return _decisions(node)[1]
 
 
 def run_configuration(
@@ -349,7 +360,7 @@ def _collect(
         FrameDetections.from_metadata(e.metadata)
         for e in node.query("detector/detections", timeout_s=10.0)
     ]
-    decisions = _final_decisions(node) if kind.policy is not None else []
+    first, decisions = _decisions(node) if kind.policy is not None else ([], [])
     watch.check_alive()
     stored = _count(buffers, "camera/images")
     dropped = _count(buffers, "camera/images", "refused")
@@ -363,6 +374,7 @@ def _collect(
         forwarded=_count(buffers, "mediator/images") if kind.policy is not None else None,
         detections=tuple(sorted(detections, key=lambda d: d.frame_id)),
         decisions=tuple(decisions),
+        first_decisions=tuple(first),
         gyro_batches=_count(buffers, "gyro/rates"),
         gyro_dropped=_count(buffers, "gyro/rates", "refused"),
         wall_s=0.0,

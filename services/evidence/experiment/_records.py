@@ -48,12 +48,13 @@ class RunRecord:
     ``stored``/``dropped`` are camera/images puts and flow-control refusals; ``skipped_late``
     frames the camera neither stored nor refused (it fell a frame period behind, e.g. under
     CPU load). ``forwarded`` is mediator/images puts (None without a mediator).
-    ``decisions`` holds the final decision per frame. ``attempts`` and ``startup_s``: how
-    many starts it took and the start-up time that worked; ``drained`` False when the
-    detector stopped making progress before it had processed all it was given (collected
-    anyway). ``cpu_s`` is CPU time per service
-    process; ``load_avg`` the 1-minute load average before and after the run;
-    ``cpu_busy_pct`` the machine's CPU use over the run.
+    ``decisions`` holds the final decision per frame, ``first_decisions`` the first (written
+    when the mediator first decided the frame: its decision latency). ``attempts`` and
+    ``startup_s``: how many starts it took and the start-up time that worked; ``drained``
+    False when the detector stopped making progress before it had processed all it was
+    given (collected anyway). ``cpu_s`` is CPU time per service process; ``load_avg`` the
+    1-minute load average before and after the run; ``cpu_busy_pct`` the machine's CPU use
+    over the run.
     """
 
     kind: RunKind
@@ -65,6 +66,7 @@ class RunRecord:
     forwarded: int | None
     detections: tuple[FrameDetections, ...]
     decisions: tuple[DecisionRecord, ...]
+    first_decisions: tuple[DecisionRecord, ...]
     gyro_batches: int
     gyro_dropped: int
     wall_s: float

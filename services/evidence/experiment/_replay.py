@@ -15,6 +15,7 @@ sweeps over queues, service times and policies are cheap.
 
 from __future__ import annotations
 
+import bisect
 import statistics
 from collections import deque
 from collections.abc import Mapping, Sequence
@@ -37,18 +38,29 @@ from ._frames import FrameOutcome
 
 @dataclass(frozen=True, slots=True)
 class QueueModel:
-    """The detector and mediator timing of a replay."""
+    """The detector and mediator timing of a replay.
+
+    ``service_ns``: how long the detector takes per frame. ``service_steps``: (from when,
+    service time) in time order, for a detector whose speed varied (a real run's, on a
+    loaded machine): a frame taken at ``t`` takes the service time of the last step at or
+    before ``t`` (``service_ns`` before the first)."""
 
     queue: int
     service_ns: int
     max_hold_ns: int = 250_000_000
+    service_steps: tuple[tuple[int, int], ...] = ()
 
     def __post_init__(self) -> None:
-        if self.queue < 1 or self.service_ns <= 0:
+        if self.queue < 1 or self.service_ns <= 0 or any(s <= 0 for _t, s in self.service_steps):
             raise ExperimentError(
                 f"replay needs queue >= 1 and positive times, got N={self.queue}, "
                 f"service {self.service_ns} ns"
             )
+
+    def service_at(self, at_ns: int) -> int:
+        """The service time of a frame taken at ``at_ns``."""
+        index = bisect.bisect_right(self.service_steps, (at_ns, 2**63)) - 1
+        return self.service_steps[index][1] if index >= 0 else self.service_ns
 
 
 class _Detector:
@@ -88,7 +100,7 @@ class _Detector:
         if self.takes_ns and waited:
             self.intervals_ns.append(at_ns - self.takes_ns[-1])
         self.takes_ns.append(at_ns)
-        self.free_ns = at_ns + self.model.service_ns
+        self.free_ns = at_ns + self.model.service_at(at_ns)
 
     def clock(self) -> DetectorClock:
         service = int(statistics.median(self.intervals_ns[-15:])) if self.intervals_ns else None
@@ -156,7 +168,10 @@ def replay_policy(
         run_until(now)  # held frames go out while this one waits for its gyro samples
         decided = last[0] = now
         detector.advance(now)
-        candidate = Candidate(frame.arrival_ns, frame.frame_id, frame.quality, now, frame.blur_px)
+        # As the mediator's: hold times count from the frame's arrival, not its decision.
+        candidate = Candidate(
+            frame.arrival_ns, frame.frame_id, frame.quality, frame.arrival_ns, frame.blur_px
+        )
         carry_out(decider.frame(candidate, load(), now), now)
     end = max(frames[-1].arrival_ns, decided) if frames else 0
     run_until(end + 2 * model.max_hold_ns)

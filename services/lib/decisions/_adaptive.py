@@ -25,11 +25,15 @@ The real-time margin. The mediator decides a frame only once the gyro covers its
 and while it waits for those samples it forwards nothing, so a held frame cannot go out
 between the next frame's arrival and its decision. "The next frame" therefore comes one
 frame period after this one's exposure plus *its* decision latency, not one period after
-this decision. The policy measures each frame's latency as ``arrived_ns − timestamp_ns``
-(the mediator's clock minus the camera's: an unknown constant offset plus the latency, so
-only the excess over the smallest recent one is used) and expects the next decision at
-this one's time plus a period plus the ``latency_quantile`` of the recent excesses, less
-this frame's own: a held frame the detector would need before then goes now.
+this decision. The policy measures each frame's latency at its decision as ``now_ns −
+timestamp_ns`` (the mediator's clock minus the camera's: an unknown constant offset plus
+the latency, so only the excess over the smallest recent one is used) and expects the next
+decision at this one's time plus a period plus the ``latency_quantile`` of the recent
+excesses, less this frame's own: a held frame the detector would need before then goes
+now. The decision's time, not the frame's ``arrived_ns``: the mediator's clock when the
+frame came in is earlier by the wait for its gyro samples, and the next frame waits as
+long, so counting from the arrival expects the next decision too early and lets the
+detector idle.
 
 A held frame and the frames queued never outnumber the queue's N slots (the experiment's
 oracle bounds every policy under that rule); a full queue drops the candidate. Until the
@@ -72,7 +76,7 @@ class AdaptivePolicy:
     def __init__(self, params: AdaptiveParams | None = None) -> None:
         self.params = params or AdaptiveParams()
         self._free_at_ns: int | None = None  # when the detector finishes what it was given
-        self._last_arrival_ns: int | None = None  # the last frame's decision (mediator clock)
+        self._last_decision_ns: int | None = None  # the last frame's decision (mediator clock)
         self._last_timestamp_ns: int | None = None
         self._period_ns: int | None = None
         self._lags: deque[int] = deque(maxlen=self.params.latency_window)
@@ -148,11 +152,13 @@ class AdaptivePolicy:
             return self._forward(best, view, "commit-busy")
         # The next frame is decided one period after this one (or after the last one), plus
         # the real-time margin: until then nothing held can go out.
-        last = self._last_arrival_ns if self._last_arrival_ns is not None else view.now_ns
+        last = self._last_decision_ns if self._last_decision_ns is not None else view.now_ns
         next_arrival = max(
             view.now_ns, (view.now_ns if arrival else last) + period + self.margin_ns()
         )
-        if next_arrival <= needs_at + p.slack_ns:
+        # It must leave the hand-over time before the detector needs it (0 in a replay).
+        handover = view.detector.handover_ns or 0
+        if next_arrival <= needs_at - handover + p.slack_ns:
             return None  # another frame comes before the detector needs one
         if self._reaches(best, p.idle_quantile, view):
             return self._forward(best, view, "deadline" if busy else "idle")
@@ -181,14 +187,14 @@ class AdaptivePolicy:
     # -- the contract ------------------------------------------------------------------------
     def on_frame(self, frame: Candidate, view: View) -> Sequence[Verdict]:
         # The frame period from the camera's timestamps (exact); the latency from the gap
-        # between them and the mediator's clock.
+        # between them and the mediator's clock at this decision.
         last = self._last_timestamp_ns
         if last is not None and frame.timestamp_ns > last:
             step = frame.timestamp_ns - last
             self._period_ns = step if self._period_ns is None else (7 * self._period_ns + step) // 8
         self._last_timestamp_ns = frame.timestamp_ns
-        self._last_arrival_ns = frame.arrived_ns
-        self._lags.append(frame.arrived_ns - frame.timestamp_ns)
+        self._last_decision_ns = view.now_ns
+        self._lags.append(view.now_ns - frame.timestamp_ns)
         return self._verdicts([*view.held, frame], frame, view)
 
     def next_due_ns(self, view: View) -> int | None:
@@ -199,10 +205,12 @@ class AdaptivePolicy:
         # frame's expected decision and the longest idle wait.
         needs_at = self._needs_at_ns(view, service)
         period = self._period_ns or service
-        last = self._last_arrival_ns if self._last_arrival_ns is not None else view.now_ns
+        last = self._last_decision_ns if self._last_decision_ns is not None else view.now_ns
+        handover = view.detector.handover_ns or 0
         times = [
             needs_at,
-            needs_at + self.params.slack_ns,
+            needs_at - handover,
+            needs_at - handover + self.params.slack_ns,
             last + period + self.margin_ns(),
             needs_at + int(self.params.idle_wait * period),
         ]

@@ -13,7 +13,12 @@ Rules kept here for every policy, in this order:
    take, or forwarded after it and still queued at a later look): the detector was busy
    all along, so the second take came the moment it was free. With N = 1 only the second
    case ever happens. A take is dated by ``Load.taken_ns`` (when the producer saw it) when
-   the caller knows that, else by the look that noticed it;
+   the caller knows that, else by the look that noticed it. The hand-over: a frame
+   forwarded to an empty queue while the detector was free is taken as soon as it gets
+   there; the time until that take was seen (``View.detector.handover_ns``, the median of
+   recent ones) is how much earlier than the detector's need a frame must leave (0 in a
+   replay, where a put is taken at once; transport and the detector's wake-up in a real
+   pipeline);
 2. due held frames first: the policy's ``on_tick`` runs before a new frame is decided, so
    older frames go out before newer ones;
 3. late frames: a frame whose key is not newer than every frame seen is dropped
@@ -82,6 +87,10 @@ class Decider:
         self._last_take_ns: int | None = None
         self._waiting_after_take = False
         self._service: deque[int] = deque(maxlen=_SERVICE_SAMPLES)
+        # The hand-over: when a frame went to an idle detector, until its take is seen.
+        self._handed_at: int | None = None
+        self._handovers: deque[int] = deque(maxlen=_SERVICE_SAMPLES)
+        self._now_ns = 0
         # Inside one call: the load the caller gave plus what this call forwarded.
         self._load = Load(0, 0)
         self.policy_faults = 0
@@ -95,7 +104,8 @@ class Decider:
     @property
     def detector(self) -> DetectorClock:
         service = int(statistics.median(self._service)) if self._service else None
-        return DetectorClock(self._last_take_ns, service)
+        handover = int(statistics.median(self._handovers)) if self._handovers else None
+        return DetectorClock(self._last_take_ns, service, handover)
 
     def view(self, now_ns: int) -> View:
         """What a policy would see now."""
@@ -152,6 +162,7 @@ class Decider:
 
     # -- the rules ---------------------------------------------------------------------------
     def _observe(self, load: Load, now_ns: int) -> None:
+        self._now_ns = now_ns
         expected = self._expected_queued
         if expected is not None and load.queued < expected:
             # The producer's time of the take if it has one: the count is only looked at
@@ -160,6 +171,11 @@ class Decider:
             taken, last = load.taken_ns, self._last_take_ns
             usable = taken is not None and taken <= now_ns and (last is None or taken > last)
             at = taken if usable and taken is not None else now_ns
+            # Only a take the producer dated counts: one noticed by a later look is late
+            # by however long that look came after it.
+            if usable and self._handed_at is not None and at >= self._handed_at:
+                self._handovers.append(at - self._handed_at)
+            self._handed_at = None
             if self._waiting_after_take and self._last_take_ns is not None:
                 # Busy all along: the takes since the last one came back to back.
                 self._service.append((at - self._last_take_ns) // (expected - load.queued))
@@ -227,12 +243,21 @@ class Decider:
         return out
 
     def _forwarded(self, key: int) -> list[Verdict]:
+        if self._load.queued == 0 and self._detector_free():
+            self._handed_at = self._now_ns  # nothing else to take: the next take is this
         self._newest_forwarded_ns = key
         self._load = Load(self._load.queued + 1, self._load.capacity)
         self._expected_queued = (self._expected_queued or 0) + 1
         older = [f for f in self._held if f.timestamp_ns < key]
         self._held = [f for f in self._held if f.timestamp_ns > key]
         return [Verdict(f, Action.DROP, "superseded") for f in older]
+
+    def _detector_free(self) -> bool:
+        """Whether the detector should be done with its last frame by now (by the service
+        time measured; unknown counts as free)."""
+        service = self.detector.service_ns
+        last = self._last_take_ns
+        return service is None or last is None or self._now_ns >= last + service
 
     def _expire(self, now_ns: int) -> list[Verdict]:
         limit = self.rules.max_hold_ns

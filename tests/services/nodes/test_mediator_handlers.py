@@ -11,7 +11,7 @@ import pytest
 
 from middleware import DataObject, NetworkConfig, Node, Notification
 from services.lib.camera_model import CameraModel
-from services.lib.decisions import GyroMissing
+from services.lib.decisions import GyroMissing, Load
 from services.lib.messages import DecisionRecord, frame_metadata
 from services.lib.quality import Exposure, GyroSamples
 from services.lib.rewind import SourceClock
@@ -27,8 +27,10 @@ WAIT_MS = 150.0
 class Fed:
     """A mediator whose handlers the test calls, and the decisions it recorded."""
 
-    def __init__(self, node: Node) -> None:
-        config = MediatorConfig(gyro_missing=GyroMissing.REJECT, gyro_wait_ms=WAIT_MS)
+    def __init__(self, node: Node, policy: str = "paper") -> None:
+        config = MediatorConfig(
+            gyro_missing=GyroMissing.REJECT, gyro_wait_ms=WAIT_MS, policy=policy
+        )
         self.mediator = Mediator(node, config, "mediator")
         self.records: list[DecisionRecord] = []
         write = self.mediator.out.write
@@ -95,3 +97,24 @@ def test_while_the_gyro_is_out_frames_are_decided_at_once(fed: Fed) -> None:
     assert len(fed.records) == 3 and fed.mediator.pairing.waiting == 1
     fed.gyro(201, 260)
     assert len(fed.records) == 4 and fed.records[-1].quality is not None, fed.reasons()
+
+
+def test_a_held_frame_goes_out_at_its_deadline_not_a_poll_later() -> None:
+    # ``replace`` holds a frame while a slot is free and one frame waits, and forwards it
+    # once it was held the maximum hold time: the mediator's one deadline is that moment,
+    # and the handler run then carries the verdict out.
+    with Node("mediator", NetworkConfig(local_port=free_port())) as node:
+        fed = Fed(node, policy="replace")
+        mediator = fed.mediator
+        mediator.out.load = lambda: Load(1, 2)  # type: ignore[method-assign]
+        fed.gyro(0, 40)
+        fed.frame(10)
+        assert fed.reasons() == ["held"]
+        held = mediator.decider.held[0]
+        due = mediator.next_deadline_ns()
+        assert due == held.arrived_ns + mediator.decider.rules.max_hold_ns
+        mediator.on_time(due - 1)
+        assert fed.reasons() == ["held"]  # not a nanosecond early
+        mediator.on_time(due)
+        assert fed.reasons() == ["held", "held-max"] and fed.records[-1].accepted
+        assert mediator.next_deadline_ns() is None  # nothing left to wake for

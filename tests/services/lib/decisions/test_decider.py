@@ -261,3 +261,21 @@ def test_the_processing_clock_measures_the_service_time_with_a_queue_of_one() ->
     decider.frame(Candidate(3, 3, 0.9, 200 * MS), Load(0, 1), 200 * MS)  # idle: taken at once
     decider.tick(Load(0, 1), 210 * MS)  # never seen waiting: not a service time
     assert decider.detector.service_ns == 50 * MS
+
+
+def test_the_hand_over_is_from_forwarding_to_an_idle_detector_until_the_take_seen() -> None:
+    decider = Decider(make_policy("paper"))
+    # Nothing queued, nothing taken yet: the frame goes to an idle detector at 100 ms.
+    verdicts = decider.frame(Candidate(1, 1, 0.9, arrived_ns=100 * MS), Load(0, 1), 100 * MS)
+    assert [v.action for v in verdicts] == [Action.FORWARD]
+    assert decider.detector.handover_ns is None
+    # The producer saw the detector take it at 112 ms; the mediator looks at 130 ms.
+    decider.tick(Load(0, 1, taken_ns=112 * MS), 130 * MS)
+    assert decider.detector.handover_ns == 12 * MS
+
+
+def test_a_take_only_noticed_by_a_later_look_is_no_hand_over_sample() -> None:
+    decider = Decider(make_policy("paper"))
+    decider.frame(Candidate(1, 1, 0.9, arrived_ns=100 * MS), Load(0, 1), 100 * MS)
+    decider.tick(Load(0, 1), 130 * MS)  # taken some time before 130 ms: when is unknown
+    assert decider.detector.handover_ns is None
