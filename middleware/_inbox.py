@@ -107,6 +107,8 @@ class Inbox:
     def take(self, budget: int) -> list[zenoh.Sample]:
         """Up to ``budget`` samples, oldest first (never blocks)."""
         items = self._items
+        if not items:  # the common case on a hot path: nothing came
+            return []
         out: list[zenoh.Sample] = []
         popleft = items.popleft
         with contextlib.suppress(IndexError):
