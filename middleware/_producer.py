@@ -263,9 +263,8 @@ class Producer:
             raise FramegateError(f"buffer {self.name} is closed")
         if not elements:
             return 0
-        check = self._check
         try:
-            checked = tuple([check(t, p, m) for t, p, m in elements])
+            checked = self._check.many(elements)
         except FramegateError:
             with self._lock:
                 self._counters.rejected += 1
