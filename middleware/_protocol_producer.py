@@ -356,8 +356,10 @@ class ProducerProtocol:
         one per registration, a batch if there are several. How many flow-controlled
         registrations were notified."""
         kept = tuple(
-            (e.timestamp_ns, e.metadata if len(e.metadata) <= INLINE_METADATA_MAX else None)
-            for e in elements
+            [
+                (e.timestamp_ns, e.metadata if len(e.metadata) <= INLINE_METADATA_MAX else None)
+                for e in elements
+            ]
         )
         flow = 0
         for send in self._ledger.put_many(kept, now_ns):
@@ -441,18 +443,21 @@ class ProducerProtocol:
         limit = self._push_limit.get(key, self.inline_max_bytes)
         block = key.mode is SubscriptionMode.FLOW
         if send.count > 1:
-            pushed = all(len(e.payload) <= limit for e in elements)
+            payloads = [e.payload for e in elements]
+            sizes = [len(p) for p in payloads]
+            pushed = bool(sizes) and max(sizes) <= limit
+            stamps, metas = zip(*send.headers, strict=True)
             header = encode_batch_header(
                 send.epoch,
                 send.seq,
-                [t for t, _ in send.headers],
-                [m for _, m in send.headers],
-                [len(e.payload) for e in elements] if pushed else None,
+                stamps,
+                metas,
+                sizes if pushed else None,
                 acked=send.acked,
                 descriptor=key.descriptor,
                 base=send.base,
             )
-            payload = b"".join(e.payload for e in elements) if pushed else b""
+            payload = b"".join(payloads) if pushed else b""
             return Publish(key, self._notify_key(key), payload, header, block, send.epoch)
         timestamp, metadata = send.headers[0]
         element = elements[0] if elements else None

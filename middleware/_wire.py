@@ -19,6 +19,7 @@ notification on the subscriber's hot path); acks are msgpack maps.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -199,9 +200,9 @@ def encode_notification_header(
 def encode_batch_header(
     epoch: str,
     seq: int,
-    timestamps_ns: list[int],
-    metadata: list[bytes | None],
-    payload_sizes: list[int] | None,
+    timestamps_ns: Sequence[int],
+    metadata: Sequence[bytes | None],
+    payload_sizes: Sequence[int] | None,
     *,
     acked: int | None = None,
     descriptor: str | None = None,
