@@ -21,8 +21,8 @@ tool defines its own errors next to its code, always below ``FramegateError``::
     ├── DatasetError               (services.lib.sim) a dataset directory is missing or damaged
     ├── OutputError                (services.lib.files) an output file cannot be written
     ├── BagError                   (services.tools.bag) an MCAP recording cannot be read/written
-    ├── ExperimentError            (services.tools.experiment) an experiment cannot run as asked
-    └── BenchError                 (services.tools.bench) a benchmark worker failed
+    ├── ExperimentError            (services.evidence.experiment) an experiment cannot run as asked
+    └── BenchError                 (services.evidence.bench) a benchmark worker failed
 
 Messages name the bad value and say what to do. ``tests/middleware/test_errors.py`` checks
 that this drawing names every subclass there is.

@@ -4,8 +4,10 @@ What lives where (imports only ever point down this list)::
 
     services/
     ├── cli/       the `framegate` command: one thin module per command
-    ├── tools/     programs built on the pipeline: demo, soak, experiment, bench, bag (MCAP
-    │              record/play), view (live Foxglove)
+    ├── evidence/  what backs the claims: bench (vs raw Zenoh), experiment (the paper's
+    │              Table 1), soak, faultbench; nothing of the product imports it
+    ├── tools/     a user's programs around a pipeline: demo, bag (MCAP record/play),
+    │              view (live Foxglove)
     ├── launch/    deploy files, the pipeline definition, the process supervisor
     ├── nodes/     the four service processes (camera, gyro, mediator, detector), their
     │              one contract and registry, camera/gyro sources
@@ -15,7 +17,8 @@ What lives where (imports only ever point down this list)::
 
     middleware/    (beside services/) buffers, queries, notifications, flow control
 
-Import direction: ``cli → tools → launch → nodes → lib → middleware``. A package may import
-anything below it and nothing above it; ``middleware`` imports nothing of ``services``.
+Import direction: ``cli → evidence → tools → launch → nodes → lib → middleware``. A package
+may import anything below it and nothing above it; ``middleware`` imports nothing of
+``services``.
 ``tests/test_architecture.py`` keeps it so.
 """

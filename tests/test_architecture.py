@@ -13,6 +13,7 @@ from tests.conftest import REPO
 # Lower layers come later; a module may import its own layer or any later one.
 LAYERS = (
     "services.cli",
+    "services.evidence",
     "services.tools",
     "services.launch",
     "services.nodes",

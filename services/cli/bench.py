@@ -18,8 +18,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from services.lib.argtypes import positive_float, positive_int
-from services.tools.bench import (
+from services.evidence.bench import (
     OPT_IN_SCENARIOS,
     SCENARIO_NAMES,
     BenchError,
@@ -27,6 +26,7 @@ from services.tools.bench import (
     format_table,
     run_bench,
 )
+from services.lib.argtypes import positive_float, positive_int
 
 from ._common import command_parser, exit_on_sigterm
 

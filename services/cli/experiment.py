@@ -19,7 +19,7 @@ from services.lib.quality import DEFAULT_B0_PX
 
 from ._common import exit_on_sigterm
 
-# services.tools.experiment is imported when the command runs, not here: it pulls in scipy and
+# services.evidence.experiment is imported when the command runs, not here: it pulls in scipy and
 # matplotlib (seconds on a busy machine), and every framegate command, including each
 # service process, builds the parser that registers this module.
 
@@ -89,7 +89,7 @@ def register(subparsers: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run the experiment and print the table (or the results as JSON)."""
-    from services.tools.experiment import OUTPUT_FILES, ExperimentConfig, run_experiment
+    from services.evidence.experiment import OUTPUT_FILES, ExperimentConfig, run_experiment
 
     # SIGTERM unwinds like Ctrl-C, so every service process of the current run is stopped.
     exit_on_sigterm()
@@ -121,7 +121,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _sweep(args: argparse.Namespace, seeds: list[int]) -> int:
-    from services.tools.experiment import SWEEP_TABLE, SweepConfig, run_sweep
+    from services.evidence.experiment import SWEEP_TABLE, SweepConfig, run_sweep
 
     config = SweepConfig(
         out=args.out,

@@ -12,8 +12,8 @@ import json
 from pathlib import Path
 from typing import Any
 
+from services.evidence.faultbench import FaultConfig, format_faults, run_faults
 from services.lib.argtypes import positive_int
-from services.tools.faultbench import FaultConfig, format_faults, run_faults
 
 from ._common import command_parser, stop_on_signals
 

@@ -14,8 +14,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from services.evidence.soak import SoakConfig, format_report, run_soak
 from services.lib.argtypes import non_negative_float, non_negative_int, positive_float, positive_int
-from services.tools.soak import SoakConfig, format_report, run_soak
 
 from ._common import command_parser, stop_on_signals
 

@@ -43,7 +43,7 @@ def test_zenoh_errors_map_to_transport_error() -> None:
 def test_services_never_import_zenoh() -> None:
     # Allowed: the raw-Zenoh benchmark baseline, and the ROS 2 bridge's one module that
     # speaks rmw_zenoh's own keys (a foreign protocol, not framegate's).
-    allowed = {"services/cli/bench.py", "services/tools/bench", "services/nodes/ros2/_link.py"}
+    allowed = {"services/cli/bench.py", "services/evidence/bench", "services/nodes/ros2/_link.py"}
     for path in (REPO / "services").rglob("*.py"):
         rel = path.relative_to(REPO).as_posix()
         if any(rel.startswith(a) for a in allowed):

@@ -254,12 +254,12 @@ def test_info_of_a_hostile_service_is_one_error_line(endpoint: str, case: str) -
 
 # -- floods and churn from worker processes -------------------------------------------------
 class _Flood:
-    """A ``flood`` worker of ``framegate bench`` (services/tools/bench/_floods.py)."""
+    """A ``flood`` worker of ``framegate bench`` (services/evidence/bench/_floods.py)."""
 
     def __init__(self, endpoint: str, **params: Any) -> None:
         params = {"connect": endpoint, "namespace": "framegate", **params}
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "services.tools.bench._worker", "flood", json.dumps(params)],
+            [sys.executable, "-m", "services.evidence.bench._worker", "flood", json.dumps(params)],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             text=True,

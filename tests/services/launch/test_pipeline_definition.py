@@ -5,9 +5,9 @@ from __future__ import annotations
 import pytest
 
 from middleware import ConfigError
+from services.evidence.soak import SoakConfig, soak_deployment
 from services.launch import Deployment, load_deployment, parse_deployment, pipeline, pipeline_yaml
 from services.tools.demo import DemoConfig, demo_deployment
-from services.tools.soak import SoakConfig, soak_deployment
 from tests.conftest import REPO
 
 

@@ -67,9 +67,11 @@ class Pipeline:
             return None
 
     def pid(self, service: str) -> int | None:
-        """The service's pid, or None while it is not live (e.g. restarting)."""
+        """The service's pid, or None while it is not live (e.g. restarting). A live service
+        answers at once; the deadline is for a loaded machine's (at load 25, 2 s was missed
+        and a live camera read as crashed)."""
         try:
-            return self.node.service_info(service, timeout_s=scaled(2.0)).pid
+            return self.node.service_info(service, timeout_s=scaled(10.0)).pid
         except FramegateError:
             return None
 

@@ -18,11 +18,11 @@ from pathlib import Path
 import pytest
 
 from middleware import FramegateError, NetworkConfig, Node
+from services.evidence.soak import Audit
 from services.launch import pipeline_yaml
 from services.lib.decisions import GyroMissing
 from services.lib.messages import DecisionRecord
 from services.nodes.mediator import Mediator, MediatorConfig
-from services.tools.soak import Audit
 from tests.conftest import REPO, child_env, free_port, wait_until
 from tests.helpers.clock_shim import build_clock_shim, shifted_clock_env, step_clock
 from tests.helpers.timing import scaled

@@ -1,7 +1,7 @@
 """A ROS 2 vision node in framegate's loop, in real processes: a framegate producer (this
 test, standing in for the mediator), the ``ros2`` bridge with ``--consumer-done``, a Zenoh
 router standing in for ``rmw_zenohd`` (this test) and a plain-Zenoh ROS 2 vision node
-(``services.tools.bench._ros2_node``) that answers with the image's header after a service
+(``services.evidence.bench._ros2_node``) that answers with the image's header after a service
 time, or never. The producer's view of the bridge's flow-controlled subscription is the
 load a mediator would use."""
 
@@ -90,7 +90,7 @@ class VisionNode(Proc):
             **params,
         }
         super().__init__(
-            [sys.executable, "-m", "services.tools.bench._ros2_node", json.dumps(params)]
+            [sys.executable, "-m", "services.evidence.bench._ros2_node", json.dumps(params)]
         )
         self.received: list[int] = []
         self.answered: list[int] = []

@@ -1,4 +1,4 @@
-"""A benchmark worker process: ``python -m services.tools.bench._worker ROLE PARAMS``.
+"""A benchmark worker process: ``python -m services.evidence.bench._worker ROLE PARAMS``.
 
 The process runs one role of ``_raw`` (the baseline) or ``_fg`` (framegate). Every role owns
 its session through ``with``, so the session is always closed (an open Zenoh session can
@@ -30,7 +30,7 @@ ROLES: dict[str, Callable[[dict[str, Any]], None]] = {
 
 def main(argv: list[str]) -> int:
     if len(argv) != 2:
-        print("usage: python -m services.tools.bench._worker ROLE PARAMS_JSON", file=sys.stderr)
+        print("usage: python -m services.evidence.bench._worker ROLE PARAMS_JSON", file=sys.stderr)
         return 2
 
     def on_sigterm(_signum: int, _frame: FrameType | None) -> None:

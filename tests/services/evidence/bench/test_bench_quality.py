@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from services.tools.bench._quality import time_blur_modes
+from services.evidence.bench._quality import time_blur_modes
 
 
 def test_every_blur_mode_is_timed_in_microseconds_per_frame() -> None:

@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from services.tools.bench import (
+from services.evidence.bench import (
     SCENARIO_NAMES,
     BenchError,
     BenchOptions,
@@ -19,7 +19,7 @@ from services.tools.bench import (
     ratio,
     summarize,
 )
-from services.tools.bench._records import extra_goal, ratio_goal
+from services.evidence.bench._records import extra_goal, ratio_goal
 
 
 def test_median_of_odd_count_is_the_middle_value() -> None:

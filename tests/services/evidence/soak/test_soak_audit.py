@@ -6,8 +6,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from middleware import DataObject, Retention
+from services.evidence.soak import Audit, MemorySeries, find_stalls
 from services.lib.messages import DecisionRecord
-from services.tools.soak import Audit, MemorySeries, find_stalls
 
 MS = 1_000_000
 

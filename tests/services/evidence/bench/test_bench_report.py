@@ -10,7 +10,7 @@ import pytest
 
 from services.cli import bench as bench_cli
 from services.cli import main
-from services.tools.bench import (
+from services.evidence.bench import (
     SCENARIO_NAMES,
     BenchError,
     BenchOptions,
@@ -19,8 +19,8 @@ from services.tools.bench import (
     ScenarioResult,
     format_table,
 )
-from services.tools.bench._report import WIDTH, load_warning, short_goal
-from services.tools.bench._runner import LOAD_WARNING_SHARE
+from services.evidence.bench._report import WIDTH, load_warning, short_goal
+from services.evidence.bench._runner import LOAD_WARNING_SHARE
 
 
 def _report(goals_passed: list[bool | None], *, load: float = 0.1) -> dict[str, Any]:

@@ -8,8 +8,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from services.lib.decisions import make_policy
-from services.tools.experiment import (
+from services.evidence.experiment import (
     MARKER_NAMES,
     FrameOutcome,
     QueueModel,
@@ -18,7 +17,8 @@ from services.tools.experiment import (
     replay_policy,
     replay_uncontrolled,
 )
-from services.tools.experiment._sweep import marker_counts, oracle_counts
+from services.evidence.experiment._sweep import marker_counts, oracle_counts
+from services.lib.decisions import make_policy
 
 PERIOD = 100
 

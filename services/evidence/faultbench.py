@@ -21,9 +21,9 @@ from typing import Any
 import numpy as np
 
 from middleware import FramegateError, NetworkConfig, Node
+from services.evidence.bench import BenchError
 from services.launch import Supervisor, free_port, pipeline, private_specs
 from services.launch._supervisor import HEALTHY_AFTER_S
-from services.tools.bench import BenchError
 
 # What each service stores once it works again.
 OUTPUT = {

@@ -7,7 +7,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from services.tools.experiment import (
+from services.evidence.experiment import (
     Estimate,
     aggregate_markers,
     correlations,
@@ -15,8 +15,8 @@ from services.tools.experiment import (
     mean_ci95,
     seed_markers,
 )
-from services.tools.experiment._config import RUN_KINDS
-from services.tools.experiment._experiment import policy_summary, seed_oracle
+from services.evidence.experiment._config import RUN_KINDS
+from services.evidence.experiment._experiment import policy_summary, seed_oracle
 
 MS = 1_000_000
 

@@ -11,7 +11,7 @@ from typing import Any
 
 import pytest
 
-from services.tools.experiment import MARKER_NAMES, OUTPUT_FILES
+from services.evidence.experiment import MARKER_NAMES, OUTPUT_FILES
 from tests.conftest import REPO, child_env
 from tests.helpers.timing import scaled
 
@@ -104,7 +104,7 @@ def test_bad_flag_value_is_one_error_line(tmp_path: Path) -> None:
 def test_sweep_latency_flag_reaches_the_sweep(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import services.tools.experiment as experiment
+    import services.evidence.experiment as experiment
     from services.cli import main
 
     seen: list[Any] = []

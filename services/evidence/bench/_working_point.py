@@ -97,7 +97,7 @@ def run_working_point(options: BenchOptions) -> ScenarioResult:
             "loop_frames": frames,
             "pipeline_window_s": window_s,
             "estimate": "paced raw/framegate workers carrying the measured streams; "
-            "see services/tools/bench/_working_point.py",
+            "see services/evidence/bench/_working_point.py",
         },
     )
     process_rows = {

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from services.tools.experiment import aggregate_markers, format_table, seed_markers
+from services.evidence.experiment import aggregate_markers, format_table, seed_markers
 
 
 def _seed(

@@ -1,6 +1,6 @@
 """The parent side of worker processes: start, talk JSON lines, read CPU time, always stop.
 
-Workers are separate OS processes (``python -m services.tools.bench._worker``) on loopback, each
+Workers are separate OS processes (``python -m services.evidence.bench._worker``) on loopback, each
 pair on its own free port with multicast scouting off. A worker that does not answer within
 its deadline raises ``BenchError`` naming the role and the tail of its stderr.
 """
@@ -53,7 +53,7 @@ class Worker:
         self._lines: queue.Queue[str | None] = queue.Queue()
         self._stderr: deque[str] = deque(maxlen=30)
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "services.tools.bench._worker", role, json.dumps(params)],
+            [sys.executable, "-m", "services.evidence.bench._worker", role, json.dumps(params)],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,

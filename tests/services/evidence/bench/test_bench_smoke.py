@@ -8,10 +8,10 @@ import math
 
 import pytest
 
-from services.tools.bench._idle import SUBSCRIPTIONS, measure_idle, start_idle
-from services.tools.bench._procs import WorkerGroup, free_endpoint
-from services.tools.bench._raw import HANDLER_DESIGNS
-from services.tools.bench._throughput import measure
+from services.evidence.bench._idle import SUBSCRIPTIONS, measure_idle, start_idle
+from services.evidence.bench._procs import WorkerGroup, free_endpoint
+from services.evidence.bench._raw import HANDLER_DESIGNS
+from services.evidence.bench._throughput import measure
 from tests.helpers.timing import scaled
 
 pytestmark = pytest.mark.integration
@@ -37,7 +37,7 @@ def test_every_handler_design_receives_and_reports_cpu_per_message() -> None:
 
 
 def test_an_unknown_handler_design_fails_the_worker_with_its_name() -> None:
-    from services.tools.bench import BenchError
+    from services.evidence.bench import BenchError
 
     with WorkerGroup() as group:
         group.start("raw-handler-sub", {"connect": free_endpoint(), "design": "carrier-pigeon"})

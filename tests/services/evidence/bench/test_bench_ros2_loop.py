@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from services.tools.bench import SCENARIO_NAMES, BenchError, BenchOptions
-from services.tools.bench._runner import SCENARIOS
+from services.evidence.bench import SCENARIO_NAMES, BenchError, BenchOptions
+from services.evidence.bench._runner import SCENARIOS
 
 
 def test_the_loop_scenario_runs_only_when_named() -> None:

@@ -59,7 +59,7 @@ class _VisionNode:
 
     def __init__(self, params: dict[str, Any]) -> None:
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "services.tools.bench._ros2_node", json.dumps(params)],
+            [sys.executable, "-m", "services.evidence.bench._ros2_node", json.dumps(params)],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             text=True,

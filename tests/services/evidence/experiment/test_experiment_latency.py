@@ -4,16 +4,16 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from services.lib.decisions import Action, Verdict, View
-from services.lib.decisions import Candidate as DecisionCandidate
-from services.lib.messages import DecisionRecord
-from services.tools.experiment._frames import FrameOutcome
-from services.tools.experiment._latency import (
+from services.evidence.experiment._frames import FrameOutcome
+from services.evidence.experiment._latency import (
     MEASURED_LATENCY_MS,
     measured_latencies,
     recorded_latencies,
 )
-from services.tools.experiment._replay import QueueModel, replay_policy
+from services.evidence.experiment._replay import QueueModel, replay_policy
+from services.lib.decisions import Action, Verdict, View
+from services.lib.decisions import Candidate as DecisionCandidate
+from services.lib.messages import DecisionRecord
 
 MS = 1_000_000
 PERIOD = 50 * MS

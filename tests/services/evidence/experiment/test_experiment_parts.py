@@ -8,10 +8,7 @@ import numpy as np
 import pytest
 
 from middleware import ConfigError
-from services.lib.camera_model import CameraModel
-from services.lib.messages import DecisionRecord, detections_metadata
-from services.lib.sim import Dataset, FrameInfo, FrameTruth, GyroTrace, MarkerTruth
-from services.tools.experiment import (
+from services.evidence.experiment import (
     ExperimentConfig,
     FrameDetections,
     RunKind,
@@ -22,11 +19,14 @@ from services.tools.experiment import (
     scenario_for,
     scenario_hash,
 )
-from services.tools.experiment._plots import (
+from services.evidence.experiment._plots import (
     plot_gyro_exposures,
     plot_quality_vs_blur,
     plot_timeline,
 )
+from services.lib.camera_model import CameraModel
+from services.lib.messages import DecisionRecord, detections_metadata
+from services.lib.sim import Dataset, FrameInfo, FrameTruth, GyroTrace, MarkerTruth
 
 
 def _marker(name: str, marker_id: int, centre: tuple[float, float]) -> MarkerTruth:

@@ -1,6 +1,6 @@
 """A ROS 2 vision node played with plain Zenoh, as rmw_zenoh's nodes speak (no ROS 2 needed).
 
-``python -m services.tools.bench._ros2_node PARAMS_JSON`` declares a node (liveliness
+``python -m services.evidence.bench._ros2_node PARAMS_JSON`` declares a node (liveliness
 tokens, a subscription on ``image_topic`` with a KEEP_LAST queue of ``depth``, a publisher
 on ``result_topic``) and, per image, holds the processor for ``service_time_s`` (or longer
 if the work takes longer), then publishes one result carrying the image's ``header``, as

@@ -1,5 +1,5 @@
 """Soak's run: the pipeline on a private port, memory samples, audits and stalls (see
-``services.tools.soak``)."""
+``services.evidence.soak``)."""
 
 from __future__ import annotations
 

@@ -19,7 +19,7 @@ import psutil
 import pytest
 
 from services.cli import main
-from services.tools.bench import SCENARIO_NAMES, SCHEMA
+from services.evidence.bench import SCENARIO_NAMES, SCHEMA
 from tests.conftest import REPO, child_env, wait_until
 from tests.helpers.timing import scaled
 

@@ -1,5 +1,5 @@
 """Soak's audit of lost elements: accepted frames, decisions and detections checked by
-querying the services as any client (see ``services.tools.soak``)."""
+querying the services as any client (see ``services.evidence.soak``)."""
 
 from __future__ import annotations
 
