@@ -166,6 +166,8 @@ class _Bounded(Generic[T]):
     def take(self, budget: int) -> list[T]:
         """Up to ``budget`` items, oldest first (never blocks)."""
         items = self._items
+        if not items:  # the common case on a hot path: nothing came
+            return []
         out: list[T] = []
         popleft = items.popleft
         with contextlib.suppress(IndexError):

@@ -278,6 +278,33 @@ class SubscriberLedger(Generic[T]):
     def receive_many(self, epoch: str, seq: int, items: list[T], *, descriptor: str | None) -> int:
         """Feed a batch notification: element i as the notification of seq ``seq + i``, in
         order. How many were queued."""
+        count = len(items)
+        track = self._recent_track
+        if (
+            count
+            and epoch == self._recent
+            and (descriptor is None or descriptor == self.descriptor)
+            and seq == track.last + 1
+            and len(self._queue) + count <= self.queue_size
+            and (
+                seq + count - 1 <= track.taken + self.queue_size
+                or self.mode is not SubscriptionMode.FLOW
+            )
+        ):
+            # ``receive``'s fast path for every element at once: each one in turn would take
+            # it (the next seq, within the window, room in the queue), so the outcome is the
+            # same; the first element carries what was missed before it.
+            missed = track.missed
+            self._queue.extend(
+                [
+                    Entry(epoch, seq + i, item, missed if i == 0 else 0)
+                    for i, item in enumerate(items)
+                ]
+            )
+            track.last = seq + count - 1
+            track.queued += count
+            track.missed = 0
+            return count
         queued = 0
         for i, item in enumerate(items):
             queued += self.receive(epoch, seq + i, item, descriptor=descriptor)
@@ -309,6 +336,20 @@ class SubscriberLedger(Generic[T]):
         track.taken = entry.seq
         track.unacked_takes += 1
         return entry
+
+    def take_many(self, max_count: int) -> list[Entry[T]]:
+        """Up to ``max_count`` of the oldest queued notifications: ``take`` that many times."""
+        queue = self._queue
+        entries = [queue.popleft() for _ in range(min(max_count, len(queue)))]
+        name, track = None, None
+        for entry in entries:
+            if entry.epoch != name:
+                name, track = entry.epoch, self._epochs[entry.epoch]
+            assert track is not None
+            track.queued -= 1
+            track.taken = entry.seq
+            track.unacked_takes += 1
+        return entries
 
     def acks_due(self, now_ns: int, *, idle: bool) -> list[tuple[str, int]]:
         """The acks to send now: (epoch, seq) pairs, each cumulative for its epoch.

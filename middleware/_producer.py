@@ -160,6 +160,8 @@ class Producer:
     def _feed(self, budget: int) -> bool:
         """(under _lock) Feed the protocol at most ``budget`` acks and as many tokens; True
         if anything changed for a waiting put (credit freed, a subscriber came or went)."""
+        if not (self._acks or self._tokens) and self._tokens.dropped == self._tokens_dropped:
+            return False  # every put asks: nothing came is the common case
         changed = False
         ack = self._protocol.ack
         now = time.monotonic_ns()
@@ -253,35 +255,37 @@ class Producer:
             raise FramegateError(f"buffer {self.name} is closed")
         if not elements:
             return 0
-        checked = tuple(self._checked(t, p, m) for t, p, m in elements)
-        for before, after in itertools.pairwise(checked):
-            if after.timestamp_ns <= before.timestamp_ns:
-                with self._lock:
-                    self._counters.rejected += 1
-                raise DuplicateTimestampError(
-                    f"put_many: timestamp {after.timestamp_ns} follows {before.timestamp_ns} "
-                    "in the batch; timestamps must strictly increase"
-                )
+        try:
+            checked = self._check.many(elements)
+        except FramegateError:
+            with self._lock:
+                self._counters.rejected += 1
+            raise
+        stamps = [e.timestamp_ns for e in checked]
+        if stamps != sorted(set(stamps)):  # C speed for a batch; the loop only to name it
+            for before, after in itertools.pairwise(stamps):
+                if after <= before:
+                    with self._lock:
+                        self._counters.rejected += 1
+                    raise DuplicateTimestampError(
+                        f"put_many: timestamp {after} follows {before} "
+                        "in the batch; timestamps must strictly increase"
+                    )
         return self._put(checked, wait_s)
 
     def _put(self, elements: tuple[DataObject, ...], wait_s: float) -> int:
-        if wait_s > 0:
-            # Checked before waiting too, so that an element that can never be stored is not
-            # waited for (``_store`` checks it in any case).
-            try:
-                self.series.check_extend(elements)
-            except FramegateError:
-                with self._lock:
-                    self._counters.rejected += len(elements)
-                raise
         count = len(elements)
-        deadline = time.monotonic() + wait_s
+        send_lock = self._send_lock
+        deadline = time.monotonic() + wait_s if wait_s > 0 else 0.0
+        waited = False
         try:
             while True:
                 # A put without wait_s waits for a send in progress, as before; one with a
-                # deadline waits for it no longer than that.
-                remaining = deadline - time.monotonic()
-                if not self._send_lock.acquire(timeout=max(0.0, remaining) if wait_s > 0 else -1):
+                # deadline waits for it no longer than that. Uncontended (the common case)
+                # it is taken at once, without reading the clock.
+                if not send_lock.acquire(False) and not send_lock.acquire(
+                    timeout=max(0.0, deadline - time.monotonic()) if wait_s > 0 else -1
+                ):
                     with self._lock:
                         self._counters.refused += count
                         refusal = self._protocol.admit(count, may_wait=False)
@@ -291,29 +295,41 @@ class Producer:
                         else f"{self.name}: could not send within wait_s={wait_s:g}"
                     )
                 try:
-                    with self._cond:
+                    with self._lock:
                         self._feed(_BUDGET)  # credit as of now
-                        remaining = deadline - time.monotonic()
-                        refusal = self._protocol.admit(count, may_wait=remaining > 0)
+                        may_wait = wait_s > 0 and deadline > time.monotonic()
+                        refusal = self._protocol.admit(count, may_wait=may_wait)
                         if refusal is None:
                             notified = self._store(elements)
-                        elif not refusal.wait:
-                            self._counters.refused += count
+                        else:
+                            if wait_s > 0:
+                                # An element that can never be stored is not waited for
+                                # (``_store`` checks it in any case).
+                                try:
+                                    self.series.check_extend(elements)
+                                except FramegateError:
+                                    self._counters.rejected += count
+                                    raise
+                            if not refusal.wait:
+                                self._counters.refused += count
                         events = self._protocol.events()
-                    self._carry_out(events)
+                    if events:
+                        self._carry_out(events)
                 finally:
-                    self._send_lock.release()
+                    send_lock.release()
                 if refusal is None:
                     return notified
                 if not refusal.wait:
                     raise FlowControlRefused(refusal.message(elements[0].timestamp_ns))
                 # Not stored: wait for credit outside _send_lock (the executor keeps sending).
+                waited = True
                 with self._cond:
                     self._wake.wait(
                         lambda: self._has_room(count), min(remaining_s(deadline), _WAIT_S)
                     )
         finally:
-            self._wake.left_over(len(self._acks) + len(self._tokens))
+            if waited:
+                self._wake.left_over(len(self._acks) + len(self._tokens))
 
     def _has_room(self, count: int) -> bool:
         """(under _lock) Whether ``count`` elements fit now, after feeding a batch."""

@@ -266,11 +266,7 @@ class SubscriberProtocol:
     # -- taking and acking -----------------------------------------------------------------
     def take_many(self, max_count: int) -> list[Entry[Item]]:
         """Up to ``max_count`` queued notifications, oldest first (they leave the queue)."""
-        entries: list[Entry[Item]] = []
-        ledger = self.ledger
-        while len(entries) < max_count and (entry := ledger.take()) is not None:
-            entries.append(entry)
-        return entries
+        return self.ledger.take_many(max_count)
 
     def acks(self, now_ns: int, *, idle: bool) -> list[bytes]:
         """The acks to send now, wire-ready (see ``SubscriberLedger.acks_due``)."""

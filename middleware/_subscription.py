@@ -372,25 +372,29 @@ class Subscription:
             return []
         if flush_at is not None:
             self._executor.poke(flush_at)
-        notes = [self._notification(entry) for entry in entries]
+        notes = self._notifications(entries)
         if self._protocol.fetching:
             self._fetch_ahead(notes)
         return notes
 
     def _send_acks(self, acks: list[bytes]) -> None:
+        # A lost ack costs nothing: acks are cumulative and repeated.
         for ack in acks:
             with contextlib.suppress(zenoh.ZError):
                 self._ack_publisher.put(ack)
 
-    def _notification(self, entry: Entry[Item]) -> Notification:
-        timestamp, metadata, pushed = entry.item
-        element = None
-        if pushed is not None and metadata is not None:
-            payload = pushed if isinstance(pushed, bytes) else pushed.to_bytes()
-            element = DataObject(timestamp, payload, metadata)
-        return Notification(
-            self.service, self.buffer, timestamp, entry.seq, metadata, element, entry.missed
-        )
+    def _notifications(self, entries: list[Entry[Item]]) -> list[Notification]:
+        """The taken entries as notifications (one loop: it runs once per element)."""
+        service, buffer = self.service, self.buffer
+        notes: list[Notification] = []
+        append = notes.append
+        for _epoch, seq, (timestamp, metadata, pushed), missed in entries:
+            element = None
+            if pushed is not None and metadata is not None:
+                payload = pushed if type(pushed) is bytes else pushed.to_bytes()
+                element = DataObject(timestamp, payload, metadata)
+            append(Notification(service, buffer, timestamp, seq, metadata, element, missed))
+        return notes
 
     def __iter__(self) -> Iterator[Notification]:
         """Notifications until the subscription is closed."""

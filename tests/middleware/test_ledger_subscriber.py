@@ -6,7 +6,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from middleware._ledger_subscriber import AckPolicy, SubscriberLedger
+from middleware._ledger_subscriber import AckPolicy, Entry, SubscriberLedger
 from middleware._records import SubscriptionMode
 
 EPOCHS = ["A.1", "A.2", "B.1", "C.7"]
@@ -14,10 +14,22 @@ DESCRIPTOR = "flow/3/-1"
 
 
 class FullRulesOnly(SubscriberLedger[int]):
-    """The same ledger with the fast path of ``receive`` switched off."""
+    """The same ledger with the fast paths switched off: ``receive``'s, the batch one of
+    ``receive_many`` and the bulk ``take_many``."""
 
     def receive(self, epoch: str, seq: int, item: int, *, descriptor: str | None) -> bool:
         return self._receive(epoch, seq, item, descriptor)
+
+    def receive_many(
+        self, epoch: str, seq: int, items: list[int], *, descriptor: str | None
+    ) -> int:
+        return sum(self._receive(epoch, seq + i, x, descriptor) for i, x in enumerate(items))
+
+    def take_many(self, max_count: int) -> list[Entry[int]]:
+        entries = []
+        while len(entries) < max_count and (entry := self.take()) is not None:
+            entries.append(entry)
+        return entries
 
 
 # One step: receive (mostly the next seq of a recent epoch, as a real producer sends), a
@@ -34,6 +46,7 @@ _step = st.one_of(
     _receive,
     st.tuples(st.just("batch"), st.sampled_from(EPOCHS), st.integers(1, 4), st.none()),
     st.tuples(st.just("take"), st.none(), st.integers(1, 3), st.none()),
+    st.tuples(st.just("take_many"), st.none(), st.integers(1, 5), st.none()),
     st.tuples(st.just("acks"), st.none(), st.integers(0, 2 * 10**9), st.booleans()),
 )
 
@@ -89,6 +102,8 @@ def test_the_fast_path_changes_no_decision(
         elif kind == "take":
             for _ in range(number):
                 assert fast.take() == full.take()
+        elif kind == "take_many":
+            assert fast.take_many(number) == full.take_many(number)
         else:
             now += number
             assert fast.acks_due(now, idle=bool(extra)) == full.acks_due(now, idle=bool(extra))

@@ -108,6 +108,40 @@ def test_by_shape_and_in_full_agree_on_any_slot_values(kind: str, values: list[b
     assert by_shape(checker, raw) == full(raw, kind)
 
 
+@settings(max_examples=300, deadline=None)
+@given(st.sampled_from(["gyro", "frame"]), st.data())
+def test_a_document_like_the_last_one_is_judged_as_in_full(kind: str, data: st.DataObject) -> None:
+    """A document of the last one's length whose slot values differ (the path that skips
+    the split): whatever the values, it is accepted exactly when the XSD accepts it."""
+    checker = ShapeChecker(kind, DEFAULT_LIMITS)
+    base = gyro_doc(T0) if kind == "gyro" else frame_doc(T0)
+    checker.timestamp_ns(base)
+    checker.timestamp_ns(base)  # by shape: now the last document
+    pattern = checker._pattern
+    assert pattern is not None
+    pieces = pattern.split(base)
+    for index in range(2, len(pieces), 3):
+        size = len(pieces[index])
+        alphabet = data.draw(st.sampled_from(["0123456789", "123456789", '0123456789 -+.eE<"']))
+        pieces[index] = data.draw(
+            st.text(alphabet=alphabet, min_size=size, max_size=size).map(str.encode)
+        )
+    raw = b"".join(pieces)
+    assert len(raw) == len(base)
+    assert by_shape(checker, raw) == full(raw, kind)
+
+
+def test_a_document_like_the_last_one_skips_the_split() -> None:
+    checker = ShapeChecker("gyro", DEFAULT_LIMITS)
+    for i in range(3):
+        assert checker.timestamp_ns(gyro_doc(T0 + i)) == T0 + i
+    assert checker.hits == 2
+    assert checker._last is not None  # the second one: the third was read by it
+    # Text outside the value spans differs: cut and judged in full, never by the last one.
+    changed = gyro_doc(T0 + 3).replace(b"i8,f8", b"i8,f4")
+    assert by_shape(checker, changed) == full(changed, "gyro")
+
+
 @pytest.mark.parametrize(
     "raw",
     [
