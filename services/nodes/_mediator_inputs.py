@@ -225,11 +225,14 @@ class ClockOffsets:
         service that does not answer, or whose data stopped coming (``*_alive`` False: it
         may be stopped and would not answer either), leaves the samples as they are."""
         self.asked.clear()
-        wanted = [
-            service
-            for service, alive in ((self._camera, camera_alive), (self._gyro, gyro_alive))
-            if alive
-        ]
+        # One question per service: camera and gyro may be one (the ros2 bridge offers both).
+        wanted = list(
+            dict.fromkeys(
+                service
+                for service, alive in ((self._camera, camera_alive), (self._gyro, gyro_alive))
+                if alive
+            )
+        )
         if not wanted:
             if then is not None:
                 then()
