@@ -31,7 +31,9 @@ def test_subscription_survives_a_liveliness_flap(
     assert consumer.call("subscribe", target="cam/images", queue=2)["ok"]
     assert producer.call("wait_subscribers", buffer="images", count=1, timeout=5)["registered"]
     for t in (1 * MS, 2 * MS, 3 * MS):
-        assert producer.call("put", buffer="images", t=t)["ok"]
+        # The credit of a taken element comes back with the consumer's (delayed) ack: the
+        # third put may have to wait for it (a loaded machine's acks came after the put).
+        assert producer.call("put", buffer="images", t=t, wait_s=5)["ok"]
         assert consumer.call("take", target="cam/images", timeout=5)["notification"]["t"] == t
 
     # Stopped longer than the lease: the producer sees the token go, then come back.
