@@ -13,7 +13,8 @@ Reading order, for whoever must change something:
 2. ``_executor`` — the node's one thread: what waits, what runs per turn, and how a handler
    that blocks avoids waiting for itself. ``_inbox``: what runs on Zenoh's threads.
 3. One side of the protocol at a time, each as one object: ``_protocol_producer`` (every
-   decision a producer makes) over the pure credit rules of ``_ledger_producer``; then
+   decision a producer makes, as ``_protocol_events``) over the pure credit rules of
+   ``_ledger_producer``; then
    ``_producer``, which only moves bytes and time between Zenoh and that object. The same
    for the subscriber: ``_protocol_subscriber``, ``_ledger_subscriber``, ``_subscription``.
 4. ``_wire`` (the bytes on the wire), ``_service`` (queryables answering reads and

@@ -35,7 +35,8 @@ from ._executor import BUDGET as _BUDGET
 from ._executor import Executor, Wake, remaining_s
 from ._inbox import ACK_INBOX, ACK_MAX_BYTES, TOKEN_INBOX, ControlInbox, control_inbox_bytes
 from ._ledger_producer import RegistrationKey
-from ._protocol_producer import Event, ProducerProtocol, Publish, Retire
+from ._protocol_events import Event, Publish, Retire
+from ._protocol_producer import ProducerProtocol
 from ._rate import put_rate_hz
 from ._records import (
     BufferInfo,
@@ -77,18 +78,10 @@ class _Counters:
 class Producer:
     """A buffer offered by this process. Create with ``Node.offer``.
 
-    Threads (see docs/threads.md): Zenoh's threads only append acks and subscription
-    tokens to this producer's two bounded inboxes. A token signals the node's executor,
-    which feeds it to the protocol and sends the greeting or refusal (``run_ready``). Acks
-    wait until someone needs credit: a ``put`` feeds a bounded batch itself before it
-    decides, as do ``fill`` and ``info``; a waiting put is woken by the ack's arrival
-    (``Wake``); the executor feeds them before a resend (``on_deadline``) and works off
-    a backlog of a batch or more (a flood) in bounded batches, turn by turn. ``_lock``
-    (with ``_cond`` on it) guards the protocol, the counters, the rate window and the
-    ``Wake`` counts, and is held only for bounded work. ``_send_lock`` serialises carrying
-    out the protocol's events, so the messages of one registration leave in order and a
-    ``publisher.put`` that blocks holds only ``_send_lock``; a put with ``wait_s`` waits
-    for it no longer than its deadline. Lock order: ``_send_lock``, then ``_lock``.
+    Threads: Zenoh's threads only append acks and tokens to two bounded inboxes; the
+    executor, or a caller that needs current credit, feeds them to the protocol in bounded
+    batches. ``_lock`` (with ``_cond``) guards the protocol and the counters, ``_send_lock``
+    orders sending; which thread takes which, and in what order: docs/threads.md.
     """
 
     def __init__(
