@@ -43,7 +43,7 @@ class Pipeline:
             self.lines.append(line.rstrip())
 
     def info(self, target: str) -> Any:
-        return self.node.buffer_info(target, timeout_s=scaled(2.0))
+        return self.node.buffer_info(target, timeout_s=scaled(10.0))
 
     def counter(self, target: str, name: str = "puts") -> int:
         """A producer counter (puts, refused, ...) of a buffer; 0 while it is not live."""

@@ -103,20 +103,24 @@ def viewer(pipe: Pipeline) -> Iterator[Viewer]:
         started.proc.wait()
 
 
-def _viewer_modes(pipe: Pipeline) -> dict[str, list[str]]:
+def _viewer_modes(pipe: Pipeline) -> dict[str, list[str]] | None:
     """The modes of the anonymous client subscriptions on each producer's buffer: the
-    viewer's (the pipeline's own are held by named services; the test's node holds none)."""
-    return {
-        name: sorted(s.mode.value for s in pipe.info(name).subscriptions if s.node == "")
-        for name in PRODUCERS
-    }
+    viewer's (the pipeline's own are held by named services; the test's node holds none).
+    None while a producer does not answer (a loaded machine's restarting camera)."""
+    try:
+        return {
+            name: sorted(s.mode.value for s in pipe.info(name).subscriptions if s.node == "")
+            for name in PRODUCERS
+        }
+    except FramegateError:
+        return None
 
 
 def _holds_nothing_back(pipe: Pipeline) -> None:
     """The viewer observes every producer and holds none back: an observer can never make a
     producer refuse, whatever the clients do. (A refusal count is no proof either way: on a
     starved machine the pipeline's own consumers fall behind and refuse, viewer or not.)"""
-    modes = _viewer_modes(pipe)
+    modes = wait_until(lambda: _viewer_modes(pipe), 60, "every producer to answer")
     assert all(found == ["observe"] for found in modes.values()), modes
 
 
