@@ -7,10 +7,11 @@ import json
 import zenoh
 
 
-def open_session(endpoint: str) -> zenoh.Session:
-    """A peer session connected to ``endpoint``, multicast scouting off."""
+def open_session(endpoint: str, *, listen: bool = False) -> zenoh.Session:
+    """A peer session connected to ``endpoint`` (``listen``: listening on it), multicast
+    scouting off."""
     conf = zenoh.Config()
     conf.insert_json5("mode", '"peer"')
     conf.insert_json5("scouting/multicast/enabled", "false")
-    conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    conf.insert_json5("listen/endpoints" if listen else "connect/endpoints", json.dumps([endpoint]))
     return zenoh.open(conf)

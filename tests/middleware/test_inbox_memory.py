@@ -16,7 +16,6 @@ import subprocess
 import sys
 
 import pytest
-import zenoh
 
 from middleware._inbox import KEY_MAX_BYTES, ControlInbox
 from tests.conftest import REPO, child_env, free_port, wait_until
@@ -34,19 +33,15 @@ TURNS = 16
 
 _RECEIVER = """
 import json, sys, time
-import zenoh
 from middleware._inbox import ControlInbox
+from tests.helpers.raw_zenoh import open_session
 endpoint, capacity, max_bytes = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
 patience_s, TURNS = float(sys.argv[4]), int(sys.argv[5])
 def rss():
     for line in open("/proc/self/status"):
         if line.startswith("VmRSS:"):
             return int(line.split()[1]) * 1024
-conf = zenoh.Config()
-conf.insert_json5("mode", '"peer"')
-conf.insert_json5("scouting/multicast/enabled", "false")
-conf.insert_json5("listen/endpoints", json.dumps([endpoint]))
-with zenoh.open(conf) as session:
+with open_session(endpoint, listen=True) as session:
     inbox = ControlInbox(capacity=capacity, max_bytes=max_bytes, signal=lambda: None)
     inbox.declare(session, "fg/@ack/**")
     print("ready", flush=True)
@@ -71,14 +66,6 @@ with open_session(sys.argv[1]) as session:
     while True:
         pub.put(b"x" * 20)
 """
-
-
-def open_listening(endpoint: str) -> zenoh.Session:
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"peer"')
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    conf.insert_json5("listen/endpoints", json.dumps([endpoint]))
-    return zenoh.open(conf)
 
 
 @pytest.mark.timeout(660)
@@ -121,7 +108,7 @@ def test_a_full_control_inbox_holds_copies_not_zenoh_batches() -> None:
 def test_a_control_message_with_a_key_longer_than_any_of_ours_is_counted_not_held(
     endpoint: str,
 ) -> None:
-    with open_listening(endpoint) as session, open_session(endpoint) as peer:
+    with open_session(endpoint, listen=True) as session, open_session(endpoint) as peer:
         inbox = ControlInbox(capacity=CAPACITY, max_bytes=MAX_BYTES, signal=lambda: None)
         inbox.declare(session, "fg/@ack/**")
         long_key = "fg/@ack/" + "k" * KEY_MAX_BYTES

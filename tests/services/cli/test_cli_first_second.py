@@ -95,7 +95,8 @@ def _signal_early(argv: list[str], signum: int, delay_s: float, tmp_path: Path) 
     )
 
 
-_DEPLOY = """\
+# A launch with two quick services (no camera to render); test_launch_child_signals too.
+GYRO_AND_MEDIATOR = """\
 version: 1
 services:
   gyro:
@@ -118,7 +119,7 @@ services:
 def test_a_signal_in_the_first_second_exits_0_and_leaves_nothing(
     argv: list[str], signum: int, delay_s: float, tmp_path: Path
 ) -> None:
-    (tmp_path / "deploy.yaml").write_text(_DEPLOY)
+    (tmp_path / "deploy.yaml").write_text(GYRO_AND_MEDIATOR)
     _signal_early(argv, signum, delay_s, tmp_path)
 
 

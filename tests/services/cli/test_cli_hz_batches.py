@@ -14,6 +14,7 @@ import pytest
 
 from middleware import NetworkConfig, Node, Producer, Retention, make_metadata
 from tests.conftest import wait_until
+from tests.helpers.background import in_background
 from tests.services.cli.conftest import Cli
 
 pytestmark = pytest.mark.integration
@@ -26,9 +27,8 @@ PERIOD_S = 0.05
 def _batching(producer: Producer, log: list[tuple[int, int]]) -> Iterator[None]:
     """Put ``BATCH`` elements every ``PERIOD_S`` until the block ends; ``log`` gets
     ``(monotonic ns, elements)`` per batch stored."""
-    stop = threading.Event()
 
-    def loop() -> None:
+    def loop(stop: threading.Event) -> None:
         t = time.time_ns()
         # On a schedule, not a sleep after each put: the rate stays steady when the
         # machine is loaded (late puts catch up), so any stretch of the run has about it.
@@ -42,13 +42,8 @@ def _batching(producer: Producer, log: list[tuple[int, int]]) -> Iterator[None]:
             log.append((time.monotonic_ns(), BATCH))
             t += BATCH * 1000
 
-    thread = threading.Thread(target=loop, daemon=True)
-    thread.start()
-    try:
+    with in_background(loop):
         yield
-    finally:
-        stop.set()
-        thread.join()
 
 
 def _rate_between(log: list[tuple[int, int]], start_ns: int, end_ns: int) -> float:

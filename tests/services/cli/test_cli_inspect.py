@@ -23,6 +23,7 @@ from middleware import (
     make_metadata,
 )
 from tests.conftest import free_port
+from tests.helpers.background import in_background
 from tests.helpers.timing import scaled
 from tests.services.cli.conftest import (
     HEIGHT,
@@ -95,9 +96,8 @@ def test_info_and_query_report_what_the_buffer_holds(
 @contextmanager
 def _producing(producer: Producer, period_s: float, payload: bytes = b"") -> Iterator[None]:
     """Put elements stamped with the wall clock until the block ends; refusals are drops."""
-    stop = threading.Event()
 
-    def loop() -> None:
+    def loop(stop: threading.Event) -> None:
         i = 0
         while not stop.is_set():
             t = time.time_ns()
@@ -108,13 +108,8 @@ def _producing(producer: Producer, period_s: float, payload: bytes = b"") -> Ite
             i += 1
             stop.wait(period_s)
 
-    thread = threading.Thread(target=loop, daemon=True)
-    thread.start()
-    try:
+    with in_background(loop):
         yield
-    finally:
-        stop.set()
-        thread.join()
 
 
 def test_only_a_flow_controlled_slow_watch_makes_the_producer_refuse(
@@ -196,22 +191,16 @@ def test_hz_headline_is_the_arrival_rate_with_the_stamps_rate_named_beside_it(
     # are twice as dense as the arrivals.
     with Node("cam", listen_net) as node:
         events = node.offer("events")
-        stop = threading.Event()
 
-        def fast_stamps() -> None:
+        def fast_stamps(stop: threading.Event) -> None:
             start = time.time_ns()
             while not stop.wait(0.02):
                 t = start + (time.time_ns() - start) // 2
                 events.put(t, b"x", make_metadata("generic", t))
 
-        thread = threading.Thread(target=fast_stamps, daemon=True)
-        thread.start()
-        try:
+        with in_background(fast_stamps):
             lines = cli.run("hz", "cam/events", "--duration", "3", "--json").json_lines()
             text = cli.run("hz", "cam/events", "--duration", "2").stdout
-        finally:
-            stop.set()
-            thread.join()
     summary = lines[-1]
     assert summary["stamp_rate_hz"] == pytest.approx(2 * summary["rate_hz"], rel=0.25), summary
     assert summary["receive_rate_hz"] == summary["rate_hz"]

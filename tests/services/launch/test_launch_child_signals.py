@@ -24,6 +24,7 @@ import pytest
 
 from tests.conftest import child_env, free_port, wait_until
 from tests.helpers.timing import scaled
+from tests.services.cli.test_cli_first_second import GYRO_AND_MEDIATOR
 
 pytestmark = pytest.mark.integration
 
@@ -33,15 +34,6 @@ INSTANTS_S = (0.0, 0.0, 0.005, 0.02, 0.05, 0.1, 0.2, 0.35, 0.5, 0.8)
 SIGNALS = (signal.SIGTERM, signal.SIGINT)
 # Generous: the launcher backs off 0.2 s, doubling up to 10 s, between restarts.
 RUN_S = 240.0
-
-_DEPLOY = """\
-version: 1
-services:
-  gyro:
-    args: {source: sim, seed: 1, loop: true}
-  mediator:
-    args: {policy: paper, b0: 5.0}
-"""
 
 
 def _read(proc: subprocess.Popen[str], out: list[str]) -> None:
@@ -56,7 +48,7 @@ def _exits(lines: list[str]) -> list[str]:
 
 
 def test_a_launched_child_signalled_in_its_first_second_exits_0(tmp_path: Path) -> None:
-    (tmp_path / "deploy.yaml").write_text(_DEPLOY)
+    (tmp_path / "deploy.yaml").write_text(GYRO_AND_MEDIATOR)
     env = child_env()
     env["FRAMEGATE_LOCAL_PORT"] = str(free_port())
     env["FRAMEGATE_RUNTIME_DIR"] = str(tmp_path / "run")
