@@ -91,8 +91,8 @@ class Discovery:
             service, " (to subscribe before it starts: subscribe(..., await_service=True))"
         )
 
-    def _require_service(self, service: str, advice: str = "") -> None:
-        live = self.live_services()
+    def _require_service(self, service: str, advice: str = "", *, timeout_s: float = 1.0) -> None:
+        live = self.live_services(timeout_s=timeout_s)
         if service not in live:
             hint = difflib.get_close_matches(service, live, n=1)
             did_you_mean = f" (did you mean {hint[0]!r}?)" if hint else ""
@@ -135,7 +135,7 @@ class Discovery:
             if reply.ok is not None:
                 raw = reply.ok.payload.to_bytes()
                 return decode_service_info(raw, start, end, service=service)
-        self._require_service(service)
+        self._require_service(service, timeout_s=timeout_s)
         raise NotFoundError(f"service {service!r} did not answer within {timeout_s} s")
 
     def ask_service_info(

@@ -99,7 +99,9 @@ class Queries(Discovery):
     def _get(self, target: str, params: dict[str, str], timeout_s: float) -> list[DataObject]:
         elements = self._collect(target, self._start_get(target, params, timeout_s))
         if not elements:
-            self.buffer_info(target)  # NotFoundError, with a did-you-mean, if there is none
+            # NotFoundError, with a did-you-mean, if there is none; asked with the caller's
+            # patience (a loaded machine's service answers late, and is not "gone" for it).
+            self.buffer_info(target, timeout_s=timeout_s)
         elements.sort(key=lambda e: e.timestamp_ns)
         return elements
 

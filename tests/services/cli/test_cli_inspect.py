@@ -150,7 +150,9 @@ def test_hz_measures_rate_jitter_and_bandwidth(listen_net: NetworkConfig, cli: C
     assert all(line["event"] == "report" for line in lines[:-1]) and len(lines) >= 2
     assert 5 < summary["rate_hz"] < 60  # 50 Hz nominal, on a loaded machine
     assert summary["window"] >= 5
-    assert 0 < summary["min_s"] <= summary["mean_s"] <= summary["max_s"]
+    # min 0: on a loaded machine two elements can arrive in the same instant.
+    assert 0 <= summary["min_s"] <= summary["mean_s"] <= summary["max_s"]
+    assert summary["mean_s"] > 0
     assert summary["std_s"] >= 0
     assert summary["mean_bytes"] == 1000
     assert summary["bandwidth_bytes_s"] == pytest.approx(1000 * summary["rate_hz"])
