@@ -126,6 +126,24 @@ def _catch_stop_signals() -> dict[signal.Signals, _Handler]:
     return {signum: signal.signal(signum, _interrupt) for signum in _STOP_SIGNALS}
 
 
+def _leave(code: int) -> None:
+    """End a console process with ``code`` once its command has returned.
+
+    The command has closed its sessions and files in its own ``finally``. What may be left
+    is a daemon thread still inside a Zenoh call (a bridge thread blocked in a query, a
+    worker abandoned after a stop) or a thread Zenoh itself runs Python on: when the
+    interpreter finalises, such a thread is unwound through Rust frames and the process
+    aborts (SIGABRT, "FATAL: exception not rethrown") instead of exiting with ``code``.
+    Nothing is left to finalise that the command did not already close, so end here."""
+    logging = sys.modules.get("logging")
+    if logging is not None:
+        logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(OSError, ValueError):  # a closed pipe: nothing to say
+            stream.flush()
+    os._exit(code)
+
+
 def _stopped(console: bool) -> int:
     """Exit code 0 for a stop by signal; a console process ends at once.
 
@@ -134,10 +152,7 @@ def _stopped(console: bool) -> int:
     its interpreter shutdown. What a command must keep (a recording's last chunk, the
     launcher's children) it handles in its own ``finally``, which has already run here."""
     if console:
-        for stream in (sys.stdout, sys.stderr):
-            with contextlib.suppress(OSError, ValueError):  # a closed pipe: nothing to say
-                stream.flush()
-        os._exit(0)
+        _leave(0)
     return 0
 
 
@@ -165,7 +180,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         # A signal that arrived while the two were blocked (a launcher stopping a service
         # that was still starting) is delivered here, to the handler, inside this try.
         signal.pthread_sigmask(signal.SIG_UNBLOCK, _STOP_SIGNALS)
-        return _main(argv)
+        code = _main(argv)
+        if argv is None:
+            _leave(code)
+        return code
     except KeyboardInterrupt:
         # Ctrl-C or SIGTERM: a stop the user asked for, not a failure (see the CLI reference).
         return _stopped(console=argv is None)
