@@ -87,35 +87,40 @@ def run_detector(
     capacity: int,
     tick_ns: int = MS,
     latencies_ns: list[int] | None = None,
-    ack_delay_ns: int = 0,
+    ack_delays_ns: tuple[int, ...] = (),
+    service_steps_ns: tuple[int, ...] = (),
 ) -> QueueRun:
     """Frames every ``frame_period_ns`` into ``decider``; a FIFO detector with ``capacity``
     waiting slots takes one frame at a time for ``service_ns``. Ticks every ``tick_ns``.
 
     Frame i (numbered from 1, its ``frame_id``) is exposed at (i - 1) periods (its
     ``timestamp_ns``, the camera's clock) and decided ``latencies_ns[i - 1]`` later (0 by
-    default); ``processed`` holds frame ids. ``ack_delay_ns``: the producer's count sees a
-    take that much after it happened (its ack in flight; the take is dated when seen), and
-    refuses a forward while that count is full (``refused``); ``idle_ns`` is how long the
-    detector had nothing to do between its first take and its last."""
+    default); ``processed`` holds frame ids. ``ack_delays_ns``: the producer's count sees
+    the n-th take ``ack_delays_ns[n % len]`` after it happened (its ack in flight; the take
+    is dated when seen), and refuses a forward while that count is full (``refused``);
+    ``idle_ns`` is how long the detector had nothing to do between its first take and its
+    last. ``service_steps_ns``: the n-th frame takes ``service_ns + service_steps_ns[n %
+    len]`` (a detector whose speed varies)."""
     run = QueueRun()
     queue: list[int] = []
     busy_until: int | None = None
-    takes: list[int] = []
+    takes: list[tuple[int, int]] = []  # (taken, seen)
 
     def count(now: int) -> Load:
-        unseen = sum(1 for t in takes[-capacity - 1 :] if t > now - ack_delay_ns)
-        if not ack_delay_ns:
+        if not ack_delays_ns:
             return Load(len(queue), capacity)  # every take seen, at once, undated
-        seen = [t + ack_delay_ns for t in takes if t <= now - ack_delay_ns]
-        return Load(len(queue) + unseen, capacity, seen[-1] if seen else None)
+        unseen = sum(1 for _t, seen in takes[-capacity - 1 :] if seen > now)
+        dated = [seen for _t, seen in takes if seen <= now]
+        return Load(len(queue) + unseen, capacity, max(dated) if dated else None)
 
     def take(now: int) -> int:
         if takes:  # the detector was free since idle_since
             run.idle_ns += now - idle_since[0]
         run.processed.append(queue.pop(0))
-        takes.append(now)
-        return now + service_ns
+        delay = ack_delays_ns[len(takes) % len(ack_delays_ns)] if ack_delays_ns else 0
+        takes.append((now, now + delay))
+        step = service_steps_ns[len(takes) % len(service_steps_ns)] if service_steps_ns else 0
+        return now + service_ns + step
 
     idle_since = [0]
     events: list[tuple[int, int, str]] = []
@@ -147,7 +152,7 @@ def run_detector(
             run.verdicts.append(verdict)
             if verdict.action is Action.FORWARD:
                 if count(now).queued >= capacity:
-                    assert ack_delay_ns, "forwarded into a full queue"
+                    assert ack_delays_ns, "forwarded into a full queue"
                     run.refused += 1
                     decider.refused(verdict.frame)
                     continue

@@ -153,10 +153,41 @@ def test_takes_counted_late_cost_no_frames_with_one_slot(ack_delay_ms: int) -> N
     def run(delay_ns: int) -> QueueRun:
         return run_detector(
             _adaptive(), qualities, frame_period_ns=66_666_667, service_ns=107 * MS,
-            capacity=1, ack_delay_ns=delay_ns,
+            capacity=1, ack_delays_ns=(delay_ns,) if delay_ns else (),
         )  # fmt: skip
 
     prompt, late = run(0), run(ack_delay_ms * MS)
     assert late.refused == 0
     assert len(late.processed) >= len(prompt.processed) - 2
     assert late.idle_ns <= prompt.idle_ns + 107 * MS  # at most about one frame's worth
+
+
+@pytest.mark.parametrize("seed", [0, 2, 3])
+def test_acks_that_come_late_now_and_then_do_not_slow_its_clock(seed: int) -> None:
+    # A detector of 100-125 ms a frame; one take in five is seen 20-160 ms late (its ack
+    # held up on a loaded machine), the others after 1-5 ms, as traced at load 20. The
+    # clock never runs slower than the detector (a detector thought busy would idle), and
+    # the detector stays about as busy as when every take is seen at once.
+    rng = random.Random(5)
+    qualities = [rng.uniform(0.2, 1.0) for _ in range(300)]
+    steps = tuple(round(rng.uniform(-7, 18) * MS) for _ in range(97))
+    draw = random.Random(seed)
+    late_acks = tuple(
+        round((draw.uniform(1, 5) if draw.random() < 0.8 else draw.uniform(20, 160)) * MS)
+        for _ in range(61)
+    )
+
+    def run(ack_delays_ns: tuple[int, ...]) -> tuple[QueueRun, Decider]:
+        decider = _adaptive()
+        out = run_detector(
+            decider, qualities, frame_period_ns=66_666_667, service_ns=107 * MS,
+            capacity=1, tick_ns=2 * MS, ack_delays_ns=ack_delays_ns, service_steps_ns=steps,
+        )  # fmt: skip
+        return out, decider
+
+    (prompt, _), (late, decider) = run(()), run(late_acks)
+    service = decider.detector.service_ns
+    assert service is not None and service <= 115 * MS  # the detector's mean is 112.5
+    assert late.refused == 0
+    assert len(late.processed) >= len(prompt.processed) - 8
+    assert late.idle_ns <= prompt.idle_ns + 1_000 * MS
