@@ -33,7 +33,7 @@ from ._element_check import ElementCheck
 from ._errors import DuplicateTimestampError, FlowControlRefused, FramegateError
 from ._executor import BUDGET as _BUDGET
 from ._executor import Executor, Wake, remaining_s
-from ._inbox import ACK_INBOX, ACK_MAX_BYTES, TOKEN_INBOX, ControlInbox, control_inbox_bytes
+from ._inbox import ACK_MAX_BYTES, TOKEN_INBOX, AckInbox, ControlInbox, control_inbox_bytes
 from ._ledger_producer import RegistrationKey
 from ._protocol_events import Event, Publish, Retire
 from ._protocol_producer import ProducerProtocol
@@ -124,9 +124,7 @@ class Producer:
         self._wake = Wake(self, self._cond, executor, lambda: len(self._acks))
         # Acks are fed by whoever needs credit next (a put, ``fill``, the executor before a
         # resend); only a waiting put, or a backlog, wakes anyone (``Wake``).
-        self._acks = ControlInbox(
-            capacity=ACK_INBOX, max_bytes=ACK_MAX_BYTES, signal=self._wake.signal
-        )
+        self._acks = AckInbox(max_bytes=ACK_MAX_BYTES, signal=self._wake.signal)
         # A token is the executor's at once: a new subscriber waits for its greeting. A token
         # is its key; it carries no payload.
         self._token_keys = keys.subscription_tokens(service, buffer)
