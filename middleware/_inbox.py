@@ -132,7 +132,8 @@ class _Bounded(Generic[T]):
             _pin_thread_state()
         if self.closed:
             return
-        size = len(sample.payload)
+        payload = sample.payload  # one wrapper, read once (each access makes a new one)
+        size = len(payload)
         attachment = sample.attachment
         if attachment is not None:
             size += len(attachment)
@@ -149,7 +150,7 @@ class _Bounded(Generic[T]):
             with self._count_lock, contextlib.suppress(IndexError):
                 items.popleft()
                 self.overflow += 1
-        kept = self._keep(sample)
+        kept = self._keep(sample, payload)
         if kept is None:  # not ours to keep (``ControlInbox``: a key too long)
             with self._count_lock:
                 self.oversize += 1
@@ -168,7 +169,7 @@ class _Bounded(Generic[T]):
         for their first byte, or as repeats)."""
         return self.oversize + self.overflow
 
-    def _keep(self, sample: zenoh.Sample) -> T | _Drop | None:
+    def _keep(self, sample: zenoh.Sample, payload: zenoh.ZBytes) -> T | _Drop | None:
         """What to hold of ``sample`` (on Zenoh's thread), None to drop it as oversize, or
         ``DROPPED`` when it dropped and counted it itself."""
         raise NotImplementedError
@@ -196,7 +197,7 @@ class _Bounded(Generic[T]):
 class Inbox(_Bounded[zenoh.Sample]):
     """A bounded inbox of Zenoh samples (each keeps the batch it arrived in alive)."""
 
-    def _keep(self, sample: zenoh.Sample) -> zenoh.Sample:
+    def _keep(self, sample: zenoh.Sample, payload: zenoh.ZBytes) -> zenoh.Sample:
         return sample
 
 
@@ -216,11 +217,11 @@ class ControlInbox(_Bounded[Control]):
 
     drop_newest = True
 
-    def _keep(self, sample: zenoh.Sample) -> Control | _Drop | None:
+    def _keep(self, sample: zenoh.Sample, payload: zenoh.ZBytes) -> Control | _Drop | None:
         key = str(sample.key_expr)
         if len(key) > KEY_MAX_BYTES:
             return None
-        return Control(key, sample.payload.to_bytes(), sample.kind == zenoh.SampleKind.PUT)
+        return Control(key, payload.to_bytes(), sample.kind == zenoh.SampleKind.PUT)
 
 
 class AckInbox(ControlInbox):
@@ -253,9 +254,9 @@ class AckInbox(ControlInbox):
     def dropped(self) -> int:
         return self.oversize + self.overflow + self.malformed + self.repeats
 
-    def _keep(self, sample: zenoh.Sample) -> Control | _Drop | None:
-        payload = sample.payload.to_bytes()  # at most ``max_bytes``: checked before
-        if payload[:1] != _ACK_FIRST_BYTE:
+    def _keep(self, sample: zenoh.Sample, payload: zenoh.ZBytes) -> Control | _Drop | None:
+        data = payload.to_bytes()  # at most ``max_bytes``: checked before
+        if data[:1] != _ACK_FIRST_BYTE:
             with self._count_lock:
                 self.malformed += 1
             return DROPPED
@@ -264,11 +265,40 @@ class AckInbox(ControlInbox):
             return None
         now_ns = time.monotonic_ns()
         last = self._last.get(key)
-        if last is not None and last[0] == payload and now_ns - last[1] < REPEAT_RESEND_NS:
+        if last is not None and last[0] == data and now_ns - last[1] < REPEAT_RESEND_NS:
             with self._count_lock:
                 self.repeats += 1
             return DROPPED
         if len(self._last) >= self.capacity:
             self._last.clear()
-        self._last[key] = (payload, now_ns)
-        return Control(key, payload, sample.kind == zenoh.SampleKind.PUT)
+        self._last[key] = (data, now_ns)
+        return Control(key, data, sample.kind == zenoh.SampleKind.PUT)
+
+
+class TokenInbox(ControlInbox):
+    """A producer's subscription-token inbox. A token that comes and goes between two looks
+    (churn: declared and withdrawn at once) is its withdrawal alone: ``take`` drops a put
+    that a later delete of the same key in the same batch undoes, counted in ``collapsed``
+    (not a loss: a put then a delete leaves the table as the delete alone does, whether the
+    key was registered before or not), so such a token costs no registration, greeting or
+    retirement."""
+
+    def __init__(self, *, capacity: int, signal: Callable[[], None]) -> None:
+        super().__init__(capacity=capacity, max_bytes=0, signal=signal)
+        self.collapsed = 0
+
+    def take(self, budget: int) -> list[Control]:
+        batch = super().take(budget)
+        last_delete: dict[str, int] = {}
+        for index, message in enumerate(batch):
+            if not message.alive:
+                last_delete[message.key] = index
+        if not last_delete:
+            return batch
+        kept = [
+            message
+            for index, message in enumerate(batch)
+            if not message.alive or last_delete.get(message.key, -1) < index
+        ]
+        self.collapsed += len(batch) - len(kept)  # under the producer's lock, as every take
+        return kept

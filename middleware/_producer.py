@@ -33,7 +33,7 @@ from ._element_check import ElementCheck
 from ._errors import DuplicateTimestampError, FlowControlRefused, FramegateError
 from ._executor import BUDGET as _BUDGET
 from ._executor import Executor, Wake, remaining_s
-from ._inbox import ACK_MAX_BYTES, TOKEN_INBOX, AckInbox, ControlInbox, control_inbox_bytes
+from ._inbox import ACK_MAX_BYTES, TOKEN_INBOX, AckInbox, TokenInbox, control_inbox_bytes
 from ._ledger_producer import RegistrationKey
 from ._protocol_events import Event, Publish, Retire
 from ._protocol_producer import ProducerProtocol
@@ -129,7 +129,7 @@ class Producer:
         # is its key; it carries no payload.
         self._token_keys = keys.subscription_tokens(service, buffer)
         self._tokens_dropped = 0
-        self._tokens = ControlInbox(capacity=TOKEN_INBOX, max_bytes=0, signal=self._signal)
+        self._tokens = TokenInbox(capacity=TOKEN_INBOX, signal=self._signal)
         self._acks.declare(session, keys.acks(service, buffer))
         # Declared last: its callback (history included) may run at once.
         self._tokens.declare(session, self._token_keys, liveliness=True)
