@@ -198,6 +198,7 @@ def camera_sample(answer: dict[str, Any], pair: int) -> dict[str, Any]:
                 "buffer_bytes",
             )
         },
+        **{key: answer[key] for key in ("dropped_messages",) if key in answer},
     }
 
 
@@ -348,6 +349,7 @@ def _delivered_rows(run: _Windows, attack: Attack, allowance: int) -> list[Row]:
             if sent is not None:
                 flood_sent = (_sent(attack, workers) or 0) - sent
                 during["flood_msgs_s"] = flood_sent / during["elapsed_s"]
+            _cost_per_drop(during, alone)
             share = during["delivered_hz"] / alone["delivered_hz"] if alone["delivered_hz"] else 0
             during.update(value=share, alone_delivered_hz=alone["delivered_hz"])
             rate.framegate.append(during)
@@ -359,12 +361,14 @@ def _delivered_rows(run: _Windows, attack: Attack, allowance: int) -> list[Row]:
                     "beyond_alone_mb": during["rss_growth_mb"] - alone["rss_growth_mb"],
                 }
             )
+        cost = during.get("cpu_us_per_dropped")
         run.options.progress(
             f"hostile {attack.name}: delivered {alone['delivered_hz']:.1f} Hz alone, "
             f"{during['delivered_hz']:.1f} Hz attacked ({share:.2f}) by "
             f"{during.get('flood_msgs_s', 0):.0f} msg/s; camera CPU {alone['cpu_pct']:.0f} % "
-            f"alone, {during['cpu_pct']:.0f} % attacked; "
-            f"RSS +{during['rss_growth_mb']:.0f} MB (private +{during['private_growth_mb']:.0f}, "
+            f"alone, {during['cpu_pct']:.0f} % attacked, {during['dropped_in_window']} dropped"
+            + (f" ({cost:.1f} us each); " if cost is not None else "; ")
+            + f"RSS +{during['rss_growth_mb']:.0f} MB (private +{during['private_growth_mb']:.0f}, "
             f"shared +{during['shared_growth_mb']:.0f}; alone: +{alone['private_growth_mb']:.0f}, "
             f"+{alone['shared_growth_mb']:.0f})"
         )
@@ -417,6 +421,16 @@ def _rss_goal(rss: Row, allowance: int, *, transport: float | None = None) -> Go
 
 def _camera_run(camera: Any, seconds: float, pair: int) -> dict[str, Any]:
     return camera_sample(camera.call("run", seconds + 60.0, seconds=seconds), pair)
+
+
+def _cost_per_drop(during: dict[str, Any], alone: dict[str, Any]) -> None:
+    """The camera's CPU beyond its CPU alone per control message it dropped in the window
+    (garbage, repeats, oversize, overflow: counted as ``dropped_messages``), in us."""
+    dropped = int(during.get("dropped_messages", 0)) - int(alone.get("dropped_messages", 0))
+    during["dropped_in_window"] = dropped
+    if dropped > 0:
+        extra_s = (during["cpu_pct"] - alone["cpu_pct"]) / 100.0 * during["elapsed_s"]
+        during["cpu_us_per_dropped"] = 1e6 * extra_s / dropped
 
 
 def _sent(attack: Attack, workers: list[Any]) -> int | None:
