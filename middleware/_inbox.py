@@ -82,10 +82,16 @@ KEY_MAX_BYTES = 1024
 CONTROL_OVERHEAD_BYTES = 256
 
 
+# Keys whose last kept ack an ``AckInbox`` remembers (to drop repeats).
+ACK_LAST_KEYS = 1024
+
+
 def control_inbox_bytes() -> int:
-    """The most a producer's two control inboxes can hold (``BufferLimits``)."""
+    """The most a producer's two control inboxes can hold (``BufferLimits``), with the last
+    ack kept per key (``AckInbox``)."""
     per_ack = ACK_MAX_BYTES + KEY_MAX_BYTES + CONTROL_OVERHEAD_BYTES
-    return ACK_INBOX * per_ack + TOKEN_INBOX * (KEY_MAX_BYTES + CONTROL_OVERHEAD_BYTES)
+    tokens = TOKEN_INBOX * (KEY_MAX_BYTES + CONTROL_OVERHEAD_BYTES)
+    return (ACK_INBOX + ACK_LAST_KEYS) * per_ack + tokens
 
 
 @dataclass(frozen=True, slots=True)
@@ -246,8 +252,8 @@ class AckInbox(ControlInbox):
         super().__init__(capacity=capacity, max_bytes=max_bytes, signal=signal)
         self.malformed = 0
         self.repeats = 0
-        # The last payload kept per key and when; cleared when it reaches ``capacity`` keys
-        # (a flood of keys: it is only a shortcut, the protocol checks again).
+        # The last payload kept per key and when; cleared when it reaches ``ACK_LAST_KEYS``
+        # keys (a flood of keys: it is only a shortcut, the protocol checks again).
         self._last: dict[str, tuple[bytes, int]] = {}
 
     @property
@@ -269,7 +275,7 @@ class AckInbox(ControlInbox):
             with self._count_lock:
                 self.repeats += 1
             return DROPPED
-        if len(self._last) >= self.capacity:
+        if len(self._last) >= ACK_LAST_KEYS:
             self._last.clear()
         self._last[key] = (data, now_ns)
         return Control(key, data, sample.kind == zenoh.SampleKind.PUT)
