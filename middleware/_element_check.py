@@ -7,7 +7,7 @@ from collections.abc import Sequence
 
 from ._clock import now_ns
 from ._errors import SchemaError
-from ._records import DataObject
+from ._records import DataObject, data_object
 from ._shapes import ShapeChecker
 from ._xml import XmlLimits
 
@@ -44,7 +44,7 @@ class ElementCheck:
             raise SchemaError(
                 f"metadata says timestamp_ns={declared} but the element's key is {timestamp_ns}"
             )
-        return DataObject(timestamp_ns, payload, meta)
+        return data_object(timestamp_ns, payload, meta)
 
     def many(self, elements: Sequence[tuple[int, bytes, bytes | str]]) -> tuple[DataObject, ...]:
         """``self(*element)`` for each element of a batch, the common case in one tight loop:
@@ -63,7 +63,7 @@ class ElementCheck:
                 and 0 <= timestamp_ns <= self._horizon_at_ns
                 and shape_ns(metadata) == timestamp_ns
             ):
-                append(DataObject(timestamp_ns, payload, metadata))
+                append(data_object(timestamp_ns, payload, metadata))
             else:
                 append(self(timestamp_ns, payload, metadata))
         return tuple(out)

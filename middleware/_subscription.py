@@ -27,7 +27,7 @@ from ._executor import BUDGET, Executor, Wake, remaining_s
 from ._inbox import Inbox
 from ._ledger_subscriber import REACK_NS, Entry, SubscriberCounters
 from ._protocol_subscriber import RETRY_NS, Item, SubscriberProtocol
-from ._records import DataObject, Notification, SubscriptionMode
+from ._records import DataObject, Notification, SubscriptionMode, data_object, notification
 from ._wire import Keys, holder_chunk
 
 log = logging.getLogger("framegate.middleware")
@@ -392,8 +392,8 @@ class Subscription:
             element = None
             if pushed is not None and metadata is not None:
                 payload = pushed if type(pushed) is bytes else pushed.to_bytes()
-                element = DataObject(timestamp, payload, metadata)
-            append(Notification(service, buffer, timestamp, seq, metadata, element, missed))
+                element = data_object(timestamp, payload, metadata)
+            append(notification(service, buffer, timestamp, seq, metadata, element, missed))
         return notes
 
     def __iter__(self) -> Iterator[Notification]:
