@@ -87,7 +87,7 @@ def test_a_batch_is_refused_whole_when_the_queue_lacks_room_for_all_its_elements
     assert producer.full(2) is not None, "3 queued + 2 > 4"
     assert producer.full(1) is None
     [send] = producer.put_many((10,), 0)
-    assert (send.seq, send.count) == (4, 1)
+    assert (send.seq, len(send.headers)) == (4, 1)
 
 
 def test_a_batch_is_one_send_that_the_subscriber_queues_as_its_elements() -> None:
