@@ -19,7 +19,6 @@ and the main thread waits in ``Node.spin``.
 
 from __future__ import annotations
 
-import argparse
 import collections
 import logging
 import os
@@ -43,17 +42,16 @@ from middleware import (
 from services.lib.argtypes import positive_float, positive_int
 from services.lib.messages import frame_metadata
 from services.lib.quality import Exposure
-from services.lib.settings import add_flags, from_args, setting
-from services.nodes._contract import Service, ServiceEntry
+from services.lib.settings import setting
+from services.nodes._contract import Service
 from services.nodes._runtime import Timeline, run_source, start_at_ns, unless_stopped
 from services.nodes.sources import (
     DeviceSource,
     FrameSource,
     SourceFrame,
     SourceSpec,
-    add_source_arguments,
     open_frame_source,
-    source_from_args,
+    source_service,
 )
 
 
@@ -259,17 +257,4 @@ class RateWatch:
         )
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """The camera's flags (``framegate run camera --help``): one per config field."""
-    add_flags(parser, CameraConfig)
-    add_source_arguments(parser, device=True)
-
-
-def config_from_args(args: argparse.Namespace) -> CameraConfig:
-    config: CameraConfig = from_args(CameraConfig, args, source=source_from_args(args))
-    return config
-
-
-SERVICE: Service[CameraConfig] = ServiceEntry(
-    "camera", CameraConfig, add_arguments, config_from_args, run
-)
+SERVICE: Service[CameraConfig] = source_service("camera", CameraConfig, run, device=True)

@@ -16,7 +16,6 @@ Threads: none of its own; each batch is put by a deadline on the node's executor
 
 from __future__ import annotations
 
-import argparse
 import logging
 import threading
 from dataclasses import dataclass
@@ -36,15 +35,14 @@ from middleware import (
 from services.lib.argtypes import non_negative_float, positive_float, positive_int
 from services.lib.messages import gyro_metadata
 from services.lib.quality import GyroSamples
-from services.lib.settings import add_flags, from_args, setting
-from services.nodes._contract import Service, ServiceEntry
+from services.lib.settings import setting
+from services.nodes._contract import Service
 from services.nodes._runtime import Timeline, run_source, start_at_ns
 from services.nodes.sources import (
     GyroSource,
     SourceSpec,
-    add_source_arguments,
     open_gyro_source,
-    source_from_args,
+    source_service,
 )
 
 # Batches older than this when their time comes are skipped, not sent.
@@ -171,17 +169,4 @@ def _split(
     return [elements[i : i + size] for i in range(0, len(elements), size)]
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """The gyro's flags (``framegate run gyro --help``): one per config field."""
-    add_flags(parser, GyroConfig)
-    add_source_arguments(parser, device=False)
-
-
-def config_from_args(args: argparse.Namespace) -> GyroConfig:
-    config: GyroConfig = from_args(GyroConfig, args, source=source_from_args(args))
-    return config
-
-
-SERVICE: Service[GyroConfig] = ServiceEntry(
-    "gyro", GyroConfig, add_arguments, config_from_args, run
-)
+SERVICE: Service[GyroConfig] = source_service("gyro", GyroConfig, run, device=False)

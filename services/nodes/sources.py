@@ -24,10 +24,11 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from middleware import ConfigError
+from middleware import ConfigError, NetworkConfig
 from services.lib.argtypes import non_negative_int, positive_float, positive_int
 from services.lib.camera_model import CameraModel
 from services.lib.settings import add_flags, from_args, setting
+from services.nodes._contract import ConfigT, Service, ServiceEntry
 
 # Where frames come from; ``prerendered``'s optional path is its cache directory.
 KINDS = ("sim", "prerendered", "replay", "device")
@@ -321,3 +322,24 @@ def add_source_arguments(parser: argparse.ArgumentParser, *, device: bool) -> No
 def source_from_args(args: argparse.Namespace) -> SourceSpec:
     spec: SourceSpec = from_args(SourceSpec, args)
     return spec
+
+
+def source_service(
+    name: str,
+    config_type: type[ConfigT],
+    run: Callable[[ConfigT, NetworkConfig, threading.Event], int],
+    *,
+    device: bool,
+) -> Service[ConfigT]:
+    """A source service (camera, gyro): flags one per config field plus ``--source`` and
+    how to play it; its config carries the parsed source as ``source``."""
+
+    def add_arguments(parser: argparse.ArgumentParser) -> None:
+        add_flags(parser, config_type)
+        add_source_arguments(parser, device=device)
+
+    def config_from_args(args: argparse.Namespace) -> ConfigT:
+        config: ConfigT = from_args(config_type, args, source=source_from_args(args))
+        return config
+
+    return ServiceEntry(name, config_type, add_arguments, config_from_args, run)

@@ -76,24 +76,31 @@ class DemoConfig:
             raise ConfigError(f"--source {self.source!r}: choose one of {', '.join(SOURCES)}")
 
 
-def demo_deployment(config: DemoConfig) -> Deployment:
-    """The pipeline (deploy/local.yaml) with the demo's settings, plus the uncontrolled
-    detector on camera/images."""
+def demo_pipeline(
+    config: DemoConfig, detector: dict[str, Any] | None, name: str = "demo"
+) -> Deployment:
+    """The pipeline (deploy/local.yaml) with the demo's source, floor and policy; the
+    detector with ``detector``'s settings, or none (another consumer takes its place)."""
     source: dict[str, Any] = {"source": config.source, "seed": config.seed}
     if config.floor != "default":
         source["floor"] = config.floor
     if config.cache is not None and config.source == "prerendered":
         source["path"] = str(config.cache)
-    detector = {"queue": config.queue, "service_factor": config.service_factor}
-    base = pipeline(
+    return pipeline(
         {
             "camera": source,
             "gyro": source,
             "mediator": {"policy": config.policy, "b0": config.b0_px},
             "detector": detector,
         },
-        name="demo",
+        name=name,
     )
+
+
+def demo_deployment(config: DemoConfig) -> Deployment:
+    """The demo's pipeline plus the uncontrolled detector on camera/images."""
+    detector = {"queue": config.queue, "service_factor": config.service_factor}
+    base = demo_pipeline(config, detector)
     uncontrolled = ServiceSpec(
         UNCONTROLLED,
         "detector",

@@ -7,6 +7,7 @@ from __future__ import annotations
 import msgpack
 
 from middleware._ledger_producer import RegistrationKey
+from middleware._protocol_events import Publish
 from middleware._protocol_producer import (
     FLOW_QUEUE_MAX,
     LARGE_PUSH_PER_HOLDER,
@@ -14,7 +15,6 @@ from middleware._protocol_producer import (
     MAX_OBSERVE_REGISTRATIONS,
     QUEUE_BUDGET,
     ProducerProtocol,
-    Publish,
 )
 from middleware._records import DataObject, SubscriptionMode
 from middleware._wire import Keys, encode_ack

@@ -35,6 +35,7 @@ from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, pr
 
 from middleware._ledger_producer import RETRANSMIT_NS, RegistrationKey
 from middleware._ledger_subscriber import ACK_DELAY_NS, MAX_EPOCHS, AckPolicy, Entry
+from middleware._protocol_events import Publish
 from middleware._protocol_producer import (
     FLOW_QUEUE_MAX,
     MAX_FLOW_REGISTRATIONS,
@@ -43,7 +44,6 @@ from middleware._protocol_producer import (
     RESEND_BURST,
     RESEND_PACE_NS,
     ProducerProtocol,
-    Publish,
 )
 from middleware._protocol_subscriber import Item, SubscriberProtocol
 from middleware._records import DataObject, SubscriptionMode

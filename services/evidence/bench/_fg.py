@@ -31,7 +31,17 @@ from middleware import (
     now_ns,
 )
 
-from ._serve import Counter, LatencyLog, RssMeter, paced, profiled, reply, serve, sleep_until
+from ._serve import (
+    Counter,
+    LatencyLog,
+    RssMeter,
+    paced,
+    profiled,
+    reply,
+    serve,
+    serve_while_consuming,
+    sleep_until,
+)
 
 SERVICE = "bench"
 # Query-scaling elements sit this many ns apart, so a range of k elements is easy to write.
@@ -210,19 +220,8 @@ def fg_sub(params: dict[str, Any]) -> None:
             else partial(_consume, sub, stop, on_element)
         )
         # Several consuming threads keep several fetches in flight (take() is thread-safe).
-        threads = [
-            threading.Thread(target=consume, daemon=True)
-            for _ in range(int(params.get("fetchers", 1)))
-        ]
-        for thread in threads:
-            thread.start()
-        reply(ready=True)
-        try:
-            serve({"mark": counter.mark})
-        finally:
-            stop.set()
-            for thread in threads:
-                thread.join(timeout=2.0)
+        fetchers = [consume] * int(params.get("fetchers", 1))
+        serve_while_consuming(fetchers, stop, {"mark": counter.mark})
 
 
 def fg_lat_pub(params: dict[str, Any]) -> None:
@@ -277,7 +276,7 @@ def fg_lat_sub(params: dict[str, Any]) -> None:
         return on_element
 
     with Node(network=_network(params)) as node:
-        threads = []
+        consumers: list[Callable[[], None]] = []
         for name, stream in streams.items():
             sub = _subscribe(
                 node,
@@ -286,18 +285,8 @@ def fg_lat_sub(params: dict[str, Any]) -> None:
                 wait_s=5.0,
                 push_max_bytes=PUSH_ALL if stream.get("push") else None,
             )
-            thread = threading.Thread(
-                target=_consume, args=(sub, stop, recorder(name)), daemon=True
-            )
-            thread.start()
-            threads.append(thread)
-        reply(ready=True)
-        try:
-            serve({"collect": log.collect})
-        finally:
-            stop.set()
-            for thread in threads:
-                thread.join(timeout=2.0)
+            consumers.append(partial(_consume, sub, stop, recorder(name)))
+        serve_while_consuming(consumers, stop, {"collect": log.collect})
 
 
 def fg_query_server(params: dict[str, Any]) -> None:

@@ -28,12 +28,13 @@ import json
 import struct
 import threading
 import time
+from functools import partial
 from typing import Any
 
 from ._options import BenchOptions
 from ._procs import Worker, WorkerGroup, free_endpoint
 from ._records import Row, ScenarioResult, extra_goal
-from ._serve import LatencyLog, paced, reply, serve, sleep_until
+from ._serve import LatencyLog, paced, reply, serve, serve_while_consuming, sleep_until
 from ._stats import percentile
 from ._throughput import FRAME_BYTES
 
@@ -224,19 +225,8 @@ def fg_sub(params: dict[str, Any]) -> None:
                 if len(element.payload) == FRAME_BYTES:
                     log.record(stream, (now - element.timestamp_ns) / 1000)
 
-        threads = [
-            threading.Thread(target=consume, args=args, daemon=True)
-            for args in (("in", "ros2/images"), ("fg", "fgpub/direct"))
-        ]
-        for thread in threads:
-            thread.start()
-        reply(ready=True)
-        try:
-            serve({"collect": log.collect})
-        finally:
-            stop.set()
-            for thread in threads:
-                thread.join(2)
+        consumers = [partial(consume, "in", "ros2/images"), partial(consume, "fg", "fgpub/direct")]
+        serve_while_consuming(consumers, stop, {"collect": log.collect})
 
 
 ROLES = {

@@ -137,26 +137,12 @@ def _one_run(window_s: float, period_s: float, progress: Any) -> dict[str, Any]:
         Deployment,
         ServiceSpec,
         Supervisor,
-        pipeline,
         process_specs,
     )
-    from services.tools.demo import DemoConfig
+    from services.tools.demo import DemoConfig, demo_pipeline
 
-    demo = DemoConfig()
-    source: dict[str, str | int | float | bool | None] = {
-        "source": demo.source,
-        "seed": demo.seed,
-        "floor": demo.floor,
-    }
-    base = pipeline(
-        {
-            "camera": source,
-            "gyro": source,
-            "mediator": {"policy": demo.policy, "b0": demo.b0_px},
-            "detector": None,
-        },
-        name="ros2-loop",
-    )
+    # The demo's pipeline; the ROS 2 nodes below take its detector's place.
+    base = demo_pipeline(DemoConfig(), detector=None, name="ros2-loop")
     bridge = ServiceSpec("ros2", "ros2", LOCAL_HOST, _bridge_argv(ros_at := free_endpoint()))
     deployment = Deployment(base.path, base.network, base.hosts, (*base.services, bridge))
     network = NetworkConfig(local_port=int(free_endpoint().rsplit(":", 1)[1]))

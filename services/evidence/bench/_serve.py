@@ -14,7 +14,7 @@ import os
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -71,6 +71,23 @@ def serve(handlers: dict[str, Handler]) -> None:
             reply(error=f"{op}: {type(exc).__name__}: {exc}")
         else:
             reply(**result)
+
+
+def serve_while_consuming(
+    consumers: Sequence[Callable[[], None]], stop: threading.Event, handlers: dict[str, Handler]
+) -> None:
+    """Run each consumer on a daemon thread, say ready, serve ``handlers``; then set
+    ``stop`` and give the consumers 2 s to end (one blocked in a take is left behind)."""
+    threads = [threading.Thread(target=consume, daemon=True) for consume in consumers]
+    for thread in threads:
+        thread.start()
+    reply(ready=True)
+    try:
+        serve(handlers)
+    finally:
+        stop.set()
+        for thread in threads:
+            thread.join(timeout=2.0)
 
 
 def paced(seconds: float, interval_s: float) -> list[float]:
