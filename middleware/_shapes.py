@@ -101,6 +101,8 @@ class ShapeChecker:
         # The last document accepted by shape: (it, its value spans, the root slot's index);
         # replaced whole, so a reader on another thread sees one consistent tuple.
         self._last: tuple[bytes, tuple[tuple[int, int], ...], int] | None = None
+        # ``_last`` as ``timestamps_ns`` compares with it, made once per last document.
+        self._like: tuple[object, _Like | None] = (None, None)
 
     def timestamp_ns(self, raw: bytes) -> int:
         """Check ``raw`` (UTF-8 metadata) in full or by its shape; its ``timestamp_ns``.
@@ -136,13 +138,13 @@ class ShapeChecker:
         any other goes through ``timestamp_ns``."""
         out: list[int] = []
         append = out.append
-        last = None
-        like = None
+        last, like = self._like  # kept between batches: a gyro's are 10 documents each
         hits = 0
         for raw in raws:
-            if last is not self._last:  # the first document, or one that was cut
+            if last is not self._last:  # a new last document (the first, or one cut)
                 last = self._last
                 like = _Like.of(last) if last is not None else None
+                self._like = (last, like)
             if like is not None and len(raw) == like.size:
                 startswith = raw.startswith
                 for start, piece in like.pieces:
