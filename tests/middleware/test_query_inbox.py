@@ -43,7 +43,8 @@ def test_full_inbox_refuses_with_an_error_and_counts() -> None:
     for refused in queries[2:]:
         assert refused.finalized == 1
         assert b"has 2 queries waiting" in refused.errors[0]
-    assert [inbox.take(), inbox.take()] == queries[:2]
+    taken: list[object] = [inbox.take(), inbox.take()]
+    assert taken == queries[:2]
     assert queries[0].errors == [] and queries[1].errors == []
 
 
