@@ -92,7 +92,11 @@ def register(subparsers: Any) -> None:
         help="do not add foxglove.RawImage channels for camera frames (halves the file)",
     )
     parser.add_argument(
-        "--compression", choices=("zstd", "lz4", "none"), default="zstd", help="chunk compression"
+        "--compression",
+        choices=("zstd", "lz4", "none"),
+        default="zstd",
+        help="chunk compression (chunks written while the writer is behind, and at the stop, "
+        "are stored uncompressed so that nothing waits for the compressor)",
     )
     parser.add_argument("--overwrite", action="store_true", help="replace FILE if it exists")
     add_timeout_argument(parser)
