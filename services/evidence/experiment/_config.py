@@ -90,8 +90,10 @@ class ExperimentConfig:
             raise ConfigError(f"--frames must be >= 2, got {self.frames}")
         if RunKind.ALL not in self.runs:
             raise ConfigError("the 'all' run is the reference (recognizable frames); keep it")
-        if self.startup_s < 1.0:
-            raise ConfigError(f"startup_s must be >= 1 s, got {self.startup_s}")
+        if not 1.0 <= self.startup_s <= 9.0:
+            # Above 9 s the camera's first put, stamped with the replay's time zero, can be
+            # 10 s ahead of its clock, which a producer refuses (the camera then exits).
+            raise ConfigError(f"--startup must be 1-9 s, got {self.startup_s}")
 
     @property
     def frame_count(self) -> int | None:

@@ -36,6 +36,10 @@ from ._records import FrameDetections, RunRecord
 _STALL_S = 10.0
 _POLL_S = 0.25
 _ATTEMPTS = 4
+# The longest start-up a retry is given. The camera stamps its camera/info with the replay's
+# time zero, and a producer refuses elements stamped 10 s or more ahead of its clock: with a
+# longer start-up a camera that came up quickly exited on its own first put (seen at 12 s).
+MAX_STARTUP_S = 9.0
 _CONSUMER_TIMEOUT_S = 60.0
 _PRODUCERS = ("camera", "gyro")
 # The `all` run is about every frame, not time: at half speed a busy machine does not make
@@ -183,17 +187,17 @@ def run_configuration(
     The consumers (mediator, detector) start first; once they are live, the camera and gyro
     replays start with a time zero ``settings.startup_s`` ahead. If they are not up and
     subscribed by then (a busy machine), the run is abandoned and tried again with twice
-    the start-up time; ``RunRecord.startup_s`` says what worked.
+    the start-up time, at most ``MAX_STARTUP_S``; ``RunRecord.startup_s`` says what worked.
     """
     startup_s = settings.startup_s
     for attempt in range(1, _ATTEMPTS + 1):
         record = _attempt(kind, dataset, seed, settings, startup_s, attempt)
         if record is not None:
             return record
-        startup_s *= 2
+        startup_s = min(2 * startup_s, MAX_STARTUP_S)
     raise ExperimentError(
         f"seed {seed} {kind.value}: the camera and gyro did not come up within "
-        f"{startup_s / 2:.0f} s in {_ATTEMPTS} attempts; is the machine overloaded?"
+        f"{startup_s:.0f} s in {_ATTEMPTS} attempts; is the machine overloaded?"
     )
 
 

@@ -18,7 +18,8 @@ Rules kept here for every policy, in this order:
    there; the time until that take was seen (``View.detector.handover_ns``, the median of
    recent ones) is how much earlier than the detector's need a frame must leave (0 in a
    replay, where a put is taken at once; transport and the detector's wake-up in a real
-   pipeline);
+   pipeline). The service time is the lower quartile of recent samples, which acks that
+   arrive late (they only lengthen samples) cannot drag up;
 2. due held frames first: the policy's ``on_tick`` runs before a new frame is decided, so
    older frames go out before newer ones;
 3. late frames: a frame whose key is not newer than every frame seen is dropped
@@ -103,9 +104,21 @@ class Decider:
 
     @property
     def detector(self) -> DetectorClock:
-        service = int(statistics.median(self._service)) if self._service else None
         handover = int(statistics.median(self._handovers)) if self._handovers else None
-        return DetectorClock(self._last_take_ns, service, handover)
+        return DetectorClock(self._last_take_ns, self._service_estimate(), handover)
+
+    def _service_estimate(self) -> int | None:
+        """The lower quartile of the recent service samples. A sample is the time between
+        two takes as the acks reported them. An ack that comes late makes one sample long
+        and the next short; a wait the count reported that was only an ack in flight adds
+        idle time to a sample, and nothing shortens one that way. The median followed those
+        (a detector thought busy is given its next frame late, idles, and the next samples
+        are longer still); the lower quartile does not, and is exact when every take comes
+        one service time after the last."""
+        if not self._service:
+            return None
+        ranked = sorted(self._service)
+        return ranked[(len(ranked) - 1) // 4]
 
     def view(self, now_ns: int) -> View:
         """What a policy would see now."""
@@ -183,8 +196,15 @@ class Decider:
             self._waiting_after_take = load.queued > 0
         elif load.queued > 0 and expected is not None and expected > 0:
             # A frame forwarded earlier still waits: the detector has been busy since its
-            # last take (it never idles with a frame queued).
-            self._waiting_after_take = self._last_take_ns is not None
+            # last take (it never idles with a frame queued). Not a frame handed to a
+            # detector that was free by then: it was taken at once, and the count still
+            # shows it only until the ack of that take arrives (up to 160 ms later on a
+            # loaded machine, measured); counted as a wait, the idle time before it became
+            # a service time, and the clock ran slow until the detector idled most of the
+            # time (N = 1). Until a service time is known every wait counts.
+            self._waiting_after_take = self._last_take_ns is not None and (
+                self._handed_at is None or not self._service
+            )
         elif load.queued == 0:
             self._waiting_after_take = False
         self._expected_queued = load.queued

@@ -116,8 +116,8 @@ class DetectorClock:
     """What the mediator has seen of the detector's processing.
 
     ``last_take_ns``: when the detector last took a frame from its queue (mediator clock);
-    ``service_ns``: the median time between takes while frames were waiting (None until
-    seen), an estimate of how long the detector needs per frame; ``handover_ns``: the
+    ``service_ns``: the lower quartile of the times between takes while frames were waiting
+    (None until seen), an estimate of how long the detector needs per frame; ``handover_ns``: the
     median time from forwarding a frame to an idle detector until its take was seen (None
     until seen): a frame the detector needs at ``t`` must leave that much before ``t``.
     """

@@ -133,6 +133,7 @@ def test_scenario_is_the_simulator_default_but_for_seed_and_length() -> None:
         ({"b0_px": -1.0}, "--b0 must be > 0 px, got -1.0"),
         ({"frames": 1}, "--frames must be >= 2"),
         ({"runs": (RunKind.FILTERED,)}, "'all' run is the reference"),
+        ({"startup_s": 12.0}, "--startup must be 1-9 s, got 12.0"),
     ],
 )
 def test_bad_configuration_names_the_value(

@@ -74,6 +74,8 @@ class QueueRun:
     max_waiting: int = 0
     processed: list[int] = field(default_factory=list)
     verdicts: list[Verdict] = field(default_factory=list)
+    refused: int = 0
+    idle_ns: int = 0
 
 
 def run_detector(
@@ -85,16 +87,42 @@ def run_detector(
     capacity: int,
     tick_ns: int = MS,
     latencies_ns: list[int] | None = None,
+    ack_delays_ns: tuple[int, ...] = (),
+    service_steps_ns: tuple[int, ...] = (),
 ) -> QueueRun:
     """Frames every ``frame_period_ns`` into ``decider``; a FIFO detector with ``capacity``
     waiting slots takes one frame at a time for ``service_ns``. Ticks every ``tick_ns``.
 
     Frame i (numbered from 1, its ``frame_id``) is exposed at (i - 1) periods (its
     ``timestamp_ns``, the camera's clock) and decided ``latencies_ns[i - 1]`` later (0 by
-    default); ``processed`` holds frame ids."""
+    default); ``processed`` holds frame ids. ``ack_delays_ns``: the producer's count sees
+    the n-th take ``ack_delays_ns[n % len]`` after it happened (its ack in flight; the take
+    is dated when seen), and refuses a forward while that count is full (``refused``);
+    ``idle_ns`` is how long the detector had nothing to do between its first take and its
+    last. ``service_steps_ns``: the n-th frame takes ``service_ns + service_steps_ns[n %
+    len]`` (a detector whose speed varies)."""
     run = QueueRun()
     queue: list[int] = []
     busy_until: int | None = None
+    takes: list[tuple[int, int]] = []  # (taken, seen)
+
+    def count(now: int) -> Load:
+        if not ack_delays_ns:
+            return Load(len(queue), capacity)  # every take seen, at once, undated
+        unseen = sum(1 for _t, seen in takes[-capacity - 1 :] if seen > now)
+        dated = [seen for _t, seen in takes if seen <= now]
+        return Load(len(queue) + unseen, capacity, max(dated) if dated else None)
+
+    def take(now: int) -> int:
+        if takes:  # the detector was free since idle_since
+            run.idle_ns += now - idle_since[0]
+        run.processed.append(queue.pop(0))
+        delay = ack_delays_ns[len(takes) % len(ack_delays_ns)] if ack_delays_ns else 0
+        takes.append((now, now + delay))
+        step = service_steps_ns[len(takes) % len(service_steps_ns)] if service_steps_ns else 0
+        return now + service_ns + step
+
+    idle_since = [0]
     events: list[tuple[int, int, str]] = []
     for i in range(len(qualities)):
         late = latencies_ns[i] if latencies_ns is not None else 0
@@ -109,11 +137,10 @@ def run_detector(
         now, _, kind = heapq.heappop(events)
         # The detector finishes and takes the next frame before anything else happens now.
         if busy_until is not None and busy_until <= now:
-            busy_until = None
+            idle_since[0], busy_until = busy_until, None
         if busy_until is None and queue:
-            run.processed.append(queue.pop(0))
-            busy_until = now + service_ns
-        load = Load(len(queue), capacity)
+            busy_until = take(max(now, idle_since[0]))
+        load = count(now)
         if kind == "frame":
             q = qualities[index]
             index += 1
@@ -124,11 +151,14 @@ def run_detector(
         for verdict in verdicts:
             run.verdicts.append(verdict)
             if verdict.action is Action.FORWARD:
-                assert len(queue) < capacity, "forwarded into a full queue"
+                if count(now).queued >= capacity:
+                    assert ack_delays_ns, "forwarded into a full queue"
+                    run.refused += 1
+                    decider.refused(verdict.frame)
+                    continue
                 queue.append(verdict.frame.frame_id)
         if busy_until is None and queue:
-            run.processed.append(queue.pop(0))
-            busy_until = now + service_ns
+            busy_until = take(now)
         run.max_queued = max(run.max_queued, len(queue))
         run.max_waiting = max(run.max_waiting, len(queue) + len(decider.held))
     return run
