@@ -239,8 +239,10 @@ class AckInbox(ControlInbox):
       ``encode_ack``): garbage, never decoded (the protocol would count and drop it too);
     - ``repeats``: the same payload on the same key as the last one kept for that key, within
       ``REPEAT_RESEND_NS`` of it. Acks are cumulative, and the protocol ignores such a repeat
-      (it can only make resends due, at most that often), so it carries nothing; an honest
-      subscriber repeats an ack only after longer, and its later repeats still pass.
+      (it can only make resends due, at most that often), so it carries nothing, an honest
+      subscriber's included (it repeats an ack when a resent notification crosses its ack):
+      an ack that never reached the inbox is no repeat of anything kept, and a repeat after
+      the window passes.
 
     Garbage and repeated forged acks then cost Zenoh's thread a copy of at most
     ``max_bytes`` and a comparison, and the executor nothing: they never fill the inbox, so

@@ -149,6 +149,10 @@ FLOOD_WARMUP_S = 1.0
 # Floods that a plain Zenoh process can receive in the producer's place (the others need a
 # producer's notifications or registrations to act on).
 SINK_KINDS = ("acks", "churn")
+# Floods whose every message the camera drops as it comes (counted in ``dropped_messages``):
+# their rows report the camera's CPU per dropped message. Under churn that count is only an
+# overflowing token inbox's, or an honest consumer's repeated ack: no per-message cost.
+DROPPED_KINDS = ("acks", "forged-acks")
 
 
 def control_s(window_s: float) -> float:
@@ -349,7 +353,7 @@ def _delivered_rows(run: _Windows, attack: Attack, allowance: int) -> list[Row]:
             if sent is not None:
                 flood_sent = (_sent(attack, workers) or 0) - sent
                 during["flood_msgs_s"] = flood_sent / during["elapsed_s"]
-            _cost_per_drop(during, alone)
+            _cost_per_drop(during, alone, attack.params.get("kind") in DROPPED_KINDS)
             share = during["delivered_hz"] / alone["delivered_hz"] if alone["delivered_hz"] else 0
             during.update(value=share, alone_delivered_hz=alone["delivered_hz"])
             rate.framegate.append(during)
@@ -423,12 +427,13 @@ def _camera_run(camera: Any, seconds: float, pair: int) -> dict[str, Any]:
     return camera_sample(camera.call("run", seconds + 60.0, seconds=seconds), pair)
 
 
-def _cost_per_drop(during: dict[str, Any], alone: dict[str, Any]) -> None:
-    """The camera's CPU beyond its CPU alone per control message it dropped in the window
-    (garbage, repeats, oversize, overflow: counted as ``dropped_messages``), in us."""
+def _cost_per_drop(during: dict[str, Any], alone: dict[str, Any], per_message: bool) -> None:
+    """The control messages the camera dropped in the window (garbage, repeats, oversize,
+    overflow: counted as ``dropped_messages``) and, for a flood made of them
+    (``per_message``), its CPU beyond its CPU alone per dropped message, in us."""
     dropped = int(during.get("dropped_messages", 0)) - int(alone.get("dropped_messages", 0))
     during["dropped_in_window"] = dropped
-    if dropped > 0:
+    if per_message and dropped > 0:
         extra_s = (during["cpu_pct"] - alone["cpu_pct"]) / 100.0 * during["elapsed_s"]
         during["cpu_us_per_dropped"] = 1e6 * extra_s / dropped
 
