@@ -102,18 +102,23 @@ def test_record_keeps_every_element_its_buffers_hold(
     summary = {row["name"]: row for row in json.loads(result.stdout)["buffers"]}
     recorded: dict[str, dict[int, DataObject]] = {target: {} for target in BUFFERS}
     with open_bag(out) as bag:
+        stopped_ns = int(_recording_account(bag.metadata)["stopped_ns"])
         for buffer_of, element in bag.elements():
             recorded[buffer_of.name][element.timestamp_ns] = element
     for target in BUFFERS:
         row, file, buffer = summary[target], recorded[target], held[target]
-        assert row["evicted"] == 0 and row["dropped"] == 0, row
+        assert row["dropped"] == 0, row
         assert row["recorded"] == len(file) > 0, row
-        span = (min(file), max(file))
-        inside = {t: e for t, e in buffer.items() if span[0] <= t <= span[1]}
+        inside = {t: e for t, e in buffer.items() if min(file) <= t <= stopped_ns}
         assert inside, f"{target}: the buffer no longer holds any of the recording"
+        # Nothing held is missing, except (on a machine too busy to fetch it within a
+        # second of the stop) a tail after the last element recorded, counted as evicted.
         missing = sorted(set(inside) - set(file))
-        assert not missing, f"{target}: {len(missing)} elements held but not recorded"
+        assert all(t > max(file) for t in missing), f"{target}: held but not recorded: {missing}"
+        assert len(missing) <= row["evicted"], (target, len(missing), row)
         for t, element in inside.items():
+            if t not in file:
+                continue
             assert file[t].payload == element.payload, f"{target} @ {t}: payload differs"
             assert file[t].metadata == element.metadata, f"{target} @ {t}: metadata differs"
     # The camera's description, put once at its start, is in the file (as a latched topic).
@@ -121,7 +126,8 @@ def test_record_keeps_every_element_its_buffers_hold(
     # `info FILE.mcap` gives the recorder's account of the two losses.
     account = {b.name: b for b in recording_info(out).buffers}
     assert set(account) == set(BUFFERS)
-    assert all(b.evicted == 0 and b.dropped == 0 for b in account.values()), account
+    assert all(b.evicted == summary[n]["evicted"] for n, b in account.items()), account
+    assert all(b.dropped == 0 for b in account.values()), account
     assert account["gyro/rates"].recorded == len(recorded["gyro/rates"])
 
 
@@ -184,6 +190,7 @@ def test_record_ends_at_its_duration_in_the_producers_stamps_and_counts_what_it_
         inside = [t for t in held[target] if min(stamps) <= t <= stopped_ns]
         absent = set(inside) - set(stamps)
         assert len(absent) <= row["evicted"] + row["dropped"], (target, len(absent), row)
+        assert all(t > max(stamps) for t in absent), f"{target}: a gap inside the recording"
 
 
 def _puts(node: Node, target: str) -> int:
