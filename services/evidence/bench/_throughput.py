@@ -301,6 +301,15 @@ def _batch(mode: Mode) -> int:
     return BATCH_ELEMENTS if mode.batch else 0
 
 
+# Runs whose window received nothing are repeated this often before the row fails: on a
+# loaded machine a short (--quick) window can fall into one scheduling stall of a process.
+EMPTY_WINDOW_RETRIES = 2
+
+
+class _EmptyWindow(BenchError):
+    """The consumer received nothing in the measuring window."""
+
+
 def measure(
     producer: Worker,
     consumer: Worker,
@@ -310,7 +319,23 @@ def measure(
     interval_s: float = 0.0,
 ) -> dict[str, Any]:
     """One run: produce for warm-up + window (as fast as allowed, or one element every
-    ``interval_s``), mark the consumer around the window, drain."""
+    ``interval_s``), mark the consumer around the window, drain. A run whose window stayed
+    empty is repeated (at most ``EMPTY_WINDOW_RETRIES`` times); the sample says how many
+    were (``empty_windows``)."""
+    for attempt in range(EMPTY_WINDOW_RETRIES + 1):
+        try:
+            sample = _measure_once(producer, consumer, warmup_s, window_s, interval_s)
+        except _EmptyWindow:
+            if attempt == EMPTY_WINDOW_RETRIES:
+                raise
+            continue
+        return {**sample, "empty_windows": attempt}
+    raise AssertionError("unreachable")
+
+
+def _measure_once(
+    producer: Worker, consumer: Worker, warmup_s: float, window_s: float, interval_s: float
+) -> dict[str, Any]:
     start = consumer.call("mark")
     producer.send("produce", seconds=warmup_s + window_s + 0.3, interval_s=interval_s)
     time.sleep(warmup_s)
@@ -327,7 +352,7 @@ def measure(
         raise BenchError(f"empty measuring window ({elapsed_s} s)")
     count = last["count"] - first["count"]
     if count <= 0:
-        raise BenchError(f"the consumer received nothing in the {elapsed_s:.2f} s window")
+        raise _EmptyWindow(f"the consumer received nothing in the {elapsed_s:.2f} s window")
     return {
         "value": count / elapsed_s,
         "mb_s": (last["bytes"] - first["bytes"]) / elapsed_s / 1e6,
