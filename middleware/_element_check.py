@@ -4,10 +4,11 @@ metadata is valid for the buffer's kind and names the element's timestamp."""
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import cast
 
 from ._clock import now_ns
 from ._errors import SchemaError
-from ._records import DataObject
+from ._records import DataObject, data_object
 from ._shapes import ShapeChecker
 from ._xml import XmlLimits
 
@@ -44,28 +45,33 @@ class ElementCheck:
             raise SchemaError(
                 f"metadata says timestamp_ns={declared} but the element's key is {timestamp_ns}"
             )
-        return DataObject(timestamp_ns, payload, meta)
+        return data_object(timestamp_ns, payload, meta)
 
     def many(self, elements: Sequence[tuple[int, bytes, bytes | str]]) -> tuple[DataObject, ...]:
-        """``self(*element)`` for each element of a batch, the common case in one tight loop:
-        an element it does not settle (another type, a stamp past the last horizon read, a
-        metadata mismatch) goes through ``__call__``, which converts it or says what is
-        wrong."""
-        shape_ns = self._metadata.timestamp_ns
-        out: list[DataObject] = []
-        append = out.append
-        for element in elements:
-            timestamp_ns, payload, metadata = element
-            if (
+        """``self(*element)`` for each element of a batch, the common case (every element
+        plain bytes, stamped within the last horizon read) in two tight loops; otherwise
+        each element goes through ``__call__``, which converts it or says what is wrong."""
+        # Types and the horizon of the whole batch first, then its metadata in one call.
+        horizon_ns = self._horizon_at_ns
+        plain = all(
+            [
                 type(payload) is bytes
                 and type(metadata) is bytes
                 and type(timestamp_ns) is int
-                and 0 <= timestamp_ns <= self._horizon_at_ns
-                and shape_ns(metadata) == timestamp_ns
-            ):
-                append(DataObject(timestamp_ns, payload, metadata))
-            else:
-                append(self(timestamp_ns, payload, metadata))
+                and 0 <= timestamp_ns <= horizon_ns
+                for timestamp_ns, payload, metadata in elements
+            ]
+        )
+        if not plain:  # one element at a time, each converted or refused by ``__call__``
+            return tuple([self(*element) for element in elements])
+        checked = cast(Sequence[tuple[int, bytes, bytes]], elements)
+        declared = self._metadata.timestamps_ns([metadata for _, _, metadata in checked])
+        out: list[DataObject] = []
+        append = out.append
+        for (timestamp_ns, payload, metadata), stamp in zip(checked, declared, strict=True):
+            if stamp != timestamp_ns:
+                self(timestamp_ns, payload, metadata)  # raises, naming the mismatch
+            append(data_object(timestamp_ns, payload, metadata))
         return tuple(out)
 
     def _horizon_now(self) -> int:

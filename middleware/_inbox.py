@@ -41,12 +41,16 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import threading
+import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Generic, TypeVar
 
 import zenoh
+
+from ._ledger_producer import REPEAT_RESEND_NS
+from ._wire import encode_ack
 
 # Zenoh threads whose Python thread state is kept (see the module doc).
 _PINNED: set[int] = set()
@@ -69,6 +73,8 @@ T = TypeVar("T")
 ACK_INBOX = 8192
 ACK_MAX_BYTES = 256
 TOKEN_INBOX = 4096
+# Every ack starts with this byte (a msgpack map of two: ``encode_ack``).
+_ACK_FIRST_BYTE = encode_ack("", 0)[:1]
 # A key longer than this is no key of ours (names are short): dropped and counted.
 KEY_MAX_BYTES = 1024
 # What one held ``Control`` costs beyond its payload and key: the object and the two
@@ -76,10 +82,16 @@ KEY_MAX_BYTES = 1024
 CONTROL_OVERHEAD_BYTES = 256
 
 
+# Keys whose last kept ack an ``AckInbox`` remembers (to drop repeats).
+ACK_LAST_KEYS = 1024
+
+
 def control_inbox_bytes() -> int:
-    """The most a producer's two control inboxes can hold (``BufferLimits``)."""
+    """The most a producer's two control inboxes can hold (``BufferLimits``), with the last
+    ack kept per key (``AckInbox``)."""
     per_ack = ACK_MAX_BYTES + KEY_MAX_BYTES + CONTROL_OVERHEAD_BYTES
-    return ACK_INBOX * per_ack + TOKEN_INBOX * (KEY_MAX_BYTES + CONTROL_OVERHEAD_BYTES)
+    tokens = TOKEN_INBOX * (KEY_MAX_BYTES + CONTROL_OVERHEAD_BYTES)
+    return (ACK_INBOX + ACK_LAST_KEYS) * per_ack + tokens
 
 
 @dataclass(frozen=True, slots=True)
@@ -126,7 +138,8 @@ class _Bounded(Generic[T]):
             _pin_thread_state()
         if self.closed:
             return
-        size = len(sample.payload)
+        payload = sample.payload  # one wrapper, read once (each access makes a new one)
+        size = len(payload)
         attachment = sample.attachment
         if attachment is not None:
             size += len(attachment)
@@ -143,12 +156,14 @@ class _Bounded(Generic[T]):
             with self._count_lock, contextlib.suppress(IndexError):
                 items.popleft()
                 self.overflow += 1
-        kept = self._keep(sample)
+        kept = self._keep(sample, payload)
         if kept is None:  # not ours to keep (``ControlInbox``: a key too long)
             with self._count_lock:
                 self.oversize += 1
             return
-        items.append(kept)
+        if kept is DROPPED:  # dropped and counted by ``_keep`` (``AckInbox``)
+            return
+        items.append(kept)  # type: ignore[arg-type]
         self._signal()
 
     def __len__(self) -> int:
@@ -156,11 +171,13 @@ class _Bounded(Generic[T]):
 
     @property
     def dropped(self) -> int:
-        """Samples dropped unread, for their size or by newer ones."""
+        """Samples dropped unread, for their size or by newer ones (``AckInbox``: also
+        for their first byte, or as repeats)."""
         return self.oversize + self.overflow
 
-    def _keep(self, sample: zenoh.Sample) -> T | None:
-        """What to hold of ``sample`` (on Zenoh's thread), or None to drop it as oversize."""
+    def _keep(self, sample: zenoh.Sample, payload: zenoh.ZBytes) -> T | _Drop | None:
+        """What to hold of ``sample`` (on Zenoh's thread), None to drop it as oversize, or
+        ``DROPPED`` when it dropped and counted it itself."""
         raise NotImplementedError
 
     def take(self, budget: int) -> list[T]:
@@ -186,8 +203,15 @@ class _Bounded(Generic[T]):
 class Inbox(_Bounded[zenoh.Sample]):
     """A bounded inbox of Zenoh samples (each keeps the batch it arrived in alive)."""
 
-    def _keep(self, sample: zenoh.Sample) -> zenoh.Sample:
+    def _keep(self, sample: zenoh.Sample, payload: zenoh.ZBytes) -> zenoh.Sample:
         return sample
+
+
+class _Drop:
+    """``_keep``'s answer for a sample that was dropped and counted by ``_keep`` itself."""
+
+
+DROPPED = _Drop()
 
 
 class ControlInbox(_Bounded[Control]):
@@ -199,8 +223,90 @@ class ControlInbox(_Bounded[Control]):
 
     drop_newest = True
 
-    def _keep(self, sample: zenoh.Sample) -> Control | None:
+    def _keep(self, sample: zenoh.Sample, payload: zenoh.ZBytes) -> Control | _Drop | None:
         key = str(sample.key_expr)
         if len(key) > KEY_MAX_BYTES:
             return None
-        return Control(key, sample.payload.to_bytes(), sample.kind == zenoh.SampleKind.PUT)
+        return Control(key, payload.to_bytes(), sample.kind == zenoh.SampleKind.PUT)
+
+
+class AckInbox(ControlInbox):
+    """A producer's ack inbox: besides a ``ControlInbox``'s bounds, it drops on Zenoh's
+    thread, before any object is made or anyone is woken, the two things an ack flood is
+    made of, and counts them:
+
+    - ``malformed``: a payload whose first byte is not an ack's (a msgpack map of two,
+      ``encode_ack``): garbage, never decoded (the protocol would count and drop it too);
+    - ``repeats``: the same payload on the same key as the last one kept for that key, within
+      ``REPEAT_RESEND_NS`` of it. Acks are cumulative, and the protocol ignores such a repeat
+      (it can only make resends due, at most that often), so it carries nothing, an honest
+      subscriber's included (it repeats an ack when a resent notification crosses its ack):
+      an ack that never reached the inbox is no repeat of anything kept, and a repeat after
+      the window passes.
+
+    Garbage and repeated forged acks then cost Zenoh's thread a copy of at most
+    ``max_bytes`` and a comparison, and the executor nothing: they never fill the inbox, so
+    an honest ack that arrives among them is kept (measured: ``docs/limits.md``)."""
+
+    def __init__(
+        self, *, capacity: int = ACK_INBOX, max_bytes: int, signal: Callable[[], None]
+    ) -> None:
+        super().__init__(capacity=capacity, max_bytes=max_bytes, signal=signal)
+        self.malformed = 0
+        self.repeats = 0
+        # The last payload kept per key and when; cleared when it reaches ``ACK_LAST_KEYS``
+        # keys (a flood of keys: it is only a shortcut, the protocol checks again).
+        self._last: dict[str, tuple[bytes, int]] = {}
+
+    @property
+    def dropped(self) -> int:
+        return self.oversize + self.overflow + self.malformed + self.repeats
+
+    def _keep(self, sample: zenoh.Sample, payload: zenoh.ZBytes) -> Control | _Drop | None:
+        data = payload.to_bytes()  # at most ``max_bytes``: checked before
+        if data[:1] != _ACK_FIRST_BYTE:
+            with self._count_lock:
+                self.malformed += 1
+            return DROPPED
+        key = str(sample.key_expr)
+        if len(key) > KEY_MAX_BYTES:
+            return None
+        now_ns = time.monotonic_ns()
+        last = self._last.get(key)
+        if last is not None and last[0] == data and now_ns - last[1] < REPEAT_RESEND_NS:
+            with self._count_lock:
+                self.repeats += 1
+            return DROPPED
+        if len(self._last) >= ACK_LAST_KEYS:
+            self._last.clear()
+        self._last[key] = (data, now_ns)
+        return Control(key, data, sample.kind == zenoh.SampleKind.PUT)
+
+
+class TokenInbox(ControlInbox):
+    """A producer's subscription-token inbox. A token that comes and goes between two looks
+    (churn: declared and withdrawn at once) is its withdrawal alone: ``take`` drops a put
+    that a later delete of the same key in the same batch undoes, counted in ``collapsed``
+    (not a loss: a put then a delete leaves the table as the delete alone does, whether the
+    key was registered before or not), so such a token costs no registration, greeting or
+    retirement."""
+
+    def __init__(self, *, capacity: int, signal: Callable[[], None]) -> None:
+        super().__init__(capacity=capacity, max_bytes=0, signal=signal)
+        self.collapsed = 0
+
+    def take(self, budget: int) -> list[Control]:
+        batch = super().take(budget)
+        last_delete: dict[str, int] = {}
+        for index, message in enumerate(batch):
+            if not message.alive:
+                last_delete[message.key] = index
+        if not last_delete:
+            return batch
+        kept = [
+            message
+            for index, message in enumerate(batch)
+            if not message.alive or last_delete.get(message.key, -1) < index
+        ]
+        self.collapsed += len(batch) - len(kept)  # under the producer's lock, as every take
+        return kept

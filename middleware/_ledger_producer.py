@@ -63,7 +63,7 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Generic, TypeVar
+from typing import Generic, NamedTuple, TypeVar
 
 from ._records import SubscriptionInfo, SubscriptionMode
 from ._wire import descriptor_of
@@ -140,10 +140,11 @@ class Registration(Generic[H]):
         return SubscriptionInfo(k.sub_id, k.mode, k.queue_size, self.queued, self.taken_ns)
 
 
-@dataclass(frozen=True, slots=True)
-class Send(Generic[H]):
+class Send(NamedTuple, Generic[H]):
     """A notification to send under ``epoch`` to ``key``'s subscriber: ``headers[i]`` is the
-    element of seq ``seq + i`` (one element, or a batch from ``put_many``)."""
+    element of seq ``seq + i`` (one element, or a batch from ``put_many``). (A named tuple:
+    as immutable as a frozen dataclass, built in half the time, once per put and
+    registration.)"""
 
     key: RegistrationKey
     epoch: str
@@ -152,10 +153,6 @@ class Send(Generic[H]):
     headers: tuple[H, ...]
     again: bool = False
     base: int = 0
-
-    @property
-    def count(self) -> int:
-        return len(self.headers)
 
 
 @dataclass(slots=True)

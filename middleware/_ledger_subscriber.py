@@ -55,13 +55,15 @@ must ack every element or the producer stays refused), every ``N // 2`` takes ab
 Coalescing never holds the producer back for long: an ack is also due once the queue runs
 empty or the caller waits idle and ``delay_ns`` has passed since the first take it covers
 (``for_queue``: 1 ms above N = 3, so that a consumer that keeps up does not ack every
-element); ``flush_at_ns`` says when, for the Zenoh layer to send it even if the caller does
-not come back (a subscriber that took everything never holds its producer longer). While
-idle the subscriber repeats the acks of known epochs once no ack has left for ``reack_ns``,
-so a lost ack or a lost notification heals (the producer resends on a repeated ack that
-moves nothing). Timed from the last ack sent, not from the last repeat: a busy subscriber,
-idle only between notifications, repeats nothing, since a repeat that moves nothing makes
-the producer resend what is merely in flight.
+element), or at once when its takes came ``delay_ns`` or more after the takes before them
+(a slow stream: no later take would join the ack within the delay, and waiting would cost
+a timer per element); ``flush_at_ns`` says when, for the Zenoh layer to send it even if
+the caller does not come back (a subscriber that took everything never holds its producer
+longer). While idle the subscriber repeats the acks of known epochs once no ack has left
+for ``reack_ns``, so a lost ack or a lost notification heals (the producer resends on a
+repeated ack that moves nothing). Timed from the last ack sent, not from the last repeat:
+a busy subscriber, idle only between notifications, repeats nothing, since a repeat that
+moves nothing makes the producer resend what is merely in flight.
 
 Properties (checked by tests/middleware/test_protocol_model.py after every step): the
 queue never exceeds N; the epoch table is bounded; a flow-controlled subscription reports
@@ -169,6 +171,11 @@ class SubscriberLedger(Generic[T]):
         self._epochs: OrderedDict[str, EpochTrack] = OrderedDict()
         self._forgotten: OrderedDict[str, tuple[int, int]] = OrderedDict()
         self._acked_ns: int | None = None  # when acks last left
+        # Takes so far, and how many and when ``acks_due`` last saw: a take that comes the
+        # delay or more after the one before is a slow stream's (see ``acks_due``).
+        self._takes = 0
+        self._takes_seen = 0
+        self._takes_seen_ns: int | None = None
         # The most recently used epoch (the last one in ``_epochs``) and its track: what the
         # fast path of ``receive`` compares against.
         self._recent: str | None = None
@@ -335,6 +342,7 @@ class SubscriberLedger(Generic[T]):
         track.queued -= 1
         track.taken = entry.seq
         track.unacked_takes += 1
+        self._takes += 1
         return entry
 
     def take_many(self, max_count: int) -> list[Entry[T]]:
@@ -349,6 +357,7 @@ class SubscriberLedger(Generic[T]):
             track.queued -= 1
             track.taken = entry.seq
             track.unacked_takes += 1
+        self._takes += len(entries)
         return entries
 
     def acks_due(self, now_ns: int, *, idle: bool) -> list[tuple[str, int]]:
@@ -362,13 +371,22 @@ class SubscriberLedger(Generic[T]):
             self._acked_ns is None or now_ns - self._acked_ns >= self.policy.reack_ns
         )
         delay = self.policy.delay_ns
+        # A slow stream's take (the delay or more after the one before it): waiting the
+        # delay for the next takes to join its ack would only hold the producer's credit
+        # that long and cost a timer per element, so an emptied queue acks it at once.
+        slow = False
+        if self._takes != self._takes_seen:
+            seen_ns = self._takes_seen_ns
+            slow = seen_ns is None or now_ns - seen_ns >= delay
+            self._takes_seen, self._takes_seen_ns = self._takes, now_ns
         for epoch, track in self._epochs.items():
             due = False
             if track.unacked_takes > 0:
                 if track.unacked_since_ns is None:
                     track.unacked_since_ns = now_ns
                 due = track.unacked_takes >= self.policy.every or (
-                    (idle or track.queued == 0) and now_ns - track.unacked_since_ns >= delay
+                    (idle or track.queued == 0)
+                    and (slow or now_ns - track.unacked_since_ns >= delay)
                 )
             if due or track.reack_due or (repeat and track.taken > 0):
                 acks.append((epoch, track.taken))

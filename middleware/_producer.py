@@ -33,7 +33,7 @@ from ._element_check import ElementCheck
 from ._errors import DuplicateTimestampError, FlowControlRefused, FramegateError
 from ._executor import BUDGET as _BUDGET
 from ._executor import Executor, Wake, remaining_s
-from ._inbox import ACK_INBOX, ACK_MAX_BYTES, TOKEN_INBOX, ControlInbox, control_inbox_bytes
+from ._inbox import ACK_MAX_BYTES, TOKEN_INBOX, AckInbox, TokenInbox, control_inbox_bytes
 from ._ledger_producer import RegistrationKey
 from ._protocol_events import Event, Publish, Retire
 from ._protocol_producer import ProducerProtocol
@@ -124,14 +124,12 @@ class Producer:
         self._wake = Wake(self, self._cond, executor, lambda: len(self._acks))
         # Acks are fed by whoever needs credit next (a put, ``fill``, the executor before a
         # resend); only a waiting put, or a backlog, wakes anyone (``Wake``).
-        self._acks = ControlInbox(
-            capacity=ACK_INBOX, max_bytes=ACK_MAX_BYTES, signal=self._wake.signal
-        )
+        self._acks = AckInbox(max_bytes=ACK_MAX_BYTES, signal=self._wake.signal)
         # A token is the executor's at once: a new subscriber waits for its greeting. A token
         # is its key; it carries no payload.
         self._token_keys = keys.subscription_tokens(service, buffer)
         self._tokens_dropped = 0
-        self._tokens = ControlInbox(capacity=TOKEN_INBOX, max_bytes=0, signal=self._signal)
+        self._tokens = TokenInbox(capacity=TOKEN_INBOX, signal=self._signal)
         self._acks.declare(session, keys.acks(service, buffer))
         # Declared last: its callback (history included) may run at once.
         self._tokens.declare(session, self._token_keys, liveliness=True)

@@ -376,7 +376,7 @@ class ProducerProtocol:
         key = send.key
         limit = self._push_limit.get(key, self.inline_max_bytes)
         block = key.mode is SubscriptionMode.FLOW
-        if send.count > 1:
+        if len(send.headers) > 1:
             payloads = [e.payload for e in elements]
             sizes = [len(p) for p in payloads]
             pushed = bool(sizes) and max(sizes) <= limit

@@ -5,6 +5,7 @@ from __future__ import annotations
 import enum
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 
 @dataclass(frozen=True, slots=True)
@@ -209,3 +210,57 @@ class ServiceInfo:
     # The names of the service process's Python threads (docs/threads.md); None from old
     # peers.
     threads: tuple[str, ...] | None = None
+
+
+# -- hot-path builders --------------------------------------------------------------------
+# A frozen dataclass's generated ``__init__`` sets each field through
+# ``object.__setattr__`` looked up per field: 0.38 us for a DataObject and 0.75 us for a
+# Notification on a 2-core machine, built once per element put and twice per element taken.
+# These set the slots directly (0.24 / 0.40 us) and give the same objects; a test checks
+# that they set every field.
+_new = object.__new__
+_data_slots = tuple(vars(DataObject)[n].__set__ for n in ("timestamp_ns", "payload", "metadata"))
+_note_slots = tuple(
+    vars(Notification)[n].__set__
+    for n in ("service", "buffer", "timestamp_ns", "seq", "metadata", "element", "missed")
+)
+
+
+def data_object(
+    timestamp_ns: int,
+    payload: bytes,
+    metadata: bytes,
+    _new: Any = _new,
+    _slots: tuple[Any, ...] = _data_slots,
+) -> DataObject:
+    """``DataObject(timestamp_ns, payload, metadata)``, faster (see above)."""
+    obj = _new(DataObject)
+    set_t, set_p, set_m = _slots
+    set_t(obj, timestamp_ns)
+    set_p(obj, payload)
+    set_m(obj, metadata)
+    return obj  # type: ignore[no-any-return]
+
+
+def notification(
+    service: str,
+    buffer: str,
+    timestamp_ns: int,
+    seq: int,
+    metadata: bytes | None,
+    element: DataObject | None,
+    missed: int,
+    _new: Any = _new,
+    _slots: tuple[Any, ...] = _note_slots,
+) -> Notification:
+    """``Notification(...)`` with every field given, faster (see above)."""
+    obj = _new(Notification)
+    s0, s1, s2, s3, s4, s5, s6 = _slots
+    s0(obj, service)
+    s1(obj, buffer)
+    s2(obj, timestamp_ns)
+    s3(obj, seq)
+    s4(obj, metadata)
+    s5(obj, element)
+    s6(obj, missed)
+    return obj  # type: ignore[no-any-return]

@@ -27,7 +27,7 @@ from ._executor import BUDGET, Executor, Wake, remaining_s
 from ._inbox import Inbox
 from ._ledger_subscriber import REACK_NS, Entry, SubscriberCounters
 from ._protocol_subscriber import RETRY_NS, Item, SubscriberProtocol
-from ._records import DataObject, Notification, SubscriptionMode
+from ._records import DataObject, Notification, SubscriptionMode, data_object, notification
 from ._wire import Keys, holder_chunk
 
 log = logging.getLogger("framegate.middleware")
@@ -105,6 +105,7 @@ class Subscription:
         self._producer_ids = producer_ids
         self._lock = threading.Lock()
         self._cond = threading.Condition(self._lock)
+        self._ack_lock = threading.Lock()  # ack puts against the publisher's undeclare
         self._closed = False
         self._ack_publisher = session.declare_publisher(
             keys.ack(service, buffer, self.subscription_id),
@@ -379,9 +380,14 @@ class Subscription:
 
     def _send_acks(self, acks: list[bytes]) -> None:
         # A lost ack costs nothing: acks are cumulative and repeated.
-        for ack in acks:
-            with contextlib.suppress(zenoh.ZError):
-                self._ack_publisher.put(ack)
+        if not acks:
+            return
+        with self._ack_lock:
+            if self._closed:
+                return
+            for ack in acks:
+                with contextlib.suppress(zenoh.ZError):
+                    self._ack_publisher.put(ack)
 
     def _notifications(self, entries: list[Entry[Item]]) -> list[Notification]:
         """The taken entries as notifications (one loop: it runs once per element)."""
@@ -392,8 +398,8 @@ class Subscription:
             element = None
             if pushed is not None and metadata is not None:
                 payload = pushed if type(pushed) is bytes else pushed.to_bytes()
-                element = DataObject(timestamp, payload, metadata)
-            append(Notification(service, buffer, timestamp, seq, metadata, element, missed))
+                element = data_object(timestamp, payload, metadata)
+            append(notification(service, buffer, timestamp, seq, metadata, element, missed))
         return notes
 
     def __iter__(self) -> Iterator[Notification]:
@@ -447,9 +453,12 @@ class Subscription:
         with self._lock:
             self._cond.notify_all()
         self._inbox.close()
-        for entity in (self._token, self._ack_publisher):
-            with contextlib.suppress(zenoh.ZError):
-                entity.undeclare()
+        # Not while another thread puts an ack on it (zenoh-python refuses an undeclare
+        # during a put on the same publisher: "Already borrowed").
+        with self._ack_lock:
+            for entity in (self._token, self._ack_publisher):
+                with contextlib.suppress(zenoh.ZError):
+                    entity.undeclare()
         if self._on_close is not None:
             self._on_close(self)
 

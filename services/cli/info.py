@@ -179,7 +179,7 @@ def _recording(args: argparse.Namespace, path: Path) -> int:
         for b in info.buffers:
             print(
                 f"  {b.name:<{name_width}}  {b.recorded:>8} recorded ({b.backfilled} backfilled), "
-                f"{b.evicted} evicted before they could be fetched, "
+                f"{b.evicted} lost in transport (evicted, or not fetched by the stop), "
                 f"{b.dropped} dropped by the recorder"
             )
     return 0

@@ -11,10 +11,13 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 
 import pytest
+import zenoh
 
 from middleware import FlowControlRefused, Node, make_metadata
 from middleware._producer import ACK_MAX_BYTES
+from middleware._wire import encode_ack
 from tests.conftest import REPO, child_env, wait_until
+from tests.helpers.raw_zenoh import open_session
 from tests.helpers.timing import scaled
 
 pytestmark = pytest.mark.integration
@@ -124,3 +127,41 @@ def test_a_flooded_subscription_does_not_starve_the_others(
             wait_until(lambda: len(seen) == 40, 60, "every calm notification handled")
         assert seen == list(range(1, 41))
         del flooded
+
+
+def test_garbage_and_repeated_acks_are_dropped_before_they_are_buffered(
+    listen_net, connect_net, endpoint
+) -> None:
+    """Garbage (not an ack's first byte) and one valid-looking ack repeated, on a live
+    subscription's own ack key: each is counted as dropped on Zenoh's thread and none is
+    buffered, and the subscription's own acks still free its credit among them."""
+    garbage, repeats = 500, 500
+    with (
+        Node("cam", listen_net) as service,
+        Node(network=connect_net) as client,
+        open_session(endpoint) as rogue,
+    ):
+        images = service.offer("images")
+        sub = client.subscribe("cam/images", queue_size=1)
+        key = f"framegate/@ack/cam/images/{sub.subscription_id}"
+        forged = encode_ack(images.epoch + ".1", 0)
+        block = zenoh.CongestionControl.BLOCK  # every message arrives: the counts are exact
+        for _ in range(garbage):
+            rogue.put(key, bytes(16), congestion_control=block)
+        for _ in range(repeats):
+            rogue.put(key, forged, congestion_control=block)
+        acks = images._acks
+        wait_until(lambda: acks.malformed == garbage, 30, "every garbage ack counted")
+        # The forged ack is kept once per repeat window (100 ms): most of them are repeats.
+        wait_until(lambda: acks.repeats >= repeats // 2, 30, "the repeats counted")
+        assert acks.repeats < repeats
+        assert len(acks) < repeats - acks.repeats + 1
+        assert images.info().dropped_messages >= garbage + acks.repeats
+        # The subscription's own acks pass among them: its queue of 1 frees each time.
+        for t in range(1, 6):
+            images.put(t, b"x", _meta(t), wait_s=scaled(10))
+            for _ in range(50):
+                rogue.put(key, bytes(16), congestion_control=block)
+                rogue.put(key, forged, congestion_control=block)
+            note = sub.take(timeout_s=scaled(10))
+            assert note is not None and note.timestamp_ns == t

@@ -66,6 +66,30 @@ def test_coalesced_acks_leave_within_the_delay_once_the_queue_runs_empty() -> No
     assert subscriber.flush_at_ns() is None
 
 
+def test_a_slow_stream_acks_each_take_at_once_without_a_timer() -> None:
+    """One element every 10 ms at a queue of 8: no later take could join its ack within the
+    delay, so the emptied queue acks at once (no flush timer per element)."""
+    producer, subscriber, _ = _pair(8)
+    for t in range(1, 6):
+        now = t * 10 * ACK_DELAY_NS
+        _fill(producer, subscriber, 1)
+        assert subscriber.take() is not None
+        assert [seq for _, seq in subscriber.acks_due(now, idle=False)] == [t]
+        assert subscriber.flush_at_ns() is None
+
+
+def test_a_fast_stream_still_coalesces_its_acks() -> None:
+    producer, subscriber, _ = _pair(8)
+    _fill(producer, subscriber, 1)
+    assert subscriber.take() is not None
+    subscriber.acks_due(0, idle=False)  # the first take of the stream
+    for t in range(1, 3):  # then one every tenth of the delay: coalesced
+        _fill(producer, subscriber, 1)
+        assert subscriber.take() is not None
+        assert subscriber.acks_due(t * ACK_DELAY_NS // 10, idle=False) == []
+    assert subscriber.flush_at_ns() is not None
+
+
 def test_a_delayed_ack_waits_for_nothing_while_frames_are_queued() -> None:
     producer, subscriber, _ = _pair(8)
     _fill(producer, subscriber, 3)
@@ -87,7 +111,7 @@ def test_a_batch_is_refused_whole_when_the_queue_lacks_room_for_all_its_elements
     assert producer.full(2) is not None, "3 queued + 2 > 4"
     assert producer.full(1) is None
     [send] = producer.put_many((10,), 0)
-    assert (send.seq, send.count) == (4, 1)
+    assert (send.seq, len(send.headers)) == (4, 1)
 
 
 def test_a_batch_is_one_send_that_the_subscriber_queues_as_its_elements() -> None:

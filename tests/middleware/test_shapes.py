@@ -129,6 +129,23 @@ def test_a_document_like_the_last_one_is_judged_as_in_full(kind: str, data: st.D
     raw = b"".join(pieces)
     assert len(raw) == len(base)
     assert by_shape(checker, raw) == full(raw, kind)
+    # The batch path (``timestamps_ns``, its own copy of the rule) judges it alike.
+    batch = ShapeChecker(kind, DEFAULT_LIMITS)
+    batch.timestamp_ns(base)
+    batch.timestamp_ns(base)
+    try:
+        assert batch.timestamps_ns([base, raw]) == [T0, full(raw, kind)]
+    except SchemaError:
+        assert full(raw, kind) == "refused"
+
+
+def test_a_batch_of_documents_like_the_last_one_skips_the_split() -> None:
+    checker = ShapeChecker("gyro", DEFAULT_LIMITS)
+    docs = [gyro_doc(T0 + i) for i in range(64)]
+    assert checker.timestamps_ns(docs) == [T0 + i for i in range(64)]
+    hits = checker.hits
+    assert checker.timestamps_ns(docs) == [T0 + i for i in range(64)]
+    assert checker.hits == hits + 64
 
 
 def test_a_document_like_the_last_one_skips_the_split() -> None:

@@ -8,11 +8,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from middleware import ConfigError, NotFoundError, ServiceInfo
+from middleware import ClockSample, ConfigError, NotFoundError, ServiceInfo
 from services.lib.clock import (
     CLOCK_WARN_NS,
     ClockEstimate,
-    ClockSample,
     best_sample,
     clock_warning,
     estimate_clocks,

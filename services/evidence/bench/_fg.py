@@ -444,6 +444,7 @@ def fg_camera(params: dict[str, Any]) -> None:
                 "buffer_bytes": info.payload_bytes,
                 "subscriptions": len(info.subscriptions),
                 "refused_subscriptions": info.refused_subscriptions,
+                "dropped_messages": info.dropped_messages,
             }
 
         reply(ready=True, rss_offered=offered.start_total)

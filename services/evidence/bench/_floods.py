@@ -12,7 +12,10 @@ Role ``flood`` (params: ``connect``, ``namespace``, ``service``, ``buffer``, ``k
   ids declared and withdrawn as fast as it can, ``batch`` at a time.
 
 It floods on a thread from ``ready`` until ``stop`` or exit; ``count`` answers how many
-messages (or tokens) it sent.
+messages (or tokens) it sent. ``nice`` (optional): the process lowers its scheduling priority
+by that much first, so that on a machine shared with the producer the flooders' own busy
+loops take only the CPU the producer leaves (a remote attacker's CPU is not the producer's):
+what is then measured is the producer's cost of receiving and dropping the flood.
 
 Role ``flood-sink`` (params: ``listen``, ``namespace``, ``service``, ``buffer``): the same
 keys as a producer's, received by plain Zenoh and dropped at once (a no-op callback on the
@@ -26,6 +29,7 @@ to the maximum seen.
 from __future__ import annotations
 
 import itertools
+import os
 import threading
 import time
 from typing import Any
@@ -103,6 +107,8 @@ def flood(params: dict[str, Any]) -> None:
     """The ``flood`` role (see the module doc)."""
     ns, service, buffer = params["namespace"], params["service"], params["buffer"]
     kind = params["kind"]
+    if params.get("nice"):
+        os.nice(int(params["nice"]))
     state = _Flood()
     with zenoh.open(_config(params)) as session:
         if kind == "acks":

@@ -26,6 +26,9 @@ Annotations carry the timestamp of the frame they belong to (a decision's
 ``frame_timestamp_ns``, a detection's key), which is how Foxglove's Image panel pairs them
 with the image; their log time is that timestamp too. Everything here is pure: metadata and
 payload in, encoded messages out, no I/O.
+
+NumPy, the Foxglove SDK and the message records are imported on first use, not with this
+module: ``record`` writes through it and must not wait for them before it starts recording.
 """
 
 from __future__ import annotations
@@ -34,24 +37,21 @@ import json
 import math
 from collections.abc import Container
 from dataclasses import dataclass
-from typing import Any
-
-import numpy as np
-from foxglove.messages import (
-    Color,
-    CompressedImage,
-    ImageAnnotations,
-    Point2,
-    PointsAnnotation,
-    PointsAnnotationType,
-    RawImage,
-    TextAnnotation,
-    Timestamp,
-)
+from functools import cache
+from typing import TYPE_CHECKING, Any
 
 from middleware import DataObject, FramegateError, parse_untrusted, validate_metadata
-from services.lib.messages import DecisionRecord
-from services.lib.quality import GyroSamples
+
+if TYPE_CHECKING:
+    from foxglove.messages import (
+        Color,
+        CompressedImage,
+        ImageAnnotations,
+        RawImage,
+        Timestamp,
+    )
+
+    from services.lib.messages import DecisionRecord
 
 from ._format import BagError, image_topic
 from ._frames import FrameLayout, frame_layout
@@ -59,11 +59,12 @@ from ._frames import FrameLayout, frame_layout
 PROTOBUF = "protobuf"
 JSON = "json"
 
-GREEN = Color(r=0.1, g=0.85, b=0.2, a=1.0)
-RED = Color(r=0.95, g=0.15, b=0.1, a=1.0)
-MARKER = Color(r=1.0, g=0.8, b=0.0, a=1.0)
-WHITE = Color(r=1.0, g=1.0, b=1.0, a=1.0)
-SHADE = Color(r=0.0, g=0.0, b=0.0, a=0.6)
+# Colours as (r, g, b, a), made into Foxglove colours when drawn.
+GREEN = (0.1, 0.85, 0.2, 1.0)
+RED = (0.95, 0.15, 0.1, 1.0)
+MARKER = (1.0, 0.8, 0.0, 1.0)
+WHITE = (1.0, 1.0, 1.0, 1.0)
+SHADE = (0.0, 0.0, 0.0, 0.6)
 BORDER_PX = 8.0
 FONT_PX = 28.0
 _NS = "{urn:framegate:1}"
@@ -81,11 +82,11 @@ class DerivedTopic:
     @property
     def schema_data(self) -> bytes:
         """The schema's bytes (a protobuf FileDescriptorSet), empty for schemaless JSON."""
-        return _SCHEMAS[self.schema_name].data if self.schema_name else b""
+        return _schemas()[self.schema_name].data if self.schema_name else b""
 
     @property
     def schema_encoding(self) -> str:
-        return _SCHEMAS[self.schema_name].encoding if self.schema_name else ""
+        return _schemas()[self.schema_name].encoding if self.schema_name else ""
 
 
 @dataclass(frozen=True, slots=True)
@@ -105,10 +106,22 @@ class Marker:
     corners_px: tuple[tuple[float, float], ...]
 
 
-_SCHEMAS = {
-    m.get_schema().name: m.get_schema()
-    for m in (RawImage, CompressedImage, ImageAnnotations)  # type: ignore[attr-defined]
-}
+@cache
+def _schemas() -> dict[str, Any]:
+    """The Foxglove schemas by name."""
+    from foxglove.messages import CompressedImage, ImageAnnotations, RawImage
+
+    return {
+        m.get_schema().name: m.get_schema()
+        for m in (RawImage, CompressedImage, ImageAnnotations)  # type: ignore[attr-defined]
+    }
+
+
+def _colour(rgba: tuple[float, float, float, float]) -> Color:
+    from foxglove.messages import Color
+
+    r, g, b, a = rgba
+    return Color(r=r, g=g, b=b, a=a)
 
 
 def annotations_topic(service: str, buffer: str) -> str:
@@ -158,6 +171,8 @@ def derived_topics(
 
 
 def _stamp(timestamp_ns: int) -> Timestamp:
+    from foxglove.messages import Timestamp
+
     sec, nsec = divmod(timestamp_ns, 1_000_000_000)
     return Timestamp(sec, nsec)
 
@@ -198,8 +213,16 @@ def verdict_annotations(
 
     ``size_px`` (width, height) of the decided frame; without it only the text is drawn.
     """
+    from foxglove.messages import (
+        ImageAnnotations,
+        Point2,
+        PointsAnnotation,
+        PointsAnnotationType,
+        TextAnnotation,
+    )
+
     stamp = _stamp(record.frame_timestamp_ns)
-    colour = GREEN if record.accepted else RED
+    colour = _colour(GREEN if record.accepted else RED)
     points = []
     if size_px is not None:
         w, h, inset = float(size_px[0]), float(size_px[1]), BORDER_PX / 2
@@ -219,7 +242,7 @@ def verdict_annotations(
         text=verdict_text(record),
         font_size=FONT_PX,
         text_color=colour,
-        background_color=SHADE,
+        background_color=_colour(SHADE),
     )
     return ImageAnnotations(timestamp=stamp, points=points, texts=[text])
 
@@ -237,7 +260,16 @@ def read_markers(metadata: bytes) -> list[Marker]:
 
 def detection_annotations(timestamp_ns: int, markers: list[Marker]) -> ImageAnnotations:
     """Each marker's outline and its id, on the frame with key ``timestamp_ns``."""
+    from foxglove.messages import (
+        ImageAnnotations,
+        Point2,
+        PointsAnnotation,
+        PointsAnnotationType,
+        TextAnnotation,
+    )
+
     stamp = _stamp(timestamp_ns)
+    marker_colour, shade = _colour(MARKER), _colour(SHADE)
     outlines, labels = [], []
     for marker in markers:
         outlines.append(
@@ -245,7 +277,7 @@ def detection_annotations(timestamp_ns: int, markers: list[Marker]) -> ImageAnno
                 timestamp=stamp,
                 type=PointsAnnotationType.LineLoop,
                 points=[Point2(x=x, y=y) for x, y in marker.corners_px],
-                outline_color=MARKER,
+                outline_color=marker_colour,
                 thickness=4.0,
             )
         )
@@ -256,8 +288,8 @@ def detection_annotations(timestamp_ns: int, markers: list[Marker]) -> ImageAnno
                 position=Point2(x=x, y=y - 6.0),
                 text=f"id {marker.marker_id}",
                 font_size=FONT_PX,
-                text_color=MARKER,
-                background_color=SHADE,
+                text_color=marker_colour,
+                background_color=shade,
             )
         )
     return ImageAnnotations(timestamp=stamp, points=outlines, texts=labels)
@@ -265,6 +297,10 @@ def detection_annotations(timestamp_ns: int, markers: list[Marker]) -> ImageAnno
 
 def gyro_rates(payload: bytes) -> list[tuple[int, dict[str, float]]]:
     """(sample time, rates) of each sample in a gyro batch's payload; SchemaError if garbled."""
+    import numpy as np
+
+    from services.lib.quality import GyroSamples
+
     samples = GyroSamples.from_bytes(payload)
     norms = np.linalg.norm(samples.rates_rad_s, axis=1) if len(samples) else np.empty(0)
     return [
@@ -311,6 +347,8 @@ def metadata_json(metadata: bytes) -> dict[str, Any]:
 
 
 def raw_image(element: DataObject, layout: FrameLayout, frame_id: str) -> RawImage:
+    from foxglove.messages import RawImage
+
     return RawImage(
         timestamp=_stamp(element.timestamp_ns),
         frame_id=frame_id,
@@ -326,6 +364,8 @@ def jpeg_image(
     element: DataObject, layout: FrameLayout, frame_id: str, quality: int
 ) -> CompressedImage:
     import cv2  # only --jpeg needs OpenCV
+    import numpy as np
+    from foxglove.messages import CompressedImage
 
     channels = layout.channels
     shape = (layout.height_px, layout.width_px) + ((channels,) if channels > 1 else ())
@@ -395,6 +435,8 @@ class Deriver:
             return [
                 DerivedMessage(topic.topic, t, raw_image(element, layout, self.service).encode())
             ]
+        from services.lib.messages import DecisionRecord
+
         if topic.role == "annotations" and self.kind == "decision":
             record = DecisionRecord.from_metadata(element.metadata)
             drawn = verdict_annotations(record, size_px)

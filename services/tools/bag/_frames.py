@@ -5,7 +5,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from middleware import FramegateError, field_text, parse_untrusted
-from services.lib.messages import FRAME_CHANNELS as CHANNELS
+
+
+def _channels() -> dict[str, int]:
+    """Channels per raw encoding. Imported on first use: ``services.lib.messages`` brings
+    NumPy, which ``record`` must not wait for before its recording starts."""
+    from services.lib.messages import FRAME_CHANNELS
+
+    return FRAME_CHANNELS
 
 
 @dataclass(frozen=True, slots=True)
@@ -18,7 +25,7 @@ class FrameLayout:
 
     @property
     def channels(self) -> int:
-        return CHANNELS[self.encoding]
+        return _channels()[self.encoding]
 
     @property
     def step_bytes(self) -> int:
@@ -53,7 +60,7 @@ def frame_layout(metadata: bytes, payload_bytes: int | None = None) -> FrameLayo
         return None
     encoding = field_text(root, "encoding")
     width, height = field_text(root, "width_px"), field_text(root, "height_px")
-    if encoding not in CHANNELS or width is None or height is None:
+    if encoding not in _channels() or width is None or height is None:
         return None
     try:
         layout = FrameLayout(encoding, int(width), int(height))

@@ -12,10 +12,18 @@ transient-local publisher's last message): a camera description put once is in t
 Two kinds of loss are counted apart, as rosbag2 splits lost-in-transport from
 lost-in-recorder:
 
-* ``evicted``: the buffer no longer held the element when the recorder asked for it (its
-  retention was too short for how far the recorder fell behind);
-* ``dropped``: the recorder had the element and did not keep it, because its write queue
-  (elements fetched, waiting for the disk and compression) was full.
+* ``evicted`` (lost in transport): the recorder never got the element: the buffer no longer
+  held it when the recorder asked (its retention was too short for how far the recorder fell
+  behind), or it was not fetched by the stop deadline;
+* ``dropped`` (lost in recorder): the recorder had the element and did not keep it, because
+  its write queue (elements fetched, waiting for the disk and compression) was full.
+
+The end is bounded: every fetch ends by the recorder's ``deadline`` (``STOP_SLACK_S`` after
+the stop instant), and what is known to be stored up to the stop instant but not fetched by
+then (notification sequence numbers tell how many) is counted ``evicted`` rather than waited
+for. The writer keeps up the same way: while it is more than ``CATCH_UP_S`` behind, and for
+what is left at the stop, it closes chunks uncompressed (MCAP compresses per chunk), so a
+compressor slower than the buffers costs file size, not seconds at the end nor elements.
 
 Threads: one fetching thread per buffer (take notifications, fetch, backfill) puts elements
 into one bounded ``WriteQueue``; its one writer thread compresses and writes them, so a slow
@@ -41,8 +49,14 @@ IDLE_PROBE_S = 1.0
 # Elements fetched and waiting to be written, at most (bytes): ~20 s of 1.3 MB frames at
 # 15 frames/s, so a disk that pauses for seconds drops nothing.
 WRITE_QUEUE_BYTES = 384 * 2**20
-# A query at the stop waits at most this long, so a recording ends soon after its duration.
+# A query at the start waits at most this long.
 STOP_QUERY_S = 1.0
+# Every fetch ends at most this long after the stop instant (what is not fetched by then is
+# counted evicted), so a recording ends about this long after its duration.
+STOP_SLACK_S = 1.0
+# A writer this far behind (its oldest queued element waited this long) stops compressing
+# until it has caught up.
+CATCH_UP_S = 0.5
 
 
 @dataclass
@@ -84,7 +98,7 @@ class WriteQueue:
     def __init__(self, writer: BagWriter, max_bytes: int = WRITE_QUEUE_BYTES) -> None:
         self._writer = writer
         self._max_bytes = max_bytes
-        self._items: deque[tuple[Progress, DataObject]] = deque()
+        self._items: deque[tuple[Progress, DataObject, float]] = deque()
         self._bytes = 0
         self._closing = False
         self._cond = threading.Condition()
@@ -96,10 +110,11 @@ class WriteQueue:
         """Queue ``element``; False (counted ``dropped``) if the queue is full."""
         size = len(element.payload) + len(element.metadata)
         with self._cond:
-            if self.error is not None or (self._items and self._bytes + size > self._max_bytes):
+            full = self._items and self._bytes + size > self._max_bytes
+            if self.error is not None or self._closing or full:
                 progress.dropped += 1
                 return False
-            self._items.append((progress, element))
+            self._items.append((progress, element, time.monotonic()))
             self._bytes += size
             self._cond.notify()
             return True
@@ -111,13 +126,15 @@ class WriteQueue:
                     self._cond.wait()
                 if not self._items:
                     return
-                progress, element = self._items[0]
+                progress, element, queued_at = self._items[0]
+                behind = self._closing or time.monotonic() - queued_at > CATCH_UP_S
             try:
+                self._writer.catch_up(behind)
                 self._writer.write(progress.name, element)
             except BaseException as exc:  # a failing file stops the recording, not hangs it
                 with self._cond:
                     self.error = exc
-                    for queued, _ in self._items:
+                    for queued, _, _ in self._items:
                         queued.dropped += 1
                     self._items.clear()
                     self._bytes = 0
@@ -136,7 +153,8 @@ class WriteQueue:
             return len(self._items), self._bytes
 
     def close(self) -> None:
-        """Write what is queued, then end the writer thread."""
+        """Write what is queued (uncompressed: the recording is over), then end the writer
+        thread; later ``put`` calls are counted dropped."""
         with self._cond:
             self._closing = True
             self._cond.notify()
@@ -174,8 +192,12 @@ class Recorder:
         self.progress = progress
         self.stop = stop
         self.count = count
-        # The stop instant: nothing stamped later is recorded (None: not stopped yet).
+        # The stop instant: nothing stamped later is recorded (None: not known yet; known
+        # from the start with a duration).
         self.stop_ns: int | None = None
+        # The monotonic instant by which every fetch ends (None: not known yet); set before
+        # the thread starts when the duration is known, else at the stop.
+        self.deadline: float | None = None
         self.error: BaseException | None = None
         self._fetched = 0
         self._last_ns: int | None = None  # the newest element handed to the queue
@@ -203,7 +225,8 @@ class Recorder:
                     # ended brings none, so catch up from the buffer while it is quiet.
                     self._backfill(None)
             if not self._full():
-                self._backfill(self.stop_ns, timeout_s=STOP_QUERY_S)  # the tail up to the stop
+                self._backfill(self.stop_ns, timeout_s=STOP_SLACK_S)  # the tail up to the stop
+                self.progress.evicted += self._unfetched_at_stop()
         except BaseException as exc:  # a failing recorder must stop the recording, not hang it
             self.error = exc
             self.stop.set()
@@ -225,14 +248,19 @@ class Recorder:
         if self._last_ns is None or time.monotonic() - self._idle_since < IDLE_PROBE_S:
             return False
         self._idle_since = time.monotonic()
+        timeout_s = self._timeout(STOP_QUERY_S)
+        if timeout_s <= 0:
+            return False
         try:
-            newest = self.node.buffer_info(self.sub.name, timeout_s=STOP_QUERY_S).newest_ns
+            newest = self.node.buffer_info(self.sub.name, timeout_s=timeout_s).newest_ns
         except FramegateError:
             return False
         return newest is not None and newest > self._last_ns
 
     def _on_notification(self, note: Notification) -> None:
         p = self.progress
+        if self.stop_ns is not None and note.timestamp_ns > self.stop_ns:
+            return  # past the stop: the final backfill fetches what lies before it
         if note.seq <= self._anchor_seq:
             self._anchor_seq, self._since_anchor = 0, []  # the producer restarted (new epoch)
         # Sequence numbers count every element stored since we subscribed: this many lie
@@ -255,17 +283,46 @@ class Recorder:
                 return
         p.evicted += max(0, expected - len(self._since_anchor))
         self._anchor_seq, self._since_anchor = note.seq, []
+        timeout_s = self._timeout(5.0)
         try:
-            element = self.sub.fetch(note)
+            if timeout_s <= 0:
+                raise FramegateError("past the stop deadline")
+            element = self.sub.fetch(note, timeout_s=timeout_s)
         except FramegateError:
             p.evicted += 1  # gone from the buffer before we could fetch it
             return
         self._queue(element)
 
+    def _timeout(self, timeout_s: float) -> float:
+        """``timeout_s``, cut to what is left before the deadline (<= 0: none left)."""
+        if self.deadline is None:
+            return timeout_s
+        return min(timeout_s, self.deadline - time.monotonic())
+
+    def _unfetched_at_stop(self) -> int:
+        """Elements stored up to the stop instant that were never fetched (after the last
+        fetch): the notifications still queued tell, by their sequence numbers, how many
+        elements were stored after the last one handled."""
+        # The queue is bounded (the subscription's queue size), so this ends.
+        notes = self.sub.take_many(1 << 16, timeout_s=0)
+        if self.stop_ns is not None:
+            notes = [n for n in notes if n.timestamp_ns <= self.stop_ns]
+        if not notes:
+            return 0
+        newest = max(notes, key=lambda n: n.seq)
+        if self._anchor_seq == 0 or newest.seq <= self._anchor_seq:
+            # A new epoch (or none handled yet): only the notifications themselves are known.
+            return sum(1 for n in notes if self._last_ns is None or n.timestamp_ns > self._last_ns)
+        fetched = sum(1 for t in self._since_anchor if t <= newest.timestamp_ns)
+        return max(0, newest.seq - self._anchor_seq - fetched)
+
     def _backfill(
         self, end_ns: int | None, newest: int | None = None, timeout_s: float = 5.0
     ) -> None:
         """Queue the elements after the last one queued, up to ``end_ns`` (open: all)."""
+        timeout_s = self._timeout(timeout_s)
+        if timeout_s <= 0:
+            return  # past the deadline: what stays missing is counted at the stop
         self._accounted_misses = self.sub.missed_total
         start = None if self._last_ns is None else self._last_ns + 1
         if start is None:

@@ -39,6 +39,8 @@ from ._format import (
 from ._frames import frame_layout
 
 COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": None}
+# Where mcap's Writer keeps the compression of the chunks it closes (see ``catch_up``).
+_COMPRESSION_ATTRIBUTE = "_Writer__compression"
 
 # A chunk is closed, written and flushed to the OS once it holds this much, or once its
 # first message is this old: a recording cut short (full disk, kill -9, power loss) loses
@@ -97,10 +99,11 @@ class BagWriter:
         except ConfigError as exc:
             raise BagError(str(exc)) from exc
         chosen = COMPRESSIONS[compression]
+        self._compression = chosen if chosen is not None else CompressionType.NONE
         self._writer = Writer(
             self._stream,
             chunk_size=CHUNK_BYTES,
-            compression=chosen if chosen is not None else CompressionType.NONE,
+            compression=self._compression,
             use_chunking=True,
             # Chunks carry a CRC of their contents; the data section's CRC also covers chunk
             # headers and indexes, so readers tell a damaged file from a complete one.
@@ -221,6 +224,18 @@ class BagWriter:
                 raise self._fail("write", exc) from exc
         if sync:
             self._sync()
+
+    def catch_up(self, behind: bool) -> None:
+        """While ``behind``, chunks are stored uncompressed: a writer that cannot keep up
+        with the buffers (a busy machine, a slow compressor) catches up at the cost of file
+        size instead of dropping elements or making the stop wait. MCAP compresses each
+        chunk on its own, so readers take a file of mixed chunks as any other."""
+        wanted = CompressionType.NONE if behind else self._compression
+        with self._lock:
+            # mcap's Writer takes the compression only at construction and reads it when it
+            # closes a chunk; its attribute is private, so switch it only where it exists.
+            if hasattr(self._writer, _COMPRESSION_ATTRIBUTE):
+                setattr(self._writer, _COMPRESSION_ATTRIBUTE, wanted)
 
     def flush_if_due(self) -> None:
         """Close the open chunk if it is older than ``CHUNK_AGE_S`` (call this periodically:

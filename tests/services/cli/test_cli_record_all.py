@@ -26,7 +26,10 @@ def test_record_all_takes_every_buffer_including_a_late_one_and_info_describes_t
     bag = tmp_path / "all.mcap"
     with Node("cam", listen_net) as service:
         first = service.offer("a")
-        recorder = cli.start("record", "--all", "-o", str(bag), "--duration", "8", "--json")
+        # --count, not a short --duration: on a busy machine the puts below may come later
+        # than any duration chosen here; the duration only bounds a broken run.
+        argv = ("--all", "-o", str(bag), "--count", "5", "--duration", "300", "--json")
+        recorder = cli.start("record", *argv)
         assert first.wait_for_subscribers(1, timeout_s=scaled(30))
         late = service.offer("b")  # appears after the recording started
         assert late.wait_for_subscribers(1, timeout_s=scaled(30)), "--all never picked up cam/b"

@@ -1,0 +1,90 @@
+"""``record`` starts without the heavy imports and ends on time: a writer that falls behind
+stores chunks uncompressed (a valid MCAP file of mixed chunks), and what the stop leaves
+queued is written, not dropped."""
+
+from __future__ import annotations
+
+import json
+import random
+import subprocess
+import sys
+from pathlib import Path
+
+from middleware import DataObject, Retention, make_metadata
+from services.tools.bag import BagWriter, Progress, WriteQueue, open_bag, recording_info
+from tests.conftest import REPO, child_env
+from tests.helpers.timing import scaled
+
+HEAVY = ("numpy", "foxglove", "cv2", "services.lib.quality", "services.lib.messages")
+# Kinds whose channels need no Foxglove schema (decisions and detections are drawn with
+# foxglove.ImageAnnotations, whose schema the file must hold before their first message).
+PLAIN_KINDS = ("frame", "gyro", "camera", "generic")
+
+
+def _element(t: int) -> DataObject:
+    # Several 4 MiB chunks in all.
+    return DataObject(t, random.Random(t).randbytes(200_000), make_metadata("generic", t))
+
+
+def test_a_writer_that_is_behind_writes_uncompressed_chunks_and_loses_nothing(
+    tmp_path: Path,
+) -> None:
+    path = tmp_path / "mixed.mcap"
+    with BagWriter(path, images=False, compression="zstd") as writer:
+        writer.add_buffer("cam", "log", kind="generic", retention=Retention())
+        for t in range(1, 61):
+            writer.catch_up(20 < t <= 40)  # behind for the middle third
+            writer.write("cam/log", _element(t))
+    info = recording_info(path)
+    assert info.status == "complete" and info.messages == 60
+    assert set(info.compressions) == {"zstd", "none"}, info.compressions
+    with open_bag(path) as bag:
+        got = [e for _, e in bag.elements()]
+    assert [e.timestamp_ns for e in got] == list(range(1, 61))
+    assert all(e.payload == _element(e.timestamp_ns).payload for e in got[::7])
+
+
+def test_closing_the_write_queue_writes_what_is_queued_and_counts_later_puts_dropped(
+    tmp_path: Path,
+) -> None:
+    path = tmp_path / "queue.mcap"
+    progress = Progress("cam/log", "generic")
+    with BagWriter(path, images=False, compression="zstd") as writer:
+        writer.add_buffer("cam", "log", kind="generic", retention=Retention())
+        queue = WriteQueue(writer)
+        for t in range(1, 31):
+            assert queue.put(progress, _element(t))
+        queue.close()
+        assert not queue.put(progress, _element(31))
+    assert (progress.recorded, progress.dropped) == (30, 1)
+    assert recording_info(path).messages == 30
+
+
+def test_record_starts_recording_without_numpy_or_foxglove(tmp_path: Path) -> None:
+    """What ``record camera/images gyro/rates`` runs before its recording starts: its
+    module, the writer, the file with its channels."""
+    script = (
+        "import json, sys\n"
+        "from pathlib import Path\n"
+        "import services.cli.record\n"
+        "from middleware import Retention\n"
+        "from services.tools.bag import BagWriter, WriteQueue\n"
+        f"w = BagWriter(Path({str(tmp_path / 'x.mcap')!r}))\n"
+        f"for kind in {PLAIN_KINDS!r}:\n"
+        "    w.add_buffer('s', kind, kind=kind, retention=Retention())\n"
+        "WriteQueue(w).close()\n"
+        "w.close()\n"
+        "print(json.dumps(sorted(sys.modules)))\n"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", script],
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+        env=child_env(),
+        timeout=scaled(120),
+        check=True,
+    )
+    loaded = set(json.loads(result.stdout.splitlines()[-1]))
+    heavy = sorted(m for m in loaded if m in HEAVY)
+    assert heavy == [], f"record imported {heavy} before recording"

@@ -1,0 +1,90 @@
+"""How a recorder ends on time: past its fetch deadline it asks nothing more, and what the
+queued notifications say was stored up to the stop but never fetched is counted (evicted,
+lost in transport), never left out of the account.
+
+The recorder's bookkeeping is driven directly, with a stand-in for the subscription that
+holds queued notifications (no network: what is tested is the counting)."""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Any
+
+from middleware import Notification
+from services.tools.bag import Progress, Recorder
+
+STOP_NS = 1_000
+
+
+class _Queue:
+    """A subscription's queue of notifications, as ``Recorder`` reads it at the stop."""
+
+    name = "cam/log"
+    missed_total = 0
+
+    def __init__(self, *seq_and_t: tuple[int, int]) -> None:
+        self.notes = [Notification("cam", "log", t, seq) for seq, t in seq_and_t]
+
+    def take_many(self, max_count: int, *, timeout_s: float | None = None) -> list[Notification]:
+        taken, self.notes = self.notes[:max_count], self.notes[max_count:]
+        return taken
+
+    def fetch(self, *_: Any, **__: Any) -> Any:
+        raise AssertionError("fetched past the deadline")
+
+
+class _NoNetwork:
+    """A node that must not be asked (the deadline has passed)."""
+
+    def __getattr__(self, name: str) -> Any:
+        raise AssertionError(f"asked the network ({name}) past the deadline")
+
+
+def _recorder(sub: _Queue, *, anchor_seq: int, last_ns: int | None) -> Recorder:
+    recorder = Recorder(
+        _NoNetwork(),  # type: ignore[arg-type]
+        sub,  # type: ignore[arg-type]
+        None,  # type: ignore[arg-type]
+        Progress("cam/log", "generic"),
+        threading.Event(),
+        None,
+    )
+    recorder.stop_ns = STOP_NS
+    recorder.deadline = time.monotonic() - 1.0  # passed
+    recorder._anchor_seq = anchor_seq
+    recorder._last_ns = last_ns
+    return recorder
+
+
+def test_elements_notified_up_to_the_stop_and_not_fetched_are_counted() -> None:
+    # Handled up to seq 10 (t 100), seq 11 backfilled (t 110); 12-15 queued, stamped before
+    # the stop; 16 after it (not this recording's).
+    sub = _Queue((12, 120), (13, 130), (14, 140), (15, 150), (16, STOP_NS + 1))
+    recorder = _recorder(sub, anchor_seq=10, last_ns=110)
+    recorder._since_anchor = [110]
+    assert recorder._unfetched_at_stop() == 4
+
+
+def test_a_gap_no_queued_notification_names_is_counted_by_sequence_numbers() -> None:
+    # Only seq 15 is queued, yet 12-14 were stored before it and never fetched either.
+    recorder = _recorder(_Queue((15, 150)), anchor_seq=10, last_ns=110)
+    recorder._since_anchor = [110]
+    assert recorder._unfetched_at_stop() == 4
+
+
+def test_after_a_producer_restart_the_queued_notifications_are_what_is_known() -> None:
+    recorder = _recorder(_Queue((1, 120), (2, 130)), anchor_seq=10, last_ns=110)
+    assert recorder._unfetched_at_stop() == 2
+
+
+def test_nothing_queued_is_nothing_counted() -> None:
+    assert _recorder(_Queue(), anchor_seq=10, last_ns=110)._unfetched_at_stop() == 0
+
+
+def test_past_the_deadline_nothing_is_asked_and_a_notified_element_is_counted_lost() -> None:
+    sub = _Queue()
+    recorder = _recorder(sub, anchor_seq=0, last_ns=None)
+    recorder._backfill(STOP_NS, newest=5)  # would query: it must not
+    recorder._on_notification(Notification("cam", "log", 500, 1))  # would fetch: it must not
+    assert recorder.progress.evicted == 1
