@@ -225,11 +225,34 @@ class Recorder:
                     # ended brings none, so catch up from the buffer while it is quiet.
                     self._backfill(None)
             if not self._full():
+                self._until_past_stop()
                 self._backfill(self.stop_ns, timeout_s=STOP_SLACK_S)  # the tail up to the stop
                 self.progress.evicted += self._unfetched_at_stop()
         except BaseException as exc:  # a failing recorder must stop the recording, not hang it
             self.error = exc
             self.stop.set()
+
+    def _until_past_stop(self) -> None:
+        """Handle notifications until one is stamped past the stop, or the deadline.
+
+        An element stamped before the stop may be stored after it (a camera stamps a frame
+        at its exposure and stores it a render later: ~60 ms at load 12), so at the stop
+        instant neither the buffer nor the notifications hold it yet; the final backfill
+        alone missed it, uncounted."""
+        if self.stop_ns is None or self.deadline is None:
+            return
+        # Half the slack at most: the other half is the final backfill's.
+        until = self.deadline - STOP_SLACK_S / 2
+        while not self._full():
+            timeout_s = min(0.2, until - time.monotonic())
+            if timeout_s <= 0:
+                return
+            note = self.sub.take(timeout_s=timeout_s)
+            if note is None:
+                continue
+            if note.timestamp_ns > self.stop_ns:
+                return  # the producer is past the stop: the final backfill finds the rest
+            self._on_notification(note)
 
     def _latest_at_start(self) -> None:
         for element in self._initial:
