@@ -1,8 +1,8 @@
 """Serving a process's buffers: one queryable for elements, one for the service description.
 
-Queries run on a worker thread per queryable, fed by a bounded inbox (``QueryInbox``), so a
-long range reply never runs on Zenoh's own threads nor holds up the node's executor. Every
-malformed query gets an error reply (``code: message``) and the worker keeps serving.
+Queries run on a worker thread fed by a bounded Zenoh channel, so a long range reply never
+runs on Zenoh's own threads. Every malformed query gets an error reply (``code: message``)
+and the worker keeps serving.
 
 One producer per name: before declaring its token, an endpoint asks whether the service is
 live elsewhere and refuses, naming that instance's host and pid (a restarted service whose
@@ -24,7 +24,6 @@ import os
 import secrets
 import socket
 import threading
-from collections import deque
 from collections.abc import Callable
 from dataclasses import asdict
 from typing import Any, cast
@@ -151,77 +150,11 @@ def _taken(service: str, other: dict[str, Any]) -> NameTakenError:
     )
 
 
-# Queries waiting for their worker: data queries (a fetch per large element each, so a few
-# per consumer), descriptions (a few per `ls` or claim check). A query beyond that is
-# answered at once with an error, never queued.
-DATA_INBOX = 256
-INFO_INBOX = 64
-
-
-class QueryInbox:
-    """A queryable's bounded inbox: Zenoh's thread appends, one worker thread takes.
-
-    A direct callback (``indirect=False``) appends each query and wakes the worker, which
-    sleeps on a condition until then: an idle service wakes for nothing (a blocking Zenoh
-    channel ``recv`` polls about every 100 ms, ~10 wake-ups a second per waiting thread).
-    A query arriving at a full inbox is refused with an error reply and counted
-    (``refused``), on Zenoh's thread: refusing is one small reply; waiting for room would
-    stall Zenoh's receive thread and with it the whole link.
-    """
-
-    def __init__(self, service: str, capacity: int) -> None:
-        self.service = service
-        self.capacity = capacity
-        self.refused = 0
-        self._items: deque[zenoh.Query] = deque()
-        self._cond = threading.Condition(threading.Lock())
-        self._closed = False
-
-    def handler(self) -> Any:
-        return zenoh.handlers.Callback(self._on_query, indirect=False)
-
-    def _on_query(self, query: zenoh.Query) -> None:
-        """(Zenoh's thread) Append and wake the worker, or refuse at once when full."""
-        with self._cond:
-            if not self._closed and len(self._items) < self.capacity:
-                self._items.append(query)
-                self._cond.notify()
-                return
-            closed = self._closed
-            if not closed:
-                self.refused += 1
-        with query:
-            reason = "is closing" if closed else f"has {self.capacity} queries waiting"
-            _reply_err(
-                query,
-                error_text(ERR_BAD_QUERY, f"service {self.service!r} {reason}; ask again later"),
-            )
-
-    def take(self) -> zenoh.Query | None:
-        """(the worker) The next query, waiting without a timeout; None once closed."""
-        with self._cond:
-            while not self._items and not self._closed:
-                self._cond.wait()
-            return self._items.popleft() if self._items else None
-
-    def close(self) -> None:
-        """Wake the worker to end, and finalize what waits unanswered (its querier gets
-        no more replies instead of waiting for its timeout)."""
-        with self._cond:
-            self._closed = True
-            left = list(self._items)
-            self._items.clear()
-            self._cond.notify_all()
-        for query in left:
-            with contextlib.suppress(zenoh.ZError):
-                query.drop()
-
-
 class ServiceEndpoint:
     """The Zenoh face of a named service: token, data queryable and info queryable.
 
-    Threads: two worker threads (``fg-query-*``, ``fg-info-*``) take from the queryables'
-    bounded inboxes and answer there, never on Zenoh's threads. ``_lock`` guards the
+    Threads: two worker threads (``fg-query-*``, ``fg-info-*``) read the queryables'
+    bounded channels and answer there, never on Zenoh's threads. ``_lock`` guards the
     producer table only; no Zenoh call is made while holding it.
     """
 
@@ -236,20 +169,20 @@ class ServiceEndpoint:
         if others:
             raise _taken(service, others[0])
         self._token = session.liveliness().declare_token(keys.service_token(service))
-        self._inboxes = (QueryInbox(service, DATA_INBOX), QueryInbox(service, INFO_INBOX))
-        data_inbox, info_inbox = self._inboxes
-        self._data = session.declare_queryable(keys.service_data(service), data_inbox.handler())
-        self._info = session.declare_queryable(keys.info(service), info_inbox.handler())
+        self._data = session.declare_queryable(
+            keys.service_data(service), zenoh.handlers.FifoChannel(256)
+        )
+        self._info = session.declare_queryable(keys.info(service), zenoh.handlers.FifoChannel(64))
         self._threads = [
             threading.Thread(
                 target=self._serve,
-                args=(data_inbox, self._on_data),
+                args=(self._data, self._on_data),
                 daemon=True,
                 name=f"fg-query-{service}",
             ),
             threading.Thread(
                 target=self._serve,
-                args=(info_inbox, self._on_info),
+                args=(self._info, self._on_info),
                 daemon=True,
                 name=f"fg-info-{service}",
             ),
@@ -276,9 +209,9 @@ class ServiceEndpoint:
         with self._lock:
             return list(self._producers.values())
 
-    def _serve(self, inbox: QueryInbox, handle: Callable[[zenoh.Query], None]) -> None:
-        # Ends when the inbox closes.
-        while (query := inbox.take()) is not None:
+    def _serve(self, queryable: Any, handle: Callable[[zenoh.Query], None]) -> None:
+        # Iteration ends when the queryable is undeclared.
+        for query in queryable:
             with query:
                 try:
                     handle(query)
@@ -334,8 +267,6 @@ class ServiceEndpoint:
         for entity in (self._data, self._info, self._token):
             with contextlib.suppress(zenoh.ZError):
                 entity.undeclare()
-        for inbox in self._inboxes:
-            inbox.close()
         for thread in self._threads:
             thread.join(timeout=2.0)
 
