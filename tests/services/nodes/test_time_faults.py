@@ -190,7 +190,9 @@ def test_a_rogue_frame_9_s_ahead_does_not_stop_forwarding_after_it(
         assert recorded.records[0].accepted, recorded.reasons()  # forwarded
         rogue_ns = recorded.records[0].frame_timestamp_ns
         node = recorded.node
-        wait_until(lambda: _latest(node, "detector/detections"), 60, "the rogue's detection")
+        # The camera goes at once: its lead is all the scenario has (waiting here for the
+        # rogue's detection cost seconds of it at load 10). That detection is made before
+        # any of the camera's frames reaches the detector, so its removal is checked below.
         _stop(rogue)
         assert camera.stdin is not None
         camera.stdin.write("go\n")
@@ -198,8 +200,8 @@ def test_a_rogue_frame_9_s_ahead_does_not_stop_forwarding_after_it(
         recorded.step_until(lambda: len(recorded.records) >= 6, 90, "the camera's frames")
         first_ns = recorded.records[1].frame_timestamp_ns
         # The scenario itself: the real camera's first frame is stamped before the rogue's
-        # (from the rogue's put to it: a detection, a stop and a warm start, ~1.3 s at load
-        # 16 on 2 cores, against the 9 s lead).
+        # (from the rogue's put to it: the rogue's decision, its stop and a warm start, against
+        # the 9 s lead).
         assert first_ns < rogue_ns, (
             f"the camera's first frame came {(first_ns - rogue_ns) / 1e9:.1f} s after the "
             "rogue's stamp: from the rogue's put to the camera's first frame took longer "
@@ -376,14 +378,6 @@ def test_a_stopped_detector_loses_no_accepted_frame_without_a_record(pipe: Pipel
     assert summary["lost"]["accepted_without_detection"] == 0, summary
     assert summary["lost"]["frames_without_decision"] == 0, summary
     assert summary["decision_reasons"].get("consumer-lapsed", 0) >= 10, summary
-
-
-def _latest(node: Node, target: str) -> list[object]:
-    """The newest element, or nothing while its service is still starting."""
-    try:
-        return list(node.latest(target))
-    except FramegateError:
-        return []
 
 
 def _puts(node: Node, target: str) -> int:
