@@ -40,10 +40,17 @@ def pipe(tmp_path: Path) -> Iterator[Pipeline]:
 
 
 def _snapshot(pipe: Pipeline, target: str) -> dict[int, DataObject]:
-    try:
-        return {e.timestamp_ns: e for e in pipe.node.query(target, timeout_s=scaled(5))}
-    except FramegateError:
-        return {}
+    """Every element of ``target``, from a query that was answered: an unanswered one (5 s
+    passed at load 10 for the gyro's buffer) is asked again, never read as an empty buffer."""
+
+    def answered() -> tuple[dict[int, DataObject]] | None:
+        try:
+            found = pipe.node.query(target, timeout_s=scaled(20))
+        except FramegateError:
+            return None
+        return ({e.timestamp_ns: e for e in found},)
+
+    return wait_until(answered, 120, f"{target} to answer a query")[0]
 
 
 @pytest.mark.slow
