@@ -208,7 +208,7 @@ def test_ros2_camera_and_imu_through_the_pipeline_back_to_ros2(
                 len(listener.received["/framegate/verdicts"]) >= FRAMES
                 and listener.received["/framegate/detections"]
             ),
-            30,
+            120,  # eight frames through bridge, mediator and detector: 30 s missed at load 10
             "a verdict per frame and detections\n" + pipe.log(),
         )
         frames = np.load(tmp_path / "frames.npy")
