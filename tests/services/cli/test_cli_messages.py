@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import subprocess
 import sys
 
@@ -11,6 +10,7 @@ import pytest
 
 from services.cli import COMMANDS, build_parser
 from tests.conftest import REPO, child_env, free_port
+from tests.helpers.imports import modules_after
 from tests.helpers.timing import scaled
 
 # Modules that the listed commands must not pay for (seconds of start-up on a small machine).
@@ -148,18 +148,8 @@ def test_help_and_ls_import_nothing_heavy(code: str) -> None:
         "from services.cli import build_parser, main\n"
         "with redirect_stdout(io.StringIO()), redirect_stderr(io.StringIO()):\n"
         f"    {code}\n"
-        "print(json.dumps(sorted(sys.modules)))\n"
     )
-    result = subprocess.run(
-        [sys.executable, "-c", script],
-        capture_output=True,
-        text=True,
-        cwd=REPO,
-        env=child_env(),
-        timeout=scaled(120),
-        check=True,
-    )
-    loaded = json.loads(result.stdout.splitlines()[-1])
+    loaded = modules_after(script)
     heavy = sorted({m.split(".")[0] for m in loaded} & set(HEAVY))
     assert heavy == [], f"{code} imported {heavy}"
 

@@ -4,16 +4,12 @@ queued is written, not dropped."""
 
 from __future__ import annotations
 
-import json
 import random
-import subprocess
-import sys
 from pathlib import Path
 
 from middleware import DataObject, Retention, make_metadata
 from services.tools.bag import BagWriter, Progress, WriteQueue, open_bag, recording_info
-from tests.conftest import REPO, child_env
-from tests.helpers.timing import scaled
+from tests.helpers.imports import modules_after
 
 HEAVY = ("numpy", "foxglove", "cv2", "services.lib.quality", "services.lib.messages")
 # Kinds whose channels need no Foxglove schema (decisions and detections are drawn with
@@ -74,17 +70,7 @@ def test_record_starts_recording_without_numpy_or_foxglove(tmp_path: Path) -> No
         "    w.add_buffer('s', kind, kind=kind, retention=Retention())\n"
         "WriteQueue(w).close()\n"
         "w.close()\n"
-        "print(json.dumps(sorted(sys.modules)))\n"
     )
-    result = subprocess.run(
-        [sys.executable, "-c", script],
-        capture_output=True,
-        text=True,
-        cwd=REPO,
-        env=child_env(),
-        timeout=scaled(120),
-        check=True,
-    )
-    loaded = set(json.loads(result.stdout.splitlines()[-1]))
+    loaded = modules_after(script)
     heavy = sorted(m for m in loaded if m in HEAVY)
     assert heavy == [], f"record imported {heavy} before recording"
