@@ -47,6 +47,8 @@ from ._stamps import StampGate
 _POLL_S = 0.2
 # A partial IMU batch goes out after this long without a new sample.
 _IMU_IDLE_S = 0.05
+# How long after the first look at the ROS graph the bridge looks again (see _settle_graph).
+_GRAPH_SECOND_LOOK_S = 0.5
 
 
 class _Skips:
@@ -389,7 +391,14 @@ def _settle_graph(
     while link.routers() == 0:
         if stop.wait(0.1):
             return
-    tokens = link.graph()
+    # Just after connecting, a query of the graph may miss tokens the router already holds
+    # (seen: its own session's publisher): a second look a moment later is joined to the
+    # first, so a publisher that was there is never taken for a new one. One that starts in
+    # between is counted from its first sample seen, as one that was there.
+    tokens = set(link.graph())
+    if stop.wait(_GRAPH_SECOND_LOOK_S):
+        return
+    tokens.update(link.graph())
     for token in tokens:
         for watch in watches:
             watch.announce(token)
