@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -252,12 +253,17 @@ class Node(Queries):
         """(the node's executor) The process did not run for ``late_ns``: say so, once."""
         lease_s = self.network.lease_ms / 1000
         if late_ns / 1e9 > lease_s:
+            # Not only SIGSTOP: with more runnable threads than CPUs a thread can wait seconds
+            # for one (measured: 2.3 s at load 22 on 2 cores), so the load is part of the answer.
+            load = os.getloadavg()[0] if hasattr(os, "getloadavg") else math.nan
             log.warning(
-                "%s: this process did not run for %.1f s (stopped or suspended), longer than "
-                "the %.1f s lease: peers dropped it; it reconnects and its subscriptions "
-                "re-register by themselves",
+                "%s: this process did not run for %.1f s (stopped, suspended, or starved of CPU: "
+                "load average %.1f on %d CPUs), longer than the %.1f s lease: peers dropped it; "
+                "it reconnects and its subscriptions re-register by themselves",
                 self.name or "client",
                 late_ns / 1e9,
+                load,
+                os.cpu_count() or 1,
                 lease_s,
             )
 
