@@ -56,18 +56,35 @@ with Node("camera", NetworkConfig(local_port=int(sys.argv[1]))) as node:
 # stamp the camera's frames start after it and nothing is (rightly) rewound: the camera
 # must be up within that, also on a loaded machine, so its start is no longer a cold Python
 # start, and the rogue puts only once the camera is ready (under load a cold start alone
-# took longer than the rogue's lead, and the scenario never happened).
+# took longer than the rogue's lead, and the scenario never happened). It replays a few
+# simulated frames (argv[1]) rather than rendering: a first frame rendered live took seconds
+# of that lead too (at load 20-27 the camera's first frame came 2.5 s after the rogue's).
 WARM_CAMERA = """
 import sys
 from services.cli import main
 from services.cli import run
 from services.nodes import service
-import services.lib.sim
 service("camera")
 print("ready", flush=True)
 sys.stdin.readline()
-sys.exit(main(["run", "camera", "--source", "sim", "--loop"]))
+sys.exit(main(["run", "camera", "--source", "replay", "--path", sys.argv[1], "--loop"]))
 """
+
+
+@pytest.fixture(scope="module")
+def frames(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A few simulated frames for a replaying camera."""
+    out = tmp_path_factory.mktemp("frames") / "approach"
+    argv = ["simulate", "--out", str(out), "--frames", "8", "--no-progress"]
+    subprocess.run(
+        [sys.executable, "-m", "services.cli", *argv],
+        cwd=REPO,
+        env=child_env(),
+        check=True,
+        capture_output=True,
+        timeout=scaled(300),
+    )
+    return out
 
 
 class Recorded:
@@ -165,7 +182,7 @@ def test_a_future_stamped_rogue_frame_is_skipped_and_decisions_resume(
 
 
 def test_a_rogue_frame_9_s_ahead_does_not_stop_forwarding_after_it(
-    tmp_path: Path, shim: Path
+    tmp_path: Path, shim: Path, frames: Path
 ) -> None:
     """Inside the horizon, so forwarded (and detected); the real camera that follows starts
     9 s earlier: the mediator and the detector remove what the wrong clock stamped and
@@ -175,7 +192,7 @@ def test_a_rogue_frame_9_s_ahead_does_not_stop_forwarding_after_it(
     step_clock(offset, 9 * S)
     recorded = Recorded(port, MediatorConfig(gyro_missing=GyroMissing.ACCEPT, gyro_wait_ms=0))
     detector = _start(["-m", "services.cli", "run", "detector", "--input", "mediator/images"], port)
-    camera = _start(["-c", WARM_CAMERA], port)
+    camera = _start(["-c", WARM_CAMERA, str(frames)], port)
     rogue = None
     try:
         images = recorded.mediator.images
