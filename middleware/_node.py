@@ -30,7 +30,7 @@ from typing import Any
 import zenoh
 
 from ._config import RENDEZVOUS_WAIT_S, NetworkConfig, check_name, listening_endpoints
-from ._discovery import split_target
+from ._discovery import buffer_of, split_target
 from ._errors import ConfigError, FramegateError, NotFoundError
 from ._executor import BUDGET, Executor, Timer
 from ._producer import HORIZON_NS, Producer
@@ -239,12 +239,14 @@ class Node(Queries):
             if sub.service not in self.live_services(timeout_s=min(1.0, wait_s)):
                 return
             try:
-                self.buffer_info(sub.name, timeout_s=1.0)
+                info = self.service_info(sub.service, timeout_s=1.0)
+            except FramegateError:
+                continue  # no answer is no verdict (a loaded machine): ask again
+            try:
+                buffer_of(info, sub.name)
                 missing = None
             except NotFoundError as exc:
                 missing = exc
-            except FramegateError:
-                pass
         if missing is not None:
             sub.close()
             raise missing
