@@ -47,27 +47,38 @@ class Pipeline:
         for line in self.proc.stdout:
             self.lines.append(line.rstrip())
 
-    def info(self, target: str) -> Any:
-        return self.node.buffer_info(target, timeout_s=scaled(10.0))
+    def info(self, target: str, *, wait_s: float = LEASE_LAPSE_S) -> Any:
+        """A buffer's info; a service that does not answer is asked again for
+        ``scaled(wait_s)`` (a live one may have lost its lease, see ``pid``), then its
+        error is raised."""
+        deadline = time.monotonic() + scaled(wait_s)
+        while True:
+            try:
+                return self.node.buffer_info(target, timeout_s=scaled(10.0))
+            except FramegateError:
+                if time.monotonic() >= deadline:
+                    raise
+            time.sleep(0.2)
 
     def counter(self, target: str, name: str = "puts") -> int:
-        """A producer counter (puts, refused, ...) of a buffer; 0 while it is not live."""
+        """A producer counter (puts, refused, ...) of a buffer; 0 while it is not live (for
+        polling: one look)."""
         try:
-            return int(getattr(self.info(target), name))
+            return int(getattr(self.info(target, wait_s=0), name))
         except FramegateError:
             return 0
 
     def subscriber_count(self, target: str) -> int:
         """Subscriptions a buffer's producer counts; -1 while it is not live."""
         try:
-            return len(self.info(target).subscriptions)
+            return len(self.info(target, wait_s=0).subscriptions)
         except FramegateError:
             return -1
 
     def subscription_ids(self, target: str) -> set[str] | None:
         """Ids of the subscriptions a buffer's producer counts; None while it is not live."""
         try:
-            return {s.subscription_id for s in self.info(target).subscriptions}
+            return {s.subscription_id for s in self.info(target, wait_s=0).subscriptions}
         except FramegateError:
             return None
 
