@@ -181,12 +181,36 @@ def test_a_future_stamped_rogue_frame_is_skipped_and_decisions_resume(
         recorded.close()
 
 
+# Times the rogue-then-camera scenario is set up before the test gives up on it: on a
+# starved machine (load 20-33) the camera's first frame missed the rogue's 9 s lead.
+ROGUE_ATTEMPTS = 3
+
+
 def test_a_rogue_frame_9_s_ahead_does_not_stop_forwarding_after_it(
     tmp_path: Path, shim: Path, frames: Path
 ) -> None:
     """Inside the horizon, so forwarded (and detected); the real camera that follows starts
     9 s earlier: the mediator and the detector remove what the wrong clock stamped and
-    the real frames go through at once, to the detector's detections."""
+    the real frames go through at once, to the detector's detections. A run in which the
+    scenario did not happen (the camera's first frame came after the rogue's stamp, so
+    there was nothing to rewind) proves nothing and is made again, with fresh processes."""
+    missed = []
+    for attempt in range(ROGUE_ATTEMPTS):
+        (tmp_path / str(attempt)).mkdir()
+        late_s = _rogue_then_camera(tmp_path / str(attempt), shim, frames)
+        if late_s is None:
+            return
+        missed.append(f"{late_s:.1f} s")
+    raise AssertionError(
+        f"in {ROGUE_ATTEMPTS} runs the camera's first frame came after the rogue's stamp "
+        f"({', '.join(missed)} after it): from the rogue's put to the camera's first frame "
+        "took longer than the rogue's 9 s lead, so there was nothing to rewind"
+    )
+
+
+def _rogue_then_camera(tmp_path: Path, shim: Path, frames: Path) -> float | None:
+    """One run of the scenario and its checks; how late the camera's first frame came after
+    the rogue's stamp when the scenario did not happen, else None."""
     port = free_port()
     offset = tmp_path / "offset"
     step_clock(offset, 9 * S)
@@ -219,11 +243,8 @@ def test_a_rogue_frame_9_s_ahead_does_not_stop_forwarding_after_it(
         # The scenario itself: the real camera's first frame is stamped before the rogue's
         # (from the rogue's put to it: the rogue's decision, its stop and a warm start, against
         # the 9 s lead).
-        assert first_ns < rogue_ns, (
-            f"the camera's first frame came {(first_ns - rogue_ns) / 1e9:.1f} s after the "
-            "rogue's stamp: from the rogue's put to the camera's first frame took longer "
-            "than the rogue's 9 s lead, so there was nothing to rewind"
-        )
+        if first_ns >= rogue_ns:
+            return (first_ns - rogue_ns) / 1e9
         assert "out-of-order" not in recorded.reasons(1), recorded.reasons()
         assert any(r.accepted for r in recorded.records[1:]), recorded.reasons()
         assert recorded.mediator.images.info().skipped == {"rewound": 1}
@@ -242,6 +263,7 @@ def test_a_rogue_frame_9_s_ahead_does_not_stop_forwarding_after_it(
         )
         assert all(t < rogue_ns for t in detected)
         assert node.buffer_info("detector/detections").skipped == {"rewound": 1}
+        return None
     finally:
         _stop(*([rogue] if rogue else []), detector, camera)
         recorded.close()
