@@ -26,6 +26,7 @@ from services.lib.messages import DecisionRecord
 from services.nodes.mediator import Mediator, MediatorConfig
 from tests.conftest import REPO, child_env, free_port, wait_until
 from tests.helpers.clock_shim import build_clock_shim, shifted_clock_env, step_clock
+from tests.helpers.frames import simulated_frames
 from tests.helpers.timing import scaled
 from tests.services.nodes.pipeline import LEASE_LAPSE_S, Pipeline
 
@@ -73,18 +74,7 @@ sys.exit(main(["run", "camera", "--source", "replay", "--path", sys.argv[1], "--
 
 @pytest.fixture(scope="module")
 def frames(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A few simulated frames for a replaying camera."""
-    out = tmp_path_factory.mktemp("frames") / "approach"
-    argv = ["simulate", "--out", str(out), "--frames", "8", "--no-progress"]
-    subprocess.run(
-        [sys.executable, "-m", "services.cli", *argv],
-        cwd=REPO,
-        env=child_env(),
-        check=True,
-        capture_output=True,
-        timeout=scaled(300),
-    )
-    return out
+    return simulated_frames(tmp_path_factory.mktemp("frames") / "approach")
 
 
 class Recorded:
