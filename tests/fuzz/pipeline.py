@@ -53,6 +53,7 @@ from middleware import (
 from services.launch import pipeline_yaml
 from services.lib.messages import DecisionRecord
 from tests.conftest import REPO, child_env
+from tests.helpers.frames import simulated_frames
 from tests.helpers.timing import scaled
 from tests.services.nodes.pipeline import Pipeline
 
@@ -191,31 +192,18 @@ class Tally:
         return sum(v for k, v in self.counts.items() if k.startswith("hostile-"))
 
 
-# The real camera and gyro are bystanders here (the mediator is given the hostile ones):
-# they loop a few simulated frames instead of rendering live, which kept a core busy for the
-# whole run and, on a loaded machine, starved the very services under test.
-BYSTANDER_FRAMES = 8
-
-
-def _bystander_dataset(workdir: Path) -> Path:
-    out = workdir / "approach"
-    argv = ["simulate", "--out", str(out), "--frames", str(BYSTANDER_FRAMES), "--no-progress"]
-    subprocess.run(
-        [sys.executable, "-m", "services.cli", *argv],
-        cwd=REPO,
-        env=child_env(),
-        check=True,
-        capture_output=True,
-        timeout=scaled(300),
-    )
-    return out
-
-
 class PipelineFuzzer:
     """The pipeline under test plus the hostile camera, gyro and consumers."""
 
     def __init__(self, workdir: Path, *, cli_watchers: bool = True) -> None:
-        replay = {"source": "replay", "path": str(_bystander_dataset(workdir)), "seed": None}
+        # The real camera and gyro are bystanders (the mediator is given the hostile ones):
+        # they loop a few simulated frames instead of rendering live, which kept a core busy
+        # for the whole run and, on a loaded machine, starved the services under test.
+        replay = {
+            "source": "replay",
+            "path": str(simulated_frames(workdir / "approach")),
+            "seed": None,
+        }
         overrides = {
             "camera": replay,
             "gyro": replay,

@@ -26,6 +26,7 @@ from services.lib.messages import DecisionRecord
 from services.nodes.mediator import Mediator, MediatorConfig
 from tests.conftest import REPO, child_env, free_port, wait_until
 from tests.helpers.clock_shim import build_clock_shim, shifted_clock_env, step_clock
+from tests.helpers.frames import simulated_frames
 from tests.helpers.timing import scaled
 from tests.services.nodes.pipeline import LEASE_LAPSE_S, Pipeline
 
@@ -73,18 +74,7 @@ sys.exit(main(["run", "camera", "--source", "replay", "--path", sys.argv[1], "--
 
 @pytest.fixture(scope="module")
 def frames(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A few simulated frames for a replaying camera."""
-    out = tmp_path_factory.mktemp("frames") / "approach"
-    argv = ["simulate", "--out", str(out), "--frames", "8", "--no-progress"]
-    subprocess.run(
-        [sys.executable, "-m", "services.cli", *argv],
-        cwd=REPO,
-        env=child_env(),
-        check=True,
-        capture_output=True,
-        timeout=scaled(300),
-    )
-    return out
+    return simulated_frames(tmp_path_factory.mktemp("frames") / "approach")
 
 
 class Recorded:
@@ -181,12 +171,36 @@ def test_a_future_stamped_rogue_frame_is_skipped_and_decisions_resume(
         recorded.close()
 
 
+# Times the rogue-then-camera scenario is set up before the test gives up on it: on a
+# starved machine (load 20-33) the camera's first frame missed the rogue's 9 s lead.
+ROGUE_ATTEMPTS = 3
+
+
 def test_a_rogue_frame_9_s_ahead_does_not_stop_forwarding_after_it(
     tmp_path: Path, shim: Path, frames: Path
 ) -> None:
     """Inside the horizon, so forwarded (and detected); the real camera that follows starts
     9 s earlier: the mediator and the detector remove what the wrong clock stamped and
-    the real frames go through at once, to the detector's detections."""
+    the real frames go through at once, to the detector's detections. A run in which the
+    scenario did not happen (the camera's first frame came after the rogue's stamp, so
+    there was nothing to rewind) proves nothing and is made again, with fresh processes."""
+    missed = []
+    for attempt in range(ROGUE_ATTEMPTS):
+        (tmp_path / str(attempt)).mkdir()
+        late_s = _rogue_then_camera(tmp_path / str(attempt), shim, frames)
+        if late_s is None:
+            return
+        missed.append(f"{late_s:.1f} s")
+    raise AssertionError(
+        f"in {ROGUE_ATTEMPTS} runs the camera's first frame came after the rogue's stamp "
+        f"({', '.join(missed)} after it): from the rogue's put to the camera's first frame "
+        "took longer than the rogue's 9 s lead, so there was nothing to rewind"
+    )
+
+
+def _rogue_then_camera(tmp_path: Path, shim: Path, frames: Path) -> float | None:
+    """One run of the scenario and its checks; how late the camera's first frame came after
+    the rogue's stamp when the scenario did not happen, else None."""
     port = free_port()
     offset = tmp_path / "offset"
     step_clock(offset, 9 * S)
@@ -219,11 +233,8 @@ def test_a_rogue_frame_9_s_ahead_does_not_stop_forwarding_after_it(
         # The scenario itself: the real camera's first frame is stamped before the rogue's
         # (from the rogue's put to it: the rogue's decision, its stop and a warm start, against
         # the 9 s lead).
-        assert first_ns < rogue_ns, (
-            f"the camera's first frame came {(first_ns - rogue_ns) / 1e9:.1f} s after the "
-            "rogue's stamp: from the rogue's put to the camera's first frame took longer "
-            "than the rogue's 9 s lead, so there was nothing to rewind"
-        )
+        if first_ns >= rogue_ns:
+            return (first_ns - rogue_ns) / 1e9
         assert "out-of-order" not in recorded.reasons(1), recorded.reasons()
         assert any(r.accepted for r in recorded.records[1:]), recorded.reasons()
         assert recorded.mediator.images.info().skipped == {"rewound": 1}
@@ -242,6 +253,7 @@ def test_a_rogue_frame_9_s_ahead_does_not_stop_forwarding_after_it(
         )
         assert all(t < rogue_ns for t in detected)
         assert node.buffer_info("detector/detections").skipped == {"rewound": 1}
+        return None
     finally:
         _stop(*([rogue] if rogue else []), detector, camera)
         recorded.close()
