@@ -5,9 +5,8 @@ from __future__ import annotations
 import json
 import math
 import os
-import statistics
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
@@ -17,12 +16,13 @@ from services.lib.sim import Dataset
 
 from ._config import MARKER_NAMES, PAPER_TABLE1, ExperimentConfig, RunKind
 from ._datasets import cached_dataset, scenario_for
+from ._detector import clock_offset_ns, detector_overhead_ns, detector_steps
 from ._frames import FrameOutcome, frame_outcomes
 from ._latency import decision_latencies
 from ._metrics import blur_pairs, recognized_frames
 from ._pipeline import RunSettings, run_configuration
 from ._plots import plot_gyro_exposures, plot_quality_vs_blur, plot_timeline
-from ._records import FrameDetections, RunRecord
+from ._records import RunRecord
 from ._replay import QueueModel, replay_policy
 from ._stats import captured_fraction, correlations, improvement_pct, json_safe, mean_ci95
 from ._sweep import marker_counts, oracle_counts, period_ns
@@ -117,10 +117,12 @@ def seed_replay(
     (not those the camera skipped late or refused, counted as ``not_decided``), each at its
     own decision latency and with the quality it computed (None where the gyro did not
     cover the frame in time: the gyro-missing rule decides, as it did), and the detector's
-    processing times as it took them (``service_ms``: their mean)."""
+    processing times when it took them (``_detector``; ``service_ms``: their mean,
+    ``overhead_ms``: the cost per frame besides)."""
     frames = frame_outcomes(dataset, config.b0_px)
     nominal_ns = round(config.service_factor * period_ns(frames))
     arrival = {f.frame_id: f.arrival_ns for f in frames}
+    starts = {f.frame_id: f.exposure_start_ns for f in dataset.frames}
     uncontrolled = records.get(RunKind.UNCONTROLLED)
     overhead_ns = 0
     # Only a run whose camera kept up keeps the detector's queue full all along.
@@ -136,18 +138,12 @@ def seed_replay(
         seen = tuple(
             replace(f, quality=quality[f.frame_id]) for f in frames if f.frame_id in latencies
         )
-        # The detector as it ran: each real frame's processing time from its arrival on
-        # (on a loaded machine it varies, 105-150 ms against 107 ms emulated, measured),
-        # plus what each frame costs it besides (taking, fetching, putting the result).
-        steps = tuple(
-            sorted(
-                (arrival[d.frame_id], max(nominal_ns, d.processing_ns) + overhead_ns)
-                for d in record.detections
-                if d.frame_id in arrival
-            )
+        offset_ns = clock_offset_ns(record.first_decisions, starts)
+        steps, overhead = detector_steps(
+            record.detections, record.decisions, arrival, nominal_ns, overhead_ns, offset_ns
         )
         model = QueueModel(queue=config.queue, service_ns=nominal_ns, service_steps=steps)
-        taken = [s - overhead_ns for _t, s in steps]
+        taken = [s - overhead for _t, s in steps]
         service_ns = sum(taken) // len(taken) if taken else nominal_ns
         replayed = marker_counts(
             seen, replay_policy(seen, model, make_policy(kind.policy), latencies)
@@ -162,27 +158,9 @@ def seed_replay(
             "real_minus_replay": {n: real[n] - replayed[n] for n in MARKER_NAMES},
             "not_decided": len(frames) - len(seen),
             "service_ms": round(service_ns / 1e6, 1),
-            "overhead_ms": round(overhead_ns / 1e6, 1),
+            "overhead_ms": round(overhead / 1e6, 1),
         }
     return out
-
-
-def detector_overhead_ns(uncontrolled: Sequence[FrameDetections], arrival: dict[int, int]) -> int:
-    """What a frame costs the detector besides its processing time (taking it, fetching,
-    putting the result: 3-6 ms a frame on a loaded 2-core machine, measured), from the
-    seed's uncontrolled run, where the camera keeps its queue full so the detector never
-    idles: the time between the first and the last frame it took, per frame, less the
-    mean processing time (``uncontrolled``: that run's detections; ``arrival``: frame id ->
-    its arrival). 0 without that run; ``seed_replay`` uses it only if that run's camera
-    skipped at most ``_LATE_SHARE`` of the frames late (a gap idles the detector, and the
-    idle time would count as overhead: 18 ms a frame measured with 55 frames late)."""
-    known = [d for d in uncontrolled if d.frame_id in arrival]
-    if len(known) < 2:
-        return 0
-    taken = [arrival[d.frame_id] for d in known]
-    cycle = (max(taken) - min(taken)) / (len(taken) - 1)
-    processing = statistics.fmean(d.processing_ns for d in known)
-    return max(0, round(cycle - processing))
 
 
 def aggregate_replay(seeds: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:

@@ -2,13 +2,21 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from services.evidence.experiment._config import ExperimentError
-from services.evidence.experiment._experiment import detector_overhead_ns
+from services.evidence.experiment._detector import (
+    clock_offset_ns,
+    detector_overhead_ns,
+    detector_steps,
+)
 from services.evidence.experiment._frames import FrameOutcome
 from services.evidence.experiment._records import FrameDetections
 from services.evidence.experiment._replay import QueueModel, replay_uncontrolled
+from services.lib.messages import DecisionRecord, frame_metadata, read_frame_metadata
+from services.lib.quality import Exposure
+from services.lib.vision import Box, ResultKind, encode_result
 
 MS = 1_000_000
 
@@ -44,3 +52,57 @@ def test_the_detector_overhead_is_its_cycle_less_its_processing_when_never_idle(
     # Processing longer than the cycle cannot make a negative overhead.
     slow = [FrameDetections(i, 130 * MS, ()) for i in range(50)]
     assert detector_overhead_ns(slow, arrival) == 0
+
+
+def _forward(frame_id: int, key_ns: int, latency_ns: int) -> DecisionRecord:
+    return DecisionRecord(
+        frame_timestamp_ns=key_ns, frame_id=frame_id, blur_px=1.0, quality=0.9, load=0.0,
+        accepted=True, reason="quality>load", policy="paper", b0_px=5.0, latency_ns=latency_ns,
+    )  # fmt: skip
+
+
+def test_steps_are_dated_by_the_detectors_own_takes() -> None:
+    # Camera clock = replay time + 1 s. Frames 0-2 come back to back (each forwarded before
+    # the one ahead of it was done), frame 1 slowly (a 400 ms spell); frame 3 is forwarded
+    # long after frame 2 was done: the detector idled.
+    offset = 1000 * MS
+    arrival = {i: i * 70 * MS for i in range(4)}
+    arrival[3] = 900 * MS
+    forwards = [_forward(i, offset + arrival[i], 5 * MS) for i in range(4)]
+    taken = [5, 113, 515, 905]
+    detections = [
+        FrameDetections(i, p * MS, (), offset + taken[i] * MS)
+        for i, p in enumerate((105, 400, 105, 105))
+    ]
+    assert clock_offset_ns(forwards, arrival) == offset
+    steps, overhead = detector_steps(detections, forwards, arrival, 100 * MS, 0, offset)
+    # Each step starts at its take; back to back it lasts until the next take, and the
+    # overhead per frame is this run's own (3 ms, 2 ms: their median, 2.5 ms).
+    assert [t for t, _s in steps] == [taken[i] * MS for i in range(4)]
+    assert [s for _t, s in steps[:2]] == [108 * MS, 402 * MS]
+    assert overhead == 5 * MS // 2
+    assert steps[2][1] == 105 * MS + overhead and steps[3][1] == 105 * MS + overhead
+    # The slow spell is charged to the frames taken during it, not to those before it.
+    model = QueueModel(queue=1, service_ns=100 * MS, service_steps=steps)
+    assert model.service_at(200 * MS) == 402 * MS and model.service_at(100 * MS) == 108 * MS
+
+
+def test_without_take_times_a_frame_is_taken_when_forwarded_and_the_detector_was_done() -> None:
+    arrival = {i: i * 70 * MS for i in range(3)}
+    forwards = [_forward(i, arrival[i], 10 * MS) for i in range(3)]
+    detections = [FrameDetections(i, 150 * MS, ()) for i in range(3)]
+    steps, overhead = detector_steps(detections, forwards, arrival, 100 * MS, 4 * MS, None)
+    assert overhead == 4 * MS
+    assert steps == ((10 * MS, 154 * MS), (164 * MS, 154 * MS), (318 * MS, 154 * MS))
+
+
+def test_a_detections_record_says_when_the_detector_took_the_frame() -> None:
+    frame = read_frame_metadata(
+        frame_metadata(7, Exposure(1_000_000, 30_000_000), np.zeros((4, 6), np.uint8), None)
+    )
+    boxes = [Box(3, ((0, 0), (1, 0), (1, 1), (0, 1)))]
+    said = encode_result(boxes, ResultKind.DETECTIONS, frame, "x/y", 5 * MS, 1234 * MS)
+    silent = encode_result(boxes, ResultKind.DETECTIONS, frame, "x/y", 5 * MS)
+    assert said is not None and silent is not None
+    assert FrameDetections.from_metadata(said.metadata).taken_ns == 1234 * MS
+    assert FrameDetections.from_metadata(silent.metadata).taken_ns is None
