@@ -21,8 +21,9 @@ traced real takes processed exactly the real run's 172 frames (measured).
 
 from __future__ import annotations
 
+import bisect
 import statistics
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 
 from services.lib.messages import DecisionRecord
 
@@ -97,3 +98,35 @@ def detector_steps(
         steps.append((at, busy[k] + overhead_ns))
         free_ns = at + busy[k] + overhead_ns
     return tuple(steps), overhead_ns
+
+
+def ack_steps(
+    detections: Sequence[FrameDetections],
+    decisions: Iterable[DecisionRecord],
+    offset_ns: int | None,
+) -> tuple[tuple[int, int], ...]:
+    """How late the mediator of a run learnt of each take, for ``QueueModel.ack_steps``:
+    (the take in the replay's time base, the delay until the mediator saw it).
+
+    A take is seen when its ack reaches the mediator's producer; until then the producer
+    counts the frame as queued, and the decider can neither date the take nor use the slot.
+    The replay's mediator must know what the real one knew, no more: its detector's takes
+    reach it as late as the real ones did. Each decision record says when the mediator last
+    saw a take (``take_seen_ns``); the first such time at or after a take (the detector's
+    ``taken_ns``) is when that take was seen. A take whose ack was seen only after the next
+    take was made cannot be told from that one's, and gives no step (the one before holds).
+    () for records that do not say (an older mediator or detector): acks then arrive at
+    once, as before."""
+    seen = sorted({d.take_seen_ns for d in decisions if d.take_seen_ns is not None})
+    taken = sorted(d.taken_ns for d in detections if d.taken_ns is not None)
+    if not seen or not taken or offset_ns is None:
+        return ()
+    steps: list[tuple[int, int]] = []
+    for k, at in enumerate(taken):
+        i = bisect.bisect_left(seen, at)
+        if i == len(seen):
+            break
+        if k + 1 < len(taken) and seen[i] >= taken[k + 1]:
+            continue
+        steps.append((at - offset_ns, seen[i] - at))
+    return tuple(steps)

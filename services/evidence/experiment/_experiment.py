@@ -16,7 +16,7 @@ from services.lib.sim import Dataset
 
 from ._config import MARKER_NAMES, PAPER_TABLE1, ExperimentConfig, RunKind
 from ._datasets import cached_dataset, scenario_for
-from ._detector import clock_offset_ns, detector_overhead_ns, detector_steps
+from ._detector import ack_steps, clock_offset_ns, detector_overhead_ns, detector_steps
 from ._frames import FrameOutcome, frame_outcomes
 from ._latency import decision_latencies
 from ._metrics import blur_pairs, recognized_frames
@@ -118,7 +118,8 @@ def seed_replay(
     own decision latency and with the quality it computed (None where the gyro did not
     cover the frame in time: the gyro-missing rule decides, as it did), and the detector's
     processing times when it took them (``_detector``; ``service_ms``: their mean,
-    ``overhead_ms``: the cost per frame besides)."""
+    ``overhead_ms``: the cost per frame besides), and each take seen by the mediator as
+    late as its ack reached the real one (``ack_ms``: the median delay)."""
     frames = frame_outcomes(dataset, config.b0_px)
     nominal_ns = round(config.service_factor * period_ns(frames))
     arrival = {f.frame_id: f.arrival_ns for f in frames}
@@ -142,7 +143,10 @@ def seed_replay(
         steps, overhead = detector_steps(
             record.detections, record.decisions, arrival, nominal_ns, overhead_ns, offset_ns
         )
-        model = QueueModel(queue=config.queue, service_ns=nominal_ns, service_steps=steps)
+        acks = ack_steps(record.detections, (*record.first_decisions, *record.decisions), offset_ns)
+        model = QueueModel(
+            queue=config.queue, service_ns=nominal_ns, service_steps=steps, ack_steps=acks
+        )
         taken = [s - overhead for _t, s in steps]
         service_ns = sum(taken) // len(taken) if taken else nominal_ns
         replayed = marker_counts(
@@ -159,6 +163,8 @@ def seed_replay(
             "not_decided": len(frames) - len(seen),
             "service_ms": round(service_ns / 1e6, 1),
             "overhead_ms": round(overhead / 1e6, 1),
+            # The median delay until the mediator saw a take (None: not recorded, 0 replayed).
+            "ack_ms": round(sorted(a for _t, a in acks)[len(acks) // 2] / 1e6, 1) if acks else None,
         }
     return out
 
@@ -172,7 +178,7 @@ def aggregate_replay(seeds: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
         rows = [seed["replay"][run] for seed in seeds if run in seed.get("replay", {})]
         out[run] = {"policy": rows[0]["policy"]}
         # What the replay was given, per seed.
-        for key in ("not_decided", "service_ms", "overhead_ms"):
+        for key in ("not_decided", "service_ms", "overhead_ms", "ack_ms"):
             out[run][key] = [row.get(key) for row in rows]
         for name in MARKER_NAMES:
             entry: dict[str, Any] = {}

@@ -7,13 +7,15 @@ import pytest
 
 from services.evidence.experiment._config import ExperimentError
 from services.evidence.experiment._detector import (
+    ack_steps,
     clock_offset_ns,
     detector_overhead_ns,
     detector_steps,
 )
 from services.evidence.experiment._frames import FrameOutcome
 from services.evidence.experiment._records import FrameDetections
-from services.evidence.experiment._replay import QueueModel, replay_uncontrolled
+from services.evidence.experiment._replay import QueueModel, replay_policy, replay_uncontrolled
+from services.lib.decisions import make_policy
 from services.lib.messages import DecisionRecord, frame_metadata, read_frame_metadata
 from services.lib.quality import Exposure
 from services.lib.vision import Box, ResultKind, encode_result
@@ -106,3 +108,41 @@ def test_a_detections_record_says_when_the_detector_took_the_frame() -> None:
     assert said is not None and silent is not None
     assert FrameDetections.from_metadata(said.metadata).taken_ns == 1234 * MS
     assert FrameDetections.from_metadata(silent.metadata).taken_ns is None
+
+
+def test_a_take_counts_as_queued_until_its_ack_reaches_the_mediator() -> None:
+    # The paper's rule at N = 1: frame 1 waits while frame 0 is processed; the detector
+    # takes it at 100 ms. Frame 2 at 130 ms finds the queue empty if the mediator learnt of
+    # that take at once, and full if its ack takes 50 ms (it is dropped, as the real
+    # mediator drops it).
+    frames = tuple(
+        FrameOutcome(i, at * MS, 1.0, 0.9, frozenset({"large"}))
+        for i, at in enumerate((0, 60, 130))
+    )
+    prompt = QueueModel(queue=1, service_ns=100 * MS)
+    late = QueueModel(queue=1, service_ns=100 * MS, ack_steps=((0, 50 * MS),))
+    assert replay_policy(frames, prompt, make_policy("paper")) == (0, 1, 2)
+    assert replay_policy(frames, late, make_policy("paper")) == (0, 1)
+    assert late.ack_at(10 * MS) == 50 * MS and prompt.ack_at(10 * MS) == 0
+
+
+def test_ack_delays_are_read_from_when_the_mediator_saw_each_take() -> None:
+    seen = (103, 260, 305, 520)
+    records = [
+        DecisionRecord(1, 1, None, None, 0.0, False, "x", "paper", 5.0, 1, s * MS) for s in seen
+    ]
+    detections = [
+        FrameDetections(i, 100 * MS, (), t * MS) for i, t in enumerate((100, 200, 300, 400, 500))
+    ]
+    # 400's ack was seen only after the take at 500: no step of its own.
+    assert ack_steps(detections, records, 10 * MS) == (
+        (90 * MS, 3 * MS), (190 * MS, 60 * MS), (290 * MS, 5 * MS), (490 * MS, 20 * MS),
+    )  # fmt: skip
+    assert ack_steps(detections, records[:0], 10 * MS) == ()
+
+
+def test_a_decision_record_says_when_the_mediator_last_saw_a_take() -> None:
+    record = DecisionRecord(1, 2, 0.5, 0.9, 0.5, True, "commit", "adaptive", 5.0, 3, 77 * MS)
+    assert DecisionRecord.from_metadata(record.metadata(5)).take_seen_ns == 77 * MS
+    unknown = DecisionRecord(1, 2, 0.5, 0.9, 0.5, True, "commit", "adaptive", 5.0, 3)
+    assert DecisionRecord.from_metadata(unknown.metadata(5)).take_seen_ns is None
