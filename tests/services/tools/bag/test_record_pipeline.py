@@ -70,6 +70,18 @@ def pipeline(dataset: Path, tmp_path: Path) -> Iterator[dict[str, str]]:
         proc.wait(timeout=STARTUP_S)
 
 
+def _record(pipeline: dict[str, str], *args: str) -> subprocess.CompletedProcess[str]:
+    """``framegate record *args`` against the pipeline, to its end."""
+    return subprocess.run(
+        [sys.executable, "-m", "services.cli", "record", *args],
+        cwd=REPO,
+        env=pipeline,
+        capture_output=True,
+        text=True,
+        timeout=STARTUP_S,
+    )
+
+
 def _held(node: Node, target: str) -> dict[int, DataObject]:
     return {e.timestamp_ns: e for e in node.query(target, time_range="[..]", timeout_s=30)}
 
@@ -88,14 +100,7 @@ def test_record_keeps_every_element_its_buffers_hold(
 
         wait_until(producing, STARTUP_S, "the camera to store frames")
         out = tmp_path / "run.mcap"
-        result = subprocess.run(
-            [sys.executable, "-m", "services.cli", "record", *BUFFERS, "-o", str(out), *LIMIT],
-            cwd=REPO,
-            env=pipeline,
-            capture_output=True,
-            text=True,
-            timeout=STARTUP_S,
-        )
+        result = _record(pipeline, *BUFFERS, "-o", str(out), *LIMIT)
         assert result.returncode == 0, result.stderr
         # At once, while the buffers still hold most of what was recorded.
         held = {target: _held(node, target) for target in BUFFERS}
@@ -149,15 +154,8 @@ def test_record_ends_at_its_duration_in_the_producers_stamps_and_counts_what_it_
             lambda: _puts(node, "camera/images") >= 5, STARTUP_S, "the camera to store frames"
         )
         out = tmp_path / "run.mcap"
-        argv = ["record", "camera/images", "gyro/rates", "-o", str(out)]
-        result = subprocess.run(
-            [sys.executable, "-m", "services.cli", *argv, "--duration", str(duration_s), "--json"],
-            cwd=REPO,
-            env=pipeline,
-            capture_output=True,
-            text=True,
-            timeout=STARTUP_S,
-        )
+        argv = ["camera/images", "gyro/rates", "-o", str(out)]
+        result = _record(pipeline, *argv, "--duration", str(duration_s), "--json")
         assert result.returncode == 0, result.stderr
         # The producers run on: wait until each buffer holds elements stamped after the stop.
         with open_bag(out) as bag:
