@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import time
 from dataclasses import dataclass
 
 from middleware import FlowControlRefused, FramegateError, Node, Producer, Retention, now_ns
@@ -26,6 +27,14 @@ class Frame:
     payload: bytes
     metadata: bytes
     candidate: Candidate
+
+
+def _wall_ns(monotonic_ns: int | None) -> int | None:
+    """A time of this process's monotonic clock (the producer's, the decider's) on the wall
+    clock of the frames' stamps, so that a record can be set beside the detector's."""
+    if monotonic_ns is None:
+        return None
+    return now_ns() - (time.monotonic_ns() - monotonic_ns)
 
 
 class Output:
@@ -147,6 +156,7 @@ class Output:
                 policy=self._policy,
                 b0_px=self._b0_px,
                 latency_ns=now_ns() - frame.meta.exposure.end_ns,
+                take_seen_ns=_wall_ns(load.taken_ns),
             )
         )
 
