@@ -48,6 +48,8 @@ _TIMED = (RunKind.UNCONTROLLED, RunKind.FILTERED, RunKind.BEYOND)
 # The share of frames an uncontrolled run's camera may skip late for its detector to count
 # as never idle (``detector_overhead_ns``).
 _LATE_SHARE = 0.03
+# The mediator's record of a frame it could not forward: its consumer's subscription lapsed.
+_LAPSED = "consumer-lapsed"
 
 
 def run_order(runs: tuple[RunKind, ...], seed_index: int) -> list[RunKind]:
@@ -114,7 +116,8 @@ def seed_replay(
 
     Each run is replayed with what its own mediator was given, so that what the machine did
     to the pipeline around it is not counted against the policy: the frames it decided
-    (not those the camera skipped late or refused, counted as ``not_decided``), each at its
+    (not those the camera skipped late or refused, counted as ``not_decided``, nor those it
+    could not forward to a detector whose subscription had lapsed, ``lapsed``), each at its
     own decision latency and with the quality it computed (None where the gyro did not
     cover the frame in time: the gyro-missing rule decides, as it did), and the detector's
     processing times when it took them (``_detector``; ``service_ms``: their mean,
@@ -134,7 +137,15 @@ def seed_replay(
     for kind, record in records.items():
         if kind.policy is None:
             continue
-        latencies = decision_latencies(record.first_decisions)
+        # Frames the mediator could not give a detector whose subscription had lapsed (its
+        # process did not run past its lease): the machine took them, as it took those the
+        # camera skipped late; the replay's detector never lapses.
+        lapsed = {
+            d.frame_id for d in (*record.first_decisions, *record.decisions) if d.reason == _LAPSED
+        }
+        latencies = {
+            i: ns for i, ns in decision_latencies(record.first_decisions).items() if i not in lapsed
+        }
         quality = {d.frame_id: d.quality for d in record.first_decisions}
         seen = tuple(
             replace(f, quality=quality[f.frame_id]) for f in frames if f.frame_id in latencies
@@ -160,7 +171,8 @@ def seed_replay(
             "replay": replayed,
             "real": real,
             "real_minus_replay": {n: real[n] - replayed[n] for n in MARKER_NAMES},
-            "not_decided": len(frames) - len(seen),
+            "not_decided": len(frames) - len(seen) - len(lapsed),
+            "lapsed": len(lapsed),
             "service_ms": round(service_ns / 1e6, 1),
             "overhead_ms": round(overhead / 1e6, 1),
             # The median delay until the mediator saw a take (None: not recorded, 0 replayed).
@@ -178,7 +190,7 @@ def aggregate_replay(seeds: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
         rows = [seed["replay"][run] for seed in seeds if run in seed.get("replay", {})]
         out[run] = {"policy": rows[0]["policy"]}
         # What the replay was given, per seed.
-        for key in ("not_decided", "service_ms", "overhead_ms", "ack_ms"):
+        for key in ("not_decided", "lapsed", "service_ms", "overhead_ms", "ack_ms"):
             out[run][key] = [row.get(key) for row in rows]
         for name in MARKER_NAMES:
             entry: dict[str, Any] = {}
