@@ -16,7 +16,13 @@ from services.lib.sim import Dataset
 
 from ._config import MARKER_NAMES, PAPER_TABLE1, ExperimentConfig, RunKind
 from ._datasets import cached_dataset, scenario_for
-from ._detector import ack_steps, clock_offset_ns, detector_overhead_ns, detector_steps
+from ._detector import (
+    ack_steps,
+    clock_offset_ns,
+    detector_overhead_ns,
+    detector_steps,
+    handover_steps,
+)
 from ._frames import FrameOutcome, frame_outcomes
 from ._latency import decision_latencies
 from ._metrics import blur_pairs, recognized_frames
@@ -155,8 +161,15 @@ def seed_replay(
             record.detections, record.decisions, arrival, nominal_ns, overhead_ns, offset_ns
         )
         acks = ack_steps(record.detections, (*record.first_decisions, *record.decisions), offset_ns)
+        handovers = handover_steps(
+            record.detections, record.decisions, arrival, nominal_ns, offset_ns
+        )
         model = QueueModel(
-            queue=config.queue, service_ns=nominal_ns, service_steps=steps, ack_steps=acks
+            queue=config.queue,
+            service_ns=nominal_ns,
+            service_steps=steps,
+            ack_steps=acks,
+            handover_steps=handovers,
         )
         taken = [s - overhead for _t, s in steps]
         service_ns = sum(taken) // len(taken) if taken else nominal_ns
@@ -175,10 +188,16 @@ def seed_replay(
             "lapsed": len(lapsed),
             "service_ms": round(service_ns / 1e6, 1),
             "overhead_ms": round(overhead / 1e6, 1),
-            # The median delay until the mediator saw a take (None: not recorded, 0 replayed).
-            "ack_ms": round(sorted(a for _t, a in acks)[len(acks) // 2] / 1e6, 1) if acks else None,
+            # Median delays: until the mediator saw a take, until an idle detector took a put.
+            "ack_ms": _median_ms(acks),
+            "handover_ms": _median_ms(handovers),
         }
     return out
+
+
+def _median_ms(steps: tuple[tuple[int, int], ...]) -> float | None:
+    """The median of steps' values in ms (None without steps: not recorded, 0 replayed)."""
+    return round(sorted(v for _t, v in steps)[len(steps) // 2] / 1e6, 1) if steps else None
 
 
 def aggregate_replay(seeds: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
@@ -190,7 +209,7 @@ def aggregate_replay(seeds: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
         rows = [seed["replay"][run] for seed in seeds if run in seed.get("replay", {})]
         out[run] = {"policy": rows[0]["policy"]}
         # What the replay was given, per seed.
-        for key in ("not_decided", "lapsed", "service_ms", "overhead_ms", "ack_ms"):
+        for key in ("not_decided", "lapsed", "service_ms", "overhead_ms", "ack_ms", "handover_ms"):
             out[run][key] = [row.get(key) for row in rows]
         for name in MARKER_NAMES:
             entry: dict[str, Any] = {}

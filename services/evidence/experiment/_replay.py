@@ -16,7 +16,6 @@ sweeps over queues, service times and policies are cheap.
 from __future__ import annotations
 
 import bisect
-import statistics
 from collections import deque
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -25,7 +24,6 @@ from services.lib.decisions import (
     Action,
     Candidate,
     Decider,
-    DetectorClock,
     Load,
     Policy,
     Rules,
@@ -47,20 +45,23 @@ class QueueModel:
     likewise: how long after a take at ``t`` the mediator learns of it (a real run's acks
     took 3 ms p50, 23 ms p90, 340 ms at most on a loaded 2-core machine, traced); until
     then the mediator counts the frame as queued, as its producer does (0 without steps:
-    at once)."""
+    at once). ``handover_steps``: (from when, hand-over) likewise: how long after a frame
+    is put to an idle detector at ``t`` the detector takes it (the put itself, transport,
+    the detector's wake-up: 10 ms for a run's first frame, measured; 0 without steps)."""
 
     queue: int
     service_ns: int
     max_hold_ns: int = 250_000_000
     service_steps: tuple[tuple[int, int], ...] = ()
     ack_steps: tuple[tuple[int, int], ...] = ()
+    handover_steps: tuple[tuple[int, int], ...] = ()
 
     def __post_init__(self) -> None:
         if (
             self.queue < 1
             or self.service_ns <= 0
             or any(s <= 0 for _t, s in self.service_steps)
-            or any(a < 0 for _t, a in self.ack_steps)
+            or any(a < 0 for _t, a in (*self.ack_steps, *self.handover_steps))
         ):
             raise ExperimentError(
                 f"replay needs queue >= 1 and positive times, got N={self.queue}, "
@@ -74,8 +75,17 @@ class QueueModel:
 
     def ack_at(self, at_ns: int) -> int:
         """How long after a take at ``at_ns`` the mediator sees it."""
-        index = bisect.bisect_right(self.ack_steps, (at_ns, 2**63)) - 1
-        return self.ack_steps[index][1] if index >= 0 else 0
+        return _step_at(self.ack_steps, at_ns, 0)
+
+    def handover_at(self, at_ns: int) -> int:
+        """How long after a put at ``at_ns`` an idle detector takes the frame."""
+        return _step_at(self.handover_steps, at_ns, 0)
+
+
+def _step_at(steps: tuple[tuple[int, int], ...], at_ns: int, before: int) -> int:
+    """The value of the last step at or before ``at_ns`` (``before`` ahead of the first)."""
+    index = bisect.bisect_right(steps, (at_ns, 2**63)) - 1
+    return steps[index][1] if index >= 0 else before
 
 
 # Takes looked at for acks still on the way (more than a few never are: takes are a service
@@ -93,7 +103,6 @@ class _Detector:
         self.processed: list[int] = []
         self.takes_ns: list[int] = []
         self.seen_ns: list[int] = []  # when the mediator learns of each take
-        self.intervals_ns: list[int] = []
 
     def next_event_ns(self) -> int | None:
         """When the processor next finishes with a frame waiting (a take), if ever."""
@@ -123,23 +132,18 @@ class _Detector:
         if len(self.waiting) + self.unseen(now_ns) >= self.model.queue:
             return False
         self.waiting.append(frame_id)
-        if self.free_ns <= now_ns:
-            self._take(now_ns)
+        if self.free_ns <= now_ns and len(self.waiting) == 1:
+            # Idle: it takes the frame once the frame has reached it (the hand-over).
+            self.free_ns = now_ns + self.model.handover_at(now_ns)
+            self.advance(now_ns)
         return True
 
     def _take(self, at_ns: int) -> None:
-        waited = self.free_ns == at_ns  # back to back: the interval measures the service
         frame_id = self.waiting.popleft()
         self.processed.append(frame_id)
-        if self.takes_ns and waited:
-            self.intervals_ns.append(at_ns - self.takes_ns[-1])
         self.takes_ns.append(at_ns)
         self.seen_ns.append(at_ns + self.model.ack_at(at_ns))
         self.free_ns = at_ns + self.model.service_at(at_ns)
-
-    def clock(self) -> DetectorClock:
-        service = int(statistics.median(self.intervals_ns[-15:])) if self.intervals_ns else None
-        return DetectorClock(self.takes_ns[-1] if self.takes_ns else None, service)
 
 
 def replay_uncontrolled(frames: Sequence[FrameOutcome], model: QueueModel) -> tuple[int, ...]:

@@ -11,10 +11,16 @@ from services.evidence.experiment._detector import (
     clock_offset_ns,
     detector_overhead_ns,
     detector_steps,
+    handover_steps,
 )
 from services.evidence.experiment._frames import FrameOutcome
 from services.evidence.experiment._records import FrameDetections
-from services.evidence.experiment._replay import QueueModel, replay_policy, replay_uncontrolled
+from services.evidence.experiment._replay import (
+    QueueModel,
+    _Detector,
+    replay_policy,
+    replay_uncontrolled,
+)
 from services.lib.decisions import make_policy
 from services.lib.messages import DecisionRecord, frame_metadata, read_frame_metadata
 from services.lib.quality import Exposure
@@ -146,3 +152,36 @@ def test_a_decision_record_says_when_the_mediator_last_saw_a_take() -> None:
     assert DecisionRecord.from_metadata(record.metadata(5)).take_seen_ns == 77 * MS
     unknown = DecisionRecord(1, 2, 0.5, 0.9, 0.5, True, "commit", "adaptive", 5.0, 3)
     assert DecisionRecord.from_metadata(unknown.metadata(5)).take_seen_ns is None
+
+
+def test_an_idle_detector_takes_a_frame_a_hand_over_after_its_put() -> None:
+    frames = tuple(
+        FrameOutcome(i, at * MS, 1.0, 0.9, frozenset({"large"})) for i, at in enumerate((0, 300))
+    )
+    handed = QueueModel(queue=1, service_ns=100 * MS, handover_steps=((0, 10 * MS),))
+    assert handed.handover_at(5 * MS) == 10 * MS
+    detector = _Detector(handed)
+    assert detector.put(0, 0) and detector.takes_ns == []  # on its way to the detector
+    detector.advance(10 * MS)
+    assert detector.takes_ns == [10 * MS] and detector.free_ns == 110 * MS
+    assert replay_policy(frames, handed, make_policy("paper")) == (0, 1)
+
+
+def test_hand_overs_are_read_from_forwards_to_a_detector_done_with_the_frame_before() -> None:
+    arrival = {i: i * 70 * MS for i in range(3)}
+    arrival[2] = 600 * MS
+    forwards = [_forward(i, arrival[i], 5 * MS) for i in range(3)]
+    # Frame 1 came while frame 0 was processed (no hand-over of its own); frame 2 to an
+    # idle detector, taken 12 ms after its forward.
+    detections = [FrameDetections(i, 100 * MS, (), t * MS) for i, t in enumerate((9, 109, 617))]
+    assert handover_steps(detections, forwards, arrival, 100 * MS, 0) == (
+        (5 * MS, 4 * MS), (605 * MS, 12 * MS),
+    )  # fmt: skip
+    assert handover_steps(detections, forwards, arrival, 100 * MS, None) == ()
+
+
+def test_a_take_stamped_just_after_its_ack_was_seen_is_matched_to_that_ack() -> None:
+    # The mediator saw the ack 0.3 ms before the detector stamped the take.
+    records = [DecisionRecord(1, 1, None, None, 0.0, False, "x", "paper", 5.0, 1, 99_700_000)]
+    detections = [FrameDetections(0, 100 * MS, (), 100 * MS)]
+    assert ack_steps(detections, records, 0) == ((100 * MS, 0),)
