@@ -1,14 +1,17 @@
 """Discrete-event replay: a run's frames through the detector's queue, in simulated time.
 
 The same queueing rules as the real pipeline: the detector processes one frame at a time
-for ``service_ns``, takes the oldest waiting frame the moment it is free, and at most
-``queue`` (N) frames wait; a frame put while N wait is refused (lost). ``uncontrolled``
+for ``service_ns``, takes the oldest waiting frame the moment it is free (a frame put to it
+idle, a hand-over later), and at most ``queue`` (N) frames count as waiting, those taken
+included until their ack reaches the mediator; a frame put while N count is refused
+(lost). The model's steps give a real run's detector speed, ack delays and hand-overs as
+they were (``QueueModel``). ``uncontrolled``
 puts every frame as it arrives (the camera's flow control); a mediator run feeds every
 frame to a causal policy (``services.lib.decisions.Policy``) and applies its verdicts the
 way the mediator does: held frames stay with the mediator, a held frame older than
 ``max_hold_ns`` is dropped as stale, FORWARD puts the frame (or loses it to a full queue),
-and while frames are held the policy is asked again whenever the detector takes a frame and
-at the times the decider names (``Decider.next_due_ns``), as the mediator does. Nothing
+and while frames are held the policy is asked again whenever the mediator learns of a take
+and at the times the decider names (``Decider.next_due_ns``), as the mediator does. Nothing
 here runs processes or touches the clock: a replay of 319 frames takes milliseconds, so
 sweeps over queues, service times and policies are cheap.
 """
