@@ -17,6 +17,11 @@ to the frames taken about a service time earlier, and the replay's detector fill
 the real one lost in it with fast steps: 6 frames and 5 large-marker recognitions more than
 the real run, at N = 1 on a 2-core machine at load 12-24, where the same replay with the
 traced real takes processed exactly the real run's 172 frames (measured).
+
+The hand-over and the acks are read the same way: how long after its forward an idle
+detector took a frame (``handover_steps``), and how long after each take the mediator learnt
+of it (``ack_steps``, from the decision records' ``take_seen_ns``), so that the replay's
+mediator knows no more of the detector than the real one did.
 """
 
 from __future__ import annotations
