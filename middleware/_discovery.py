@@ -184,15 +184,21 @@ class Discovery:
 
     def buffer_info(self, target: str, *, timeout_s: float = 2.0) -> BufferInfo:
         """One buffer's description (retention, size, rate, subscriptions, counters)."""
-        service, buffer = split_target(target)
-        info = self.service_info(service, timeout_s=timeout_s)
-        for candidate in info.buffers:
-            if candidate.buffer == buffer:
-                return candidate
-        names = [b.buffer for b in info.buffers]
-        hint = difflib.get_close_matches(buffer, names, n=1)
-        did_you_mean = f" (did you mean {hint[0]!r}?)" if hint else ""
-        offered = ", ".join(names) or "none"
-        raise NotFoundError(
-            f"service {service!r} has no buffer {buffer!r}{did_you_mean}; it offers: {offered}"
-        )
+        service, _buffer = split_target(target)
+        return buffer_of(self.service_info(service, timeout_s=timeout_s), target)
+
+
+def buffer_of(info: ServiceInfo, target: str) -> BufferInfo:
+    """The buffer of ``target`` in its service's answer ``info``; NotFoundError naming what
+    the service offers."""
+    service, buffer = split_target(target)
+    for candidate in info.buffers:
+        if candidate.buffer == buffer:
+            return candidate
+    names = [b.buffer for b in info.buffers]
+    hint = difflib.get_close_matches(buffer, names, n=1)
+    did_you_mean = f" (did you mean {hint[0]!r}?)" if hint else ""
+    offered = ", ".join(names) or "none"
+    raise NotFoundError(
+        f"service {service!r} has no buffer {buffer!r}{did_you_mean}; it offers: {offered}"
+    )

@@ -270,6 +270,9 @@ class Supervisor:
                 running.killed_by_us = True
                 running.proc.kill()
                 running.proc.wait()
+                if timeout_s > 0:  # (0: a second Ctrl-C asked for exactly this)
+                    # Said, because its own last lines (its totals) will be missing.
+                    self._emit(running, f"still running {timeout_s:g} s after SIGTERM: killed")
         for running in live:
             assert running.proc is not None
             code = running.proc.returncode

@@ -12,7 +12,8 @@ size, gyro batches out of order, overlapping, counting wrong, with rates of 1e30
 interleaved with good frames each preceded by gyro data that covers it. Hostile consumers
 ride along: ``framegate watch --flow-control --queue 1 --delay 5`` on every buffer (real CLI
 processes), in-process flow-controlled and observing subscriptions that never take, and
-queries with malformed time ranges. The real camera and gyro keep running as well.
+queries with malformed time ranges. The real camera and gyro keep running as well
+(replaying a few simulated frames in a loop).
 
 After each batch it checks that every service is alive with the pid it started with (the
 launcher restarts a crashed service, so a new pid means a crash), answers ``info``, has
@@ -190,11 +191,34 @@ class Tally:
         return sum(v for k, v in self.counts.items() if k.startswith("hostile-"))
 
 
+# The real camera and gyro are bystanders here (the mediator is given the hostile ones):
+# they loop a few simulated frames instead of rendering live, which kept a core busy for the
+# whole run and, on a loaded machine, starved the very services under test.
+BYSTANDER_FRAMES = 8
+
+
+def _bystander_dataset(workdir: Path) -> Path:
+    out = workdir / "approach"
+    argv = ["simulate", "--out", str(out), "--frames", str(BYSTANDER_FRAMES), "--no-progress"]
+    subprocess.run(
+        [sys.executable, "-m", "services.cli", *argv],
+        cwd=REPO,
+        env=child_env(),
+        check=True,
+        capture_output=True,
+        timeout=scaled(300),
+    )
+    return out
+
+
 class PipelineFuzzer:
     """The pipeline under test plus the hostile camera, gyro and consumers."""
 
     def __init__(self, workdir: Path, *, cli_watchers: bool = True) -> None:
+        replay = {"source": "replay", "path": str(_bystander_dataset(workdir)), "seed": None}
         overrides = {
+            "camera": replay,
+            "gyro": replay,
             "mediator": {"camera": FUZZ_CAMERA, "gyro": FUZZ_GYRO},
             "detector": {"service_factor": 0.0},
         }

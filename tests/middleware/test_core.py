@@ -48,10 +48,13 @@ def test_a_registration_beyond_the_budget_is_refused_with_its_reason(
 ) -> None:
     with Node("cam", listen_net) as service, Node(network=connect_net) as client:
         service.offer("images")
-        big = client.subscribe("cam/images", queue_size=FLOW_QUEUE_MAX - 10)
+        # Each waits for the producer's answer (greeting or refusal) as long as a loaded
+        # machine needs: after subscribe's default 2 s an unanswered one is returned as is.
+        wait_s = scaled(10.0)
+        big = client.subscribe("cam/images", queue_size=FLOW_QUEUE_MAX - 10, wait_s=wait_s)
         with pytest.raises(RegistrationRefused, match="queue size 20 exceeds the fair share"):
-            client.subscribe("cam/images", queue_size=20)
-        small = client.subscribe("cam/images", queue_size=10)  # what is left still fits
+            client.subscribe("cam/images", queue_size=20, wait_s=wait_s)
+        small = client.subscribe("cam/images", queue_size=10, wait_s=wait_s)  # what is left fits
         info = client.buffer_info("cam/images", timeout_s=scaled(10.0))
         assert info.refused_subscriptions == 1
         assert {s.subscription_id for s in info.subscriptions} == {
@@ -168,8 +171,9 @@ def test_a_misspelled_buffer_of_a_live_service_is_not_found(listen_net, connect_
             client.query("cam/imags", last=1)
         with pytest.raises(NotFoundError, match="images"):
             client.latest("cam/imags")
+        # (Waits all of wait_s: a service may offer its buffers one after another.)
         with pytest.raises(NotFoundError, match="did you mean 'images'"):
-            client.subscribe("cam/imags")
+            client.subscribe("cam/imags", wait_s=scaled(4.0))
 
 
 def test_node_honours_framegate_environment(monkeypatch: pytest.MonkeyPatch) -> None:

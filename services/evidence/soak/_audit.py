@@ -57,32 +57,41 @@ class Audit:
     checks: int = 0
     _cursor: dict[str, int] = field(default_factory=dict)
 
-    def _new(self, node: Node, target: str, key: str | None = None) -> list[Any]:
-        start = self._cursor.get(key or target, 0)
+    def _new(self, node: Node, target: str, moved: dict[str, int]) -> list[Any]:
+        """What ``target`` holds since the last pass; its cursor moves in ``moved`` only."""
+        start = self._cursor.get(target, 0)
         found = node.query(target, time_range=f"[{start}..]", timeout_s=20.0)
         if found:
-            self._cursor[key or target] = found[-1].timestamp_ns + 1
+            moved[target] = found[-1].timestamp_ns + 1
         return found
 
     def check(self, node: Node, now_ns: int | None = None) -> None:
         """One pass; the order of the queries is what makes the conclusions safe.
 
         ``now_ns``: the wall clock (frame timestamps are wall-clock exposure starts).
+        A pass whose query fails (a service restarting, or one that lost its lease on a
+        loaded machine) changes nothing: its cursors move only once every query was
+        answered, so the next pass reads all of it again.
         """
-        for frame in self._new(node, "camera/images"):
-            self.camera_seen.add(frame.timestamp_ns)
-            self.camera_digest[frame.timestamp_ns] = _digest(frame.payload, frame.metadata)
-        accepted_frames = self._new(node, "mediator/images")
+        moved: dict[str, int] = {}
+        camera_frames = self._new(node, "camera/images", moved)
+        accepted_frames = self._new(node, "mediator/images", moved)
         # After the query: whatever is at least as new as this was still held during it.
         oldest = node.buffer_info("mediator/images").oldest_ns or 0
-        for element in self._new(node, "mediator/decisions"):
+        decisions = self._new(node, "mediator/decisions", moved)
+        detections = self._new(node, "detector/detections", moved)
+        self._cursor.update(moved)
+        for frame in camera_frames:
+            self.camera_seen.add(frame.timestamp_ns)
+            self.camera_digest[frame.timestamp_ns] = _digest(frame.payload, frame.metadata)
+        for element in decisions:
             record = DecisionRecord.from_metadata(element.metadata)
             ts = record.frame_timestamp_ns
             self.decided[ts] = self.decided.get(ts, False) or record.accepted
             self.reasons[record.reason] += 1
             if record.reason in EXCUSED_REASONS:
                 self.excused.add(ts)
-        for element in self._new(node, "detector/detections"):
+        for element in detections:
             self.detected.add(element.timestamp_ns)
         self.checks += 1
         oldest_decided = min(self.decided, default=0)

@@ -5,7 +5,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from middleware import DataObject, Retention
+import pytest
+
+from middleware import DataObject, NotFoundError, Retention
 from services.evidence.soak import Audit, MemorySeries, find_stalls
 from services.lib.messages import DecisionRecord
 
@@ -159,6 +161,32 @@ def test_later_audits_read_only_what_is_new_and_keep_counting() -> None:
     assert audit.summary()["checks"] == 2
     assert audit.lost["frames_without_decision"] == {2 * MS}
     assert audit.compared == 2
+
+
+def test_a_pass_with_an_unanswered_query_changes_nothing_and_the_next_reads_it_all() -> None:
+    """A service that does not answer (restarting, or a lost lease on a loaded machine) must
+    not make the audit skip what the other buffers returned in that pass."""
+    pipe = FakePipeline()
+    for i in (1, 2):
+        pipe.frame(i * MS)
+        pipe.decide(i * MS, True)
+    answer = pipe.query
+
+    def detector_gone(target: str, *, time_range: str, timeout_s: float) -> list[DataObject]:
+        if target == "detector/detections":
+            raise NotFoundError("no live service named 'detector'")
+        return answer(target, time_range=time_range, timeout_s=timeout_s)
+
+    pipe.query = detector_gone  # type: ignore[method-assign]
+    audit = Audit()
+    with pytest.raises(NotFoundError):
+        audit.check(pipe, NOW)  # type: ignore[arg-type]
+    assert audit.summary()["frames_decided"] == 0 and audit.checks == 0
+    pipe.query = answer  # type: ignore[method-assign]
+    audit.check(pipe, NOW)  # type: ignore[arg-type]
+    summary = audit.summary()
+    assert summary["accepted_seen_in_mediator"] == 2 and summary["detected"] == 2, summary
+    assert not any(summary["lost"].values()), summary
 
 
 def test_memory_growth_is_measured_after_the_warm_up_on_the_last_pid() -> None:

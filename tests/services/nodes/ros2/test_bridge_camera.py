@@ -17,6 +17,7 @@ import yaml
 from services.lib.camera_model import CameraModel
 from services.lib.messages import DecisionRecord
 from tests.conftest import free_port, wait_until
+from tests.helpers.timing import scaled
 from tests.services.nodes.pipeline import Pipeline
 from tests.services.nodes.ros2.test_bridge_pipeline import Driver
 
@@ -44,7 +45,14 @@ def _deploy(endpoint: str, camera_xml: Path) -> str:
     for mediator, bridge in (("mediator", "ros2"), ("mediatorxml", "ros2xml")):
         services[mediator] = {
             "type": "mediator",
-            "args": {"camera": f"{bridge}/images", "gyro": "ros2/rates", "gyro_wait_ms": 400},
+            # A frame waits for late gyro samples as long as a loaded machine needs: with
+            # 400 ms, at load 20-27 one mediator decided frames 1-5 without gyro (no blur)
+            # while the other, on the same gyro buffer, covered them.
+            "args": {
+                "camera": f"{bridge}/images",
+                "gyro": "ros2/rates",
+                "gyro_wait_ms": round(scaled(5000)),
+            },
         }
     return yaml.safe_dump({"version": 1, "services": services})
 
