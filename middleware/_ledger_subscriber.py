@@ -58,12 +58,14 @@ empty or the caller waits idle and ``delay_ns`` has passed since the first take 
 element), or at once when its takes came ``delay_ns`` or more after the takes before them
 (a slow stream: no later take would join the ack within the delay, and waiting would cost
 a timer per element); ``flush_at_ns`` says when, for the Zenoh layer to send it even if
-the caller does not come back (a subscriber that took everything never holds its producer
-longer). While idle the subscriber repeats the acks of known epochs once no ack has left
-for ``reack_ns``, so a lost ack or a lost notification heals (the producer resends on a
-repeated ack that moves nothing). Timed from the last ack sent, not from the last repeat:
-a busy subscriber, idle only between notifications, repeats nothing, since a repeat that
-moves nothing makes the producer resend what is merely in flight.
+the caller does not come back (``Subscription``: the caller waiting in ``take`` sends it
+then; one that stays away leaves it to the executor's next turn, holding at most
+``N // 2 - 1`` credits, as between two coalesced acks). While idle the subscriber
+repeats the acks of known epochs once no ack has left for ``reack_ns``, so a lost ack or
+a lost notification heals (the producer resends on a repeated ack that moves nothing).
+Timed from the last ack sent, not from the last repeat: a busy subscriber, idle only
+between notifications, repeats nothing, since a repeat that moves nothing makes the
+producer resend what is merely in flight.
 
 Properties (checked by tests/middleware/test_protocol_model.py after every step): the
 queue never exceeds N; the epoch table is bounded; a flow-controlled subscription reports
@@ -400,8 +402,8 @@ class SubscriberLedger(Generic[T]):
     def flush_at_ns(self) -> int | None:
         """When a delayed ack falls due for a subscriber that does not come back to take:
         the earliest ``unacked_since + delay`` of an epoch with nothing queued (None if no
-        ack waits on the delay). The Zenoh layer calls ``acks_due`` then, so a producer
-        never waits on a subscriber that has taken everything for longer than the delay."""
+        ack waits on the delay). The Zenoh layer calls ``acks_due`` then (see the module
+        doc for who does, and when)."""
         if not self.policy.delay_ns:
             return None
         due = [

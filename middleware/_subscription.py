@@ -353,6 +353,11 @@ class Subscription:
                         wait_s = min(deadline - time.monotonic(), _REACK_S)
                         if wait_s <= 0:
                             return []
+                    # A delayed ack that falls due while this caller waits is sent by it
+                    # (the next ``_take``), not by waking the executor (see ``_take``).
+                    due_ns = self._protocol.next_deadline_ns()
+                    if due_ns is not None and due_ns > time.monotonic_ns():
+                        wait_s = min(wait_s, (due_ns - time.monotonic_ns()) / 1e9)
                     self._wake.wait(queued, wait_s)
         finally:
             self._wake.left_over(len(self._inbox))
@@ -365,14 +370,17 @@ class Subscription:
             self._feed(BUDGET)
             entries = protocol.take_many(max_count)
             acks = protocol.acks(time.monotonic_ns(), idle=idle and not entries)
-            flush_at = protocol.next_deadline_ns() if entries else None
             if entries and self._wake.threads and len(protocol):
                 self._cond.notify_all()  # more queued: another caller may take them
         self._send_acks(acks)
         if not entries:
             return []
-        if flush_at is not None:
-            self._executor.poke(flush_at)
+        # An ack this take delayed (``AckPolicy``) is not announced to the executor: waking
+        # it cost more per element than the ack itself. The caller sends it when it comes
+        # back to wait (``take_many``), a handler's executor reads the deadline after the
+        # handler; a caller that stays away leaves it to the executor's next turn (at most
+        # its longest sleep). Meanwhile the producer sees at most ``N // 2 - 1`` taken
+        # elements as queued, as between two acks of a busy subscriber.
         notes = self._notifications(entries)
         if self._protocol.fetching:
             self._fetch_ahead(notes)

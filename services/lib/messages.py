@@ -183,6 +183,8 @@ class DecisionRecord:
     policy: str
     b0_px: float
     latency_ns: int
+    # When the mediator last saw the detector take a frame (wall clock), if it had.
+    take_seen_ns: int | None = None
 
     def metadata(self, key_ns: int) -> bytes:
         fields: dict[str, Any] = {
@@ -201,6 +203,8 @@ class DecisionRecord:
             "b0_px": float(self.b0_px),
             "latency_ns": max(0, int(self.latency_ns)),
         }
+        if self.take_seen_ns is not None and self.take_seen_ns >= 0:
+            fields["take_seen_ns"] = int(self.take_seen_ns)
         return make_metadata("decision", key_ns, fields)
 
     @classmethod
@@ -222,4 +226,5 @@ class DecisionRecord:
             policy=str(field_text(root, "policy")),
             b0_px=float(field_text(root, "b0_px") or 0),
             latency_ns=int(field_text(root, "latency_ns") or 0),
+            take_seen_ns=int(seen) if (seen := field_text(root, "take_seen_ns")) else None,
         )

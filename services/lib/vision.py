@@ -108,9 +108,12 @@ def encode_result(
     frame: FrameMeta,
     source: str,
     processing_ns: int,
+    taken_ns: int | None = None,
 ) -> Encoded | None:
     """The element a handler's ``result`` for ``frame`` becomes in a ``kind`` buffer; None
-    for ``None`` (no result). SchemaError names what is wrong with any other result."""
+    for ``None`` (no result). SchemaError names what is wrong with any other result.
+    ``taken_ns``: when the runner took the frame up (detections only): with the frames'
+    arrivals, what the detector did when, which ``processing_ns`` alone cannot say."""
     if result is None:
         return None
     head: dict[str, Any] = {
@@ -129,7 +132,10 @@ def encode_result(
             if box.score is not None:
                 marker["score"] = float(box.score)
             markers.append(marker)
-        metadata = make_metadata("detections", frame.timestamp_ns, {**head, "marker": markers})
+        taken = {"taken_ns": taken_ns} if taken_ns is not None else {}
+        metadata = make_metadata(
+            "detections", frame.timestamp_ns, {**head, **taken, "marker": markers}
+        )
         return Encoded(b"", metadata, len(boxes))
     if isinstance(result, bytes | bytearray | memoryview):
         result = Output(bytes(result))

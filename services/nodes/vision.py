@@ -60,6 +60,7 @@ from middleware import (
     Producer,
     Retention,
     SubscriptionMode,
+    now_ns,
 )
 from services.lib.argtypes import positive_int
 from services.lib.messages import decode_image, read_frame_metadata
@@ -181,8 +182,11 @@ class VisionStep:
         self.processed = 0
         self._warned: set[str] = set()
 
-    def process(self, timestamp_ns: int, payload: bytes, metadata: bytes) -> Encoded | Skipped:
-        """Decode the frame, run the handler, encode its result."""
+    def process(
+        self, timestamp_ns: int, payload: bytes, metadata: bytes, taken_ns: int | None = None
+    ) -> Encoded | Skipped:
+        """Decode the frame, run the handler, encode its result (``taken_ns``: when the
+        frame was taken up, written into a detections result)."""
         try:
             frame = read_frame_metadata(metadata)
             image = decode_image(payload, frame)
@@ -204,7 +208,7 @@ class VisionStep:
         processing_ns = time.monotonic_ns() - started
         self.processed += 1
         try:
-            encoded = encode_result(result, self.kind, frame, self.source, processing_ns)
+            encoded = encode_result(result, self.kind, frame, self.source, processing_ns, taken_ns)
         except FramegateError as exc:
             return self.skip("bad-result", f"frame {frame.frame_id}: {exc}")
         if encoded is None:
@@ -250,6 +254,7 @@ class Runner:
         for note in notes:
             if self.stop.is_set():
                 return
+            taken_ns = now_ns()  # the frames' clock: what the runner did when, beside them
             if not self._in_order(note.timestamp_ns):
                 continue
             try:
@@ -257,7 +262,9 @@ class Runner:
             except FramegateError as exc:
                 self._count(self.step.skip("bad-frame", f"frame {note.timestamp_ns}: {exc}"))
                 continue
-            outcome = self.step.process(element.timestamp_ns, element.payload, element.metadata)
+            outcome = self.step.process(
+                element.timestamp_ns, element.payload, element.metadata, taken_ns
+            )
             if isinstance(outcome, Skipped):
                 self._count(outcome)
                 continue

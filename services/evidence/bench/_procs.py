@@ -118,6 +118,19 @@ class Worker:
         times = self._ps.cpu_times()
         return float(times.user + times.system)
 
+    def wakeups(self) -> int:
+        """Times this process's threads have slept and been woken so far (voluntary context
+        switches, summed over its threads; Linux's /proc, 0 elsewhere). Each is a hand-off
+        between threads or a wait for the network: what an element costs beyond its own
+        work, counted the same on a loaded machine, where CPU time per wake-up is not."""
+        total = 0
+        for status in Path(f"/proc/{self.proc.pid}/task").glob("*/status"):
+            with contextlib.suppress(OSError, ValueError):
+                for line in status.read_text().splitlines():
+                    if line.startswith("voluntary_ctxt_switches:"):
+                        total += int(line.split()[1])
+        return total
+
     def request_exit(self) -> None:
         """Ask the worker to exit (it closes its session first); no waiting."""
         if self.proc.poll() is None:

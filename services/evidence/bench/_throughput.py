@@ -144,6 +144,16 @@ def run_batch(options: BenchOptions) -> ScenarioResult:
     return _run("batch", BATCH_MODES, options)
 
 
+def wakeup_rows(name: str) -> tuple[Row, Row]:
+    """Producer and consumer thread wake-ups per element of one throughput row (see
+    ``Worker.wakeups``): the structural cost that CPU figures on a shared machine blur."""
+    note = "voluntary context switches of all the process's threads / elements received"
+    return (
+        Row(f"{name}: producer wake-ups", "wake-ups per element", "/el", False, note=note),
+        Row(f"{name}: consumer wake-ups", "wake-ups per element", "/el", False, note=note),
+    )
+
+
 def cpu_rows(name: str) -> tuple[Row, Row]:
     """Producer and consumer CPU per element of one throughput row."""
     return (
@@ -168,8 +178,9 @@ def _run(scenario: str, modes: tuple[Mode, ...], options: BenchOptions) -> Scena
     for mode in modes:
         row = Row(mode.name, "throughput", "msg/s", higher_is_better=True)
         producer_cpu, consumer_cpu = cpu_rows(mode.name)
+        woken = wakeup_rows(mode.name)
         designs = {design: design_rows(mode.name, design) for design in mode.designs}
-        _run_mode(scenario, mode, (row, producer_cpu, consumer_cpu), designs, options)
+        _run_mode(scenario, mode, (row, producer_cpu, consumer_cpu), woken, designs, options)
         row.goal = ratio_goal(row, mode.goal, at_least=True, what="throughput")
         if mode.extra_cpu_us is not None:
             for cpu_row in (producer_cpu, consumer_cpu):
@@ -177,7 +188,7 @@ def _run(scenario: str, modes: tuple[Mode, ...], options: BenchOptions) -> Scena
         if mode.cpu_us is not None:
             for cpu_row in (producer_cpu, consumer_cpu):
                 cpu_row.goal = cpu_goal(cpu_row, mode.cpu_us)
-        result.rows += [row, producer_cpu, consumer_cpu]
+        result.rows += [row, producer_cpu, consumer_cpu, *woken]
         for design_row, design_cpu in designs.values():
             result.rows += [design_row, design_cpu]
     if any(mode.designs for mode in modes):
@@ -213,6 +224,7 @@ def _run_mode(
     scenario: str,
     mode: Mode,
     rows: tuple[Row, Row, Row],
+    woken: tuple[Row, Row],
     designs: dict[str, tuple[Row, Row]],
     options: BenchOptions,
 ) -> None:
@@ -262,6 +274,10 @@ def _run_mode(
                 row.samples(which).append(sample)
                 for cpu_row, role in ((producer_cpu, "producer"), (consumer_cpu, "consumer")):
                     cpu_row.samples(which).append({"pair": pair, "value": sample[f"cpu_{role}_us"]})
+                for woken_row, role in zip(woken, ("producer", "consumer"), strict=True):
+                    woken_row.samples(which).append(
+                        {"pair": pair, "value": sample[f"wakeups_{role}"]}
+                    )
                 options.progress(_progress(scenario, mode.name, pair, options.pairs, side, sample))
                 if side == "raw":
                     for design, (design_pub, design_sub) in design_pairs.items():
@@ -332,9 +348,11 @@ def _measure_once(
     producer.send("produce", seconds=warmup_s + window_s + 0.3, interval_s=interval_s)
     time.sleep(warmup_s)
     cpu0 = (time.monotonic(), producer.cpu_s(), consumer.cpu_s())
+    woken0 = (producer.wakeups(), consumer.wakeups())
     first = consumer.call("mark")
     time.sleep(window_s)
     cpu1 = (time.monotonic(), producer.cpu_s(), consumer.cpu_s())
+    woken1 = (producer.wakeups(), consumer.wakeups())
     last = consumer.call("mark")
     done = producer.recv(timeout_s=warmup_s + window_s + 30.0)
     received = _drain(consumer, start["count"], int(done["sent"]))
@@ -358,6 +376,9 @@ def _measure_once(
         "cpu_consumer_pct": 100.0 * (cpu1[2] - cpu0[2]) / wall_s,
         "cpu_producer_us": 1e6 * (cpu1[1] - cpu0[1]) / count,
         "cpu_consumer_us": 1e6 * (cpu1[2] - cpu0[2]) / count,
+        # A thread that ended in the window takes its count with it: never below 0.
+        "wakeups_producer": max(0, woken1[0] - woken0[0]) / count,
+        "wakeups_consumer": max(0, woken1[1] - woken0[1]) / count,
     }
 
 

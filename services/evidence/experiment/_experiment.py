@@ -5,9 +5,8 @@ from __future__ import annotations
 import json
 import math
 import os
-import statistics
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
@@ -17,12 +16,19 @@ from services.lib.sim import Dataset
 
 from ._config import MARKER_NAMES, PAPER_TABLE1, ExperimentConfig, RunKind
 from ._datasets import cached_dataset, scenario_for
+from ._detector import (
+    ack_steps,
+    clock_offset_ns,
+    detector_overhead_ns,
+    detector_steps,
+    handover_steps,
+)
 from ._frames import FrameOutcome, frame_outcomes
 from ._latency import decision_latencies
 from ._metrics import blur_pairs, recognized_frames
 from ._pipeline import RunSettings, run_configuration
 from ._plots import plot_gyro_exposures, plot_quality_vs_blur, plot_timeline
-from ._records import FrameDetections, RunRecord
+from ._records import RunRecord
 from ._replay import QueueModel, replay_policy
 from ._stats import captured_fraction, correlations, improvement_pct, json_safe, mean_ci95
 from ._sweep import marker_counts, oracle_counts, period_ns
@@ -48,6 +54,8 @@ _TIMED = (RunKind.UNCONTROLLED, RunKind.FILTERED, RunKind.BEYOND)
 # The share of frames an uncontrolled run's camera may skip late for its detector to count
 # as never idle (``detector_overhead_ns``).
 _LATE_SHARE = 0.03
+# The mediator's record of a frame it could not forward: its consumer's subscription lapsed.
+_LAPSED = "consumer-lapsed"
 
 
 def run_order(runs: tuple[RunKind, ...], seed_index: int) -> list[RunKind]:
@@ -114,13 +122,17 @@ def seed_replay(
 
     Each run is replayed with what its own mediator was given, so that what the machine did
     to the pipeline around it is not counted against the policy: the frames it decided
-    (not those the camera skipped late or refused, counted as ``not_decided``), each at its
+    (not those the camera skipped late or refused, counted as ``not_decided``, nor those it
+    could not forward to a detector whose subscription had lapsed, ``lapsed``), each at its
     own decision latency and with the quality it computed (None where the gyro did not
     cover the frame in time: the gyro-missing rule decides, as it did), and the detector's
-    processing times as it took them (``service_ms``: their mean)."""
+    processing times when it took them (``_detector``; ``service_ms``: their mean,
+    ``overhead_ms``: the cost per frame besides), and each take seen by the mediator as
+    late as its ack reached the real one (``ack_ms``: the median delay)."""
     frames = frame_outcomes(dataset, config.b0_px)
     nominal_ns = round(config.service_factor * period_ns(frames))
     arrival = {f.frame_id: f.arrival_ns for f in frames}
+    starts = {f.frame_id: f.exposure_start_ns for f in dataset.frames}
     uncontrolled = records.get(RunKind.UNCONTROLLED)
     overhead_ns = 0
     # Only a run whose camera kept up keeps the detector's queue full all along.
@@ -131,23 +143,35 @@ def seed_replay(
     for kind, record in records.items():
         if kind.policy is None:
             continue
-        latencies = decision_latencies(record.first_decisions)
+        # Frames the mediator could not give a detector whose subscription had lapsed (its
+        # process did not run past its lease): the machine took them, as it took those the
+        # camera skipped late; the replay's detector never lapses.
+        lapsed = {
+            d.frame_id for d in (*record.first_decisions, *record.decisions) if d.reason == _LAPSED
+        }
+        latencies = {
+            i: ns for i, ns in decision_latencies(record.first_decisions).items() if i not in lapsed
+        }
         quality = {d.frame_id: d.quality for d in record.first_decisions}
         seen = tuple(
             replace(f, quality=quality[f.frame_id]) for f in frames if f.frame_id in latencies
         )
-        # The detector as it ran: each real frame's processing time from its arrival on
-        # (on a loaded machine it varies, 105-150 ms against 107 ms emulated, measured),
-        # plus what each frame costs it besides (taking, fetching, putting the result).
-        steps = tuple(
-            sorted(
-                (arrival[d.frame_id], max(nominal_ns, d.processing_ns) + overhead_ns)
-                for d in record.detections
-                if d.frame_id in arrival
-            )
+        offset_ns = clock_offset_ns(record.first_decisions, starts)
+        steps, overhead = detector_steps(
+            record.detections, record.decisions, arrival, nominal_ns, overhead_ns, offset_ns
         )
-        model = QueueModel(queue=config.queue, service_ns=nominal_ns, service_steps=steps)
-        taken = [s - overhead_ns for _t, s in steps]
+        acks = ack_steps(record.detections, (*record.first_decisions, *record.decisions), offset_ns)
+        handovers = handover_steps(
+            record.detections, record.decisions, arrival, nominal_ns, offset_ns
+        )
+        model = QueueModel(
+            queue=config.queue,
+            service_ns=nominal_ns,
+            service_steps=steps,
+            ack_steps=acks,
+            handover_steps=handovers,
+        )
+        taken = [s - overhead for _t, s in steps]
         service_ns = sum(taken) // len(taken) if taken else nominal_ns
         replayed = marker_counts(
             seen, replay_policy(seen, model, make_policy(kind.policy), latencies)
@@ -160,29 +184,20 @@ def seed_replay(
             "replay": replayed,
             "real": real,
             "real_minus_replay": {n: real[n] - replayed[n] for n in MARKER_NAMES},
-            "not_decided": len(frames) - len(seen),
+            "not_decided": len(frames) - len(seen) - len(lapsed),
+            "lapsed": len(lapsed),
             "service_ms": round(service_ns / 1e6, 1),
-            "overhead_ms": round(overhead_ns / 1e6, 1),
+            "overhead_ms": round(overhead / 1e6, 1),
+            # Median delays: until the mediator saw a take, until an idle detector took a put.
+            "ack_ms": _median_ms(acks),
+            "handover_ms": _median_ms(handovers),
         }
     return out
 
 
-def detector_overhead_ns(uncontrolled: Sequence[FrameDetections], arrival: dict[int, int]) -> int:
-    """What a frame costs the detector besides its processing time (taking it, fetching,
-    putting the result: 3-6 ms a frame on a loaded 2-core machine, measured), from the
-    seed's uncontrolled run, where the camera keeps its queue full so the detector never
-    idles: the time between the first and the last frame it took, per frame, less the
-    mean processing time (``uncontrolled``: that run's detections; ``arrival``: frame id ->
-    its arrival). 0 without that run; ``seed_replay`` uses it only if that run's camera
-    skipped at most ``_LATE_SHARE`` of the frames late (a gap idles the detector, and the
-    idle time would count as overhead: 18 ms a frame measured with 55 frames late)."""
-    known = [d for d in uncontrolled if d.frame_id in arrival]
-    if len(known) < 2:
-        return 0
-    taken = [arrival[d.frame_id] for d in known]
-    cycle = (max(taken) - min(taken)) / (len(taken) - 1)
-    processing = statistics.fmean(d.processing_ns for d in known)
-    return max(0, round(cycle - processing))
+def _median_ms(steps: tuple[tuple[int, int], ...]) -> float | None:
+    """The median of steps' values in ms (None without steps: not recorded, 0 replayed)."""
+    return round(sorted(v for _t, v in steps)[len(steps) // 2] / 1e6, 1) if steps else None
 
 
 def aggregate_replay(seeds: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
@@ -194,7 +209,7 @@ def aggregate_replay(seeds: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
         rows = [seed["replay"][run] for seed in seeds if run in seed.get("replay", {})]
         out[run] = {"policy": rows[0]["policy"]}
         # What the replay was given, per seed.
-        for key in ("not_decided", "service_ms", "overhead_ms"):
+        for key in ("not_decided", "lapsed", "service_ms", "overhead_ms", "ack_ms", "handover_ms"):
             out[run][key] = [row.get(key) for row in rows]
         for name in MARKER_NAMES:
             entry: dict[str, Any] = {}

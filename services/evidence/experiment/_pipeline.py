@@ -17,7 +17,7 @@ from pathlib import Path
 import psutil
 from tqdm import tqdm
 
-from middleware import BufferInfo, FramegateError, NetworkConfig, Node
+from middleware import BufferInfo, DataObject, FramegateError, NetworkConfig, Node
 from services.launch import (
     ArgValue,
     Deployment,
@@ -41,6 +41,9 @@ _ATTEMPTS = 4
 # longer start-up a camera that came up quickly exited on its own first put (seen at 12 s).
 MAX_STARTUP_S = 9.0
 _CONSUMER_TIMEOUT_S = 60.0
+# Collecting: how often a query of a service that is not live is asked, and how far apart.
+_QUERY_TRIES = 5
+_QUERY_RETRY_S = 2.0
 _PRODUCERS = ("camera", "gyro")
 # The `all` run is about every frame, not time: at half speed a busy machine does not make
 # the camera fall a frame behind (and skip it).
@@ -159,12 +162,27 @@ def _count(buffers: dict[str, BufferInfo], name: str, what: str = "puts") -> int
     return int(getattr(info, what)) if info is not None else 0
 
 
+def _query(node: Node, key: str) -> list[DataObject]:
+    """Every element of ``key``, asked again (at most ``_QUERY_TRIES`` times) when its
+    service was not live: on an overloaded machine a service that did not run past its 1 s
+    lease is dropped by its peers until it reconnects (3.5 s without running seen at load
+    29), and one such moment at the end lost the whole run."""
+    for attempt in range(1, _QUERY_TRIES + 1):
+        try:
+            return node.query(key, timeout_s=10.0)
+        except FramegateError:
+            if attempt == _QUERY_TRIES:
+                raise
+            time.sleep(_QUERY_RETRY_S)
+    raise AssertionError("unreachable")
+
+
 def _decisions(node: Node) -> tuple[list[DecisionRecord], list[DecisionRecord]]:
     """The first and the latest decision per frame (a held frame is decided again when it
     leaves; its first record was written when the mediator first decided it)."""
     first: dict[int, DecisionRecord] = {}
     final: dict[int, DecisionRecord] = {}
-    for element in node.query("mediator/decisions", timeout_s=10.0):
+    for element in _query(node, "mediator/decisions"):
         record = DecisionRecord.from_metadata(element.metadata)
         first.setdefault(record.frame_timestamp_ns, record)
         final[record.frame_timestamp_ns] = record
@@ -361,8 +379,7 @@ def _collect(
     buffers: dict[str, BufferInfo],
 ) -> RunRecord:  # fmt: skip
     detections = [
-        FrameDetections.from_metadata(e.metadata)
-        for e in node.query("detector/detections", timeout_s=10.0)
+        FrameDetections.from_metadata(e.metadata) for e in _query(node, "detector/detections")
     ]
     first, decisions = _decisions(node) if kind.policy is not None else ([], [])
     watch.check_alive()

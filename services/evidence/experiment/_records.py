@@ -17,12 +17,15 @@ _NS = "{urn:framegate:1}"
 class FrameDetections:
     """What the detector found in one frame it processed.
 
-    ``markers``: (marker id, centre x px, centre y px) of every decoded marker.
+    ``markers``: (marker id, centre x px, centre y px) of every decoded marker;
+    ``taken_ns``: when the detector took the frame up (the frames' clock; None if it did not
+    say).
     """
 
     frame_id: int
     processing_ns: int
     markers: tuple[tuple[int, float, float], ...]
+    taken_ns: int | None = None
 
     @classmethod
     def from_metadata(cls, metadata: bytes) -> FrameDetections:
@@ -34,10 +37,12 @@ class FrameDetections:
             corners = [float(v) for v in (element.findtext(_NS + "corners_px") or "").split()]
             xs, ys = corners[0::2], corners[1::2]
             markers.append((marker_id, sum(xs) / len(xs), sum(ys) / len(ys)))
+        taken = field_text(root, "taken_ns")
         return cls(
             frame_id=int(field_text(root, "frame_id") or 0),
             processing_ns=int(field_text(root, "processing_ns") or 0),
             markers=tuple(markers),
+            taken_ns=int(taken) if taken else None,
         )
 
 

@@ -155,10 +155,12 @@ def _replay_section(results: Mapping[str, Any]) -> list[str]:
         "",
         "Each mediator run replayed by the discrete-event model the sweep uses, with what "
         "its own mediator was given: the frames it decided, each at its recorded decision "
-        "latency and with its recorded quality, and the detector's processing times as it "
-        "ran plus its per-frame overhead measured on the uncontrolled run. *Real − replay* "
-        "per seed, then averaged: what the mediator's realization loses. Frames the camera "
-        "skipped late or refused are in neither.",
+        "latency and with its recorded quality, the detector's processing times from when "
+        "it took each frame plus its per-frame overhead, and each take known to the "
+        "mediator only once its ack reached the real one. *Real − replay* per seed, then "
+        "averaged: what the mediator's realization loses. Frames the camera skipped late "
+        "or refused, and those a lapsed detector subscription could not take, are in "
+        "neither.",
         "",
         "| Run | Policy | Marker | Real | Replay | Real − replay |",
         "|---|---|---|--:|--:|--:|",
@@ -171,9 +173,11 @@ def _replay_section(results: Mapping[str, Any]) -> list[str]:
     lines.append("")
     for run, entry in comparison.items():
         lines.append(
-            f"{run}: frames the mediator never decided, per seed {entry.get('not_decided')}; "
-            f"detector's mean processing time replayed (ms) {entry.get('service_ms')}, "
-            f"plus an overhead per frame (ms) {entry.get('overhead_ms')}."
+            f"{run}: frames the mediator never decided, per seed {entry.get('not_decided')}, "
+            f"not forwarded to a lapsed detector {entry.get('lapsed')}; detector's mean "
+            f"processing time replayed (ms) {entry.get('service_ms')}, plus an overhead per "
+            f"frame (ms) {entry.get('overhead_ms')}; median ack delay (ms) "
+            f"{entry.get('ack_ms')}."
         )
     return lines
 

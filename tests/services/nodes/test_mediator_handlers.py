@@ -9,7 +9,7 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
-from middleware import DataObject, NetworkConfig, Node, Notification
+from middleware import DataObject, NetworkConfig, Node, Notification, now_ns
 from services.lib.camera_model import CameraModel
 from services.lib.decisions import GyroMissing, Load
 from services.lib.messages import DecisionRecord, frame_metadata
@@ -118,3 +118,24 @@ def test_a_held_frame_goes_out_at_its_deadline_not_a_poll_later() -> None:
         mediator.on_time(due)
         assert fed.reasons() == ["held", "held-max"] and fed.records[-1].accepted
         assert mediator.next_deadline_ns() is None  # nothing left to wake for
+
+
+def test_a_decision_records_when_the_mediator_last_saw_the_detector_take() -> None:
+    # What the mediator knew of the detector's queue, on the frames' clock: an experiment
+    # sets it beside the detector's own take times (how late each ack came).
+    with Node("mediator", NetworkConfig(local_port=free_port())) as node:
+        fed = Fed(node)
+        before = now_ns()
+        seen_mono = time.monotonic_ns() - 40 * MS  # a take seen 40 ms ago
+        fed.mediator.out.load = lambda: Load(0, 2, seen_mono)  # type: ignore[method-assign]
+        fed.gyro(0, 40)
+        fed.frame(10)
+        after = now_ns()
+        seen = fed.records[-1].take_seen_ns
+        # On the wall clock, 40 ms before the moment it was set (a stall between the two
+        # clock reads can only make it earlier; a second of slack for that).
+        assert seen is not None and before - 1040 * MS <= seen <= after - 40 * MS
+        fed.mediator.out.load = lambda: Load(0, 2)  # type: ignore[method-assign]
+        fed.gyro(41, 100)
+        fed.frame(80)
+        assert fed.records[-1].take_seen_ns is None  # no take seen: nothing to say
