@@ -14,6 +14,7 @@ import pytest
 
 from middleware import FramegateError, NetworkConfig, Node
 from tests.conftest import REPO, child_env, free_port, wait_until
+from tests.helpers.frames import simulated_frames
 
 pytestmark = pytest.mark.integration
 
@@ -25,17 +26,7 @@ STARTUP_S = 300.0
 
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("tiny") / "approach"
-    argv = ["simulate", "--out", str(out), "--frames", "8", "--no-progress"]
-    subprocess.run(
-        [sys.executable, "-m", "services.cli", *argv],
-        cwd=REPO,
-        env=child_env(),
-        check=True,
-        capture_output=True,
-        timeout=STARTUP_S,
-    )
-    return out
+    return simulated_frames(tmp_path_factory.mktemp("tiny") / "approach")
 
 
 @pytest.fixture

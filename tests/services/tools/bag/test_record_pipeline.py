@@ -20,6 +20,7 @@ import pytest
 from middleware import DataObject, FramegateError, NetworkConfig, Node
 from services.tools.bag import open_bag, recording_info
 from tests.conftest import REPO, child_env, free_port, wait_until
+from tests.helpers.frames import simulated_frames
 
 pytestmark = pytest.mark.integration
 
@@ -30,17 +31,7 @@ LIMIT = ("--duration", "4", "--json")
 
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("approach") / "data"
-    argv = ["simulate", "--out", str(out), "--frames", "8", "--no-progress"]
-    subprocess.run(
-        [sys.executable, "-m", "services.cli", *argv],
-        cwd=REPO,
-        env=child_env(),
-        check=True,
-        capture_output=True,
-        timeout=STARTUP_S,
-    )
-    return out
+    return simulated_frames(tmp_path_factory.mktemp("approach") / "data")
 
 
 @pytest.fixture
