@@ -25,6 +25,8 @@ from typing import Any
 
 import psutil
 
+from middleware import TransportError
+
 from ._fan_out import run_fan_out
 from ._hostile import run_hostile
 from ._idle import run_idle
@@ -44,6 +46,9 @@ from ._working_point import run_working_point
 SCHEMA = "framegate-bench/1"
 # Figures are flagged unreliable when the 1-min load at start exceeds this share of the cores.
 LOAD_WARNING_SHARE = 0.5
+# A scenario that could not open a Zenoh session is run again this many times: its private
+# port, free when chosen, can be taken by another process before its session listens.
+TRANSPORT_RETRIES = 1
 
 SCENARIOS: dict[str, Callable[[BenchOptions], ScenarioResult]] = {
     "frames": run_frames,
@@ -86,6 +91,17 @@ def machine_info() -> dict[str, Any]:
     }
 
 
+def _run_scenario(name: str, options: BenchOptions) -> ScenarioResult:
+    for attempt in range(TRANSPORT_RETRIES + 1):
+        try:
+            return SCENARIOS[name](options)
+        except TransportError as exc:
+            if attempt == TRANSPORT_RETRIES:
+                raise
+            options.progress(f"{name}: {exc}; running it again")
+    raise AssertionError("unreachable")
+
+
 def run_bench(options: BenchOptions) -> dict[str, Any]:
     """Run ``options.scenarios`` in order; a failing scenario is reported, not raised."""
     started = time.monotonic()
@@ -106,7 +122,7 @@ def run_bench(options: BenchOptions) -> dict[str, Any]:
         began = time.monotonic()
         options.progress(f"== {name}")
         try:
-            result = SCENARIOS[name](options)
+            result = _run_scenario(name, options)
         except Exception as exc:  # one broken scenario must not hide the others' numbers
             options.progress("".join(traceback.format_exception(exc)).rstrip())
             result = ScenarioResult(name, status="error", reason=f"{type(exc).__name__}: {exc}")
