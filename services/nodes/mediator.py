@@ -120,6 +120,8 @@ class _Deadline(Protocol):
 _GYRO_LOOK_S = 0.005
 # step() only: gyro batches taken per step at most (its queue holds 256 notifications).
 _GYRO_ROUNDS = 8
+# Looks for the frames stored while our subscription had lapsed, 1 s apart (_record_missed).
+_MISSED_TRIES = 5
 
 
 class Mediator:
@@ -321,15 +323,13 @@ class Mediator:
         self._measure_soon(time.monotonic_ns())
         self._record_missed(note.timestamp_ns)
 
-    def _record_missed(self, until_ns: int) -> None:
-        """Record the frames the camera stored between the last one we took and ``until_ns``.
-
-        They were stored while our subscription had lapsed (this process was stopped or
-        cut off past the lease) or before it registered with a restarted camera; none will
-        ever be notified, and each gets a ``mediator-lapsed`` record. Frames the camera's
-        retention has already evicted cannot be named; their count is not known here.
-        """
-        last = self._newest_camera_ns
+    def _record_missed(self, until_ns: int, since_ns: int | None = None, tries: int = 0) -> None:
+        """Record the frames the camera stored between the last one we took and ``until_ns``
+        (``since_ns`` when asked again): stored while our subscription had lapsed (stopped,
+        cut off past the lease) or before it registered with a restarted camera, none will
+        be notified; each gets a ``mediator-lapsed`` record. A look-up that is not answered
+        is made again; frames the camera's retention evicted cannot be named."""
+        last = self._newest_camera_ns if since_ns is None else since_ns
         if last is None or until_ns <= last + 1:
             return
         try:
@@ -338,6 +338,9 @@ class Mediator:
             )
         except FramegateError as exc:
             self.log.warning("cannot look up the frames missed before %d: %s", until_ns, exc)
+            if tries + 1 < _MISSED_TRIES:
+                again = time.monotonic_ns() + 1_000_000_000
+                self._node.at(again, lambda _: self._record_missed(until_ns, last, tries + 1))
             return
         for element in missed:
             try:
@@ -348,11 +351,8 @@ class Mediator:
                 element.timestamp_ns, frame_id, "mediator-lapsed", "stored while not taken"
             )
         if missed:
-            self.log.warning(
-                "%d frames were stored while our camera subscription had lapsed: "
-                "recorded mediator-lapsed",
-                len(missed),
-            )
+            what = "stored while our camera subscription had lapsed: recorded mediator-lapsed"
+            self.log.warning("%d frames were %s", len(missed), what)
 
     # -- driving it ---------------------------------------------------------------------
     def attach(self) -> None:

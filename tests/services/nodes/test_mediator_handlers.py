@@ -4,18 +4,18 @@ executor, no camera or gyro process, no thread waits for anything."""
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import numpy as np
 import pytest
 
-from middleware import DataObject, NetworkConfig, Node, Notification, now_ns
+from middleware import DataObject, NetworkConfig, Node, Notification, TransportError, now_ns
 from services.lib.camera_model import CameraModel
 from services.lib.decisions import GyroMissing, Load
 from services.lib.messages import DecisionRecord, frame_metadata
 from services.lib.quality import Exposure, GyroSamples
 from services.lib.rewind import SourceClock
-from services.nodes.mediator import Mediator, MediatorConfig
+from services.nodes.mediator import _MISSED_TRIES, Mediator, MediatorConfig
 from tests.conftest import free_port
 
 MS = 1_000_000
@@ -139,3 +139,49 @@ def test_a_decision_records_when_the_mediator_last_saw_the_detector_take() -> No
         fed.gyro(41, 100)
         fed.frame(80)
         assert fed.records[-1].take_seen_ns is None  # no take seen: nothing to say
+
+
+def test_frames_stored_while_lapsed_are_looked_up_again_when_the_camera_does_not_answer(
+    fed: Fed,
+) -> None:
+    # On a loaded machine the look-up of the frames stored while the mediator's subscription
+    # had lapsed can go unanswered; without asking again those frames got no record at all.
+    mediator = fed.mediator
+    mediator._newest_camera_ns = 10 * MS
+    metadata = frame_metadata(7, Exposure(20 * MS, 10 * MS), IMAGE, CAMERA)
+    stored = DataObject(20 * MS, IMAGE.tobytes(), metadata)
+    asked: list[str] = []
+    later: list[Callable[[int], object]] = []
+
+    def query(target: str, time_range: str, timeout_s: float) -> list[DataObject]:
+        asked.append(time_range)
+        if len(asked) == 1:
+            raise TransportError("the camera did not answer")
+        return [stored]
+
+    mediator._node.query = query  # type: ignore[method-assign,assignment]
+    mediator._node.at = lambda deadline_ns, fn: later.append(fn)  # type: ignore[method-assign,assignment,return-value]
+    mediator._record_missed(30 * MS)
+    assert fed.records == [] and len(later) == 1
+    mediator._newest_camera_ns = 40 * MS  # frames came meanwhile: the range stays the gap's
+    later.pop()(0)
+    assert asked == [f"[{10 * MS + 1}..{30 * MS - 1}]"] * 2
+    assert fed.reasons() == ["mediator-lapsed"] and fed.records[0].frame_timestamp_ns == 20 * MS
+
+
+def test_the_look_up_of_lapsed_frames_is_asked_a_bounded_number_of_times(fed: Fed) -> None:
+    mediator = fed.mediator
+    mediator._newest_camera_ns = 10 * MS
+    asked: list[str] = []
+    later: list[Callable[[int], object]] = []
+
+    def query(target: str, time_range: str, timeout_s: float) -> list[DataObject]:
+        asked.append(time_range)
+        raise TransportError("the camera did not answer")
+
+    mediator._node.query = query  # type: ignore[method-assign,assignment]
+    mediator._node.at = lambda deadline_ns, fn: later.append(fn)  # type: ignore[method-assign,assignment,return-value]
+    mediator._record_missed(30 * MS)
+    while later:
+        later.pop()(0)
+    assert len(asked) == _MISSED_TRIES and fed.records == []
