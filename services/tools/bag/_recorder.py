@@ -57,6 +57,8 @@ STOP_SLACK_S = 1.0
 # A writer this far behind (its oldest queued element waited this long) stops compressing
 # until it has caught up.
 CATCH_UP_S = 0.5
+# How often a backfill asks a buffer that did not answer before counting its range evicted.
+BACKFILL_TRIES = 3
 
 
 @dataclass
@@ -355,14 +357,23 @@ class Recorder:
                 return
         if start is not None and end_ns is not None and end_ns < start:
             return
-        try:
-            gap = self.node.query(
-                self.sub.name,
-                time_range=TimeRange(start, end_ns),
-                last=newest if start is None else None,
-                timeout_s=timeout_s,
-            )
-        except FramegateError:
+        gap = None
+        # A loaded machine's producer may not answer once (or lose its lease for a moment):
+        # what the buffer still holds is asked again before it counts as evicted.
+        for _ in range(BACKFILL_TRIES):
+            try:
+                gap = self.node.query(
+                    self.sub.name,
+                    time_range=TimeRange(start, end_ns),
+                    last=newest if start is None else None,
+                    timeout_s=timeout_s,
+                )
+                break
+            except FramegateError:
+                timeout_s = self._timeout(timeout_s)
+                if timeout_s <= 0:
+                    break
+        if gap is None:
             return  # what stays missing is counted evicted when the next notification comes
         for element in gap:
             if self._full():
