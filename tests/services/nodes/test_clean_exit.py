@@ -24,16 +24,11 @@ from tests.services.nodes.pipeline import Pipeline
 pytestmark = pytest.mark.integration
 
 
-# Late frames each camera reported in ``info`` (``skipped``) when it was signalled.
-_LATE: dict[str, int] = {}
-
-
 def _stored(node: Node, target: str) -> bool:
     try:
         info = node.buffer_info(target, timeout_s=scaled(2.0))
     except FramegateError:
         return False
-    _LATE[target] = info.skipped.get("late", 0)
     return info.puts > 0
 
 
@@ -115,8 +110,6 @@ def test_twenty_signals_stop_rendering_cameras_with_exit_0() -> None:
                     watched.proc.kill()
                     watched.proc.wait()
     _check(results, "camera stops")
-    # Five cameras rendering on a small machine cannot keep 15 fps; info counts it.
-    assert any(late > 0 for late in _LATE.values()), _LATE
 
 
 _CAMERA_ONLY = """\
