@@ -17,6 +17,9 @@ from ._session import zenoh_errors
 from ._timerange import TimeRange, parse_time_range
 from ._wire import ERR_NOT_FOUND, decode_element
 
+# How long a fetch started ahead, whose answer was empty, waits for its second ask.
+_ASK_AGAIN_S = 2.0
+
 
 class Queries(Discovery):
     """Elements of live buffers, by time (see ``Node``)."""
@@ -68,7 +71,9 @@ class Queries(Discovery):
     def _finish_exact(self, target: str, timestamp_ns: int, pending: Any) -> DataObject:
         found = self._collect(target, pending)
         if not found:
-            raise NotFoundError(f"{target} has no element with timestamp {timestamp_ns}")
+            # A query started ahead may have reached no one (see ``_get``): asked again as
+            # ``get`` asks, which tells an element the buffer no longer holds from that.
+            return self.get(target, timestamp_ns, timeout_s=_ASK_AGAIN_S)
         return found[0]
 
     def _start_get(self, target: str, params: dict[str, str], timeout_s: float) -> Any:

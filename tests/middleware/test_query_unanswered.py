@@ -27,6 +27,8 @@ class _Lapsing(Queries):
         self.asked += 1
         if self.asked <= self.lapses:
             return []
+        if "ts" in params:
+            return [t for t in self.held if t == int(params["ts"])]
         if "last" in params:
             return self.held[-int(params["last"]) :]
         return [t for t in self.held if parse_time_range(params["_time"]).contains(t)]
@@ -73,4 +75,11 @@ def test_an_empty_buffer_is_asked_once() -> None:
 def test_a_second_empty_answer_is_the_answer() -> None:
     node = _Lapsing([10, 20], lapses=5)
     assert node.query("cam/log", last=1) == []
+    assert node.asked == 2
+
+
+def test_a_fetch_started_ahead_that_reached_no_one_is_asked_again() -> None:
+    node = _Lapsing([10, 20, 30], lapses=1)
+    pending = node._start_exact("cam/log", 20, 1.0)
+    assert node._finish_exact("cam/log", 20, pending).timestamp_ns == 20
     assert node.asked == 2
