@@ -27,7 +27,7 @@ import logging
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Sized
+from collections.abc import Callable
 from typing import Protocol
 
 log = logging.getLogger("framegate.middleware")
@@ -100,13 +100,12 @@ class Wake:
         source: Source,
         cond: threading.Condition,
         executor: Executor,
+        backlog: Callable[[], int],
     ) -> None:
         self._source = source
         self._cond = cond
         self._executor = executor
-        # The object's inbox deque (set by the owner once it made the inbox): its length is
-        # read on Zenoh's thread per message, directly (a method call cost 5x as much).
-        self.backlog: Sized = ()
+        self._backlog = backlog
         self.executor_owned = False
         self.threads = 0  # callers blocked in the condition
         self.handler = False  # a handler on the executor waits for this object
@@ -115,7 +114,7 @@ class Wake:
         """(Zenoh's thread, after appending to the inbox) A backlog of a batch or more is
         the executor's to work off in any case (a flood must not wait for the next caller:
         it would push honest input out of the bounded inbox meanwhile)."""
-        if self.executor_owned or self.handler or len(self.backlog) >= BUDGET:
+        if self.executor_owned or self.handler or self._backlog() >= BUDGET:
             if not self._source.scheduled:
                 self._executor.signal(self._source)
         elif self.threads:

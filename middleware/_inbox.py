@@ -170,12 +170,6 @@ class _Bounded(Generic[T]):
         return len(self._items)
 
     @property
-    def items(self) -> deque[T]:
-        """The deque itself, for an owner's cheap emptiness check on a hot path (its length
-        only: taking goes through ``take``)."""
-        return self._items
-
-    @property
     def dropped(self) -> int:
         """Samples dropped unread, for their size or by newer ones (``AckInbox``: also
         for their first byte, or as repeats)."""

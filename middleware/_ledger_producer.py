@@ -68,8 +68,6 @@ from typing import Generic, NamedTuple, TypeVar
 from ._records import SubscriptionInfo, SubscriptionMode
 from ._wire import descriptor_of
 
-_FLOW = SubscriptionMode.FLOW
-
 # Registrations one producer keeps; tokens beyond it are ignored (and counted).
 MAX_REGISTRATIONS = 1024
 # Outstanding flow-control notifications are sent again after this long without progress.
@@ -232,8 +230,7 @@ class ProducerLedger(Generic[H]):
         """A flow registration without room for ``count`` more elements (a put of that many
         must be refused), or None."""
         for reg in self._regs.values():
-            key = reg.key  # ``flow`` and ``queued`` inline: every put asks, per registration
-            if key.mode is _FLOW and reg.sent - reg.acked + count > key.queue_size:
+            if reg.flow and reg.queued + count > reg.key.queue_size:
                 return reg
         return None
 

@@ -121,7 +121,7 @@ class Producer:
         self._closed = False
         self._on_change: Callable[[], object] | None = None
         executor.add(self)
-        self._wake = Wake(self, self._cond, executor)
+        self._wake = Wake(self, self._cond, executor, lambda: len(self._acks))
         # Acks are fed by whoever needs credit next (a put, ``fill``, the executor before a
         # resend); only a waiting put, or a backlog, wakes anyone (``Wake``).
         self._acks = AckInbox(max_bytes=ACK_MAX_BYTES, signal=self._wake.signal)
@@ -130,8 +130,6 @@ class Producer:
         self._token_keys = keys.subscription_tokens(service, buffer)
         self._tokens_dropped = 0
         self._tokens = TokenInbox(capacity=TOKEN_INBOX, signal=self._signal)
-        self._ack_items = self._wake.backlog = self._acks.items
-        self._token_items = self._tokens.items
         self._acks.declare(session, keys.acks(service, buffer))
         # Declared last: its callback (history included) may run at once.
         self._tokens.declare(session, self._token_keys, liveliness=True)
@@ -153,14 +151,8 @@ class Producer:
     def _feed(self, budget: int) -> bool:
         """(under _lock) Feed the protocol at most ``budget`` acks and as many tokens; True
         if anything changed for a waiting put (credit freed, a subscriber came or went)."""
-        # Every put asks, and nothing came is the common case: the deques' lengths and the
-        # token drop counters are read directly (the properties cost 5x as much).
-        tokens = self._tokens
-        if (
-            not (self._ack_items or self._token_items)
-            and tokens.oversize + tokens.overflow == self._tokens_dropped
-        ):
-            return False
+        if not (self._acks or self._tokens) and self._tokens.dropped == self._tokens_dropped:
+            return False  # every put asks: nothing came is the common case
         changed = False
         ack = self._protocol.ack
         now = time.monotonic_ns()
@@ -296,8 +288,7 @@ class Producer:
                 try:
                     with self._lock:
                         self._feed(_BUDGET)  # credit as of now
-                        # The first pass is within the deadline just set (no clock read).
-                        may_wait = wait_s > 0 and (not waited or deadline > time.monotonic())
+                        may_wait = wait_s > 0 and deadline > time.monotonic()
                         refusal = self._protocol.admit(count, may_wait=may_wait)
                         if refusal is None:
                             notified = self._store(elements)

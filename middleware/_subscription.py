@@ -112,7 +112,7 @@ class Subscription:
             congestion_control=zenoh.CongestionControl.BLOCK,
         )
         executor.add(self)
-        self._wake = Wake(self, self._cond, executor)
+        self._wake = Wake(self, self._cond, executor, lambda: len(self._inbox))
         # Until the producer greets it, the producer's answer is the executor's to read: a
         # refusal must be logged and retried even when nobody takes (see ``_refused``).
         self._wake.executor_owned = True
@@ -121,7 +121,6 @@ class Subscription:
             max_bytes=self._protocol.max_message_bytes(),
             signal=self._wake.signal,
         )
-        self._inbox_items = self._wake.backlog = self._inbox.items
         self._inbox.declare(session, keys.notify(service, buffer, self.subscription_id))
         self._holder = holder_chunk(holder, socket.gethostname())
         self._token_key = keys.subscription_token(
@@ -165,17 +164,14 @@ class Subscription:
     # -- input (on the executor, or inline on a caller that looks) ------------------
     def _feed(self, budget: int) -> None:
         """(under _lock) Feed the protocol at most ``budget`` waiting notifications."""
-        if not self._inbox_items:  # every take asks: nothing came is the common case
-            return
         protocol = self._protocol
-        receive = protocol.receive
         for sample in self._inbox.take(budget):
             attachment = sample.attachment
             raw = attachment.to_bytes() if attachment is not None else None
             before = protocol.registrations
             payload = sample.payload
             # Control messages (the only ones whose sender matters) have an empty payload.
-            receive(raw, payload, None if len(payload) else _sender(sample))
+            protocol.receive(raw, payload, None if len(payload) else _sender(sample))
             if protocol.registrations > before > 0:
                 log.info(
                     "subscription to %s registered again (the producer restarted, or this "
@@ -338,8 +334,7 @@ class Subscription:
             raise FramegateError(
                 f"{self.name} has a handler (Node.on): its notifications go to the handler"
             )
-        # Read the clock only once this caller has to wait (most takes find one queued).
-        deadline: float | None = None
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
 
         def queued() -> bool:
             self._feed(BUDGET)
@@ -354,11 +349,8 @@ class Subscription:
                     if self._closed:
                         return []
                     wait_s = _REACK_S
-                    if timeout_s is not None:
-                        now = time.monotonic()
-                        if deadline is None:
-                            deadline = now + timeout_s
-                        wait_s = min(deadline - now, _REACK_S)
+                    if deadline is not None:
+                        wait_s = min(deadline - time.monotonic(), _REACK_S)
                         if wait_s <= 0:
                             return []
                     # A delayed ack that falls due while this caller waits is sent by it
@@ -368,7 +360,7 @@ class Subscription:
                         wait_s = min(wait_s, (due_ns - time.monotonic_ns()) / 1e9)
                     self._wake.wait(queued, wait_s)
         finally:
-            self._wake.left_over(len(self._inbox_items))
+            self._wake.left_over(len(self._inbox))
 
     def _take(self, max_count: int, *, idle: bool) -> list[Notification]:
         """Take what is queued now (after feeding a bounded batch) and send the acks due;
