@@ -22,18 +22,17 @@ def zenoh_errors(action: str) -> Iterator[None]:
         raise TransportError(f"{action} failed in Zenoh: {zenoh_message(exc)}") from exc
 
 
-# Zenoh's runtimes (``ZENOH_RUNTIME``: acceptor, receive, send, network) all handed over to
-# its one application worker thread, unless the user set ``ZENOH_RUNTIME`` themselves. By
-# default each is a thread of its own (receive: two), so every message framegate sends or
-# receives crosses two or three of them (the network thread's epoll wakes a receive worker;
-# each put wakes the send thread); on one thread the worker that polls the socket reads it
-# and runs the inbox callback itself. Measured on a 2-core machine (docs/benchmarks.md):
-# wake-ups per 64 B element halved, CPU per element down by a fifth to a third. Framegate's
-# callbacks only append to bounded inboxes, so no parallelism is lost: they all need the
-# one GIL anyway.
-ZENOH_RUNTIME = (
-    "(acc: (handover: app), rx: (handover: app), tx: (handover: app), net: (handover: app))"
-)
+# Zenoh's acceptor, receive and network runtimes handed over to its application runtime (one
+# thread), unless the user set ``ZENOH_RUNTIME`` themselves. By default each is a thread of
+# its own (receive: two), and every message framegate receives crossed two or three of them
+# (the network thread's epoll wakes a receive worker by futex; an ack woke the acceptor and
+# both receive workers); on one thread the worker that polls a socket reads it and runs the
+# inbox callback itself (measured in docs/benchmarks.md). Framegate's callbacks only append
+# to bounded inboxes, under the one GIL, so no parallelism is lost. The send runtime keeps
+# its own thread: it sends the keepalives, which must not wait for a callback waiting for
+# the GIL (with it on the same thread, a C extension holding the GIL for 2 s made peers
+# drop the process), nor for a flood's reads.
+ZENOH_RUNTIME = "(acc: (handover: app), rx: (handover: app), net: (handover: app))"
 _RUNTIME_ENV = "ZENOH_RUNTIME"
 
 

@@ -1,4 +1,5 @@
-"""Zenoh's runtimes in a framegate process: one application thread unless the user chose.
+"""Zenoh's runtimes in a framegate process: an application and a send thread unless the user
+chose.
 
 Each case runs in a fresh interpreter: Zenoh reads ``ZENOH_RUNTIME`` once, when the
 process's first session starts its runtimes, and a pytest worker may have opened sessions
@@ -65,10 +66,10 @@ def _zenoh_runtimes(threads: object) -> set[str]:
 
 
 @pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="needs /proc")
-def test_zenoh_runs_on_its_application_thread_alone_by_default() -> None:
+def test_zenoh_receives_on_its_application_thread_by_default() -> None:
     out = _run(None)
     assert out["taken"] is True
-    assert _zenoh_runtimes(out["threads"]) == {"app"}
+    assert _zenoh_runtimes(out["threads"]) == {"app", "tx"}
     assert out["env"] is None  # set only around the first open: children inherit no change
 
 
