@@ -22,17 +22,17 @@ def zenoh_errors(action: str) -> Iterator[None]:
         raise TransportError(f"{action} failed in Zenoh: {zenoh_message(exc)}") from exc
 
 
-# Zenoh's acceptor, receive and network runtimes handed over to its application runtime (one
-# thread), unless the user set ``ZENOH_RUNTIME`` themselves. By default each is a thread of
-# its own (receive: two), and every message framegate receives crossed two or three of them
-# (the network thread's epoll wakes a receive worker by futex; an ack woke the acceptor and
-# both receive workers); on one thread the worker that polls a socket reads it and runs the
-# inbox callback itself (measured in docs/benchmarks.md). Framegate's callbacks only append
-# to bounded inboxes, under the one GIL, so no parallelism is lost. The send runtime keeps
-# its own thread: it sends the keepalives, which must not wait for a callback waiting for
-# the GIL (with it on the same thread, a C extension holding the GIL for 2 s made peers
-# drop the process), nor for a flood's reads.
-ZENOH_RUNTIME = "(acc: (handover: app), rx: (handover: app), net: (handover: app))"
+# Zenoh's acceptor and network runtimes handed over to its receive runtime, unless the user
+# set ``ZENOH_RUNTIME`` themselves. By default each is a thread of its own, and every
+# message framegate receives crossed two or three of them (the network thread's epoll wakes
+# a receive worker by futex; an ack woke the acceptor and both receive workers); with the
+# network runtime's socket polling in the receive runtime, the worker that polls a socket
+# mostly reads it and runs the inbox callback itself (measured in docs/benchmarks.md).
+# Kept apart, measured: the receive runtime's two workers (with one, the reads of an ack
+# flood queued the honest acks behind them) and the send thread, which sends the
+# keepalives (on the receiving thread, a callback waiting 2 s for the GIL made peers drop
+# the process).
+ZENOH_RUNTIME = "(acc: (handover: rx), net: (handover: rx))"
 _RUNTIME_ENV = "ZENOH_RUNTIME"
 
 

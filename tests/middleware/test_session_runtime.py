@@ -1,4 +1,4 @@
-"""Zenoh's runtimes in a framegate process: an application and a send thread unless the user
+"""Zenoh's runtimes in a framegate process: no acceptor or network threads unless the user
 chose.
 
 Each case runs in a fresh interpreter: Zenoh reads ``ZENOH_RUNTIME`` once, when the
@@ -66,10 +66,10 @@ def _zenoh_runtimes(threads: object) -> set[str]:
 
 
 @pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="needs /proc")
-def test_zenoh_receives_on_its_application_thread_by_default() -> None:
+def test_zenoh_polls_its_sockets_on_its_receive_threads_by_default() -> None:
     out = _run(None)
     assert out["taken"] is True
-    assert _zenoh_runtimes(out["threads"]) == {"app", "tx"}
+    assert _zenoh_runtimes(out["threads"]) == {"app", "rx", "tx"}
     assert out["env"] is None  # set only around the first open: children inherit no change
 
 
