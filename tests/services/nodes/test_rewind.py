@@ -10,8 +10,7 @@ import pytest
 
 from middleware import DataObject, FramegateError, NetworkConfig, Node
 from tests.conftest import free_port, wait_until
-from tests.helpers.timing import scaled
-from tests.services.nodes.pipeline import answered
+from tests.helpers.timing import answered, scaled
 from tests.services.nodes.test_time_faults import CAMERA, _start, _stop
 
 pytestmark = pytest.mark.integration

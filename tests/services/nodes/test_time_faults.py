@@ -27,8 +27,8 @@ from services.nodes.mediator import Mediator, MediatorConfig
 from tests.conftest import REPO, child_env, free_port, wait_until
 from tests.helpers.clock_shim import build_clock_shim, shifted_clock_env, step_clock
 from tests.helpers.frames import simulated_frames
-from tests.helpers.timing import scaled
-from tests.services.nodes.pipeline import LEASE_LAPSE_S, Pipeline
+from tests.helpers.timing import LEASE_LAPSE_S, scaled
+from tests.services.nodes.pipeline import Pipeline
 
 pytestmark = pytest.mark.integration
 
