@@ -5,16 +5,20 @@
 
 from __future__ import annotations
 
+import time
 from typing import Any
 
 import zenoh
 
 from ._discovery import Discovery, split_target
 from ._errors import NotFoundError, QueryError
-from ._records import DataObject
+from ._records import BufferInfo, DataObject
 from ._session import zenoh_errors
-from ._timerange import TimeRange
+from ._timerange import TimeRange, parse_time_range
 from ._wire import ERR_NOT_FOUND, decode_element
+
+# How long a fetch started ahead, whose answer was empty, waits for its second ask.
+_ASK_AGAIN_S = 2.0
 
 
 class Queries(Discovery):
@@ -67,7 +71,9 @@ class Queries(Discovery):
     def _finish_exact(self, target: str, timestamp_ns: int, pending: Any) -> DataObject:
         found = self._collect(target, pending)
         if not found:
-            raise NotFoundError(f"{target} has no element with timestamp {timestamp_ns}")
+            # A query started ahead may have reached no one (see ``_get``): asked again as
+            # ``get`` asks, which tells an element the buffer no longer holds from that.
+            return self.get(target, timestamp_ns, timeout_s=_ASK_AGAIN_S)
         return found[0]
 
     def _start_get(self, target: str, params: dict[str, str], timeout_s: float) -> Any:
@@ -97,13 +103,35 @@ class Queries(Discovery):
         return elements
 
     def _get(self, target: str, params: dict[str, str], timeout_s: float) -> list[DataObject]:
+        deadline = time.monotonic() + timeout_s
         elements = self._collect(target, self._start_get(target, params, timeout_s))
         if not elements:
             # NotFoundError, with a did-you-mean, if there is none; asked with the caller's
             # patience (a loaded machine's service answers late, and is not "gone" for it).
-            self.buffer_info(target, timeout_s=timeout_s)
+            info = self.buffer_info(target, timeout_s=timeout_s)
+            # A query that reached no one (the service's lease lapsed for a moment: Zenoh
+            # then answers with nothing, not an error) looks like an empty answer; a buffer
+            # that holds what the question asks for is asked once more.
+            left_s = deadline - time.monotonic()
+            if left_s > 0 and _could_match(params, info):
+                elements = self._collect(target, self._start_get(target, params, left_s))
         elements.sort(key=lambda e: e.timestamp_ns)
         return elements
+
+
+def _could_match(params: dict[str, str], info: BufferInfo) -> bool:
+    """Whether ``info``'s buffer holds elements in the span the query ``params`` ask for
+    (its oldest..newest overlaps it; a range between two elements is still empty)."""
+    if info.oldest_ns is None or info.newest_ns is None:
+        return False
+    asked = TimeRange()
+    if "ts" in params:
+        asked = TimeRange(int(params["ts"]), int(params["ts"]))
+    elif "_time" in params:
+        asked = parse_time_range(params["_time"])
+    if asked.start_ns is not None and asked.start_ns > info.newest_ns:
+        return False
+    return asked.end_ns is None or asked.end_ns >= info.oldest_ns
 
 
 def _error_from_reply(target: str, text: str) -> QueryError:

@@ -59,6 +59,9 @@ STOP_SLACK_S = 1.0
 CATCH_UP_S = 0.5
 # How often a backfill asks a buffer that did not answer before counting its range evicted.
 BACKFILL_TRIES = 3
+# The pause before the second ask (twice this before the third): long enough for a lapsed
+# lease to be renewed, short beside the stop slack.
+BACKFILL_PAUSE_S = 0.2
 
 
 @dataclass
@@ -358,9 +361,17 @@ class Recorder:
         if start is not None and end_ns is not None and end_ns < start:
             return
         gap = None
-        # A loaded machine's producer may not answer once (or lose its lease for a moment):
-        # what the buffer still holds is asked again before it counts as evicted.
-        for _ in range(BACKFILL_TRIES):
+        # A loaded machine's producer may not answer once, or lose its lease for a moment:
+        # then the query either fails or reaches no one and comes back empty although the
+        # sequence numbers say ``newest`` elements lie in the range. Either is asked again
+        # (after a pause, within the deadline) before the range counts as evicted; an
+        # answer that is short but not empty is the buffer's (it evicted the oldest).
+        for attempt in range(BACKFILL_TRIES):
+            if attempt:
+                time.sleep(min(BACKFILL_PAUSE_S * attempt, max(0.0, self._timeout(1.0))))
+                timeout_s = self._timeout(timeout_s)
+                if timeout_s <= 0:
+                    break
             try:
                 gap = self.node.query(
                     self.sub.name,
@@ -368,11 +379,10 @@ class Recorder:
                     last=newest if start is None else None,
                     timeout_s=timeout_s,
                 )
-                break
             except FramegateError:
-                timeout_s = self._timeout(timeout_s)
-                if timeout_s <= 0:
-                    break
+                continue
+            if gap or not newest:
+                break
         if gap is None:
             return  # what stays missing is counted evicted when the next notification comes
         for element in gap:

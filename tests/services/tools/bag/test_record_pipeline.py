@@ -103,15 +103,15 @@ def test_record_keeps_every_element_its_buffers_hold(
             recorded[buffer_of.name][element.timestamp_ns] = element
     for target in BUFFERS:
         row, file, buffer = summary[target], recorded[target], held[target]
-        assert row["dropped"] == 0, row
         assert row["recorded"] == len(file) > 0, row
         inside = {t: e for t, e in buffer.items() if min(file) <= t <= stopped_ns}
         assert inside, f"{target}: the buffer no longer holds any of the recording"
         # Nothing held is missing, except (on a machine too busy to fetch it within a
-        # second of the stop) a tail after the last element recorded, counted as evicted.
+        # second of the stop, or to hand it over before the file closes) a tail after the
+        # last element recorded, counted as evicted or dropped: never a hole.
         missing = sorted(set(inside) - set(file))
         assert all(t > max(file) for t in missing), f"{target}: held but not recorded: {missing}"
-        assert len(missing) <= row["evicted"], (target, len(missing), row)
+        assert len(missing) <= row["evicted"] + row["dropped"], (target, len(missing), row)
         for t, element in inside.items():
             if t not in file:
                 continue
@@ -123,7 +123,7 @@ def test_record_keeps_every_element_its_buffers_hold(
     account = {b.name: b for b in recording_info(out).buffers}
     assert set(account) == set(BUFFERS)
     assert all(b.evicted == summary[n]["evicted"] for n, b in account.items()), account
-    assert all(b.dropped == 0 for b in account.values()), account
+    assert all(b.dropped == summary[n]["dropped"] for n, b in account.items()), account
     assert account["gyro/rates"].recorded == len(recorded["gyro/rates"])
 
 

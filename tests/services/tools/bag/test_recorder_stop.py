@@ -11,8 +11,9 @@ import threading
 import time
 from typing import Any
 
-from middleware import Notification
+from middleware import DataObject, Notification
 from services.tools.bag import Progress, Recorder
+from services.tools.bag._recorder import BACKFILL_TRIES
 
 STOP_NS = 1_000
 
@@ -88,3 +89,62 @@ def test_past_the_deadline_nothing_is_asked_and_a_notified_element_is_counted_lo
     recorder._backfill(STOP_NS, newest=5)  # would query: it must not
     recorder._on_notification(Notification("cam", "log", 500, 1))  # would fetch: it must not
     assert recorder.progress.evicted == 1
+
+
+class _LapsingNode:
+    """A producer that reaches no one for its first ``lapses`` queries (its lease lapsed):
+    the query comes back empty, as Zenoh returns a query that matched no queryable."""
+
+    def __init__(self, lapses: int, held: list[int]) -> None:
+        self.lapses, self.held, self.asked = lapses, held, 0
+
+    def query(self, target: str, **_: Any) -> list[Any]:
+        self.asked += 1
+        if self.asked <= self.lapses:
+            return []
+        return [DataObject(t, b"", b"<m/>") for t in self.held]
+
+
+class _Written:
+    """The write queue: what the recorder handed over."""
+
+    def __init__(self) -> None:
+        self.stamps: list[int] = []
+
+    def put(self, progress: Progress, element: DataObject) -> bool:
+        self.stamps.append(element.timestamp_ns)
+        return True
+
+
+def _backfilling(node: _LapsingNode) -> tuple[Recorder, _Written]:
+    written = _Written()
+    recorder = Recorder(
+        node,  # type: ignore[arg-type]
+        _Queue(),  # type: ignore[arg-type]
+        written,  # type: ignore[arg-type]
+        Progress("cam/log", "generic"),
+        threading.Event(),
+        None,
+    )
+    recorder.stop_ns, recorder.deadline = STOP_NS, time.monotonic() + 60.0
+    recorder._anchor_seq, recorder._last_ns = 10, 100
+    return recorder, written
+
+
+def test_an_empty_answer_to_a_gap_the_sequence_numbers_count_is_asked_again() -> None:
+    # Seq 14 arrives after 10: three elements lie between; the first answer is empty (the
+    # producer reached no one), the second holds them. Nothing is counted evicted.
+    node = _LapsingNode(lapses=1, held=[110, 120, 130])
+    recorder, written = _backfilling(node)
+    recorder._backfill(139, newest=3)
+    assert node.asked == 2
+    assert written.stamps == [110, 120, 130]
+    assert recorder.progress.evicted == 0
+
+
+def test_a_gap_never_answered_is_asked_a_bounded_number_of_times() -> None:
+    node = _LapsingNode(lapses=1_000, held=[])
+    recorder, written = _backfilling(node)
+    recorder._backfill(139, newest=3)
+    assert node.asked == BACKFILL_TRIES
+    assert written.stamps == []
