@@ -13,6 +13,7 @@ import zenoh
 from ._discovery import Discovery, split_target
 from ._errors import NotFoundError, QueryError
 from ._records import BufferInfo, DataObject
+from ._service import answer_end
 from ._session import zenoh_errors
 from ._timerange import TimeRange, parse_time_range
 from ._wire import ERR_NOT_FOUND, decode_element
@@ -85,21 +86,33 @@ class Queries(Discovery):
             )
 
     def _collect(self, target: str, replies: Any) -> list[DataObject]:
+        """The elements of an answer. QueryError if it was cut short: elements came but not
+        the service's end mark counting them (``_service.encode_answer_end``), as when its
+        link dropped while answering; the first part of an answer never reads as all of it.
+        (No reply at all is left to the caller: see ``_get``.)"""
         elements: list[DataObject] = []
+        complete = False
         with zenoh_errors(f"querying {target}"):
             for reply in replies:
                 if reply.ok is not None:
                     sample = reply.ok
                     attachment = sample.attachment
-                    elements.append(
-                        decode_element(
-                            sample.payload.to_bytes(),
-                            attachment.to_bytes() if attachment is not None else None,
-                        )
-                    )
+                    raw = attachment.to_bytes() if attachment is not None else None
+                    end = answer_end(raw)
+                    if end is not None:
+                        complete = end == len(elements)
+                        continue
+                    complete = False
+                    elements.append(decode_element(sample.payload.to_bytes(), raw))
                 else:
                     assert reply.err is not None
                     raise _error_from_reply(target, reply.err.payload.to_string())
+        if elements and not complete:
+            raise QueryError(
+                f"the answer from {target} ended early ({len(elements)} elements, no end "
+                "mark): its service's link dropped while answering (a process without CPU "
+                "past its lease, or one that exited); ask again"
+            )
         return elements
 
     def _get(self, target: str, params: dict[str, str], timeout_s: float) -> list[DataObject]:
