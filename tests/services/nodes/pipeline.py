@@ -64,6 +64,11 @@ class Pipeline:
         except FramegateError:
             return 0
 
+    def count(self, target: str, name: str = "puts") -> int:
+        """A producer counter of a buffer, asked again while it does not answer (see
+        ``info``): for a baseline or a difference, where ``counter``'s 0 would be wrong."""
+        return int(getattr(self.info(target), name))
+
     def subscriber_count(self, target: str) -> int:
         """Subscriptions a buffer's producer counts; -1 while it is not live."""
         try:
