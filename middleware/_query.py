@@ -91,7 +91,7 @@ class Queries(Discovery):
         link dropped while answering; the first part of an answer never reads as all of it.
         (No reply at all is left to the caller: see ``_get``.)"""
         elements: list[DataObject] = []
-        complete = False
+        complete, since_mark = False, 0  # one mark per buffer answered, counting its own
         with zenoh_errors(f"querying {target}"):
             for reply in replies:
                 if reply.ok is not None:
@@ -100,9 +100,9 @@ class Queries(Discovery):
                     raw = attachment.to_bytes() if attachment is not None else None
                     end = answer_end(raw)
                     if end is not None:
-                        complete = end == len(elements)
+                        complete, since_mark = end == since_mark, 0
                         continue
-                    complete = False
+                    complete, since_mark = False, since_mark + 1
                     elements.append(decode_element(sample.payload.to_bytes(), raw))
                 else:
                     assert reply.err is not None
