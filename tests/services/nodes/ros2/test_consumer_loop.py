@@ -174,7 +174,9 @@ def test_the_load_follows_the_nodes_outstanding_images_and_its_type_is_learnt(
     with Node("cam", listen_net) as node:
         images = node.offer("images", kind="frame")
         bridge = _bridge(endpoint, ros_at, 60_000)
-        vision = VisionNode(ros_at, service_time_s=2.0)
+        # Each state below lasts one service time: long enough that a test process starved
+        # for seconds on a loaded machine still looks while it holds.
+        vision = VisionNode(ros_at, service_time_s=scaled(5.0))
         try:
             _ready(images, bridge, vision)
             line = next(t for t in bridge.text if "consumer results on /vision/out" in t)
@@ -206,7 +208,7 @@ def test_the_load_follows_the_nodes_outstanding_images_and_its_type_is_learnt(
                 pair = (vision.outstanding, gate.queued if gate is not None else None)
                 return pair == (outstanding, outstanding) and len(vision.received) == 2
 
-            # As the node answers one image after the other (2 s each), its queue empties
+            # As the node answers one image after the other (5 s each), its queue empties
             # with it.
             wait_until(lambda: matches(2), 60, "both images at the node, unanswered")
             wait_until(lambda: matches(1), 60, "one image answered, one outstanding")
@@ -214,7 +216,11 @@ def test_the_load_follows_the_nodes_outstanding_images_and_its_type_is_learnt(
             assert vision.answered == [now, now + 1_000_000]
             _put(images, now + 3_000_000)  # room again
 
-            results = wait_until(lambda: node.query("ros2/results") or None, 30, "results")
+            results = wait_until(
+                lambda: answered(lambda: node.query("ros2/results"), "ros2/results") or None,
+                30,
+                "results",
+            )
             assert [r.timestamp_ns for r in results][:2] == [now, now + 1_000_000]
             assert b"<answer_ns>" in results[0].metadata
             info = answered(
