@@ -167,7 +167,7 @@ def test_user_mistakes_give_one_line_errors(service: Node, cli: Cli, tmp_path: P
         (("info", "cam/imgs"), "no buffer 'imgs' (did you mean 'images'?)"),
         (
             # Long enough to meet 'cam' on a loaded machine (for the did-you-mean).
-            ("query", "camra/images", "--timeout", str(scaled(10))),
+            ("query", "camra/images", "--timeout", str(scaled(5))),
             "no live service named 'camra' (did you mean 'cam'?)",
         ),
         (("query", "cam/images", "--from", "yesterday"), "bad time 'yesterday' for --from"),
