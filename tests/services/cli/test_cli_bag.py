@@ -96,7 +96,8 @@ def test_record_then_play_gives_back_identical_buffers(
         info = answered(lambda: client.buffer_info("cam/images", timeout_s=scaled(10.0)), "info")
         assert info.retention == retention
     player.send_signal(signal.SIGTERM)  # Ctrl-C equivalent: closes cleanly
-    assert player.wait(timeout=scaled(20)) == 0
+    # How promptly is test_clean_exit's; here the exit code (at load 36, 20 s was missed).
+    assert player.wait(timeout=scaled(60)) == 0
 
 
 def _elements(node: Node, target: str) -> list[tuple[int, bytes, bytes]]:

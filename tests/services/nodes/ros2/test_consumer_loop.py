@@ -249,7 +249,7 @@ def test_a_node_that_never_answers_frees_its_slots_after_the_timeout_counted(
             _put(images, now + 1_000_000)
             with pytest.raises(FlowControlRefused):
                 _put(images, now + 2_000_000)
-            wait_until(lambda: vision.outstanding == 2, 30, "both images at the node")
+            wait_until(lambda: vision.outstanding == 2, 90, "both images at the node")
             wait_until(
                 lambda: (gate := _gate(images)) is not None and gate.queued == 0,
                 60,
