@@ -12,9 +12,10 @@ import zenoh
 
 from ._discovery import Discovery, split_target
 from ._errors import NotFoundError, QueryError
-from ._records import BufferInfo, DataObject
+from ._records import DataObject
+from ._service import answer_end
 from ._session import zenoh_errors
-from ._timerange import TimeRange, parse_time_range
+from ._timerange import TimeRange
 from ._wire import ERR_NOT_FOUND, decode_element
 
 # How long a fetch started ahead, whose answer was empty, waits for its second ask.
@@ -69,10 +70,11 @@ class Queries(Discovery):
         return self._start_get(target, {"ts": str(timestamp_ns)}, timeout_s)
 
     def _finish_exact(self, target: str, timestamp_ns: int, pending: Any) -> DataObject:
-        found = self._collect(target, pending)
+        found, answered = self._answer(target, pending)
         if not found:
-            # A query started ahead may have reached no one (see ``_get``): asked again as
-            # ``get`` asks, which tells an element the buffer no longer holds from that.
+            if answered:
+                raise NotFoundError(f"{target} has no element with timestamp {timestamp_ns}")
+            # Started ahead, it reached no one (see ``_get``): asked again as ``get`` asks.
             return self.get(target, timestamp_ns, timeout_s=_ASK_AGAIN_S)
         return found[0]
 
@@ -85,53 +87,56 @@ class Queries(Discovery):
             )
 
     def _collect(self, target: str, replies: Any) -> list[DataObject]:
+        """The elements of an answer (see ``_answer``)."""
+        return self._answer(target, replies)[0]
+
+    def _answer(self, target: str, replies: Any) -> tuple[list[DataObject], bool]:
+        """The elements of an answer, and whether any service answered (its end mark came).
+
+        QueryError if it was cut short: elements came but not the service's end mark
+        counting them (``_service.encode_answer_end``), as when its link dropped while
+        answering; the first part of an answer never reads as all of it. No reply at all
+        (no end mark) is a query that reached no one: see ``_get``."""
         elements: list[DataObject] = []
+        answered = False
+        complete, since_mark = False, 0  # one mark per buffer answered, counting its own
         with zenoh_errors(f"querying {target}"):
             for reply in replies:
                 if reply.ok is not None:
                     sample = reply.ok
                     attachment = sample.attachment
-                    elements.append(
-                        decode_element(
-                            sample.payload.to_bytes(),
-                            attachment.to_bytes() if attachment is not None else None,
-                        )
-                    )
+                    raw = attachment.to_bytes() if attachment is not None else None
+                    end = answer_end(raw)
+                    if end is not None:
+                        complete, since_mark, answered = end == since_mark, 0, True
+                        continue
+                    complete, since_mark = False, since_mark + 1
+                    elements.append(decode_element(sample.payload.to_bytes(), raw))
                 else:
                     assert reply.err is not None
                     raise _error_from_reply(target, reply.err.payload.to_string())
-        return elements
+        if elements and not complete:
+            raise QueryError(
+                f"the answer from {target} ended early ({len(elements)} elements, no end "
+                "mark): its service's link dropped while answering (a process without CPU "
+                "past its lease, or one that exited); ask again"
+            )
+        return elements, answered
 
     def _get(self, target: str, params: dict[str, str], timeout_s: float) -> list[DataObject]:
         deadline = time.monotonic() + timeout_s
-        elements = self._collect(target, self._start_get(target, params, timeout_s))
+        elements, answered = self._answer(target, self._start_get(target, params, timeout_s))
         if not elements:
             # NotFoundError, with a did-you-mean, if there is none; asked with the caller's
             # patience (a loaded machine's service answers late, and is not "gone" for it).
-            info = self.buffer_info(target, timeout_s=timeout_s)
-            # A query that reached no one (the service's lease lapsed for a moment: Zenoh
-            # then answers with nothing, not an error) looks like an empty answer; a buffer
-            # that holds what the question asks for is asked once more.
+            self.buffer_info(target, timeout_s=timeout_s)
+            # No end mark: the query reached no one (the service's lease lapsed for a
+            # moment; Zenoh then answers with nothing, not an error). Asked once more.
             left_s = deadline - time.monotonic()
-            if left_s > 0 and _could_match(params, info):
+            if not answered and left_s > 0:
                 elements = self._collect(target, self._start_get(target, params, left_s))
         elements.sort(key=lambda e: e.timestamp_ns)
         return elements
-
-
-def _could_match(params: dict[str, str], info: BufferInfo) -> bool:
-    """Whether ``info``'s buffer holds elements in the span the query ``params`` ask for
-    (its oldest..newest overlaps it; a range between two elements is still empty)."""
-    if info.oldest_ns is None or info.newest_ns is None:
-        return False
-    asked = TimeRange()
-    if "ts" in params:
-        asked = TimeRange(int(params["ts"]), int(params["ts"]))
-    elif "_time" in params:
-        asked = parse_time_range(params["_time"])
-    if asked.start_ns is not None and asked.start_ns > info.newest_ns:
-        return False
-    return asked.end_ns is None or asked.end_ns >= info.oldest_ns
 
 
 def _error_from_reply(target: str, text: str) -> QueryError:

@@ -28,6 +28,7 @@ from collections.abc import Callable
 from dataclasses import asdict
 from typing import Any, cast
 
+import msgpack
 import zenoh
 
 from ._clock import CLOCK, now_ns
@@ -43,6 +44,30 @@ log = logging.getLogger("framegate.middleware")
 
 # Selector parameters a data query may use.
 _PARAMS = {"_time", "last", "at", "ts"}
+
+# The last reply of every data answer: an empty payload whose attachment is the msgpack map
+# {"end": number of elements sent}. When the answering service's link drops in the middle of
+# an answer (its lease lapsed: a process without CPU for over a second on a loaded machine),
+# Zenoh ends the query as if every reply had come, with no error; without this mark the
+# querier would take the first part of an answer for all of it. An element's attachment is a
+# map of two ("t", "m"), so it never starts with these bytes.
+_END_PREFIX = b"\x81\xa3end"
+
+
+def encode_answer_end(count: int) -> bytes:
+    """The attachment of an answer's last reply: ``count`` elements came before it."""
+    return _END_PREFIX + bytes(msgpack.packb(count))
+
+
+def answer_end(attachment: bytes | None) -> int | None:
+    """How many elements an answer sent, if ``attachment`` is its end mark (else None)."""
+    if attachment is None or not attachment.startswith(_END_PREFIX):
+        return None
+    with contextlib.suppress(ValueError, TypeError, msgpack.UnpackException):
+        count = msgpack.unpackb(attachment[len(_END_PREFIX) :])
+        if isinstance(count, int) and count >= 0:
+            return count
+    return None
 
 
 def answer(series_for: Producer, parameters: dict[str, str]) -> list[DataObject]:
@@ -241,10 +266,12 @@ class ServiceEndpoint:
         parameters = dict(cast(Any, query.parameters))
         for producer in matches:
             reply_key = self._keys.data(self.service, producer.buffer)
-            for element in answer(producer, parameters):
+            elements = answer(producer, parameters)
+            for element in elements:
                 query.reply(
                     reply_key, element.payload, attachment=encode_element_attachment(element)
                 )
+            query.reply(reply_key, b"", attachment=encode_answer_end(len(elements)))
 
     def _on_info(self, query: zenoh.Query) -> None:
         body = {

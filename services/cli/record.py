@@ -12,8 +12,9 @@ open, each buffer's newest element asked for), as ``rosbag record --duration`` c
 the opening of its bag: the start-up (imports, discovery) is not part of it. At its end the
 stop instant is fixed (nothing stamped later is recorded), every fetch ends within
 ``STOP_SLACK_S`` of it (what was not fetched by then is counted ``evicted``, not waited
-for) and what was fetched is written uncompressed, so the command ends about a second after
-the duration whatever the load.
+for; only the tail up to the stop is still asked for once by a recorder that a busy machine
+starved past that, with ``TAIL_FLOOR_S``) and what was fetched is written uncompressed, so
+the command ends about a second after the duration, two on a starved machine.
 """
 
 from __future__ import annotations
@@ -36,7 +37,7 @@ from middleware import (
     SubscriptionMode,
 )
 from services.lib.argtypes import positive_float, positive_int
-from services.tools.bag import STOP_SLACK_S
+from services.tools.bag import STOP_SLACK_S, TAIL_FLOOR_S
 
 from ._common import command_parser, exit_on_sigterm, format_bytes, network, print_json
 from ._target import add_timeout_argument, resolve
@@ -239,8 +240,9 @@ def _live_buffers(node: Node, timeout_s: float) -> list[BufferInfo]:
         time.sleep(0.2)
 
 
-# A recorder thread gets this long after its fetch deadline to hand over what it fetched.
-_JOIN_GRACE_S = 0.5
+# A recorder thread gets this long after its fetch deadline to hand over what it fetched
+# (its final backfill may run ``TAIL_FLOOR_S`` past the deadline).
+_JOIN_GRACE_S = TAIL_FLOOR_S + 0.5
 
 # ``--all`` looks for buffers that appeared since this often.
 _DISCOVER_S = 2.0

@@ -411,7 +411,7 @@ class PipelineFuzzer:
             missing -= self._decided(since_ns)
             # The mediator's rule for its own bookkeeping: a decision record refused by a
             # flow-controlled consumer of mediator/decisions is counted and dropped.
-            dropped = self.pipe.counter("mediator/decisions", "refused") - refused_before
+            dropped = self.pipe.count("mediator/decisions", "refused") - refused_before
             if len(missing) <= dropped:
                 break
             time.sleep(0.5)
@@ -461,7 +461,7 @@ class PipelineFuzzer:
         Within ``within_s``: the first check follows a cold start, and on a loaded 2-core CI
         machine a fresh mediator took over 5 s to decide its first frame.
         """
-        before = self.pipe.counter("mediator/images")
+        before = self.pipe.count("mediator/images")
         deadline = time.monotonic() + scaled(within_s)
         tries = 0
         while time.monotonic() < deadline:
@@ -513,7 +513,7 @@ def run(total: int, batch: int, *, seed: int | None = None, cli_watchers: bool =
             @given(st.lists(elements, min_size=batch, max_size=batch))
             def one_batch(played: list[Element]) -> None:
                 since_ns = time.time_ns()
-                refused_before = fuzzer.pipe.counter("mediator/decisions", "refused")
+                refused_before = fuzzer.pipe.count("mediator/decisions", "refused")
                 if fuzzer.tally.batches >= batches / 2:
                     fuzzer.stop_watchers()  # the second half: decisions must all be recorded
                 fuzzer.tally.good_keys.clear()

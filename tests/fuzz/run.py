@@ -57,9 +57,15 @@ def _query(session: zenoh.Session, selector: Any, tally: Tally, what: str) -> No
     if not replies:
         tally.counts["query-empty"] += 1  # e.g. a key no queryable matches
         return
+    elements = 0
     for reply in replies:
         if reply.ok is not None:
             head = msgpack.unpackb(reply.ok.attachment.to_bytes())
+            if "end" in head:  # an answer's last reply counts the elements before it
+                if head != {"end": elements}:
+                    tally.fail(f"{what}: end mark {head} after {elements} elements")
+                continue
+            elements += 1
             if not isinstance(head.get("t"), int):
                 tally.fail(f"{what}: ok reply without a timestamp")
             tally.counts["query-answered"] += 1

@@ -14,9 +14,15 @@ import time
 from collections.abc import Callable
 from typing import TypeVar
 
+from middleware import FramegateError
+
 SCALE_VARIABLE = "FRAMEGATE_TEST_TIMEOUT_SCALE"
 
 T = TypeVar("T")
+
+# How long a service that does not answer may be a live one that lost its lease (see
+# ``answered``): reconnecting took seconds at load 22 on 2 cores.
+LEASE_LAPSE_S = 20.0
 
 
 def _read_scale() -> float:
@@ -42,9 +48,12 @@ def scaled(seconds: float) -> float:
     return seconds * TIMEOUT_SCALE
 
 
-def wait_until(predicate: Callable[[], T | None], timeout_s: float, what: str) -> T:
+def wait_until(
+    predicate: Callable[[], T | None], timeout_s: float, what: str | Callable[[], str]
+) -> T:
     """Poll ``predicate`` until it returns something truthy and return that; fail naming
-    ``what`` when ``scaled(timeout_s)`` passes first."""
+    ``what`` when ``scaled(timeout_s)`` passes first. A callable ``what`` is called then, so
+    that a log it shows is the one at the deadline, not the one when the wait began."""
     limit_s = scaled(timeout_s)
     deadline = time.monotonic() + limit_s
     while True:
@@ -52,5 +61,30 @@ def wait_until(predicate: Callable[[], T | None], timeout_s: float, what: str) -
         if value:
             return value
         if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {limit_s:g} s waiting for {what}")
+            said = what() if callable(what) else what
+            raise AssertionError(f"timed out after {limit_s:g} s waiting for {said}")
         time.sleep(0.02)
+
+
+def answered(ask: Callable[[], T], what: str, wait_s: float = LEASE_LAPSE_S) -> T:
+    """``ask()``'s result, asked again while it raises a FramegateError, for ``scaled(wait_s)``.
+
+    Every look at another process (``ls``, ``info``, a query, a liveliness look) goes through
+    this (or ``wait_until``), never once: on a loaded machine a live process can go without
+    CPU for longer than its session's lease (measured: a camera's Zenoh transmit thread
+    runnable but not run for 2.3 s at load 22 on 2 cores); its peers then drop it until it
+    reconnects, seconds later, and meanwhile nobody answers for it. A service that is really
+    gone still fails, naming ``what``, once the deadline passes."""
+    got: list[T] = []
+    errors: list[FramegateError] = []
+
+    def once() -> bool:
+        try:
+            got.append(ask())
+        except FramegateError as exc:
+            errors[:] = [exc]
+            return False
+        return True
+
+    wait_until(once, wait_s, lambda: f"{what} (last error: {errors[-1] if errors else None})")
+    return got[-1]

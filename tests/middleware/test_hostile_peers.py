@@ -394,11 +394,19 @@ def test_an_ack_flood_neither_stalls_put_nor_grows_memory(
     patience = scaled(30)
     with _floods(endpoint, processes, kind="acks", size=size):
         time.sleep(1.0)  # the flood under way
-        for t in range(1, 21):  # the consumer takes each: credit comes back through the flood
+        # The consumer takes each: credit comes back through the flood. An element stored
+        # while the flood starved a process past its lease (the registration lapsed) is not
+        # notified; the next one taken counts it missed. Every element arrives or is counted.
+        t = last = 0
+        while t < 20 or last < t:
+            t += 1
+            assert t <= 30, f"only {last} of {t - 1} elements notified"
             assert producer.call("put", buffer="images", t=t, wait_s=patience)["ok"]
             took = consumer.call("take", target="cam/images", timeout=patience)
-            assert took.get("notification") is not None, f"element {t} not notified: {took}"
-            assert took["notification"]["t"] == t
+            note = took.get("notification")
+            if note is not None:
+                assert note["t"] == t == last + 1 + note["missed"], f"after {last}: {took}"
+                last = t
         # Fills the queue of 1 (once the last take's ack came through the flood).
         assert producer.call("put", buffer="images", t=100, wait_s=patience)["ok"]
         started = time.monotonic()

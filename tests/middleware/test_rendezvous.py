@@ -17,7 +17,7 @@ import pytest
 from middleware import NetworkConfig, Node, make_metadata
 from middleware._rendezvous import directory, known_peers
 from tests.conftest import REPO, child_env, free_port, wait_until
-from tests.helpers.timing import scaled
+from tests.helpers.timing import answered, scaled
 
 
 @pytest.mark.integration
@@ -38,7 +38,7 @@ def test_a_frozen_port_holder_does_not_keep_newcomers_out(
     try:
         with Node(network=local) as newcomer:
             wait_until(lambda: "other" in newcomer.live_services(), 10.0, "other seen")
-            assert newcomer.query("other/data", last=1) == []
+            assert answered(lambda: newcomer.query("other/data", last=1), "other/data") == []
     finally:
         os.kill(hub.proc.pid, signal.SIGCONT)
 

@@ -29,7 +29,7 @@ def test_raw_zenoh_client_reads_a_time_range(
     conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
     with zenoh.open(conf) as session:
 
-        def read() -> list[tuple[int, str, bytes]]:
+        def read() -> list[tuple[int, str, bytes]] | None:
             out = []
             for reply in session.get(
                 "framegate/cam/images?_time=[200..400]",
@@ -38,10 +38,13 @@ def test_raw_zenoh_client_reads_a_time_range(
             ):
                 if reply.ok is not None:
                     head = msgpack.unpackb(reply.ok.attachment.to_bytes())
+                    if "end" in head:  # the last reply: how many elements came before it
+                        assert reply.ok.payload.to_bytes() == b""
+                        return out if head == {"end": len(out)} else None
                     out.append((head["t"], head["m"], reply.ok.payload.to_bytes()))
-            return out
+            return None  # no end mark: the answer was cut short
 
-        elements = wait_until(read, 5, "replies from the producer")
+        elements = wait_until(read, 5, "a whole answer from the producer")
         assert [(t, p) for t, _, p in elements] == [(200, b"p200"), (300, b"p300"), (400, b"p400")]
         assert all(f'timestamp_ns="{t}"' in m for t, m, _ in elements)
 

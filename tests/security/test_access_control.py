@@ -25,7 +25,7 @@ import zenoh
 
 from middleware import FramegateError, Node, SubscriptionMode, make_metadata
 from tests.conftest import REPO, NodeProcess, child_env, wait_until
-from tests.helpers.timing import scaled
+from tests.helpers.timing import answered, scaled
 from tests.security.conftest import SecureRouter
 
 pytestmark = pytest.mark.integration
@@ -118,10 +118,11 @@ def test_intruder_offering_camera_does_not_change_what_readers_see(
 
 def test_reads_allowed_to_cli_still_work(camera: NodeProcess, secure_router: SecureRouter) -> None:
     with Node(network=secure_router.net("cli")) as cli:
-        assert cli.live_services() == ["camera"]
-        assert [e.timestamp_ns for e in cli.query("camera/images", last=2)] == [4 * MS, 5 * MS]
-        assert cli.get("camera/images", 2 * MS).payload == REAL[2 * MS]
-        info = cli.buffer_info("camera/images", timeout_s=scaled(10.0))
+        wait_until(lambda: cli.live_services() == ["camera"], 30, "the camera, alone")
+        last = answered(lambda: cli.query("camera/images", last=2), "camera/images")
+        assert [e.timestamp_ns for e in last] == [4 * MS, 5 * MS]
+        assert answered(lambda: cli.get("camera/images", 2 * MS), "2 ms").payload == REAL[2 * MS]
+        info = answered(lambda: cli.buffer_info("camera/images", timeout_s=scaled(10.0)), "info")
         assert (info.count, info.puts) == (len(REAL), len(REAL))
 
 
@@ -254,9 +255,11 @@ def test_the_secure_profile_runs_the_whole_pipeline(
                     return 0
 
             wait_until(lambda: detections() >= 3, 90, "detections through the secure router")
-            assert cli.live_services() == ["camera", "detector", "gyro", "mediator"]
-            accepted = cli.query("mediator/images", last=1)[0]
-            assert cli.get("camera/images", accepted.timestamp_ns).payload == accepted.payload
+            every = ["camera", "detector", "gyro", "mediator"]
+            wait_until(lambda: cli.live_services() == every, 30, f"exactly {every}")
+            accepted = answered(lambda: cli.query("mediator/images", last=1), "mediator")[0]
+            frame = answered(lambda: cli.get("camera/images", accepted.timestamp_ns), "frame")
+            assert frame.payload == accepted.payload
     finally:
         launch.terminate()
         launch.wait(timeout=scaled(30))

@@ -23,9 +23,10 @@ stamp that is not newer than the last one (``out-of-order``, ``duplicate-stamp``
 zero (``bad-stamp``), an element the producer rejects (``rejected``), a full in-queue
 (``in-queue-full``): each is a counted skip (``Producer.count_skip``, ``skipped`` in
 ``framegate info``) with one warning per reason. Out, an element that cannot be read
-(``bad-element``) or a publish Zenoh refuses (``publish-failed``) is skipped the same way,
-and anything unforeseen with one message is logged with its traceback (``internal-error``)
-while the bridge goes on.
+(``bad-element``), a publish Zenoh refuses (``publish-failed``) or elements the observer was
+never notified of (``not-observed``: its queue was full, or its subscription had lapsed) are
+skipped the same way, and anything unforeseen with one message is logged with its traceback
+(``internal-error``) while the bridge goes on.
 
 Threads: Zenoh's callback thread only appends to the in-queues (see ``_link``); one thread
 per input decodes and puts; one thread per output takes, encodes and publishes; one watches
@@ -105,6 +106,13 @@ class Output:
             note = self._sub.take(timeout_s=_POLL_S)
             if note is None:
                 continue
+            if note.missed:  # never notified (a full queue, or a lapse): never published
+                skips.count(
+                    None,
+                    "not-observed",
+                    f"{note.missed} element(s) of {self.mapping.buffer} before {note.timestamp_ns}",
+                    note.missed,
+                )
             try:
                 element = self._sub.fetch(note)
                 cdr = self._encode(element)

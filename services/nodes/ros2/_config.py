@@ -27,6 +27,8 @@ from ._rmw import DISTROS, History, Qos, Reliability, fully_qualified
 
 DEFAULT_ROUTER = "tcp/localhost:7447"
 STAMPS = ("start", "middle", "end")
+# The ROS 2 session's lease: Zenoh's default, which rmw_zenoh keeps (see ``ros_network``).
+ROS_LEASE_MS = 10_000
 
 
 @dataclass(frozen=True, slots=True)
@@ -292,6 +294,11 @@ class Ros2Config:
             connect=self.ros_connect,
             listen=self.ros_listen,
             config_file=self.ros_config,
+            # Zenoh's lease, as rmw_zenoh nodes have: framegate's 1 s lease (a dead consumer
+            # freed within about a second) is for its own flow control. On the ROS side it
+            # only made the bridge's link drop, and what it published meanwhile vanish, each
+            # time a loaded machine left the bridge without CPU for over a second.
+            lease_ms=ROS_LEASE_MS,
         )
 
     def start_ns(self, stamp_ns: int) -> int:

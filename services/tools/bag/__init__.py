@@ -39,7 +39,7 @@ from ._format import (
 from ._frames import FrameLayout, frame_layout, metadata_kind
 from ._info import BufferRecord, ChannelInfo, RecordingInfo, recording_info
 from ._reader import Bag, RecordedBuffer, open_bag
-from ._recorder import STOP_SLACK_S, Progress, Recorder, WriteQueue, latest_before
+from ._recorder import STOP_SLACK_S, TAIL_FLOOR_S, Progress, Recorder, WriteQueue, latest_before
 from ._retime import shift_element, timestamp_fields
 from ._scan import Integrity
 from ._writer import COMPRESSIONS, BagWriter
@@ -52,6 +52,7 @@ __all__ = [
     "IMAGE_MESSAGE_ENCODING",
     "IMAGE_SCHEMA_NAME",
     "STOP_SLACK_S",
+    "TAIL_FLOOR_S",
     "Bag",
     "BagError",
     "BagWriter",

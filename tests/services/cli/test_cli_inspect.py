@@ -166,7 +166,8 @@ def test_user_mistakes_give_one_line_errors(service: Node, cli: Cli, tmp_path: P
     cases = [
         (("info", "cam/imgs"), "no buffer 'imgs' (did you mean 'images'?)"),
         (
-            ("query", "camra/images", "--timeout", "5"),
+            # Long enough to meet 'cam' on a loaded machine (for the did-you-mean).
+            ("query", "camra/images", "--timeout", str(scaled(5))),
             "no live service named 'camra' (did you mean 'cam'?)",
         ),
         (("query", "cam/images", "--from", "yesterday"), "bad time 'yesterday' for --from"),

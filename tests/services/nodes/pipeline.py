@@ -8,36 +8,12 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any
 
 from middleware import FramegateError, NetworkConfig, Node
 from tests.conftest import REPO, child_env, free_port
-from tests.helpers.timing import scaled, wait_until
-
-# How long a service that does not answer may be a live one that lost its lease (see
-# ``Pipeline.pid``): reconnecting took seconds at load 22 on 2 cores.
-LEASE_LAPSE_S = 20.0
-
-
-T = TypeVar("T")
-
-
-def answered(ask: Callable[[], T], what: str, wait_s: float = LEASE_LAPSE_S) -> T:
-    """``ask()``'s result, asked again while it raises a FramegateError, for ``scaled(wait_s)``:
-    a service that does not answer may be a live one that lost its lease (see ``Pipeline.pid``)."""
-    got: list[T] = []
-
-    def once() -> bool:
-        try:
-            got.append(ask())
-        except FramegateError:
-            return False
-        return True
-
-    wait_until(once, wait_s, what)
-    return got[-1]
+from tests.helpers.timing import LEASE_LAPSE_S, scaled
 
 
 class Pipeline:
@@ -87,6 +63,11 @@ class Pipeline:
             return int(getattr(self.info(target, wait_s=0), name))
         except FramegateError:
             return 0
+
+    def count(self, target: str, name: str = "puts") -> int:
+        """A producer counter of a buffer, asked again while it does not answer (see
+        ``info``): for a baseline or a difference, where ``counter``'s 0 would be wrong."""
+        return int(getattr(self.info(target), name))
 
     def subscriber_count(self, target: str) -> int:
         """Subscriptions a buffer's producer counts; -1 while it is not live."""

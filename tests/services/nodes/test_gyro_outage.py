@@ -19,7 +19,7 @@ from middleware import FramegateError
 from services.launch import pipeline_yaml
 from services.lib.messages import DecisionRecord
 from tests.conftest import wait_until
-from tests.helpers.timing import scaled
+from tests.helpers.timing import answered, scaled
 from tests.services.nodes.pipeline import Pipeline
 
 pytestmark = pytest.mark.integration
@@ -38,31 +38,37 @@ def pipe(tmp_path: Path) -> Iterator[Pipeline]:
     pipeline.close()
 
 
-def _offered(pipe: Pipeline) -> tuple[int, int]:
-    """Frames the camera offered and those refused (asked again while a busy machine
-    leaves its description unanswered)."""
+def _counts(pipe: Pipeline) -> tuple[int, int] | None:
+    """Frames the camera offered and those refused; None while it does not answer (a busy
+    machine can leave a live camera without its lease for a while: one look, for polling)."""
+    try:
+        info = pipe.info("camera/images")
+    except FramegateError:
+        return None
+    return info.puts + info.refused, info.refused
 
-    def counts() -> tuple[int, int] | None:
-        try:
-            info = pipe.info("camera/images")
-        except FramegateError:
-            return None
-        return info.puts + info.refused, info.refused
 
-    found: tuple[int, int] = wait_until(counts, 60, "the camera's counters")
-    return found
+def _silence(pipe: Pipeline) -> str:
+    """What is live and what the launcher said, for a wait that timed out."""
+    try:
+        live = ", ".join(pipe.node.live_services(timeout_s=scaled(5))) or "none"
+    except FramegateError as exc:
+        live = str(exc)
+    return f"(live services: {live})\n" + pipe.log()
 
 
 def _refused_share(pipe: Pipeline) -> float:
     """The share of the next ``WINDOW_FRAMES`` frames the camera made that flow control
     refused (the mediator's queue from the camera was full)."""
-    offered0, refused0 = _offered(pipe)
-    wait_until(
-        lambda: _offered(pipe)[0] >= offered0 + WINDOW_FRAMES,
-        120,
-        f"{WINDOW_FRAMES} frames from the camera\n" + pipe.log(),
+    offered0, refused0 = wait_until(
+        lambda: _counts(pipe), 120, lambda: "the camera's counters " + _silence(pipe)
     )
-    offered1, refused1 = _offered(pipe)
+    # One wait, whose every look may find the camera silent: its deadline is the only one.
+    offered1, refused1 = wait_until(
+        lambda: (c := _counts(pipe)) is not None and c[0] >= offered0 + WINDOW_FRAMES and c,
+        120,
+        lambda: f"{WINDOW_FRAMES} frames from the camera " + _silence(pipe),
+    )
     return (refused1 - refused0) / (offered1 - offered0)
 
 
@@ -71,16 +77,19 @@ def _uncovered_decisions(pipe: Pipeline) -> list[str]:
     whether the frame was uncovered (``gyro-missing-*``) or could not be paired because the
     stopped gyro's clock went unmeasured (``clock-*``; on a loaded machine the window outlasts
     the last clock sample)."""
-    records = [
-        DecisionRecord.from_metadata(e.metadata)
-        for e in pipe.node.query("mediator/decisions", last=30, timeout_s=scaled(10))
-    ]
+    found = answered(
+        lambda: pipe.node.query("mediator/decisions", last=30, timeout_s=scaled(10)),
+        "mediator/decisions",
+    )
+    records = [DecisionRecord.from_metadata(e.metadata) for e in found]
     return [r.reason for r in records if r.quality is None]
 
 
 def test_a_stopped_gyro_does_not_make_the_camera_drop_frames(pipe: Pipeline) -> None:
     wait_until(
-        lambda: pipe.counter("detector/detections") >= 5, 120, "the pipeline to run\n" + pipe.log()
+        lambda: pipe.counter("detector/detections") >= 5,
+        120,
+        lambda: "the pipeline to run\n" + pipe.log(),
     )
     alive = _refused_share(pipe)
     gyro = pipe.pid("gyro")

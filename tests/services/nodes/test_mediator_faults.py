@@ -18,7 +18,7 @@ from services.lib.messages import frame_metadata
 from services.lib.quality import Exposure
 from services.nodes.mediator import Mediator, MediatorConfig
 from tests.conftest import wait_until
-from tests.helpers.timing import scaled
+from tests.helpers.timing import answered, scaled
 
 MS = 1_000_000
 IMAGE = np.zeros((2, 4), dtype=np.uint8)
@@ -90,9 +90,13 @@ def test_frames_with_a_wrong_payload_size_are_skipped_and_good_ones_still_go(
         good.append(_put_frame(images, 4))
         _step_until(mediator, lambda: mediator.skipped["bad-payload-size"] == 2)
         _step_until(mediator, lambda: mediator.images.info().puts == 3)
-        forwarded = [e.timestamp_ns for e in node.query("mediator/images")]
+        forwarded = [
+            e.timestamp_ns for e in answered(lambda: node.query("mediator/images"), "images")
+        ]
         assert forwarded == good
-        reasons = [e.metadata for e in node.query("mediator/decisions")]
+        reasons = [
+            e.metadata for e in answered(lambda: node.query("mediator/decisions"), "decisions")
+        ]
         assert sum(b"bad-payload-size" in m for m in reasons) == 2
     finally:
         mediator.close()

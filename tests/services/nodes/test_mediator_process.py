@@ -60,7 +60,7 @@ def test_regression_slow_flow_controlled_decisions_watcher_leaves_the_mediator_f
             60,
             "refused decision records\n" + pipe.log(),
         )
-        forwarded = pipe.counter("mediator/images")
+        forwarded = pipe.count("mediator/images")
         wait_until(
             lambda: pipe.counter("mediator/images") >= forwarded + 10,
             60,

@@ -10,6 +10,7 @@ import pytest
 from services.launch import pipeline_yaml
 from services.lib.messages import DecisionRecord
 from tests.conftest import wait_until
+from tests.helpers.timing import answered
 from tests.services.nodes.pipeline import Pipeline
 
 pytestmark = pytest.mark.integration
@@ -38,7 +39,7 @@ def pipeline_factory(tmp_path: Path) -> Iterator[type[Pipeline]]:
 
 def _decisions(pipe: Pipeline) -> list[DecisionRecord]:
     final: dict[int, DecisionRecord] = {}
-    for element in pipe.node.query("mediator/decisions"):
+    for element in answered(lambda: pipe.node.query("mediator/decisions"), "mediator/decisions"):
         record = DecisionRecord.from_metadata(element.metadata)
         final[record.frame_timestamp_ns] = record
     return list(final.values())
@@ -73,9 +74,13 @@ def test_slow_detector_gets_detections_and_mediator_rejects_blurred_frames(
         if record.quality is not None:
             assert record.quality <= record.load, record
     wait_until(
-        lambda: [e for e in pipe.node.query("detector/detections") if b"<marker>" in e.metadata],
+        lambda: [
+            e
+            for e in answered(lambda: pipe.node.query("detector/detections"), "detections")
+            if b"<marker>" in e.metadata
+        ],
         90,
-        "a detected marker\n" + pipe.log(),
+        lambda: "a detected marker\n" + pipe.log(),
     )
 
 
@@ -127,12 +132,12 @@ def test_killed_detector_is_dropped_and_restarted(pipeline_factory: type[Pipelin
         20,
         "the slow detector to have frames queued",
     )
-    held = pipe.subscription_ids("mediator/images") or set()
+    held = {s.subscription_id for s in pipe.info("mediator/images").subscriptions}
     old_pid = pipe.kill("detector")
     # The dead subscriber is dropped at once (its liveliness token goes), and with it its
     # queued frames. By id: the restarted detector subscribes anew and may queue frames.
     wait_until(
-        lambda: not held & (pipe.subscription_ids("mediator/images") or set()),
+        lambda: (ids := pipe.subscription_ids("mediator/images")) is not None and not held & ids,
         15,
         "the dead detector's subscription to go",
     )
@@ -140,7 +145,7 @@ def test_killed_detector_is_dropped_and_restarted(pipeline_factory: type[Pipelin
         lambda: (p := pipe.pid("detector")) != old_pid and p, 60, "the detector to restart"
     )
     assert new_pid != old_pid
-    before = pipe.counter("detector/detections")
+    before = pipe.count("detector/detections")
     wait_until(
         lambda: pipe.counter("detector/detections") > before, 30, "the restarted detector to work"
     )

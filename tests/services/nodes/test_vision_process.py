@@ -26,7 +26,7 @@ from services.lib.quality import Exposure
 from services.lib.vision import ResultKind
 from services.nodes.vision import Runner, RunnerSpec, VisionStep
 from tests.conftest import free_port, start_framegate, wait_until
-from tests.helpers.timing import scaled
+from tests.helpers.timing import answered, scaled
 from tests.services.nodes import vision_handlers
 from tests.services.nodes.pipeline import Pipeline
 
@@ -76,7 +76,7 @@ def test_a_handler_named_on_the_command_line_runs_behind_the_mediator_and_its_er
     # The runner is the mediator's flow-controlled consumer: its queue is the load.
     subs = pipe.info("mediator/images").subscriptions
     assert [(s.node, s.mode) for s in subs] == [("vision", SubscriptionMode.FLOW)], subs
-    puts, errors = pipe.counter("vision/detections"), _skipped(pipe, "vision/detections", reason)
+    puts, errors = pipe.count("vision/detections"), _skipped(pipe, "vision/detections", reason)
     wait_until(
         lambda: (
             pipe.counter("vision/detections") > puts + 2
@@ -111,15 +111,15 @@ def test_a_slower_handler_is_sent_fewer_frames_from_the_same_camera_and_gyro(
         90,
         "both handlers to have results\n" + pipe.log(),
     )
-    fast0, slow0 = pipe.counter("mediator/images"), pipe.counter("mediator-slow/images")
-    done0 = pipe.counter("vision-slow/detections")
+    fast0, slow0 = pipe.count("mediator/images"), pipe.count("mediator-slow/images")
+    done0 = pipe.count("vision-slow/detections")
     wait_until(
         lambda: pipe.counter("vision-slow/detections") >= done0 + 3,
         120,
         "the slow handler to process 3 more frames\n" + pipe.log(),
     )
-    fast = pipe.counter("mediator/images") - fast0
-    slow = pipe.counter("mediator-slow/images") - slow0
+    fast = pipe.count("mediator/images") - fast0
+    slow = pipe.count("mediator-slow/images") - slow0
     # Over the same stretch of the same camera stream, the mediator in front of the slow
     # handler forwarded fewer frames: its acceptance follows the handler's speed.
     assert slow < fast, (slow, fast)
@@ -214,13 +214,13 @@ def test_a_handler_returning_output_fills_a_generic_results_buffer() -> None:
             elements = wait_until(
                 lambda: _elements(node, "vision/results"), 90, "the handler's results"
             )
-            assert node.buffer_info("vision/results", timeout_s=scaled(10.0)).kind == "generic"
+            results = answered(lambda: node.buffer_info("vision/results"), "vision/results")
+            assert results.kind == "generic"
             element = elements[-1]
             assert len(element.payload) == 16 * 4  # the histogram
             assert b"<mean>" in element.metadata and b"<frame_id>" in element.metadata
-            assert (
-                node.get("camera/images", element.timestamp_ns).timestamp_ns == element.timestamp_ns
-            )
+            frame = answered(lambda: node.get("camera/images", element.timestamp_ns), "the frame")
+            assert frame.timestamp_ns == element.timestamp_ns
     finally:
         for proc in (vision, camera):
             proc.send_signal(signal.SIGTERM)

@@ -23,7 +23,7 @@ from services.nodes.ros2._cdr import IMAGE, IMU, Codec
 from services.nodes.ros2._config import Ros2Config
 from services.nodes.ros2._rmw import HUMBLE_TYPE_HASH, EntityKind, NodeIdentity, Qos
 from tests.conftest import REPO, child_env, free_port, wait_until
-from tests.helpers.timing import scaled
+from tests.helpers.timing import answered, scaled
 
 W, H = 8, 4
 
@@ -56,7 +56,7 @@ def _query(consumer: Node, target: str) -> list[DataObject]:
     discovery, which a loaded machine can take seconds over)."""
     service = target.split("/", 1)[0]
     wait_until(lambda: service in consumer.live_services(), 30, f"the {service} service")
-    return consumer.query(target)
+    return answered(lambda: consumer.query(target), target)
 
 
 def _skipped(producer: Producer) -> dict[str, int]:

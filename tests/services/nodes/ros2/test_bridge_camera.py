@@ -17,7 +17,7 @@ import yaml
 from services.lib.camera_model import CameraModel
 from services.lib.messages import DecisionRecord
 from tests.conftest import free_port, wait_until
-from tests.helpers.timing import scaled
+from tests.helpers.timing import answered, scaled
 from tests.services.nodes.pipeline import Pipeline
 from tests.services.nodes.ros2.test_bridge_pipeline import Driver
 
@@ -58,7 +58,9 @@ def _deploy(endpoint: str, camera_xml: Path) -> str:
 
 
 def _blurs(pipe: Pipeline, buffer: str) -> dict[int, float]:
-    records = [DecisionRecord.from_metadata(e.metadata) for e in pipe.node.query(buffer)]
+    # Asked again while the mediator does not answer: a live one may have lost its lease.
+    elements = answered(lambda: pipe.node.query(buffer), buffer)
+    records = [DecisionRecord.from_metadata(e.metadata) for e in elements]
     return {r.frame_timestamp_ns: r.blur_px for r in records if r.blur_px is not None}
 
 
@@ -93,7 +95,7 @@ def test_blur_from_camera_info_and_tf_static_equals_blur_from_the_camera_xml(
                 and pipe.subscriber_count("ros2/rates") >= 2
             ),
             90,
-            "bridges and mediators to be up\n" + pipe.log(),
+            lambda: "bridges and mediators to be up\n" + pipe.log(),
         )
         driver.send("go")
         while "done" not in driver.next(60):
@@ -104,7 +106,9 @@ def test_blur_from_camera_info_and_tf_static_equals_blur_from_the_camera_xml(
             # Frames the gyro does not cover (it may lag under load) have no blur in either.
             return (ros, xml_) if len(set(ros) & set(xml_)) >= FRAMES // 2 else None
 
-        ros, from_xml = wait_until(both, 60, "blur estimates from both mediators\n" + pipe.log())
+        ros, from_xml = wait_until(
+            both, 60, lambda: "blur estimates from both mediators\n" + pipe.log()
+        )
         common = sorted(set(ros) & set(from_xml))
         assert len(common) >= FRAMES // 2, (ros, from_xml)
         for stamp in common:

@@ -23,6 +23,7 @@ from services.nodes.ros2._camera_info import CameraSource, intrinsics
 from services.nodes.ros2._cdr import IMU, Codec
 from services.nodes.ros2._config import Ros2Config
 from services.nodes.ros2._rmw import Attachment
+from tests.helpers.timing import answered
 from tests.services.nodes.ros2.ros_camera import IMAGE_FRAME, IMU_FRAME, camera_info, tf_static
 
 HOUR_NS = 3600 * 10**9
@@ -88,7 +89,7 @@ def test_cameras_from_camera_info_and_tf_blur_as_the_equivalent_camera_xml(
     _broadcast(images.cameras, tf_static(codec, xml.gyro_to_camera))
     imu.add(_imu(codec, now // 10**9 - 1, 0))
     images.handle(_image(codec, now, xml.width_px, xml.height_px), 1)
-    [element] = consumer.query("ros2/images")
+    [element] = answered(lambda: consumer.query("ros2/images"), "ros2/images")
     meta = read_frame_metadata(element.metadata)
     ros = meta.camera
     assert ros is not None

@@ -13,7 +13,7 @@ from typing import Any
 
 from middleware import DataObject, Notification
 from services.tools.bag import Progress, Recorder
-from services.tools.bag._recorder import BACKFILL_TRIES
+from services.tools.bag._recorder import BACKFILL_TRIES, STOP_SLACK_S, TAIL_FLOOR_S
 
 STOP_NS = 1_000
 
@@ -148,3 +148,15 @@ def test_a_gap_never_answered_is_asked_a_bounded_number_of_times() -> None:
     recorder._backfill(139, newest=3)
     assert node.asked == BACKFILL_TRIES
     assert written.stamps == []
+
+
+def test_the_tail_up_to_the_stop_is_asked_even_by_a_recorder_starved_past_its_deadline() -> None:
+    # A starved recorder reaches its final backfill after the deadline: unasked, the tail
+    # would be counted only as far as the (lagging) notifications tell.
+    node = _LapsingNode(lapses=0, held=[110, 120])
+    recorder, written = _backfilling(node)
+    recorder.deadline = time.monotonic() - 1.0
+    recorder._backfill(STOP_NS, timeout_s=STOP_SLACK_S, floor_s=TAIL_FLOOR_S)
+    assert written.stamps == [110, 120]
+    recorder._backfill(STOP_NS, timeout_s=STOP_SLACK_S)  # any other ask: none past it
+    assert node.asked == 1

@@ -35,7 +35,10 @@ def port() -> Iterator[int]:
 def test_a_name_no_live_service_offers_fails_with_one_line_and_a_did_you_mean(
     port: int, target: str, said: str
 ) -> None:
-    proc = start_framegate(["view", target, "--port", "0", "--timeout", "2"], local_port=port)
+    # Long enough to meet the live camera on a loaded machine (2 s once saw no service at all,
+    # so no did-you-mean): the misspelt service never comes, so the view waits all of it.
+    wait = str(scaled(5))
+    proc = start_framegate(["view", target, "--port", "0", "--timeout", wait], local_port=port)
     out, _ = proc.communicate(timeout=scaled(60))
     lines = out.strip().splitlines()
     assert proc.returncode == 1, out

@@ -1,0 +1,70 @@
+"""An answer cut short is an error, never the first part of a buffer read as all of it.
+
+When the answering service's link drops in the middle of an answer (its lease lapsed: on a
+loaded machine a process can go without CPU for over a second), Zenoh ends the query as if
+every reply had come, with no error. Each answer therefore ends with the service's end mark,
+and a query without it raises. Real processes: the service is stopped (SIGSTOP) after the
+first reply came, while the rest of its answer cannot have left it yet.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import pytest
+
+from middleware import NetworkConfig, Node, QueryError
+from tests.conftest import NodeProcess
+from tests.helpers.timing import answered, scaled
+
+pytestmark = pytest.mark.integration
+
+MS = 1_000_000
+# Far more than the querier's reply channel (256) and the loopback socket buffers hold, so
+# that most of the answer is still in the service when it stops.
+COUNT = 600
+SIZE = 64 * 1024
+
+
+def test_an_answer_cut_short_by_a_lapsed_link_raises_instead_of_reading_as_the_buffer(
+    node_process: Callable[..., NodeProcess], endpoint: str
+) -> None:
+    # Without shared memory every payload crosses the socket, which holds only a few of them.
+    server = node_process("cam", "--listen", endpoint, "--no-shm")
+    assert server.call("offer", buffer="images", retention={"max_count": COUNT})["ok"]
+    for i in range(1, COUNT + 1):
+        assert server.call("put", buffer="images", t=i * MS, payload_size=SIZE)["ok"]
+    with Node(network=NetworkConfig(connect=(endpoint,), shared_memory=False)) as client:
+        whole = answered(lambda: client.query("cam/images", timeout_s=scaled(30)), "cam/images")
+        assert [e.timestamp_ns for e in whole] == [i * MS for i in range(1, COUNT + 1)]
+
+        pending = client._start_get("cam/images", {}, scaled(60))
+        stopped: list[bool] = []
+
+        def stop_after_the_first(replies: Any) -> Iterator[Any]:
+            it = iter(replies)
+            first = next(it)
+            os.kill(server.proc.pid, signal.SIGSTOP)
+            stopped.append(True)
+            yield first
+            yield from it  # what came before the stop, then the end of the lapsed link
+
+        try:
+            with pytest.raises(QueryError, match="ended early") as raised:
+                client._collect("cam/images", stop_after_the_first(pending))
+            assert stopped
+            # Some came, not all: read as the buffer, this would have been a shorter one.
+            came = int(str(raised.value).split("(", 1)[1].split(" ", 1)[0])
+            assert 1 <= came < COUNT, raised.value
+        finally:
+            os.kill(server.proc.pid, signal.SIGCONT)
+
+        # Running again, the service answers whole and the end mark says so (once the link
+        # is back and the stopped answer's rest has gone: asked again meanwhile).
+        again = answered(
+            lambda: client.query("cam/images", timeout_s=scaled(10)), "cam/images", wait_s=120
+        )
+        assert len(again) == COUNT

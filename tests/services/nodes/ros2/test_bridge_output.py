@@ -1,0 +1,72 @@
+"""The bridge's outputs count what they were never notified of: an observer whose queue was
+full, or whose subscription lapsed, misses elements, and the bridge never publishes them; each
+is a counted ``not-observed`` skip, never a silent gap on the ROS 2 topic."""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Iterator
+
+import pytest
+
+from middleware import NetworkConfig, Node, make_metadata
+from services.nodes.ros2._bridge import Output, _Skips
+from services.nodes.ros2._config import Mapping, Ros2Config
+from tests.conftest import wait_until
+
+pytestmark = pytest.mark.integration
+
+COUNT = 12
+
+
+class _Publisher:
+    """Stands in for the ROS 2 publisher: keeps what the output published."""
+
+    def __init__(self) -> None:
+        self.published: list[bytes] = []
+
+    def publish(self, cdr: bytes) -> None:
+        self.published.append(bytes(cdr))
+
+
+@pytest.fixture
+def nodes(listen_net: NetworkConfig, connect_net: NetworkConfig) -> Iterator[tuple[Node, Node]]:
+    with Node("mediator", listen_net) as producer, Node("ros2", connect_net) as bridge:
+        yield producer, bridge
+
+
+def test_elements_an_output_was_never_notified_of_are_counted_not_observed(
+    nodes: tuple[Node, Node],
+) -> None:
+    producer, bridge = nodes
+    decisions = producer.offer("decisions")
+    publisher = _Publisher()
+    output = Output(
+        bridge,
+        publisher,  # type: ignore[arg-type]
+        Mapping("mediator/decisions", "/framegate/verdicts"),
+        lambda element: element.payload,
+        Ros2Config(out_queue=1),
+    )
+    wait_until(lambda: decisions.subscriptions(), 30, "the output's subscription")
+    # Nobody takes yet: a queue of one holds the first, the observer misses the rest.
+    for t in range(1, COUNT):
+        decisions.put(t, b"%d" % t, make_metadata("generic", t))
+    skips = _Skips(logging.getLogger("test.bridge.output"))
+    stop = threading.Event()
+    runner = threading.Thread(target=output.run, args=(stop, skips))
+    runner.start()
+    try:
+        wait_until(lambda: publisher.published, 30, "the first element published")
+        decisions.put(COUNT, b"%d" % COUNT, make_metadata("generic", COUNT))
+        wait_until(
+            lambda: publisher.published[-1] == b"%d" % COUNT, 30, "the last element published"
+        )
+    finally:
+        stop.set()
+        runner.join(timeout=10)
+    missed = skips.counts["not-observed"]
+    assert missed > 0, publisher.published
+    # Every element either reached the ROS 2 topic or was counted as never observed.
+    assert len(publisher.published) + missed == COUNT, (publisher.published, missed)
