@@ -295,7 +295,11 @@ def run_demo(
     # After the rendering: the specs carry the shared start instant, and a start taken
     # before minutes of rendering would make the camera begin that far behind its timeline.
     specs = process_specs(deployment, None, network)
-    supervisor = Supervisor(specs, quiet=not config.show_logs)
+    # The services' lines (and the supervisor's own, such as a kill at the stop) go where
+    # the status lines go: never into the JSON summary on stdout.
+    supervisor = Supervisor(
+        specs, quiet=not config.show_logs, out=lambda line: print(line, file=out, flush=True)
+    )
     started = time.monotonic()
     last_print = 0.0
     counts: dict[str, Any] = Status().counts()
