@@ -311,11 +311,11 @@ def _rss_mb(pid: int) -> float:
     return 0.0
 
 
-def _sequence_checked(sub: Any, expected: int, stall_s: float) -> tuple[int, int]:
-    """Take until element ``expected``: each element's payload is its number; every one
-    must arrive or be counted in the next one's ``missed``. (received, missed). Fails when
-    no element arrives for ``stall_s``: how fast they come is the bench's (at load 40 the
-    1,000 took over 3 minutes, arriving all along)."""
+def _sequence_checked(sub: Any, expected: int, stall_s: float) -> tuple[int, int, int]:
+    """Take until element ``expected`` or a later one: each element's payload is its
+    number; every one must arrive or be counted in the next one's ``missed``. (received,
+    missed, the last number). Fails when no element arrives for ``stall_s``: how fast they
+    come is the bench's (at load 40 the 1,000 took over 3 minutes, arriving all along)."""
     last, received, missed = 0, 0, 0
     deadline = time.monotonic() + stall_s
     while last < expected:
@@ -327,13 +327,16 @@ def _sequence_checked(sub: Any, expected: int, stall_s: float) -> tuple[int, int
             )
             last, received, missed = number, received + 1, missed + note.missed
             deadline = time.monotonic() + stall_s
-    return received, missed
+    return received, missed, last
 
 
-def _produce(images: Any, count: int, stop: threading.Event) -> None:
-    """Put elements 1..count (payload = the number), each waiting for credit."""
+def _produce(images: Any, stop: threading.Event) -> None:
+    """Put elements 1, 2, ... (payload = the number), each waiting for credit, until
+    ``stop``: past the count a test checks, so that elements stored while the consumer's
+    registration lapsed (a starved process) are counted by a later one's ``missed``, as the
+    protocol counts them, even at the end."""
     number = 1
-    while number <= count and not stop.is_set():
+    while not stop.is_set():
         t = now_ns()
         try:
             images.put(t, str(number).encode(), make_metadata("generic", t), wait_s=1.0)
@@ -360,16 +363,16 @@ def test_token_churn_loses_no_element_uncounted(
         stop = threading.Event()
         churn = {"kind": "churn", "mode": mode, "queue_size": 2, "batch": 8}
         with _floods(endpoint, churners, **churn) as floods:
-            producer = threading.Thread(target=_produce, args=(images, count, stop), daemon=True)
+            producer = threading.Thread(target=_produce, args=(images, stop), daemon=True)
             producer.start()
             try:
-                received, missed = _sequence_checked(sub, count, scaled(60))
+                received, missed, last = _sequence_checked(sub, count, scaled(60))
             finally:
                 stop.set()
                 producer.join(timeout=scaled(10))
             churned = sum(flood.stop() for flood in floods)
-        assert received + missed == count and churned > 0
-        assert sub.missed_total == missed
+        assert received + missed == last >= count and churned > 0
+        assert sub.missed_total >= missed  # and any the producer stored after ``last``
 
 
 @pytest.mark.parametrize(
