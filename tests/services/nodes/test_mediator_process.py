@@ -39,7 +39,9 @@ def test_regression_slow_flow_controlled_decisions_watcher_leaves_the_mediator_f
 ) -> None:
     # Issue 15: the README's slow-consumer pattern on mediator/decisions killed the mediator
     # within a few frames, and the supervisor then restarted it in a loop.
-    wait_until(lambda: pipe.counter("mediator/images") >= 5, 60, "forwarding\n" + pipe.log())
+    wait_until(
+        lambda: pipe.counter("mediator/images") >= 5, 60, lambda: "forwarding\n" + pipe.log()
+    )
     pid = pipe.pid("mediator")
     env = child_env()
     env["FRAMEGATE_LOCAL_PORT"] = str(pipe.port)
@@ -58,13 +60,13 @@ def test_regression_slow_flow_controlled_decisions_watcher_leaves_the_mediator_f
         wait_until(
             lambda: pipe.counter("mediator/decisions", "refused") >= 10,
             60,
-            "refused decision records\n" + pipe.log(),
+            lambda: "refused decision records\n" + pipe.log(),
         )
         forwarded = pipe.count("mediator/images")
         wait_until(
             lambda: pipe.counter("mediator/images") >= forwarded + 10,
             60,
-            "the mediator to keep forwarding\n" + pipe.log(),
+            lambda: "the mediator to keep forwarding\n" + pipe.log(),
         )
         assert watcher.poll() is None, "the watcher ended"
         assert pipe.pid("mediator") == pid, "the mediator restarted:\n" + pipe.log()

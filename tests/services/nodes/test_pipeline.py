@@ -61,7 +61,9 @@ def test_slow_detector_gets_detections_and_mediator_rejects_blurred_frames(
     # at a frame every 2 s (at 3 periods, a camera slowed to 2 frames/s at load 25 left the
     # detector idle and nothing was rejected).
     pipe = pipeline_factory(full(30.0))  # type: ignore[call-arg]
-    wait_until(lambda: pipe.counter("detector/detections") >= 3, 60, "3 detections\n" + pipe.log())
+    wait_until(
+        lambda: pipe.counter("detector/detections") >= 3, 60, lambda: "3 detections\n" + pipe.log()
+    )
     decisions = wait_until(
         lambda: (d := _decisions(pipe)) and any(_by_the_test(r) for r in d) and d,
         40,
@@ -110,7 +112,9 @@ def test_uncontrolled_wiring_drops_at_the_camera_and_never_blocks(
         "detector": {"input": "camera/images", "service_factor": 60.0},
     }
     pipe = pipeline_factory(pipeline_yaml(uncontrolled))  # type: ignore[call-arg]
-    wait_until(lambda: pipe.counter("camera/images", "refused") >= 5, 60, "drops\n" + pipe.log())
+    wait_until(
+        lambda: pipe.counter("camera/images", "refused") >= 5, 60, lambda: "drops\n" + pipe.log()
+    )
     first = pipe.info("camera/images")
     # The camera keeps producing (stored and dropped), never waiting on the slow detector.
     wait_until(
@@ -126,7 +130,9 @@ def test_uncontrolled_wiring_drops_at_the_camera_and_never_blocks(
 def test_killed_detector_is_dropped_and_restarted(pipeline_factory: type[Pipeline]) -> None:
     # Slower than the camera on any machine (as above), so frames are certainly queued.
     pipe = pipeline_factory(full(30.0))  # type: ignore[call-arg]
-    wait_until(lambda: pipe.counter("detector/detections") >= 3, 60, "detections\n" + pipe.log())
+    wait_until(
+        lambda: pipe.counter("detector/detections") >= 3, 60, lambda: "detections\n" + pipe.log()
+    )
     wait_until(
         lambda: any(s.queued > 0 for s in pipe.info("mediator/images").subscriptions),
         20,
@@ -155,7 +161,9 @@ def test_gyro_outage_keeps_mediator_running_and_it_recovers(
     pipeline_factory: type[Pipeline],
 ) -> None:
     pipe = pipeline_factory(full(1.6))  # type: ignore[call-arg]
-    wait_until(lambda: pipe.counter("mediator/decisions") >= 10, 60, "decisions\n" + pipe.log())
+    wait_until(
+        lambda: pipe.counter("mediator/decisions") >= 10, 60, lambda: "decisions\n" + pipe.log()
+    )
     mediator_pid = pipe.pid("mediator")
     pipe.kill("gyro")
     wait_until(

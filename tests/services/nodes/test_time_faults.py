@@ -385,7 +385,9 @@ def _audit(audit: Audit, pipe: Pipeline) -> None:
             return False
         return True
 
-    wait_until(passed, LEASE_LAPSE_S, "an audit pass with every service answering\n" + pipe.log())
+    wait_until(
+        passed, LEASE_LAPSE_S, lambda: "an audit pass with every service answering\n" + pipe.log()
+    )
 
 
 def _decisions(pipe: Pipeline) -> list[DecisionRecord]:
@@ -398,7 +400,9 @@ def _decisions(pipe: Pipeline) -> list[DecisionRecord]:
 
 @pytest.mark.slow
 def test_a_stopped_detector_loses_no_accepted_frame_without_a_record(pipe: Pipeline) -> None:
-    wait_until(lambda: pipe.counter("detector/detections") >= 3, 90, "detections\n" + pipe.log())
+    wait_until(
+        lambda: pipe.counter("detector/detections") >= 3, 90, lambda: "detections\n" + pipe.log()
+    )
     pid = pipe.pid("detector")
     assert pid is not None
     # Audited from before the stop to after it (cursors), so no frame of the gap can leave
@@ -412,7 +416,7 @@ def test_a_stopped_detector_loses_no_accepted_frame_without_a_record(pipe: Pipel
         wait_until(
             lambda: sum(r.reason == "consumer-lapsed" for r in _decisions(pipe)) >= 10,
             60,
-            "consumer-lapsed records\n" + pipe.log(),
+            lambda: "consumer-lapsed records\n" + pipe.log(),
         )
     finally:
         os.kill(pid, signal.SIGCONT)
@@ -420,7 +424,7 @@ def test_a_stopped_detector_loses_no_accepted_frame_without_a_record(pipe: Pipel
     wait_until(
         lambda: pipe.counter("detector/detections") >= detected + 3,
         60,
-        "detections after SIGCONT\n" + pipe.log(),
+        lambda: "detections after SIGCONT\n" + pipe.log(),
     )
     _audit(audit, pipe)
     summary = audit.summary()
@@ -511,7 +515,7 @@ def _cli_shows(
 
 
 def test_a_stopped_mediator_records_every_frame_stored_meanwhile(pipe: Pipeline) -> None:
-    wait_until(lambda: len(_decisions(pipe)) >= 3, 90, "decisions\n" + pipe.log())
+    wait_until(lambda: len(_decisions(pipe)) >= 3, 90, lambda: "decisions\n" + pipe.log())
     pid = pipe.pid("mediator")
     assert pid is not None
     stored = pipe.count("camera/images")
@@ -529,7 +533,7 @@ def test_a_stopped_mediator_records_every_frame_stored_meanwhile(pipe: Pipeline)
     wait_until(
         lambda: any(r.reason == "mediator-lapsed" for r in _decisions(pipe)),
         90,
-        "mediator-lapsed records\n" + pipe.log(),
+        lambda: "mediator-lapsed records\n" + pipe.log(),
     )
     decided = len(_decisions(pipe))
     wait_until(lambda: len(_decisions(pipe)) >= decided + 3, 60, "decisions to go on")

@@ -71,7 +71,7 @@ def test_a_handler_named_on_the_command_line_runs_behind_the_mediator_and_its_er
             and _skipped(pipe, "vision/detections", reason) >= 3
         ),
         90,
-        "results and counted handler errors\n" + pipe.log(),
+        lambda: "results and counted handler errors\n" + pipe.log(),
     )
     # The runner is the mediator's flow-controlled consumer: its queue is the load.
     subs = pipe.info("mediator/images").subscriptions
@@ -83,7 +83,7 @@ def test_a_handler_named_on_the_command_line_runs_behind_the_mediator_and_its_er
             and _skipped(pipe, "vision/detections", reason) > errors + 2
         ),
         60,
-        "the runner to keep going after errors\n" + pipe.log(),
+        lambda: "the runner to keep going after errors\n" + pipe.log(),
     )
     assert pipe.pid("vision") is not None
     warned = [line for line in pipe.lines if "handler raised ValueError" in line]
@@ -109,14 +109,14 @@ def test_a_slower_handler_is_sent_fewer_frames_from_the_same_camera_and_gyro(
             pipe.counter("vision-slow/detections") >= 3 and pipe.counter("vision/detections") >= 3
         ),
         90,
-        "both handlers to have results\n" + pipe.log(),
+        lambda: "both handlers to have results\n" + pipe.log(),
     )
     fast0, slow0 = pipe.count("mediator/images"), pipe.count("mediator-slow/images")
     done0 = pipe.count("vision-slow/detections")
     wait_until(
         lambda: pipe.counter("vision-slow/detections") >= done0 + 3,
         120,
-        "the slow handler to process 3 more frames\n" + pipe.log(),
+        lambda: "the slow handler to process 3 more frames\n" + pipe.log(),
     )
     fast = pipe.count("mediator/images") - fast0
     slow = pipe.count("mediator-slow/images") - slow0

@@ -186,7 +186,7 @@ def test_ros2_camera_and_imu_through_the_pipeline_back_to_ros2(
                 and pipe.subscriber_count("mediator/decisions") >= 1
             ),
             90,
-            "bridge, mediator and detector to be up\n" + pipe.log(),
+            lambda: "bridge, mediator and detector to be up\n" + pipe.log(),
         )
         tokens = wait_until(
             lambda: (
@@ -226,7 +226,7 @@ def test_ros2_camera_and_imu_through_the_pipeline_back_to_ros2(
                 and accepted_stamps() <= image_stamps()
             ),
             120,  # eight frames through bridge, mediator and detector: 30 s missed at load 10
-            "a verdict per frame, detections and every accepted image\n" + pipe.log(),
+            lambda: "a verdict per frame, detections and every accepted image\n" + pipe.log(),
         )
         frames = np.load(tmp_path / "frames.npy")
 
