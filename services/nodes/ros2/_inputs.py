@@ -47,6 +47,11 @@ from ._stamps import StampGate
 _POLL_S = 0.2
 # A partial IMU batch goes out after this long without a new sample.
 _IMU_IDLE_S = 0.05
+# The IMU in-queue's least depth, in samples. The mediator needs every sample (two lost in a
+# row leave a hole no frame across it can be assessed through), and the IMU worker stalls
+# for a whole ``--gyro-wait-ms`` while a batch waits for credit, or longer on a busy machine:
+# 2 s at 1 kHz, about 0.7 MB of CDR at most (a loaded run lost samples from a 40-deep queue).
+_IMU_QUEUE = 2048
 # How long after the first look at the ROS graph the bridge looks again (see _settle_graph).
 _GRAPH_SECOND_LOOK_S = 0.5
 
@@ -302,9 +307,9 @@ class ImuIn(_Input):
         producer = node.offer(
             "rates", kind="gyro", retention=Retention(max_count=None, max_age_ns=30_000_000_000)
         )
-        # Room for several batches: samples that arrive while one batch is put are kept.
+        # Room for seconds of samples: those that arrive while the worker waits are kept.
         super().__init__(
-            producer, skips, config.imu_in, max(config.in_depth, 4 * config.gyro_batch)
+            producer, skips, config.imu_in, max(config.in_depth, 4 * config.gyro_batch, _IMU_QUEUE)
         )
         self._codec, self._config = codec, config
         self._cameras = cameras  # told the IMU's frame, for the rotation to the camera
