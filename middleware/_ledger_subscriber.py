@@ -203,12 +203,14 @@ class SubscriberLedger(Generic[T]):
         """What is known of ``epoch`` (None: not tracked now)."""
         return self._epochs.get(epoch)
 
-    def note_missed(self, count: int, index: int) -> None:
+    def note_missed(self, count: int, index: int, *, counted: bool = False) -> None:
         """Count ``count`` elements lost before the queued notification at ``index`` (the
-        caller knows of a gap the seqs cannot show: a lapsed registration)."""
+        caller knows of a gap the seqs cannot show: a lapsed registration); ``counted``:
+        already in ``missed_total``, only carried by that notification now."""
         entry = self._queue[index]
         self._queue[index] = entry._replace(missed=entry.missed + count)
-        self.missed_total += count
+        if not counted:
+            self.missed_total += count
 
     # -- notifications in ------------------------------------------------------------------
     def receive(self, epoch: str, seq: int, item: T, *, descriptor: str | None) -> bool:

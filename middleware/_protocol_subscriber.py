@@ -23,7 +23,10 @@ the producer had stored when it registered us), so seq s is the producer's eleme
 ``<instance>.<n>``) starts, the elements stored between the last one of the previous
 registration and its first were never notified (our token had lapsed, e.g. a link that
 dropped and came back): they are counted in ``missed`` on the next notification taken
-and reported once (``lapse_news``).
+and reported once (``lapse_news``). The producer's greeting of the new registration carries
+its base as well, so the count is made when the greeting comes (``missed_total`` at once;
+the next notification taken carries it): a lapse at the end of a stream, with no element
+after it, is counted too.
 """
 
 from __future__ import annotations
@@ -110,6 +113,8 @@ class SubscriberProtocol:
         self._base = 0
         self._high: OrderedDict[str, int] = OrderedDict()
         self._lapsed = 0
+        # Counted at a greeting, not yet carried by a queued notification.
+        self._ahead = 0
         # Fetch ahead: set once the consumer had to query for an element (see ``fetch_ahead``).
         self.fetching = False
 
@@ -173,6 +178,9 @@ class SubscriberProtocol:
             gap = head.base - high
             ledger.note_missed(gap, before)
             self._lapsed += gap
+        if new and self._ahead:
+            ledger.note_missed(self._ahead, before, counted=True)
+            self._ahead = 0
         self._epoch, self._base = head.epoch, head.base
         self._raise_high(head.epoch, head.base + track.last)
         return True
@@ -189,6 +197,25 @@ class SubscriberProtocol:
         lapsed, self._lapsed = self._lapsed, 0
         return lapsed
 
+    def _greeted(self, epoch: str, base: int) -> None:
+        """A registration of ours starts at element ``base`` of its producer instance."""
+        instance = epoch.rpartition(".")[0]
+        if instance in self._high and self._epoch is not None:
+            track = self.ledger.track(self._epoch)
+            if track is not None:  # what the registration before has queued so far
+                self._raise_high(self._epoch, self._base + track.last)
+        high = self._high.get(instance)
+        if high is not None and base > high:
+            # A later registration of an instance we had: what it stored since the last
+            # element queued was never notified (our token lapsed meanwhile).
+            gap = base - high
+            self.ledger.missed_total += gap
+            self._ahead += gap
+            self._lapsed += gap
+        # First contact: what the producer stored before our registration was never ours;
+        # a later lapse counts from here.
+        self._raise_high(epoch, base)
+
     def _control(self, control: Control, sender: str | None) -> None:
         if control.descriptor != self.descriptor:
             return  # meant for another registration of this key: not ours to judge
@@ -198,11 +225,8 @@ class SubscriberProtocol:
             elif self.registered is None:
                 self.registrations = 1
             self.registered = control.text
-            instance = control.text.rpartition(".")[0]
-            if control.base is not None and instance not in self._high:
-                # First contact with this producer instance: what it stored before our
-                # registration was never ours; a later lapse counts from here.
-                self._raise_high(control.text, control.base)
+            if control.base is not None:
+                self._greeted(control.text, control.base)
             self._refusal = None
             self._retry_at_ns = None
         elif self.registered is None:

@@ -1,0 +1,83 @@
+"""A lapsed registration's elements are counted when the producer greets the next one, not
+only when a later element arrives: a lapse at the end of a stream is counted too."""
+
+from __future__ import annotations
+
+from middleware._protocol_events import Publish
+from middleware._protocol_producer import ProducerProtocol
+from middleware._protocol_subscriber import SubscriberProtocol
+from middleware._records import DataObject, SubscriptionMode
+from middleware._wire import Control, Keys, decode_notification_header
+
+KEYS = Keys("framegate")
+SERVICE, BUFFER, SUB = "svc", "buf", "s1"
+
+
+class _Pair:
+    """A producer and one flow-controlled subscriber, the network a list in between."""
+
+    def __init__(self) -> None:
+        self.producer = ProducerProtocol(KEYS, SERVICE, BUFFER, "P0", inline_max_bytes=4)
+        self.sub = SubscriberProtocol(SubscriptionMode.FLOW, 4, -1)
+        self.token = KEYS.subscription_token(
+            SERVICE, BUFFER, SUB, SubscriptionMode.FLOW, 4, -1, "n~h"
+        )
+        self.now = 0
+        self.next_t = 1
+        self.kinds: list[str] = []
+
+    def declare(self, alive: bool) -> None:
+        self.producer.token(self.token, alive, self.now)
+        self.deliver()
+
+    def put(self, n: int) -> None:
+        for _ in range(n):
+            self.producer.put_many((DataObject(self.next_t, b"", b"m"),), self.now)
+            self.next_t += 1
+        self.deliver()
+
+    def deliver(self) -> None:
+        for ev in self.producer.events():
+            if isinstance(ev, Publish):
+                head = decode_notification_header(ev.attachment)
+                self.kinds.append(head.kind if isinstance(head, Control) else "data")
+                self.sub.receive(ev.attachment, ev.payload)
+
+    def take_all(self) -> list[int]:
+        entries = self.sub.take_many(100)
+        for ack in self.sub.acks(self.now, idle=True):
+            self.producer.ack(KEYS.ack(SERVICE, BUFFER, SUB), ack, self.now)
+        self.deliver()
+        return [e.missed for e in entries]
+
+
+def test_a_lapse_at_the_end_of_a_stream_is_counted_at_the_next_greeting() -> None:
+    pair = _Pair()
+    pair.declare(True)
+    pair.put(2)
+    assert pair.take_all() == [0, 0]
+    pair.declare(False)  # the token lapsed (a link that dropped) ...
+    pair.put(3)  # ... while three elements were stored
+    pair.kinds.clear()
+    pair.declare(True)  # ... and came back: the producer greets the new registration
+    assert pair.kinds == ["hello"]
+    assert pair.sub.ledger.missed_total == 3  # counted now, with no element after the lapse
+    assert pair.sub.lapse_news() == 3
+    pair.put(1)
+    # The next notification carries the count, and it is not counted twice.
+    assert pair.take_all() == [3]
+    assert pair.sub.ledger.missed_total == 3
+    assert pair.sub.lapse_news() == 0
+
+
+def test_a_repeated_greeting_and_a_lapse_with_nothing_stored_count_nothing() -> None:
+    pair = _Pair()
+    pair.declare(True)
+    pair.put(2)
+    pair.take_all()
+    pair.declare(False)
+    pair.declare(True)  # nothing stored meanwhile
+    pair.put(2)
+    assert pair.take_all() == [0, 0]
+    assert pair.sub.ledger.missed_total == 0
+    assert pair.sub.lapse_news() == 0
