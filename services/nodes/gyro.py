@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import logging
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -136,14 +137,15 @@ class GyroPump:
     def _put(self, rel: list[int], w: npt.NDArray[np.float64]) -> None:
         t_wall = np.asarray(self._timeline.stamps_ns(rel), np.int64)
         samples = sample_elements(t_wall, w, period_ns=self._source.scale(self._source.period_ns))
-        for batch in _split(samples, _flow_queue_limit(self._rates, self._config.batch)):
-            try:
-                self._rates.put_many(batch, wait_s=self._config.wait_ms / 1e3)
-                self.stored += len(batch)
-            except FlowControlRefused:
-                self.dropped += len(batch)
-            except FramegateError as exc:
-                self._log.warning("gyro batch not stored: %s", exc)
+        stored, dropped = put_samples(
+            self._rates,
+            samples,
+            batch=self._config.batch,
+            wait_s=self._config.wait_ms / 1e3,
+            rejected=lambda exc: self._log.warning("gyro batch not stored: %s", exc),
+        )
+        self.stored += stored
+        self.dropped += dropped
 
 
 def sample_elements(
@@ -157,16 +159,30 @@ def sample_elements(
     return elements
 
 
-def _flow_queue_limit(rates: Producer, batch: int) -> int:
-    """The largest batch every flow-controlled subscriber's queue can hold (at most ``batch``)."""
+def put_samples(
+    rates: Producer,
+    samples: list[tuple[int, bytes, bytes]],
+    *,
+    batch: int,
+    wait_s: float,
+    rejected: Callable[[FramegateError], None],
+) -> tuple[int, int]:
+    """Put ``samples`` in batches of at most ``batch`` that every flow-controlled queue can
+    hold (a larger one could never fit); (stored, dropped): a batch still refused after
+    ``wait_s`` is dropped whole, one the producer rejects goes to ``rejected``."""
     queues = [s.queue_size for s in rates.subscriptions() if s.mode is SubscriptionMode.FLOW]
-    return max(1, min([batch, *queues]))
-
-
-def _split(
-    elements: list[tuple[int, bytes, bytes]], size: int
-) -> list[list[tuple[int, bytes, bytes]]]:
-    return [elements[i : i + size] for i in range(0, len(elements), size)]
+    size = max(1, min([batch, *queues]))
+    stored = dropped = 0
+    for i in range(0, len(samples), size):
+        chunk = samples[i : i + size]
+        try:
+            rates.put_many(chunk, wait_s=wait_s)
+            stored += len(chunk)
+        except FlowControlRefused:
+            dropped += len(chunk)
+        except FramegateError as exc:
+            rejected(exc)
+    return stored, dropped
 
 
 SERVICE: Service[GyroConfig] = source_service("gyro", GyroConfig, run, device=False)

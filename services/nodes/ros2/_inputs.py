@@ -27,13 +27,12 @@ from middleware import (
     Node,
     Producer,
     Retention,
-    SubscriptionMode,
     now_ns,
 )
 from services.lib.camera_model import CameraModel
 from services.lib.messages import frame_metadata_of
 from services.lib.quality import Exposure
-from services.nodes.gyro import sample_elements
+from services.nodes.gyro import put_samples, sample_elements
 
 from ._camera_info import CAMERA_INFO, TF_MESSAGE, TF_STATIC, CameraSource
 from ._cdr import CdrError, Codec, StampError
@@ -355,20 +354,15 @@ class ImuIn(_Input):
         w = np.asarray([s[1] for s in self._pending], dtype=np.float64)
         self._pending = []
         elements = sample_elements(t, w, period_ns=self._period_ns)
-        # A batch never exceeds the smallest flow-controlled queue (it could never fit).
-        queues = [
-            s.queue_size for s in self.producer.subscriptions() if s.mode is SubscriptionMode.FLOW
-        ]
-        size = max(1, min([len(elements), *queues]))
-        for i in range(0, len(elements), size):
-            batch = elements[i : i + size]
-            try:
-                self.producer.put_many(batch, wait_s=self._config.gyro_wait_ms / 1e3)
-                self.stored += len(batch)
-            except FlowControlRefused:
-                self.dropped += len(batch)
-            except FramegateError as exc:
-                self._skips.count(None, "rejected", f"IMU batch: {exc}")
+        stored, dropped = put_samples(
+            self.producer,
+            elements,
+            batch=len(elements),
+            wait_s=self._config.gyro_wait_ms / 1e3,
+            rejected=lambda exc: self._skips.count(None, "rejected", f"IMU batch: {exc}"),
+        )
+        self.stored += stored
+        self.dropped += dropped
 
 
 # /tf_static as tf2_ros' static listener subscribes to it: reliable, transient local.
