@@ -4,6 +4,7 @@ becomes a framegate error."""
 from __future__ import annotations
 
 import os
+import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 
@@ -34,26 +35,39 @@ def zenoh_errors(action: str) -> Iterator[None]:
 # the process).
 ZENOH_RUNTIME = "(acc: (handover: rx), net: (handover: rx))"
 _RUNTIME_ENV = "ZENOH_RUNTIME"
+# Zenoh reads the variable once, when the process's first session starts its runtimes; it
+# is set only around the opens until one succeeded, so child processes (a raw-Zenoh
+# benchmark worker, a tool) inherit the environment as it was. The lock keeps two threads'
+# first opens from setting and removing it under each other.
+_first_open = threading.Lock()
+_runtime_started = False
 
 
 def open_session(network: NetworkConfig) -> zenoh.Session:
+    global _runtime_started
+    if _runtime_started:
+        return _open(network)
+    with _first_open:
+        ours = not _runtime_started and _RUNTIME_ENV not in os.environ
+        if ours:
+            os.environ[_RUNTIME_ENV] = ZENOH_RUNTIME
+        try:
+            session = _open(network)
+            _runtime_started = True
+            return session
+        finally:
+            if ours:
+                os.environ.pop(_RUNTIME_ENV, None)
+
+
+def _open(network: NetworkConfig) -> zenoh.Session:
     configs = network.zenoh_configs()
     last: Exception | None = None
-    # Zenoh reads the variable once, when the process's first session starts its runtimes;
-    # it is set only around that open, so child processes (a raw-Zenoh benchmark worker, a
-    # tool) inherit the environment as it was.
-    ours = _RUNTIME_ENV not in os.environ
-    if ours:
-        os.environ[_RUNTIME_ENV] = ZENOH_RUNTIME
-    try:
-        for conf in configs:
-            try:
-                return zenoh.open(conf)
-            except zenoh.ZError as exc:
-                last = exc
-    finally:
-        if ours:
-            os.environ.pop(_RUNTIME_ENV, None)
+    for conf in configs:
+        try:
+            return zenoh.open(conf)
+        except zenoh.ZError as exc:
+            last = exc
     where = ", ".join(network.connect or network.listen) or f"local port {network.local_port}"
     raise TransportError(
         f"cannot open a Zenoh session ({where}): {zenoh_message(last) if last else 'no config'}; "
