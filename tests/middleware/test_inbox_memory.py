@@ -30,6 +30,10 @@ BATCH_BYTES = 64 * 1024
 # How many times the flood turns the inbox over: pinned batches pile up over a few (580 MB
 # after 16 turns here, 3 MB with copies).
 TURNS = 16
+# What a busy machine's flood must reach within the patience (four busy loops beside the
+# suite: under 8 turns in 540 s): one full inbox of pinned batches alone would cost
+# CAPACITY x 64 KiB, 512 MiB, so two turns already tell copies from batches.
+MIN_TURNS = 2
 
 _RECEIVER = """
 import json, sys, time
@@ -101,7 +105,7 @@ def test_a_full_control_inbox_holds_copies_not_zenoh_batches() -> None:
                 proc.wait()
     report = json.loads(out.strip().splitlines()[-1])
     assert report["taken"] >= TURNS * CAPACITY / 8, report  # what was held kept changing
-    assert report["overflow"] >= TURNS * CAPACITY, report
+    assert report["overflow"] >= MIN_TURNS * CAPACITY, report
     assert report["growth"] < CAPACITY * BATCH_BYTES / 4, report
 
 
