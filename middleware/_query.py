@@ -99,22 +99,32 @@ class Queries(Discovery):
         (no end mark) is a query that reached no one: see ``_get``."""
         elements: list[DataObject] = []
         answered = False
-        complete, since_mark = False, 0  # one mark per buffer answered, counting its own
+        # Per answering session (two may answer at once, their replies interleaved: a
+        # producer and its restarted self, or a process's own buffer beside a peer's): the
+        # elements since its last end mark, and whether a mark disagreed with its count
+        # (one mark per buffer answered, counting its own).
+        since: dict[str | None, int] = {}
+        short: set[str | None] = set()
         with zenoh_errors(f"querying {target}"):
             for reply in replies:
                 if reply.ok is not None:
+                    who = reply.replier_id
+                    replier = None if who is None else str(who)
                     sample = reply.ok
                     attachment = sample.attachment
                     raw = attachment.to_bytes() if attachment is not None else None
                     end = answer_end(raw)
                     if end is not None:
-                        complete, since_mark, answered = end == since_mark, 0, True
+                        if end != since.get(replier, 0):
+                            short.add(replier)
+                        since[replier], answered = 0, True
                         continue
-                    complete, since_mark = False, since_mark + 1
+                    since[replier] = since.get(replier, 0) + 1
                     elements.append(decode_element(sample.payload.to_bytes(), raw))
                 else:
                     assert reply.err is not None
                     raise _error_from_reply(target, reply.err.payload.to_string())
+        complete = not short and not any(since.values())
         if elements and not complete:
             raise QueryError(
                 f"the answer from {target} ended early ({len(elements)} elements, no end "

@@ -4,7 +4,8 @@ When the answering service's link drops in the middle of an answer (its lease la
 loaded machine a process can go without CPU for over a second), Zenoh ends the query as if
 every reply had come, with no error. Each answer therefore ends with the service's end mark,
 and a query without it raises. Real processes: the service is stopped (SIGSTOP) after the
-first reply came, while the rest of its answer cannot have left it yet.
+first reply came, while the rest of its answer cannot have left it yet. Two answers that
+interleave are each judged by their own session's end mark (fed as replies, no processes).
 """
 
 from __future__ import annotations
@@ -16,7 +17,10 @@ from typing import Any
 
 import pytest
 
-from middleware import NetworkConfig, Node, QueryError
+from middleware import NetworkConfig, Node, QueryError, make_metadata
+from middleware._records import DataObject
+from middleware._service import encode_answer_end
+from middleware._wire import encode_element_attachment
 from tests.conftest import NodeProcess
 from tests.helpers.timing import answered, scaled
 
@@ -68,3 +72,48 @@ def test_an_answer_cut_short_by_a_lapsed_link_raises_instead_of_reading_as_the_b
             lambda: client.query("cam/images", timeout_s=scaled(10)), "cam/images", wait_s=120
         )
         assert len(again) == COUNT
+
+
+class _Bytes:
+    def __init__(self, data: bytes) -> None:
+        self._data = data
+
+    def to_bytes(self) -> bytes:
+        return self._data
+
+
+class _Reply:
+    """A Zenoh reply as ``Queries`` reads it: a sample, and the session that sent it."""
+
+    def __init__(self, replier: str, payload: bytes, attachment: bytes) -> None:
+        self.replier_id = replier
+        self.ok = type("Sample", (), {"payload": _Bytes(payload), "attachment": _Bytes(attachment)})
+        self.err = None
+
+
+def _answer_of(replier: str, stamps: list[int]) -> list[_Reply]:
+    replies = [
+        _Reply(
+            replier,
+            b"p",
+            encode_element_attachment(DataObject(t, b"p", make_metadata("generic", t))),
+        )
+        for t in stamps
+    ]
+    return [*replies, _Reply(replier, b"", encode_answer_end(len(stamps)))]
+
+
+def test_two_answers_interleaved_are_each_complete_by_their_own_end_mark(endpoint: str) -> None:
+    # Two sessions answer one query (a process's own buffer beside a peer's, a producer and
+    # its restarted self): their replies interleave, and each end mark counts its own.
+    a, b = _answer_of("a", [1, 2, 3]), _answer_of("b", [4, 5])
+    interleaved = [a[0], b[0], a[1], b[1], b[2], a[2], a[3]]
+    with Node(network=NetworkConfig(listen=(endpoint,))) as node:
+        got = node._collect("x/y", interleaved)
+        assert sorted(e.timestamp_ns for e in got) == [1, 2, 3, 4, 5]
+        # One of them cut short (its end mark never came) is still an error.
+        with pytest.raises(QueryError, match="ended early"):
+            node._collect("x/y", [a[0], b[0], a[1], b[1], b[2], a[2]])
+        # And a mark that disagrees with its own session's count.
+        with pytest.raises(QueryError, match="ended early"):
+            node._collect("x/y", [a[0], b[0], b[1], b[2], a[2], a[3]])
