@@ -162,10 +162,7 @@ class SubscriberProtocol:
         had lapsed meanwhile)."""
         assert head.base is not None
         ledger = self.ledger
-        if self._epoch is not None:
-            old = ledger.track(self._epoch)
-            if old is not None:
-                self._raise_high(self._epoch, self._base + old.last)
+        self._raise_current()
         known = ledger.track(head.epoch)
         new = known is None or known.last == 0  # nothing of this epoch accepted yet
         before = len(ledger)
@@ -185,6 +182,13 @@ class SubscriberProtocol:
         self._raise_high(head.epoch, head.base + track.last)
         return True
 
+    def _raise_current(self) -> None:
+        """Remember how far the registration of the last notification queued has got."""
+        if self._epoch is not None:
+            track = self.ledger.track(self._epoch)
+            if track is not None:
+                self._raise_high(self._epoch, self._base + track.last)
+
     def _raise_high(self, epoch: str, number: int) -> None:
         instance = epoch.rpartition(".")[0]
         self._high[instance] = max(number, self._high.get(instance, 0))
@@ -199,12 +203,8 @@ class SubscriberProtocol:
 
     def _greeted(self, epoch: str, base: int) -> None:
         """A registration of ours starts at element ``base`` of its producer instance."""
-        instance = epoch.rpartition(".")[0]
-        if instance in self._high and self._epoch is not None:
-            track = self.ledger.track(self._epoch)
-            if track is not None:  # what the registration before has queued so far
-                self._raise_high(self._epoch, self._base + track.last)
-        high = self._high.get(instance)
+        self._raise_current()
+        high = self._high.get(epoch.rpartition(".")[0])
         if high is not None and base > high:
             # A later registration of an instance we had: what it stored since the last
             # element queued was never notified (our token lapsed meanwhile).
