@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import os
-import socket
 import subprocess
 import sys
 from collections.abc import Callable, Iterator
@@ -15,6 +14,7 @@ import pytest
 from hypothesis import HealthCheck, settings
 
 from middleware import NetworkConfig
+from services.launch import free_port as free_port  # one for tests and tools
 from tests.helpers.timing import SCALE_VARIABLE, TIMEOUT_SCALE, scaled
 from tests.helpers.timing import wait_until as wait_until
 
@@ -35,13 +35,6 @@ settings.register_profile(
 )
 
 REPO = Path(__file__).resolve().parent.parent
-
-
-def free_port() -> int:
-    """A TCP port on 127.0.0.1 that nobody listens on right now."""
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 @pytest.hookimpl(trylast=True)

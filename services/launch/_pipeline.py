@@ -14,6 +14,7 @@ that deploy/local.yaml says the same as ``pipeline()``.
 
 from __future__ import annotations
 
+import random
 import socket
 from collections.abc import Mapping
 from dataclasses import replace
@@ -89,9 +90,23 @@ def pipeline_yaml(overrides: Overrides | None = None) -> str:
 CLEARED_ENV = ("FRAMEGATE_CONNECT", "FRAMEGATE_LISTEN", "FRAMEGATE_CONFIG", "FRAMEGATE_NAMESPACE")
 
 
+# Ports handed out lie below the kernel's ephemeral range (32768 and up on Linux), where
+# outgoing connections take theirs: a port the kernel picks for us (bind to 0) is one a
+# connection elsewhere may take before our process listens on it (seen in a parallel test
+# run: "Can not create a new TCP listener").
+_PRIVATE_PORTS = range(20000, 32768)
+
+
 def free_port() -> int:
     """A loopback TCP port nobody listens on right now (a private rendezvous)."""
-    with socket.socket() as sock:
+    for port in random.sample(_PRIVATE_PORTS, 64):
+        with socket.socket() as sock:
+            try:
+                sock.bind(("127.0.0.1", port))
+            except OSError:
+                continue  # taken: another
+            return port
+    with socket.socket() as sock:  # the whole sample taken: any port the kernel gives
         sock.bind(("127.0.0.1", 0))
         return int(sock.getsockname()[1])
 
