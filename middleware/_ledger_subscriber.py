@@ -38,8 +38,9 @@ A notification ``(epoch, seq, descriptor)``:
 6. Flow control, queue already holds N: ignored (``refused``); the producer resends it once
    the queue has room. Only another epoch's notifications can fill the queue this way, so
    the queue never holds more than N and nothing of a conforming producer is lost.
-7. Observer: ``seq > last`` is accepted; a gap and a full queue count as ``missed``
-   (reported on the next notification taken), since observers use lossy delivery.
+7. Observer: ``seq > last`` is accepted; a gap counts as ``missed``. A full queue drops its
+   oldest notification for the new one (keep-last: a slow observer takes the latest),
+   counted as ``missed`` on the notification now at the head; observers use lossy delivery.
 8. Otherwise: queued, ``last = seq``.
 
 A batch notification ``(epoch, seq, n elements)`` is exactly the n notifications
@@ -275,16 +276,30 @@ class SubscriberLedger(Generic[T]):
             gap = seq - track.last - 1
             track.missed += gap
             self.missed_total += gap
-            track.last = seq
             if len(self._queue) >= self.queue_size:
-                track.missed += 1
-                self.missed_total += 1
-                return False
+                self._drop_oldest(track)
         track.last = seq
         track.queued += 1
         self._queue.append(Entry(epoch, seq, item, track.missed))
         track.missed = 0
         return True
+
+    def _drop_oldest(self, arriving: EpochTrack) -> None:
+        """(observers, queue full) Drop the oldest queued notification to make room for the
+        newest, as a keep-last queue does: what a slow observer misses is old, and what it
+        takes next is the latest (dropping the newest instead would leave the last element
+        of a burst unseen, and its count unreported, until another came). The drop and what
+        it carried are counted on the notification queued after it, or on the arriving one
+        (of the epoch ``arriving`` tracks)."""
+        dropped = self._queue.popleft()
+        self._epochs[dropped.epoch].queued -= 1
+        self.missed_total += 1
+        carried = dropped.missed + 1
+        if self._queue:
+            head = self._queue[0]
+            self._queue[0] = head._replace(missed=head.missed + carried)
+        else:
+            arriving.missed += carried
 
     def receive_many(self, epoch: str, seq: int, items: list[T], *, descriptor: str | None) -> int:
         """Feed a batch notification: element i as the notification of seq ``seq + i``, in

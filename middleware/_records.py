@@ -53,8 +53,9 @@ class SubscriptionMode(enum.Enum):
     """How a subscription relates to the producer.
 
     FLOW: takes part in flow control; while its queue is full the producer is refused
-    (the paper's rule). OBSERVE: never holds the producer back; when its queue is full it
-    misses notifications and counts them (for tools inspecting a running robot).
+    (the paper's rule). OBSERVE: never holds the producer back; when its queue is full the
+    oldest notification makes room for the newest (keep-last), counted as missed (for
+    tools inspecting a running robot).
     """
 
     FLOW = "flow"

@@ -91,11 +91,11 @@ class RunnerConfig:
         "mediator/images", "frames to process: mediator/images (filtered) or camera/images"
     )
     queue: int = setting(2, "notification queue size N", parse=positive_int)
-    # Observe instead of taking part in flow control: while the queue is full new frames are
-    # missed by this runner only (as a camera dropping at the source would for it alone), so
-    # a second, uncontrolled runner never holds the camera back for the others.
+    # Observe instead of taking part in flow control: while the queue is full its oldest
+    # frames are missed by this runner only (as a camera dropping at the source would for it
+    # alone), so a second, uncontrolled runner never holds the camera back for the others.
     observe: bool = setting(
-        False, "never hold the input's producer back: a full queue misses new frames instead"
+        False, "never hold the input's producer back: a full queue drops its oldest frame for the newest instead"
     )
 
     def spec(self, output: str, kind: ResultKind, processing_floor_s: float = 0.0) -> RunnerSpec:

@@ -15,8 +15,9 @@ progress bar) and cached per seed, so the camera keeps its frame rate even on tw
 then counts late skips, shown in the status line).
 
 Buffering: the uncontrolled detector observes camera/images (``--observe``): while its
-queue is full it misses new frames, exactly what a camera dropping at the source would do
-for it alone, without holding the camera back for the mediator.
+queue is full the oldest queued frame makes room for the newest, as a ROS 2 image subscriber's
+keep-last queue does (the blind queue a robot has without framegate), without holding the
+camera back for the mediator.
 """
 
 from __future__ import annotations

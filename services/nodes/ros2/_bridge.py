@@ -13,8 +13,8 @@ control ends at the bridge:
 - IMU: a refused batch waits up to ``--gyro-wait-ms`` for credit (the mediator needs every
   sample), then is dropped and counted as the gyro service does.
 - out: every framegate buffer carried to ROS 2 is *observed* (never flow-controlled), so a
-  slow or absent ROS 2 subscriber never holds framegate back; a full queue misses
-  notifications, counted by the producer.
+  slow or absent ROS 2 subscriber never holds framegate back; a full queue drops its oldest
+  notification for the newest (keep-last), counted ``not-observed``.
 
 Bad input never stops the bridge: a message that does not decode (``bad-cdr``), an image
 whose width x height x step disagrees with its data or an encoding framegate cannot hold
