@@ -95,7 +95,7 @@ class RunnerConfig:
     # frames are missed by this runner only (as a camera dropping at the source would for it
     # alone), so a second, uncontrolled runner never holds the camera back for the others.
     observe: bool = setting(
-        False, "never hold the input's producer back: a full queue drops its oldest frame for the newest instead"
+        False, "never hold the input's producer back: a full queue drops its oldest frame instead"
     )
 
     def spec(self, output: str, kind: ResultKind, processing_floor_s: float = 0.0) -> RunnerSpec:
