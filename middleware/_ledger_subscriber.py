@@ -277,29 +277,31 @@ class SubscriberLedger(Generic[T]):
             track.missed += gap
             self.missed_total += gap
             if len(self._queue) >= self.queue_size:
-                self._drop_oldest(track)
+                self._drop_oldest()
         track.last = seq
         track.queued += 1
         self._queue.append(Entry(epoch, seq, item, track.missed))
         track.missed = 0
         return True
 
-    def _drop_oldest(self, arriving: EpochTrack) -> None:
+    def _drop_oldest(self) -> None:
         """(observers, queue full) Drop the oldest queued notification to make room for the
         newest, as a keep-last queue does: what a slow observer misses is old, and what it
         takes next is the latest (dropping the newest instead would leave the last element
-        of a burst unseen, and its count unreported, until another came). The drop and what
-        it carried are counted on the notification queued after it, or on the arriving one
-        (of the epoch ``arriving`` tracks)."""
+        of a burst unseen, and its count unreported, until another came). The drop, and what
+        it carried, count as missed on the notification now first when that is of the same
+        epoch, else on the epoch's next one (the arriving one, when of that epoch): missed
+        counts stay with the producer instance they belong to."""
         dropped = self._queue.popleft()
-        self._epochs[dropped.epoch].queued -= 1
+        track = self._epochs[dropped.epoch]
+        track.queued -= 1
         self.missed_total += 1
         carried = dropped.missed + 1
-        if self._queue:
-            head = self._queue[0]
+        head = self._queue[0] if self._queue else None
+        if head is not None and head.epoch == dropped.epoch:
             self._queue[0] = head._replace(missed=head.missed + carried)
         else:
-            arriving.missed += carried
+            track.missed += carried
 
     def receive_many(self, epoch: str, seq: int, items: list[T], *, descriptor: str | None) -> int:
         """Feed a batch notification: element i as the notification of seq ``seq + i``, in

@@ -152,3 +152,31 @@ def test_the_producer_dates_the_last_take_by_the_ack_that_freed_credit() -> None
     assert not producer.ack("s", "forged", seq + 1, 95)
     [info] = [r.info() for r in producer.registrations()]
     assert (info.queued, info.taken_ns) == (1, 70)
+
+
+def _observer(queue_size: int) -> SubscriberLedger[int]:
+    descriptor = RegistrationKey("o", SubscriptionMode.OBSERVE, queue_size, -1).descriptor
+    return SubscriberLedger(SubscriptionMode.OBSERVE, queue_size, descriptor)
+
+
+def test_a_full_observer_keeps_the_newest_and_counts_the_oldest_missed() -> None:
+    """Keep-last: the last element of a burst is queued (not lost until another comes), and
+    every element pushed out is counted on the notification then first."""
+    observer = _observer(2)
+    for seq in range(1, 11):
+        assert observer.receive("E", seq, seq, descriptor=None)
+    taken = observer.take_many(10)
+    assert [(e.seq, e.missed) for e in taken] == [(9, 8), (10, 0)]
+    assert observer.missed_total == 8
+
+
+def test_an_observer_keeps_missed_counts_with_their_producer_instance() -> None:
+    """An element of one epoch pushed out by another epoch's is counted on its own epoch's
+    next notification, never on another producer's."""
+    observer = _observer(1)
+    assert observer.receive("A", 1, 1, descriptor=None)
+    assert observer.receive("B", 1, 1, descriptor=None)  # pushes A's out
+    assert [(e.epoch, e.missed) for e in observer.take_many(1)] == [("B", 0)]
+    assert observer.receive("A", 2, 2, descriptor=None)
+    assert [(e.epoch, e.seq, e.missed) for e in observer.take_many(1)] == [("A", 2, 1)]
+    assert observer.missed_total == 1
