@@ -4,10 +4,10 @@ Five processes meet through the loopback rendezvous (no router, no configuration
 and a gyro playing the simulated bumpy approach, the mediator, the detector behind it, and
 a second detector of the same speed that takes the camera's frames directly ("uncontrolled",
 the paper's baseline). Both detectors emulate a computer ``service_factor`` times too slow
-for the frame rate, so frames must be left out: the uncontrolled one loses whatever arrives
-while its queue is full, the mediator leaves out the blurred ones. This process only watches,
-through the same public API any client uses, and compares the markers each detector
-recognized.
+for the frame rate, so frames must be left out: the uncontrolled one loses the oldest of its
+queue whenever a frame arrives while it is full, the mediator leaves out the blurred ones.
+This process only watches, through the same public API any client uses, and compares the
+markers each detector recognized.
 
 The camera's source is ``prerendered`` by default: the approach is rendered once (with a
 progress bar) and cached per seed, so the camera keeps its frame rate even on two cores;
