@@ -10,7 +10,6 @@ service's liveliness token, then name the endpoint that was tried and what is li
 from __future__ import annotations
 
 import argparse
-import difflib
 import json
 import socket
 import sys
@@ -25,7 +24,7 @@ from middleware import (
     ServiceInfo,
     split_target,
 )
-from services.lib.argtypes import positive_float
+from services.lib.argtypes import did_you_mean, positive_float
 
 DEFAULT_TIMEOUT_S = 3.0
 
@@ -104,11 +103,6 @@ def nothing_answered(node: Node, waited_s: float) -> NotFoundError | None:
     )
 
 
-def _did_you_mean(name: str, candidates: list[str]) -> str:
-    hint = difflib.get_close_matches(name, candidates, n=1)
-    return f" (did you mean {hint[0]!r}?)" if hint else ""
-
-
 def wait_for_service(node: Node, service: str, timeout_s: float) -> None:
     """Return once ``service`` is live; NotFoundError naming the endpoint otherwise."""
     deadline = time.monotonic() + timeout_s
@@ -130,7 +124,7 @@ def wait_for_service(node: Node, service: str, timeout_s: float) -> None:
             "is the service running and is --connect right?"
         )
     raise NotFoundError(
-        f"no live service named {service!r}{_did_you_mean(service, live)}; "
+        f"no live service named {service!r}{did_you_mean(service, live, quote=True)}; "
         f"live services: {', '.join(live)}"
     )
 
@@ -151,7 +145,7 @@ def resolve(node: Node, target: str, timeout_s: float) -> tuple[ServiceInfo, Buf
         time.sleep(0.1)
     offered = [b.buffer for b in info.buffers]
     raise NotFoundError(
-        f"service {service!r} has no buffer {buffer!r}{_did_you_mean(buffer, offered)}; "
+        f"service {service!r} has no buffer {buffer!r}{did_you_mean(buffer, offered, quote=True)}; "
         f"it offers: {', '.join(offered) or 'none'}"
     )
 

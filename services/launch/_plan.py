@@ -8,6 +8,7 @@ import time
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
+from typing import NoReturn
 
 from middleware import ConfigError, FramegateError, NetworkConfig
 from services.lib.argtypes import did_you_mean
@@ -33,6 +34,16 @@ def _check_args(
         prog=spec.name, exit_on_error=False, add_help=False, allow_abbrev=False
     )
     service(spec.type).add_arguments(parser)
+
+    def refuse(message: str) -> NoReturn:
+        # argparse reports a missing required flag through ``error`` (print and exit),
+        # exit_on_error or not: one line of ours instead.
+        raise ConfigError(
+            f"{deployment.path}: service {spec.name!r}: {message}"
+            f" (see 'framegate run {spec.type} --help')"
+        )
+
+    parser.error = refuse  # type: ignore[method-assign]
     lines = arg_lines(text, spec.name) if text else {}
     try:
         _args, unknown = parser.parse_known_args(list(spec.args))
@@ -45,8 +56,6 @@ def _check_args(
             f"{deployment.path}{where}: service {spec.name!r}: {exc}"
             f" (see 'framegate run {spec.type} --help')"
         ) from exc
-    except SystemExit as exc:
-        raise ConfigError(f"{deployment.path}: service {spec.name!r}: bad args: {exc}") from exc
     # Short flags too (-e tcp/...), and stray values: whatever the service would not take.
     if unknown:
         flag = next((u for u in unknown if u.startswith("-")), unknown[0])

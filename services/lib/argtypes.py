@@ -24,10 +24,13 @@ from typing import Any, NoReturn
 USAGE_EXIT_CODE = 1
 
 
-def did_you_mean(word: str, candidates: Iterable[str]) -> str:
-    """`` (did you mean 'x'?)`` for the closest candidate, or ``""``."""
+def did_you_mean(word: str, candidates: Iterable[str], *, quote: bool = False) -> str:
+    """`` (did you mean x?)`` for the closest candidate, or ``""``; ``quote``: a name the
+    message quotes (``'x'``), as opposed to a flag or command word."""
     hint = difflib.get_close_matches(word, list(candidates), n=1, cutoff=0.6)
-    return f" (did you mean {hint[0]}?)" if hint else ""
+    if not hint:
+        return ""
+    return f" (did you mean {hint[0]!r}?)" if quote else f" (did you mean {hint[0]}?)"
 
 
 def _options(parser: argparse.ArgumentParser) -> list[str]:

@@ -52,6 +52,7 @@ class Setting:
     env: str | None = None  # an environment variable that outranks the default
     shown: str | None = None  # the default as --help shows it (None: the value)
     group: str | None = None  # the --help heading the flag is listed under
+    required: bool = False  # the command cannot run without it (the default is no value)
 
 
 def setting(
@@ -69,6 +70,7 @@ def setting(
     env: str | None = None,
     shown: str | None = None,
     group: str | None = None,
+    required: bool = False,
 ) -> Any:
     """A config field with its default and how it is set from the command line."""
     meta = Setting(
@@ -84,6 +86,7 @@ def setting(
         env=env,
         shown=shown,
         group=group,
+        required=required,
     )
     return dataclasses.field(default=default, metadata={_KEY: meta})
 
@@ -132,6 +135,8 @@ def _flag_kwargs(f: dataclasses.Field[Any], meta: Setting) -> dict[str, Any]:
     """``add_argument``'s keywords for one setting."""
     default = f.default
     kwargs: dict[str, Any] = {"dest": meta.dest or f.name, "help": meta.help}
+    if meta.required:
+        kwargs["required"] = True
     if meta.metavar is not None:
         kwargs["metavar"] = meta.metavar
     if isinstance(default, bool):

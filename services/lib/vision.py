@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import enum
 import math
+import operator
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -61,8 +62,15 @@ class Box:
     score: float | None = None
 
     def __post_init__(self) -> None:
-        if isinstance(self.label, bool) or not isinstance(self.label, int) or self.label < 0:
+        # Any integer type (a detector's class ids are often NumPy or torch integers),
+        # stored as int; not a bool.
+        try:
+            label = operator.index(self.label)
+        except TypeError:
+            label = -1
+        if isinstance(self.label, bool) or label < 0:
             raise SchemaError(f"Box label must be an int >= 0, got {self.label!r}")
+        object.__setattr__(self, "label", label)
         if len(self.corners_px) != 4 or any(len(c) != 2 for c in self.corners_px):
             raise SchemaError(f"Box needs 4 (x, y) corners, got {self.corners_px!r}")
         numbers = [float(v) for corner in self.corners_px for v in corner]

@@ -22,6 +22,7 @@ import numpy as np
 import numpy.typing as npt
 
 from middleware import ConfigError
+from services.lib.argtypes import did_you_mean
 from services.lib.vision import FrameMeta, Output, ResultKind
 
 Image = npt.NDArray[np.uint8]
@@ -59,7 +60,11 @@ def load_handler(spec: str) -> Handler:
         try:
             target = getattr(target, part)
         except AttributeError as exc:
-            raise ConfigError(f"handler {spec!r}: {module_name!r} has no {attr_path!r}") from exc
+            names = [n for n in dir(target) if not n.startswith("_")]
+            raise ConfigError(
+                f"handler {spec!r}: {module_name!r} has no {attr_path!r}"
+                + did_you_mean(part, names, quote=True)
+            ) from exc
     if not callable(target):
         raise ConfigError(
             f"handler {spec!r} is a {type(target).__name__}, not a function; "
@@ -70,6 +75,18 @@ def load_handler(spec: str) -> Handler:
 
 # Handler files loaded by path, so that one named twice (flag check, then run) loads once.
 _FILES: dict[Path, ModuleType] = {}
+# The module name a handler file is loaded under starts with this (``_import_file``).
+_FILE_MODULE_PREFIX = "_framegate_handler_"
+
+
+def handler_name(handler: Handler) -> str:
+    """How a log line names ``handler``: ``module:function``, or ``path/file.py:function``
+    for a handler loaded from a file (not the private module name it is loaded under)."""
+    module = getattr(handler, "__module__", None) or type(handler).__module__
+    name = getattr(handler, "__qualname__", type(handler).__qualname__)
+    if module.startswith(_FILE_MODULE_PREFIX):
+        module = getattr(sys.modules.get(module), "__file__", None) or module
+    return f"{module}:{name}"
 
 
 def _import_file(path: Path) -> ModuleType:
@@ -82,7 +99,7 @@ def _import_file(path: Path) -> ModuleType:
         raise ConfigError(f"handler file {str(path)!r} does not exist")
     if str(path.parent) not in sys.path:
         sys.path.insert(0, str(path.parent))
-    name = f"_framegate_handler_{len(_FILES)}_{path.stem}"
+    name = f"{_FILE_MODULE_PREFIX}{len(_FILES)}_{path.stem}"
     spec = importlib.util.spec_from_file_location(name, path)
     assert spec is not None and spec.loader is not None  # a .py path always has a loader
     module = importlib.util.module_from_spec(spec)

@@ -53,6 +53,7 @@ from middleware import (
     PUSH_ALL,
     ConfigError,
     DataObject,
+    FlowControlRefused,
     FramegateError,
     NetworkConfig,
     Node,
@@ -65,12 +66,14 @@ from middleware import (
 from services.lib.argtypes import positive_int
 from services.lib.messages import decode_image, read_frame_metadata
 from services.lib.settings import add_flags, from_args, setting
-from services.lib.vision import Encoded, ResultKind, encode_result
+from services.lib.vision import Encoded, FrameMeta, ResultKind, encode_result
 from services.nodes._contract import Service, ServiceEntry
 from services.nodes._runtime import setup_logging, unless_stopped
 from services.nodes._vision_handler import (
     Handler,
+    Image,
     handler_argument,
+    handler_name,
     load_handler,
     result_kind,
 )
@@ -116,6 +119,7 @@ class VisionConfig(RunnerConfig):
         "the current directory is importable",
         parse=handler_argument,
         metavar="MODULE:FUNCTION",
+        required=True,
     )
     output: str | None = setting(
         None, "the results buffer (default: detections for boxes, results otherwise)"
@@ -158,6 +162,35 @@ def call_directly(work: Callable[[], object]) -> object:
     return work()
 
 
+class _HandlerExit(Exception):
+    """The handler raised ``SystemExit``, ``KeyboardInterrupt`` or another exception that is
+    not an ``Exception`` (the user's code, not a stop of this service): one skipped frame."""
+
+    def __init__(self, original: BaseException) -> None:
+        super().__init__(_text(original))
+        self.original = original
+
+
+def _guarded(handler: Handler, image: Image, frame: FrameMeta) -> object:
+    """Call the handler; what it raises that is no ``Exception`` comes back as one, so that
+    only a real stop (``_Stopped``, raised by the caller's side, not here) ends the runner."""
+    try:
+        return handler(image, frame)
+    except Exception:
+        raise
+    except BaseException as exc:
+        raise _HandlerExit(exc) from exc
+
+
+def _text(exc: BaseException) -> str:
+    """``str(exc)``, or a placeholder when the handler's exception cannot even say what
+    it is (its ``__str__`` raises)."""
+    try:
+        return str(exc)
+    except Exception:
+        return f"<{type(exc).__name__} whose message cannot be printed>"
+
+
 class VisionStep:
     """One frame in, one element (or a counted skip) out; no network, no threads.
 
@@ -198,12 +231,14 @@ class VisionStep:
             return self.skip("bad-frame", f"frame {timestamp_ns}: {exc}")
         started = time.monotonic_ns()
         try:
-            result = self._call(lambda: self.handler(image, frame))
+            result = self._call(lambda: _guarded(self.handler, image, frame))
         except Exception as exc:  # the user's code: any exception is one skipped frame
+            raised = exc.original if isinstance(exc, _HandlerExit) else exc
+            name = type(raised).__name__
             return self.skip(
-                f"handler-error:{type(exc).__name__}",
-                f"frame {frame.frame_id}: handler raised {type(exc).__name__}: {exc}",
-                exc_info=exc,
+                f"handler-error:{name}",
+                f"frame {frame.frame_id}: handler raised {name}: {_text(raised)}",
+                exc_info=raised,
             )
         processing_ns = time.monotonic_ns() - started
         self.processed += 1
@@ -222,15 +257,19 @@ class VisionStep:
         if reason.startswith("handler-error:") and len(self._warned) >= _MAX_WARNING_KINDS:
             reason = "handler-error:other"
         self.skipped[reason] += 1
-        if warn and reason not in self._warned:
-            self._warned.add(reason)
-            self.log.warning(
-                "%s (skipped; further '%s' skips are counted, not logged)",
-                detail,
+        if warn:
+            self.warn_once(
                 reason,
-                exc_info=exc_info,
+                f"{detail} (skipped; further '{reason}' skips are counted, not logged)",
+                exc_info,
             )
         return Skipped(reason, detail)
+
+    def warn_once(self, kind: str, text: str, exc_info: BaseException | None = None) -> None:
+        """Log ``text`` as a warning the first time ``kind`` is seen."""
+        if kind not in self._warned:
+            self._warned.add(kind)
+            self.log.warning("%s", text, exc_info=exc_info)
 
 
 # -- the service ---------------------------------------------------------------------------
@@ -271,9 +310,15 @@ class Runner:
             try:
                 self.output.put(note.timestamp_ns, outcome.payload, outcome.metadata)
             except FramegateError as exc:
-                # Refused (a full flow-controlled watcher: counted by the producer) or
-                # rejected: the frame's result is lost, said once per kind.
-                self.step.skip(f"put-{type(exc).__name__}", f"cannot store the result: {exc}")
+                # Refused (a full flow-controlled watcher) or rejected (too large, ...):
+                # counted so by the producer; the frame's result is lost, said once per kind.
+                counter = "refused" if isinstance(exc, FlowControlRefused) else "rejected"
+                self.step.warn_once(
+                    f"put-{type(exc).__name__}",
+                    f"cannot store the result of frame {note.timestamp_ns}: {exc} (counted "
+                    f"as {counter} in 'framegate info {self.output.name}'; further ones are "
+                    "not logged)",
+                )
 
     def _count(self, skipped: Skipped) -> None:
         self.output.count_skip(skipped.reason)
@@ -341,7 +386,7 @@ def serve(spec: RunnerSpec, handler: Handler, network: NetworkConfig, stop: thre
             spec.input,
             spec.name,
             spec.output,
-            _describe(handler),
+            handler_name(handler),
             spec.queue,
             f", processing >= {spec.processing_floor_s * 1e3:.0f} ms"
             if spec.processing_floor_s
@@ -353,12 +398,6 @@ def serve(spec: RunnerSpec, handler: Handler, network: NetworkConfig, stop: thre
         except (KeyboardInterrupt, _Stopped):
             pass
     return 0
-
-
-def _describe(handler: Handler) -> str:
-    module = getattr(handler, "__module__", "?")
-    name = getattr(handler, "__qualname__", type(handler).__qualname__)
-    return f"{module}:{name}"
 
 
 def run(config: VisionConfig, network: NetworkConfig, stop: threading.Event | None = None) -> int:

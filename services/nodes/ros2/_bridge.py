@@ -56,7 +56,7 @@ from services.nodes._runtime import setup_logging
 
 from ._camera_info import CAMERA_INFO, TF_MESSAGE, TF_STATIC, CameraSource
 from ._cdr import CHANNELS, DETECTIONS, IMAGE, IMU, STRING, Codec
-from ._config import Mapping, Ros2Config
+from ._config import DEFAULT_FRAME_ID, Mapping, Ros2Config
 from ._inputs import (
     ImagesIn,
     ImuIn,
@@ -133,8 +133,20 @@ class Output:
 class Encoders:
     """framegate elements → CDR messages (``None``: nothing to publish for this one)."""
 
-    def __init__(self, codec: Codec, config: Ros2Config) -> None:
+    def __init__(
+        self,
+        codec: Codec,
+        config: Ros2Config,
+        images_frame: Callable[[], str | None] = lambda: None,
+    ) -> None:
         self._codec, self._config = codec, config
+        self._images_frame = images_frame
+
+    def frame_id(self) -> str:
+        """The outputs' header.frame_id: ``--frame-id`` if given, else that of the images
+        coming in (the same camera: a node that copies the header into its results then
+        names a frame that exists in TF), else ``DEFAULT_FRAME_ID``."""
+        return self._config.frame_id or self._images_frame() or DEFAULT_FRAME_ID
 
     def image(self, element: Any) -> bytes:
         # Only size and encoding are needed, and the producer validated the metadata against
@@ -156,7 +168,7 @@ class Encoders:
         # The frame's one copy: after the CDR head, into the message that goes to Zenoh.
         return self._codec.encode_image(
             self._config.stamp_ns(element.timestamp_ns),
-            self._config.frame_id,
+            self.frame_id(),
             width,
             height,
             encoding,
@@ -172,7 +184,7 @@ class Encoders:
                 raise ValueError(f"marker with {len(corners)} corner numbers, expected 8")
             markers.append((int(marker.findtext(_NS + "id") or 0), corners))
         return self._codec.encode_detections(
-            self._config.stamp_ns(element.timestamp_ns), self._config.frame_id, markers
+            self._config.stamp_ns(element.timestamp_ns), self.frame_id(), markers
         )
 
     def verdict(self, element: Any) -> bytearray:
@@ -249,7 +261,7 @@ def run(config: Ros2Config, network: NetworkConfig, stop: threading.Event | None
             ),
             (config.image_in and cameras.wants_tf and TF_STATIC, TF_MESSAGE),
         )
-        encoders = Encoders(codec, config)
+        encoders = Encoders(codec, config, lambda: images.last_frame_id if images else None)
         outputs: list[Output] = []
         consumer = None
         for mappings, ros_type, encode in (
@@ -281,7 +293,16 @@ def run(config: Ros2Config, network: NetworkConfig, stop: threading.Event | None
                 if t
             )
             or "-",
-            ", ".join(f"{o.mapping.buffer} -> {o.mapping.topic}" for o in outputs) or "-",
+            ", ".join(
+                f"{m.buffer} -> {m.topic}"
+                + (
+                    f" (its results on {config.consumer_done})"
+                    if m == config.consumer_mapping
+                    else ""
+                )
+                for m in config.outputs
+            )
+            or "-",
         )
         if consumer is not None:
             link.watch_graph(consumer.on_token)

@@ -29,6 +29,10 @@ DEFAULT_ROUTER = "tcp/localhost:7447"
 STAMPS = ("start", "middle", "end")
 # The ROS 2 session's lease: Zenoh's default, which rmw_zenoh keeps (see ``ros_network``).
 ROS_LEASE_MS = 10_000
+# The outputs' header.frame_id when neither --frame-id nor images in name one.
+DEFAULT_FRAME_ID = "camera"
+# A header.frame_id longer than this is not taken over for the outputs (TF names are short).
+MAX_FRAME_ID_CHARS = 256
 
 
 @dataclass(frozen=True, slots=True)
@@ -156,7 +160,12 @@ class Ros2Config:
     verdicts_out: tuple[Mapping, ...] = setting(
         (), "mediator decisions -> std_msgs/msg/String (JSON) (repeatable)", **_MAPPINGS
     )
-    frame_id: str = setting("camera", "header.frame_id of outputs", group=_OUT)
+    frame_id: str | None = setting(
+        None,
+        "header.frame_id of outputs (default: that of the images on --image-in, as a node "
+        f"that copies it into its results expects; without them {DEFAULT_FRAME_ID!r})",
+        group=_OUT,
+    )
     out_reliability: Reliability = setting(
         Reliability.RELIABLE, "QoS of the publishers", group=_OUT
     )
@@ -226,6 +235,13 @@ class Ros2Config:
             raise ConfigError(f"--consumer-timeout-ms must be > 0, got {self.consumer_timeout_ms}")
         if self.consumer_done is not None:
             self.consumer_mapping  # noqa: B018 -- raises ConfigError when there is none
+            ours = [m.topic for m in self.outputs]
+            if self.consumer_done in ours or self.consumer_done in (self.image_in, self.imu_in):
+                # Our own messages would "answer" our own images: the node's load unseen.
+                raise ConfigError(
+                    f"--consumer-done {self.consumer_done}: a topic this bridge carries "
+                    "itself; give the topic your node publishes its results on"
+                )
 
     @property
     def consumer_mapping(self) -> Mapping | None:

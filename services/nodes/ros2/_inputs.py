@@ -36,7 +36,7 @@ from services.nodes.gyro import put_samples, sample_elements
 
 from ._camera_info import CAMERA_INFO, TF_MESSAGE, TF_STATIC, CameraSource
 from ._cdr import CdrError, Codec, StampError
-from ._config import Ros2Config
+from ._config import MAX_FRAME_ID_CHARS, Ros2Config
 from ._link import RosLink
 from ._rmw import Attachment, Durability, Qos, Reliability
 from ._sequence import SequenceWatch
@@ -225,6 +225,8 @@ class ImagesIn(_Input):
         )
         super().__init__(producer, skips, config.image_in, config.in_depth)
         self._codec, self._config = codec, config
+        # The header.frame_id of the last image decoded: the outputs' frame (``frame_id``).
+        self.last_frame_id: str | None = None
         self.camera = _camera(config)
         self.cameras = cameras or CameraSource(
             codec,
@@ -251,6 +253,8 @@ class ImagesIn(_Input):
             reason = "bad-cdr" if str(exc).startswith("not a CDR") else "bad-image"
             skip(self.producer, reason, str(exc))
             return
+        if 0 < len(image.frame_id) <= MAX_FRAME_ID_CHARS:
+            self.last_frame_id = image.frame_id
         camera = self.cameras.for_image(
             image.frame_id,
             image.width,

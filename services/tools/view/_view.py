@@ -9,7 +9,6 @@ Zenoh session.
 
 from __future__ import annotations
 
-import difflib
 import logging
 import threading
 import time
@@ -26,6 +25,7 @@ from middleware import (
     check_name,
     split_target,
 )
+from services.lib.argtypes import did_you_mean
 
 from ._config import ViewConfig
 from ._server import FoxgloveServer
@@ -63,11 +63,6 @@ def _find(node: Node, config: ViewConfig) -> list[BufferInfo]:
     return chosen
 
 
-def _did_you_mean(name: str, candidates: list[str]) -> str:
-    hint = difflib.get_close_matches(name, candidates, n=1)
-    return f" (did you mean {hint[0]!r}?)" if hint else ""
-
-
 def _missing(target: str, services: list[ServiceInfo]) -> str | None:
     """Why ``target`` names nothing live (None: it does)."""
     service, buffer = parse_target(target)
@@ -75,14 +70,14 @@ def _missing(target: str, services: list[ServiceInfo]) -> str | None:
     if service not in by_name:
         live = sorted(by_name)
         return (
-            f"no live service named {service!r}{_did_you_mean(service, live)}; "
+            f"no live service named {service!r}{did_you_mean(service, live, quote=True)}; "
             f"live services: {', '.join(live) or 'none'}"
         )
     offered = [b.buffer for b in by_name[service].buffers]
     if buffer is None or buffer in offered:
         return None
     return (
-        f"service {service!r} has no buffer {buffer!r}{_did_you_mean(buffer, offered)}; "
+        f"service {service!r} has no buffer {buffer!r}{did_you_mean(buffer, offered, quote=True)}; "
         f"it offers: {', '.join(offered) or 'none'}"
     )
 

@@ -10,11 +10,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from middleware import ConfigError
+from middleware import ConfigError, SchemaError
 from services.lib.messages import frame_metadata, read_detections
 from services.lib.quality import Exposure
 from services.lib.vision import Box, FrameMeta, Output, ResultKind
-from services.nodes._vision_handler import load_handler, result_kind
+from services.nodes._vision_handler import handler_name, load_handler, result_kind
 from services.nodes.vision import Encoded, Skipped, VisionStep
 from tests.conftest import REPO, child_env
 from tests.helpers.timing import scaled
@@ -67,6 +67,43 @@ def test_a_raising_handler_is_a_counted_skip_with_one_warning_per_exception_type
     assert "handler raised KeyError" in warnings[0] and "handler raised ValueError" in warnings[1]
 
 
+class _Unprintable(Exception):
+    def __str__(self) -> str:
+        raise RuntimeError("this message cannot be printed")
+
+
+@pytest.mark.parametrize(
+    ("raised", "reason"),
+    [
+        (_Unprintable(), "handler-error:_Unprintable"),
+        (SystemExit(3), "handler-error:SystemExit"),
+        (KeyboardInterrupt(), "handler-error:KeyboardInterrupt"),
+    ],
+)
+def test_whatever_a_handler_raises_is_one_skipped_frame_never_the_runner_s_end(
+    raised: BaseException, reason: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    def handler(image: np.ndarray, frame: FrameMeta) -> list[Box]:
+        if frame.frame_id == 1:
+            raise raised
+        return []
+
+    step = VisionStep(handler, ResultKind.DETECTIONS, "in/put", LOG)
+    with caplog.at_level(logging.WARNING, logger="test.vision"):
+        outcomes = [step.process(*_frame(i)) for i in range(3)]
+    assert [type(o).__name__ for o in outcomes] == ["Encoded", "Skipped", "Encoded"]
+    assert step.skipped == {reason: 1}
+    assert len(caplog.records) == 1 and reason.split(":")[1] in caplog.records[0].getMessage()
+
+
+def test_a_box_label_is_any_integer_type_and_nothing_else() -> None:
+    box = Box.from_xywh(np.int64(3), 0, 0, 2, 2, score=np.float32(0.5))
+    assert box.label == 3 and type(box.label) is int
+    for bad in (True, -1, 1.5, np.float64(2.0), "3"):
+        with pytest.raises(SchemaError, match="label must be an int >= 0"):
+            Box.from_xywh(bad, 0, 0, 2, 2)  # type: ignore[arg-type]
+
+
 def test_bad_frames_wrong_results_and_no_results_are_each_counted() -> None:
     results: list[object] = [Output(b"x"), None, [Box(0, ((0, 0),) * 4)]]
     step = VisionStep(lambda image, frame: results.pop(0), ResultKind.DETECTIONS, "a/b", LOG)
@@ -114,6 +151,10 @@ def test_a_handler_is_loaded_by_name() -> None:
         ("no_colon", "must be 'package.module:function'"),
         ("tests.services.nodes.no_such_module:f", "cannot import .*ModuleNotFoundError"),
         ("tests.services.nodes.vision_handlers:missing", "has no 'missing'"),
+        (
+            "tests.services.nodes.vision_handlers:brightst",
+            r"has no 'brightst' \(did you mean 'brightest'\?\)",
+        ),
         ("tests.services.nodes.vision_handlers:NOT_A_FUNCTION", "is a int, not a function"),
     ],
 )
@@ -148,7 +189,7 @@ def _framegate(*argv: str, cwd: Path = REPO) -> subprocess.CompletedProcess[str]
     [
         (["--handler", "nosuch.module:fn"], "cannot import 'nosuch.module'"),
         (["--handler", "tests.services.nodes.vision_handlers:NOT_A_FUNCTION"], "not a function"),
-        ([], "needs --handler"),
+        ([], "the following arguments are required: --handler"),
     ],
 )
 def test_run_vision_refuses_a_bad_handler_in_one_line(argv: list[str], says: str) -> None:
@@ -168,6 +209,17 @@ def test_launch_check_names_the_deploy_line_of_a_bad_handler(tmp_path: Path) -> 
     assert f"{deploy}:5" in result.stderr and "cannot import 'nosuch.module'" in result.stderr
 
 
+def test_launch_check_refuses_a_runner_without_a_handler_in_one_line(tmp_path: Path) -> None:
+    deploy = tmp_path / "vision.yaml"
+    deploy.write_text("version: 1\nservices:\n  vision:\n    args: {queue: 2}\n")
+    result = _framegate("launch", str(deploy), "--check")
+    assert result.returncode == 1, result
+    assert result.stderr.strip().splitlines() == [
+        f"error: {deploy}: service 'vision': the following arguments are required: --handler"
+        " (see 'framegate run vision --help')"
+    ], result.stderr
+
+
 def test_a_handler_is_loaded_from_a_file_with_its_siblings_importable(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -185,6 +237,7 @@ def test_a_handler_is_loaded_from_a_file_with_its_siblings_importable(
     handler = load_handler(spec)
     assert handler(np.zeros((1, 1), np.uint8), None) == 7  # type: ignore[arg-type]
     assert load_handler(spec) is handler
+    assert handler_name(handler) == f"{tmp_path / 'json.py'}:find"  # not its private module
     assert sys.modules[handler.__module__].LOADS == [1]  # loaded once for both
     with pytest.raises(ConfigError, match="does not exist"):
         load_handler(f"{tmp_path / 'missing.py'}:find")

@@ -262,6 +262,17 @@ def test_skips_show_in_the_buffers_skipped_counter(node: Node, codec: Codec) -> 
     assert _skipped(images.producer) == {"bad-cdr": 1, "bad-stamp": 1}
 
 
+def test_outputs_name_the_frame_of_the_images_in_unless_told(node: Node, codec: Codec) -> None:
+    from services.nodes.ros2._bridge import Encoders
+
+    images = ImagesIn(node, codec, Ros2Config(image_in="/cam"), _Skips(logging.getLogger()))
+    frame = lambda: images.last_frame_id  # noqa: E731
+    assert Encoders(codec, Ros2Config(), frame).frame_id() == "camera"  # no image yet
+    images.handle(_image(codec, time.time_ns()), 1)  # header.frame_id "cam"
+    assert Encoders(codec, Ros2Config(), frame).frame_id() == "cam"
+    assert Encoders(codec, Ros2Config(frame_id="optical"), frame).frame_id() == "optical"
+
+
 def test_out_images_keep_pixels_and_refuse_inconsistent_elements(codec: Codec) -> None:
     from middleware import DataObject, make_metadata
     from services.lib.messages import frame_metadata_of

@@ -154,6 +154,23 @@ def test_the_loop_needs_one_image_out_mapping_or_its_name() -> None:
         Ros2Config(image_out=one, consumer_done="/det", consumer_queue=0)
 
 
+@pytest.mark.parametrize(
+    "extra",
+    [{}, {"image_in": "/camera/image_raw"}, {"verdicts_out": (Mapping("m/decisions", "/v"),)}],
+)
+def test_the_loop_refuses_a_result_topic_the_bridge_carries_itself(
+    extra: dict[str, object],
+) -> None:
+    topics = {"image_in": "/camera/image_raw", "verdicts_out": "/v"}
+    done = next((topics[k] for k in extra), "/sharp")
+    with pytest.raises(ConfigError, match=f"--consumer-done {done}: a topic this bridge carries"):
+        Ros2Config(
+            image_out=(Mapping("mediator/images", "/sharp"),),
+            consumer_done=done,
+            **extra,  # type: ignore[arg-type]
+        )
+
+
 def test_each_resolution_is_owed_one_gate_take() -> None:
     book = GateBook(100)
     book.owe(2, 0)
