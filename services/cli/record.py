@@ -143,6 +143,7 @@ def run(args: argparse.Namespace) -> int:
             queue = WriteQueue(writer)
             # The recording starts now: --duration counts from here (see the module).
             started_ns, started = time.time_ns(), time.monotonic()
+            args.started_ns = started_ns
             # Known from the start with --duration, so that nothing stamped after the
             # duration's end is recorded even before the stop is noticed.
             args.stop_ns, args.fetch_deadline = None, None
@@ -207,12 +208,12 @@ def _start(
     args: argparse.Namespace,
     stop: threading.Event | None = None,
 ) -> list[Recorder]:
-    from services.tools.bag import Progress, Recorder, latest_before
+    from services.tools.bag import Progress, Recorder, at_start
 
     stop = stop or threading.Event()
     recorders = []
     for b in buffers:
-        latest = latest_before(node, b.name)
+        initial = at_start(node, b.name, args.started_ns, args.stop_ns)
         sub = node.subscribe(
             b.name,
             queue_size=args.queue,
@@ -220,7 +221,7 @@ def _start(
             wait_s=max(2.0, args.timeout),
         )
         progress = Progress(b.name, b.kind)
-        recorder = Recorder(node, sub, queue, progress, stop, args.count, latest)
+        recorder = Recorder(node, sub, queue, progress, stop, args.count, initial)
         recorder.stop_ns, recorder.deadline = args.stop_ns, args.fetch_deadline
         recorders.append(recorder)
     for recorder in recorders:

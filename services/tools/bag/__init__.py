@@ -39,7 +39,7 @@ from ._format import (
 from ._frames import FrameLayout, frame_layout, metadata_kind
 from ._info import BufferRecord, ChannelInfo, RecordingInfo, recording_info
 from ._reader import Bag, RecordedBuffer, open_bag
-from ._recorder import STOP_SLACK_S, TAIL_FLOOR_S, Progress, Recorder, WriteQueue, latest_before
+from ._recorder import STOP_SLACK_S, TAIL_FLOOR_S, Progress, Recorder, WriteQueue, at_start
 from ._retime import shift_element, timestamp_fields
 from ._scan import Integrity
 from ._writer import COMPRESSIONS, BagWriter
@@ -70,6 +70,7 @@ __all__ = [
     "RecordingInfo",
     "WriteQueue",
     "annotations_topic",
+    "at_start",
     "decode_element",
     "derived_topics",
     "detection_annotations",
@@ -77,7 +78,6 @@ __all__ = [
     "encode_element",
     "frame_layout",
     "image_topic",
-    "latest_before",
     "metadata_json",
     "metadata_kind",
     "metadata_topic",

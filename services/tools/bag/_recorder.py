@@ -8,6 +8,8 @@ end of a burst, which no later notification reports, are fetched as soon as the
 subscription goes quiet, and at the stop everything up to the stop instant is fetched.
 Each buffer's newest element at the start is recorded too (as ``ros2 bag record`` gets a
 transient-local publisher's last message): a camera description put once is in the file.
+"At the start" is by stamp: every element stamped after the recording's start instant is
+recorded, also those stored before the recorder reached their buffer (``at_start``).
 
 Two kinds of loss are counted apart, as rosbag2 splits lost-in-transport from
 lost-in-recorder:
@@ -171,13 +173,25 @@ class WriteQueue:
         self._thread.join()
 
 
-def latest_before(node: Node, target: str) -> list[DataObject]:
-    """The newest element of ``target`` now (none if empty): ask before subscribing, so
-    that nothing stored in between escapes both the query and the notifications."""
+def at_start(
+    node: Node, target: str, started_ns: int, stop_ns: int | None = None
+) -> list[DataObject]:
+    """What ``target`` holds of the recording already: its newest element stamped at or
+    before the start, and every one stamped after it (up to ``stop_ns``). Asked before
+    subscribing, so that nothing stored in between escapes both the query and the
+    notifications; by stamp, not as "the newest now", because buffers are asked one after
+    another: the last is asked tens of ms after the start, and a 1 kHz gyro stores dozens of
+    samples meanwhile, which would have been in no buffer's query and in no notification."""
     try:
-        return node.latest(target, 1, timeout_s=STOP_QUERY_S)
+        before = node.query(
+            target, time_range=TimeRange(None, started_ns), last=1, timeout_s=STOP_QUERY_S
+        )
+        after = node.query(
+            target, time_range=TimeRange(started_ns + 1, stop_ns), timeout_s=STOP_QUERY_S
+        )
     except FramegateError:
         return []
+    return before + after
 
 
 class Recorder:
@@ -193,8 +207,8 @@ class Recorder:
         count: int | None,
         initial: list[DataObject] | None = None,
     ) -> None:
-        """``initial``: the buffer's newest element, queried *before* ``sub`` was made (see
-        ``latest_before``), so that everything stored after it is fetched by range."""
+        """``initial``: what the buffer held of the recording, queried *before* ``sub`` was
+        made (see ``at_start``), so that everything stored after it is fetched by range."""
         self.node = node
         self._initial = list(initial or ())
         self.sub = sub

@@ -112,10 +112,13 @@ def test_record_keeps_every_element_its_buffers_hold(
         # At once, while the buffers still hold what was recorded.
         held = {target: _held(node, target, min(recorded[target])) for target in BUFFERS}
     summary = {row["name"]: row for row in json.loads(result.stdout)["buffers"]}
-    stopped_ns = int(account["stopped_ns"])
+    started_ns, stopped_ns = int(account["started_ns"]), int(account["stopped_ns"])
     for target in BUFFERS:
         row, file, buffer = summary[target], recorded[target], held[target]
         assert row["recorded"] == len(file) > 0, row
+        # The file starts at the recording's start for every buffer (its newest element
+        # then), however long after the start the recorder reached it.
+        assert min(file) <= started_ns, f"{target}: starts {min(file) - started_ns} ns late"
         inside = {t: e for t, e in buffer.items() if min(file) <= t <= stopped_ns}
         assert inside, f"{target}: the buffer no longer holds any of the recording"
         # Nothing held is missing, except (on a machine too busy to fetch it within a
