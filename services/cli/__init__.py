@@ -19,12 +19,27 @@ handler) gets them delivered once the handler is in place.
 
 from __future__ import annotations
 
+import signal
+import sys
+
+
+def _stopped_while_importing(_signum: int, _frame: object) -> None:
+    # No session, file or child exists yet: nothing to close, nothing to report.
+    raise SystemExit(0)
+
+
+# Run as the ``framegate`` command (the console script, or ``python -m services.cli``, whose
+# argv[0] is "-m" while this package loads): a stop during this module's own imports exits 0
+# without a traceback; ``main`` installs the real handler. Imported by anything else (tests,
+# a user's script), the importer's handlers are left alone.
+if sys.argv and (sys.argv[0] == "-m" or sys.argv[0].endswith("framegate")):
+    for _signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(_signum, _stopped_while_importing)
+
 import argparse
 import contextlib
 import importlib
 import os
-import signal
-import sys
 from collections.abc import Callable, Sequence
 from types import FrameType
 from typing import Any
