@@ -40,7 +40,7 @@ from services.lib.argtypes import positive_float, positive_int
 from services.tools.bag import STOP_SLACK_S, TAIL_FLOOR_S
 
 from ._common import command_parser, exit_on_sigterm, format_bytes, network, print_json
-from ._target import add_timeout_argument, resolve
+from ._target import add_timeout_argument, nothing_answered, resolve, where
 
 if TYPE_CHECKING:
     from services.tools.bag import BagWriter, Recorder, WriteQueue
@@ -237,7 +237,11 @@ def _live_buffers(node: Node, timeout_s: float) -> list[BufferInfo]:
         if buffers:
             return buffers
         if time.monotonic() >= deadline:
-            raise ConfigError(f"no live service offers a buffer (waited {timeout_s:g} s)")
+            if error := nothing_answered(node, timeout_s):
+                raise error  # an endpoint that does not answer is not "no buffers"
+            raise ConfigError(
+                f"no live service offers a buffer {where(node.network)} (waited {timeout_s:g} s)"
+            )
         time.sleep(0.2)
 
 

@@ -6,7 +6,7 @@ import argparse
 from dataclasses import replace
 from typing import Any
 
-from middleware import Node
+from middleware import ConfigError, Node, TransportError
 from services.nodes import exit_with_parent
 
 from ._common import command_parser, network, stop_on_signals
@@ -32,7 +32,17 @@ def run(args: argparse.Namespace) -> int:
     stop = stop_on_signals()
     exit_with_parent(stop)  # a router started by `launch` ends with it, however it ends
     endpoints = ", ".join(config.listen) or f"per {config.config_file}"
-    with Node(network=config):
+    try:
+        node = Node(network=config)
+    except TransportError as exc:
+        if "in use" not in str(exc):
+            raise
+        raise ConfigError(
+            f"cannot listen on {endpoints}: the port is already in use (another router, or "
+            "another program); choose another with --listen tcp/127.0.0.1:PORT (or "
+            "FRAMEGATE_LOCAL_PORT / FRAMEGATE_LISTEN)"
+        ) from exc
+    with node:
         print(f"router listening on {endpoints}", flush=True)
         stop.wait()
     return 0

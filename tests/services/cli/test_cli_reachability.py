@@ -8,6 +8,7 @@ import subprocess
 import sys
 import threading
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 
@@ -133,3 +134,22 @@ def test_a_second_view_on_a_taken_port_is_one_line_naming_the_flag() -> None:
     finally:
         first.terminate()
         first.communicate(timeout=TIMEOUT_S)
+
+
+def test_a_router_on_a_taken_port_is_one_line_naming_the_flag(mute_endpoint: str) -> None:
+    result = _framegate("router", "--listen", mute_endpoint)
+    assert result.returncode == 1, result
+    assert result.stderr.count("\n") == 1, result
+    assert f"cannot listen on {mute_endpoint}: the port is already in use" in result.stderr
+    assert "--listen" in result.stderr and "FRAMEGATE_LOCAL_PORT" in result.stderr, result
+
+
+def test_record_all_where_nothing_answers_is_an_error_naming_the_endpoint(
+    mute_endpoint: str, tmp_path: Path
+) -> None:
+    out = tmp_path / "x.mcap"
+    result = _framegate(
+        "record", "--all", "-o", str(out), "--connect", mute_endpoint, "--timeout", "1"
+    )
+    assert result.returncode == 1, result
+    assert result.stderr.startswith("error: nothing answered via " + mute_endpoint), result
