@@ -13,6 +13,7 @@ import argparse
 import struct
 import sys
 import threading
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -137,6 +138,9 @@ def run(args: argparse.Namespace) -> int:
         period_s = 1.0 / args.rate
         put = 0
         last_t = 0
+        # A fixed schedule, as a timer's (`ros2 topic pub -r`): the time a put and its line
+        # take does not lower the rate; one that fell a period behind starts afresh (no burst).
+        due = time.monotonic()
         while put < args.count and not stop.is_set():
             t = max(now_ns(), last_t + 1)
             payload, metadata = make(put, t, args.rate)
@@ -151,7 +155,9 @@ def run(args: argparse.Namespace) -> int:
             else:
                 print(f"published {producer.name} #{put} at {t} ({len(payload)} bytes)", flush=True)
             if put < args.count:
-                stop.wait(period_s)
+                due, wait_s = next_due(due, period_s, time.monotonic())
+                if wait_s > 0:
+                    stop.wait(wait_s)
         _linger(stop, args.linger)
     if args.json:
         print_json_line(
@@ -159,6 +165,15 @@ def run(args: argparse.Namespace) -> int:
         )
     print(f"published {put} {args.kind} elements to {service}/{buffer}", file=sys.stderr)
     return 0
+
+
+def next_due(due: float, period_s: float, now: float) -> tuple[float, float]:
+    """The next put's instant after the one ``due``, and how long to wait for it: a fixed
+    schedule, except that one a period or more behind starts afresh from ``now``."""
+    due += period_s
+    if now - due > period_s:
+        return now, 0.0
+    return due, max(0.0, due - now)
 
 
 def _linger(stop: threading.Event, seconds: float) -> None:

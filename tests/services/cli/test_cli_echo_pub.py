@@ -10,7 +10,7 @@ import pytest
 
 from middleware import NetworkConfig, Node, SubscriptionMode, validate_metadata
 from services.cli._fields import decode_metadata, typed
-from services.cli.pub import KINDS
+from services.cli.pub import KINDS, next_due
 from tests.conftest import wait_until
 from tests.helpers.timing import scaled
 from tests.services.cli.conftest import DISCOVERY_TIMEOUT_S, Cli, LineReader, put_frame
@@ -118,3 +118,15 @@ def test_ls_and_info_show_the_node_and_host_of_each_subscription(
     assert max(len(line) for line in listing.stdout.splitlines()) <= 100, listing.stdout
     # Services of this host share its clock: no offset warning however the round trip went.
     assert "CLOCK OFFSET" not in listing.stdout and "clock of" not in listing.stderr
+
+
+def test_pub_keeps_a_fixed_schedule_that_a_put_s_own_time_does_not_slow() -> None:
+    # 200 Hz: each put and its line took 1 ms; the next is still due 5 ms after the last.
+    due, wait_s = next_due(10.0, 0.005, now=10.001)
+    assert due == pytest.approx(10.005) and wait_s == pytest.approx(0.004)
+    # Already past due (a slow put): at once, and the schedule stays where it was.
+    due, wait_s = next_due(10.0, 0.005, now=10.008)
+    assert due == pytest.approx(10.005) and wait_s == 0.0
+    # More than a period behind (the process did not run): afresh from now, no burst.
+    due, wait_s = next_due(10.0, 0.005, now=10.5)
+    assert due == 10.5 and wait_s == 0.0
