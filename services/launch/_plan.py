@@ -103,6 +103,10 @@ def _check_files(
                 read_dataset(Path(parsed.path))
             except DatasetError as exc:
                 raise ConfigError(f"dataset {parsed.path}: {exc}") from exc
+        device = str(parsed.path or "") if getattr(parsed, "source", None) == "device" else ""
+        if device.startswith("/") and not Path(device).exists():
+            # A device file (an index or a URL is only known once opened).
+            raise ConfigError(f"video device {device} does not exist on this host")
     except ConfigError as exc:
         raise ConfigError(f"{where}: service {spec.name!r}: {exc}") from exc
 

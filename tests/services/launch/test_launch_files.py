@@ -68,6 +68,7 @@ def test_a_config_with_every_certificate_passes(tmp_path: Path) -> None:
             r"cannot read camera description /no/cam\.xml",
         ),
         ("{source: replay, path: /no/dataset}", r"dataset /no/dataset"),
+        ("{source: device, path: /dev/no-video9}", r"video device /dev/no-video9 does not exist"),
     ],
 )
 def test_a_file_a_service_argument_names_must_be_readable(args: str, message: str) -> None:
