@@ -62,9 +62,10 @@ def _inline_commands() -> list[tuple[str, str]]:
                 continue
             for match in re.finditer(r"`(framegate [^`]+)`", line):
                 words = match.group(1).split()[1:]
-                # `framegate record` alone names the command in a sentence; with arguments it
-                # is a command line the reader may copy.
-                if len(words) > 1 and not _PLACEHOLDER.search(" ".join(words)):
+                # `framegate record` (or `framegate run vision`) alone names the command in
+                # a sentence; with arguments it is a command line the reader may copy.
+                naming = len(words) == 1 or (len(words) == 2 and words[0] == "run")
+                if not naming and not _PLACEHOLDER.search(" ".join(words)):
                     found.append((_where(doc, number), match.group(1)))
     return found
 
