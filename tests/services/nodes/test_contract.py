@@ -32,6 +32,8 @@ WHOLE = {
 }
 # Flags whose value must name something that exists (a handler is imported when parsed).
 EXISTING = {"--handler": "services.nodes.detector:detect_aruco"}
+# What a service cannot start without (argparse requires it), given to every parse.
+REQUIRED = {"vision": ["--handler", "tests.services.nodes.vision_handlers:brightest"]}
 
 
 def _parser(name: str) -> argparse.ArgumentParser:
@@ -73,7 +75,8 @@ def _candidates(action: argparse.Action) -> list[list[str]]:
 
 
 def _config(name: str, argv: list[str]) -> Any:
-    return service(name).config_from_args(_parser(name).parse_args(argv))
+    parsed = _parser(name).parse_args([*REQUIRED.get(name, []), *argv])  # argv's value wins
+    return service(name).config_from_args(parsed)
 
 
 def _settable_fields(name: str) -> set[str]:
