@@ -21,6 +21,7 @@ import json
 import os
 import re
 import socket
+from collections.abc import Iterable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -117,9 +118,10 @@ class NetworkConfig:
         env = os.environ if environ is None else environ
         changes: dict[str, Any] = {}
         if env.get("FRAMEGATE_CONNECT"):
-            changes["connect"] = _split(env["FRAMEGATE_CONNECT"])
+            changes["connect"] = _endpoints(_split(env["FRAMEGATE_CONNECT"]), "FRAMEGATE_CONNECT")
         if env.get("FRAMEGATE_LISTEN"):
-            changes["listen"] = _split(env["FRAMEGATE_LISTEN"])
+            listen = _split(env["FRAMEGATE_LISTEN"])
+            changes["listen"] = _endpoints(listen, "FRAMEGATE_LISTEN", lowest=0)
         if env.get("FRAMEGATE_CONFIG"):
             changes["config_file"] = Path(env["FRAMEGATE_CONFIG"])
         if env.get("FRAMEGATE_NAMESPACE"):
@@ -132,9 +134,9 @@ class NetworkConfig:
         """Apply the shared connection flags (see ``add_network_arguments``)."""
         changes: dict[str, Any] = {}
         if getattr(args, "connect", None):
-            changes["connect"] = tuple(args.connect)
+            changes["connect"] = _endpoints(args.connect, "--connect")
         if getattr(args, "listen", None):
-            changes["listen"] = tuple(args.listen)
+            changes["listen"] = _endpoints(args.listen, "--listen", lowest=0)
         if getattr(args, "config", None):
             changes["config_file"] = Path(args.config)
         if getattr(args, "namespace", None):
@@ -333,6 +335,22 @@ def _int(value: str, what: str) -> int:
         return int(value)
     except ValueError as exc:
         raise ConfigError(f"{what} must be an integer, got {value!r}") from exc
+
+
+def _endpoints(endpoints: Iterable[str], what: str, lowest: int = 1) -> tuple[str, ...]:
+    """``endpoints`` as given, or ConfigError naming ``what`` (the flag or variable) for one
+    whose port is a number outside ``lowest``..65535 (Zenoh would only say the endpoint is
+    bad); 0 is a port to listen on (any free one), not one to connect to."""
+    out = tuple(endpoints)
+    for endpoint in out:
+        proto, _, address = endpoint.partition("/")
+        port = address.split("#", 1)[0].split("?", 1)[0].rpartition(":")[2]
+        inet = proto in ("tcp", "tls", "udp", "quic")
+        if inet and port.isdigit() and not lowest <= int(port) < 65536:
+            raise ConfigError(
+                f"{what} {endpoint}: {port} is not a port number: use {lowest}..65535"
+            )
+    return out
 
 
 def _port(value: str, what: str) -> int:

@@ -23,7 +23,7 @@ from services.tools.view import (
 )
 
 from ._common import command_parser, network, stop_on_signals
-from ._target import add_timeout_argument, print_json_line
+from ._target import add_timeout_argument, print_json_line, unreachable
 
 
 def register(subparsers: Any) -> None:
@@ -121,7 +121,15 @@ def run(args: argparse.Namespace) -> int:
                 line = line[: shutil.get_terminal_size().columns - 1]
             print(("\r\x1b[K" if tty else "") + line, end="" if tty else "\n", flush=True)
 
-    counters = run_view(config, network(args), stop=stop, report=report, started=started)
+    net = network(args)
+    if bad := unreachable(net):
+        # Not an error: a viewer may well start before the robot. But not silence either.
+        print(
+            f"warning: cannot reach {bad}; showing nothing until it answers",
+            file=sys.stderr,
+            flush=True,
+        )
+    counters = run_view(config, net, stop=stop, report=report, started=started)
     if tty:
         print()
     published = sum(counters.published.values())

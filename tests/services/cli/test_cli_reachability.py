@@ -92,10 +92,21 @@ def test_a_local_port_that_is_no_port_is_one_line_naming_the_variable(value: str
     )
 
 
-def test_a_connect_port_that_is_no_port_is_said_so() -> None:
+def test_a_connect_port_that_is_no_port_is_one_line_naming_the_flag_or_variable() -> None:
     result = _framegate("ls", "--connect", "tcp/127.0.0.1:99999")
     assert result.returncode == 1, result
-    assert "99999 is not a port number" in result.stderr, result
+    assert result.stderr == (
+        "error: --connect tcp/127.0.0.1:99999: 99999 is not a port number: use 1..65535\n"
+    ), result
+    env = child_env()
+    env["FRAMEGATE_CONNECT"] = "tcp/127.0.0.1:0"  # 0 is a port to listen on, not to reach
+    result = _framegate("ls", env=env)
+    assert result.returncode == 1, result
+    assert result.stderr.startswith("error: FRAMEGATE_CONNECT tcp/127.0.0.1:0: 0 is not"), result
+    result = _framegate("ls", "--listen", "tcp/127.0.0.1:70000")
+    assert "error: --listen tcp/127.0.0.1:70000: 70000 is not a port number: use 0..65535" in (
+        result.stderr
+    ), result
 
 
 def test_router_listens_on_the_rendezvous_port_the_environment_names() -> None:
@@ -153,3 +164,12 @@ def test_record_all_where_nothing_answers_is_an_error_naming_the_endpoint(
     )
     assert result.returncode == 1, result
     assert result.stderr.startswith("error: nothing answered via " + mute_endpoint), result
+
+
+def test_view_of_a_refused_endpoint_warns_and_keeps_waiting_for_it() -> None:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"  # nothing listens there
+    env = child_env()
+    env["FRAMEGATE_VIEW_PORT"] = str(free_port())
+    result = _framegate("view", "--connect", endpoint, "--duration", "1", env=env)
+    assert result.returncode == 0, result  # a viewer may start before the robot
+    assert f"warning: cannot reach {endpoint} (" in result.stderr, result
