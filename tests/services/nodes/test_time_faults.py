@@ -518,13 +518,21 @@ def test_a_stopped_mediator_records_every_frame_stored_meanwhile(pipe: Pipeline)
     wait_until(lambda: len(_decisions(pipe)) >= 3, 90, lambda: "decisions\n" + pipe.log())
     pid = pipe.pid("mediator")
     assert pid is not None
-    stored = pipe.count("camera/images")
     audit = Audit()
     _audit(audit, pipe)  # from before the stop: every frame of the gap is seen
+    mediators = wait_until(lambda: pipe.subscription_ids("camera/images"), 60, "subscriptions")
     os.kill(pid, signal.SIGSTOP)
     try:
-        # Past the lease the camera stores frames nobody takes.
-        wait_until(lambda: pipe.counter("camera/images") >= stored + 10, 60, "frames stored")
+        # Past the lease the camera drops the stopped mediator's subscription and stores
+        # frames nobody takes. Stored frames alone do not show that: the mediator's queue
+        # (8, plus takes not acked yet) holds ten frames stored without a lapse.
+        def lapsed() -> bool:
+            now = pipe.subscription_ids("camera/images")
+            return now is not None and not now & mediators
+
+        wait_until(lapsed, 60, "the camera to drop the stopped mediator's subscription")
+        after = pipe.count("camera/images")
+        wait_until(lambda: pipe.counter("camera/images") >= after + 3, 60, "frames stored")
     finally:
         os.kill(pid, signal.SIGCONT)
     # After SIGCONT the mediator's session reconnects (its links were closed past the
