@@ -53,6 +53,9 @@ IDLE_PROBE_S = 1.0
 WRITE_QUEUE_BYTES = 384 * 2**20
 # A query at the start waits at most this long.
 STOP_QUERY_S = 1.0
+# What ``at_start`` asks for after the start: the buffers are all asked within a few seconds
+# of it; more would fetch at once the whole buffer of a producer whose clock runs far ahead.
+AT_START_WINDOW_NS = 10_000_000_000
 # Every fetch ends at most this long after the stop instant (what is not fetched by then is
 # counted evicted), so a recording ends about this long after its duration.
 STOP_SLACK_S = 1.0
@@ -186,8 +189,13 @@ def at_start(
         before = node.query(
             target, time_range=TimeRange(None, started_ns), last=1, timeout_s=STOP_QUERY_S
         )
+        end_ns = started_ns + AT_START_WINDOW_NS
         after = node.query(
-            target, time_range=TimeRange(started_ns + 1, stop_ns), timeout_s=STOP_QUERY_S
+            target,
+            time_range=TimeRange(
+                started_ns + 1, end_ns if stop_ns is None else min(stop_ns, end_ns)
+            ),
+            timeout_s=STOP_QUERY_S,
         )
     except FramegateError:
         return []
