@@ -125,12 +125,25 @@ class Discovery:
                 out.append(decode_service_info(raw, start, end, service=name))
         return sorted(out, key=lambda s: s.service)
 
-    def service_info(self, service: str, *, timeout_s: float = 2.0) -> ServiceInfo:
-        """One live service's description; NotFoundError if it is not live."""
+    def service_info(
+        self, service: str, *, timeout_s: float = 2.0, unambiguous: bool = False
+    ) -> ServiceInfo:
+        """One live service's description; NotFoundError if it is not live.
+
+        ``unambiguous``: for a decision that must not rest on a peer's word (a clock sample
+        that may remove elements): QueryError when more than one Zenoh session answers as
+        ``service`` (any peer can answer, and Zenoh would pass on only the newest answer)."""
         start = now_ns()
+        consolidation = zenoh.ConsolidationMode.NONE if unambiguous else None
         with zenoh_errors(f"describing {service}"):
-            replies = list(self._session.get(self.keys.info(service), timeout=timeout_s))
+            replies = list(
+                self._session.get(
+                    self.keys.info(service), timeout=timeout_s, consolidation=consolidation
+                )
+            )
         end = now_ns()
+        if unambiguous:
+            _one_replier(replies, service)
         for reply in replies:
             if reply.ok is not None:
                 raw = reply.ok.payload.to_bytes()
@@ -152,16 +165,23 @@ class Discovery:
         a loaded 2-core machine)."""
         start = now_ns()
         # (Zenoh's thread) only the first reply is kept, with when it came: the round trip
-        # that bounds the clock sample's error. It is decoded on the executor.
+        # that bounds the clock sample's error. It is decoded on the executor. Every reply
+        # is asked for (no consolidation): a description that more than one session gives
+        # (any peer can answer as any service) is no answer (``service_info``'s unambiguous).
         first: list[tuple[bytes, int]] = []
+        repliers: set[str] = set()
 
         def on_reply(reply: zenoh.Reply) -> None:
-            if not first and reply.ok is not None:
+            if reply.ok is None:
+                return
+            if reply.replier_id is not None and len(repliers) <= 1:
+                repliers.add(str(reply.replier_id.zid))
+            if not first:
                 first.append((reply.ok.payload.to_bytes(), now_ns()))
 
         def deliver(_now_ns: int) -> None:
             info = None
-            if first:
+            if first and len(repliers) <= 1:
                 raw, end = first[0]
                 with suppress(QueryError):
                     info = decode_service_info(raw, start, end, service=service)
@@ -172,7 +192,12 @@ class Discovery:
 
         handler = zenoh.handlers.Callback(on_reply, finished, indirect=False)
         with zenoh_errors(f"describing {service}"):
-            self._session.get(self.keys.info(service), handler, timeout=timeout_s)
+            self._session.get(
+                self.keys.info(service),
+                handler,
+                timeout=timeout_s,
+                consolidation=zenoh.ConsolidationMode.NONE,
+            )
 
     def _producer_ids(self, service: str) -> frozenset[str]:
         """The Zenoh sessions that answer as ``service`` (empty if none does): whose
@@ -186,6 +211,16 @@ class Discovery:
         """One buffer's description (retention, size, rate, subscriptions, counters)."""
         service, _buffer = split_target(target)
         return buffer_of(self.service_info(service, timeout_s=timeout_s), target)
+
+
+def _one_replier(replies: list[zenoh.Reply], service: str) -> None:
+    """QueryError unless at most one Zenoh session gave a description in ``replies``."""
+    sessions = {str(r.replier_id.zid) for r in replies if r.ok is not None and r.replier_id}
+    if len(sessions) > 1:
+        raise QueryError(
+            f"{len(sessions)} Zenoh sessions answer as {service!r}: its description is not "
+            "trusted (another process, or a peer, answers in its name)"
+        )
 
 
 def buffer_of(info: ServiceInfo, target: str) -> BufferInfo:

@@ -12,7 +12,9 @@ Refusals are trusted only from the producer's own session: the Zenoh layer passe
 control message's sender (the Zenoh session id the producer stamps on it as its source)
 and, when ``judge`` asks for them, the ids of the sessions that answer as the service
 (``trust_producer``; asked again at most every ``RETRY_NS``, so a flood of forged refusals
-costs one question per period); a refusal from any other session is ignored. A refused
+costs one question per period); a refusal counts only when its sender is the one session
+that answers as the service. From any other session, or while more than one session
+answers in the service's name (a peer can answer as any service), it is ignored. A refused
 subscription (or one that met a forged refusal) declares its token again every
 ``RETRY_NS`` (``retry_due``) until the producer greets it: the holder it lost to may
 leave, and a real answer lost among forgeries is asked for again.
@@ -247,8 +249,10 @@ class SubscriberProtocol:
         if ids is None or (sender not in ids and now_ns - self._ids_at_ns >= RETRY_NS):
             return True
         self._unjudged = False
-        if sender not in ids:
-            self._refusal = None  # not from the producer's session: a forgery
+        if ids != {sender}:
+            # Not from the producer's session (a forgery), or more than one session answers
+            # as the service (any peer can answer as any service): not trusted.
+            self._refusal = None
         if self._retry_at_ns is None:
             self._retry_at_ns = now_ns + RETRY_NS
         return False

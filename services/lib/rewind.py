@@ -100,19 +100,33 @@ class RewindFollower:
     """
 
     def __init__(
-        self, node: Node, input_target: str, output: Producer, log: logging.Logger
+        self,
+        node: Node,
+        input_target: str,
+        output: Producer,
+        log: logging.Logger,
+        timeout_s: float = 2.0,
     ) -> None:
         self._node = node
         self._input = input_target
         self._output = output
         self._log = log
+        self._timeout_s = timeout_s
         self._followed: set[Rewind] = set()
+        self._warned = False
 
     def follow(self, stamp_ns: int) -> bool:
         try:
-            rewinds = self._node.buffer_info(self._input, timeout_s=2.0).rewinds
+            rewinds = self._node.buffer_info(self._input, timeout_s=self._timeout_s).rewinds
         except FramegateError as exc:
-            self._log.warning("cannot read the rewinds of %s: %s", self._input, exc)
+            if not self._warned:  # once: each stale element asks again
+                self._warned = True
+                self._log.warning(
+                    "cannot read the rewinds of %s (%s): stale elements are skipped, "
+                    "nothing is removed",
+                    self._input,
+                    exc,
+                )
             return False
         for rewind in rewinds:
             newest = self._output.series.newest_ns

@@ -202,7 +202,7 @@ class ClockOffsets:
 
     def ask(self, service: str) -> SourceClock | None:
         try:
-            info = self._node.service_info(service, timeout_s=_ASK_TIMEOUT_S)
+            info = self._node.service_info(service, timeout_s=_ASK_TIMEOUT_S, unambiguous=True)
         except FramegateError:
             self._answered(service, False)
             return None

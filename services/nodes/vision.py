@@ -21,12 +21,11 @@ element not after the last result (``out-of-order``). A handler that cannot be i
 or a name that is not callable, is refused before anything starts (one ``error:`` line,
 exit 1; ``framegate launch --check`` reports it for a deploy file).
 
-Rewinds: results are never removed because of one input element. Only when the input's
-producer itself went back -- its own newest element is older than our newest result, which
-a producer's strictly increasing buffer allows only after it removed the later elements
-(the mediator does so after a camera restarted with its clock behind) -- are the results
-after the new element removed (counted ``rewound``), mirroring what the producer removed.
-One stale element while the producer still holds newer ones is ``out-of-order``.
+Rewinds: results are never removed because of one input element. Only a rewind the input's
+producer recorded (``BufferInfo.rewinds``: the mediator's, after a camera restarted with its
+clock behind) removes the results it explains (counted ``rewound``), mirroring what the
+producer removed (``RewindFollower``). Any other stale element, forged or not, is
+``out-of-order``, and nothing is removed.
 
 Threads: the service's main thread runs the loop (take one notification, process, put);
 the handler runs on a short-lived worker thread (``unless_stopped``), one call at a time,
@@ -65,6 +64,7 @@ from middleware import (
 )
 from services.lib.argtypes import positive_int
 from services.lib.messages import decode_image, read_frame_metadata
+from services.lib.rewind import RewindFollower
 from services.lib.settings import add_flags, from_args, setting
 from services.lib.vision import Encoded, FrameMeta, ResultKind, encode_result
 from services.nodes._contract import Service, ServiceEntry
@@ -81,7 +81,7 @@ from services.nodes._vision_handler import (
 # Distinct warning kinds remembered; past this, further kinds share one (a handler raising
 # a new exception type per frame must not grow the log or this set without bound).
 _MAX_WARNING_KINDS = 64
-# How long the check "did the input's producer go back?" waits for its answer.
+# How long reading the input producer's recorded rewinds waits for its answer.
 _INPUT_INFO_TIMEOUT_S = 1.0
 
 
@@ -284,6 +284,9 @@ class Runner:
         self.step = step
         self.node = node
         self.output = output
+        self.rewinds = RewindFollower(
+            node, spec.input, output, step.log, timeout_s=_INPUT_INFO_TIMEOUT_S
+        )
         self.stop = stop
 
     def handle(
@@ -325,24 +328,17 @@ class Runner:
 
     def _in_order(self, timestamp_ns: int) -> bool:
         """Whether a result for ``timestamp_ns`` can follow ours; removes our later results
-        only when the input's producer went back itself (see the module docstring)."""
+        only as a rewind the input's producer recorded says (see the module docstring)."""
         newest = self.output.series.newest_ns
         if newest is None or timestamp_ns > newest:
             return True
-        try:
-            producer_newest = self.node.buffer_info(
-                self.spec.input, timeout_s=_INPUT_INFO_TIMEOUT_S
-            ).newest_ns
-        except FramegateError:
-            producer_newest = None  # cannot tell: keep what we have
-        if producer_newest is not None and producer_newest < newest:
-            self.output.discard_after(timestamp_ns - 1, "rewound")
+        if self.rewinds.follow(timestamp_ns):
             return True
         self._count(
             self.step.skip(
                 "out-of-order",
-                f"frame {timestamp_ns} is not after the last result ({newest}) and "
-                f"{self.spec.input} still holds newer frames; skipped, nothing removed",
+                f"frame {timestamp_ns} is not after the last result ({newest}), and no "
+                f"rewind that {self.spec.input} recorded explains it; skipped, nothing removed",
             )
         )
         return False

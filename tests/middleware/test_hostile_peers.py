@@ -26,6 +26,7 @@ from middleware import (
     FlowControlRefused,
     NetworkConfig,
     Node,
+    QueryError,
     SubscriptionMode,
     make_metadata,
     now_ns,
@@ -193,6 +194,92 @@ def test_a_forged_refusal_does_not_refuse(listen_net: NetworkConfig, endpoint: s
                 sub.close()
         finally:
             stop()
+
+
+@contextmanager
+def _answering_as(rogue: zenoh.Session, service: str) -> Iterator[None]:
+    """``rogue`` answers ``@info`` of ``service`` too, with a copy of the real description."""
+    copy = next(r.ok.payload.to_bytes() for r in rogue.get(KEYS.info(service)) if r.ok)
+
+    def answer(query: zenoh.Query) -> None:
+        with query:
+            query.reply(query.key_expr, copy)
+
+    queryable = rogue.declare_queryable(KEYS.info(service), zenoh.handlers.Callback(answer))
+    try:
+        yield
+    finally:
+        queryable.undeclare()
+
+
+def test_a_refusal_from_a_peer_that_also_answers_as_the_service_does_not_refuse(
+    listen_net: NetworkConfig, endpoint: str
+) -> None:
+    """The rogue answers ``@info`` in the producer's name, so its session is among those that
+    answer as the service: with two sessions answering, no refusal is trusted."""
+    with (
+        Node("cam", listen_net) as service,
+        open_session(endpoint) as rogue,
+        Node(network=NetworkConfig(connect=(endpoint,))) as client,
+    ):
+        images = service.offer("images")
+        wait_until(lambda: "cam" in client.live_services(), scaled(10), "the service")
+
+        def refuse(token: str) -> None:
+            parts = token.split("/")
+            sub_id, descriptor = parts[4], "/".join(parts[5:8])
+            forged = msgpack.packb(("refused", descriptor, "forged: go away"))
+            rogue.put(
+                KEYS.notify("cam", "images", sub_id),
+                b"",
+                attachment=forged,
+                source_info=zenoh.SourceInfo(rogue.id, 0),
+            )
+
+        with _answering_as(rogue, "cam"):
+            stop = _watch_tokens(rogue, refuse)
+            try:
+                for t in range(1, 4):
+                    sub = client.subscribe("cam/images", queue_size=2, wait_s=scaled(10))
+                    images.put(t, b"x", make_metadata("generic", t), wait_s=scaled(5))
+                    note = sub.take(timeout_s=scaled(5))
+                    assert note is not None and note.timestamp_ns == t
+                    sub.close()
+            finally:
+                stop()
+
+
+def test_a_description_two_sessions_give_decides_nothing(
+    listen_net: NetworkConfig, endpoint: str
+) -> None:
+    """What may decide a rewind (a source's clock sample) is taken only from a description one
+    session alone gives: a peer answering in the service's name makes it no answer."""
+    with (
+        Node("cam", listen_net) as service,
+        open_session(endpoint) as rogue,
+        Node(network=NetworkConfig(connect=(endpoint,))) as client,
+    ):
+        service.offer("images")
+        wait_until(lambda: "cam" in client.live_services(), scaled(10), "the service")
+        assert client.service_info("cam", unambiguous=True).service == "cam"
+        with _answering_as(rogue, "cam"):
+
+            def refused() -> str | None:
+                # Until the rogue's queryable has reached the client (a loaded machine's
+                # declaration can take a while), one session still answers alone.
+                try:
+                    client.service_info("cam", unambiguous=True, timeout_s=scaled(2))
+                except QueryError as exc:
+                    return str(exc)
+                return None
+
+            said = wait_until(refused, scaled(30), "the two answers to be refused")
+            assert "2 Zenoh sessions answer as 'cam'" in said, said
+            answers: list[object] = []
+            client.ask_service_info("cam", answers.append, timeout_s=scaled(2))
+            wait_until(lambda: answers, scaled(10), "the answer")
+            assert answers == [None]
+            assert client.service_info("cam").service == "cam"  # for reading, as before
 
 
 def test_a_bare_service_token_does_not_stop_the_service(

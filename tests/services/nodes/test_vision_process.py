@@ -162,7 +162,7 @@ def _refused(node: Node, target: str) -> int:
         return 0
 
 
-def test_results_are_removed_only_when_the_input_producer_itself_went_back() -> None:
+def test_results_are_removed_only_by_a_rewind_the_input_producer_recorded() -> None:
     net = NetworkConfig(local_port=free_port())
     log = logging.getLogger("test.vision.rewind")
     with Node("src", net) as src_node, Node("vision", net) as node:
@@ -200,6 +200,20 @@ def test_results_are_removed_only_when_the_input_producer_itself_went_back() -> 
         stamps = [e.timestamp_ns - base_ns for e in node.query("vision/detections")]
         assert stamps == [10 * 10**8, 16 * 10**8]
         assert output.info().skipped == {"out-of-order": 1, "rewound": 2}
+        # A peer's forged notification (the producer never stored it) stamped ahead of the
+        # producer, then a stale one: the producer's newest is older than our newest result,
+        # but it recorded no rewind of it, so nothing is removed.
+        forged = base_ns + 90 * 10**8
+        image = np.full((8, 8), 90, np.uint8)
+        meta = frame_metadata(90, Exposure(forged, 1_000_000), image, None)
+        note = Notification(
+            "src", "images", forged, 90, meta, DataObject(forged, image.tobytes(), meta)
+        )
+        runner.handle([note], lambda n: n.element)  # type: ignore[arg-type,return-value]
+        handle(17)
+        stamps = [e.timestamp_ns - base_ns for e in node.query("vision/detections")]
+        assert stamps == [10 * 10**8, 16 * 10**8, 90 * 10**8]
+        assert output.info().skipped == {"out-of-order": 2, "rewound": 2}
 
 
 def test_a_handler_returning_output_fills_a_generic_results_buffer() -> None:
