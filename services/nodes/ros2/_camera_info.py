@@ -52,10 +52,15 @@ TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 TF_STATIC = "/tf_static"
 # /tf_static messages waiting for the image worker; a broadcaster sends one per change.
 TF_QUEUE = 64
+# A /tf_static message larger than this is not kept (counted ``bad-tf``): a robot's static
+# transforms are a few hundred bytes each, and TF_QUEUE messages of Zenoh's largest size
+# (a peer's garbage) would hold gigabytes.
+TF_MAX_BYTES = 256 * 1024
 # How many times a changed camera description is logged (a peer may change it forever).
 _LOG_CHANGES = 8
 
-CountSkip = Callable[[str, str], None]
+# (reason, detail, how many): count skipped messages under ``reason``.
+CountSkip = Callable[[str, str, int], None]
 
 
 def is_rectified(image_topic: str) -> bool:
@@ -149,6 +154,7 @@ class CameraSource:
         self._info_raw: bytes | None = None
         self._tf_raw: collections.deque[tuple[bytes, bytes]] = collections.deque()
         self._tf_dropped = 0
+        self._tf_oversize = 0
         self._imu_frame: str | None = None
         self._tf = StaticTransforms()
         self._tf_version = 0
@@ -182,6 +188,9 @@ class CameraSource:
             with contextlib.suppress(ValueError):  # not rmw_zenoh's: one unnamed broadcaster
                 broadcaster = Attachment.decode(attachment).source_gid
         with self._lock:
+            if len(payload) > TF_MAX_BYTES:
+                self._tf_oversize += 1
+                return
             if len(self._tf_raw) >= TF_QUEUE:
                 self._tf_raw.popleft()
                 self._tf_dropped += 1
@@ -202,15 +211,18 @@ class CameraSource:
             tf_raw = list(self._tf_raw)
             self._tf_raw.clear()
             dropped, self._tf_dropped = self._tf_dropped, 0
+            oversize, self._tf_oversize = self._tf_oversize, 0
             imu_frame = self._imu_frame
         if dropped:
-            skip("tf-queue-full", f"{dropped} {TF_STATIC} messages waited too long")
+            skip("tf-queue-full", f"{dropped} {TF_STATIC} messages waited too long", dropped)
+        if oversize:
+            skip("bad-tf", f"{oversize} {TF_STATIC} messages over {TF_MAX_BYTES} bytes", oversize)
         for broadcaster, raw in tf_raw:
             try:
                 self._tf.update(broadcaster, transforms(self._codec, raw))
                 self._tf_version += 1
             except CdrError as exc:
-                skip("bad-tf", str(exc))
+                skip("bad-tf", str(exc), 1)
         if info_raw is not None:
             self._read_info(info_raw, width, height, skip)
         elif self._intrinsics is not None and (
@@ -240,13 +252,14 @@ class CameraSource:
             self._intrinsics = None
             return
         if isinstance(found, CdrError):
-            skip("bad-camera-info", f"{self._info_topic}: {found}")
+            skip("bad-camera-info", f"{self._info_topic}: {found}", 1)
             return
         if (found.width_px, found.height_px) != (width, height):
             skip(
                 "camera-info-mismatch",
                 f"{self._info_topic} describes {found.width_px}x{found.height_px} images, "
                 f"{self._image_topic} has {width}x{height}",
+                1,
             )
             self._info_problem = (
                 f"a CameraInfo on {self._info_topic} for {width}x{height} images "

@@ -259,7 +259,7 @@ class ImagesIn(_Input):
             image.frame_id,
             image.width,
             image.height,
-            lambda reason, detail: skip(self.producer, reason, detail),
+            lambda reason, detail, n: skip(self.producer, reason, detail, n),
         )
         if camera is not None and (camera.width_px, camera.height_px) != (
             image.width,

@@ -33,6 +33,12 @@ MAX_PUBLISHERS = 256
 # sequence, not a network gap: at 1 kHz this is 17 minutes of samples): counting starts
 # again there, and the jump itself is counted once as ``sequence-jump``.
 MAX_GAP = 1 << 20
+# A forward jump larger than this is believed only when the publisher's next sample
+# continues from it: one sample numbered far ahead (a peer forging the gid, which its public
+# token gives away) then neither adds phantom losses nor moves the count past the real
+# publisher's numbers (each later gap would look "older" and go uncounted). A real burst of
+# losses is continued by the next sample, and counted then.
+CONFIRM_GAP = 1024
 
 
 @dataclass(slots=True)
@@ -41,6 +47,7 @@ class _Publisher:
     first: int | None = None
     fresh: bool | None = None  # appeared after the graph was known; None: not announced
     start_counted: bool = False
+    pending: int | None = None  # a number past a large jump, until the next one confirms it
 
 
 @dataclass(frozen=True, slots=True)
@@ -91,14 +98,27 @@ class SequenceTracker:
             publisher.first = publisher.last = sequence
             self._count_start(publisher)
             return
+        if publisher.pending is not None:
+            pending, publisher.pending = publisher.pending, None
+            if 0 < sequence - pending <= CONFIRM_GAP:  # continued: the jump was real
+                self._gap(pending - publisher.last - 1)
+                publisher.last = pending
+            else:
+                self.jumps += 1  # one number far off, not continued: nothing lost
         gap = sequence - publisher.last - 1
+        if gap > CONFIRM_GAP:
+            publisher.pending = sequence
+            return
+        self._gap(gap)
+        # Older or equal numbers (a duplicate, a reordering) lose nothing and change nothing.
+        if sequence > publisher.last:
+            publisher.last = sequence
+
+    def _gap(self, gap: int) -> None:
         if gap > MAX_GAP:
             self.jumps += 1
         elif gap > 0:
             self.lost += gap
-        # Older or equal numbers (a duplicate, a reordering) lose nothing and change nothing.
-        if sequence > publisher.last:
-            publisher.last = sequence
 
     def _count_start(self, publisher: _Publisher) -> None:
         if publisher.fresh and publisher.first is not None and not publisher.start_counted:

@@ -154,7 +154,7 @@ def test_camera_xml_and_the_rotation_flag_override_ros2(
     config = Ros2Config(image_in="/cam/image_raw", camera_xml=path, imu_to_camera=flip)
     images = ImagesIn(node, codec, config, _Skips(logging.getLogger("test")))
     assert not images.cameras.wants_camera_info and not images.cameras.wants_tf
-    found = images.cameras.for_image(IMAGE_FRAME, 64, 48, lambda r, d: None)
+    found = images.cameras.for_image(IMAGE_FRAME, 64, 48, lambda r, d, n: None)
     assert found is not None and found.gyro_to_camera == flip and found.fx_px == 50.0
 
 
@@ -259,3 +259,29 @@ def test_the_camera_info_topic_is_beside_the_image_topic_unless_told() -> None:
     assert told.camera_info_topic == "/r/info"
     with pytest.raises(ConfigError, match="--imu-to-camera takes 9 numbers"):
         Ros2Config(imu_to_camera=(1.0, 0.0))
+
+
+def test_tf_static_holds_bounded_bytes_and_counts_every_message_it_drops(codec: Codec) -> None:
+    from collections import Counter
+
+    from services.nodes.ros2._camera_info import TF_MAX_BYTES, TF_QUEUE
+
+    cameras = CameraSource(
+        codec,
+        logging.getLogger("test"),
+        image_topic="/cam/image_raw",
+        info_topic="/cam/camera_info",
+        imu_topic="/imu",
+    )
+    for _ in range(3):  # a peer's garbage of Zenoh's largest sizes: never held
+        cameras.on_tf(bytes(TF_MAX_BYTES + 1), None)
+    for _ in range(TF_QUEUE + 10):  # more than the queue holds: the oldest 10 dropped
+        cameras.on_tf(b"garbage", None)
+    counted: Counter[str] = Counter()
+
+    def skip(reason: str, _detail: str, n: int) -> None:
+        counted[reason] += n
+
+    cameras.for_image(IMAGE_FRAME, 64, 48, skip)
+    assert counted["tf-queue-full"] == 10
+    assert counted["bad-tf"] == 3 + TF_QUEUE  # the oversize and the garbage read

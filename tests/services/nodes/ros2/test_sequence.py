@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from services.nodes.ros2._rmw import Attachment, EntityKind, NodeIdentity, Qos, gid
-from services.nodes.ros2._sequence import MAX_GAP, SequenceTracker, SequenceWatch
+from services.nodes.ros2._sequence import CONFIRM_GAP, MAX_GAP, SequenceTracker, SequenceWatch
 
 A, B = b"a" * 16, b"b" * 16
 
@@ -50,7 +50,28 @@ def test_forged_numbers_cost_bounded_memory_and_an_absurd_jump_is_not_a_loss() -
     tracker.sample(A, 1)
     tracker.sample(A, 2 + MAX_GAP + 1)
     tracker.sample(A, 0)  # not a number rmw_zenoh writes
+    tracker.sample(A, 2 + MAX_GAP + 2)  # continued: a reset, not a loss of a million
     assert (tracker.lost, tracker.jumps) == (0, 1)
+
+
+def test_one_forged_number_far_ahead_neither_adds_losses_nor_stops_the_count() -> None:
+    tracker = SequenceTracker()
+    for seq in (1, 2, 3):
+        tracker.sample(A, seq)
+    tracker.sample(A, 1 << 62)  # a peer forging A's gid
+    tracker.sample(A, 4 + (1 << 20))  # and one that would add a million phantom losses
+    for seq in (5, 8, 10):  # the real publisher goes on, losing 4, 6, 7 and 9
+        tracker.sample(A, seq)
+    assert (tracker.lost, tracker.jumps) == (4, 2)
+
+
+def test_a_real_burst_of_losses_is_counted_once_the_next_sample_continues_it() -> None:
+    tracker = SequenceTracker()
+    tracker.sample(A, 1)
+    tracker.sample(A, 1 + CONFIRM_GAP + 500)  # a link down for a while at 1 kHz
+    assert tracker.lost == 0  # not yet: one number far ahead may be forged
+    tracker.sample(A, 2 + CONFIRM_GAP + 500)
+    assert (tracker.lost, tracker.jumps) == (CONFIRM_GAP + 499, 0)
 
 
 def test_the_watch_reads_attachments_and_the_graphs_tokens() -> None:
