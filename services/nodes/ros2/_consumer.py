@@ -89,6 +89,10 @@ def ros_type_of(dds_type: str) -> str:
     return f"{parts[0]}/{parts[1]}/{parts[3][:-1]}"
 
 
+# Result types listened to on the result topic at most (a node publishes one).
+MAX_RESULT_TYPES = 8
+
+
 @dataclass(frozen=True, slots=True)
 class ResultType:
     """The result topic's type as its publishers announce it."""
@@ -98,20 +102,22 @@ class ResultType:
 
 
 class DoneTopic:
-    """Learns the result topic's type from the ROS graph's publisher tokens.
+    """Learns the result topic's types from the ROS graph's publisher tokens.
 
-    Feed it every liveliness token (one caller at a time). The first publisher of the topic
-    decides; a publisher announcing another type or hash later is reported once (its
-    samples travel on another data key, so the bridge cannot hear them).
+    Feed it every liveliness token (one caller at a time). Each type (and hash) a publisher
+    of the topic announces is listened to, up to ``MAX_RESULT_TYPES``: a token anyone can
+    declare must not choose for the node which of its results are heard (a first publisher
+    of another type would otherwise shut the loop for good). Results are matched by their
+    leading header alone, so a type that has none costs counted ``bad-result`` skips.
     """
 
     def __init__(self, topic: str) -> None:
         self.topic = topic
-        self.found: ResultType | None = None
+        self.found: list[ResultType] = []
         self._said: set[tuple[str, str]] = set()
 
     def feed(self, token: str) -> str | None:
-        """A one-line remark when a token disagrees with the type found first, else None."""
+        """A one-line remark when a token names a type that is not listened to, else None."""
         endpoint = parse_endpoint(token)
         if endpoint is None or endpoint.kind is not EntityKind.PUBLISHER:
             return None
@@ -122,17 +128,17 @@ class DoneTopic:
         except ValueError as exc:
             return self._once(endpoint.dds_type, endpoint.type_hash, f"ignored: {exc}")
         seen = ResultType(ros_type, endpoint.type_hash)
-        if self.found is None:
-            self.found = seen
+        if seen in self.found:
             return None
-        if seen == self.found:
-            return None
-        return self._once(
-            endpoint.dds_type,
-            endpoint.type_hash,
-            f"another publisher announces {ros_type} ({endpoint.type_hash}); the bridge "
-            f"listens to {self.found.ros_type} ({self.found.type_hash}) only",
-        )
+        if len(self.found) >= MAX_RESULT_TYPES:
+            return self._once(
+                endpoint.dds_type,
+                endpoint.type_hash,
+                f"a publisher announces {ros_type} ({endpoint.type_hash}); the bridge already "
+                f"listens to {MAX_RESULT_TYPES} types on this topic and ignores it",
+            )
+        self.found.append(seen)
+        return None
 
     def _once(self, dds_type: str, type_hash: str, text: str) -> str | None:
         if (dds_type, type_hash) in self._said:

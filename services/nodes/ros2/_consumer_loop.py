@@ -72,6 +72,7 @@ from ._consumer import (
     HeaderError,
     Outstanding,
     Resolved,
+    ResultType,
     decode_header,
 )
 from ._link import RosLink, RosPublisher
@@ -136,7 +137,7 @@ class ConsumerLoop:
         self._ledger = Outstanding(depth, int(config.consumer_timeout_ms * 1e6))
         self._book = GateBook(self._ledger.timeout_ns)
         self._done = DoneTopic(config.consumer_done)
-        self._subscribed = False
+        self._subscribed: set[ResultType] = set()  # the result types listened to
         # A full queue refuses the newest result, counted (see _on_result).
         self._answers: queue.Queue[tuple[bytes, bytes | None]] = queue.Queue(_RESULTS_DEPTH)
         self.published = 0
@@ -203,32 +204,31 @@ class ConsumerLoop:
     def run_resolver(self, stop: threading.Event) -> None:
         waiting_said = False
         while not stop.is_set():
-            if not self._subscribed:
-                with self._lock:
-                    found = self._done.found
-                if found is not None:
-                    self._subscribe(found.ros_type, found.type_hash)
-                elif not waiting_said:
-                    waiting_said = True
-                    log.info(
-                        "ros2: waiting for a publisher of %s (its type is read from its "
-                        "liveliness token); until then images to %s free their slot after "
-                        "%.0f ms",
-                        self._done.topic,
-                        self.mapping.topic,
-                        self._config.consumer_timeout_ms,
-                    )
+            with self._lock:
+                new = [t for t in self._done.found if t not in self._subscribed]
+            for found in new:
+                self._subscribe(found)
+            if not self._subscribed and not waiting_said:
+                waiting_said = True
+                log.info(
+                    "ros2: waiting for a publisher of %s (its type is read from its "
+                    "liveliness token); until then images to %s free their slot after "
+                    "%.0f ms",
+                    self._done.topic,
+                    self.mapping.topic,
+                    self._config.consumer_timeout_ms,
+                )
             try:
                 self._turn()
             except Exception as exc:  # never stop resolving: the gate would stay full
                 log.exception("consumer resolver: unexpected error")
                 self._skips.count(self.results, "internal-error", repr(exc))
 
-    def _subscribe(self, ros_type: str, type_hash: str) -> None:
+    def _subscribe(self, found: ResultType) -> None:
         topic = self._done.topic
-        self._link.subscribe(topic, ros_type, type_hash, Qos(), self._on_result)
-        self._subscribed = True
-        log.info("ros2: consumer results on %s as %s (%s)", topic, ros_type, type_hash)
+        self._link.subscribe(topic, found.ros_type, found.type_hash, Qos(), self._on_result)
+        self._subscribed.add(found)
+        log.info("ros2: consumer results on %s as %s (%s)", topic, found.ros_type, found.type_hash)
 
     def _on_result(self, raw: bytes, attachment: bytes | None) -> None:
         """(Zenoh's thread) Only enqueue."""

@@ -13,6 +13,7 @@ from middleware import ConfigError
 from services.nodes.ros2._cdr import DETECTIONS, IMAGE, Codec
 from services.nodes.ros2._config import Mapping, Ros2Config
 from services.nodes.ros2._consumer import (
+    MAX_RESULT_TYPES,
     ConsumerCounts,
     DoneTopic,
     GateBook,
@@ -106,24 +107,31 @@ def _token(topic: str, ros_type: str, hash_chunk: str, kind: EntityKind) -> str:
     return node.endpoint_token(3, kind, topic, ros_type, hash_chunk, Qos())
 
 
-def test_the_result_type_comes_from_the_first_publishers_token() -> None:
+def test_every_result_type_a_publisher_announces_is_listened_to() -> None:
     done = DoneTopic("/yolo/detections")
     hash_chunk = Codec("jazzy").rihs01(DETECTIONS)
     # Subscriptions and other topics say nothing about the publisher's type.
     assert done.feed(_token("/yolo/detections", IMAGE, "h", EntityKind.SUBSCRIPTION)) is None
     assert done.feed(_token("/other", IMAGE, "h", EntityKind.PUBLISHER)) is None
     assert done.feed("@ros2_lv/0/garbage") is None
-    assert done.found is None
-    assert (
-        done.feed(_token("/yolo/detections", DETECTIONS, hash_chunk, EntityKind.PUBLISHER)) is None
-    )
-    assert done.found is not None
-    assert (done.found.ros_type, done.found.type_hash) == (DETECTIONS, hash_chunk)
-    other = _token("/yolo/detections", "my_msgs/msg/Boxes", "RIHS01_00", EntityKind.PUBLISHER)
-    said = done.feed(other)
-    assert said is not None and "my_msgs/msg/Boxes" in said and DETECTIONS in said
-    assert done.feed(other) is None  # said once
-    assert done.found.ros_type == DETECTIONS
+    assert done.found == []
+    # A peer's token of another type first (anyone can declare one) does not shut out the
+    # node's own: both are listened to.
+    forged = _token("/yolo/detections", "std_msgs/msg/String", "RIHS01_00", EntityKind.PUBLISHER)
+    assert done.feed(forged) is None
+    real = _token("/yolo/detections", DETECTIONS, hash_chunk, EntityKind.PUBLISHER)
+    assert done.feed(real) is None and done.feed(real) is None
+    assert [(t.ros_type, t.type_hash) for t in done.found] == [
+        ("std_msgs/msg/String", "RIHS01_00"),
+        (DETECTIONS, hash_chunk),
+    ]
+    # Bounded: a peer inventing types costs at most MAX_RESULT_TYPES subscriptions.
+    for i in range(2 * MAX_RESULT_TYPES):
+        said = done.feed(
+            _token("/yolo/detections", f"my_msgs/msg/T{i}", "RIHS01_00", EntityKind.PUBLISHER)
+        )
+    assert len(done.found) == MAX_RESULT_TYPES
+    assert said is not None and "ignores it" in said
 
 
 @pytest.mark.parametrize("ros_type", [DETECTIONS, "my_msgs/msg/Done", "a_b/msg/C_d"])
