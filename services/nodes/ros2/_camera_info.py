@@ -52,6 +52,10 @@ TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 TF_STATIC = "/tf_static"
 # /tf_static messages waiting for the image worker; a broadcaster sends one per change.
 TF_QUEUE = 64
+# Focal lengths and the principal point of a CameraInfo, in pixels, at most this large (a
+# focal length of 1e300 px is garbage, and would give blur estimates of 1e297 px); a focal
+# length is at least 1 px.
+MAX_PIXELS = 1e6
 # A /tf_static message larger than this is not kept (counted ``bad-tf``): a robot's static
 # transforms are a few hundred bytes each, and TF_QUEUE messages of Zenoh's largest size
 # (a peer's garbage) would hold gigabytes.
@@ -102,7 +106,8 @@ def intrinsics(codec: Codec, raw: bytes, rectified: bool) -> Intrinsics:
     fx, fy, cx, cy = (p[0], p[5], p[2], p[6]) if rectified else (k[0], k[4], k[2], k[5])
     if fx == 0.0:
         raise Uncalibrated(f"{'P' if rectified else 'K'}[0] is 0: the camera is uncalibrated")
-    if not all(math.isfinite(v) for v in (fx, fy, cx, cy)) or fx < 0 or fy <= 0:
+    sane = all(math.isfinite(v) and abs(v) <= MAX_PIXELS for v in (fx, fy, cx, cy))
+    if not sane or fx < 1.0 or fy < 1.0:
         raise CdrError(f"{CAMERA_INFO} focal lengths {fx}, {fy} or centre {cx}, {cy}")
     # A region of interest (width 0: the full image) is cut out first, then binned.
     if roi_w and roi_h:

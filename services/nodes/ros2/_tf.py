@@ -47,12 +47,18 @@ def frame(name: str) -> str:
     return name.lstrip("/")
 
 
+# How far a quaternion's squared length may be from 1 (tf2 allows the same).
+QUATERNION_TOLERANCE = 0.01
+
+
 def rotation_from_quaternion(x: float, y: float, z: float, w: float) -> tuple[float, ...]:
-    """The row-major rotation matrix of a quaternion (normalized first); ValueError for a
-    quaternion that is not finite or has no length."""
-    norm = math.sqrt(x * x + y * y + z * z + w * w)
-    if not math.isfinite(norm) or norm < 1e-9:
-        raise ValueError(f"quaternion ({x}, {y}, {z}, {w}) is not a rotation")
+    """The row-major rotation matrix of a unit quaternion (normalized first); ValueError for
+    one that is not finite or not of unit length within ``QUATERNION_TOLERANCE`` (as tf2
+    refuses such a transform: (1e-6, 0, 0, 0) is no 180-degree turn, only garbage)."""
+    norm2 = x * x + y * y + z * z + w * w
+    if not math.isfinite(norm2) or abs(norm2 - 1.0) > QUATERNION_TOLERANCE:
+        raise ValueError(f"quaternion ({x}, {y}, {z}, {w}) is not a rotation (not unit length)")
+    norm = math.sqrt(norm2)
     x, y, z, w = x / norm, y / norm, z / norm, w / norm
     return (
         1 - 2 * (y * y + z * z),

@@ -175,6 +175,34 @@ def test_rectified_topics_read_p_and_binning_divides(codec: Codec) -> None:
     assert (rect.fx_px, rect.fy_px, rect.cx_px, rect.cy_px) == (250, 260, 165, 125)
 
 
+@pytest.mark.parametrize(
+    "k",
+    [
+        (1e300, 0, 160, 0, 300, 120, 0, 0, 1),
+        (1e-300, 0, 160, 0, 300, 120, 0, 0, 1),
+        (300, 0, -1e300, 0, 300, 120, 0, 0, 1),
+        (300, 0, 160, 0, float("nan"), 120, 0, 0, 1),
+    ],
+)
+def test_a_camera_info_with_absurd_intrinsics_is_refused(
+    codec: Codec, k: tuple[float, ...]
+) -> None:
+    from services.nodes.ros2._cdr import CdrError
+
+    camera = CameraModel(320, 240, 300.0, 300.0, 160.0, 120.0)
+    message = codec.store.deserialize_cdr(
+        camera_info(codec, camera, 1), "sensor_msgs/msg/CameraInfo"
+    )
+    raw = bytes(
+        codec.store.serialize_cdr(
+            dataclasses.replace(message, k=np.array(k, dtype=np.float64)),
+            "sensor_msgs/msg/CameraInfo",
+        )
+    )
+    with pytest.raises(CdrError, match="focal lengths"):
+        intrinsics(codec, raw, rectified=False)
+
+
 def test_one_future_stamp_does_not_poison_later_images(node: Node, codec: Codec) -> None:
     skips = _Skips(logging.getLogger("test"))
     images = ImagesIn(node, codec, Ros2Config(image_in="/cam"), skips)

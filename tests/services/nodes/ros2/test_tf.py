@@ -66,3 +66,16 @@ def test_a_cycle_of_transforms_ends_the_walk() -> None:
         [Transform("a", "b", _about("z", 0.1)), Transform("b", "a", _about("z", 0.1))],
     )
     assert tree.rotation("a", "c") is None
+
+
+@pytest.mark.parametrize(
+    "q",
+    [(1e-6, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 0.0), (2.0, 0.0, 0.0, 0.0), (math.nan, 0.0, 0.0, 1.0)],
+)
+def test_a_quaternion_that_is_not_of_unit_length_is_no_rotation(
+    q: tuple[float, float, float, float],
+) -> None:
+    with pytest.raises(ValueError, match="not a rotation"):
+        rotation_from_quaternion(*q)
+    # Rounding in a message is normalized away, as tf2 does.
+    assert _matrix(rotation_from_quaternion(0.0, 0.0, 0.0, 1.004)) == pytest.approx(np.eye(3))
