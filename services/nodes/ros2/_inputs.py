@@ -239,7 +239,9 @@ class ImagesIn(_Input):
         )
 
     def take(self, raw: bytes, sequence: int) -> None:
-        self.handle(raw, sequence)  # the frame's id is its publisher's sequence number
+        # The frame's id is its publisher's sequence number, when it is one a frame id can be
+        # (a peer's attachment may say anything; the image is not refused for it).
+        self.handle(raw, sequence if 0 <= sequence < 2**63 else 0)
 
     def handle(self, raw: bytes, frame_id: int) -> None:
         """Decode, check and put one image; every failure is a counted skip."""

@@ -215,6 +215,18 @@ def test_one_future_stamp_does_not_poison_later_images(node: Node, codec: Codec)
     assert images.producer.info().puts == 2
 
 
+def test_an_image_is_not_refused_for_the_sequence_number_its_attachment_says(
+    node: Node, codec: Codec
+) -> None:
+    skips = _Skips(logging.getLogger("test"))
+    images = ImagesIn(node, codec, Ros2Config(image_in="/cam"), skips)
+    now = time.time_ns()
+    for i, sequence in enumerate((-5, 2**63, 7)):  # no frame id, no frame id, one
+        images.take(_image(codec, now + i * 1_000_000, 8, 4), sequence)
+    assert skips.counts == {} and images.producer.info().puts == 3
+    assert images.producer.info().rejected == 0
+
+
 def test_imu_stamps_are_checked_field_by_field_and_a_future_one_does_not_poison(
     node: Node, codec: Codec
 ) -> None:
