@@ -30,6 +30,7 @@ from ._config import (
     NetworkConfig,
     add_network_arguments,
     check_name,
+    endpoint_parts,
     network_from_args,
 )
 from ._discovery import split_target
@@ -105,6 +106,7 @@ __all__ = [
     "XmlLimits",
     "add_network_arguments",
     "check_name",
+    "endpoint_parts",
     "field_text",
     "make_metadata",
     "network_from_args",

@@ -337,14 +337,21 @@ def _int(value: str, what: str) -> int:
         raise ConfigError(f"{what} must be an integer, got {value!r}") from exc
 
 
+def endpoint_parts(endpoint: str) -> tuple[str, str, str]:
+    """(protocol, host, port) of a Zenoh endpoint such as ``tcp/10.0.0.2:7447#iface=eth0``
+    (its ``?``/``#`` options dropped); a part it lacks is ""."""
+    proto, _, address = endpoint.partition("/")
+    host, _, port = address.split("#", 1)[0].split("?", 1)[0].rpartition(":")
+    return proto, host, port
+
+
 def _endpoints(endpoints: Iterable[str], what: str, lowest: int = 1) -> tuple[str, ...]:
     """``endpoints`` as given, or ConfigError naming ``what`` (the flag or variable) for one
     whose port is a number outside ``lowest``..65535 (Zenoh would only say the endpoint is
     bad); 0 is a port to listen on (any free one), not one to connect to."""
     out = tuple(endpoints)
     for endpoint in out:
-        proto, _, address = endpoint.partition("/")
-        port = address.split("#", 1)[0].split("?", 1)[0].rpartition(":")[2]
+        proto, _host, port = endpoint_parts(endpoint)
         inet = proto in ("tcp", "tls", "udp", "quic")
         if inet and port.isdigit() and not lowest <= int(port) < 65536:
             raise ConfigError(

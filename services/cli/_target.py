@@ -22,6 +22,7 @@ from middleware import (
     Node,
     NotFoundError,
     ServiceInfo,
+    endpoint_parts,
     split_target,
 )
 from services.lib.argtypes import did_you_mean, positive_float
@@ -57,10 +58,9 @@ def unreachable(net: NetworkConfig, timeout_s: float = 1.0) -> str | None:
     TCP connect tells "nothing answers there" from "nothing is live".
     """
     for endpoint in net.connect:
-        proto, _, address = endpoint.partition("/")
+        proto, host, port = endpoint_parts(endpoint)
         if proto not in ("tcp", "tls"):
             continue  # udp, quic, serial...: no connection to try
-        host, _, port = address.split("#", 1)[0].split("?", 1)[0].rpartition(":")
         if not host or not port.isdigit():
             return f"{endpoint} (no port number: write {proto}/HOST:PORT)"
         if not 0 < int(port) < 65536:
