@@ -10,7 +10,9 @@ stamp, stamp 1 or 2^63-1 remove nothing: the element is dropped, counted, instea
 
 from __future__ import annotations
 
+import collections
 import logging
+import time
 from dataclasses import dataclass
 
 from middleware import FramegateError, Node, Producer, Rewind, ServiceInfo
@@ -87,6 +89,13 @@ def rewind_after(
     return RewindCheck(first_ns - 1, "source-clock-stepped-back")
 
 
+# At most this many asks of the input's rewinds per second; past that, stale elements are
+# skipped without asking: each ask is a round trip on the stage's thread, and a peer can send
+# stale elements as fast as it likes. A genuine rewind is recorded before the input's first
+# element that needs it, so it is found at once unless a burst of stale ones came just before.
+ASKS_PER_S = 5
+
+
 class RewindFollower:
     """For a stage whose output is keyed by its input's stamps (the detector): follow
     only the rewinds its input producer recorded.
@@ -114,8 +123,13 @@ class RewindFollower:
         self._timeout_s = timeout_s
         self._followed: set[Rewind] = set()
         self._warned = False
+        self._asked: collections.deque[int] = collections.deque(maxlen=ASKS_PER_S)
 
     def follow(self, stamp_ns: int) -> bool:
+        now = time.monotonic_ns()
+        if len(self._asked) == ASKS_PER_S and now - self._asked[0] < 1_000_000_000:
+            return False  # a burst of stale elements (a peer's, perhaps): asked enough
+        self._asked.append(now)
         try:
             rewinds = self._node.buffer_info(self._input, timeout_s=self._timeout_s).rewinds
         except FramegateError as exc:
@@ -128,6 +142,7 @@ class RewindFollower:
                     exc,
                 )
             return False
+        self._followed &= set(rewinds)  # bounded by what the input's info lists
         for rewind in rewinds:
             newest = self._output.series.newest_ns
             if rewind in self._followed or newest is None:

@@ -45,3 +45,26 @@ def test_nothing_is_removed_unless_the_source_clock_stepped_back(
 ) -> None:
     check = rewind_after(NEWEST, first_ns, before, after, HORIZON)
     assert (check.after_ns, check.why) == (None, why)
+
+
+def test_a_burst_of_stale_elements_asks_the_input_a_bounded_number_of_times() -> None:
+    import logging
+    from types import SimpleNamespace
+    from typing import Any, cast
+
+    from services.lib.rewind import ASKS_PER_S, RewindFollower
+
+    asks: list[str] = []
+
+    def buffer_info(target: str, timeout_s: float) -> Any:
+        asks.append(target)
+        return SimpleNamespace(rewinds=())  # the input recorded no rewind
+
+    node = SimpleNamespace(buffer_info=buffer_info)
+    output = SimpleNamespace(series=SimpleNamespace(newest_ns=1_000))
+    follower = RewindFollower(
+        cast(Any, node), "mediator/images", cast(Any, output), logging.getLogger("test")
+    )
+    # A peer's thousand stale elements: each is skipped (nothing removed), few asks made.
+    assert not any(follower.follow(500) for _ in range(1000))
+    assert len(asks) == ASKS_PER_S
