@@ -56,7 +56,7 @@ must ack every element or the producer stays refused), every ``N // 2`` takes ab
 Coalescing never holds the producer back for long: an ack is also due once the queue runs
 empty or the caller waits idle and ``delay_ns`` has passed since the first take it covers
 (``for_queue``: 1 ms above N = 3, so that a consumer that keeps up does not ack every
-element), or at once when its takes came ``delay_ns`` or more after the takes before them
+element; 20 ms from N = 16, a deep queue: see ``DEEP_QUEUE``), or at once when its takes came ``delay_ns`` or more after the takes before them
 (a slow stream: no later take would join the ack within the delay, and waiting would cost
 a timer per element); ``flush_at_ns`` says when, for the Zenoh layer to send it even if
 the caller does not come back (``Subscription``: the caller waiting in ``take`` sends it
@@ -91,6 +91,14 @@ FORGOTTEN_EPOCHS = 256
 REACK_NS = 500_000_000
 # A coalescing subscriber whose queue ran empty acks at most this much later.
 ACK_DELAY_NS = 1_000_000
+# A queue this deep is a buffer against stalls (the mediator's 256 gyro samples), not the
+# load signal the paper's rule reads from a queue of a few frames: its emptied queue acks
+# within ``DEEP_ACK_DELAY_NS``, so a stream of up to 50 takes/s shares one ack among
+# several takes. An ack is a wake-up of a Zenoh thread on each side (~100 us of CPU per
+# ack at 100 Hz here), more than the notification costs. What it holds back: at most 20 ms
+# of the producer's credit, far from such a queue's depth at any rate it keeps up with.
+DEEP_QUEUE = 16
+DEEP_ACK_DELAY_NS = 20_000_000
 
 T = TypeVar("T")
 
@@ -110,9 +118,14 @@ class AckPolicy:
         """Coalesce up to half a queue's worth of takes into one ack (each take below 4):
         the producer then sees at most ``N // 2 - 1`` elements as queued that are already
         taken, and a queue that runs empty acks within ``ACK_DELAY_NS`` (a consumer that
-        keeps up would otherwise ack nearly every element)."""
+        keeps up would otherwise ack nearly every element), a deep one within
+        ``DEEP_ACK_DELAY_NS``."""
         every = max(1, queue_size // 2)
-        return cls(every=every, delay_ns=ACK_DELAY_NS if every > 1 else 0)
+        if every == 1:
+            return cls()
+        return cls(
+            every=every, delay_ns=DEEP_ACK_DELAY_NS if queue_size >= DEEP_QUEUE else ACK_DELAY_NS
+        )
 
 
 @dataclass(slots=True)

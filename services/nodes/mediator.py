@@ -115,10 +115,13 @@ class _Deadline(Protocol):
     def cancel(self) -> None: ...
 
 
+# Gyro notifications the mediator's subscription holds (a deep queue: 25 of the gyro's
+# batches of 10, so a mediator busy for a while never stalls the gyro).
+GYRO_QUEUE = 256
 # step() only (tests without the executor): how often it looks for gyro samples while a
 # frame waits for them; on the executor gyro notifications run their handler at once.
 _GYRO_LOOK_S = 0.005
-# step() only: gyro batches taken per step at most (its queue holds 256 notifications).
+# step() only: gyro batches taken per step at most.
 _GYRO_ROUNDS = 8
 # Looks for the frames stored while our subscription had lapsed, 1 s apart (_record_missed).
 _MISSED_TRIES = 5
@@ -141,7 +144,9 @@ class Mediator:
             push_max_bytes=PUSH_ALL,
             await_service=True,  # a pipeline starts every service at once
         )
-        self._gyro_sub = node.subscribe(config.gyro, queue_size=256, wait_s=0, await_service=True)
+        self._gyro_sub = node.subscribe(
+            config.gyro, queue_size=GYRO_QUEUE, wait_s=0, await_service=True
+        )
         self.gyro = GyroCache()
         self._camera_name = split_target(config.camera)[0]
         self._gyro_name = split_target(config.gyro)[0]

@@ -34,7 +34,13 @@ from hypothesis.database import DirectoryBasedExampleDatabase
 from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, precondition, rule
 
 from middleware._ledger_producer import RETRANSMIT_NS, RegistrationKey
-from middleware._ledger_subscriber import ACK_DELAY_NS, MAX_EPOCHS, AckPolicy, Entry
+from middleware._ledger_subscriber import (
+    ACK_DELAY_NS,
+    DEEP_ACK_DELAY_NS,
+    MAX_EPOCHS,
+    AckPolicy,
+    Entry,
+)
 from middleware._protocol_events import Publish
 from middleware._protocol_producer import (
     FLOW_QUEUE_MAX,
@@ -203,7 +209,7 @@ class ProtocolModel(RuleBasedStateMachine):
         mode=st.sampled_from([FLOW, FLOW, OBSERVE]),
         size=st.integers(1, 8),
         every=st.integers(0, 8),
-        delay_ns=st.sampled_from([0, ACK_DELAY_NS]),
+        delay_ns=st.sampled_from([0, ACK_DELAY_NS, DEEP_ACK_DELAY_NS]),
         push=st.sampled_from([-1, 0]),
     )
     def subscribe(

@@ -37,6 +37,8 @@ import psutil
 from middleware import FramegateError, NetworkConfig, Node
 from services.launch import Supervisor, free_port, pipeline, private_specs
 from services.lib.sim import ScenarioConfig, simulate
+from services.nodes.detector import DetectorConfig
+from services.nodes.mediator import GYRO_QUEUE, MediatorConfig
 
 from ._options import BenchOptions
 from ._procs import BenchError, WorkerGroup, free_endpoint
@@ -53,6 +55,9 @@ SHARE_GOAL_PCT = 10.0
 # The gyro service's put_many batch (``framegate run gyro --batch``, default 10).
 GYRO_BATCH = 10
 PROCESSES = ("camera", "gyro", "mediator", "detector")
+# The queues the services subscribe with by default (the pipeline runs with defaults).
+CAMERA_QUEUE = MediatorConfig().camera_queue
+DETECTOR_QUEUE = DetectorConfig().queue
 # Buffers whose rates the pipeline phase reads.
 FRAMES, GYRO, FORWARDED = "camera/images", "gyro/rates", "mediator/images"
 _START_TIMEOUT_S = 90.0
@@ -69,6 +74,8 @@ class Stream:
     # (process, "producer" | "consumer") this stream's sides are charged to.
     producer: str
     consumer: str
+    # The consumer's queue, as the service subscribes (its acks depend on it).
+    queue: int
     # Elements per put_many / take_many as the service moves them (0: one put each). Raw
     # Zenoh gets the same stream shape: one message per batch.
     batch: int = 0
@@ -82,6 +89,7 @@ class Stream:
             "producer": self.producer,
             "consumer": self.consumer,
             "batch": self.batch,
+            "queue": self.queue,
         }
 
 
@@ -207,9 +215,13 @@ def _run_pipeline(
 
     gyro_bytes = int(after["bytes_each"][GYRO])
     streams = [
-        Stream(FRAMES, FRAME_BYTES, rate(FRAMES), True, "camera", "mediator"),
-        Stream(GYRO, gyro_bytes, rate(GYRO), False, "gyro", "mediator", batch=GYRO_BATCH),
-        Stream(FORWARDED, FRAME_BYTES, rate(FORWARDED), True, "mediator", "detector"),
+        Stream(FRAMES, FRAME_BYTES, rate(FRAMES), True, "camera", "mediator", CAMERA_QUEUE),
+        Stream(
+            GYRO, gyro_bytes, rate(GYRO), False, "gyro", "mediator", GYRO_QUEUE, batch=GYRO_BATCH
+        ),
+        Stream(
+            FORWARDED, FRAME_BYTES, rate(FORWARDED), True, "mediator", "detector", DETECTOR_QUEUE
+        ),
     ]
     return cpu_pct, streams
 
@@ -297,7 +309,7 @@ def _estimate(streams: list[Stream], options: BenchOptions) -> dict[Side, dict[s
                             **common,
                             "connect": fg_at,
                             "buffer": "s",
-                            "queue_size": 8,
+                            "queue_size": stream.queue,
                             "push": stream.push,
                             "batch": stream.batch,
                         },
