@@ -56,14 +56,15 @@ must ack every element or the producer stays refused), every ``N // 2`` takes ab
 Coalescing never holds the producer back for long: an ack is also due once the queue runs
 empty or the caller waits idle and ``delay_ns`` has passed since the first take it covers
 (``for_queue``: 1 ms above N = 3, so that a consumer that keeps up does not ack every
-element; 20 ms from N = 16, a deep queue: see ``DEEP_QUEUE``), or at once when its takes came ``delay_ns`` or more after the takes before them
-(a slow stream: no later take would join the ack within the delay, and waiting would cost
-a timer per element); ``flush_at_ns`` says when, for the Zenoh layer to send it even if
-the caller does not come back (``Subscription``: the caller waiting in ``take`` sends it
-then; one that stays away leaves it to the executor's next turn, holding at most
-``N // 2 - 1`` credits, as between two coalesced acks). While idle the subscriber
-repeats the acks of known epochs once no ack has left for ``reack_ns``, so a lost ack or
-a lost notification heals (the producer resends on a repeated ack that moves nothing).
+element; 20 ms from N = 16, a deep queue: see ``DEEP_QUEUE``), or at once when its takes
+came ``delay_ns`` or more after the takes before them (a slow stream: no later take would
+join the ack within the delay, and waiting would cost a timer per element); ``flush_at_ns``
+says when, for the Zenoh layer to send it even if the caller does not come back
+(``Subscription``: the caller waiting in ``take`` sends it then; one that stays away leaves
+it to the executor's next turn, holding at most ``N // 2 - 1`` credits, as between two
+coalesced acks). While idle the subscriber repeats the acks of known epochs once no ack has
+left for ``reack_ns``, so a lost ack or a lost notification heals (the producer resends on a
+repeated ack that moves nothing).
 Timed from the last ack sent, not from the last repeat: a busy subscriber, idle only
 between notifications, repeats nothing, since a repeat that moves nothing makes the
 producer resend what is merely in flight.

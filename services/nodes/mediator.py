@@ -115,8 +115,7 @@ class _Deadline(Protocol):
     def cancel(self) -> None: ...
 
 
-# Gyro notifications the mediator's subscription holds (a deep queue: 25 of the gyro's
-# batches of 10, so a mediator busy for a while never stalls the gyro).
+# Gyro notifications queued (deep: a busy mediator never stalls the gyro; see AckPolicy).
 GYRO_QUEUE = 256
 # step() only (tests without the executor): how often it looks for gyro samples while a
 # frame waits for them; on the executor gyro notifications run their handler at once.
@@ -144,9 +143,8 @@ class Mediator:
             push_max_bytes=PUSH_ALL,
             await_service=True,  # a pipeline starts every service at once
         )
-        self._gyro_sub = node.subscribe(
-            config.gyro, queue_size=GYRO_QUEUE, wait_s=0, await_service=True
-        )
+        gyro, queue = config.gyro, GYRO_QUEUE
+        self._gyro_sub = node.subscribe(gyro, queue_size=queue, wait_s=0, await_service=True)
         self.gyro = GyroCache()
         self._camera_name = split_target(config.camera)[0]
         self._gyro_name = split_target(config.gyro)[0]
