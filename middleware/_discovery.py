@@ -207,10 +207,14 @@ class Discovery:
         except zenoh.ZError:
             return frozenset()
 
-    def buffer_info(self, target: str, *, timeout_s: float = 2.0) -> BufferInfo:
-        """One buffer's description (retention, size, rate, subscriptions, counters)."""
+    def buffer_info(
+        self, target: str, *, timeout_s: float = 2.0, unambiguous: bool = False
+    ) -> BufferInfo:
+        """One buffer's description (retention, size, rate, subscriptions, counters);
+        ``unambiguous`` as for ``service_info``."""
         service, _buffer = split_target(target)
-        return buffer_of(self.service_info(service, timeout_s=timeout_s), target)
+        info = self.service_info(service, timeout_s=timeout_s, unambiguous=unambiguous)
+        return buffer_of(info, target)
 
 
 def _one_replier(replies: list[zenoh.Reply], service: str) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import logging
 import signal
 import threading
@@ -11,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import zenoh
 
 from middleware import (
     DataObject,
@@ -21,11 +23,13 @@ from middleware import (
     SubscriptionMode,
     now_ns,
 )
+from middleware._wire import Keys
 from services.lib.messages import frame_metadata
 from services.lib.quality import Exposure
 from services.lib.vision import ResultKind
 from services.nodes.vision import Runner, RunnerSpec, VisionStep
 from tests.conftest import free_port, start_framegate, wait_until
+from tests.helpers.raw_zenoh import open_session
 from tests.helpers.timing import answered, scaled
 from tests.services.nodes import vision_handlers
 from tests.services.nodes.pipeline import Pipeline
@@ -214,6 +218,74 @@ def test_results_are_removed_only_by_a_rewind_the_input_producer_recorded() -> N
         stamps = [e.timestamp_ns - base_ns for e in node.query("vision/detections")]
         assert stamps == [10 * 10**8, 16 * 10**8, 90 * 10**8]
         assert output.info().skipped == {"out-of-order": 2, "rewound": 2}
+
+
+def test_a_rewind_a_second_session_reports_in_the_inputs_name_removes_nothing() -> None:
+    """A peer answers the input's ``@info`` too, with the real description plus a rewind
+    that would cover every result: the description two sessions give decides nothing, so a
+    stale element is skipped and every result stays."""
+    port = free_port()
+    net = NetworkConfig(local_port=port)
+    log = logging.getLogger("test.vision.forged-rewind")
+    with (
+        Node("src", net) as src_node,
+        Node("vision", net) as node,
+        open_session(f"tcp/127.0.0.1:{port}") as rogue,
+    ):
+        images = src_node.offer("images", kind="frame")
+        output = node.offer("detections", kind="detections")
+        spec = RunnerSpec("vision", "src/images", 2, "detections", ResultKind.DETECTIONS)
+        step = VisionStep(vision_handlers.brightest, ResultKind.DETECTIONS, "src/images", log)
+        runner = Runner(spec, step, node, output, threading.Event())
+        base_ns = now_ns() - 10**9
+
+        def handle(frame_id: int) -> None:
+            image = np.full((8, 8), frame_id, np.uint8)
+            stamp = base_ns + frame_id * 10**6
+            meta = frame_metadata(frame_id, Exposure(stamp, 1_000_000), image, None)
+            element = DataObject(stamp, image.tobytes(), meta)
+            if images.series.newest_ns is None or stamp > images.series.newest_ns:
+                images.put(stamp, element.payload, meta)
+            note = Notification("src", "images", stamp, frame_id, meta, element)
+            runner.handle([note], lambda n: n.element)  # type: ignore[arg-type,return-value]
+
+        for frame_id in (10, 20, 30):
+            handle(frame_id)
+        keys = Keys("framegate")
+        real = json.loads(
+            next(r.ok.payload.to_bytes() for r in rogue.get(keys.info("src")) if r.ok)
+        )
+        for buffer in real["buffers"]:
+            buffer["rewinds"] = [
+                {"after_ns": 0, "count": 1, "first_ns": 1, "last_ns": 2**63 - 1, "cause": "x"}
+            ]
+        forged = json.dumps(real).encode()
+
+        def answer(query: zenoh.Query) -> None:
+            with query:  # stamped: Zenoh prefers the newest of two answers
+                query.reply(query.key_expr, forged, timestamp=rogue.new_timestamp())
+
+        queryable = rogue.declare_queryable(keys.info("src"), zenoh.handlers.Callback(answer))
+        try:
+
+            def both_answer() -> bool:
+                try:
+                    node.service_info("src", unambiguous=True, timeout_s=scaled(2))
+                except FramegateError:
+                    return True
+                return False
+
+            wait_until(both_answer, scaled(30), "the forger's answers to reach the runner")
+            handle(15)
+        finally:
+            queryable.undeclare()
+        assert [e.timestamp_ns - base_ns for e in node.query("vision/detections")] == [
+            10 * 10**6,
+            20 * 10**6,
+            30 * 10**6,
+        ]
+        assert output.info().skipped == {"out-of-order": 1}
+        assert output.info().rewinds == ()
 
 
 def test_a_handler_returning_output_fills_a_generic_results_buffer() -> None:
