@@ -9,7 +9,11 @@ A peer can answer anything, so every reply passes the same gate before a field i
 2. UTF-8;
 3. nesting: at most ``MAX_DEPTH`` levels of brackets, counted before parsing (Python's
    parser recurses per level: 100,000 nested brackets would raise ``RecursionError``);
-4. JSON, then the required keys with their types, field by field.
+4. JSON, then the required keys with their types, field by field, and what a value of
+   that type may be: an int within 0 .. 2^63 - 1 (stamps, counters, sizes; a queue at
+   least 1), a float finite and not negative, a string at most ``MAX_TEXT`` characters
+   with no control character or lone surrogate (a terminal would run an escape sequence,
+   and printing a surrogate raises).
 
 Every failure is one ``QueryError`` whose one-line message names the service (or what was
 being decoded) and the first thing that is wrong; nothing else escapes. The binary
@@ -21,6 +25,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import math
 import re
 from typing import Any, TypeVar
 
@@ -38,6 +43,10 @@ from ._records import (
 
 MAX_REPLY_BYTES = 4 << 20
 MAX_DEPTH = 32
+# Characters of one string field (names, hosts, reasons) at most.
+MAX_TEXT = 1024
+_INT_END = 2**63
+_UNPRINTABLE = re.compile("[\x00-\x1f\x7f-\x9f\ud800-\udfff]")
 # Thread names of a service listed at most (``ServiceInfo.threads``).
 MAX_THREADS = 256
 
@@ -66,7 +75,11 @@ def decode_json(raw: bytes, what: str) -> Any:
         raise QueryError(f"{what}: reply is not JSON ({exc})") from None
 
 
-def _field(body: Any, key: str, kind: type[T], what: str, *, optional: bool = False) -> T:
+def _field(
+    body: Any, key: str, kind: type[T], what: str, *, optional: bool = False, least: int = 0
+) -> T:
+    """``body[key]`` as ``kind`` within the bounds of the module doc (an int at least
+    ``least``, which may be negative for a signed quantity)."""
     if not isinstance(body, dict):
         raise QueryError(f"{what}: expected an object, got {type(body).__name__}")
     if key not in body or (optional and body[key] is None):
@@ -80,7 +93,26 @@ def _field(body: Any, key: str, kind: type[T], what: str, *, optional: bool = Fa
         value, ok = float(value), True
     if not ok:
         raise QueryError(f"{what}: {key!r} is {type(value).__name__}, not {kind.__name__}")
+    if kind is int and not least <= value < _INT_END:
+        raise QueryError(f"{what}: {key!r} is {_short(value)}, outside {least} .. 2^63 - 1")
+    if kind is float and not 0.0 <= value < math.inf:
+        raise QueryError(f"{what}: {key!r} is {value}, not a finite number >= 0")
+    if kind is str:
+        _check_text(value, f"{what}: {key!r}")
     return value  # type: ignore[no-any-return]
+
+
+def _check_text(value: str, what: str) -> None:
+    if len(value) > MAX_TEXT:
+        raise QueryError(f"{what} is {len(value)} characters long, more than {MAX_TEXT}")
+    bad = _UNPRINTABLE.search(value)
+    if bad is not None:
+        raise QueryError(f"{what} holds an unprintable character (U+{ord(bad.group()):04X})")
+
+
+def _short(value: int) -> str:
+    text = str(value)
+    return text if len(text) <= 24 else f"{text[:12]}...({len(text)} digits)"
 
 
 def _mode(text: str, what: str) -> SubscriptionMode:
@@ -94,7 +126,7 @@ def _subscription(s: Any, what: str) -> SubscriptionInfo:
     return SubscriptionInfo(
         _field(s, "id", str, what),
         _mode(_field(s, "mode", str, what), what),
-        _field(s, "queue_size", int, what),
+        _field(s, "queue_size", int, what, least=1),
         _field(s, "queued", int, what),
         node=_field(s, "node", str, what, optional=True),
         host=_field(s, "host", str, what, optional=True),
@@ -163,7 +195,7 @@ def _buffer(b: Any, what: str) -> BufferInfo:
         refused=_field(b, "refused", int, what),
         rejected=_field(b, "rejected", int, what),
         subscriptions=tuple(_subscription(s, what) for s in subs),
-        skipped={str(k): _field(skipped, k, int, what) for k in skipped},
+        skipped={_key(k, what): _field(skipped, k, int, what) for k in skipped},
         refused_subscriptions=_field(b, "refused_subscriptions", int, what, optional=True) or 0,
         limits=_limits(b.get("limits"), what),
         dropped_messages=_field(b, "dropped_messages", int, what, optional=True) or 0,
@@ -184,7 +216,7 @@ def decode_service_info(raw: bytes, start_ns: int, end_ns: int, *, service: str)
     steps = lead = None
     if isinstance(clock, dict):
         steps = _field(clock, "steps", int, what)
-        lead = _field(clock, "lead_ns", int, what)
+        lead = _field(clock, "lead_ns", int, what, least=-_INT_END)
     sample = ClockSample.from_times(start_ns, clock_ns, end_ns)
     return ServiceInfo(
         service=_field(body, "service", str, what),
@@ -200,11 +232,19 @@ def decode_service_info(raw: bytes, start_ns: int, end_ns: int, *, service: str)
     )
 
 
+def _key(key: str, what: str) -> str:
+    _check_text(key, f"{what}: a key")
+    return key
+
+
 def _names(value: Any) -> tuple[str, ...] | None:
-    """A list of strings as a tuple (at most ``MAX_THREADS``); None for anything else (an
-    old or odd peer)."""
-    if isinstance(value, list) and all(isinstance(v, str) for v in value):
-        return tuple(value[:MAX_THREADS])
+    """A list of printable strings as a tuple (at most ``MAX_THREADS``); None for anything
+    else (an old or odd peer)."""
+    if not isinstance(value, list):
+        return None
+    names = value[:MAX_THREADS]
+    if all(isinstance(v, str) and len(v) <= MAX_TEXT and not _UNPRINTABLE.search(v) for v in names):
+        return tuple(names)
     return None
 
 

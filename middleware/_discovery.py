@@ -102,8 +102,11 @@ class Discovery:
                 + advice
             )
 
-    def services(self, *, timeout_s: float = 2.0) -> list[ServiceInfo]:
-        """Every live service with its buffers, clock offset and round trip."""
+    def services(
+        self, *, timeout_s: float = 2.0, invalid: list[str] | None = None
+    ) -> list[ServiceInfo]:
+        """Every live service with its buffers, clock offset and round trip. A service whose
+        description is not valid is left out; ``invalid`` receives the one-line reason."""
         self._settle()
         out: list[ServiceInfo] = []
         start = now_ns()
@@ -121,8 +124,11 @@ class Discovery:
                 continue
             raw = reply.ok.payload.to_bytes()
             name = str(reply.ok.key_expr).rsplit("/", 1)[-1]
-            with suppress(QueryError):  # a peer that answers garbage is left out, not fatal
+            try:  # a peer that answers garbage is left out, not fatal
                 out.append(decode_service_info(raw, start, end, service=name))
+            except QueryError as exc:
+                if invalid is not None:
+                    invalid.append(str(exc))
         return sorted(out, key=lambda s: s.service)
 
     def service_info(

@@ -108,9 +108,11 @@ def offset_is_real(offset_ns: int, error_ns: int, host: str) -> bool:
 def run(args: argparse.Namespace) -> int:
     net = network(args)
     with Node(network=net) as node:
-        infos = node.services(timeout_s=args.timeout)
+        invalid: list[str] = []
+        infos = node.services(timeout_s=args.timeout, invalid=invalid)
         if not infos and connected_late(node, args.timeout):
-            infos = node.services(timeout_s=args.timeout)
+            invalid.clear()
+            infos = node.services(timeout_s=args.timeout, invalid=invalid)
         # One query for every service shares one long round trip: ask each one again, but
         # only those on other hosts; the processes of this host read our own clock.
         clocks = {
@@ -123,7 +125,9 @@ def run(args: argparse.Namespace) -> int:
             )
         }
         # Like `info`: an endpoint where nothing answered is an error, not an empty list.
-        silent = nothing_answered(node, args.timeout) if not infos else None
+        silent = nothing_answered(node, args.timeout) if not (infos or invalid) else None
+    for text in invalid:  # a peer answering garbage is named, never silently absent
+        print(f"warning: left out: {text}", file=sys.stderr)
     if silent is not None:
         raise silent
     if not infos and (bad := unreachable(net)):

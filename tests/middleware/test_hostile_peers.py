@@ -284,9 +284,82 @@ HOSTILE_INFO = {
 }
 
 
+def _valid_description(**changes: Any) -> dict[str, Any]:
+    """A well-formed description of ``evil`` with one buffer and one subscription, and
+    ``changes`` applied: ``buffer.<field>``, ``sub.<field>`` or a top-level field."""
+    sub = {"id": "s1", "mode": "flow", "queue_size": 2, "queued": 0, "node": "n", "host": "h"}
+    buffer = {
+        "buffer": "b",
+        "service": "evil",
+        "kind": "generic",
+        "retention": {"max_count": 10},
+        "count": 1,
+        "payload_bytes": 1,
+        "oldest_ns": 1,
+        "newest_ns": 1,
+        "rate_hz": 1.0,
+        "puts": 1,
+        "refused": 0,
+        "rejected": 0,
+        "subscriptions": [sub],
+    }
+    body: dict[str, Any] = {
+        "service": "evil",
+        "host": "h",
+        "pid": 1,
+        "clock_ns": time.time_ns(),
+        "buffers": [buffer],
+    }
+    for name, value in changes.items():
+        where, _, field = name.rpartition(".")
+        {"buffer": buffer, "sub": sub, "": body}[where][field] = value
+    return body
+
+
+# Schema-valid is not sane: values a terminal, a clock formatter or a division cannot take,
+# each as the raw JSON text a peer sends.
+INSANE_INFO = {
+    "a stamp of 10^30": ("buffer.newest_ns", "1" + "0" * 30),
+    "a negative stamp": ("buffer.oldest_ns", "-100000000000000000000"),
+    "a queue of 0": ("sub.queue_size", "0"),
+    "a lone surrogate in host": ("host", '"\\ud800"'),
+    "an escape sequence in host": ("host", '"\\u001b[2J\\u001b[31mowned"'),
+    "a newline in a buffer name": ("buffer.buffer", '"b\\nerror: fake"'),
+    "a rate of NaN": ("buffer.rate_hz", "NaN"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(INSANE_INFO))
+def test_ls_and_info_of_an_insane_description_say_so_in_one_line(endpoint: str, case: str) -> None:
+    field, raw = INSANE_INFO[case]
+    text = json.dumps(_valid_description(**{field: "@@"})).replace('"@@"', raw)
+    with _hostile_service(endpoint, text.encode()):
+        for command in (["info", "evil"], ["ls"], ["ls", "--json"]):
+            done = subprocess.run(
+                [sys.executable, "-m", "services.cli", *command, "--connect", endpoint],
+                capture_output=True,
+                text=True,
+                cwd=REPO,
+                env=child_env(),
+                timeout=scaled(60),
+            )
+            said = done.stdout + done.stderr
+            assert "Traceback" not in said, (command, said)
+            assert "\x1b" not in said and "error: fake" not in said, (command, said)
+            lines = done.stderr.strip().splitlines()
+            if command[0] == "info":
+                assert done.returncode == 1, done.stderr
+                assert len(lines) == 1 and lines[0].startswith("error:"), done.stderr
+            else:  # listed as left out, in one line, never silently absent
+                assert lines == [line for line in lines if line.startswith("warning: left out")]
+                assert len(lines) == 1, done.stderr
+
+
 @contextmanager
 def _hostile_service(endpoint: str, answer: bytes) -> Iterator[None]:
-    with open_session(endpoint) as rogue:
+    """A peer listening on ``endpoint`` that offers ``evil`` and answers its ``@info`` with
+    ``answer``."""
+    with open_session(endpoint, listen=True) as rogue:
         token = rogue.liveliness().declare_token(KEYS.service_token("evil"))
         queryable = rogue.declare_queryable(KEYS.info("evil"), zenoh.handlers.FifoChannel(16))
 
