@@ -227,6 +227,13 @@ class Node(Queries):
         when ``wait_s`` is up (a service offers its buffers one after another). A service
         that is not live returns at once: the subscription registers when it appears."""
         deadline = time.monotonic() + wait_s
+        sub.caller_waits = True  # a refusal is raised here, not also logged
+        try:
+            self._wait_answer(sub, deadline, wait_s)
+        finally:
+            sub.caller_waits = False
+
+    def _wait_answer(self, sub: Subscription, deadline: float, wait_s: float) -> None:
         missing: NotFoundError | None = None
         while time.monotonic() < deadline:
             sub.judge_refusal()  # a refusal counts only from the service's own session

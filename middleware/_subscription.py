@@ -107,6 +107,8 @@ class Subscription:
         self._cond = threading.Condition(self._lock)
         self._ack_lock = threading.Lock()  # ack puts against the publisher's undeclare
         self._closed = False
+        # A caller waits in ``subscribe(wait_s=)``: a refusal is raised to it, not logged.
+        self.caller_waits = False
         self._ack_publisher = session.declare_publisher(
             keys.ack(service, buffer, self.subscription_id),
             congestion_control=zenoh.CongestionControl.BLOCK,
@@ -245,7 +247,7 @@ class Subscription:
         with self._lock:
             news = self._protocol.refusal_news()
             retry = self._protocol.retry_due(now_ns)
-        if news is not None:
+        if news is not None and not (self.caller_waits or self._closed):
             log.error(
                 "%s refused the subscription of %s: %s; retrying every %.0f s",
                 self.name,

@@ -8,6 +8,7 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import socket
 import subprocess
 import sys
 import threading
@@ -34,7 +35,7 @@ from middleware import (
 )
 from middleware._inbox import control_inbox_bytes
 from middleware._protocol_producer import MAX_OBSERVE_REGISTRATIONS, QUEUE_BUDGET
-from middleware._wire import Keys
+from middleware._wire import Keys, holder_chunk
 from tests.conftest import REPO, NodeProcess, child_env, wait_until
 from tests.helpers.raw_zenoh import open_session
 from tests.helpers.timing import scaled
@@ -145,6 +146,37 @@ def test_a_refused_service_logs_an_error_and_registers_once_room_is_free(
             scaled(20),
             "the refused subscription registered once the budget was free",
         )
+
+
+def test_a_refused_cli_tool_says_so_in_one_line(
+    node_process: Callable[..., NodeProcess], endpoint: str
+) -> None:
+    """A peer holds every observe slot the anonymous clients of this host may have (under
+    their holder name, which the default profile does not check): ``watch`` is refused and
+    says so in one ``error:`` line, exit 1, with no retry message beside it."""
+    producer = node_process("cam", "--listen", endpoint)
+    assert producer.call("offer", buffer="images")["ok"]
+    anonymous = holder_chunk(None, socket.gethostname())
+    with open_session(endpoint) as rogue:
+        live = rogue.liveliness()
+        tokens = [
+            live.declare_token(_token(f"o{i}", SubscriptionMode.OBSERVE, 1, anonymous))
+            for i in range(MAX_OBSERVE_REGISTRATIONS // 2 + 2)
+        ]
+        done = subprocess.run(
+            [sys.executable, "-m", "services.cli", "watch", "cam/images", "--connect", endpoint],
+            capture_output=True,
+            text=True,
+            cwd=REPO,
+            env=child_env(),
+            timeout=scaled(60),
+        )
+        for token in tokens:
+            token.undeclare()
+    lines = done.stderr.strip().splitlines()
+    assert done.returncode == 1, done.stderr
+    assert len(lines) == 1 and lines[0].startswith("error:"), done.stderr
+    assert "refused this subscription" in lines[0], done.stderr
 
 
 def _watch_tokens(session: zenoh.Session, fn: Callable[[str], None]) -> Callable[[], None]:
