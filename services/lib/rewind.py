@@ -133,9 +133,7 @@ class RewindFollower:
         try:
             # Removing elements must not rest on a peer's word: a second session answering
             # as the input's service (one that forges a rewind) makes the answer void.
-            info = self._node.buffer_info(
-                self._input, timeout_s=self._timeout_s, unambiguous=True
-            )
+            info = self._node.buffer_info(self._input, timeout_s=self._timeout_s, unambiguous=True)
             rewinds = info.rewinds
         except FramegateError as exc:
             if not self._warned:  # once: each stale element asks again

@@ -52,11 +52,17 @@ def load_handler(spec: str) -> Handler:
         )
     except ConfigError:
         raise
-    except Exception as exc:  # a user's module may raise anything while it loads
+    except (Exception, SystemExit) as exc:  # a user's module may do anything while it loads
+        if isinstance(exc, SystemExit):
+            raise ConfigError(
+                f"handler {spec!r}: {module_name!r} called sys.exit({exc.code!r}) while it "
+                "was imported"
+            ) from None
         raise ConfigError(
             f"handler {spec!r}: cannot import {module_name!r}: {type(exc).__name__}: {exc}"
         ) from exc
     for part in attr_path.split("."):
+        owner = target
         try:
             target = getattr(target, part)
         except AttributeError as exc:
@@ -65,12 +71,27 @@ def load_handler(spec: str) -> Handler:
                 f"handler {spec!r}: {module_name!r} has no {attr_path!r}"
                 + did_you_mean(part, names, quote=True)
             ) from exc
+    if inspect.isclass(owner) and inspect.isfunction(inspect.getattr_static(owner, part)):
+        target = _bound(spec, owner, part)  # ``module:Class.method``: an instance method
     if not callable(target):
         raise ConfigError(
             f"handler {spec!r} is a {type(target).__name__}, not a function; "
             "it must be callable as handler(image, frame)"
         )
     return typing.cast(Handler, target)
+
+
+def _bound(spec: str, cls: type, name: str) -> object:
+    """``cls().name``: an instance method's class is created once, with no arguments (a
+    handler that keeps a model loads it in ``__init__``)."""
+    try:
+        instance = cls()
+    except (Exception, SystemExit) as exc:
+        raise ConfigError(
+            f"handler {spec!r}: {name!r} is an instance method, and {cls.__name__}() "
+            f"failed: {type(exc).__name__}: {exc}"
+        ) from None
+    return getattr(instance, name)
 
 
 # Handler files loaded by path, so that one named twice (flag check, then run) loads once.

@@ -302,7 +302,8 @@ class Runner:
             try:
                 element = fetch(note)
             except FramegateError as exc:
-                self._count(self.step.skip("bad-frame", f"frame {note.timestamp_ns}: {exc}"))
+                detail = f"frame stamped {note.timestamp_ns}: {exc}"
+                self._count(self.step.skip("bad-frame", detail))
                 continue
             outcome = self.step.process(
                 element.timestamp_ns, element.payload, element.metadata, taken_ns
@@ -318,9 +319,9 @@ class Runner:
                 counter = "refused" if isinstance(exc, FlowControlRefused) else "rejected"
                 self.step.warn_once(
                     f"put-{type(exc).__name__}",
-                    f"cannot store the result of frame {note.timestamp_ns}: {exc} (counted "
-                    f"as {counter} in 'framegate info {self.output.name}'; further ones are "
-                    "not logged)",
+                    f"cannot store the result of the frame stamped {note.timestamp_ns}: {exc} "
+                    f"(counted as {counter} in 'framegate info {self.output.name}'; further "
+                    "ones are not logged)",
                 )
 
     def _count(self, skipped: Skipped) -> None:

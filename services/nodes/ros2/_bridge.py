@@ -347,7 +347,7 @@ def run(config: Ros2Config, network: NetworkConfig, stop: threading.Event | None
             dict(skips.counts) or "none",
         )
         if consumer is not None:
-            log.info("ros2: consumer loop: %s", consumer.counts())
+            log.info("ros2: consumer loop: %s", consumer.counts().text())
             consumer.close()
     return 0
 

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import struct
 from collections import OrderedDict
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 from ._rmw import EntityKind, parse_endpoint
 
@@ -158,6 +158,11 @@ class ConsumerCounts:
     unmatched: int = 0  # results whose stamp names no image of ours
     bad: int = 0  # results whose header cannot be read
     outstanding: int = 0
+
+    def text(self) -> str:
+        """For a log line: ``published 3, answered 2, ...``."""
+        parts = (f"{f.name.replace('_', ' ')} {getattr(self, f.name)}" for f in fields(self))
+        return ", ".join(parts)
 
 
 @dataclass(frozen=True, slots=True)

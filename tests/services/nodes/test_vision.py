@@ -173,6 +173,40 @@ def test_a_module_that_raises_while_importing_is_a_config_error(tmp_path: Path) 
         sys.path.remove(str(tmp_path))
 
 
+def test_a_module_that_exits_while_importing_is_a_config_error(tmp_path: Path) -> None:
+    exits = tmp_path / "exits_on_import.py"
+    exits.write_text("import sys\nsys.exit(5)\n")
+    with pytest.raises(ConfigError, match=r"called sys.exit\(5\) while it was imported"):
+        load_handler(f"{exits}:f")
+
+
+def test_an_instance_method_is_bound_to_one_instance_of_its_class(tmp_path: Path) -> None:
+    """``module:Class.method``: the class is created once, with no arguments, and its
+    method bound (a handler keeping a model loads it in ``__init__``)."""
+    module = tmp_path / "method_handlers.py"
+    module.write_text(
+        "class Det:\n"
+        "    def __init__(self):\n"
+        "        self.calls = 0\n"
+        "    def method(self, image, frame):\n"
+        "        self.calls += 1\n"
+        "        return self.calls\n"
+        "    @staticmethod\n"
+        "    def plain(image, frame):\n"
+        "        return 'static'\n"
+        "class Needs:\n"
+        "    def __init__(self, model):\n"
+        "        pass\n"
+        "    def method(self, image, frame):\n"
+        "        return None\n"
+    )
+    handler = load_handler(f"{module}:Det.method")
+    assert (handler(None, None), handler(None, None)) == (1, 2)  # type: ignore[arg-type]
+    assert load_handler(f"{module}:Det.plain")(None, None) == "static"  # type: ignore[arg-type]
+    with pytest.raises(ConfigError, match=r"instance method, and Needs\(\) failed: TypeError"):
+        load_handler(f"{module}:Needs.method")
+
+
 def _framegate(*argv: str, cwd: Path = REPO) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
         [sys.executable, "-m", "services.cli", *argv],
