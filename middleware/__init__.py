@@ -30,7 +30,9 @@ from ._config import (
     NetworkConfig,
     add_network_arguments,
     check_name,
+    checked_endpoints,
     endpoint_parts,
+    listening_endpoints,
     network_from_args,
 )
 from ._discovery import split_target
@@ -106,8 +108,10 @@ __all__ = [
     "XmlLimits",
     "add_network_arguments",
     "check_name",
+    "checked_endpoints",
     "endpoint_parts",
     "field_text",
+    "listening_endpoints",
     "make_metadata",
     "network_from_args",
     "now_ns",

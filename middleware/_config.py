@@ -118,10 +118,11 @@ class NetworkConfig:
         env = os.environ if environ is None else environ
         changes: dict[str, Any] = {}
         if env.get("FRAMEGATE_CONNECT"):
-            changes["connect"] = _endpoints(_split(env["FRAMEGATE_CONNECT"]), "FRAMEGATE_CONNECT")
+            connect = _split(env["FRAMEGATE_CONNECT"])
+            changes["connect"] = checked_endpoints(connect, "FRAMEGATE_CONNECT")
         if env.get("FRAMEGATE_LISTEN"):
             listen = _split(env["FRAMEGATE_LISTEN"])
-            changes["listen"] = _endpoints(listen, "FRAMEGATE_LISTEN", lowest=0)
+            changes["listen"] = checked_endpoints(listen, "FRAMEGATE_LISTEN", lowest=0)
         if env.get("FRAMEGATE_CONFIG"):
             changes["config_file"] = Path(env["FRAMEGATE_CONFIG"])
         if env.get("FRAMEGATE_NAMESPACE"):
@@ -134,9 +135,9 @@ class NetworkConfig:
         """Apply the shared connection flags (see ``add_network_arguments``)."""
         changes: dict[str, Any] = {}
         if getattr(args, "connect", None):
-            changes["connect"] = _endpoints(args.connect, "--connect")
+            changes["connect"] = checked_endpoints(args.connect, "--connect")
         if getattr(args, "listen", None):
-            changes["listen"] = _endpoints(args.listen, "--listen", lowest=0)
+            changes["listen"] = checked_endpoints(args.listen, "--listen", lowest=0)
         if getattr(args, "config", None):
             changes["config_file"] = Path(args.config)
         if getattr(args, "namespace", None):
@@ -345,17 +346,19 @@ def endpoint_parts(endpoint: str) -> tuple[str, str, str]:
     return proto, host, port
 
 
-def _endpoints(endpoints: Iterable[str], what: str, lowest: int = 1) -> tuple[str, ...]:
+def checked_endpoints(endpoints: Iterable[str], what: str, lowest: int = 1) -> tuple[str, ...]:
     """``endpoints`` as given, or ConfigError naming ``what`` (the flag or variable) for one
-    whose port is a number outside ``lowest``..65535 (Zenoh would only say the endpoint is
+    whose port is not a number in ``lowest``..65535 (Zenoh would only say the endpoint is
     bad); 0 is a port to listen on (any free one), not one to connect to."""
     out = tuple(endpoints)
     for endpoint in out:
-        proto, _host, port = endpoint_parts(endpoint)
+        proto, host, port = endpoint_parts(endpoint)
         inet = proto in ("tcp", "tls", "udp", "quic")
-        if inet and port.isdigit() and not lowest <= int(port) < 65536:
+        # No ":" at all (``tcp/abc``) is no port: ``_check_endpoints`` names the form.
+        number = port.isascii() and port.isdigit() and lowest <= int(port) < 65536
+        if inet and host and not number:
             raise ConfigError(
-                f"{what} {endpoint}: {port} is not a port number: use {lowest}..65535"
+                f"{what} {endpoint}: {port or 'no port'} is not a port number: use {lowest}..65535"
             )
     return out
 

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from services.evidence.faultbench import FaultConfig, format_faults, run_faults
-from services.lib.argtypes import positive_int
+from services.lib.argtypes import port_number, positive_int
 
 from ._common import command_parser, stop_on_signals
 
@@ -30,7 +30,7 @@ def register(subparsers: Any) -> None:
     d = FaultConfig()
     parser.add_argument("--kills", type=positive_int, default=d.kills, help="kills per service")
     parser.add_argument(
-        "--port", type=positive_int, help="private rendezvous port (default: a free one)"
+        "--port", type=port_number, help="private rendezvous port (default: a free one)"
     )
     parser.add_argument("--json", metavar="FILE", help="also write the report as JSON")
     parser.add_argument("--show-logs", action="store_true", help="print the services' logs")
@@ -45,5 +45,8 @@ def run(args: argparse.Namespace) -> int:
     print(format_faults(report), flush=True)
     if args.json:
         Path(args.json).write_text(json.dumps(report, indent=2) + "\n")
+    if stop.is_set():  # stopped early: a stop is a clean exit, never a verdict
+        print("faults: stopped early; no verdict on the goal", flush=True)
+        return 0
     p95 = [v for v in report["p95_s"].values() if v is not None]
     return 0 if p95 and all(v <= report["goal_p95_s"] for v in p95) else GOAL_MISSED

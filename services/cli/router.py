@@ -6,7 +6,7 @@ import argparse
 from dataclasses import replace
 from typing import Any
 
-from middleware import ConfigError, Node, TransportError
+from middleware import ConfigError, Node, TransportError, listening_endpoints
 from services.nodes import exit_with_parent
 
 from ._common import command_parser, network, stop_on_signals
@@ -43,6 +43,7 @@ def run(args: argparse.Namespace) -> int:
             "FRAMEGATE_LOCAL_PORT / FRAMEGATE_LISTEN)"
         ) from exc
     with node:
-        print(f"router listening on {endpoints}", flush=True)
+        # What the process really listens on: a port 0 in --listen is any free port.
+        print(f"router listening on {', '.join(listening_endpoints()) or endpoints}", flush=True)
         stop.wait()
     return 0

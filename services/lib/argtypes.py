@@ -120,6 +120,8 @@ unit_float = _number(float, 0, strict=False, high=1)
 positive_int = _number(int, 0, strict=True)
 #: >= 0.
 non_negative_int = _number(int, 0, strict=False)
+#: A TCP port to listen on or connect to: 1..65535.
+port_number = _number(int, 1, strict=False, high=65535)
 
 
 def print_error(message: str) -> None:

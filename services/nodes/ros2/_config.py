@@ -14,7 +14,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from middleware import ConfigError, FramegateError, NetworkConfig, check_name, split_target
+from middleware import (
+    ConfigError,
+    FramegateError,
+    NetworkConfig,
+    check_name,
+    checked_endpoints,
+    split_target,
+)
 from services.lib.argtypes import (
     non_negative_float,
     non_negative_int,
@@ -351,7 +358,10 @@ def config_from_args(args: argparse.Namespace) -> Ros2Config:
         Ros2Config,
         args,
         # A --ros-config file names its own endpoints unless --ros-connect is given too.
-        ros_connect=tuple(args.ros_connect or (() if args.ros_config else (DEFAULT_ROUTER,))),
+        ros_connect=checked_endpoints(
+            args.ros_connect or (() if args.ros_config else (DEFAULT_ROUTER,)), "--ros-connect"
+        ),
+        ros_listen=checked_endpoints(args.ros_listen or (), "--ros-listen", lowest=0),
         image_in=topic(args.image_in or None),
         imu_in=topic(args.imu_in or None),
         camera_info=topic(args.camera_info),

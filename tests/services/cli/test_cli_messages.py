@@ -86,11 +86,16 @@ def test_mistakes_are_one_line_with_exit_1(args: tuple[str, ...], expected: str)
 
 
 def test_an_endpoint_without_a_port_is_named_with_exit_1() -> None:
-    for endpoint in ("tcp/abc", "tcp/127.0.0.1:1,bogus"):
+    result = _framegate("ls", "--connect", "tcp/abc")
+    assert result.returncode == 1, result
+    assert result.stderr == "error: cannot reach tcp/abc (no port number: write " + (
+        "tcp/HOST:PORT); is the router or service running there?\n"
+    ), result.stderr
+    for endpoint, port in (("tcp/127.0.0.1:1,bogus", "1,bogus"), ("tcp/127.0.0.1:abc", "abc")):
         result = _framegate("ls", "--connect", endpoint)
         assert result.returncode == 1, result
-        assert result.stderr == f"error: cannot reach {endpoint} (no port number: write " + (
-            "tcp/HOST:PORT); is the router or service running there?\n"
+        assert result.stderr == (
+            f"error: --connect {endpoint}: {port} is not a port number: use 1..65535\n"
         ), result.stderr
 
 
@@ -194,3 +199,41 @@ def test_version_prints_the_installed_version_and_exits_0(args: tuple[str, ...])
     result = _framegate(*args)
     assert result.returncode == 0 and result.stderr == "", result
     assert result.stdout.startswith("framegate ") and len(result.stdout.splitlines()) == 1
+
+
+@pytest.mark.parametrize(
+    ("args", "says"),
+    [
+        (
+            ("run", "ros2", "--ros-connect", "tcp/localhost:99999", "--image-in", "/cam"),
+            "error: --ros-connect tcp/localhost:99999: 99999 is not a port number",
+        ),
+        (("faults", "--port", "70000"), "argument --port: must be an integer >= 1 and <= 65535"),
+        (("soak", "--port", "0"), "argument --port: must be an integer >= 1 and <= 65535"),
+    ],
+)
+def test_a_bad_port_is_one_line_before_anything_starts(args: tuple[str, ...], says: str) -> None:
+    result = _framegate(*args)
+    assert result.returncode != 0, result
+    assert result.stdout == "", result.stdout  # no start banner
+    assert len(result.stderr.splitlines()) == 1 and says in result.stderr, result.stderr
+
+
+def test_a_router_on_port_0_says_which_port_it_took() -> None:
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "services.cli", "router", "--listen", "tcp/127.0.0.1:0"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=REPO,
+        env=child_env(),
+    )
+    try:
+        assert proc.stdout is not None
+        line = proc.stdout.readline()
+    finally:
+        proc.terminate()
+        proc.wait(timeout=scaled(10))
+    assert line.startswith("router listening on tcp/127.0.0.1:"), line
+    port = int(line.strip().rsplit(":", 1)[1])
+    assert 0 < port < 65536, line
