@@ -50,7 +50,7 @@ from services.lib.argtypes import FramegateParser, print_error
 COMMANDS: dict[str, str] = {
     "demo": "run the whole pipeline on this host with a live status view",
     "launch": "start the services a deploy file assigns to this host",
-    "run": "start one service (camera, gyro, mediator, detector, ros2)",
+    "run": "start one service (camera, gyro, mediator, detector, vision, ros2)",
     "ls": "list live services, their buffers and who subscribes",
     "info": "describe a buffer: retention, size, span, rate, subscriptions, counters",
     "query": "print (or save) the elements of a buffer in a time range",

@@ -16,7 +16,7 @@ def register(subparsers: Any) -> None:
     parser = command_parser(
         subparsers,
         "run",
-        "start one service (camera, gyro, mediator, detector, ros2)",
+        "start one service (camera, gyro, mediator, detector, vision, ros2)",
         network=False,
     )
     # The service's own flags are parsed in run(): registering them here would import all

@@ -20,6 +20,7 @@ from typing import Any
 import yaml
 
 from middleware import ConfigError, NetworkConfig, check_name
+from services.lib.argtypes import did_you_mean
 from services.nodes import SERVICES
 
 LOCAL_HOST = "local"
@@ -97,7 +98,11 @@ def load_deployment(path: str | Path) -> Deployment:
     try:
         text = path.read_text()
     except OSError as exc:
-        raise ConfigError(f"cannot read deploy file {path}: {exc.strerror}") from exc
+        near = ""
+        if not path.exists() and path.parent.is_dir():  # deploy/local.yml for .yaml
+            siblings = [p.name for p in path.parent.iterdir() if p.suffix in (".yaml", ".yml")]
+            near = did_you_mean(path.name, siblings, quote=True)
+        raise ConfigError(f"cannot read deploy file {path}: {exc.strerror}{near}") from exc
     return parse_deployment(text, str(path))
 
 

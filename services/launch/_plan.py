@@ -75,17 +75,25 @@ def _check_args(
 
 
 def _check_files(
-    spec: ServiceSpec, parsed: argparse.Namespace | None, net: NetworkConfig, where: str
+    spec: ServiceSpec,
+    parsed: argparse.Namespace | None,
+    net: NetworkConfig,
+    where: str,
+    lines: dict[str, int],
 ) -> None:
-    """ConfigError naming the first file a service needs and cannot read: its Zenoh config
-    with the certificates in it, a ROS 2 side's config, a camera description, a replayed
-    dataset. A service that cannot start must not be started (and restarted) at all."""
+    """ConfigError naming the first file a service needs and cannot read, and the deploy
+    file's line that names it: its Zenoh config with the certificates in it, a ROS 2 side's
+    config, a camera description, a replayed dataset. A service that cannot start must not
+    be started (and restarted) at all."""
+    flag = "--config"
     try:
         net.check_files()
         if parsed is None:
             return
+        flag = "--ros-config"
         if ros_config := getattr(parsed, "ros_config", None):
             NetworkConfig(config_file=Path(ros_config)).check_files()
+        flag = "--camera-xml"
         if camera_xml := getattr(parsed, "camera_xml", None):
             from services.lib.camera_model import CameraModel
 
@@ -96,6 +104,7 @@ def _check_files(
                 raise ConfigError(message) from exc
             except FramegateError as exc:
                 raise ConfigError(f"camera description {camera_xml}: {exc}") from exc
+        flag = "--path"
         if getattr(parsed, "source", None) == "replay" and parsed.path:
             from services.lib.sim import DatasetError, read_dataset
 
@@ -108,7 +117,8 @@ def _check_files(
             # A device file (an index or a URL is only known once opened).
             raise ConfigError(f"video device {device} does not exist on this host")
     except ConfigError as exc:
-        raise ConfigError(f"{where}: service {spec.name!r}: {exc}") from exc
+        line = f":{lines[flag]}" if flag in lines else ""
+        raise ConfigError(f"{where}{line}: service {spec.name!r}: {exc}") from exc
 
 
 def process_specs(
@@ -131,7 +141,8 @@ def process_specs(
         net = deployment.network_for(spec, base)
         if override is not None:
             net = override(net)
-        _check_files(spec, parsed, net, deployment.path)
+        lines = arg_lines(text, spec.name) if text else {}
+        _check_files(spec, parsed, net, deployment.path, lines)
         if spec.type == "router":
             if not net.listen:
                 # Loopback unless the deploy file says where: no wide listener by accident;

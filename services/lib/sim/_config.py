@@ -10,6 +10,7 @@ from typing import Any, Literal
 import numpy as np
 
 from middleware import ConfigError
+from services.lib.argtypes import did_you_mean
 from services.lib.camera_model import CameraModel
 
 Track = Literal["left", "right", "both"]
@@ -212,7 +213,10 @@ class ScenarioConfig:
         """A copy on the named floor (``smooth``, ``default``, ``rough``): its bump
         parameters set from the preset, everything else kept."""
         if floor not in FLOOR_PRESETS:
-            raise ConfigError(f"unknown floor {floor!r}; choose one of {', '.join(FLOOR_PRESETS)}")
+            raise ConfigError(
+                f"unknown floor {floor!r}{did_you_mean(floor, FLOOR_PRESETS, quote=True)}; "
+                f"choose one of {', '.join(FLOOR_PRESETS)}"
+            )
         return self.replace(**FLOOR_PRESETS[floor])
 
     # -- derived values --

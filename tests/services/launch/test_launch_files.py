@@ -72,7 +72,7 @@ def test_a_config_with_every_certificate_passes(tmp_path: Path) -> None:
     ],
 )
 def test_a_file_a_service_argument_names_must_be_readable(args: str, message: str) -> None:
-    with pytest.raises(ConfigError, match=rf"d\.yaml: service 'camera': {message}"):
+    with pytest.raises(ConfigError, match=rf"d\.yaml:3: service 'camera': {message}"):
         _specs(f"services:\n  camera:\n    args: {args}\n")
 
 
