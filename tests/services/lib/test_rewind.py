@@ -56,7 +56,8 @@ def test_a_burst_of_stale_elements_asks_the_input_a_bounded_number_of_times() ->
 
     asks: list[str] = []
 
-    def buffer_info(target: str, timeout_s: float) -> Any:
+    def buffer_info(target: str, timeout_s: float, unambiguous: bool) -> Any:
+        assert unambiguous, "what removes elements must not rest on one peer's word"
         asks.append(target)
         return SimpleNamespace(rewinds=())  # the input recorded no rewind
 
