@@ -100,7 +100,11 @@ def run(args: argparse.Namespace) -> int:
     """Render the dataset; with --report also decode it and write report.json."""
     config = build_config(args)
     progress = not args.no_progress and not args.json
-    result = simulate(config, args.out, progress=progress, overwrite=args.force)
+    try:
+        result = simulate(config, args.out, progress=progress, overwrite=args.force)
+    except KeyboardInterrupt:  # the writer removed the unfinished dataset
+        print(f"simulate: stopped; nothing was kept in {args.out}", file=sys.stderr)
+        raise
     summary: dict[str, Any] = {
         "dataset": str(result.root),
         "frames": result.frame_count,

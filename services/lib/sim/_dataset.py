@@ -6,6 +6,7 @@ Nothing here is specific to the simulator except the optional ``scenario.json`` 
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import shutil
@@ -165,7 +166,8 @@ class DatasetWriter:
 
     Frames go to disk as they are added; ``frames.csv`` and ``truth.json`` are written on
     close. ``overwrite`` clears a previous dataset in the directory; other files there are
-    refused rather than deleted.
+    refused rather than deleted. Left by an exception (a Ctrl-C included), it removes what
+    it wrote: a half-written directory would be neither a dataset nor empty.
     """
 
     def __init__(
@@ -174,6 +176,7 @@ class DatasetWriter:
         overwrite: bool = False,
     ) -> None:  # fmt: skip
         self.root = Path(root)
+        self._created = not self.root.exists()
         _prepare(self.root, overwrite)
         (self.root / FRAMES_DIR).mkdir()
         xml = camera.to_xml(0, exposure_ns=exposure_ns, frame_period_ns=frame_period_ns)
@@ -232,6 +235,20 @@ class DatasetWriter:
     ) -> None:  # fmt: skip
         if exc_type is None:
             self.close()
+        else:
+            self.discard()
+
+    def discard(self) -> None:
+        """Remove what this writer wrote (and the directory, if it made it)."""
+        for name in (*_OUR_FILES, FRAMES_DIR):
+            path = self.root / name
+            if path.is_dir():
+                shutil.rmtree(path, ignore_errors=True)
+            elif path.exists():
+                path.unlink(missing_ok=True)
+        if self._created:
+            with contextlib.suppress(OSError):  # not empty: someone else's files stay
+                self.root.rmdir()
 
 
 def write_report(root: str | Path, report: dict[str, Any]) -> Path:
@@ -254,7 +271,7 @@ def _prepare(root: Path, overwrite: bool) -> None:
     others = present - ours
     if ours and not overwrite:
         raise DatasetError(
-            f"{root} already holds a dataset; pass overwrite (--force) to replace it"
+            f"{root} already holds a dataset; replace it with --force (overwrite=True)"
         )
     if others:
         raise DatasetError(

@@ -100,3 +100,35 @@ def test_writer_refuses_to_clobber_without_overwrite(
     (tmp_path / "notes.txt").write_text("mine")
     with pytest.raises(DatasetError, match=r"notes\.txt"):
         simulate(small_config(), tmp_path, progress=False, overwrite=True)
+
+
+def test_an_interrupted_simulation_leaves_no_half_dataset(
+    tmp_path: Path, small_config: SmallConfig, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A Ctrl-C while frames are written: the directory it made is gone, one that existed
+    (empty) stays, empty; a rerun needs no --force."""
+    from services.lib.sim import _simulate
+
+    calls = {"n": 0}
+    real = _simulate._write_next
+
+    def interrupted(*args: object, **kwargs: object) -> None:
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise KeyboardInterrupt
+        real(*args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(_simulate, "_write_next", interrupted)
+    fresh = tmp_path / "new"
+    with pytest.raises(KeyboardInterrupt):
+        simulate(small_config(frame_count=4), fresh, progress=False, workers=1)
+    assert not fresh.exists()
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    calls["n"] = 0
+    with pytest.raises(KeyboardInterrupt):
+        simulate(small_config(frame_count=4), mine, progress=False, workers=1)
+    assert mine.is_dir() and not list(mine.iterdir())
+    monkeypatch.setattr(_simulate, "_write_next", real)
+    simulate(small_config(frame_count=1), fresh, progress=False)
+    assert len(read_dataset(fresh)) == 1
