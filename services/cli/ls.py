@@ -126,8 +126,8 @@ def run(args: argparse.Namespace) -> int:
         }
         # Like `info`: an endpoint where nothing answered is an error, not an empty list.
         silent = nothing_answered(node, args.timeout) if not (infos or invalid) else None
-    for text in invalid:  # a peer answering garbage is named, never silently absent
-        print(f"warning: left out: {text}", file=sys.stderr)
+    for reason in invalid:  # a peer answering garbage is named, never silently absent
+        print(f"warning: left out: {reason}", file=sys.stderr)
     if silent is not None:
         raise silent
     if not infos and (bad := unreachable(net)):
