@@ -110,6 +110,14 @@ def _check_text(value: str, what: str) -> None:
         raise QueryError(f"{what} holds an unprintable character (U+{ord(bad.group()):04X})")
 
 
+def printable(text: str, limit: int = MAX_TEXT) -> str:
+    """A peer's text fit for one line of a terminal or log: each unprintable character (a
+    newline, an escape sequence's ESC, a lone surrogate) written as its escape, at most
+    ``limit`` characters kept."""
+    clipped = text[:limit] + ("..." if len(text) > limit else "")
+    return _UNPRINTABLE.sub(lambda m: repr(m.group())[1:-1], clipped)
+
+
 def _short(value: int) -> str:
     text = str(value)
     return text if len(text) <= 24 else f"{text[:12]}...({len(text)} digits)"

@@ -10,6 +10,7 @@ from typing import Any
 
 import zenoh
 
+from ._decode import printable
 from ._discovery import Discovery, split_target
 from ._errors import NotFoundError, QueryError
 from ._records import DataObject
@@ -149,7 +150,8 @@ class Queries(Discovery):
         return elements
 
 
-def _error_from_reply(target: str, text: str) -> QueryError:
+def _error_from_reply(target: str, raw: str) -> QueryError:
+    text = printable(raw)  # a peer's words: one line, no terminal escapes
     if text.startswith(ERR_NOT_FOUND + ":"):
         return NotFoundError(text.split(":", 1)[1].strip())
     if text == "Timeout":

@@ -22,6 +22,7 @@ from typing import Any
 
 import zenoh
 
+from ._decode import printable
 from ._errors import FramegateError, RegistrationRefused
 from ._executor import BUDGET, Executor, Wake, remaining_s
 from ._inbox import Inbox
@@ -252,7 +253,7 @@ class Subscription:
                 "%s refused the subscription of %s: %s; retrying every %.0f s",
                 self.name,
                 self._holder,
-                news,
+                printable(news),
                 RETRY_NS / 1e9,
             )
         if retry and not self._closed:
@@ -269,7 +270,7 @@ class Subscription:
             self._feed(BUDGET)
             if self._protocol.refusal is not None and self._protocol.registered is None:
                 raise RegistrationRefused(
-                    f"{self.name} refused this subscription: {self._protocol.refusal}"
+                    f"{self.name} refused this subscription: {printable(self._protocol.refusal)}"
                 )
             return self._protocol.registered is not None
 

@@ -137,9 +137,20 @@ def decode_element(payload: bytes, attachment: bytes | None) -> DataObject:
         raise QueryError("reply has no attachment: not a framegate element")
     try:
         head = msgpack.unpackb(attachment)
-        return DataObject(int(head["t"]), payload, str(head["m"]).encode("utf-8"))
+        stamp, metadata = head["t"], head["m"]
     except (ValueError, KeyError, TypeError, msgpack.UnpackException) as exc:
         raise QueryError(f"reply attachment is not a framegate element header: {exc}") from exc
+    # A stamp is an int nanosecond count as every producer stores it; anything else (a
+    # float, a bool, one outside 0 .. 2^63 - 1) is no element of ours.
+    if type(stamp) is not int or not 0 <= stamp < 2**63 or type(metadata) is not str:
+        raise QueryError(
+            "reply attachment is not a framegate element header: timestamp "
+            f"{type(stamp).__name__} {str(stamp)[:24]}, metadata {type(metadata).__name__}"
+        )
+    try:
+        return DataObject(stamp, payload, metadata.encode("utf-8"))
+    except UnicodeEncodeError as exc:
+        raise QueryError(f"reply metadata is not UTF-8 text: {exc.reason}") from exc
 
 
 class Header(NamedTuple):

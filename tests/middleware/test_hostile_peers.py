@@ -427,6 +427,57 @@ def test_info_of_a_hostile_service_is_one_error_line(endpoint: str, case: str) -
     assert "Traceback" not in done.stderr
 
 
+def _hostile_data(endpoint: str, reply: Callable[[zenoh.Query], None]) -> Iterator[None]:
+    """``evil/b`` described validly, its data queries answered by ``reply``."""
+    body = json.dumps(_valid_description()).encode()
+    with _hostile_service(endpoint, body), open_session(endpoint) as rogue:
+        queryable = rogue.declare_queryable(KEYS.data("evil", "b"), zenoh.handlers.Callback(reply))
+        try:
+            yield
+        finally:
+            queryable.undeclare()
+
+
+def _element_reply(stamp: object) -> Callable[[zenoh.Query], None]:
+    def reply(query: zenoh.Query) -> None:
+        with query:
+            head = msgpack.packb({"t": stamp, "m": make_metadata("generic", 5).decode()})
+            query.reply(KEYS.data("evil", "b"), b"x", attachment=head)
+            query.reply(KEYS.data("evil", "b"), b"", attachment=msgpack.packb({"end": 1}))
+
+    return reply
+
+
+def _error_reply(query: zenoh.Query) -> None:
+    with query:
+        query.reply_err(b"bad-query: \x1b[2J\x1b[31mowned\nerror: fake second line")
+
+
+HOSTILE_REPLIES = {
+    "a float stamp": _element_reply(1e300),
+    "a negative stamp": _element_reply(-(2**63)),
+    "a stamp of True": _element_reply(True),
+    "an error reply with escapes and a newline": _error_reply,
+}
+
+
+@pytest.mark.parametrize("case", sorted(HOSTILE_REPLIES))
+def test_query_of_a_hostile_reply_is_one_clean_error_line(endpoint: str, case: str) -> None:
+    with contextmanager(_hostile_data)(endpoint, HOSTILE_REPLIES[case]):
+        done = subprocess.run(
+            [sys.executable, "-m", "services.cli", "query", "evil/b", "--connect", endpoint],
+            capture_output=True,
+            text=True,
+            cwd=REPO,
+            env=child_env(),
+            timeout=scaled(60),
+        )
+    lines = done.stderr.strip().splitlines()
+    assert done.returncode == 1, done.stderr
+    assert len(lines) == 1 and lines[0].startswith("error:"), done.stderr
+    assert "\x1b" not in done.stderr and "Traceback" not in done.stderr, done.stderr
+
+
 # -- floods and churn from worker processes -------------------------------------------------
 class _Flood:
     """A ``flood`` worker of ``framegate bench`` (services/evidence/bench/_floods.py)."""
