@@ -20,6 +20,7 @@ from middleware import (
     ConfigError,
     DataObject,
     FlowControlRefused,
+    FramegateError,
     NetworkConfig,
     Node,
     Producer,
@@ -164,7 +165,30 @@ def _put(producer: Producer, element: DataObject) -> None:
             continue  # a flow-controlled subscriber is still busy: a lossless source waits
 
 
-def _play(bag: Bag, played: list[_Played], rate: float, args: argparse.Namespace) -> int:
+class _Skips:
+    """Elements of the file that its buffer refused to store (a damaged or hand-made file:
+    metadata that is not XML, a stamp out of order): each skipped and counted, the rest
+    played; one warning per buffer and reason."""
+
+    def __init__(self) -> None:
+        self.counts: dict[str, int] = {}
+
+    def skip(self, name: str, timestamp_ns: int | None, exc: FramegateError) -> None:
+        key = f"{name}: {type(exc).__name__}"
+        if key not in self.counts:
+            which = "an element" if timestamp_ns is None else f"the element stamped {timestamp_ns}"
+            print(
+                f"warning: {name}: skipped {which}: {exc} (further ones like it are counted, "
+                "not shown)",
+                file=sys.stderr,
+                flush=True,
+            )
+        self.counts[key] = self.counts.get(key, 0) + 1
+
+
+def _play(
+    bag: Bag, played: list[_Played], rate: float, args: argparse.Namespace, skips: _Skips
+) -> int:
     """Put every element (forever with --loop); return how many were put."""
     from services.tools.bag import shift_element
 
@@ -178,7 +202,10 @@ def _play(bag: Bag, played: list[_Played], rate: float, args: argparse.Namespace
     while True:
         first = last = None
         n = 0
-        for recorded, element in bag.elements([p.recorded for p in played]):
+        def undecodable(recorded: RecordedBuffer, exc: FramegateError) -> None:
+            skips.skip(by_channel[recorded.channel_id].name, None, exc)
+
+        for recorded, element in bag.elements([p.recorded for p in played], undecodable):
             if t0 is None:
                 t0, wall0 = element.timestamp_ns, time.monotonic()
                 rebase_ns = time.time_ns() - t0 if args.rebase else 0
@@ -191,8 +218,11 @@ def _play(bag: Bag, played: list[_Played], rate: float, args: argparse.Namespace
                 _sleep_until(due)
             p = by_channel[recorded.channel_id]
             assert p.producer is not None
-            _put(p.producer, shift_element(element, recorded.kind, rebase_ns + loop_ns))
-            count += 1
+            try:
+                _put(p.producer, shift_element(element, recorded.kind, rebase_ns + loop_ns))
+                count += 1
+            except FramegateError as exc:  # this element only: the rest is played
+                skips.skip(p.name, element.timestamp_ns, exc)
             late = time.monotonic() - due
             if rate > 0 and late > REANCHOR_S:
                 wall0 += late
@@ -245,12 +275,14 @@ def run(args: argparse.Namespace) -> int:
         )
         try:
             _sleep_until(time.monotonic() + max(0.0, args.start_delay))
-            count = _play(bag, played, rate, args)
+            skips = _Skips()
+            count = _play(bag, played, rate, args, skips)
             _event(
                 args,
                 {
                     "event": "done",
                     "played": count,
+                    "skipped": skips.counts,
                     "elapsed_s": round(time.monotonic() - started, 3),
                     "serving": not args.exit_when_done,
                 },
@@ -274,6 +306,9 @@ def _event(args: argparse.Namespace, event: dict[str, Any]) -> None:
             )
     elif event["event"] == "done":
         then = "serving queries until Ctrl-C" if event["serving"] else "exiting"
+        skipped = sum(event["skipped"].values())
+        also = f" ({skipped} skipped: see the warnings above)" if skipped else ""
         print(
-            f"played {event['played']} elements in {event['elapsed_s']:.1f} s; {then}", flush=True
+            f"played {event['played']} elements in {event['elapsed_s']:.1f} s{also}; {then}",
+            flush=True,
         )

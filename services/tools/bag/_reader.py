@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
@@ -133,9 +133,13 @@ class Bag:
         return tuple(sorted(found, key=lambda b: b.name))
 
     def elements(
-        self, buffers: list[RecordedBuffer] | None = None
+        self,
+        buffers: list[RecordedBuffer] | None = None,
+        on_bad: Callable[[RecordedBuffer, BagError], object] | None = None,
     ) -> Iterator[tuple[RecordedBuffer, DataObject]]:
-        """Elements of ``buffers`` (default: all) in timestamp order across buffers."""
+        """Elements of ``buffers`` (default: all) in timestamp order across buffers. A
+        message that is no framegate element raises BagError, or with ``on_bad`` is passed
+        to it and skipped (the rest is read)."""
         chosen = {b.channel_id: b for b in (buffers if buffers is not None else self.buffers)}
         topics = [b.topic for b in chosen.values()]
         try:
@@ -145,7 +149,14 @@ class Bag:
                 recorded = chosen.get(channel.id)
                 if recorded is None:
                     continue
-                yield recorded, decode_element(message.data, f"{self.path} {channel.topic}")
+                try:
+                    element = decode_element(message.data, f"{self.path} {channel.topic}")
+                except BagError as exc:
+                    if on_bad is None:
+                        raise
+                    on_bad(recorded, exc)
+                    continue
+                yield recorded, element
         except READ_ERRORS as exc:
             raise BagError(f"{self.path} is damaged: {reason(exc)}") from exc
 

@@ -171,6 +171,38 @@ def test_play_paces_and_rebases_onto_the_wall_clock(cli: Cli, tmp_path: Path) ->
     assert player.wait(timeout=scaled(20)) == 0
 
 
+def test_play_skips_and_counts_an_element_its_buffer_refuses(cli: Cli, tmp_path: Path) -> None:
+    """A damaged or hand-made file: one element's metadata is no XML, another's names
+    another stamp. Each is skipped, counted and warned of once; every other one is played."""
+    bag = tmp_path / "damaged.mcap"
+    base = time.time_ns() - 10**9
+    stamps = [base + i * MS for i in range(6)]
+    with BagWriter(bag) as writer:
+        writer.add_buffer("gen", "b", kind="generic", retention=Retention())
+        for i, t in enumerate(stamps):
+            metadata = make_metadata("generic", t)
+            if i == 1:
+                metadata = b"<not xml"
+            elif i == 3:
+                metadata = make_metadata("generic", t + 1)
+            writer.write("gen/b", DataObject(t, b"x", metadata))
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    player = cli.start("play", str(bag), "--fast", "--json", "--listen", endpoint)
+    events = LineReader(player)
+    done = events.json_until(lambda e: e["event"] == "done", TIMEOUT_S)
+    assert done["played"] == 4, done
+    assert done["skipped"] == {"gen/b: SchemaError": 2}, done
+    with Node(network=NetworkConfig(connect=(endpoint,))) as client:
+        wait_until(lambda: "gen" in client.live_services(), 10, "the played service")
+        played = answered(lambda: client.query("gen/b"), "gen/b")
+    assert [e.timestamp_ns for e in played] == [stamps[i] for i in (0, 2, 4, 5)]
+    player.send_signal(signal.SIGTERM)
+    assert player.wait(timeout=scaled(20)) == 0
+    assert player.stderr is not None
+    warnings = [line for line in player.stderr.read().splitlines() if line.startswith("warning")]
+    assert len(warnings) == 1 and "skipped the element stamped" in warnings[0], warnings
+
+
 def test_record_writes_verdict_and_detection_annotations_with_foxglove_schemas(
     listen_net: NetworkConfig, cli: Cli, tmp_path: Path
 ) -> None:
