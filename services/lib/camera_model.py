@@ -19,6 +19,13 @@ from middleware import ConfigError, SchemaError, field_text, make_metadata, vali
 _IDENTITY = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
 
 
+# A rolling shutter reads a frame in milliseconds; a second is no camera.
+MAX_READOUT_NS = 1_000_000_000
+# Camera and gyro clocks closer than this (one host, or synchronized hosts); farther is no
+# calibration but a broken or hostile description.
+MAX_GYRO_OFFSET_NS = 3600 * 1_000_000_000
+
+
 @dataclass(frozen=True, slots=True)
 class CameraModel:
     """Pinhole camera. Camera frame: x right, y down, z along the optical axis.
@@ -51,8 +58,16 @@ class CameraModel:
         for name in ("cx_px", "cy_px"):
             if not math.isfinite(getattr(self, name)):
                 raise ConfigError(f"camera {name} must be finite, got {getattr(self, name)}")
-        if self.line_readout_ns < 0:
-            raise ConfigError(f"line_readout_ns must be >= 0, got {self.line_readout_ns}")
+        if not 0 <= self.line_readout_ns * self.height_px <= MAX_READOUT_NS:
+            raise ConfigError(
+                f"line_readout_ns must be >= 0 and read the {self.height_px} rows within "
+                f"{MAX_READOUT_NS / 1e9:g} s, got {self.line_readout_ns}"
+            )
+        if abs(self.gyro_time_offset_ns) > MAX_GYRO_OFFSET_NS:
+            raise ConfigError(
+                f"gyro_time_offset_ns must be within ±{MAX_GYRO_OFFSET_NS / 1e9:g} s, got "
+                f"{self.gyro_time_offset_ns}"
+            )
         if len(self.gyro_to_camera) != 9:
             raise ConfigError(
                 f"gyro_to_camera needs 9 numbers (row-major 3x3), got {len(self.gyro_to_camera)}"

@@ -97,13 +97,28 @@ def read_frame_metadata(metadata: bytes) -> FrameMeta:
     )
 
 
+# Longer than any exposure a vision camera takes, and farther than any exposure starts
+# from its frame's stamp: schema-valid, but no frame.
+MAX_EXPOSURE_NS = 10_000_000_000
+
+
 def check_frame(meta: FrameMeta, payload_bytes: int) -> None:
     """The one check of a frame's size, exposure and encoding against its payload:
     FrameError for a frame no consumer could use, whatever its XSD allowed."""
     if meta.width_px <= 0 or meta.height_px <= 0:
         raise FrameError("bad-size", f"size {meta.width_px}x{meta.height_px}")
-    if meta.exposure.duration_ns <= 0:
-        raise FrameError("bad-exposure", f"exposure of {meta.exposure.duration_ns} ns")
+    duration_ns = meta.exposure.duration_ns
+    if not 0 < duration_ns <= MAX_EXPOSURE_NS:
+        raise FrameError("bad-exposure", f"exposure of {duration_ns} ns")
+    # The key is the exposure's start as the camera stamped it (a bridge's header stamp is
+    # within a frame of it): a start far from the key pairs the frame with gyro data from
+    # another moment, and the frame stays "without gyro coverage" forever.
+    apart_ns = abs(meta.exposure.start_ns - meta.timestamp_ns)
+    if apart_ns > MAX_EXPOSURE_NS:
+        raise FrameError(
+            "bad-exposure",
+            f"exposure starts {apart_ns / 1e9:.3g} s from the frame's stamp",
+        )
     channels = FRAME_CHANNELS.get(meta.encoding)
     if channels is None:
         raise FrameError("bad-encoding", f"encoding {meta.encoding!r}")

@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 
+from middleware import ConfigError
 from services.lib.camera_model import CameraModel
 from services.lib.messages import FrameMeta
 from services.lib.quality import BlurOptions, Exposure, GyroSamples
@@ -51,6 +52,14 @@ def _samples(rates: tuple[float, float, float] = (0.1, 0.2, 0.3)) -> GyroSamples
         (_meta(width=0), 0, "bad-size"),
         (_meta(height=-2), 8, "bad-size"),
         (_meta(exposure_ns=0), 8, "bad-exposure"),
+        # Schema-valid, absurd: a frame a hostile camera sent (never "gyro missing").
+        (_meta(exposure_ns=2**63 - 1), 8, "bad-exposure"),
+        (
+            FrameMeta(20 * MS, 7, Exposure(2**63 - 1, 10 * MS), "mono8", 4, 2, None),
+            8,
+            "bad-exposure",
+        ),
+        (FrameMeta(2**62, 7, Exposure(0, 10 * MS), "mono8", 4, 2, None), 8, "bad-exposure"),
         (_meta(encoding=" mono8 "), 8, "bad-encoding"),
         (_meta(encoding="yuv422"), 8, "bad-encoding"),
         (_meta(), 7, "bad-payload-size"),
@@ -63,6 +72,21 @@ def test_a_frame_no_detector_could_use_is_a_bad_frame(
     with pytest.raises(BadFrame) as caught:
         check_frame(meta, payload_bytes)
     assert caught.value.reason == reason
+
+
+@pytest.mark.parametrize(
+    "absurd",
+    [
+        {"line_readout_ns": 2**63 - 1},
+        {"line_readout_ns": 30 * MS},  # 48 rows x 30 ms: 1.4 s to read one frame
+        {"gyro_time_offset_ns": 2**63 - 1},
+        {"gyro_time_offset_ns": -(2**63)},
+    ],
+)
+def test_a_camera_description_with_absurd_timing_is_refused(absurd: dict[str, int]) -> None:
+    base = {"width_px": 64, "height_px": 48, "fx_px": 50.0, "fy_px": 50.0}
+    with pytest.raises(ConfigError):
+        CameraModel(**base, cx_px=32.0, cy_px=24.0, **absurd)  # type: ignore[arg-type]
 
 
 def test_a_sound_frame_passes_the_checks() -> None:
