@@ -17,7 +17,9 @@ that answers as the service. From any other session, or while more than one sess
 answers in the service's name (a peer can answer as any service), it is ignored. A refused
 subscription (or one that met a forged refusal) declares its token again every
 ``RETRY_NS`` (``retry_due``) until the producer greets it: the holder it lost to may
-leave, and a real answer lost among forgeries is asked for again.
+leave, and a real answer lost among forgeries is asked for again. A refusal from another
+session than the one that greeted us is judged the same way: trusted, it voids the
+greeting, so a peer's forged greeting cannot keep a refused subscription waiting unheard.
 
 Lapses are counted: every notification carries its registration's ``base`` (the elements
 the producer had stored when it registered us), so seq s is the producer's element number
@@ -104,6 +106,8 @@ class SubscriberProtocol:
         self.registered: str | None = None
         self._refusal: tuple[str, str | None] | None = None
         self._unjudged = False
+        # Which session greeted us: a refusal from another one contests the greeting.
+        self._greeted_by: str | None = None
         self._producer_ids: frozenset[str] | None = None
         self._ids_at_ns = 0
         self._refusal_reported = False
@@ -227,14 +231,17 @@ class SubscriberProtocol:
             elif self.registered is None:
                 self.registrations = 1
             self.registered = control.text
+            self._greeted_by = sender
             if control.base is not None:
                 self._greeted(control.text, control.base)
             self._refusal = None
             self._retry_at_ns = None
-        elif self.registered is None:
+        elif self.registered is None or sender != self._greeted_by:
+            # Unanswered yet, or a refusal from another session than the greeting's: one of
+            # the two is forged, and the producer's sessions decide which (``judge``).
             self._refusal = (control.text, sender)
             self._unjudged = True
-        # else: a refusal after a greeting, a forgery or an old message: the greeting stands
+        # else: the greeting's own session refusing after it, an old message: it stands
 
     # -- refusals --------------------------------------------------------------------------
     def judge(self, now_ns: int) -> bool:
@@ -253,6 +260,11 @@ class SubscriberProtocol:
             # Not from the producer's session (a forgery), or more than one session answers
             # as the service (any peer can answer as any service): not trusted.
             self._refusal = None
+        elif self.registered is not None:
+            # The producer refused us after another session greeted us in its name: that
+            # greeting was forged, and the refusal stands (logged, retried).
+            self.registered = None
+            self._greeted_by = None
         if self._retry_at_ns is None:
             self._retry_at_ns = now_ns + RETRY_NS
         return False

@@ -36,3 +36,33 @@ def test_a_refusal_counts_only_from_the_one_session_answering_as_the_service(
     sub = _refused_by(sender)
     sub.trust_producer(frozenset(answering), 0)
     assert (sub.refusal == "queue budget used up") is believed
+
+
+@pytest.mark.parametrize(
+    ("greeter", "refuser", "answering", "refused"),
+    [
+        (ROGUE, PRODUCER, {PRODUCER}, True),  # a forged greeting, then the real refusal
+        (PRODUCER, ROGUE, {PRODUCER}, False),  # the real greeting, then a forged refusal
+        (ROGUE, PRODUCER, {PRODUCER, ROGUE}, False),  # two answer: nothing is trusted
+    ],
+)
+def test_a_refusal_from_another_session_than_the_greeting_is_judged(
+    greeter: str, refuser: str, answering: set[str], refused: bool
+) -> None:
+    """A peer greets a new subscription in the producer's name before the producer's
+    refusal arrives: the refusal is judged, and if it is the producer's, the forged greeting
+    is void (the subscription is refused, says so and retries), not left waiting unheard."""
+    sub = SubscriberProtocol(SubscriptionMode.FLOW, 4, -1)
+    hello = encode_control("hello", sub.descriptor, "forged.1", base=0)
+    sub.receive(hello, b"", sender=greeter)
+    assert sub.registered == "forged.1"
+    refusal = encode_control("refused", sub.descriptor, "observe share used up")
+    sub.receive(refusal, b"", sender=refuser)
+    assert sub.next_deadline_ns() == 0, "to be judged at once"
+    assert sub.judge(0) is True
+    sub.trust_producer(frozenset(answering), 0)
+    assert (sub.refusal == "observe share used up") is refused
+    assert (sub.registered is None) is refused
+    if refused:
+        assert sub.refusal_news() == "observe share used up"
+        assert sub.retry_due(10**10), "a refused subscription declares its token again"
