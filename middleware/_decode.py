@@ -237,6 +237,7 @@ def decode_service_info(raw: bytes, start_ns: int, end_ns: int, *, service: str)
         clock_steps=steps,
         clock_lead_ns=lead,
         threads=_names(body.get("threads")),
+        listen=_names(body.get("listen")) or (),
     )
 
 

@@ -211,6 +211,9 @@ class ServiceInfo:
     # The names of the service process's Python threads (docs/threads.md); None from old
     # peers.
     threads: tuple[str, ...] | None = None
+    # What the service's process listens on, from its operating system (``tcp/HOST:PORT``);
+    # empty from old peers.
+    listen: tuple[str, ...] = ()
 
 
 # -- hot-path builders --------------------------------------------------------------------

@@ -1,7 +1,7 @@
 """Metadata decoded for people and for JSON: typed fields and a payload summary.
 
 Fields are the leaf elements under the metadata root, nested ones as dotted names
-(``camera.focal_px``), repeated ones as lists. Values get their JSON type back: XML holds
+(``camera.fx_px``), repeated ones as lists. Values get their JSON type back: XML holds
 text, but ``frame_id`` is a number to whoever reads ``--json``.
 """
 
@@ -74,7 +74,7 @@ def decode_metadata(metadata: bytes) -> tuple[str, dict[str, Any]]:
 
 
 def field_value(fields: dict[str, Any], name: str) -> Any:
-    """A field by name, nested ones by dotted path (``camera.focal_px``); KeyError if absent."""
+    """A field by name, nested ones by dotted path (``camera.fx_px``); KeyError if absent."""
     value: Any = fields
     for part in name.split("."):
         if not isinstance(value, dict) or part not in value:

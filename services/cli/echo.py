@@ -34,7 +34,7 @@ def register(subparsers: Any) -> None:
     parser.add_argument(
         "--field",
         metavar="NAME",
-        help="print only this metadata field (dotted for nested ones: camera.focal_px)",
+        help="print only this metadata field (dotted for nested ones: camera.fx_px)",
     )
     parser.add_argument("--count", type=positive_int, metavar="K", help="stop after K elements")
     parser.add_argument("--duration", type=positive_float, metavar="S", help="stop after S s")

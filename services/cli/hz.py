@@ -74,7 +74,11 @@ def register(subparsers: Any) -> None:
     )
     parser.add_argument("--duration", type=positive_float, metavar="S", help="stop after S seconds")
     parser.add_argument(
-        "--interval", type=positive_float, default=1.0, metavar="S", help="report every S seconds"
+        "--interval",
+        type=positive_float,
+        default=1.0,
+        metavar="S",
+        help="report every S seconds (default 1)",
     )
     parser.add_argument(
         "--queue",

@@ -23,7 +23,10 @@ def register(subparsers: Any) -> None:
         subparsers, "ls", "list live services and their buffers", json_flag=True
     )
     parser.add_argument(
-        "--timeout", type=positive_float, default=2.0, help="seconds to wait for answers"
+        "--timeout",
+        type=positive_float,
+        default=2.0,
+        help="seconds to wait for answers (default 2)",
     )
     parser.add_argument(
         "--clock-samples",
@@ -82,7 +85,7 @@ def clock_steps_text(info: ServiceInfo) -> str:
 
 def listen_of(info: ServiceInfo) -> tuple[str, ...]:
     """What the service's process listens on (empty from a service too old to say)."""
-    return tuple(getattr(info, "listen", ()))
+    return info.listen
 
 
 def holder(sub: SubscriptionInfo) -> str:

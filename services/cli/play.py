@@ -85,7 +85,8 @@ def register(subparsers: Any) -> None:
         type=non_negative_float,
         default=0.5,
         metavar="S",
-        help="seconds between offering and the first element, for subscribers to register",
+        help="seconds between offering and the first element, for subscribers to register "
+        "(default 0.5)",
     )
     parser.add_argument(
         "--exit-when-done",
@@ -202,6 +203,7 @@ def _play(
     while True:
         first = last = None
         n = 0
+
         def undecodable(recorded: RecordedBuffer, exc: FramegateError) -> None:
             skips.skip(by_channel[recorded.channel_id].name, None, exc)
 

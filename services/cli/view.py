@@ -68,7 +68,8 @@ def register(subparsers: Any) -> None:
         type=positive_int,
         default=DEFAULT_BACKLOG,
         metavar="N",
-        help="messages buffered per client before its oldest are dropped",
+        help=f"messages buffered per client before its oldest are dropped (default "
+        f"{DEFAULT_BACKLOG})",
     )
     parser.add_argument("--duration", type=positive_float, metavar="S", help="stop after S seconds")
     add_timeout_argument(parser)
