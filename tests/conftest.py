@@ -88,6 +88,25 @@ def child_env() -> dict[str, str]:
     return env
 
 
+def run_framegate(
+    *argv: str,
+    cwd: Path = REPO,
+    env: dict[str, str] | None = None,
+    timeout_s: float = 60.0,
+) -> subprocess.CompletedProcess[str]:
+    """``framegate ARGV`` run to its end (stdout and stderr apart, as text); ``timeout_s``
+    is scaled for a slow machine."""
+    return subprocess.run(
+        [sys.executable, "-m", "services.cli", *argv],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        env=env or child_env(),
+        timeout=scaled(timeout_s),
+        check=False,
+    )
+
+
 def start_framegate(argv: list[str], *, local_port: int) -> subprocess.Popen[str]:
     """``framegate ARGV`` in a child process meeting others on the rendezvous ``local_port``;
     stdout and stderr together, as text."""

@@ -36,7 +36,7 @@ from middleware import (
 from middleware._inbox import control_inbox_bytes
 from middleware._protocol_producer import MAX_OBSERVE_REGISTRATIONS, QUEUE_BUDGET
 from middleware._wire import Keys, holder_chunk
-from tests.conftest import REPO, NodeProcess, child_env, wait_until
+from tests.conftest import REPO, NodeProcess, child_env, run_framegate, wait_until
 from tests.helpers.raw_zenoh import open_session
 from tests.helpers.timing import scaled
 
@@ -163,14 +163,7 @@ def test_a_refused_cli_tool_says_so_in_one_line(
             live.declare_token(_token(f"o{i}", SubscriptionMode.OBSERVE, 1, anonymous))
             for i in range(MAX_OBSERVE_REGISTRATIONS // 2 + 2)
         ]
-        done = subprocess.run(
-            [sys.executable, "-m", "services.cli", "watch", "cam/images", "--connect", endpoint],
-            capture_output=True,
-            text=True,
-            cwd=REPO,
-            env=child_env(),
-            timeout=scaled(60),
-        )
+        done = run_framegate("watch", "cam/images", "--connect", endpoint)
         for token in tokens:
             token.undeclare()
     lines = done.stderr.strip().splitlines()
@@ -367,14 +360,7 @@ def test_ls_and_info_of_an_insane_description_say_so_in_one_line(endpoint: str, 
     text = json.dumps(_valid_description(**{field: "@@"})).replace('"@@"', raw)
     with _hostile_service(endpoint, text.encode()):
         for command in (["info", "evil"], ["ls"], ["ls", "--json"]):
-            done = subprocess.run(
-                [sys.executable, "-m", "services.cli", *command, "--connect", endpoint],
-                capture_output=True,
-                text=True,
-                cwd=REPO,
-                env=child_env(),
-                timeout=scaled(60),
-            )
+            done = run_framegate(*command, "--connect", endpoint)
             said = done.stdout + done.stderr
             assert "Traceback" not in said, (command, said)
             assert "\x1b" not in said and "error: fake" not in said, (command, said)
@@ -413,14 +399,7 @@ def _hostile_service(endpoint: str, answer: bytes) -> Iterator[None]:
 @pytest.mark.parametrize("case", sorted(HOSTILE_INFO))
 def test_info_of_a_hostile_service_is_one_error_line(endpoint: str, case: str) -> None:
     with _hostile_service(endpoint, HOSTILE_INFO[case]):
-        done = subprocess.run(
-            [sys.executable, "-m", "services.cli", "info", "evil", "--connect", endpoint],
-            capture_output=True,
-            text=True,
-            cwd=REPO,
-            env=child_env(),
-            timeout=scaled(60),
-        )
+        done = run_framegate("info", "evil", "--connect", endpoint)
     lines = done.stderr.strip().splitlines()
     assert done.returncode == 1, done.stderr
     assert len(lines) == 1 and lines[0].startswith("error:"), done.stderr
@@ -464,14 +443,7 @@ HOSTILE_REPLIES = {
 @pytest.mark.parametrize("case", sorted(HOSTILE_REPLIES))
 def test_query_of_a_hostile_reply_is_one_clean_error_line(endpoint: str, case: str) -> None:
     with contextmanager(_hostile_data)(endpoint, HOSTILE_REPLIES[case]):
-        done = subprocess.run(
-            [sys.executable, "-m", "services.cli", "query", "evil/b", "--connect", endpoint],
-            capture_output=True,
-            text=True,
-            cwd=REPO,
-            env=child_env(),
-            timeout=scaled(60),
-        )
+        done = run_framegate("query", "evil/b", "--connect", endpoint)
     lines = done.stderr.strip().splitlines()
     assert done.returncode == 1, done.stderr
     assert len(lines) == 1 and lines[0].startswith("error:"), done.stderr

@@ -3,27 +3,14 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from collections.abc import Callable
 
 import pytest
 
-from tests.conftest import REPO, NodeProcess, child_env, wait_until
+from tests.conftest import NodeProcess, run_framegate, wait_until
 from tests.helpers.timing import scaled
 
 pytestmark = pytest.mark.integration
-
-
-def _framegate(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "services.cli", *args],
-        capture_output=True,
-        text=True,
-        cwd=REPO,
-        env=child_env(),
-        timeout=scaled(60),
-    )
 
 
 def test_ls_and_info_show_the_endpoint_a_service_listens_on(
@@ -33,7 +20,7 @@ def test_ls_and_info_show_the_endpoint_a_service_listens_on(
     assert service.call("offer", buffer="images")["ok"]
 
     def listed() -> list[str] | None:
-        done = _framegate("ls", "--json", "--connect", endpoint)
+        done = run_framegate("ls", "--json", "--connect", endpoint)
         if done.returncode != 0:
             return None
         services = {s["service"]: s for s in json.loads(done.stdout)["services"]}
@@ -41,7 +28,7 @@ def test_ls_and_info_show_the_endpoint_a_service_listens_on(
 
     listen = wait_until(listed, scaled(20), "cam listed")
     assert endpoint in listen, listen
-    shown = _framegate("info", "cam/images", "--connect", endpoint)
+    shown = run_framegate("info", "cam/images", "--connect", endpoint)
     assert shown.returncode == 0, shown.stderr
     [line] = [line for line in shown.stdout.splitlines() if "listens on" in line]
     assert endpoint in line, line

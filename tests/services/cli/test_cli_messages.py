@@ -9,7 +9,7 @@ import sys
 import pytest
 
 from services.cli import COMMANDS, build_parser
-from tests.conftest import REPO, child_env, free_port
+from tests.conftest import REPO, child_env, free_port, run_framegate
 from tests.helpers.imports import modules_after
 from tests.helpers.timing import scaled
 
@@ -35,15 +35,7 @@ REQUIRED: dict[str, tuple[str, ...]] = {
 
 
 def _framegate(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "services.cli", *args],
-        capture_output=True,
-        text=True,
-        cwd=REPO,
-        env=child_env(),
-        timeout=scaled(120),
-        check=False,
-    )
+    return run_framegate(*args, timeout_s=120)
 
 
 @pytest.mark.parametrize(

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.conftest import REPO, child_env, free_port, start_framegate
+from tests.conftest import REPO, child_env, free_port, run_framegate, start_framegate
 
 pytestmark = pytest.mark.integration
 
@@ -20,14 +20,7 @@ TIMEOUT_S = 180.0
 
 
 def _framegate(*argv: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "services.cli", *argv],
-        cwd=REPO,
-        env=env or child_env(),
-        capture_output=True,
-        text=True,
-        timeout=TIMEOUT_S,
-    )
+    return run_framegate(*argv, env=env, timeout_s=TIMEOUT_S)
 
 
 @pytest.fixture

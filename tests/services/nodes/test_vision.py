@@ -16,8 +16,7 @@ from services.lib.quality import Exposure
 from services.lib.vision import Box, FrameMeta, Output, ResultKind
 from services.nodes._vision_handler import handler_name, load_handler, result_kind
 from services.nodes.vision import Encoded, Skipped, VisionStep
-from tests.conftest import REPO, child_env
-from tests.helpers.timing import scaled
+from tests.conftest import REPO, run_framegate
 from tests.services.nodes import vision_handlers
 
 LOG = logging.getLogger("test.vision")
@@ -208,14 +207,7 @@ def test_an_instance_method_is_bound_to_one_instance_of_its_class(tmp_path: Path
 
 
 def _framegate(*argv: str, cwd: Path = REPO) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "services.cli", *argv],
-        capture_output=True,
-        text=True,
-        cwd=cwd,
-        env=child_env(),
-        timeout=scaled(120),
-    )
+    return run_framegate(*argv, cwd=cwd, timeout_s=120)
 
 
 @pytest.mark.parametrize(
