@@ -166,58 +166,65 @@ def _refused(node: Node, target: str) -> int:
         return 0
 
 
+class _Rig:
+    """A vision runner (``vision/detections``) behind this test's own ``src/images``, fed
+    by hand: frame ``i`` is stamped ``base_ns + i * step_ns`` and stored by ``src`` when it
+    is newer than what ``src`` holds."""
+
+    def __init__(self, src: Node, node: Node, base_ns: int, step_ns: int) -> None:
+        self.images = src.offer("images", kind="frame")
+        self.output = node.offer("detections", kind="detections")
+        spec = RunnerSpec("vision", "src/images", 2, "detections", ResultKind.DETECTIONS)
+        log = logging.getLogger("test.vision.rewind")
+        step = VisionStep(vision_handlers.brightest, ResultKind.DETECTIONS, "src/images", log)
+        self.runner = Runner(spec, step, node, self.output, threading.Event())
+        self.node, self.base_ns, self.step_ns = node, base_ns, step_ns
+
+    def note(self, frame_id: int, *, store: bool = True) -> Notification:
+        image = np.full((8, 8), frame_id, np.uint8)
+        stamp = self.base_ns + frame_id * self.step_ns
+        meta = frame_metadata(frame_id, Exposure(stamp, 1_000_000), image, None)
+        element = DataObject(stamp, image.tobytes(), meta)
+        newest = self.images.series.newest_ns
+        if store and (newest is None or stamp > newest):
+            self.images.put(stamp, element.payload, meta)
+        return Notification("src", "images", stamp, frame_id, meta, element)
+
+    def handle(self, frame_id: int, *, store: bool = True) -> None:
+        note = self.note(frame_id, store=store)
+        self.runner.handle([note], lambda n: n.element)  # type: ignore[arg-type,return-value]
+
+    def results(self) -> list[int]:
+        """The frame numbers of the results stored."""
+        found = self.node.query("vision/detections")
+        return [(e.timestamp_ns - self.base_ns) // self.step_ns for e in found]
+
+
 def test_results_are_removed_only_by_a_rewind_the_input_producer_recorded() -> None:
     net = NetworkConfig(local_port=free_port())
-    log = logging.getLogger("test.vision.rewind")
     with Node("src", net) as src_node, Node("vision", net) as node:
-        images = src_node.offer("images", kind="frame")
-        output = node.offer("detections", kind="detections")
-        spec = RunnerSpec("vision", "src/images", 2, "detections", ResultKind.DETECTIONS)
-        step = VisionStep(vision_handlers.brightest, ResultKind.DETECTIONS, "src/images", log)
-        runner = Runner(spec, step, node, output, threading.Event())
-        base_ns = now_ns() - 3_600 * 10**9
-
-        def frame(frame_id: int) -> Notification:
-            image = np.full((8, 8), frame_id, np.uint8)
-            # 0.1 s apart: a producer rewinds at most its horizon (10 s) back.
-            stamp = base_ns + frame_id * 10**8
-            meta = frame_metadata(frame_id, Exposure(stamp, 1_000_000), image, None)
-            element = DataObject(stamp, image.tobytes(), meta)
-            if images.series.newest_ns is None or stamp > images.series.newest_ns:
-                images.put(stamp, element.payload, meta)
-            return Notification("src", "images", stamp, frame_id, meta, element)
-
-        def handle(frame_id: int) -> None:
-            runner.handle([frame(frame_id)], lambda note: note.element)  # type: ignore[arg-type,return-value]
-
+        # 0.1 s apart: a producer rewinds at most its horizon (10 s) back.
+        rig = _Rig(src_node, node, now_ns() - 3_600 * 10**9, 10**8)
         for frame_id in (10, 20, 30):
-            handle(frame_id)
-        assert len(output.series) == 3
+            rig.handle(frame_id)
+        assert rig.results() == [10, 20, 30]
         # One stale element while its producer still holds newer ones: skipped, nothing gone.
-        handle(15)
-        assert len(output.series) == 3
-        assert output.info().skipped == {"out-of-order": 1}
+        rig.handle(15)
+        assert rig.results() == [10, 20, 30]
+        assert rig.output.info().skipped == {"out-of-order": 1}
         # The producer went back (it removed its frames after 12, as a mediator does after a
         # camera restarted with its clock behind): our results after the new frame follow.
-        images.discard_after(base_ns + 12 * 10**8, "rewound")
-        handle(16)
-        stamps = [e.timestamp_ns - base_ns for e in node.query("vision/detections")]
-        assert stamps == [10 * 10**8, 16 * 10**8]
-        assert output.info().skipped == {"out-of-order": 1, "rewound": 2}
+        rig.images.discard_after(rig.base_ns + 12 * rig.step_ns, "rewound")
+        rig.handle(16)
+        assert rig.results() == [10, 16]
+        assert rig.output.info().skipped == {"out-of-order": 1, "rewound": 2}
         # A peer's forged notification (the producer never stored it) stamped ahead of the
         # producer, then a stale one: the producer's newest is older than our newest result,
         # but it recorded no rewind of it, so nothing is removed.
-        forged = base_ns + 90 * 10**8
-        image = np.full((8, 8), 90, np.uint8)
-        meta = frame_metadata(90, Exposure(forged, 1_000_000), image, None)
-        note = Notification(
-            "src", "images", forged, 90, meta, DataObject(forged, image.tobytes(), meta)
-        )
-        runner.handle([note], lambda n: n.element)  # type: ignore[arg-type,return-value]
-        handle(17)
-        stamps = [e.timestamp_ns - base_ns for e in node.query("vision/detections")]
-        assert stamps == [10 * 10**8, 16 * 10**8, 90 * 10**8]
-        assert output.info().skipped == {"out-of-order": 2, "rewound": 2}
+        rig.handle(90, store=False)
+        rig.handle(17)
+        assert rig.results() == [10, 16, 90]
+        assert rig.output.info().skipped == {"out-of-order": 2, "rewound": 2}
 
 
 def test_a_rewind_a_second_session_reports_in_the_inputs_name_removes_nothing() -> None:
@@ -226,31 +233,14 @@ def test_a_rewind_a_second_session_reports_in_the_inputs_name_removes_nothing() 
     stale element is skipped and every result stays."""
     port = free_port()
     net = NetworkConfig(local_port=port)
-    log = logging.getLogger("test.vision.forged-rewind")
     with (
         Node("src", net) as src_node,
         Node("vision", net) as node,
         open_session(f"tcp/127.0.0.1:{port}") as rogue,
     ):
-        images = src_node.offer("images", kind="frame")
-        output = node.offer("detections", kind="detections")
-        spec = RunnerSpec("vision", "src/images", 2, "detections", ResultKind.DETECTIONS)
-        step = VisionStep(vision_handlers.brightest, ResultKind.DETECTIONS, "src/images", log)
-        runner = Runner(spec, step, node, output, threading.Event())
-        base_ns = now_ns() - 10**9
-
-        def handle(frame_id: int) -> None:
-            image = np.full((8, 8), frame_id, np.uint8)
-            stamp = base_ns + frame_id * 10**6
-            meta = frame_metadata(frame_id, Exposure(stamp, 1_000_000), image, None)
-            element = DataObject(stamp, image.tobytes(), meta)
-            if images.series.newest_ns is None or stamp > images.series.newest_ns:
-                images.put(stamp, element.payload, meta)
-            note = Notification("src", "images", stamp, frame_id, meta, element)
-            runner.handle([note], lambda n: n.element)  # type: ignore[arg-type,return-value]
-
+        rig = _Rig(src_node, node, now_ns() - 10**9, 10**6)
         for frame_id in (10, 20, 30):
-            handle(frame_id)
+            rig.handle(frame_id)
         keys = Keys("framegate")
         real = json.loads(
             next(r.ok.payload.to_bytes() for r in rogue.get(keys.info("src")) if r.ok)
@@ -276,16 +266,12 @@ def test_a_rewind_a_second_session_reports_in_the_inputs_name_removes_nothing() 
                 return False
 
             wait_until(both_answer, scaled(30), "the forger's answers to reach the runner")
-            handle(15)
+            rig.handle(15)
         finally:
             queryable.undeclare()
-        assert [e.timestamp_ns - base_ns for e in node.query("vision/detections")] == [
-            10 * 10**6,
-            20 * 10**6,
-            30 * 10**6,
-        ]
-        assert output.info().skipped == {"out-of-order": 1}
-        assert output.info().rewinds == ()
+        assert rig.results() == [10, 20, 30]
+        assert rig.output.info().skipped == {"out-of-order": 1}
+        assert rig.output.info().rewinds == ()
 
 
 def test_a_handler_returning_output_fills_a_generic_results_buffer() -> None:
