@@ -19,13 +19,17 @@ handler) gets them delivered once the handler is in place.
 
 from __future__ import annotations
 
+import os
 import signal
 import sys
 
 
 def _stopped_while_importing(_signum: int, _frame: object) -> None:
-    # No session, file or child exists yet: nothing to close, nothing to report.
-    raise SystemExit(0)
+    # No session, file or child exists yet: nothing to close, nothing to report. Not a
+    # raise: Python ignores an exception raised inside some callbacks (the import system's
+    # module-lock weakref callback), and the command would then start as if never stopped
+    # (seen: a router signalled while importing kept running).
+    os._exit(0)
 
 
 # Run as the ``framegate`` command (the console script, or ``python -m services.cli``, whose
@@ -39,7 +43,6 @@ if sys.argv and (sys.argv[0] == "-m" or sys.argv[0].endswith("framegate")):
 import argparse
 import contextlib
 import importlib
-import os
 from collections.abc import Callable, Sequence
 from types import FrameType
 from typing import Any
