@@ -157,12 +157,22 @@ def test_a_refused_cli_tool_says_so_in_one_line(
     producer = node_process("cam", "--listen", endpoint)
     assert producer.call("offer", buffer="images")["ok"]
     anonymous = holder_chunk(None, socket.gethostname())
-    with open_session(endpoint) as rogue:
+    with (
+        open_session(endpoint) as rogue,
+        Node("mediator", NetworkConfig(connect=(endpoint,))) as client,
+    ):
         live = rogue.liveliness()
         tokens = [
             live.declare_token(_token(f"o{i}", SubscriptionMode.OBSERVE, 1, anonymous))
             for i in range(MAX_OBSERVE_REGISTRATIONS // 2 + 2)
         ]
+        # The share is taken once the producer has judged the tokens (a loaded machine's
+        # producer may take a while), not when they were declared.
+        wait_until(
+            lambda: _cam_images(client).refused_subscriptions >= 2,
+            scaled(30),
+            "the rogue's tokens judged",
+        )
         done = run_framegate("watch", "cam/images", "--connect", endpoint)
         for token in tokens:
             token.undeclare()
@@ -374,9 +384,9 @@ def test_ls_and_info_of_an_insane_description_say_so_in_one_line(endpoint: str, 
 
 
 @contextmanager
-def _hostile_service(endpoint: str, answer: bytes) -> Iterator[None]:
+def _hostile_service(endpoint: str, answer: bytes) -> Iterator[zenoh.Session]:
     """A peer listening on ``endpoint`` that offers ``evil`` and answers its ``@info`` with
-    ``answer``."""
+    ``answer``; its session."""
     with open_session(endpoint, listen=True) as rogue:
         token = rogue.liveliness().declare_token(KEYS.service_token("evil"))
         queryable = rogue.declare_queryable(KEYS.info("evil"), zenoh.handlers.FifoChannel(16))
@@ -389,7 +399,7 @@ def _hostile_service(endpoint: str, answer: bytes) -> Iterator[None]:
         thread = threading.Thread(target=serve, daemon=True)
         thread.start()
         try:
-            yield
+            yield rogue
         finally:
             queryable.undeclare()
             token.undeclare()
@@ -406,10 +416,12 @@ def test_info_of_a_hostile_service_is_one_error_line(endpoint: str, case: str) -
     assert "Traceback" not in done.stderr
 
 
+@contextmanager
 def _hostile_data(endpoint: str, reply: Callable[[zenoh.Query], None]) -> Iterator[None]:
     """``evil/b`` described validly, its data queries answered by ``reply``."""
     body = json.dumps(_valid_description()).encode()
-    with _hostile_service(endpoint, body), open_session(endpoint) as rogue:
+    # On the service's own session: declared before the CLI connects, it is there with it.
+    with _hostile_service(endpoint, body) as rogue:
         queryable = rogue.declare_queryable(KEYS.data("evil", "b"), zenoh.handlers.Callback(reply))
         try:
             yield
@@ -442,7 +454,7 @@ HOSTILE_REPLIES = {
 
 @pytest.mark.parametrize("case", sorted(HOSTILE_REPLIES))
 def test_query_of_a_hostile_reply_is_one_clean_error_line(endpoint: str, case: str) -> None:
-    with contextmanager(_hostile_data)(endpoint, HOSTILE_REPLIES[case]):
+    with _hostile_data(endpoint, HOSTILE_REPLIES[case]):
         done = run_framegate("query", "evil/b", "--connect", endpoint)
     lines = done.stderr.strip().splitlines()
     assert done.returncode == 1, done.stderr
