@@ -110,6 +110,11 @@ def _check_text(value: str, what: str) -> None:
         raise QueryError(f"{what} holds an unprintable character (U+{ord(bad.group()):04X})")
 
 
+def _is_text(value: object) -> bool:
+    """Whether ``value`` passes ``_check_text``."""
+    return isinstance(value, str) and len(value) <= MAX_TEXT and not _UNPRINTABLE.search(value)
+
+
 def printable(text: str, limit: int = MAX_TEXT) -> str:
     """A peer's text fit for one line of a terminal or log: each unprintable character (a
     newline, an escape sequence's ESC, a lone surrogate) written as its escape, at most
@@ -252,7 +257,7 @@ def _names(value: Any) -> tuple[str, ...] | None:
     if not isinstance(value, list):
         return None
     names = value[:MAX_THREADS]
-    if all(isinstance(v, str) and len(v) <= MAX_TEXT and not _UNPRINTABLE.search(v) for v in names):
+    if all(_is_text(v) for v in names):
         return tuple(names)
     return None
 

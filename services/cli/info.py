@@ -12,7 +12,7 @@ from middleware import BufferInfo, Node, ServiceInfo, check_name
 
 from ._common import command_parser, format_bytes, format_ns, network, print_json
 from ._target import add_timeout_argument, resolve, wait_for_service
-from .ls import clock_steps_text, holder, listen_of, listen_text
+from .ls import clock_steps_text, holder, listen_text
 
 if TYPE_CHECKING:  # the bag code loads MCAP: only `info FILE.mcap` pays for it
     from services.tools.bag import ChannelInfo
@@ -64,7 +64,7 @@ def service_json(info: ServiceInfo) -> dict[str, Any]:
         "round_trip_ns": info.round_trip_ns,
         "clock_steps": info.clock_steps,
         "clock_lead_ns": info.clock_lead_ns,
-        "listen": list(listen_of(info)),
+        "listen": list(info.listen),
     }
 
 
@@ -112,7 +112,7 @@ def _print_buffer(service: ServiceInfo, b: BufferInfo) -> None:
         f"clock offset {offset_ms:+.1f} ms (round trip {rtt_ms:.1f} ms)"
         f"{clock_steps_text(service)}"
     )
-    print(f"  listens on     {listen_text(listen_of(service))}")
+    print(f"  listens on     {listen_text(service.listen)}")
     print(
         f"  retention      max {_limit(r.max_count)} elements, "
         f"{_limit(r.max_bytes, format_bytes)}, age {age}, "

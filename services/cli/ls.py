@@ -44,7 +44,7 @@ def service_json(info: ServiceInfo, clock: ClockEstimate | None = None) -> dict[
         data["clock_offset_ns"] = clock.offset_ns
         data["round_trip_ns"] = clock.round_trip_ns
     data["clock_error_ns"] = None if clock is None else clock.error_ns
-    data["listen"] = list(listen_of(info))
+    data["listen"] = list(info.listen)
     for buffer in data["buffers"]:
         for sub in buffer["subscriptions"]:
             sub["mode"] = sub["mode"].value
@@ -81,11 +81,6 @@ def clock_steps_text(info: ServiceInfo) -> str:
     if not info.clock_steps:
         return ""
     return f", clock stepped {info.clock_steps}x (lead {(info.clock_lead_ns or 0) / 1e9:+.1f} s)"
-
-
-def listen_of(info: ServiceInfo) -> tuple[str, ...]:
-    """What the service's process listens on (empty from a service too old to say)."""
-    return info.listen
 
 
 def holder(sub: SubscriptionInfo) -> str:
@@ -158,7 +153,7 @@ def run(args: argparse.Namespace) -> int:
             f"clock {offset_ns / 1e6:+.1f} ms ±{error_ns / 1e6:.1f}{clock_steps_text(info)})"
             f"{warn}"
         )
-        if listen := listen_of(info):
+        if listen := info.listen:
             print(f"  listens on {listen_text(listen)}")
         for b in info.buffers:
             print(

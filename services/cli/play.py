@@ -200,13 +200,13 @@ def _play(
     rebase_ns = 0
     period_ns = 0
     passes = 0
+
+    def undecodable(recorded: RecordedBuffer, exc: FramegateError) -> None:
+        skips.skip(by_channel[recorded.channel_id].name, None, exc)
+
     while True:
         first = last = None
         n = 0
-
-        def undecodable(recorded: RecordedBuffer, exc: FramegateError) -> None:
-            skips.skip(by_channel[recorded.channel_id].name, None, exc)
-
         for recorded, element in bag.elements([p.recorded for p in played], undecodable):
             if t0 is None:
                 t0, wall0 = element.timestamp_ns, time.monotonic()

@@ -96,9 +96,8 @@ def register(subparsers: Any) -> None:
         "--compression",
         choices=("zstd", "lz4", "none"),
         default="zstd",
-        help="chunk compression, default zstd (chunks written while the writer is behind, and at "
-        "the stop, "
-        "are stored uncompressed so that nothing waits for the compressor)",
+        help="chunk compression, default zstd (chunks written while the writer is behind, and "
+        "at the stop, are stored uncompressed so that nothing waits for the compressor)",
     )
     parser.add_argument("--overwrite", action="store_true", help="replace FILE if it exists")
     add_timeout_argument(parser)
