@@ -110,8 +110,9 @@ def _check_text(value: str, what: str) -> None:
         raise QueryError(f"{what} holds an unprintable character (U+{ord(bad.group()):04X})")
 
 
-def _is_text(value: object) -> bool:
-    """Whether ``value`` passes ``_check_text``."""
+def is_text(value: object) -> bool:
+    """Whether ``value`` passes ``_check_text``: what a peer may put in a name that framegate
+    repeats to others (a token's id and holder, a reason)."""
     return isinstance(value, str) and len(value) <= MAX_TEXT and not _UNPRINTABLE.search(value)
 
 
@@ -212,6 +213,7 @@ def _buffer(b: Any, what: str) -> BufferInfo:
         refused_subscriptions=_field(b, "refused_subscriptions", int, what, optional=True) or 0,
         limits=_limits(b.get("limits"), what),
         dropped_messages=_field(b, "dropped_messages", int, what, optional=True) or 0,
+        bad_messages=_field(b, "bad_messages", int, what, optional=True) or 0,
         rewinds=tuple(
             _rewind(r, what)
             for r in (_field(b, "rewinds", list, what, optional=True) or [])[:_REWINDS_READ]
@@ -257,7 +259,7 @@ def _names(value: Any) -> tuple[str, ...] | None:
     if not isinstance(value, list):
         return None
     names = value[:MAX_THREADS]
-    if all(_is_text(v) for v in names):
+    if all(is_text(v) for v in names):
         return tuple(names)
     return None
 

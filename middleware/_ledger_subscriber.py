@@ -29,7 +29,11 @@ A notification ``(epoch, seq, descriptor)``:
    seq of an epoch not met yet must not become its starting point, and a real producer
    sends seq 1 again. Adopting evicts the least recently used epoch with nothing queued
    when the table is full (``max(MAX_EPOCHS, N + 1)`` entries); if every epoch has
-   queued notifications the newcomer is ignored.
+   queued notifications the newcomer is ignored. The epoch the producer greeted this
+   registration with (``pin``; until a greeting comes, the first epoch adopted) is never
+   evicted, from the table or from that memory: a flood of made-up epochs at seq 1 (any
+   peer can send one) would otherwise push the live epoch out of both, and every later seq
+   of it would be ``out_of_order`` for good.
 4. ``seq <= last``: a duplicate or stale copy: ignored (``duplicates``). If nothing of
    that epoch is queued, the producer evidently missed our ack: it is repeated.
 5. Flow control, ``seq > last + 1`` (a gap) or ``seq > taken + N`` (beyond any window the
@@ -187,6 +191,7 @@ class SubscriberLedger(Generic[T]):
         self._queue: deque[Entry[T]] = deque()
         self._epochs: OrderedDict[str, EpochTrack] = OrderedDict()
         self._forgotten: OrderedDict[str, tuple[int, int]] = OrderedDict()
+        self._pinned: str | None = None  # never evicted (``pin``)
         self._acked_ns: int | None = None  # when acks last left
         # Takes so far, and how many and when ``acks_due`` last saw: a take that comes the
         # delay or more after the one before is a slow stream's (see ``acks_due``).
@@ -226,6 +231,11 @@ class SubscriberLedger(Generic[T]):
         self._queue[index] = entry._replace(missed=entry.missed + count)
         if not counted:
             self.missed_total += count
+
+    def pin(self, epoch: str) -> None:
+        """Keep ``epoch`` (the one the producer greeted this registration with) tracked
+        whatever other epochs arrive; a later greeting moves the pin."""
+        self._pinned = epoch
 
     # -- notifications in ------------------------------------------------------------------
     def receive(self, epoch: str, seq: int, item: T, *, descriptor: str | None) -> bool:
@@ -272,6 +282,8 @@ class SubscriberLedger(Generic[T]):
             last, taken = known if known is not None else (0, 0)
             track = EpochTrack(last=last, taken=taken)
             self._epochs[epoch] = track
+            if self._pinned is None:  # the greeting was lost, or is still on its way
+                self._pinned = epoch
         self._epochs.move_to_end(epoch)
         self._recent, self._recent_track = epoch, track
         if seq <= track.last:
@@ -357,13 +369,16 @@ class SubscriberLedger(Generic[T]):
         if len(self._epochs) < self._max_epochs:
             return True
         for name, track in self._epochs.items():  # least recently used first
-            if track.queued == 0:
+            if track.queued == 0 and name != self._pinned:
                 del self._epochs[name]
                 if name == self._recent:
                     self._recent = None
                 self._forgotten[name] = (track.last, track.taken)
                 if len(self._forgotten) > FORGOTTEN_EPOCHS:
-                    self._forgotten.popitem(last=False)
+                    oldest, known = self._forgotten.popitem(last=False)
+                    if oldest == self._pinned:  # evicted before its greeting came: kept
+                        self._forgotten[oldest] = known
+                        self._forgotten.popitem(last=False)
                 return True
         return False
 

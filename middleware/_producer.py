@@ -481,6 +481,7 @@ class Producer:
             rewinds=rewinds,
             limits=replace(self._protocol.limits(), control_inbox_bytes=control_inbox_bytes()),
             dropped_messages=self._acks.dropped + self._tokens.dropped,
+            bad_messages=protocol.bad_messages,
         )
 
     def close(self) -> None:

@@ -231,6 +231,7 @@ class SubscriberProtocol:
             elif self.registered is None:
                 self.registrations = 1
             self.registered = control.text
+            self.ledger.pin(control.text)
             self._greeted_by = sender
             if control.base is not None:
                 self._greeted(control.text, control.base)

@@ -186,6 +186,8 @@ class BufferInfo:
     # Control messages (acks, subscription tokens) dropped unread: larger than their format
     # allows, or pushed out of a full inbox by newer ones (a flood).
     dropped_messages: int = 0
+    # Control messages read and ignored: malformed, or a token no client could read back.
+    bad_messages: int = 0
 
     @property
     def name(self) -> str:

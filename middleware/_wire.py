@@ -25,6 +25,7 @@ from typing import NamedTuple
 
 import msgpack
 
+from ._decode import is_text
 from ._errors import QueryError
 from ._records import DataObject, SubscriptionMode
 
@@ -115,6 +116,10 @@ def parse_subscription_token(
     sub_id, mode, size, push = parts[-4], parts[-3], parts[-2], parts[-1]
     if not sub_id:
         raise ValueError("empty subscription id")
+    # The id and holder reach every client in ``@info``, whose decoder refuses the whole
+    # description for one unprintable or overlong name: refused here, one token at a time.
+    if not all(is_text(text) for text in (sub_id, node or "", host or "")):
+        raise ValueError("subscription id or holder is overlong or holds unprintable characters")
     if not (size.lstrip("-").isdigit() and push.lstrip("-").isdigit()):
         raise ValueError(f"queue size {size!r} and push limit {push!r} must be integers")
     queue_size, push_max_bytes = int(size), int(push)
@@ -258,6 +263,10 @@ def _check_batch(head: BatchHeader) -> BatchHeader:
     return head
 
 
+# The largest seq (and base) a notification may carry: an int64, as msgpack packs it.
+MAX_SEQ = 2**63 - 1
+
+
 def decode_notification_header(raw: bytes) -> Header | BatchHeader | Control:
     """Decode and type-check a notification header (single or batch, see
     ``encode_notification_header`` and ``encode_batch_header``); ValueError if it is garbage.
@@ -270,18 +279,22 @@ def decode_notification_header(raw: bytes) -> Header | BatchHeader | Control:
         kind, descriptor, text, base = body if len(body) == 4 else (*body, None)
         if kind not in CONTROL_KINDS or type(descriptor) is not str or type(text) is not str:
             raise ValueError("control message is not [kind, descriptor, text]")
-        if base is not None and (type(base) is not int or base < 0):
-            raise ValueError("control message base is not an int >= 0")
+        if base is not None and (type(base) is not int or not 0 <= base <= MAX_SEQ):
+            raise ValueError("control message base is not an int in 0..2^63-1")
         return Control(kind, descriptor, text, base)
     if type(body) is not tuple or len(body) not in (7, 8):
         raise ValueError("notification header is not an array of 8 (or 7)")
     if len(body) == 7:
         body = (*body, None)
     epoch, seq, stamp, metadata, pushed, acked, descriptor, base = body
-    if base is not None and (type(base) is not int or base < 0):
-        raise ValueError("notification base is not an int >= 0")
+    if base is not None and (type(base) is not int or not 0 <= base <= MAX_SEQ):
+        raise ValueError("notification base is not an int in 0..2^63-1")
     if type(epoch) is not str or type(seq) is not int:
         raise ValueError("notification lacks epoch or seq")
+    # Seqs and the acks that repeat them stay int64 (an ack of 2^64 could not be encoded);
+    # seq < 1 is the ledger's to count.
+    if seq + (len(stamp) - 1 if type(stamp) is tuple else 0) > MAX_SEQ:
+        raise ValueError("notification seq beyond 2^63-1")
     if acked is not None and type(acked) is not int:
         raise ValueError("notification window base is not an int")
     if descriptor is not None and type(descriptor) is not str:

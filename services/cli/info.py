@@ -123,6 +123,11 @@ def _print_buffer(service: ServiceInfo, b: BufferInfo) -> None:
     print(f"  rate           {b.rate_hz:.1f} Hz")
     skipped = "".join(f", skipped {reason} {n}" for reason, n in sorted(b.skipped.items()))
     print(f"  producer       puts {b.puts}, refused {b.refused}, rejected {b.rejected}{skipped}")
+    if b.dropped_messages or b.bad_messages:  # a flood or a hostile peer (docs/limits.md)
+        print(
+            f"  control        {b.bad_messages} malformed acks or tokens ignored, "
+            f"{b.dropped_messages} dropped unread"
+        )
     for w in b.rewinds:  # what a rewind removed is shown, never only logged
         print(f"  rewound        {w.count} after {format_ns(w.after_ns)} ({w.cause})")
     if b.limits is not None:  # docs/limits.md

@@ -133,3 +133,24 @@ def test_a_resync_after_lost_token_events_repairs_the_table() -> None:
     producer.resync([_token(live, "mediator~x")], 0)
     assert [r.key for r in producer.registrations()] == [live]
     assert producer.full() is None and not producer.resync_due(0)
+
+
+def test_a_token_whose_id_or_holder_no_client_could_read_is_ignored_and_counted() -> None:
+    """Every client reads a producer's subscriptions in ``@info``, whose decoder refuses a
+    description with an unprintable or overlong name: such a token is a bad message, so
+    that one peer's token cannot make the buffer unreadable to every CLI command."""
+    producer = _producer()
+    hostile = [
+        _token(RegistrationKey("a\x1bb", OBSERVE, 2, -1), "n~h"),
+        _token(RegistrationKey("a\x7fb", OBSERVE, 2, -1), "n~h"),
+        _token(RegistrationKey("x" * 2000, OBSERVE, 2, -1), "n~h"),
+        _token(RegistrationKey("ok", OBSERVE, 2, -1), "n\x0a~h"),
+        _token(RegistrationKey("ok", OBSERVE, 2, -1), "n~" + "h" * 2000),
+    ]
+    for token in hostile:
+        producer.token(token, True, 0)
+    assert producer.registrations() == []
+    assert producer.counters.bad_messages == len(hostile)
+    fine = RegistrationKey("rec", OBSERVE, 2, -1)
+    producer.token(_token(fine, "record~h\u00e9te"), True, 0)
+    assert producer.get(fine) is not None

@@ -304,6 +304,95 @@ def test_a_bare_service_token_does_not_stop_the_service(
         token.undeclare()
 
 
+def _forge(rogue: zenoh.Session, sub: Any, *header: object) -> None:
+    """One notification header ``header`` on ``sub``'s notify key, sent by ``rogue``."""
+    rogue.put(
+        KEYS.notify("cam", "images", sub.subscription_id),
+        b"",
+        attachment=msgpack.packb(header, use_bin_type=True),
+    )
+
+
+def test_a_flood_of_made_up_epochs_does_not_hold_the_producer(
+    listen_net: NetworkConfig, endpoint: str
+) -> None:
+    """A peer sends seq 1 of 600 ever new epochs to a flow subscriber, which takes them as
+    they come: more than it remembers of evicted epochs. Its producer's epoch stays
+    tracked, so every later element is still notified (it stalled for good when the flood
+    pushed the live epoch out of memory)."""
+    with (
+        Node("cam", listen_net) as service,
+        open_session(endpoint) as rogue,
+        Node(network=NetworkConfig(connect=(endpoint,))) as client,
+    ):
+        images = service.offer("images")
+        sub = client.subscribe("cam/images", queue_size=2, wait_s=scaled(10))
+        images.put(1, b"x", make_metadata("generic", 1), wait_s=scaled(5))
+        note = sub.take(timeout_s=scaled(5))
+        assert note is not None and note.timestamp_ns == 1
+        for i in range(600):
+            _forge(rogue, sub, f"F{i}.1", 1, 999, None, False, None, "flow/2/-1", None)
+            while sub.take(timeout_s=0) is not None:
+                pass  # the forged ones: an hour-old stamp the consumer cannot fetch
+        deadline = time.monotonic() + scaled(10)
+        while time.monotonic() < deadline:  # the last forged ones, still on their way
+            if sub.take(timeout_s=0.5) is None:
+                break
+        for t in range(2, 8):
+            images.put(t, b"x", make_metadata("generic", t), wait_s=scaled(10))
+            taken = sub.take(timeout_s=scaled(10))
+            while taken is not None and taken.timestamp_ns == 999:
+                taken = sub.take(timeout_s=scaled(10))
+            assert taken is not None and taken.timestamp_ns == t, f"element {t} not notified"
+
+
+def test_an_observer_survives_a_batch_whose_seqs_overflow(
+    listen_net: NetworkConfig, endpoint: str
+) -> None:
+    """One batch notification whose seqs pass 2^63 is garbage (its ack could not be
+    encoded and killed ``watch``, ``echo``, ``record``): counted, and the observer goes on."""
+    with (
+        Node("cam", listen_net) as service,
+        open_session(endpoint) as rogue,
+        Node(network=NetworkConfig(connect=(endpoint,))) as client,
+    ):
+        images = service.offer("images")
+        sub = client.subscribe(
+            "cam/images", queue_size=4, mode=SubscriptionMode.OBSERVE, wait_s=scaled(10)
+        )
+        now = now_ns()
+        header = ("rogue.1", 2**64 - 1, [now, now + 1], [None, None], None, None)
+        _forge(rogue, sub, *header, "observe/4/-1", None)
+        wait_until(lambda: sub.garbage >= 1, scaled(10), "the forged batch counted")
+        for t in range(1, 4):
+            images.put(t, b"x", make_metadata("generic", t))
+            note = sub.take(timeout_s=scaled(10))
+            assert note is not None and note.timestamp_ns == t
+
+
+def test_a_token_no_client_could_read_leaves_the_buffer_readable(
+    listen_net: NetworkConfig, endpoint: str
+) -> None:
+    """A subscription token whose id holds an escape character: the producer ignores it, so
+    its description (which every CLI command reads) stays readable."""
+    with (
+        Node("cam", listen_net) as service,
+        open_session(endpoint) as rogue,
+        Node(network=NetworkConfig(connect=(endpoint,))) as client,
+    ):
+        service.offer("images")
+        wait_until(lambda: "cam" in client.live_services(), scaled(10), "the service")
+        live = rogue.liveliness()
+        token = live.declare_token(_token("a\x1bb", SubscriptionMode.OBSERVE, 1, "n~h"))
+        info = wait_until(
+            lambda: (i := _cam_images(client)).bad_messages >= 1 and i,
+            scaled(10),
+            "the token ignored",
+        )
+        assert info.subscriptions == ()
+        token.undeclare()
+
+
 HOSTILE_INFO = {
     "no subscriptions": json.dumps(
         {

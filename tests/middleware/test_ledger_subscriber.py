@@ -6,7 +6,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from middleware._ledger_subscriber import AckPolicy, Entry, SubscriberLedger
+from middleware._ledger_subscriber import FORGOTTEN_EPOCHS, AckPolicy, Entry, SubscriberLedger
 from middleware._records import SubscriptionMode
 
 EPOCHS = ["A.1", "A.2", "B.1", "C.7"]
@@ -129,3 +129,20 @@ def test_a_busy_subscriber_repeats_no_ack_between_notifications() -> None:
     assert ledger.acks_due(quiet - 1, idle=True) == []
     assert ledger.acks_due(quiet, idle=True) == [("A.1", 20)]
     assert ledger.acks_due(quiet + 1, idle=True) == []
+
+
+@pytest.mark.parametrize("greeted", [True, False], ids=["greeted", "greeting-lost"])
+def test_made_up_epochs_never_push_out_the_live_one(greeted: bool) -> None:
+    """A peer sends seq 1 of ever new epochs, each taken as it comes: more than the table
+    and the memory of evicted epochs hold. The epoch the producer greeted us with (or, the
+    greeting lost, the first one adopted) stays tracked, so its next seq is still taken."""
+    ledger = SubscriberLedger[str](SubscriptionMode.FLOW, 2, DESCRIPTOR)
+    if greeted:
+        ledger.pin("P.1")
+    assert ledger.receive("P.1", 1, "real", descriptor=DESCRIPTOR)
+    assert ledger.take() is not None
+    for i in range(FORGOTTEN_EPOCHS + 64):
+        assert ledger.receive(f"F{i}.1", 1, "forged", descriptor=DESCRIPTOR)
+        assert ledger.take() is not None
+    assert ledger.track("P.1") is not None
+    assert ledger.receive("P.1", 2, "real", descriptor=DESCRIPTOR)

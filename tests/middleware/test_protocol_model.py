@@ -37,6 +37,7 @@ from middleware._ledger_producer import RETRANSMIT_NS, RegistrationKey
 from middleware._ledger_subscriber import (
     ACK_DELAY_NS,
     DEEP_ACK_DELAY_NS,
+    FORGOTTEN_EPOCHS,
     MAX_EPOCHS,
     AckPolicy,
     Entry,
@@ -128,6 +129,7 @@ class ProtocolModel(RuleBasedStateMachine):
         self.refused = 0
         # The epochs the producer gave each subscriber's key (a registration is its key).
         self.epochs_of: dict[RegistrationKey, set[str]] = {}
+        self.made_up = 0  # epochs a rogue made up so far (each flood's are new)
 
     def _new_producer(self) -> ProducerProtocol:
         # Payloads up to 4 bytes are pushed with their notification; larger ones are not.
@@ -378,6 +380,21 @@ class ProtocolModel(RuleBasedStateMachine):
         else:  # a far-future seq, beyond anything in flight: straight to the subscriber
             future = reg.sent + sub.key.queue_size + seq
             self._deliver(self._forged(sub, reg.epoch, future, desc))
+
+    @precondition(lambda self: bool(self._live()))
+    @rule(data=st.data(), count=st.sampled_from([3, FORGOTTEN_EPOCHS + 16]), take=st.booleans())
+    def rogue_epoch_flood(self, data: st.DataObject, count: int, take: bool) -> None:
+        """Made-up epochs at seq 1, each one new, as fast as a peer can send them, the
+        subscriber taking as they come (or not): its live epoch stays tracked, so nothing of
+        it is lost (``heal``) and its producer is not held for good."""
+        STEPS[0] += 1
+        sub = data.draw(st.sampled_from(self._live()))
+        for _ in range(count):
+            self.made_up += 1
+            self._deliver(self._forged(sub, f"F{self.made_up}.1", 1, sub.key.descriptor))
+            if take:
+                self._record(sub, sub.protocol.take_many(1))
+        self._acks(sub, idle=True)
 
     @precondition(lambda self: bool(self._live()))
     @rule(data=st.data(), garbage=st.binary(max_size=12))

@@ -72,6 +72,12 @@ def test_an_unpushed_batch_header_has_no_payload_sizes() -> None:
         (_array("E.1", 1, [7], [META, None], None, None, None), "n + 1 metadata"),
         (_array("E.1", 1, [7], [META], 5, None, None), "sizes not an array"),
         (_array("E.1", 1, [7], META, None, None, None), "metadata not an array"),
+        # Seqs are int64: an observer's ack of 2^64 could not be encoded.
+        (_array("E.1", 2**63, 7, META, True, None, None), "seq beyond 2^63-1"),
+        (_array("E.1", 2**64 - 1, [7, 8], [None, None], None, None, None), "batch past 2^64"),
+        (_array("E.1", 2**63 - 1, [7, 8], [None, None], None, None, None), "batch past 2^63"),
+        (_array("E.1", 1, 7, META, True, None, None, 2**63), "base beyond 2^63-1"),
+        (bytes(msgpack.packb(("hello", "flow/2/-1", "E.1", 2**63))), "hello base too large"),
     ],
 )
 def test_a_malformed_header_is_a_value_error(raw: bytes, why: str) -> None:
@@ -99,11 +105,12 @@ def _well_typed(head: Header | BatchHeader) -> bool:
         and is_int(head.seq)
         and (head.acked is None or is_int(head.acked))
         and (head.descriptor is None or type(head.descriptor) is str)
-        and (head.base is None or (is_int(head.base) and head.base >= 0))
+        and (head.base is None or (is_int(head.base) and 0 <= head.base < 2**63))
     )
     if isinstance(head, Header):
         return (
             common
+            and head.seq < 2**63
             and is_int(head.timestamp_ns)
             and type(head.pushed) is bool
             and (head.metadata is None or type(head.metadata) is bytes)
@@ -111,6 +118,7 @@ def _well_typed(head: Header | BatchHeader) -> bool:
     n = len(head.timestamps_ns)
     return (
         common
+        and head.seq + n - 1 < 2**63
         and n >= 1
         and all(map(is_int, head.timestamps_ns))
         and len(head.metadata) == n
