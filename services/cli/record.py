@@ -299,7 +299,8 @@ def _wait(
     end = None if duration is None else started + duration
     stopped_ns = None
     try:
-        while any(r.thread.is_alive() for r in recorders):
+        # A failing file (a full disk) ends the recording at once, not at its duration.
+        while any(r.thread.is_alive() for r in recorders) and recorders[0].queue.error is None:
             if end is not None and time.monotonic() >= end:
                 # The duration's own end, not the instant this loop noticed it (late on a
                 # busy machine): the file spans the duration, in the producers' stamps.

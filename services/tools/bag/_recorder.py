@@ -184,7 +184,11 @@ def at_start(
     subscribing, so that nothing stored in between escapes both the query and the
     notifications; by stamp, not as "the newest now", because buffers are asked one after
     another: the last is asked tens of ms after the start, and a 1 kHz gyro stores dozens of
-    samples meanwhile, which would have been in no buffer's query and in no notification."""
+    samples meanwhile, which would have been in no buffer's query and in no notification.
+
+    The second query starts right after the element the first one found, not at the start:
+    a batch stored between the two (a gyro's ten samples, some stamped before the start)
+    would otherwise leave a gap behind that element that no later backfill reaches."""
     try:
         before = node.query(
             target, time_range=TimeRange(None, started_ns), last=1, timeout_s=STOP_QUERY_S
@@ -193,7 +197,8 @@ def at_start(
         after = node.query(
             target,
             time_range=TimeRange(
-                started_ns + 1, end_ns if stop_ns is None else min(stop_ns, end_ns)
+                (before[-1].timestamp_ns if before else started_ns) + 1,
+                end_ns if stop_ns is None else min(stop_ns, end_ns),
             ),
             timeout_s=STOP_QUERY_S,
         )
@@ -317,11 +322,16 @@ class Recorder:
         p = self.progress
         if self.stop_ns is not None and note.timestamp_ns > self.stop_ns:
             return  # past the stop: the final backfill fetches what lies before it
-        if note.seq <= self._anchor_seq:
-            self._anchor_seq, self._since_anchor = 0, []  # the producer restarted (new epoch)
+        new_epoch = note.seq <= self._anchor_seq
+        if new_epoch:  # the producer restarted, or our registration lapsed and came back
+            self._anchor_seq, self._since_anchor = 0, []
         # Sequence numbers count every element stored since we subscribed: this many lie
         # between the previous notification we handled and this one.
         expected = note.seq - self._anchor_seq - 1
+        if new_epoch:
+            # Across a lapse the seqs start over; what was stored meanwhile comes as the
+            # note's missed count (which also holds this epoch's seqs before it, if dropped).
+            expected = max(expected, note.missed)
         if self._last_ns is not None and note.timestamp_ns <= self._last_ns:
             # A backfill already queued it; it still anchors the count of what lies between.
             between = [t for t in self._since_anchor if t < note.timestamp_ns]

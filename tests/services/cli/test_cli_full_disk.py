@@ -35,30 +35,39 @@ def tiny_disk(tmp_path: Path) -> Iterator[Path]:
         subprocess.run(["umount", "-l", str(mount)], check=False)
 
 
+# 51 KiB every 0.1 s: a chunk closes each second by age (on the command's main thread), and
+# the disk (1 MiB) is full after a few of them. 200 KiB every 20 ms: the 4 MiB chunk fills
+# first and the writer's thread closes it (a busy recording: its error must end it too).
+@pytest.mark.parametrize(
+    ("size", "period_s"), [(51_200, 0.1), (204_800, 0.02)], ids=["quiet", "busy"]
+)
 def test_full_disk_stops_the_recording_with_one_line(
-    listen_net: NetworkConfig, cli: Cli, tiny_disk: Path
+    listen_net: NetworkConfig, cli: Cli, tiny_disk: Path, size: int, period_s: float
 ) -> None:
     with Node("cam", listen_net) as service:
-        log = service.offer("log", retention=Retention(max_count=1000))
+        log = service.offer("log", retention=Retention(max_count=200))
         recorder = cli.start(
             "record", "cam/log", "-o", str(tiny_disk / "run.mcap"), "--compression", "none",
             "--duration", "120",
         )  # fmt: skip
         assert log.wait_for_subscribers(1, timeout_s=scaled(30))
-        # 51 KiB every 0.1 s: a chunk closes each second, and the disk (1 MiB) is full
-        # after a few of them.
-        noise = bytes(range(256)) * 200
+        noise = (bytes(range(256)) * (size // 256 + 1))[:size]
         t = time.time_ns()
         deadline = time.monotonic() + scaled(60)
         while recorder.poll() is None and time.monotonic() < deadline:
             t += 1_000_000
             log.put(t, noise, make_metadata("generic", t), wait_s=1.0)
-            time.sleep(0.1)
+            time.sleep(period_s)
+        # It stopped when the disk filled, not at the end of its 120 s.
+        ended_when_full = recorder.poll() is not None
     _out, err = recorder.communicate(timeout=TIMEOUT_S)
+    assert ended_when_full, err
     assert recorder.returncode == 1, err
     lines = [line for line in err.splitlines() if line.strip()]
     assert lines[-1].startswith("error: ") and "No space left on device" in lines[-1], err
     assert "Traceback" not in err
+    if period_s < 0.1:
+        return  # its first chunk (4 MiB) never fitted on the disk: nothing to play
     # What fitted before the disk filled is there to play (whole chunks only).
     info = recording_info(tiny_disk / "run.mcap")
     assert info.status == "recovered" and info.messages > 0, info

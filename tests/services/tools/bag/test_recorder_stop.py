@@ -12,7 +12,7 @@ import time
 from typing import Any
 
 from middleware import DataObject, Notification
-from services.tools.bag import Progress, Recorder
+from services.tools.bag import Progress, Recorder, at_start
 from services.tools.bag._recorder import BACKFILL_TRIES, STOP_SLACK_S, TAIL_FLOOR_S
 
 STOP_NS = 1_000
@@ -160,3 +160,65 @@ def test_the_tail_up_to_the_stop_is_asked_even_by_a_recorder_starved_past_its_de
     assert written.stamps == [110, 120]
     recorder._backfill(STOP_NS, timeout_s=STOP_SLACK_S)  # any other ask: none past it
     assert node.asked == 1
+
+
+class _Holding:
+    """A producer holding elements stamped ``held``: range queries answer from them, and a
+    notified element is fetched."""
+
+    name = "cam/log"
+    missed_total = 0
+
+    def __init__(self, held: list[int]) -> None:
+        self.held = held
+
+    def query(self, target: str, *, time_range: Any, last: int | None = None, **_: Any) -> Any:
+        start = time_range.start_ns if time_range.start_ns is not None else -1
+        end = time_range.end_ns if time_range.end_ns is not None else 1 << 62
+        found = [DataObject(t, b"", b"<m/>") for t in self.held if start <= t <= end]
+        return found[-last:] if last else found
+
+    def fetch(self, note: Notification, **_: Any) -> DataObject:
+        return DataObject(note.timestamp_ns, b"", b"<m/>")
+
+
+def test_what_a_lapse_stored_and_the_buffer_no_longer_holds_is_counted_evicted() -> None:
+    # Handled up to seq 50 (t 500); the registration lapsed, 105 elements were stored
+    # meanwhile (t 510..1550), the buffer still holds the newest 63 of them; the new
+    # registration's first notification (seq 1, t 1560) carries missed=105.
+    held = list(range(930, 1551, 10))
+    node = _Holding(held)
+    written = _Written()
+    recorder = Recorder(
+        node,  # type: ignore[arg-type]
+        node,  # type: ignore[arg-type]
+        written,  # type: ignore[arg-type]
+        Progress("cam/log", "generic"),
+        threading.Event(),
+        None,
+    )
+    recorder.deadline = time.monotonic() + 60.0
+    recorder._anchor_seq, recorder._last_ns = 50, 500
+    recorder._on_notification(Notification("cam", "log", 1560, 1, missed=105))
+    assert written.stamps == [*held, 1560]
+    assert recorder.progress.backfilled == len(held) == 63
+    assert recorder.progress.evicted == 105 - 63
+
+
+def test_at_start_asks_right_after_the_element_found_before_the_start() -> None:
+    # The newest element at or before the start is t 849 (a gyro batch stored between the
+    # two queries brings 850..870, stamped on both sides of the start 857): the second query
+    # reaches back to 850, so no gap opens behind 849.
+    node = _Holding(list(range(800, 850)))
+    asked: list[Any] = []
+    original = node.query
+
+    def query(target: str, **kwargs: Any) -> Any:
+        asked.append(kwargs["time_range"])
+        if len(asked) == 2:
+            node.held = list(range(800, 871))  # the batch arrived between the two queries
+        return original(target, **kwargs)
+
+    node.query = query  # type: ignore[method-assign]
+    found = at_start(node, "cam/log", started_ns=857)  # type: ignore[arg-type]
+    assert [e.timestamp_ns for e in found] == list(range(849, 871))
