@@ -347,11 +347,16 @@ def endpoint_parts(endpoint: str) -> tuple[str, str, str]:
 
 
 def checked_endpoints(endpoints: Iterable[str], what: str, lowest: int = 1) -> tuple[str, ...]:
-    """``endpoints`` as given, or ConfigError naming ``what`` (the flag or variable) for one
-    whose port is not a number in ``lowest``..65535 (Zenoh would only say the endpoint is
-    bad); 0 is a port to listen on (any free one), not one to connect to."""
+    """``endpoints`` as given, or ConfigError naming ``what`` (the flag, variable or deploy
+    file line) for one Zenoh cannot parse or whose port is not a number in
+    ``lowest``..65535 (Zenoh would only say the endpoint is bad); 0 is a port to listen on
+    (any free one), not one to connect to."""
     out = tuple(endpoints)
     for endpoint in out:
+        try:
+            _check_endpoints([endpoint], "use")
+        except ConfigError as exc:
+            raise ConfigError(f"{what}: bad endpoint {endpoint!r}: write {ENDPOINT_FORM}") from exc
         proto, host, port = endpoint_parts(endpoint)
         inet = proto in ("tcp", "tls", "udp", "quic")
         # No ":" at all (``tcp/abc``) is no port: ``_check_endpoints`` names the form.

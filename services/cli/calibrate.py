@@ -18,7 +18,11 @@ def register(subparsers: Any) -> None:
         network=False,
         json_flag=True,
     )
-    parser.add_argument("dataset", help="dataset directory (framegate simulate, or a recording)")
+    parser.add_argument(
+        "dataset",
+        help="dataset directory in the layout of services/lib/sim/DATASET.md, as "
+        "framegate simulate writes it (not an .mcap recording)",
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.set_defaults(func=run)
 

@@ -263,4 +263,6 @@ def _launch(args: argparse.Namespace, deployment: Deployment, net: NetworkConfig
         status_stop.set()
         if status is not None and status.is_alive():
             status.join()
-    return report_failures(supervisor.failures())
+    # A service that died and was restarted, running again at the stop, was said when it
+    # died; a clean stop of a pipeline that is up is a success (as systemd must see it).
+    return report_failures(supervisor.failures(recovered=False))

@@ -19,7 +19,7 @@ from typing import Any
 
 import yaml
 
-from middleware import ConfigError, NetworkConfig, check_name
+from middleware import ConfigError, NetworkConfig, check_name, checked_endpoints
 from services.lib.argtypes import did_you_mean
 from services.nodes import SERVICES
 
@@ -73,7 +73,10 @@ class Deployment:
             return list(self.services)
         if host not in self.hosts:
             known = ", ".join(sorted(self.hosts))
-            raise ConfigError(f"{self.path} has no host {host!r}; its hosts are: {known}")
+            raise ConfigError(
+                f"{self.path} has no host {host!r}{did_you_mean(host, self.hosts, quote=True)}; "
+                f"its hosts are: {known}"
+            )
         return [s for s in self.services if s.host == host]
 
     def network_for(self, spec: ServiceSpec, base: NetworkConfig | None = None) -> NetworkConfig:
@@ -111,7 +114,7 @@ def parse_deployment(text: str, name: str = "<deploy>") -> Deployment:
     try:
         root = yaml.compose(text, Loader=yaml.SafeLoader)
     except yaml.YAMLError as exc:
-        raise ConfigError(f"{name}: not valid YAML: {exc}") from exc
+        raise ConfigError(_yaml_error(name, exc)) from exc
     if root is None:
         raise ConfigError(f"{name}: the deploy file is empty; it needs a 'services' mapping")
     top = _mapping(root, name, "the top level", _TOP_KEYS)
@@ -143,7 +146,8 @@ def parse_deployment(text: str, name: str = "<deploy>") -> Deployment:
         if kind not in SERVICE_TYPES:
             where = _line(fields["type"][1]) if "type" in fields else _line(key_node)
             raise ConfigError(
-                f"{name}:{where}: service {svc_name!r} has unknown type {kind!r}; "
+                f"{name}:{where}: service {svc_name!r} has unknown type {kind!r}"
+                f"{did_you_mean(kind, SERVICE_TYPES, quote=True)}; "
                 f"use one of: {', '.join(SERVICE_TYPES)}"
             )
         if "host" in fields:
@@ -152,6 +156,7 @@ def parse_deployment(text: str, name: str = "<deploy>") -> Deployment:
                 raise ConfigError(
                     f"{name}:{_line(fields['host'][1])}: service {svc_name!r} names host "
                     f"{host!r}, which is not under 'hosts' ({', '.join(sorted(hosts))})"
+                    f"{did_you_mean(host, hosts, quote=True)}"
                 )
         elif len(hosts) == 1:
             host = next(iter(hosts))
@@ -165,6 +170,17 @@ def parse_deployment(text: str, name: str = "<deploy>") -> Deployment:
         net = _network(fields["network"][1], name) if "network" in fields else {}
         services.append(ServiceSpec(svc_name, kind, host, args, restart, net))
     return Deployment(name, network, hosts, tuple(services))
+
+
+def _yaml_error(name: str, exc: yaml.YAMLError) -> str:
+    """One line: the file, the line and column where the parser gave up, and why (PyYAML's
+    own message spans several lines and quotes the text)."""
+    mark = getattr(exc, "problem_mark", None)
+    problem = getattr(exc, "problem", None) or "unreadable"
+    context = getattr(exc, "context", None)
+    where = f":{mark.line + 1}:{mark.column + 1}" if mark is not None else ""
+    because = f" ({context})" if context else ""
+    return f"{name}{where}: not valid YAML: {problem}{because}"
 
 
 def _is_map(node: yaml.Node) -> bool:
@@ -185,7 +201,8 @@ def _mapping(
         key = str(key_node.value)
         if allowed is not None and key not in allowed:
             raise ConfigError(
-                f"{name}:{_line(key_node)}: unknown key {key!r} in {where}; "
+                f"{name}:{_line(key_node)}: unknown key {key!r} in {where}"
+                f"{did_you_mean(key, allowed, quote=True)}; "
                 f"expected one of: {', '.join(sorted(allowed))}"
             )
         if key in out:
@@ -231,10 +248,13 @@ def _network(node: yaml.Node, name: str) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for key, (_key_node, value) in fields.items():
         if key in ("connect", "listen"):
-            if isinstance(value, yaml.SequenceNode):
-                out[key] = [str(_scalar(v)) for v in value.value]
-            else:
-                out[key] = [str(_scalar(value))]
+            items = value.value if isinstance(value, yaml.SequenceNode) else [value]
+            out[key] = [str(_scalar(v)) for v in items]
+            # Checked here, not by each service at start (a restart loop): 0 only to listen.
+            for item, endpoint in zip(items, out[key], strict=True):
+                checked_endpoints(
+                    [endpoint], f"{name}:{_line(item)}: {key}", lowest=int(key == "connect")
+                )
         else:
             out[key] = str(_scalar(value))
     return out

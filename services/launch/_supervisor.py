@@ -70,6 +70,7 @@ class _Running:
     pump: threading.Thread | None = None
     killed_by_us: bool = False
     exit_recorded: bool = False  # by stop(): a second stop() must not count it again
+    up_at_stop: bool = False  # running when stop() came (its earlier deaths were restarted)
 
 
 def exit_text(code: int) -> str:
@@ -225,11 +226,15 @@ class Supervisor:
         now = time.monotonic()
         return {r.spec.name: (now - r.started_at if r.proc else None) for r in self._running}
 
-    def signal_deaths(self) -> dict[str, list[str]]:
-        """Each process that died by a signal (not the SIGKILL of ``stop``), and how."""
+    def signal_deaths(self, *, recovered: bool = True) -> dict[str, list[str]]:
+        """Each process that died by a signal (not the SIGKILL of ``stop``), and how;
+        ``recovered=False``: not the deaths of a process that was restarted and running again
+        when the stop came (each was said as it happened)."""
         out: dict[str, list[str]] = {}
         for running in self._running:
             codes = list(running.exit_codes)
+            if not recovered and running.up_at_stop:
+                codes = codes[-1:]  # only how it ended at the stop
             if running.killed_by_us and codes and codes[-1] == -signal.SIGKILL:
                 codes.pop()
             deaths = [exit_text(c) for c in codes if c < 0]
@@ -237,10 +242,14 @@ class Supervisor:
                 out[running.spec.name] = deaths
         return out
 
-    def failures(self) -> list[str]:
+    def failures(self, *, recovered: bool = True) -> list[str]:
         """One line per process a launcher must report (and then exit non-zero): each that
-        died by a signal, and each that could not start because its name is taken."""
-        deaths = [f"{name} {', '.join(how)}" for name, how in self.signal_deaths().items()]
+        died by a signal (``recovered=False``: unless restarted and running at the stop), and
+        each that could not start because its name is taken."""
+        deaths = [
+            f"{name} {', '.join(how)}"
+            for name, how in self.signal_deaths(recovered=recovered).items()
+        ]
         taken = [
             f"{name} did not start: another live instance offers its name"
             for name in self.name_taken()
@@ -257,6 +266,8 @@ class Supervisor:
         live = [r for r in self._running if r.proc is not None]
         # A process that died since the last poll still gets its exit recorded below.
         stopping = [r for r in live if r.proc is not None and r.proc.poll() is None]
+        for running in stopping:
+            running.up_at_stop = True
         for running in stopping:
             assert running.proc is not None
             with contextlib.suppress(ProcessLookupError):

@@ -199,9 +199,7 @@ class ScenarioConfig:
 
     def replace(self, **changes: Any) -> ScenarioConfig:
         """A copy with some fields changed (validated like the original)."""
-        unknown = sorted(set(changes) - {f.name for f in fields(self)})
-        if unknown:
-            raise ConfigError(f"unknown scenario parameter(s): {', '.join(unknown)}")
+        _check_known(changes, {f.name for f in fields(self)})
         return dataclasses.replace(self, **changes)
 
     @staticmethod
@@ -286,9 +284,7 @@ class ScenarioConfig:
     def from_dict(cls, data: dict[str, Any]) -> ScenarioConfig:
         """Inverse of :meth:`to_dict`; missing keys take their defaults, unknown keys fail."""
         known = {f.name: f for f in fields(cls)}
-        unknown = sorted(set(data) - set(known))
-        if unknown:
-            raise ConfigError(f"unknown scenario parameter(s): {', '.join(unknown)}")
+        _check_known(data, set(known))
         values = dict(data)
         if values.get("bumps") is not None:
             try:
@@ -296,3 +292,11 @@ class ScenarioConfig:
             except TypeError as exc:
                 raise ConfigError(f"bad bump in scenario: {exc}") from exc
         return cls(**values)
+
+
+def _check_known(names: dict[str, Any], known: set[str]) -> None:
+    """ConfigError naming the parameters that are not fields (a did-you-mean for one)."""
+    unknown = sorted(set(names) - known)
+    if unknown:
+        near = did_you_mean(unknown[0], known, quote=True) if len(unknown) == 1 else ""
+        raise ConfigError(f"unknown scenario parameter(s): {', '.join(unknown)}{near}")

@@ -271,7 +271,7 @@ def _prepare(root: Path, overwrite: bool) -> None:
     others = present - ours
     if ours and not overwrite:
         raise DatasetError(
-            f"{root} already holds a dataset; replace it with --force (overwrite=True)"
+            f"{root} already holds a dataset; replace it with --force (from Python: overwrite=True)"
         )
     if others:
         raise DatasetError(

@@ -111,8 +111,8 @@ def test_an_unreachable_connect_endpoint_is_named_with_exit_1() -> None:
 @pytest.mark.parametrize(
     ("args", "expected"),
     [
-        (("--connect", "bogus"), "error: bad endpoint 'bogus' to connect to: write PROTOCOL/"),
-        (("--listen", "tcp/"), "error: bad endpoint 'tcp/' to listen on: write PROTOCOL/"),
+        (("--connect", "bogus"), "error: --connect: bad endpoint 'bogus': write PROTOCOL/"),
+        (("--listen", "tcp/"), "error: --listen: bad endpoint 'tcp/': write PROTOCOL/"),
         (("--connect", "foo/bar"), "error: cannot open a Zenoh session (foo/bar): Unicast not"),
     ],
 )

@@ -42,14 +42,38 @@ def test_local_deploy_matches_the_paper_pipeline() -> None:
 @pytest.mark.parametrize(
     ("text", "message"),
     [
-        ("services:\n  camera:\n    tpye: camera\n", r"x\.yaml:3: unknown key 'tpye'"),
+        (
+            "services:\n  camera:\n    tpye: camera\n",
+            r"x\.yaml:3: unknown key 'tpye' in service 'camera' \(did you mean 'type'\?\)",
+        ),
         ("sevices: {}\n", r"x\.yaml:1: unknown key 'sevices' in the top level"),
-        ("services:\n  cam: {type: camra}\n", r"x\.yaml:2: .*unknown type 'camra'"),
+        (
+            "services:\n  cam: {type: camra}\n",
+            r"x\.yaml:2: .*unknown type 'camra' \(did you mean 'camera'\?\)",
+        ),
         ("hosts: {a: {}, b: {}}\nservices:\n  camera: {}\n", r"x\.yaml:3: .*needs a 'host'"),
         ("services:\n  camera: {host: nowhere}\n", r"x\.yaml:2: .*host 'nowhere'"),
         ("version: 2\nservices: {}\n", r"x\.yaml:1: unsupported version"),
         ("services: [1, 2]\n", r"x\.yaml:1: services must be a mapping"),
-        ("services:\n  camera: {args: {source: sim}\n", r"x\.yaml: not valid YAML"),
+        # One line, where the parser gave up (PyYAML's own message spans five).
+        ("services:\n  camera: {args: {source: sim}\n", r"^x\.yaml:3:1: not valid YAML: [^\n]*$"),
+        (
+            "hosts: {robot: {}}\nservices:\n  camera: {host: robt}\n",
+            r"x\.yaml:3: .*host 'robt'.*\(did you mean 'robot'\?\)",
+        ),
+        (
+            "services:\n  camera: {network: {connect: [tcp/127.0.0.1:99999]}}\n",
+            r"x\.yaml:2: connect tcp/127\.0\.0\.1:99999: 99999 is not a port number",
+        ),
+        (
+            "services:\n  camera:\n    network:\n      connect:\n        - garbage\n",
+            r"x\.yaml:5: connect: bad endpoint 'garbage'",
+        ),
+        (
+            "network: {listen: tcp/127.0.0.1:0}\nservices:\n  camera: {}\n"
+            "  gyro: {network: {listen: [tcp/127.0.0.1:x]}}\n",
+            r"x\.yaml:4: listen tcp/127\.0\.0\.1:x: x is not a port number: use 0\.\.65535",
+        ),
         ("", "empty"),
         ("services:\n  bad/name: {type: camera}\n", "bad service name"),
     ],

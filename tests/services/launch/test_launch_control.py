@@ -258,6 +258,26 @@ def test_launch_reports_a_child_killed_by_a_signal_and_exits_1(tmp_path: Path) -
 
 
 @pytest.mark.integration
+def test_a_ctrl_c_after_a_restarted_death_exits_0(tmp_path: Path) -> None:
+    """A service killed and restarted, up again at the stop: said when it died, and the
+    stop of a running pipeline is a success (exit 0, no error line)."""
+    launch = Launch([str(_router_deploy(tmp_path))], tmp_path, free_port())
+    try:
+        launch.wait_line(lambda line: line.startswith("launching"))
+        first = _child_pid(launch)
+        os.kill(first, signal.SIGKILL)
+        launch.wait_line(lambda line: "died by signal SIGKILL (9); restarting" in line)
+        launch.wait_line(lambda line: "restarting (restart 1)" in line)
+        wait_until(lambda: _child_pid(launch) != first, STARTUP_S, "the restarted process")
+        launch.proc.send_signal(signal.SIGINT)
+        code = launch.finish()
+    finally:
+        launch.close()
+    assert code == 0, launch.lines
+    assert not any(line.startswith("error:") for line in launch.lines), launch.lines
+
+
+@pytest.mark.integration
 def test_status_prints_one_short_line_per_service(tmp_path: Path) -> None:
     launch = Launch([str(_router_deploy(tmp_path)), "--status", "0.5"], tmp_path, free_port())
     try:
