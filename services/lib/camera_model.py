@@ -9,6 +9,7 @@ carry the same description.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -68,21 +69,7 @@ class CameraModel:
                 f"gyro_time_offset_ns must be within ±{MAX_GYRO_OFFSET_NS / 1e9:g} s, got "
                 f"{self.gyro_time_offset_ns}"
             )
-        if len(self.gyro_to_camera) != 9:
-            raise ConfigError(
-                f"gyro_to_camera needs 9 numbers (row-major 3x3), got {len(self.gyro_to_camera)}"
-            )
-        rotation = np.asarray(self.gyro_to_camera, dtype=float).reshape(3, 3)
-        with np.errstate(over="ignore", invalid="ignore"):  # 1e300 entries: refused, not logged
-            is_rotation = bool(
-                np.isfinite(rotation).all()
-                and np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-3)
-                and np.linalg.det(rotation) > 0
-            )
-        if not is_rotation:
-            raise ConfigError(
-                f"gyro_to_camera must be a rotation matrix, got {self.gyro_to_camera}"
-            )
+        check_rotation(self.gyro_to_camera, "gyro_to_camera")
 
     @property
     def rotation_gyro_to_camera(self) -> np.ndarray:
@@ -155,3 +142,19 @@ class CameraModel:
         """Parse and validate a metadata document (kind ``camera`` or ``frame``) and read it."""
         root = validate_metadata(data)
         return cls.from_element(root)
+
+
+def check_rotation(values: Sequence[float], what: str) -> None:
+    """ConfigError naming ``what`` (a field or a flag) unless ``values`` are a row-major
+    3x3 rotation: 9 finite numbers, orthonormal, determinant +1."""
+    if len(values) != 9:
+        raise ConfigError(f"{what} needs 9 numbers (row-major 3x3), got {len(values)}")
+    rotation = np.asarray(values, dtype=float).reshape(3, 3)
+    with np.errstate(over="ignore", invalid="ignore"):  # 1e300 entries: refused, not logged
+        is_rotation = bool(
+            np.isfinite(rotation).all()
+            and np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-3)
+            and np.linalg.det(rotation) > 0
+        )
+    if not is_rotation:
+        raise ConfigError(f"{what} must be a rotation matrix, got {tuple(values)}")

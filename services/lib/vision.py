@@ -124,6 +124,25 @@ def encode_result(
     arrivals, what the detector did when, which ``processing_ns`` alone cannot say."""
     if result is None:
         return None
+    try:
+        return _encode(result, kind, frame, source, processing_ns, taken_ns)
+    except SchemaError:
+        raise
+    except Exception as exc:  # the handler's own objects: any float() or str() of them may raise
+        raise SchemaError(
+            f"the result cannot be written as metadata: {type(exc).__name__} "
+            "converting one of its values"
+        ) from exc
+
+
+def _encode(
+    result: object,
+    kind: ResultKind,
+    frame: FrameMeta,
+    source: str,
+    processing_ns: int,
+    taken_ns: int | None,
+) -> Encoded:
     head: dict[str, Any] = {
         "frame_id": frame.frame_id,
         "source": source,
@@ -154,7 +173,7 @@ def encode_result(
         )
     if not isinstance(result.payload, bytes | bytearray | memoryview):
         raise SchemaError(f"Output.payload must be bytes, not {type(result.payload).__name__}")
-    fields = dict(result.fields)
+    fields = _fields(result.fields)
     clash = sorted(set(fields) & set(head))
     if clash:
         raise SchemaError(f"Output fields {clash} are set by the runner; rename them")
@@ -163,6 +182,17 @@ def encode_result(
     except (ValueError, TypeError) as exc:  # lxml refuses a bad element name or value
         raise SchemaError(f"Output fields cannot be written as XML: {exc}") from exc
     return Encoded(bytes(result.payload), metadata, 0)
+
+
+def _fields(fields: object) -> dict[str, Any]:
+    """``Output.fields`` as element names to values; SchemaError for anything else (a name
+    starting with ``@`` would be an attribute of the metadata's root: its kind or stamp)."""
+    if not isinstance(fields, Mapping):
+        raise SchemaError(f"Output.fields must be a mapping of names, not {type(fields).__name__}")
+    for name in fields:
+        if not isinstance(name, str) or not name or name.startswith("@"):
+            raise SchemaError(f"Output field names are XML element names, not {name!r:.40}")
+    return dict(fields)
 
 
 def _boxes(result: object) -> Sequence[Box]:

@@ -12,6 +12,7 @@ import importlib
 import importlib.util
 import inspect
 import os
+import re
 import sys
 import typing
 from collections.abc import Callable
@@ -29,9 +30,11 @@ Image = npt.NDArray[np.uint8]
 Handler = Callable[[Image, FrameMeta], object]
 
 
-def load_handler(spec: str) -> Handler:
+def load_handler(spec: str, *, bind: bool = True) -> Handler:
     """The callable ``spec`` names: ``package.module:function``, ``module:Class.method``,
-    or ``path/to/file.py:function``.
+    or ``path/to/file.py:function``. ``bind=False``: only check that it names one (an
+    instance method's class is not created: the flag check of a launcher or ``--check``
+    must not load a model).
 
     ConfigError, naming what is wrong, if the module cannot be imported (any exception
     while importing it counts), the name is missing or not callable. The current directory
@@ -71,7 +74,7 @@ def load_handler(spec: str) -> Handler:
                 f"handler {spec!r}: {module_name!r} has no {attr_path!r}"
                 + did_you_mean(part, names, quote=True)
             ) from exc
-    if inspect.isclass(owner) and inspect.isfunction(inspect.getattr_static(owner, part)):
+    if bind and inspect.isclass(owner) and inspect.isfunction(inspect.getattr_static(owner, part)):
         target = _bound(spec, owner, part)  # ``module:Class.method``: an instance method
     if not callable(target):
         raise ConfigError(
@@ -138,7 +141,7 @@ def handler_argument(spec: str) -> str:
     """argparse type of ``--handler``: the spec, once it names a callable (so a deploy file
     naming a missing handler fails ``launch --check``)."""
     try:
-        load_handler(spec)
+        load_handler(spec, bind=False)
     except ConfigError as exc:
         raise argparse.ArgumentTypeError(str(exc)) from exc
     return spec
@@ -154,7 +157,9 @@ def result_kind(handler: Handler, requested: str) -> ResultKind:
     function = handler if inspect.isroutine(handler) else type(handler).__call__
     try:
         returns = typing.get_type_hints(function).get("return")
-    except Exception:  # unresolvable annotations: treat as unannotated
-        returns = None
+    except Exception:  # unresolvable (``Output`` imported under TYPE_CHECKING): read the text
+        raw = getattr(function, "__annotations__", {}).get("return")
+        names = set(re.findall(r"\w+", raw)) if isinstance(raw, str) else set()
+        return ResultKind.GENERIC if names & {"Output", "bytes"} else ResultKind.DETECTIONS
     options = set(typing.get_args(returns)) | {returns}
     return ResultKind.GENERIC if options & {Output, bytes} else ResultKind.DETECTIONS

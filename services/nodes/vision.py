@@ -56,6 +56,7 @@ from middleware import (
     FramegateError,
     NetworkConfig,
     Node,
+    NotFoundError,
     Notification,
     Producer,
     Retention,
@@ -297,6 +298,8 @@ class Runner:
             if self.stop.is_set():
                 return
             taken_ns = now_ns()  # the frames' clock: what the runner did when, beside them
+            if note.missed:  # an observer's full queue (keep-last), or a lapse: never seen
+                self.output.count_skip("not-observed", note.missed)
             if not self._in_order(note.timestamp_ns):
                 continue
             try:
@@ -389,12 +392,32 @@ def serve(spec: RunnerSpec, handler: Handler, network: NetworkConfig, stop: thre
             if spec.processing_floor_s
             else "",
         )
+        unregistered_since = time.monotonic()
         try:
             while not stop.is_set():
                 runner.handle(frames.take_many(1, timeout_s=0.5), frames.fetch)
+                if unregistered_since and time.monotonic() - unregistered_since > _SAY_AFTER_S:
+                    unregistered_since = 0.0  # said once, at most
+                    if not frames.wait_registered(0):
+                        _say_why_unregistered(node, spec.input, log)
         except (KeyboardInterrupt, _Stopped):
             pass
     return 0
+
+
+# A runner whose input has not registered it this long says why, once.
+_SAY_AFTER_S = 5.0
+
+
+def _say_why_unregistered(node: Node, target: str, log: logging.Logger) -> None:
+    """One warning when the input cannot be had as named (a misspelt service or buffer:
+    otherwise the runner would wait in silence); nothing while it is merely starting."""
+    try:
+        node.buffer_info(target, timeout_s=1.0)
+    except NotFoundError as exc:
+        log.warning("still waiting for %s: %s", target, exc)
+    except FramegateError:
+        pass  # not answering now: starting, or busy; the subscription registers when it can
 
 
 def run(config: VisionConfig, network: NetworkConfig, stop: threading.Event | None = None) -> int:

@@ -283,7 +283,12 @@ class CameraSource:
         missing = []
         if self._intrinsics is None:
             missing.append(
-                self._info_problem or f"a CameraInfo on {self._info_topic} (or --camera-xml)"
+                self._info_problem
+                or (
+                    f"a CameraInfo on {self._info_topic} (or --camera-xml)"
+                    if self._info_topic is not None
+                    else "--camera-xml (CameraInfo is not read: --camera-info '')"
+                )
             )
         rotation = self._rotation
         if rotation is None:

@@ -10,6 +10,7 @@ The ROS 2 side has its own connection flags shaped like every service's (``--ros
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -28,6 +29,7 @@ from services.lib.argtypes import (
     positive_float,
     positive_int,
 )
+from services.lib.camera_model import check_rotation
 from services.lib.settings import add_flags, from_args, setting
 
 from ._rmw import DISTROS, History, Qos, Reliability, fully_qualified
@@ -224,11 +226,8 @@ class Ros2Config:
         ):
             if value < 1:
                 raise ConfigError(f"{flag} must be >= 1, got {value}")
-        if self.imu_to_camera is not None and len(self.imu_to_camera) != 9:
-            raise ConfigError(
-                f"--imu-to-camera takes 9 numbers (a row-major 3x3 rotation), got "
-                f"{len(self.imu_to_camera)}"
-            )
+        if self.imu_to_camera is not None:
+            check_rotation(self.imu_to_camera, "--imu-to-camera")
         if self.in_depth < 1 or self.out_depth < 0:
             raise ConfigError("--in-depth must be >= 1 and --out-depth >= 0 (0 = keep all)")
         if not self.ros_namespace.startswith("/"):
@@ -240,6 +239,19 @@ class Ros2Config:
             raise ConfigError(f"--consumer-queue must be >= 1, got {self.consumer_queue}")
         if not self.consumer_timeout_ms > 0:
             raise ConfigError(f"--consumer-timeout-ms must be > 0, got {self.consumer_timeout_ms}")
+        if self.consumer_done is None:
+            # Flags of the loop without the loop: said, not silently ignored.
+            defaults = {f.name: f.default for f in dataclasses.fields(self)}
+            given = [
+                "--" + name.replace("_", "-")
+                for name in ("consumer_input", "consumer_queue", "consumer_timeout_ms")
+                if getattr(self, name) != defaults[name]
+            ]
+            if given:
+                raise ConfigError(
+                    f"{', '.join(given)} without --consumer-done: the loop through a ROS 2 "
+                    "node's results needs its result topic"
+                )
         if self.consumer_done is not None:
             self.consumer_mapping  # noqa: B018 -- raises ConfigError when there is none
             ours = [m.topic for m in self.outputs]

@@ -10,6 +10,12 @@ from services.lib.messages import frame_metadata, read_detections, read_frame_me
 from services.lib.quality import Exposure
 from services.lib.vision import Box, Output, ResultKind, encode_result
 
+
+class _Unprintable:
+    def __str__(self) -> str:
+        raise RuntimeError("no text")
+
+
 FRAME = read_frame_metadata(
     frame_metadata(7, Exposure(1_000_000, 30_000_000), np.zeros((4, 6), np.uint8), None)
 )
@@ -51,6 +57,12 @@ def test_an_output_becomes_a_generic_element_with_the_frame_fields() -> None:
         (Output(b"", {"bad name": 1}), ResultKind.GENERIC, "cannot be written as XML"),
         (Output(b"", {"frame_id": 1}), ResultKind.GENERIC, "set by the runner"),
         (Output("text", {}), ResultKind.GENERIC, "payload must be bytes"),  # type: ignore[arg-type]
+        # Any fields a handler makes up: a clear error each, never another exception.
+        (Output(b"x", [1, 2]), ResultKind.GENERIC, "must be a mapping"),  # type: ignore[arg-type]
+        (Output(b"x", None), ResultKind.GENERIC, "must be a mapping"),  # type: ignore[arg-type]
+        (Output(b"x", {1: 2}), ResultKind.GENERIC, "XML element names, not 1"),  # type: ignore[dict-item]
+        (Output(b"x", {"@kind": "evil"}), ResultKind.GENERIC, "not '@kind'"),
+        (Output(b"x", {"v": _Unprintable()}), ResultKind.GENERIC, "RuntimeError converting"),
     ],
 )
 def test_a_result_that_does_not_fit_is_a_schema_error(

@@ -22,13 +22,16 @@ NOT_APPLICABLE = {
     "gyro": {"source.exposure_ms", "source.camera_xml"},
 }
 # Flags that only make sense with another one (a replay needs its directory).
+_LOOP = ["--consumer-done", "/yolo/detections", "--image-out", "mediator/images=/camera/sharp"]
 COMPANIONS = {"--source": ["--path", "somewhere"]}
 # Flags whose value is itself a list of words, or that need a companion to be valid.
 WHOLE = {
     "--imu-to-camera": [["--imu-to-camera", "0", "0", "1", "-1", "0", "0", "0", "-1", "0"]],
-    "--consumer-done": [
-        ["--consumer-done", "/yolo/detections", "--image-out", "mediator/images=/camera/sharp"]
-    ],
+    "--consumer-done": [_LOOP],
+    # The loop's other flags are refused without it.
+    "--consumer-input": [["--consumer-input", "mediator/images", *_LOOP]],
+    "--consumer-queue": [["--consumer-queue", "3", *_LOOP]],
+    "--consumer-timeout-ms": [["--consumer-timeout-ms", "500", *_LOOP]],
 }
 # Flags whose value must name something that exists (a handler is imported when parsed).
 EXISTING = {"--handler": "services.nodes.detector:detect_aruco"}

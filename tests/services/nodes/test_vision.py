@@ -14,7 +14,12 @@ from middleware import ConfigError, SchemaError
 from services.lib.messages import frame_metadata, read_detections
 from services.lib.quality import Exposure
 from services.lib.vision import Box, FrameMeta, Output, ResultKind
-from services.nodes._vision_handler import handler_name, load_handler, result_kind
+from services.nodes._vision_handler import (
+    handler_argument,
+    handler_name,
+    load_handler,
+    result_kind,
+)
 from services.nodes.vision import Encoded, Skipped, VisionStep
 from tests.conftest import REPO, run_framegate
 from tests.services.nodes import vision_handlers
@@ -204,6 +209,42 @@ def test_an_instance_method_is_bound_to_one_instance_of_its_class(tmp_path: Path
     assert load_handler(f"{module}:Det.plain")(None, None) == "static"  # type: ignore[arg-type]
     with pytest.raises(ConfigError, match=r"instance method, and Needs\(\) failed: TypeError"):
         load_handler(f"{module}:Needs.method")
+
+
+def test_checking_a_method_handler_does_not_create_its_class(tmp_path: Path) -> None:
+    """The flag check (``--help``, ``launch --check``, the launcher itself) only resolves the
+    name; the runner creates the class once (a model in ``__init__`` is loaded once)."""
+    made = tmp_path / "made"
+    module = tmp_path / "counted_handlers.py"
+    module.write_text(
+        "class Det:\n"
+        "    def __init__(self):\n"
+        f"        open({str(made)!r}, 'a').write('x')\n"
+        "    def find(self, image, frame):\n"
+        "        return None\n"
+    )
+    handler_argument(f"{module}:Det.find")
+    assert not made.exists()
+    load_handler(f"{module}:Det.find")
+    assert made.read_text() == "x"
+
+
+def test_a_return_annotation_only_a_type_checker_can_resolve_is_read_as_text(
+    tmp_path: Path,
+) -> None:
+    module = tmp_path / "checked_handlers.py"
+    module.write_text(
+        "from __future__ import annotations\n"
+        "from typing import TYPE_CHECKING\n"
+        "if TYPE_CHECKING:\n"
+        "    from services.lib.vision import Output\n"
+        "def summary(image, frame) -> Output | None:\n"
+        "    return None\n"
+        "def boxes(image, frame) -> list[Box]:\n"
+        "    return []\n"
+    )
+    assert result_kind(load_handler(f"{module}:summary"), "auto") is ResultKind.GENERIC
+    assert result_kind(load_handler(f"{module}:boxes"), "auto") is ResultKind.DETECTIONS
 
 
 def _framegate(*argv: str, cwd: Path = REPO) -> subprocess.CompletedProcess[str]:

@@ -8,6 +8,7 @@ import signal
 import threading
 import time
 from collections.abc import Iterator
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -190,8 +191,8 @@ class _Rig:
             self.images.put(stamp, element.payload, meta)
         return Notification("src", "images", stamp, frame_id, meta, element)
 
-    def handle(self, frame_id: int, *, store: bool = True) -> None:
-        note = self.note(frame_id, store=store)
+    def handle(self, frame_id: int, *, store: bool = True, missed: int = 0) -> None:
+        note = replace(self.note(frame_id, store=store), missed=missed)
         self.runner.handle([note], lambda n: n.element)  # type: ignore[arg-type,return-value]
 
     def results(self) -> list[int]:
@@ -225,6 +226,18 @@ def test_results_are_removed_only_by_a_rewind_the_input_producer_recorded() -> N
         rig.handle(17)
         assert rig.results() == [10, 16, 90]
         assert rig.output.info().skipped == {"out-of-order": 2, "rewound": 2}
+
+
+def test_frames_an_observing_runner_never_saw_are_counted() -> None:
+    """An observer's full queue drops its oldest frames (keep-last): the next notification
+    carries how many, and the runner counts them ``not-observed``."""
+    net = NetworkConfig(local_port=free_port())
+    with Node("src", net) as src_node, Node("vision", net) as node:
+        rig = _Rig(src_node, node, now_ns() - 10**9, 10**6)
+        rig.handle(1)
+        rig.handle(5, missed=3)
+        assert rig.results() == [1, 5]
+        assert rig.output.info().skipped == {"not-observed": 3}
 
 
 def test_a_rewind_a_second_session_reports_in_the_inputs_name_removes_nothing() -> None:
@@ -304,3 +317,28 @@ def _elements(node: Node, target: str) -> list[DataObject]:
         return node.query(target)
     except FramegateError:
         return []
+
+
+def test_a_misspelt_input_is_said_once_with_what_the_service_offers() -> None:
+    """``--input src/image`` while ``src`` offers ``images``: the runner waits (the buffer
+    may still come), but says so once, with a did-you-mean, instead of waiting in silence."""
+    port = free_port()
+    with Node("src", NetworkConfig(local_port=port)) as src:
+        src.offer("images", kind="frame")
+        vision = start_framegate(
+            ["run", "vision", "--handler", f"{HANDLERS}:brightest", "--input", "src/image"],
+            local_port=port,
+        )
+        try:
+            assert vision.stdout is not None
+            said = ""
+            deadline = time.monotonic() + scaled(60)
+            while "still waiting" not in said and time.monotonic() < deadline:
+                said = vision.stdout.readline()
+                assert said, "the runner ended"
+            assert "still waiting for src/image: service 'src' has no buffer 'image'" in said
+            assert "(did you mean 'images'?)" in said
+        finally:
+            vision.send_signal(signal.SIGTERM)
+            vision.communicate(timeout=scaled(30))
+    assert vision.returncode == 0
