@@ -39,14 +39,15 @@ class Retention:
     max_payload_bytes: int = 64 * 1024 * 1024
 
     def __post_init__(self) -> None:
-        for name in ("max_count", "max_bytes", "max_age_ns"):
+        # Whole numbers only (``type is int`` refuses bools too): a retention read from a
+        # file or a peer may say 1.5, NaN or true, and a float count breaks eviction later.
+        for name in ("max_count", "max_bytes", "max_age_ns", "max_payload_bytes"):
             value = getattr(self, name)
-            if value is not None and value < 1:
-                raise ValueError(f"Retention.{name} must be >= 1 or None, got {value}")
-        if self.max_payload_bytes < 1:
-            raise ValueError(
-                f"Retention.max_payload_bytes must be >= 1, got {self.max_payload_bytes}"
-            )
+            if value is None and name != "max_payload_bytes":
+                continue
+            if type(value) is not int or value < 1:
+                none = "" if name == "max_payload_bytes" else " or None"
+                raise ValueError(f"Retention.{name} must be an int >= 1{none}, got {value!r}")
 
 
 class SubscriptionMode(enum.Enum):

@@ -7,6 +7,7 @@ from __future__ import annotations
 import collections
 import functools
 import itertools
+import logging
 import threading
 import time
 from collections.abc import Callable
@@ -19,6 +20,12 @@ from services.lib.rewind import SourceClock
 
 # A batch whose newest sample is this much older than the newest kept: the gyro restarted.
 _GYRO_RESTART_NS = 10_000_000_000
+# Samples kept at most (32 B each: 3.2 MB), whatever their spacing: 10 s of a 10 kHz gyro.
+# Time alone bounds nothing: a peer offering gyro/rates can pack a million samples into
+# one batch 1 ns apart, 32 MB a put, all of them within the 10 s kept.
+MAX_GYRO_SAMPLES = 100_000
+
+log = logging.getLogger("mediator")
 
 
 def merge_batch(
@@ -29,7 +36,9 @@ def merge_batch(
     Only samples newer than every kept sample are kept: a late or re-delivered batch is
     dropped (``late-batch``), an overlapping one trimmed (``overlap``). A batch ending more
     than 10 s before the newest kept sample is a restarted gyro: the cache starts over
-    (``restart``). Batches older than ``keep_ns`` before the newest sample are forgotten.
+    (``restart``). Batches older than ``keep_ns`` before the newest sample are forgotten, and
+    the oldest beyond ``MAX_GYRO_SAMPLES`` in all (``too-many-samples``: a batch itself
+    larger keeps its newest samples).
     """
     if len(batch) == 0:
         return batches, "empty-batch"
@@ -47,10 +56,21 @@ def merge_batch(
             np.asarray(batch.rates_rad_s)[fresh],
             period_ns=batch.period_ns,
         )
+    if len(batch) > MAX_GYRO_SAMPLES:
+        outcome = "too-many-samples"
+        batch = GyroSamples(
+            np.asarray(batch.t_ns)[-MAX_GYRO_SAMPLES:],
+            np.asarray(batch.rates_rad_s)[-MAX_GYRO_SAMPLES:],
+            period_ns=batch.period_ns,
+        )
     kept = [*batches, batch]
     horizon = int(batch.t_ns[-1]) - keep_ns
     while kept and int(kept[0].t_ns[-1]) < horizon:
         kept.pop(0)
+    total = sum(len(b) for b in kept)
+    while total > MAX_GYRO_SAMPLES:  # the newest batch alone fits (trimmed above)
+        total -= len(kept.pop(0))
+        outcome = "too-many-samples"
     return kept, outcome
 
 
@@ -103,6 +123,13 @@ class GyroCache:
             self._batches, outcome = merge_batch(self._batches, batch, self._keep_ns)
             if outcome is not None:
                 self.dropped[outcome] += 1
+                if outcome == "too-many-samples" and self.dropped[outcome] == 1:
+                    log.warning(
+                        "gyro batches hold more than %d samples within %.0f s: the oldest "
+                        "are dropped (a gyro faster than 10 kHz, or a peer offering gyro data)",
+                        MAX_GYRO_SAMPLES,
+                        self._keep_ns / 1e9,
+                    )
 
     @property
     def newest_ns(self) -> int | None:

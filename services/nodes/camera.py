@@ -118,6 +118,7 @@ class CameraPump:
         self._timeline = timeline
         self._stop = stop
         self._log = log
+        self._warned_unreadable = False
         self._frames = iter(source.frames(stop))
         # Where on the shared timeline this camera begins: a camera restarted mid-run, or
         # one that opened its source after the start instant, joins there. Frames due
@@ -146,10 +147,14 @@ class CameraPump:
             self._put(frame, image, exposure)
         for frame in self._frames:
             if not self._source.relative:
-                read = self.rate.timed_load(frame.load, self._stop)
-                if read is None:
-                    return
-                self._put(frame, read, Exposure(frame.exposure_start_ns, frame.exposure_ns))
+                try:
+                    read = self.rate.timed_load(frame.load, self._stop)
+                except FramegateError as exc:
+                    self._unreadable(frame, exc)
+                else:
+                    if read is None:
+                        return
+                    self._put(frame, read, Exposure(frame.exposure_start_ns, frame.exposure_ns))
                 self._node.at(time.monotonic_ns(), self.on_time)  # others' turn between reads
                 return
             start_rel = self._source.scale(frame.exposure_start_ns)
@@ -162,7 +167,11 @@ class CameraPump:
                 self._images.count_skip("late")
                 self.rate.late(self._log)
                 continue
-            made = self.rate.timed_load(frame.load, self._stop)
+            try:
+                made = self.rate.timed_load(frame.load, self._stop)
+            except FramegateError as exc:
+                self._unreadable(frame, exc)
+                continue
             if made is None:
                 return  # stopped while rendering
             # The image exists once its exposure has ended, not before.
@@ -171,6 +180,20 @@ class CameraPump:
             return
         if self._config.source.kind == "device" or self._config.source.exit_when_done:
             self._stop.set()
+
+    def _unreadable(self, frame: SourceFrame, exc: FramegateError) -> None:
+        """A frame its source cannot give (a replayed dataset's missing or damaged image):
+        skipped and counted, said once; the camera goes on with the next."""
+        self._images.count_skip("unreadable")
+        if not self._warned_unreadable:
+            self._warned_unreadable = True
+            self._log.warning(
+                "frame %d skipped: %s (counted as unreadable in 'framegate info %s'; further "
+                "ones are not logged)",
+                frame.frame_id,
+                exc,
+                self._images.name,
+            )
 
     def _put(self, frame: SourceFrame, image: npt.NDArray[np.uint8], exposure: Exposure) -> None:
         self.rate.made(self._log)

@@ -101,9 +101,19 @@ def read_dataset(root: str | Path) -> Dataset:
             truth = tuple(FrameTruth.from_dict(item) for item in data["frames"])
         except (KeyError, TypeError, ValueError) as exc:
             raise DatasetError(f"{root / TRUTH_FILE}: malformed truth ({exc!r})") from exc
+        if len(truth) != len(frames):
+            raise DatasetError(
+                f"{root / TRUTH_FILE}: {len(truth)} frames, but {FRAMES_FILE} lists {len(frames)}"
+            )
     scenario = None
     if (root / SCENARIO_FILE).is_file():
-        scenario = ScenarioConfig.from_dict(_read_json(root / SCENARIO_FILE))
+        data = _read_json(root / SCENARIO_FILE)
+        if not isinstance(data, dict):
+            raise DatasetError(f"{root / SCENARIO_FILE}: not a JSON object of parameters")
+        try:
+            scenario = ScenarioConfig.from_dict(data)
+        except (TypeError, ValueError) as exc:
+            raise DatasetError(f"{root / SCENARIO_FILE}: {exc}") from exc
     return Dataset(root, camera, frames, files, gyro, truth, scenario)
 
 
@@ -130,20 +140,28 @@ def _read_json(path: Path) -> Any:
 
 def _read_frames(path: Path) -> tuple[tuple[FrameInfo, ...], tuple[str, ...]]:
     frames, files = [], []
-    with path.open(newline="", encoding="utf-8") as handle:
-        reader = csv.DictReader(handle)
-        if reader.fieldnames != _FRAME_COLUMNS:
-            raise DatasetError(f"{path}: header must be {','.join(_FRAME_COLUMNS)}")
-        for line, row in enumerate(reader, start=2):
-            try:
-                frames.append(
-                    FrameInfo(
-                        int(row["frame_id"]), int(row["exposure_start_ns"]), int(row["exposure_ns"])
+    line = 1
+    try:
+        with path.open(newline="", encoding="utf-8") as handle:
+            reader = csv.DictReader(handle)
+            if reader.fieldnames != _FRAME_COLUMNS:
+                raise DatasetError(f"{path}: header must be {','.join(_FRAME_COLUMNS)}")
+            for line, row in enumerate(reader, start=2):
+                try:
+                    frames.append(
+                        FrameInfo(
+                            int(row["frame_id"]),
+                            int(row["exposure_start_ns"]),
+                            int(row["exposure_ns"]),
+                        )
                     )
-                )
-            except (TypeError, ValueError) as exc:
-                raise DatasetError(f"{path}:{line}: {exc}") from exc
-            files.append(row["file"])
+                except (TypeError, ValueError) as exc:
+                    raise DatasetError(f"{path}:{line}: {exc}") from exc
+                if not row["file"] or None in row:  # a short row, or one with extra fields
+                    raise DatasetError(f"{path}:{line}: needs the {len(_FRAME_COLUMNS)} columns")
+                files.append(row["file"])
+    except (UnicodeDecodeError, csv.Error) as exc:
+        raise DatasetError(f"{path}:{line + 1}: not UTF-8 CSV ({exc})") from exc
     return tuple(frames), tuple(files)
 
 

@@ -51,6 +51,11 @@ _IMU_IDLE_S = 0.05
 # for a whole ``--gyro-wait-ms`` while a batch waits for credit, or longer on a busy machine:
 # 2 s at 1 kHz, about 0.7 MB of CDR at most (a loaded run lost samples from a 40-deep queue).
 _IMU_QUEUE = 2048
+# What each in-queue holds at most in bytes, whatever its depth in messages: a peer's IMU
+# messages with a 2 MB frame_id held 2,048 times grew the bridge to 3.9 GB. 2,048 honest IMU
+# messages are ~0.7 MB; five 1280x1024 images ~6.5 MB (a 4K RGB image is 25 MB).
+_IMU_QUEUE_BYTES = 8 << 20
+_IMAGE_QUEUE_BYTES = 256 << 20
 # How long after the first look at the ROS graph the bridge looks again (see _settle_graph).
 _GRAPH_SECOND_LOOK_S = 0.5
 
@@ -76,33 +81,47 @@ class _Skips:
 class _InQueue:
     """KEEP_LAST queue between Zenoh's callback and a worker: the oldest goes when full."""
 
-    def __init__(self, depth: int, on_overflow: Callable[[], None]) -> None:
+    def __init__(self, depth: int, max_bytes: int, on_overflow: Callable[[], None]) -> None:
         self._items: collections.deque[tuple[bytes, bytes | None]] = collections.deque()
         self._depth = depth
+        self._max_bytes = max_bytes
+        self._bytes = 0
         self._cond = threading.Condition()
         self._on_overflow = on_overflow
 
     def put(self, payload: bytes, attachment: bytes | None) -> None:
+        size = len(payload) + len(attachment or b"")
+        dropped = 0
         with self._cond:
-            overflow = len(self._items) >= self._depth
-            if overflow:
-                self._items.popleft()
+            # The newest always stays (a message larger than the bound alone included).
+            while self._items and (
+                len(self._items) >= self._depth or self._bytes + size > self._max_bytes
+            ):
+                old, old_attachment = self._items.popleft()
+                self._bytes -= len(old) + len(old_attachment or b"")
+                dropped += 1
             self._items.append((payload, attachment))
+            self._bytes += size
             self._cond.notify()
-        if overflow:
+        for _ in range(dropped):
             self._on_overflow()
 
     def get(self, timeout_s: float) -> tuple[bytes, bytes | None] | None:
         with self._cond:
             if not self._items:
                 self._cond.wait(timeout_s)
-            return self._items.popleft() if self._items else None
+            if not self._items:
+                return None
+            item = self._items.popleft()
+            self._bytes -= len(item[0]) + len(item[1] or b"")
+            return item
 
     def clear(self) -> int:
         """Drop what waits (the bridge is stopping); how many there were."""
         with self._cond:
             count = len(self._items)
             self._items.clear()
+            self._bytes = 0
             return count
 
 
@@ -158,12 +177,13 @@ class _Input:
     idle_s = _POLL_S
 
     def __init__(
-        self, producer: Producer, skips: _Skips, topic: str | None, depth: int
+        self, producer: Producer, skips: _Skips, topic: str | None, depth: int, max_bytes: int
     ) -> None:  # fmt: skip
         self.producer = producer
         self._skips = skips
         self.queue = _InQueue(
             depth,
+            max_bytes,
             lambda: skips.count(producer, "in-queue-full", f"the {self.what} in-queue was full"),
         )
         self.sequence = SequenceWatch(topic or "")
@@ -223,7 +243,7 @@ class ImagesIn(_Input):
             kind="frame",
             retention=Retention(max_count=config.retention_frames, max_bytes=512 * 2**20),
         )
-        super().__init__(producer, skips, config.image_in, config.in_depth)
+        super().__init__(producer, skips, config.image_in, config.in_depth, _IMAGE_QUEUE_BYTES)
         self._codec, self._config = codec, config
         # The header.frame_id of the last image decoded: the outputs' frame (``frame_id``).
         self.last_frame_id: str | None = None
@@ -314,7 +334,11 @@ class ImuIn(_Input):
         )
         # Room for seconds of samples: those that arrive while the worker waits are kept.
         super().__init__(
-            producer, skips, config.imu_in, max(config.in_depth, 4 * config.gyro_batch, _IMU_QUEUE)
+            producer,
+            skips,
+            config.imu_in,
+            max(config.in_depth, 4 * config.gyro_batch, _IMU_QUEUE),
+            _IMU_QUEUE_BYTES,
         )
         self._codec, self._config = codec, config
         self._cameras = cameras  # told the IMU's frame, for the rotation to the camera

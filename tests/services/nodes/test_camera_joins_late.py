@@ -66,3 +66,41 @@ def test_a_camera_that_joins_late_does_not_count_the_frames_before_it_ran(camera
     # Before the fix every frame of the backlog was counted late at once (>= BACKLOG); a
     # busy machine may still miss a few of the frames due while the camera ran.
     assert late < BACKLOG // 10, f"{late} late of a {BACKLOG}-frame backlog: {info}"
+
+
+def test_a_replayed_frame_that_cannot_be_read_is_skipped_and_counted(
+    dataset: Path, tmp_path: Path
+) -> None:
+    """One frame image of a replayed dataset is gone: that frame is counted ``unreadable``
+    and the camera goes on (it died, and under ``launch`` would die again at each restart)."""
+    import shutil
+
+    broken = tmp_path / "broken"
+    shutil.copytree(dataset, broken)
+    images = sorted(p for p in broken.rglob("*.png"))
+    images[1].unlink()
+    port = free_port()
+    env = child_env()
+    env["FRAMEGATE_LOCAL_PORT"] = str(port)
+    argv = ["run", "camera", "--source", "replay", "--path", str(broken), "--loop"]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "services.cli", *argv],
+        cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        with Node(network=NetworkConfig(local_port=port)) as node:
+
+            def past_the_gap() -> object:
+                assert proc.poll() is None, "the camera ended"
+                try:
+                    info = node.buffer_info("camera/images", timeout_s=2.0)
+                except FramegateError:
+                    return None
+                return info if info.skipped.get("unreadable") and info.puts >= 3 else None
+
+            wait_until(past_the_gap, STARTUP_S, "frames after the unreadable one")
+    finally:
+        proc.terminate()
+        _, err = proc.communicate(timeout=STARTUP_S)
+    assert proc.returncode == 0, err
+    assert "Traceback" not in err, err

@@ -12,6 +12,7 @@ from middleware import ConfigError
 from services.lib.camera_model import CameraModel
 from services.lib.messages import FrameMeta
 from services.lib.quality import BlurOptions, Exposure, GyroSamples
+from services.nodes._mediator_inputs import MAX_GYRO_SAMPLES
 from services.nodes.mediator import (
     SERVICE,
     BadFrame,
@@ -145,6 +146,26 @@ def test_a_late_or_repeated_gyro_batch_changes_nothing() -> None:
 def test_a_restarted_gyro_starts_the_cache_over() -> None:
     kept, outcome = merge_batch([_batch(20_000, 3)], _batch(0, 2), keep_ns=10**12)
     assert outcome == "restart" and _times_ms(kept) == [0, 1]
+
+
+def test_samples_packed_densely_are_bounded_in_number_not_only_in_time() -> None:
+    """A peer offering gyro/rates packs samples 1 ns apart: all within the 10 s kept, so
+    time alone would keep every one (3.4 GB measured); the count is bounded too."""
+    dense = GyroSamples(
+        np.arange(MAX_GYRO_SAMPLES + 10, dtype=np.int64), np.zeros((MAX_GYRO_SAMPLES + 10, 3))
+    )
+    kept, outcome = merge_batch([], dense, keep_ns=10**10)
+    assert outcome == "too-many-samples" and sum(len(b) for b in kept) == MAX_GYRO_SAMPLES
+    assert int(kept[-1].t_ns[-1]) == MAX_GYRO_SAMPLES + 9  # the newest stay
+    batches: list[GyroSamples] = []
+    for i in range(5):
+        start = i * (MAX_GYRO_SAMPLES // 2)
+        half = GyroSamples(
+            np.arange(start, start + MAX_GYRO_SAMPLES // 2, dtype=np.int64),
+            np.zeros((MAX_GYRO_SAMPLES // 2, 3)),
+        )
+        batches, outcome = merge_batch(batches, half, keep_ns=10**10)
+    assert sum(len(b) for b in batches) <= MAX_GYRO_SAMPLES and outcome == "too-many-samples"
 
 
 def test_old_gyro_batches_are_forgotten() -> None:

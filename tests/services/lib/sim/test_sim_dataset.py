@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import hashlib
+import json
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -85,6 +87,41 @@ def test_reader_names_the_missing_file(tmp_path: Path, small_config: SmallConfig
     simulate(small_config(), tmp_path, progress=False)
     (tmp_path / "gyro.csv").unlink()
     with pytest.raises(DatasetError, match=r"no gyro\.csv"):
+        read_dataset(tmp_path)
+
+
+def _short_row(root: Path) -> None:
+    lines = (root / "frames.csv").read_text().splitlines()
+    lines[2] = lines[2].rsplit(",", 1)[0]
+    (root / "frames.csv").write_text("\n".join(lines) + "\n")
+
+
+def _latin1(root: Path) -> None:
+    (root / "frames.csv").write_bytes((root / "frames.csv").read_bytes() + b"9,\xe9,1,x\n")
+
+
+def _short_truth(root: Path) -> None:
+    truth = json.loads((root / "truth.json").read_text())
+    truth["frames"] = truth["frames"][:-1]
+    (root / "truth.json").write_text(json.dumps(truth))
+
+
+@pytest.mark.parametrize(
+    ("damage", "match"),
+    [
+        (_short_row, r"frames\.csv:3: needs the 4 columns"),
+        (_latin1, r"frames\.csv:\d+: not UTF-8 CSV"),
+        (_short_truth, r"truth\.json: \d+ frames, but frames\.csv lists"),
+        (lambda root: (root / "scenario.json").write_text("[1]"), "not a JSON object"),
+    ],
+    ids=["short row", "latin-1", "truth shorter", "scenario a list"],
+)
+def test_a_damaged_dataset_is_one_dataset_error(
+    tmp_path: Path, small_config: SmallConfig, damage: Any, match: str
+) -> None:
+    simulate(small_config(), tmp_path, progress=False)
+    damage(tmp_path)
+    with pytest.raises(DatasetError, match=match):
         read_dataset(tmp_path)
 
 

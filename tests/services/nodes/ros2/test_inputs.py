@@ -347,3 +347,23 @@ def test_tf_static_holds_bounded_bytes_and_counts_every_message_it_drops(codec: 
     cameras.for_image(IMAGE_FRAME, 64, 48, skip)
     assert counted["tf-queue-full"] == 10
     assert counted["bad-tf"] == 3 + TF_QUEUE  # the oversize and the garbage read
+
+
+def test_an_in_queue_is_bounded_in_bytes_as_well_as_in_messages() -> None:
+    """IMU messages with a 2 MB frame_id, 2,048 of them queued, held 3.9 GB: the queue
+    keeps at most its bytes too, dropping (and counting) the oldest; the newest stays even
+    when it alone is larger."""
+    from services.nodes.ros2._inputs import _InQueue
+
+    overflows: list[int] = []
+    queue = _InQueue(2048, 10_000, lambda: overflows.append(1))
+    for _ in range(20):
+        queue.put(bytes(2_000), None)
+    assert len(overflows) == 15  # 5 of 2,000 B fit in 10,000
+    queue.put(bytes(50_000), b"x")
+    assert len(overflows) == 20
+    item = queue.get(0)
+    assert item is not None and len(item[0]) == 50_000
+    assert queue.get(0) is None
+    queue.put(bytes(9_000), None)  # the bytes taken out were given back
+    assert len(overflows) == 20

@@ -125,3 +125,16 @@ def test_play_of_a_cut_short_file_says_how_much_it_recovered(
     assert result.returncode == 0, result.stderr
     assert "Traceback" not in result.stderr, result.stderr
     assert any("recovered" in line for line in result.stderr.splitlines()), result.stderr
+
+
+@pytest.mark.parametrize(
+    "text",
+    ['{"max_count": 1.5}', '{"max_count": NaN}', '{"max_count": 1e400}', '{"max_bytes": true}'],
+)
+def test_a_recorded_retention_that_is_no_whole_number_is_a_bag_error(text: str) -> None:
+    """A file's channel says how much its buffer keeps; 1.5 broke eviction at the first put
+    (a traceback from ``play``), NaN and true were taken."""
+    from services.tools.bag._format import retention_from_json
+
+    with pytest.raises(BagError, match=r"bad framegate\.retention"):
+        retention_from_json(text, "x.mcap")
