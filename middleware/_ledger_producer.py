@@ -28,9 +28,12 @@ Messages in, and what they do in every state:
     names another registration's id with another mode or size): nothing.
 ``ack(id, epoch, seq)``
     no registration with this epoch and id (a foreign, stale or forged epoch, or an id that
-    does not own the epoch): counted in ``foreign_acks``, nothing else. Otherwise
-    ``acked = max(acked, min(seq, sent))``: duplicates and reordering cannot move it back,
-    a seq beyond ``sent`` cannot move it past what was sent; an ack that moves it records
+    does not own the epoch): counted in ``foreign_acks``, nothing else. A seq beyond ``sent``
+    (no subscriber took what was never sent: a forgery) is counted there too and changes
+    nothing: taken as ``sent``, it would have acked what the subscriber still holds, and the
+    producer would send past its window notifications the subscriber ignores and nobody
+    resends (both sides held for good). Otherwise ``acked = max(acked, seq)``: duplicates
+    and reordering cannot move it back; an ack that moves it records
     its time (``taken_ns``: when the producer last saw the subscriber take). An ack that
     moves nothing while notifications are outstanding is an idle subscriber's repeat: the
     outstanding ones are due again (a lost notification heals), at most once per
@@ -204,10 +207,10 @@ class ProducerLedger(Generic[H]):
     def ack(self, sub_id: str, epoch: str, seq: int, now_ns: int) -> bool:
         """Apply a cumulative ack; True if it freed credit."""
         reg = self._by_epoch.get(epoch)
-        if reg is None or reg.key.sub_id != sub_id:
+        if reg is None or reg.key.sub_id != sub_id or seq > reg.sent:
             self.counters.foreign_acks += 1
             return False
-        new = min(seq, reg.sent)
+        new = seq
         if new <= reg.acked:
             if (
                 reg.flow

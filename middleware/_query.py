@@ -43,25 +43,25 @@ class Queries(Discovery):
             )
         if last is not None:
             params["last"] = str(last)
-        return self._get(target, params, timeout_s)
+        return self._get(target, params, timeout_s, most=last)
 
     def get(self, target: str, timestamp_ns: int, *, timeout_s: float = 5.0) -> DataObject:
         """The element with exactly this timestamp; NotFoundError if there is none."""
-        found = self._get(target, {"ts": str(timestamp_ns)}, timeout_s)
-        if not found:
+        found = _exactly(self._get(target, {"ts": str(timestamp_ns)}, timeout_s), timestamp_ns)
+        if found is None:
             raise NotFoundError(f"{target} has no element with timestamp {timestamp_ns}")
-        return found[0]
+        return found
 
     def nearest(self, target: str, timestamp_ns: int, *, timeout_s: float = 5.0) -> DataObject:
         """The element closest in time; NotFoundError if the buffer is empty."""
-        found = self._get(target, {"at": str(timestamp_ns)}, timeout_s)
+        found = self._get(target, {"at": str(timestamp_ns)}, timeout_s, most=1)
         if not found:
             raise NotFoundError(f"{target} is empty")
         return found[0]
 
     def latest(self, target: str, n: int = 1, *, timeout_s: float = 5.0) -> list[DataObject]:
         """The newest ``n`` elements, oldest first."""
-        return self._get(target, {"last": str(n)}, timeout_s)
+        return self._get(target, {"last": str(n)}, timeout_s, most=n)
 
     def _fetch_exact(self, target: str, timestamp_ns: int, timeout_s: float) -> DataObject:
         return self.get(target, timestamp_ns, timeout_s=timeout_s)
@@ -71,13 +71,14 @@ class Queries(Discovery):
         return self._start_get(target, {"ts": str(timestamp_ns)}, timeout_s)
 
     def _finish_exact(self, target: str, timestamp_ns: int, pending: Any) -> DataObject:
-        found, answered = self._answer(target, pending)
-        if not found:
+        elements, answered = self._answer(target, pending, most=1)
+        found = _exactly(elements, timestamp_ns)
+        if found is None:
             if answered:
                 raise NotFoundError(f"{target} has no element with timestamp {timestamp_ns}")
             # Started ahead, it reached no one (see ``_get``): asked again as ``get`` asks.
             return self.get(target, timestamp_ns, timeout_s=_ASK_AGAIN_S)
-        return found[0]
+        return found
 
     def _start_get(self, target: str, params: dict[str, str], timeout_s: float) -> Any:
         service, buffer = split_target(target)
@@ -87,18 +88,23 @@ class Queries(Discovery):
                 selector, consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout_s
             )
 
-    def _collect(self, target: str, replies: Any) -> list[DataObject]:
-        """The elements of an answer (see ``_answer``)."""
-        return self._answer(target, replies)[0]
-
-    def _answer(self, target: str, replies: Any) -> tuple[list[DataObject], bool]:
+    def _answer(
+        self, target: str, replies: Any, *, most: int | None = None
+    ) -> tuple[list[DataObject], bool]:
         """The elements of an answer, and whether any service answered (its end mark came).
 
         QueryError if it was cut short: elements came but not the service's end mark
         counting them (``_service.encode_answer_end``), as when its link dropped while
         answering; the first part of an answer never reads as all of it. No reply at all
-        (no end mark) is a query that reached no one: see ``_get``."""
+        (no end mark) is a query that reached no one: see ``_get``.
+
+        Any session may answer a query: ``most`` (what was asked for: ``last=N``, one
+        element) bounds what each answering session adds, and an error reply counts only
+        when no session answered (a peer replying "not found" to every query must not void
+        the service's answer)."""
         elements: list[DataObject] = []
+        kept: dict[str | None, int] = {}
+        error: str | None = None
         answered = False
         # Per answering session (two may answer at once, their replies interleaved: a
         # producer and its restarted self, or a process's own buffer beside a peer's): the
@@ -121,10 +127,16 @@ class Queries(Discovery):
                         since[replier], answered = 0, True
                         continue
                     since[replier] = since.get(replier, 0) + 1
+                    if most is not None and kept.get(replier, 0) >= most:
+                        continue  # more than was asked for: not read
+                    kept[replier] = kept.get(replier, 0) + 1
                     elements.append(decode_element(sample.payload.to_bytes(), raw))
                 else:
                     assert reply.err is not None
-                    raise _error_from_reply(target, reply.err.payload.to_string())
+                    if error is None:
+                        error = reply.err.payload.to_string()
+        if error is not None and not elements and not answered:
+            raise _error_from_reply(target, error)
         complete = not short and not any(since.values())
         if elements and not complete:
             raise QueryError(
@@ -134,9 +146,12 @@ class Queries(Discovery):
             )
         return elements, answered
 
-    def _get(self, target: str, params: dict[str, str], timeout_s: float) -> list[DataObject]:
+    def _get(
+        self, target: str, params: dict[str, str], timeout_s: float, *, most: int | None = None
+    ) -> list[DataObject]:
         deadline = time.monotonic() + timeout_s
-        elements, answered = self._answer(target, self._start_get(target, params, timeout_s))
+        replies = self._start_get(target, params, timeout_s)
+        elements, answered = self._answer(target, replies, most=most)
         if not elements:
             # NotFoundError, with a did-you-mean, if there is none; asked with the caller's
             # patience (a loaded machine's service answers late, and is not "gone" for it).
@@ -145,9 +160,15 @@ class Queries(Discovery):
             # moment; Zenoh then answers with nothing, not an error). Asked once more.
             left_s = deadline - time.monotonic()
             if not answered and left_s > 0:
-                elements = self._collect(target, self._start_get(target, params, left_s))
+                replies = self._start_get(target, params, left_s)
+                elements = self._answer(target, replies, most=most)[0]
         elements.sort(key=lambda e: e.timestamp_ns)
         return elements
+
+
+def _exactly(elements: list[DataObject], timestamp_ns: int) -> DataObject | None:
+    """The element stamped ``timestamp_ns`` among an answer's (another is a peer's)."""
+    return next((e for e in elements if e.timestamp_ns == timestamp_ns), None)
 
 
 def _error_from_reply(target: str, raw: str) -> QueryError:

@@ -26,6 +26,7 @@ from middleware import (
     FLOW_QUEUE_MAX,
     BufferInfo,
     FlowControlRefused,
+    FramegateError,
     NetworkConfig,
     Node,
     QueryError,
@@ -549,6 +550,64 @@ def test_query_of_a_hostile_reply_is_one_clean_error_line(endpoint: str, case: s
     assert done.returncode == 1, done.stderr
     assert len(lines) == 1 and lines[0].startswith("error:"), done.stderr
     assert "\x1b" not in done.stderr and "Traceback" not in done.stderr, done.stderr
+
+
+def _rogue_answers(rogue: zenoh.Session, how: str, seen: list[str]) -> zenoh.Queryable[None]:
+    """``rogue`` also answers the data queries of cam/images: with an error, with 300
+    elements to any query, or with the element stamped one before the one asked for; each
+    query it answered goes into ``seen``."""
+
+    def element(query: zenoh.Query, stamp: int) -> None:
+        head = msgpack.packb({"t": stamp, "m": make_metadata("generic", stamp).decode()})
+        query.reply(KEYS.data("cam", "images"), b"rogue", attachment=head)
+
+    def reply(query: zenoh.Query) -> None:
+        seen.append(str(query.selector))
+        with query:
+            if how == "error":
+                query.reply_err(b"not-found: rogue says no")
+                return
+            asked = int(query.selector.parameters.get("ts") or 10**9)
+            stamps = range(1, 301) if how == "many" else [asked - 1]
+            for stamp in stamps:
+                element(query, stamp)
+            end = msgpack.packb({"end": len(stamps)})
+            query.reply(KEYS.data("cam", "images"), b"", attachment=end)
+
+    return rogue.declare_queryable(KEYS.data("cam", "images"), zenoh.handlers.Callback(reply))
+
+
+@pytest.mark.parametrize("how", ["error", "many", "off by one"])
+def test_a_second_session_answering_data_queries_cannot_void_or_swamp_them(
+    listen_net: NetworkConfig, endpoint: str, how: str
+) -> None:
+    """Any session may answer a query: an error from another one does not void the service's
+    answer, what it adds is bounded by what was asked (``last=1``, one element), and a fetch
+    is of exactly the timestamp asked for."""
+    with (
+        Node("cam", listen_net) as service,
+        open_session(endpoint) as rogue,
+        Node(network=NetworkConfig(connect=(endpoint,))) as client,
+    ):
+        images = service.offer("images")
+        for t in (1000, 2000, 3000):
+            images.put(t, b"real", make_metadata("generic", t))
+        seen: list[str] = []
+        queryable = _rogue_answers(rogue, how, seen)
+        try:
+
+            def reached() -> bool:  # the rogue's queryable has reached the client
+                with contextlib.suppress(FramegateError):
+                    client.query("cam/images", last=1, timeout_s=scaled(2))
+                return bool(seen)
+
+            wait_until(reached, scaled(30), "the rogue to answer the client's queries")
+            last = client.query("cam/images", last=1, timeout_s=scaled(5))
+            assert [e.timestamp_ns for e in last if e.payload == b"real"] == [3000]
+            assert len(last) <= 2  # the service's one, and at most one of the rogue's
+            assert client.get("cam/images", 2000, timeout_s=scaled(5)).payload == b"real"
+        finally:
+            queryable.undeclare()
 
 
 # -- floods and churn from worker processes -------------------------------------------------

@@ -61,6 +61,21 @@ def test_a_queue_of_one_acks_every_take() -> None:
         assert producer.full() is None
 
 
+def test_an_ack_beyond_what_was_sent_frees_nothing() -> None:
+    """A peer reads a registration's id and epoch off the wire and acks seq 2^62: taken as
+    ``sent``, it acked what the subscriber still held, the producer sent past the
+    subscriber's window, and neither side moved again (measured: a queue of 2 held for
+    good). It is counted and changes nothing; the subscriber's own acks still work."""
+    producer, subscriber, _ = _pair(2)
+    _fill(producer, subscriber, 2)
+    epoch = producer.registrations()[0].epoch
+    for lie in (3, 2**62):
+        assert not producer.ack("s", epoch, lie, 0)
+    assert producer.full() is not None and producer.counters.foreign_acks == 2
+    epoch, seq = _take_counting_acks(subscriber, 2)[-1]
+    assert producer.ack("s", epoch, seq, 0) and producer.full() is None
+
+
 def test_coalesced_acks_leave_within_the_delay_once_the_queue_runs_empty() -> None:
     producer, subscriber, _ = _pair(8)
     _fill(producer, subscriber, 3)

@@ -406,8 +406,11 @@ class ProtocolModel(RuleBasedStateMachine):
         self._deliver(Ack(KEYS.ack(SERVICE, BUFFER, sub.key.sub_id), garbage))
 
     @precondition(lambda self: bool(self.subs))
-    @rule(data=st.data(), kind=st.sampled_from(["foreign", "past", "colliding"]))
+    @rule(data=st.data(), kind=st.sampled_from(["foreign", "past", "colliding", "beyond"]))
     def rogue_ack(self, data: st.DataObject, kind: str) -> None:
+        """Acks a peer makes up: of a foreign epoch, replaying a past one, under another id,
+        or beyond what was sent (the epoch and id are on the wire, no seq is needed: it
+        acked everything sent, and both sides stalled for good)."""
         STEPS[0] += 1
         sub = data.draw(st.sampled_from(self.subs))
         reg = self.producer.get(sub.key)
@@ -416,6 +419,9 @@ class ProtocolModel(RuleBasedStateMachine):
             self.net.append(Ack(own, encode_ack("X", data.draw(st.integers(0, 1_000)))))
         elif kind == "past":
             self.net.append(Ack(own, encode_ack(reg.epoch, data.draw(st.integers(0, reg.acked)))))
+        elif kind == "beyond":
+            beyond = reg.sent + data.draw(st.sampled_from([1, 1_000, 2**62]))
+            self.net.append(Ack(own, encode_ack(reg.epoch, beyond)))
         else:  # another id claims this registration's epoch
             rogue = KEYS.ack(SERVICE, BUFFER, "rogue")
             self.net.append(Ack(rogue, encode_ack(reg.epoch, data.draw(st.integers(0, 1_000)))))

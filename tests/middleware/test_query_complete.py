@@ -58,7 +58,7 @@ def test_an_answer_cut_short_by_a_lapsed_link_raises_instead_of_reading_as_the_b
 
         try:
             with pytest.raises(QueryError, match="ended early") as raised:
-                client._collect("cam/images", stop_after_the_first(pending))
+                client._answer("cam/images", stop_after_the_first(pending))
             assert stopped
             # Some came, not all: read as the buffer, this would have been a shorter one.
             came = int(str(raised.value).split("(", 1)[1].split(" ", 1)[0])
@@ -109,11 +109,11 @@ def test_two_answers_interleaved_are_each_complete_by_their_own_end_mark(endpoin
     a, b = _answer_of("a", [1, 2, 3]), _answer_of("b", [4, 5])
     interleaved = [a[0], b[0], a[1], b[1], b[2], a[2], a[3]]
     with Node(network=NetworkConfig(listen=(endpoint,))) as node:
-        got = node._collect("x/y", interleaved)
+        got = node._answer("x/y", interleaved)[0]
         assert sorted(e.timestamp_ns for e in got) == [1, 2, 3, 4, 5]
         # One of them cut short (its end mark never came) is still an error.
         with pytest.raises(QueryError, match="ended early"):
-            node._collect("x/y", [a[0], b[0], a[1], b[1], b[2], a[2]])
+            node._answer("x/y", [a[0], b[0], a[1], b[1], b[2], a[2]])[0]
         # And a mark that disagrees with its own session's count.
         with pytest.raises(QueryError, match="ended early"):
-            node._collect("x/y", [a[0], b[0], b[1], b[2], a[2], a[3]])
+            node._answer("x/y", [a[0], b[0], b[1], b[2], a[2], a[3]])[0]

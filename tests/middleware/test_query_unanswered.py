@@ -34,7 +34,9 @@ class _Lapsing(Queries):
             return self.held[-int(params["last"]) :]
         return [t for t in self.held if parse_time_range(params["_time"]).contains(t)]
 
-    def _answer(self, target: str, replies: Any) -> tuple[list[DataObject], bool]:
+    def _answer(
+        self, target: str, replies: Any, *, most: int | None = None
+    ) -> tuple[list[DataObject], bool]:
         if replies is None:
             return [], False
         return [DataObject(t, b"", b"<m/>") for t in replies], True
