@@ -56,11 +56,6 @@ class TimeSeries:
         with self._lock:
             return self._keys[-1] if self._count() else None
 
-    def check_put(self, timestamp_ns: int, payload_bytes: int) -> None:
-        """Raise if an element with this key and size could not be appended now."""
-        with self._lock:
-            self._check_put(timestamp_ns, payload_bytes)
-
     def _check_put(self, timestamp_ns: int, payload_bytes: int) -> None:
         limit = self.retention.max_payload_bytes
         if payload_bytes > limit:

@@ -302,11 +302,6 @@ class ProducerLedger(Generic[H]):
     def by_epoch(self, epoch: str) -> Registration[H] | None:
         return self._by_epoch.get(epoch)
 
-    def fill(self) -> float:
-        """The fullest flow registration's queued/N in [0, 1]; 0 with none."""
-        fills = [r.info().fill for r in self._regs.values() if r.flow]
-        return max(fills, default=0.0)
-
     def clear(self) -> list[Registration[H]]:
         """Forget every registration (the producer closes); they are returned."""
         gone = list(self._regs.values())

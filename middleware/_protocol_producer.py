@@ -418,9 +418,6 @@ class ProducerProtocol:
     def get(self, key: RegistrationKey) -> Registration[_Kept] | None:
         return self._ledger.get(key)
 
-    def fill(self) -> float:
-        return self._ledger.fill()
-
     def subscriptions(self) -> list[SubscriptionInfo]:
         out = []
         for reg in self._ledger.registrations():

@@ -69,8 +69,9 @@ def _decision(i: int, t: int, _rate_hz: float) -> tuple[bytes, bytes]:
 
 
 def _detections(i: int, t: int, _rate_hz: float) -> tuple[bytes, bytes]:
-    fields = {"frame_id": i, "source": "pub", "processing_ns": 0}
-    return b"", make_metadata("detections", t, fields)
+    from services.lib.messages import detections_metadata
+
+    return b"", detections_metadata(t, i, "pub", 0, [])
 
 
 # kind -> (index, timestamp_ns, rate_hz) -> (payload, metadata)

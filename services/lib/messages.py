@@ -163,18 +163,25 @@ def detections_metadata(
     source: str,
     processing_ns: int,
     markers: list[tuple[int, list[float]]],
+    *,
+    scores: list[float | None] | None = None,
+    taken_ns: int | None = None,
 ) -> bytes:
-    """``detections`` metadata: the marker ids and corners found in one frame."""
-    return make_metadata(
-        "detections",
-        timestamp_ns,
-        {
-            "frame_id": frame_id,
-            "source": source,
-            "processing_ns": processing_ns,
-            "marker": [{"id": i, "corners_px": corners} for i, corners in markers],
-        },
-    )
+    """``detections`` metadata: the marker ids and corners (8 numbers) found in one frame,
+    each one's score if any (``scores``, in the same order), and when the runner took the
+    frame up (``taken_ns``)."""
+    found: list[dict[str, Any]] = []
+    for n, (label, corners) in enumerate(markers):
+        marker: dict[str, Any] = {"id": label, "corners_px": corners}
+        score = scores[n] if scores is not None else None
+        if score is not None:
+            marker["score"] = score
+        found.append(marker)
+    head: dict[str, Any] = {"frame_id": frame_id, "source": source}
+    head["processing_ns"] = processing_ns
+    if taken_ns is not None:
+        head["taken_ns"] = taken_ns
+    return make_metadata("detections", timestamp_ns, {**head, "marker": found})
 
 
 def read_detections(metadata: bytes) -> tuple[int, list[int]]:

@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from middleware import SchemaError, make_metadata
-from services.lib.messages import FrameMeta
+from services.lib.messages import FrameMeta, detections_metadata
 
 __all__ = ["Box", "FrameMeta", "Output", "ResultKind", "encode_result"]
 
@@ -143,27 +143,23 @@ def _encode(
     processing_ns: int,
     taken_ns: int | None,
 ) -> Encoded:
+    if kind is ResultKind.DETECTIONS:
+        boxes = _boxes(result)
+        metadata = detections_metadata(
+            frame.timestamp_ns,
+            frame.frame_id,
+            source,
+            max(0, processing_ns),
+            [(box.label, [float(v) for corner in box.corners_px for v in corner]) for box in boxes],
+            scores=[None if box.score is None else float(box.score) for box in boxes],
+            taken_ns=taken_ns,
+        )
+        return Encoded(b"", metadata, len(boxes))
     head: dict[str, Any] = {
         "frame_id": frame.frame_id,
         "source": source,
         "processing_ns": max(0, processing_ns),
     }
-    if kind is ResultKind.DETECTIONS:
-        boxes = _boxes(result)
-        markers = []
-        for box in boxes:
-            marker: dict[str, Any] = {
-                "id": box.label,
-                "corners_px": [float(v) for corner in box.corners_px for v in corner],
-            }
-            if box.score is not None:
-                marker["score"] = float(box.score)
-            markers.append(marker)
-        taken = {"taken_ns": taken_ns} if taken_ns is not None else {}
-        metadata = make_metadata(
-            "detections", frame.timestamp_ns, {**head, **taken, "marker": markers}
-        )
-        return Encoded(b"", metadata, len(boxes))
     if isinstance(result, bytes | bytearray | memoryview):
         result = Output(bytes(result))
     if not isinstance(result, Output):

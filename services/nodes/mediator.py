@@ -11,8 +11,8 @@ rule live, and are tested, there.
 Buffering rules chosen here:
 - camera/images: flow-controlled with a deep queue (default 8), taken at once, so the
   mediator never is the reason a frame is dropped at the camera;
-- gyro/rates: flow-controlled, taken at once by a thread of its own (a lossless consumer:
-  the gyro waits briefly rather than lose samples the blur estimate needs);
+- gyro/rates: flow-controlled, taken at once by a handler on the executor (a lossless
+  consumer: the gyro waits briefly rather than lose samples the blur estimate needs);
 - mediator/images: offered with the detector as a flow-controlled subscriber; its queue is
   the load indicator, and it is the mediator's one flow-controlled output. A frame is only
   put when the decider says so; a refusal all the same drops that frame (``refused``).

@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO
 
-from middleware import BufferInfo, ConfigError, FramegateError, NetworkConfig, Node
+from middleware import BufferInfo, ConfigError, FramegateError, NetworkConfig, Node, tightest_flow
 from services.launch import (
     LOCAL_HOST,
     Deployment,
@@ -171,7 +171,9 @@ class Status:
         out, dec = self.get("mediator/images"), self.get("mediator/decisions")
         det = self.get(f"{FILTERED}/detections")
         raw = self.get(f"{UNCONTROLLED}/detections")
-        load = max((s.fill for s in out.subscriptions), default=0.0) if out else 0.0
+        # The load the mediator compares with (observers are no load).
+        tightest = tightest_flow(out.subscriptions) if out else None
+        load = tightest.fill if tightest is not None else 0.0
         accepted = out.puts if out else 0
         frames = cam.puts if cam else 0
         return {

@@ -338,7 +338,11 @@ def test_time_series_reads_take_its_lock() -> None:
     series.append(DataObject(1, b"x", b"m"))
     recorder = _RecordingLock()
     series._lock = recorder  # type: ignore[assignment]
-    for read in (len, lambda s: s.total_bytes, lambda s: s.check_put(2, 1)):
+    for read in (
+        len,
+        lambda s: s.total_bytes,
+        lambda s: s.check_extend((DataObject(2, b"x", b"m"),)),
+    ):
         before = recorder.acquired
         read(series)
         assert recorder.acquired > before, read

@@ -21,6 +21,7 @@ import numpy.typing as npt
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from middleware import ConfigError
+from services.lib.messages import FRAME_CHANNELS
 
 IMAGE = "sensor_msgs/msg/Image"
 IMU = "sensor_msgs/msg/Imu"
@@ -50,8 +51,8 @@ _STORES = {
 }
 _EMPTY = np.empty(0, dtype=np.uint8)
 _LENGTH = struct.Struct("<I")  # a CDR sequence length, little-endian like the head
-# Bytes per pixel of the encodings a framegate frame can hold.
-CHANNELS = {"mono8": 1, "bgr8": 3, "rgb8": 3}
+# Bytes per pixel of the encodings a framegate frame can hold (one table: a frame's).
+CHANNELS = FRAME_CHANNELS
 
 
 class CdrError(ValueError):

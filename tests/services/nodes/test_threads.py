@@ -21,7 +21,7 @@ SERVICES = ("camera", "mediator", "detector")
 
 def table() -> dict[str, set[str]]:
     """Thread name (``<service>`` and ``<node>`` as placeholders) -> the processes the
-    table says run it (``all``: every process)."""
+    table says run it (``all``: every process; ``all services``: every service)."""
     rows: dict[str, set[str]] = {}
     text = (REPO / "docs" / "threads.md").read_text()
     section = text.split("## Python threads", 1)[1].split("\n## ", 1)[0]
@@ -30,14 +30,15 @@ def table() -> dict[str, set[str]]:
         if len(cells) < 2 or not cells[0].startswith("`"):
             continue
         for name in re.findall(r"`([^`]+)`", cells[0]):
-            rows[name] = {p.strip() for p in cells[1].split(",")}
+            # "all services (a note)": the note is for the reader.
+            rows[name] = {p.split("(")[0].strip() for p in cells[1].split(",")}
     return rows
 
 
 def allowed(service: str, rows: dict[str, set[str]]) -> set[str]:
     names = set()
     for name, processes in rows.items():
-        if "all" in processes or service in processes:
+        if processes & {"all", "all services"} or service in processes:
             names.add(name.replace("<service>", service).replace("<node>", service))
     return names
 
