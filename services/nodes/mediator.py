@@ -66,7 +66,7 @@ measurements) run on the node's executor (``attach``): camera and gyro notificat
 they come, the detector's takes (``Producer.on_change``), one deadline at a time for what is
 due next (a frame's gyro wait ends, a policy's hold: ``Decider.next_due_ns``), the clocks
 every 2 s (asked without waiting: the answers run as handlers when they come). Tests may
-drive the same handlers with ``step`` on their own thread instead.
+drive the same handlers on their own thread instead (tests/services/nodes/mediator_driver.py).
 Zenoh's threads only feed the middleware's inboxes.
 """
 
@@ -117,11 +117,6 @@ class _Deadline(Protocol):
 
 # Gyro notifications queued (deep: a busy mediator never stalls the gyro; see AckPolicy).
 GYRO_QUEUE = 256
-# step() only (tests without the executor): how often it looks for gyro samples while a
-# frame waits for them; on the executor gyro notifications run their handler at once.
-_GYRO_LOOK_S = 0.005
-# step() only: gyro batches taken per step at most.
-_GYRO_ROUNDS = 8
 # Looks for the frames stored while our subscription had lapsed, 1 s apart (_record_missed).
 _MISSED_TRIES = 5
 
@@ -175,7 +170,7 @@ class Mediator:
         self._attached = False
         self._timer: _Deadline | None = None
         self._timer_at: int | None = None
-        self._measure_at = 0  # step(): when to measure the clocks next
+        self._measure_at = 0  # a test stepping it by hand: when to measure the clocks next
         # Camera notifications taken and the newest gyro sample, at the last measurement.
         self._camera_notes = 0
         self._seen: tuple[int | None, int | None] = (0, None)
@@ -423,31 +418,6 @@ class Mediator:
         self._timer = None
         self.on_time(now)
         self._schedule()
-
-    def step(self, timeout_s: float = 0.5) -> None:
-        """Without the executor (tests): measure clocks when due, take what the gyro has,
-        then one camera notification or, until something is due, nothing. Never raises for
-        input."""
-        now = time.monotonic_ns()
-        if self._offsets.asked.is_set() or now >= self._measure_at:
-            self._measure(now)
-            self._measure_at = now + int(OFFSET_PERIOD_S * 1e9)
-        for _ in range(_GYRO_ROUNDS):  # what the gyro sent since the last step
-            notes = self._gyro_sub.take_many(GYRO_TAKE_MAX, timeout_s=0)
-            if not notes:
-                break
-            self.on_gyro(notes)
-        wait = timeout_s
-        due = self.next_deadline_ns()
-        if due is not None:
-            wait = min(wait, max(0.0, (due - time.monotonic_ns()) / 1e9))
-        if self.pairing.waiting:
-            wait = min(wait, _GYRO_LOOK_S)  # gyro samples are only seen at the next step
-        note = self._camera.take(timeout_s=wait)
-        if note is None:
-            self.on_time(time.monotonic_ns())
-        else:
-            self.on_camera(note)
 
     def close(self) -> None:
         """Stop the deadlines and the load callback (the node closes the subscriptions)."""

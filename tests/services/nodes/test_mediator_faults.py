@@ -19,6 +19,7 @@ from services.lib.quality import Exposure
 from services.nodes.mediator import Mediator, MediatorConfig
 from tests.conftest import wait_until
 from tests.helpers.timing import answered, scaled
+from tests.services.nodes.mediator_driver import step
 
 MS = 1_000_000
 IMAGE = np.zeros((2, 4), dtype=np.uint8)
@@ -46,7 +47,7 @@ def _put_frame(images: Producer, i: int, payload: bytes | None = None) -> int:
 
 def _step_until(mediator: Mediator, done: object) -> None:
     def stepped() -> bool:
-        mediator.step(timeout_s=scaled(0.1))
+        step(mediator, timeout_s=scaled(0.1))
         return bool(done())  # type: ignore[operator]
 
     wait_until(stepped, 60, "the mediator to get through the frames")

@@ -28,6 +28,7 @@ from tests.conftest import REPO, child_env, free_port, wait_until
 from tests.helpers.clock_shim import build_clock_shim, shifted_clock_env, step_clock
 from tests.helpers.frames import simulated_frames
 from tests.helpers.timing import LEASE_LAPSE_S, answered, scaled
+from tests.services.nodes.mediator_driver import step
 from tests.services.nodes.pipeline import Pipeline
 
 pytestmark = pytest.mark.integration
@@ -94,7 +95,7 @@ class Recorded:
 
     def step_until(self, done: object, timeout_s: float, what: str) -> None:
         def stepped() -> bool:
-            self.mediator.step(timeout_s=scaled(0.1))
+            step(self.mediator, timeout_s=scaled(0.1))
             return bool(done())  # type: ignore[operator]
 
         wait_until(stepped, timeout_s, what)
