@@ -6,7 +6,8 @@ about 1.5 frame periods per frame at 15 fps on an otherwise idle 2-core machine,
 emulated delay. Run it behind the mediator (from the repository root)::
 
     framegate launch examples/vision.yaml          # camera, gyro, mediator, this handler
-    framegate info vision/detections               # its results, skips and processing
+    framegate info vision/detections               # its results and skips
+    framegate query vision/detections --last 5 --json   # each with its processing_ns
     framegate info mediator/images                 # its queue: the mediator's load
 
 or by hand, beside a camera, gyro and mediator::

@@ -49,7 +49,7 @@ def register(subparsers: Any) -> None:
         type=positive_float,
         metavar="S",
         help="measured seconds per sample (4, quick 0.5); also the hostile scenario's "
-        "window (120, quick 10)",
+        "window (120, quick 10); ros2-loop's windows are at least 45 s (quick 15)",
     )
     parser.add_argument(
         "--pairs",

@@ -46,7 +46,8 @@ class BenchOptions:
     """Scenarios to run, the measured window per sample, and raw/framegate pairs per row.
 
     Each sample measures ``duration_s`` (query-scaling: a quarter of it per (n, k); idle: at
-    least 5 s; hostile: ``hostile_s``, which a given duration also sets);
+    least 5 s; hostile: ``hostile_s``, which a given duration also sets; ros2-loop: at least
+    45 s, quick 15, a run of the approach per window);
     ``quick`` also shrinks sizes (memory, query-scaling) for a CI smoke test.
     """
 

@@ -273,7 +273,13 @@ def run_ros2_loop(options: BenchOptions) -> ScenarioResult:
             r = row(name, f"recognitions of {name}", "recognitions", "count", True)
             r.samples("raw").append({"pair": pair, "value": raw.seen[marker_id]})
             r.samples("framegate").append({"pair": pair, "value": loop.seen[marker_id]})
-        total = row("total", "recognitions, all markers", "recognitions", "count", True)
+        total = row(
+            "total",
+            f"recognitions, all markers ({window_s:g} s runs)",
+            "recognitions",
+            "count",
+            True,
+        )
         gain = gain_pct(loop.seen.total(), raw.seen.total())
         total.samples("raw").append({"pair": pair, "value": raw.seen.total()})
         total.samples("framegate").append(
