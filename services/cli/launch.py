@@ -177,7 +177,8 @@ def _status_loop(
 def _refuse_if_running(net: NetworkConfig, names: list[str]) -> None:
     """ConfigError if a service this launch would start is live already (a demo, another
     deploy file): each of ours would fail to offer its name and be restarted in a loop.
-    A router this launch starts is not up yet, so nothing is found then: no false alarm."""
+    Not asked when this launch starts the router its services meet through (see
+    ``_launch``): nothing can be live on it yet, and a client's session would wait for it."""
     from middleware import Node
 
     with Node(network=net) as node:
@@ -233,7 +234,9 @@ def _prerender(deployment: Deployment, host: str | None, stop: threading.Event) 
 
 def _launch(args: argparse.Namespace, deployment: Deployment, net: NetworkConfig) -> int:
     stop = stop_on_signals()
-    _refuse_if_running(net, [s.name for s in deployment.for_host(args.host) if s.type != "router"])
+    ours = deployment.for_host(args.host)
+    if not any(s.type == "router" for s in ours):
+        _refuse_if_running(net, [s.name for s in ours if s.type != "router"])
     if stop.is_set() or not _prerender(deployment, args.host, stop):
         return 0  # stopped while checking or rendering: start nothing
     # Planned again after the rendering: the processes share a start instant, which a plan

@@ -87,7 +87,17 @@ def _check_files(
     be started (and restarted) at all."""
     flag = "--config"
     try:
-        net.check_files()
+        try:
+            net.check_files()
+        except ConfigError as exc:
+            config = net.config_file
+            maker = config.parent.parent / "make-certs.sh" if config is not None else None
+            if maker is None or config is None or config.exists() or not maker.is_file():
+                raise
+            # A secure profile's certificates are made, not shipped: say how.
+            raise ConfigError(
+                f"{exc}; make the certificates first: {maker} {config.parent} (docs/security.md)"
+            ) from exc
         if parsed is None:
             return
         flag = "--ros-config"

@@ -373,10 +373,9 @@ def _late_note(summary: dict[str, Any]) -> str:
         if summary["source"] == "sim"
         else "the machine is busy; --logs shows the camera's own warning"
     )
-    kept_pct = 100 * frames / (frames + late)
-    return (
-        f"              it kept {kept_pct:.0f} % of its frames (below 90 %):\n              {why}\n"
-    )
+    # Rounded down: 89.5 % must not print as "90 % (below 90 %)".
+    kept_pct = 100 * frames // (frames + late)
+    return f"              it kept {kept_pct} % of its frames (below 90 %):\n              {why}\n"
 
 
 def print_summary(summary: dict[str, Any]) -> None:

@@ -11,6 +11,7 @@ import pytest
 
 from middleware import FlowControlRefused, FramegateError, Node, Notification, make_metadata
 from tests.conftest import wait_until
+from tests.helpers.timing import scaled
 
 
 def _meta(t: int) -> bytes:
@@ -116,7 +117,8 @@ def test_a_handler_that_waits_to_put_is_not_waiting_for_itself(listen_net, conne
 
         service.at(time.monotonic_ns(), refused)
         wait_until(lambda: len(results) == 2, 10.0, "the refusal")
-        assert isinstance(results[1], float) and results[1] < 0.3 * 10
+        # Refused, not hung: within its wait_s, with the suite's slack for a slow machine.
+        assert isinstance(results[1], float) and results[1] < scaled(3.0)
 
 
 def test_a_handler_may_take_from_another_subscription(listen_net, connect_net) -> None:

@@ -23,10 +23,10 @@ import pytest
 import yaml
 import zenoh
 
-from middleware import FramegateError, Node, SubscriptionMode, make_metadata
-from tests.conftest import REPO, NodeProcess, child_env, wait_until
+from middleware import FramegateError, NetworkConfig, Node, SubscriptionMode, make_metadata
+from tests.conftest import REPO, NodeProcess, child_env, free_port, wait_until
 from tests.helpers.timing import answered, scaled
-from tests.security.conftest import SecureRouter
+from tests.security.conftest import Certs, SecureRouter
 
 pytestmark = pytest.mark.integration
 
@@ -263,3 +263,44 @@ def test_the_secure_profile_runs_the_whole_pipeline(
     finally:
         launch.terminate()
         launch.wait(timeout=scaled(30))
+
+
+@pytest.mark.slow
+def test_the_secure_deploy_file_starts_with_its_own_router(certs: Certs, tmp_path: Path) -> None:
+    """deploy/secure.yaml as written, router included (on a free port): the launcher must
+    not wait, as a client of a router it has not started yet, before starting it (it did,
+    for 12 s, then failed with "Timeout!")."""
+    port = free_port()
+    endpoint = f"tls/localhost:{port}"
+    deploy = yaml.safe_load((REPO / "deploy" / "secure.yaml").read_text())
+    for name, spec in deploy["services"].items():
+        config = certs.dir / Path(spec["network"]["config"]).name
+        if name == "router":
+            spec["network"] = {"config": str(config), "listen": [f"tls/127.0.0.1:{port}"]}
+        else:
+            spec["network"] = {"config": str(config), "connect": [endpoint]}
+    (tmp_path / "secure.yaml").write_text(yaml.safe_dump(deploy))
+    launch = subprocess.Popen(
+        [sys.executable, "-m", "services.cli", "launch", str(tmp_path / "secure.yaml")],
+        cwd=REPO,
+        env=child_env(),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        cli = NetworkConfig(config_file=certs.config("cli"), connect=(endpoint,))
+
+        def detections() -> int:
+            assert launch.poll() is None, "the launcher ended"
+            try:
+                with Node(network=cli) as node:
+                    return node.buffer_info("detector/detections", timeout_s=scaled(10.0)).puts
+            except FramegateError:
+                return 0
+
+        wait_until(lambda: detections() >= 3, 180, "detections through the launched router")
+    finally:
+        launch.terminate()
+        _, err = launch.communicate(timeout=scaled(30))
+    assert launch.returncode == 0, err

@@ -148,7 +148,9 @@ def test_hz_measures_rate_jitter_and_bandwidth(listen_net: NetworkConfig, cli: C
     summary = lines[-1]
     assert summary["event"] == "summary"
     assert all(line["event"] == "report" for line in lines[:-1]) and len(lines) >= 2
-    assert 5 < summary["rate_hz"] < 60  # 50 Hz nominal, on a loaded machine
+    # 50 Hz nominal: never above it (allowing for jitter); below it as far as a loaded
+    # machine starves the producer.
+    assert 0 < summary["rate_hz"] < 60
     assert summary["window"] >= 5
     # min 0: on a loaded machine two elements can arrive in the same instant.
     assert 0 <= summary["min_s"] <= summary["mean_s"] <= summary["max_s"]

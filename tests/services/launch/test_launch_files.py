@@ -114,6 +114,9 @@ def test_check_of_the_secure_deploy_file_without_its_certificates_fails_in_one_l
         result
     )
     assert result.stderr.count("\n") == 1, result
+    assert "make the certificates first: deploy/tls/make-certs.sh deploy/tls/certs" in (
+        result.stderr
+    ), result
 
 
 @pytest.mark.integration

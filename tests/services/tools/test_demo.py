@@ -126,6 +126,8 @@ def test_a_damaged_prerendered_cache_is_one_clear_error(tmp_path: Path) -> None:
             "it kept 83 % of its frames (below 90 %):\n              the machine",
         ),
         ("prerendered", 593, 28, None),
+        # 89.5 %: below 90 %, and never printed as 90 % beside "(below 90 %)".
+        ("prerendered", 564, 66, "it kept 89 % of its frames (below 90 %)"),
     ],
 )
 def test_summary_says_why_when_the_camera_did_not_keep_its_rate(
