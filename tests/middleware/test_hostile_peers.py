@@ -228,11 +228,7 @@ def test_a_forged_refusal_does_not_refuse(
     before the producer's greeting: it is not from the producer's session, so it does not
     count, and each subscription registers. ``also_answers``: the peer answers ``@info`` in
     the producer's name too, so two sessions answer as the service: no refusal is trusted."""
-    with (
-        Node("cam", listen_net) as service,
-        open_session(endpoint) as rogue,
-        Node(network=NetworkConfig(connect=(endpoint,))) as client,
-    ):
+    with _cam_rogue_client(listen_net, endpoint) as (service, rogue, client):
         images = service.offer("images")
         wait_until(lambda: "cam" in client.live_services(), scaled(10), "the service")
 
@@ -260,16 +256,25 @@ def test_a_forged_refusal_does_not_refuse(
                 stop()
 
 
-def test_a_description_two_sessions_give_decides_nothing(
+@contextmanager
+def _cam_rogue_client(
     listen_net: NetworkConfig, endpoint: str
-) -> None:
-    """What may decide a rewind (a source's clock sample) is taken only from a description one
-    session alone gives: a peer answering in the service's name makes it no answer."""
+) -> Iterator[tuple[Node, zenoh.Session, Node]]:
+    """The service ``cam`` (no buffer yet), a rogue's raw session and a client, all met."""
     with (
         Node("cam", listen_net) as service,
         open_session(endpoint) as rogue,
         Node(network=NetworkConfig(connect=(endpoint,))) as client,
     ):
+        yield service, rogue, client
+
+
+def test_a_description_two_sessions_give_decides_nothing(
+    listen_net: NetworkConfig, endpoint: str
+) -> None:
+    """What may decide a rewind (a source's clock sample) is taken only from a description one
+    session alone gives: a peer answering in the service's name makes it no answer."""
+    with _cam_rogue_client(listen_net, endpoint) as (service, rogue, client):
         service.offer("images")
         wait_until(lambda: "cam" in client.live_services(), scaled(10), "the service")
         assert client.service_info("cam", unambiguous=True).service == "cam"
@@ -321,11 +326,7 @@ def test_a_flood_of_made_up_epochs_does_not_hold_the_producer(
     they come: more than it remembers of evicted epochs. Its producer's epoch stays
     tracked, so every later element is still notified (it stalled for good when the flood
     pushed the live epoch out of memory)."""
-    with (
-        Node("cam", listen_net) as service,
-        open_session(endpoint) as rogue,
-        Node(network=NetworkConfig(connect=(endpoint,))) as client,
-    ):
+    with _cam_rogue_client(listen_net, endpoint) as (service, rogue, client):
         images = service.offer("images")
         sub = client.subscribe("cam/images", queue_size=2, wait_s=scaled(10))
         images.put(1, b"x", make_metadata("generic", 1), wait_s=scaled(5))
@@ -352,11 +353,7 @@ def test_an_observer_survives_a_batch_whose_seqs_overflow(
 ) -> None:
     """One batch notification whose seqs pass 2^63 is garbage (its ack could not be
     encoded and killed ``watch``, ``echo``, ``record``): counted, and the observer goes on."""
-    with (
-        Node("cam", listen_net) as service,
-        open_session(endpoint) as rogue,
-        Node(network=NetworkConfig(connect=(endpoint,))) as client,
-    ):
+    with _cam_rogue_client(listen_net, endpoint) as (service, rogue, client):
         images = service.offer("images")
         sub = client.subscribe(
             "cam/images", queue_size=4, mode=SubscriptionMode.OBSERVE, wait_s=scaled(10)
@@ -376,11 +373,7 @@ def test_a_token_no_client_could_read_leaves_the_buffer_readable(
 ) -> None:
     """A subscription token whose id holds an escape character: the producer ignores it, so
     its description (which every CLI command reads) stays readable."""
-    with (
-        Node("cam", listen_net) as service,
-        open_session(endpoint) as rogue,
-        Node(network=NetworkConfig(connect=(endpoint,))) as client,
-    ):
+    with _cam_rogue_client(listen_net, endpoint) as (service, rogue, client):
         service.offer("images")
         wait_until(lambda: "cam" in client.live_services(), scaled(10), "the service")
         live = rogue.liveliness()
@@ -584,11 +577,7 @@ def test_a_second_session_answering_data_queries_cannot_void_or_swamp_them(
     """Any session may answer a query: an error from another one does not void the service's
     answer, what it adds is bounded by what was asked (``last=1``, one element), and a fetch
     is of exactly the timestamp asked for."""
-    with (
-        Node("cam", listen_net) as service,
-        open_session(endpoint) as rogue,
-        Node(network=NetworkConfig(connect=(endpoint,))) as client,
-    ):
+    with _cam_rogue_client(listen_net, endpoint) as (service, rogue, client):
         images = service.offer("images")
         for t in (1000, 2000, 3000):
             images.put(t, b"real", make_metadata("generic", t))

@@ -223,6 +223,27 @@ def test_intruder_cannot_ack_for_the_camera_s_subscriber(
     spy.undeclare()
 
 
+def _detections(cli: Node) -> int:
+    """How many detections the detector stored, as ``cli`` sees it (0 while unreachable)."""
+    try:
+        return cli.buffer_info("detector/detections", timeout_s=scaled(10.0)).puts
+    except FramegateError:
+        return 0
+
+
+def _launch(deploy: dict[str, Any], tmp_path: Path) -> subprocess.Popen[str]:
+    """``framegate launch`` of ``deploy`` (a deploy file's mapping), written to tmp_path."""
+    (tmp_path / "secure.yaml").write_text(yaml.safe_dump(deploy))
+    return subprocess.Popen(
+        [sys.executable, "-m", "services.cli", "launch", str(tmp_path / "secure.yaml")],
+        cwd=REPO,
+        env=child_env(),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
 @pytest.mark.slow
 def test_the_secure_profile_runs_the_whole_pipeline(
     secure_router: SecureRouter, tmp_path: Path
@@ -237,24 +258,10 @@ def test_the_secure_profile_runs_the_whole_pipeline(
             "config": str(secure_router.certs.dir / config.name),
             "connect": [secure_router.endpoint],
         }
-    (tmp_path / "secure.yaml").write_text(yaml.safe_dump(deploy))
-    launch = subprocess.Popen(
-        [sys.executable, "-m", "services.cli", "launch", str(tmp_path / "secure.yaml")],
-        cwd=REPO,
-        env=child_env(),
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-    )
+    launch = _launch(deploy, tmp_path)
     try:
         with Node(network=secure_router.net("cli")) as cli:
-
-            def detections() -> int:
-                try:
-                    return cli.buffer_info("detector/detections", timeout_s=scaled(10.0)).puts
-                except FramegateError:
-                    return 0
-
-            wait_until(lambda: detections() >= 3, 90, "detections through the secure router")
+            wait_until(lambda: _detections(cli) >= 3, 90, "detections through the secure router")
             every = ["camera", "detector", "gyro", "mediator"]
             wait_until(lambda: cli.live_services() == every, 30, f"exactly {every}")
             accepted = answered(lambda: cli.query("mediator/images", last=1), "mediator")[0]
@@ -262,7 +269,7 @@ def test_the_secure_profile_runs_the_whole_pipeline(
             assert frame.payload == accepted.payload
     finally:
         launch.terminate()
-        launch.wait(timeout=scaled(30))
+        launch.communicate(timeout=scaled(30))
 
 
 @pytest.mark.slow
@@ -279,23 +286,15 @@ def test_the_secure_deploy_file_starts_with_its_own_router(certs: Certs, tmp_pat
             spec["network"] = {"config": str(config), "listen": [f"tls/127.0.0.1:{port}"]}
         else:
             spec["network"] = {"config": str(config), "connect": [endpoint]}
-    (tmp_path / "secure.yaml").write_text(yaml.safe_dump(deploy))
-    launch = subprocess.Popen(
-        [sys.executable, "-m", "services.cli", "launch", str(tmp_path / "secure.yaml")],
-        cwd=REPO,
-        env=child_env(),
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    launch = _launch(deploy, tmp_path)
     try:
-        cli = NetworkConfig(config_file=certs.config("cli"), connect=(endpoint,))
+        cli_net = NetworkConfig(config_file=certs.config("cli"), connect=(endpoint,))
 
         def detections() -> int:
             assert launch.poll() is None, "the launcher ended"
-            try:
-                with Node(network=cli) as node:
-                    return node.buffer_info("detector/detections", timeout_s=scaled(10.0)).puts
+            try:  # the launched router is not up at once: a client cannot open before it is
+                with Node(network=cli_net) as cli:
+                    return _detections(cli)
             except FramegateError:
                 return 0
 
