@@ -420,8 +420,10 @@ class ProtocolModel(RuleBasedStateMachine):
         elif kind == "past":
             self.net.append(Ack(own, encode_ack(reg.epoch, data.draw(st.integers(0, reg.acked)))))
         elif kind == "beyond":
+            # Straight to the producer: held in the network until later puts, it would be an
+            # in-window forgery, which only the secure profile prevents (docs/protocol.md).
             beyond = reg.sent + data.draw(st.sampled_from([1, 1_000, 2**62]))
-            self.net.append(Ack(own, encode_ack(reg.epoch, beyond)))
+            self._deliver(Ack(own, encode_ack(reg.epoch, beyond)))
         else:  # another id claims this registration's epoch
             rogue = KEYS.ack(SERVICE, BUFFER, "rogue")
             self.net.append(Ack(rogue, encode_ack(reg.epoch, data.draw(st.integers(0, 1_000)))))
