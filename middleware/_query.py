@@ -47,7 +47,8 @@ class Queries(Discovery):
 
     def get(self, target: str, timestamp_ns: int, *, timeout_s: float = 5.0) -> DataObject:
         """The element with exactly this timestamp; NotFoundError if there is none."""
-        found = _exactly(self._get(target, {"ts": str(timestamp_ns)}, timeout_s), timestamp_ns)
+        answer = self._get(target, {"ts": str(timestamp_ns)}, timeout_s, most=1)
+        found = _exactly(answer, timestamp_ns)
         if found is None:
             raise NotFoundError(f"{target} has no element with timestamp {timestamp_ns}")
         return found

@@ -392,12 +392,12 @@ def serve(spec: RunnerSpec, handler: Handler, network: NetworkConfig, stop: thre
             if spec.processing_floor_s
             else "",
         )
-        unregistered_since = time.monotonic()
+        say_at: float | None = time.monotonic() + _SAY_AFTER_S  # None: looked once already
         try:
             while not stop.is_set():
                 runner.handle(frames.take_many(1, timeout_s=0.5), frames.fetch)
-                if unregistered_since and time.monotonic() - unregistered_since > _SAY_AFTER_S:
-                    unregistered_since = 0.0  # said once, at most
+                if say_at is not None and time.monotonic() > say_at:
+                    say_at = None
                     if not frames.wait_registered(0):
                         _say_why_unregistered(node, spec.input, log)
         except (KeyboardInterrupt, _Stopped):
