@@ -56,10 +56,13 @@ from ._wire import encode_ack
 _PINNED: set[int] = set()
 
 
-def _pin_thread_state() -> None:
-    """(a Zenoh thread, holding the GIL) Keep this thread's Python thread state alive."""
-    _PINNED.add(threading.get_ident())
-    ctypes.pythonapi.PyGILState_Ensure()
+def pin_thread_state() -> None:
+    """(a Zenoh thread, in a direct callback) Keep this thread's Python thread state alive
+    from its first callback on (see the module doc); later calls cost one set look-up."""
+    ident = threading.get_ident()
+    if ident not in _PINNED:
+        _PINNED.add(ident)
+        ctypes.pythonapi.PyGILState_Ensure()
 
 
 T = TypeVar("T")
@@ -134,8 +137,7 @@ class _Bounded(Generic[T]):
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         """(Zenoh's thread) Check the size, append, signal; never blocks, never calls Zenoh."""
-        if threading.get_ident() not in _PINNED:
-            _pin_thread_state()
+        pin_thread_state()
         if self.closed:
             return
         payload = sample.payload  # one wrapper, read once (each access makes a new one)

@@ -1,8 +1,11 @@
 """Serving a process's buffers: one queryable for elements, one for the service description.
 
-Queries run on a worker thread fed by a bounded Zenoh channel, so a long range reply never
-runs on Zenoh's own threads. Every malformed query gets an error reply (``code: message``)
-and the worker keeps serving.
+Queries are answered on one thread per service (``fg-serve-<service>``), never on Zenoh's
+own threads, nor on the node's executor (a handler that runs long there, a camera's render
+or a slow vision function, must not hold up the answers). Zenoh's callback only appends a
+query to a bounded inbox (``QueryInbox``) and wakes that thread, which otherwise sleeps: an
+idle service costs no wake-ups here. Every malformed query gets an error reply
+(``code: message``) and the thread keeps serving.
 
 One producer per name: before declaring its token, an endpoint asks whether the service is
 live elsewhere and refuses, naming that instance's host and pid (a restarted service whose
@@ -24,6 +27,7 @@ import os
 import secrets
 import socket
 import threading
+from collections import deque
 from collections.abc import Callable
 from dataclasses import asdict
 from typing import Any, cast
@@ -35,6 +39,7 @@ from ._clock import CLOCK, now_ns
 from ._config import listening_endpoints
 from ._decode import decode_instance
 from ._errors import FramegateError, NameTakenError, NotFoundError, QueryError
+from ._inbox import pin_thread_state
 from ._producer import Producer
 from ._records import BufferInfo, DataObject
 from ._timerange import parse_time_range
@@ -175,12 +180,66 @@ def _taken(service: str, other: dict[str, Any]) -> NameTakenError:
     )
 
 
+# Queries waiting to be answered, per queryable. A peer that asks faster than the service
+# answers gets the oldest of its excess finalized unanswered (its querier sees an empty
+# answer, as after a lost reply) and counted; honest tools ask one query at a time.
+DATA_QUERIES = 256
+INFO_QUERIES = 64
+
+
+class QueryInbox:
+    """The queries of a service's two queryables, appended by Zenoh's callbacks and taken by
+    its serving thread; bounded, and the only thing Zenoh's threads do here."""
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self._waiting: dict[str, deque[zenoh.Query]] = {"data": deque(), "info": deque()}
+        self._capacity = {"data": DATA_QUERIES, "info": INFO_QUERIES}
+        self.dropped = 0
+        self.closed = False
+
+    def callback(self, which: str) -> zenoh.handlers.Callback[zenoh.Query]:
+        """A direct callback (on the Zenoh thread that received the query) for ``which``."""
+        waiting, capacity = self._waiting[which], self._capacity[which]
+
+        def on_query(query: zenoh.Query) -> None:
+            pin_thread_state()
+            with self._cond:
+                if self.closed:
+                    return
+                if len(waiting) >= capacity:
+                    waiting.popleft()  # finalized when dropped: the querier's answer ends
+                    self.dropped += 1
+                waiting.append(query)
+                self._cond.notify()
+
+        return zenoh.handlers.Callback(on_query, indirect=False)
+
+    def take(self) -> tuple[str, zenoh.Query] | None:
+        """The next query, info first (they are cheap and tools wait on them); None once
+        closed. Sleeps until one comes."""
+        with self._cond:
+            while not self.closed:
+                for which in ("info", "data"):
+                    if self._waiting[which]:
+                        return which, self._waiting[which].popleft()
+                self._cond.wait()
+            return None
+
+    def close(self) -> None:
+        with self._cond:
+            self.closed = True
+            for waiting in self._waiting.values():
+                waiting.clear()
+            self._cond.notify_all()
+
+
 class ServiceEndpoint:
     """The Zenoh face of a named service: token, data queryable and info queryable.
 
-    Threads: two worker threads (``fg-query-*``, ``fg-info-*``) read the queryables'
-    bounded channels and answer there, never on Zenoh's threads. ``_lock`` guards the
-    producer table only; no Zenoh call is made while holding it.
+    Threads: one serving thread (``fg-serve-*``) answers the queries that Zenoh's callbacks
+    left in the ``QueryInbox``. ``_lock`` guards the producer table only; no Zenoh call is
+    made while holding it.
     """
 
     def __init__(self, session: zenoh.Session, keys: Keys, service: str) -> None:
@@ -194,26 +253,17 @@ class ServiceEndpoint:
         if others:
             raise _taken(service, others[0])
         self._token = session.liveliness().declare_token(keys.service_token(service))
+        self._queries = QueryInbox()
         self._data = session.declare_queryable(
-            keys.service_data(service), zenoh.handlers.FifoChannel(256)
+            keys.service_data(service), self._queries.callback("data")
         )
-        self._info = session.declare_queryable(keys.info(service), zenoh.handlers.FifoChannel(64))
-        self._threads = [
-            threading.Thread(
-                target=self._serve,
-                args=(self._data, self._on_data),
-                daemon=True,
-                name=f"fg-query-{service}",
-            ),
-            threading.Thread(
-                target=self._serve,
-                args=(self._info, self._on_info),
-                daemon=True,
-                name=f"fg-info-{service}",
-            ),
-        ]
-        for thread in self._threads:
-            thread.start()
+        self._info = session.declare_queryable(keys.info(service), self._queries.callback("info"))
+        self._handlers: dict[str, Callable[[zenoh.Query], None]] = {
+            "data": self._on_data,
+            "info": self._on_info,
+        }
+        self._thread = threading.Thread(target=self._serve, daemon=True, name=f"fg-serve-{service}")
+        self._thread.start()
         mine = (self.started_ns, self.instance)
         for other in _instances(session, keys, service):
             started, instance = other["started_ns"], other["instance"]
@@ -234,9 +284,10 @@ class ServiceEndpoint:
         with self._lock:
             return list(self._producers.values())
 
-    def _serve(self, queryable: Any, handle: Callable[[zenoh.Query], None]) -> None:
-        # Iteration ends when the queryable is undeclared.
-        for query in queryable:
+    def _serve(self) -> None:
+        while (taken := self._queries.take()) is not None:
+            which, query = taken
+            handle = self._handlers[which]
             with query:
                 try:
                     handle(query)
@@ -294,8 +345,9 @@ class ServiceEndpoint:
         for entity in (self._data, self._info, self._token):
             with contextlib.suppress(zenoh.ZError):
                 entity.undeclare()
-        for thread in self._threads:
-            thread.join(timeout=2.0)
+        self._queries.close()
+        if self._thread is not threading.current_thread():
+            self._thread.join(timeout=2.0)
 
 
 def _reply_err(query: zenoh.Query, text: str) -> None:

@@ -45,7 +45,7 @@ def allowed(service: str, rows: dict[str, set[str]]) -> set[str]:
 
 def test_the_table_parses() -> None:
     rows = table()
-    assert {"MainThread", "fg-exec-<node>", "fg-query-<service>"} <= set(rows)
+    assert {"MainThread", "fg-exec-<node>", "fg-serve-<service>"} <= set(rows)
     assert "camera" in allowed("camera", rows) or "fg-exec-camera" in allowed("camera", rows)
 
 
@@ -78,7 +78,7 @@ def test_running_services_run_the_threads_of_the_table(tmp_path: Path) -> None:
             )
             doubled = sorted({n for n in names if names.count(n) > 1})
             assert not doubled, f"{service} runs these more than once: {doubled}"
-            for own in ("MainThread", f"fg-exec-{service}", f"fg-info-{service}"):
+            for own in ("MainThread", f"fg-exec-{service}", f"fg-serve-{service}"):
                 assert own in names, f"{service} lacks {own}: {names}"
     finally:
         pipe.close()

@@ -1,0 +1,86 @@
+"""A service answers its queries on one serving thread fed by a bounded inbox: a peer that
+asks faster than the service answers costs bounded memory, its excess is counted, and an
+honest query asked after the flood is answered."""
+
+from __future__ import annotations
+
+import threading
+
+import pytest
+
+from middleware import Node, make_metadata
+from middleware._service import DATA_QUERIES, INFO_QUERIES, QueryInbox
+from tests.helpers.raw_zenoh import open_session
+from tests.helpers.timing import scaled
+
+
+class _Query:
+    """A stand-in for ``zenoh.Query``: the inbox only holds and drops them."""
+
+    def __init__(self, n: int) -> None:
+        self.n = n
+
+
+def _ask(inbox: QueryInbox, which: str, n: int) -> None:
+    inbox.callback(which).callback(_Query(n))  # type: ignore[arg-type]
+
+
+def test_the_inbox_holds_at_most_its_capacity_and_counts_the_oldest_it_drops() -> None:
+    inbox = QueryInbox()
+    for n in range(DATA_QUERIES + 10):
+        _ask(inbox, "data", n)
+    for n in range(INFO_QUERIES + 3):
+        _ask(inbox, "info", n)
+    assert inbox.dropped == 13
+    taken = [inbox.take() for _ in range(DATA_QUERIES + INFO_QUERIES)]
+    kinds = [which for which, _query in taken]  # type: ignore[misc]
+    # Info first (cheap, and tools wait on it), then data; each the newest it kept, in order.
+    assert kinds == ["info"] * INFO_QUERIES + ["data"] * DATA_QUERIES
+    numbers = [query.n for _which, query in taken]  # type: ignore[misc, attr-defined]
+    assert numbers[:INFO_QUERIES] == list(range(3, INFO_QUERIES + 3))
+    assert numbers[INFO_QUERIES:] == list(range(10, DATA_QUERIES + 10))
+
+
+def test_take_sleeps_until_a_query_comes_and_close_ends_it() -> None:
+    inbox = QueryInbox()
+    got: list[object] = []
+    reader = threading.Thread(target=lambda: got.append(inbox.take()))
+    reader.start()
+    _ask(inbox, "data", 7)
+    reader.join(timeout=scaled(5))
+    assert not reader.is_alive()
+    assert got[0][0] == "data"  # type: ignore[index]
+    closer = threading.Thread(target=lambda: got.append(inbox.take()))
+    closer.start()
+    inbox.close()
+    closer.join(timeout=scaled(5))
+    assert not closer.is_alive()
+    assert got[1] is None
+    _ask(inbox, "data", 8)  # after close: ignored, nothing held
+    assert inbox.take() is None
+
+
+@pytest.mark.integration
+def test_a_query_flood_is_bounded_and_an_honest_query_is_answered_after_it(
+    listen_net, connect_net, endpoint
+) -> None:
+    with Node("cam", listen_net) as service, Node(network=connect_net) as client:
+        log = service.offer("log")
+        for t in range(1, 101):
+            log.put(t, b"x" * 16, make_metadata("generic", t))
+        with open_session(endpoint) as rogue:
+            inbox = service._endpoint._queries  # type: ignore[union-attr]
+            held: list[int] = []
+            pending = []
+            # Thousands of range queries without waiting for any answer.
+            for i in range(3000):
+                pending.append(rogue.get("framegate/cam/log?_time=[0..200]", timeout=scaled(30)))
+                if i % 100 == 0:
+                    held.append(len(inbox._waiting["data"]))
+            assert max(held) <= DATA_QUERIES
+            got = client.query("cam/log", time_range="[1..100]", timeout_s=scaled(30))
+            assert [e.timestamp_ns for e in got] == list(range(1, 101))
+            del pending
+        threads = [t.name for t in threading.enumerate()]
+        assert threads.count("fg-serve-cam") == 1
+        assert not [n for n in threads if n.startswith(("fg-query", "fg-info"))]
