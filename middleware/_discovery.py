@@ -6,14 +6,14 @@ from __future__ import annotations
 
 import difflib
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from contextlib import suppress
 
 import zenoh
 
 from ._clock import now_ns
 from ._config import NetworkConfig, check_name
-from ._decode import decode_service_info
+from ._decode import MAX_REPLY_BYTES, decode_service_info
 from ._errors import ConfigError, NotFoundError, QueryError
 from ._executor import Executor
 from ._records import BufferInfo, ServiceInfo
@@ -137,23 +137,27 @@ class Discovery:
         """One live service's description; NotFoundError if it is not live.
 
         ``unambiguous``: for a decision that must not rest on a peer's word (a clock sample
-        that may remove elements): QueryError when more than one Zenoh session answers as
-        ``service`` (any peer can answer, and Zenoh would pass on only the newest answer)."""
+        that may remove elements): QueryError when more than one Zenoh session answers with
+        a valid description of ``service`` (any peer can answer, and Zenoh would pass on only
+        the newest answer). A reply that is no valid description counts for nothing."""
         start = now_ns()
-        consolidation = zenoh.ConsolidationMode.NONE if unambiguous else None
         with zenoh_errors(f"describing {service}"):
             replies = list(
                 self._session.get(
-                    self.keys.info(service), timeout=timeout_s, consolidation=consolidation
+                    self.keys.info(service),
+                    timeout=timeout_s,
+                    consolidation=zenoh.ConsolidationMode.NONE,
                 )
             )
         end = now_ns()
-        if unambiguous:
-            _one_replier(replies, service)
+        answers = Answers(service, start)
         for reply in replies:
-            if reply.ok is not None:
-                raw = reply.ok.payload.to_bytes()
-                return decode_service_info(raw, start, end, service=service)
+            answers.add(reply, end)
+        found = answers.trusted() if unambiguous else answers.first_valid()
+        if found is not None:
+            return found
+        if answers:
+            answers.first_error()  # raises: what was wrong with what came
         self._require_service(service, timeout_s=timeout_s)
         raise NotFoundError(f"service {service!r} did not answer within {timeout_s} s")
 
@@ -166,31 +170,23 @@ class Discovery:
     ) -> None:
         """Ask for one service's description without waiting for it: ``answer(info)``
         runs once on the node's executor when the query ends, with None when no valid
-        description came within ``timeout_s``. For handlers: ``service_info`` there would
-        hold up every other handler of the node for a round trip (100-250 ms measured on
-        a loaded 2-core machine)."""
-        start = now_ns()
-        # (Zenoh's thread) only the first reply is kept, with when it came: the round trip
-        # that bounds the clock sample's error. It is decoded on the executor. Every reply
-        # is asked for (no consolidation): a description that more than one session gives
-        # (any peer can answer as any service) is no answer (``service_info``'s unambiguous).
-        first: list[tuple[bytes, int]] = []
-        repliers: set[str] = set()
+        description came within ``timeout_s``, or valid ones from more than one session
+        (``service_info``'s unambiguous). For handlers: ``service_info`` there would hold up
+        every other handler of the node for a round trip (100-250 ms measured on a loaded
+        2-core machine)."""
+        # (Zenoh's thread) each session's first reply is kept with when it came (the round
+        # trip that bounds a clock sample's error), and decoded on the executor: a peer
+        # that answers garbage beside the service does not void its answer.
+        answers = Answers(service, now_ns())
 
         def on_reply(reply: zenoh.Reply) -> None:
-            if reply.ok is None:
-                return
-            if reply.replier_id is not None and len(repliers) <= 1:
-                repliers.add(str(reply.replier_id.zid))
-            if not first:
-                first.append((reply.ok.payload.to_bytes(), now_ns()))
+            answers.add(reply, now_ns())
 
         def deliver(_now_ns: int) -> None:
-            info = None
-            if first and len(repliers) <= 1:
-                raw, end = first[0]
-                with suppress(QueryError):
-                    info = decode_service_info(raw, start, end, service=service)
+            try:
+                info = answers.trusted()
+            except QueryError:
+                info = None
             answer(info)
 
         def finished() -> None:  # (Zenoh's thread) the query ended: replied or timed out
@@ -223,14 +219,59 @@ class Discovery:
         return buffer_of(info, target)
 
 
-def _one_replier(replies: list[zenoh.Reply], service: str) -> None:
-    """QueryError unless at most one Zenoh session gave a description in ``replies``."""
-    sessions = {str(r.replier_id.zid) for r in replies if r.ok is not None and r.replier_id}
-    if len(sessions) > 1:
-        raise QueryError(
-            f"{len(sessions)} Zenoh sessions answer as {service!r}: its description is not "
-            "trusted (another process, or a peer, answers in its name)"
-        )
+# Sessions whose answers to one ``@info`` query are kept (a crowd of rogue repliers beyond
+# this is no less ambiguous than this many).
+MAX_REPLIERS = 8
+
+
+class Answers:
+    """The answers to one ``@info`` query: each replying session's first reply, with when
+    it came; which of them count is decided when the query has ended (``trusted``)."""
+
+    def __init__(self, service: str, start_ns: int) -> None:
+        self.service = service
+        self.start_ns = start_ns
+        self._first: dict[str, tuple[bytes, int]] = {}
+
+    def add(self, reply: zenoh.Reply, end_ns: int) -> None:
+        """(any thread) Keep ``reply`` if it is its session's first (bounded, undecoded)."""
+        if reply.ok is None or len(self._first) >= MAX_REPLIERS:
+            return
+        replier = str(reply.replier_id.zid) if reply.replier_id is not None else "?"
+        if replier not in self._first and len(reply.ok.payload) <= MAX_REPLY_BYTES:
+            self._first[replier] = (reply.ok.payload.to_bytes(), end_ns)
+
+    def __len__(self) -> int:
+        return len(self._first)
+
+    def _decoded(self) -> Iterator[ServiceInfo | QueryError]:
+        for raw, end_ns in self._first.values():
+            try:
+                yield decode_service_info(raw, self.start_ns, end_ns, service=self.service)
+            except QueryError as exc:
+                yield exc
+
+    def first_valid(self) -> ServiceInfo | None:
+        """The first valid description among the answers (None: none is valid)."""
+        return next((d for d in self._decoded() if isinstance(d, ServiceInfo)), None)
+
+    def first_error(self) -> None:
+        """Raise what was wrong with the first answer that is no valid description."""
+        for decoded in self._decoded():
+            if isinstance(decoded, QueryError):
+                raise decoded
+
+    def trusted(self) -> ServiceInfo | None:
+        """The one valid description of the service among the answers (None: none came);
+        QueryError when more than one session gave one. A reply that is no valid
+        description of the service counts for nothing."""
+        valid = [d for d in self._decoded() if isinstance(d, ServiceInfo)]
+        if len(valid) > 1:
+            raise QueryError(
+                f"{len(valid)} Zenoh sessions answer as {self.service!r}: its description is "
+                "not trusted (another process, or a peer, answers in its name)"
+            )
+        return valid[0] if valid else None
 
 
 def buffer_of(info: ServiceInfo, target: str) -> BufferInfo:

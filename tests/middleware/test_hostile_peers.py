@@ -30,6 +30,7 @@ from middleware import (
     NetworkConfig,
     Node,
     QueryError,
+    ServiceInfo,
     SubscriptionMode,
     make_metadata,
     now_ns,
@@ -205,9 +206,14 @@ def _watch_tokens(session: zenoh.Session, fn: Callable[[str], None]) -> Callable
 
 
 @contextmanager
-def _answering_as(rogue: zenoh.Session, service: str) -> Iterator[None]:
-    """``rogue`` answers ``@info`` of ``service`` too, with a copy of the real description."""
-    copy = next(r.ok.payload.to_bytes() for r in rogue.get(KEYS.info(service)) if r.ok)
+def _answering_as(
+    rogue: zenoh.Session, service: str, garbage: bytes | None = None
+) -> Iterator[None]:
+    """``rogue`` answers ``@info`` of ``service`` too, with a copy of the real description
+    (or with ``garbage``)."""
+    copy = garbage
+    if copy is None:
+        copy = next(r.ok.payload.to_bytes() for r in rogue.get(KEYS.info(service)) if r.ok)
 
     def answer(query: zenoh.Query) -> None:
         with query:
@@ -296,6 +302,37 @@ def test_a_description_two_sessions_give_decides_nothing(
             wait_until(lambda: answers, scaled(10), "the answer")
             assert answers == [None]
             assert client.service_info("cam").service == "cam"  # for reading, as before
+
+
+@pytest.mark.parametrize(
+    "garbage", [b"\xff\xfe not json", b"{}", b"[" * 1000], ids=["not-utf8", "empty-map", "deep"]
+)
+def test_garbage_beside_the_real_description_does_not_void_it(
+    listen_net: NetworkConfig, endpoint: str, garbage: bytes
+) -> None:
+    """A peer that answers ``@info`` of a service with something that is no description of
+    it is no second instance: the real description still decides (a mediator's clock
+    samples, a detector's rewinds), asked and asked without waiting."""
+    with _cam_rogue_client(listen_net, endpoint) as (service, rogue, client):
+        service.offer("images")
+        wait_until(lambda: "cam" in client.live_services(), scaled(10), "the service")
+        with _answering_as(rogue, "cam", garbage):
+
+            def garbage_seen() -> bool:
+                replies = list(
+                    client._session.get(
+                        KEYS.info("cam"), consolidation=zenoh.ConsolidationMode.NONE
+                    )
+                )
+                return sum(r.ok is not None for r in replies) == 2
+
+            wait_until(garbage_seen, scaled(30), "the rogue's answer to reach the client")
+            assert client.service_info("cam", unambiguous=True).service == "cam"
+            assert client.service_info("cam").service == "cam"
+            answers: list[object] = []
+            client.ask_service_info("cam", answers.append, timeout_s=scaled(2))
+            wait_until(lambda: answers, scaled(10), "the answer")
+            assert isinstance(answers[0], ServiceInfo) and answers[0].service == "cam"
 
 
 def test_a_bare_service_token_does_not_stop_the_service(
