@@ -38,6 +38,7 @@ from ._config import (
 from ._discovery import split_target
 from ._errors import (
     EXIT_NAME_TAKEN,
+    ClosedError,
     ConfigError,
     DuplicateTimestampError,
     FlowControlRefused,
@@ -81,6 +82,7 @@ __all__ = [
     "BufferLimits",
     "ClockSample",
     "ClockStatus",
+    "ClosedError",
     "ConfigError",
     "DataObject",
     "DuplicateTimestampError",

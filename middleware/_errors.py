@@ -82,5 +82,10 @@ class PayloadTooLargeError(FramegateError):
     """A payload exceeds the buffer's configured ``max_payload_bytes``."""
 
 
+class ClosedError(FramegateError):
+    """The buffer (its node) is closed: the process is stopping. A service that puts from a
+    timer or handler meets it in the moment between a stop and its own end; not a failure."""
+
+
 class TransportError(FramegateError):
     """Zenoh failed underneath framegate (session, network or endpoint problem)."""

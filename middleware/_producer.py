@@ -30,7 +30,7 @@ import zenoh
 
 from ._buffer import TimeSeries
 from ._element_check import ElementCheck
-from ._errors import DuplicateTimestampError, FlowControlRefused, FramegateError
+from ._errors import ClosedError, DuplicateTimestampError, FlowControlRefused, FramegateError
 from ._executor import BUDGET as _BUDGET
 from ._executor import Executor, Wake, remaining_s
 from ._inbox import ACK_MAX_BYTES, TOKEN_INBOX, AckInbox, TokenInbox, control_inbox_bytes
@@ -227,7 +227,7 @@ class Producer:
         A refused or rejected element is not stored.
         """
         if self._closed:
-            raise FramegateError(f"buffer {self.name} is closed")
+            raise ClosedError(f"buffer {self.name} is closed")
         return self._put((self._checked(timestamp_ns, payload, metadata),), wait_s)
 
     def put_many(
@@ -243,7 +243,7 @@ class Producer:
         refused or rejected batch stores no element. Raises and returns like ``put``.
         """
         if self._closed:
-            raise FramegateError(f"buffer {self.name} is closed")
+            raise ClosedError(f"buffer {self.name} is closed")
         if not elements:
             return 0
         try:

@@ -106,6 +106,11 @@ def load_deployment(path: str | Path) -> Deployment:
             siblings = [p.name for p in path.parent.iterdir() if p.suffix in (".yaml", ".yml")]
             near = did_you_mean(path.name, siblings, quote=True)
         raise ConfigError(f"cannot read deploy file {path}: {exc.strerror}{near}") from exc
+    except UnicodeDecodeError as exc:
+        raise ConfigError(
+            f"{path} is no deploy file: not text (byte {exc.start} is not UTF-8); "
+            "a deploy file is YAML, e.g. deploy/local.yaml"
+        ) from None
     return parse_deployment(text, str(path))
 
 

@@ -106,6 +106,10 @@ def _check_files(
         flag = "--camera-xml"
         if camera_xml := getattr(parsed, "camera_xml", None):
             from services.lib.camera_model import CameraModel
+            from services.nodes.sources import check_device_only
+
+            if (kind := getattr(parsed, "source", None)) is not None:  # a camera's source
+                check_device_only(kind, camera_xml)
 
             try:
                 CameraModel.from_xml(Path(camera_xml).read_bytes())

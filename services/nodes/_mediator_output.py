@@ -13,7 +13,15 @@ import logging
 import time
 from dataclasses import dataclass
 
-from middleware import FlowControlRefused, FramegateError, Node, Producer, Retention, now_ns
+from middleware import (
+    ClosedError,
+    FlowControlRefused,
+    FramegateError,
+    Node,
+    Producer,
+    Retention,
+    now_ns,
+)
 from services.lib.decisions import Action, Candidate, Decider, Load, Verdict, tightest_load
 from services.lib.messages import DecisionRecord, FrameMeta
 from services.nodes._runtime import Monotonic
@@ -135,6 +143,8 @@ class Output:
             notified = self.images.put(frame.meta.timestamp_ns, frame.payload, frame.metadata)
         except FlowControlRefused:
             return "refused"
+        except ClosedError:
+            return "refused"  # a stop came; its record has nowhere to go either
         except FramegateError as exc:
             self.log.warning("cannot forward frame %d: %s", frame.meta.frame_id, exc)
             return "refused"
@@ -200,6 +210,8 @@ class Output:
         key = self._keys.next()
         try:
             self.decisions.put(key, b"", record.metadata(key))
+        except ClosedError:
+            return  # a stop came: the node closes its buffers before its handlers end
         except FramegateError as exc:
             self.decisions_dropped += 1
             n = self.decisions_dropped

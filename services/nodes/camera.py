@@ -32,6 +32,7 @@ import numpy as np
 import numpy.typing as npt
 
 from middleware import (
+    ClosedError,
     FlowControlRefused,
     FramegateError,
     NetworkConfig,
@@ -209,6 +210,8 @@ class CameraPump:
             self.produced += 1
         except FlowControlRefused:
             self.dropped += 1  # dropped at the source, counted in images.info().refused
+        except ClosedError:
+            pass  # a stop came between this frame's exposure and its put
         except FramegateError as exc:
             self._log.warning("frame %d not stored: %s", frame.frame_id, exc)
 

@@ -25,6 +25,7 @@ import numpy as np
 import numpy.typing as npt
 
 from middleware import (
+    ClosedError,
     FlowControlRefused,
     FramegateError,
     NetworkConfig,
@@ -180,6 +181,8 @@ def put_samples(
             stored += len(chunk)
         except FlowControlRefused:
             dropped += len(chunk)
+        except ClosedError:
+            break  # a stop came: the rest has nowhere to go
         except FramegateError as exc:
             rejected(exc)
     return stored, dropped

@@ -56,7 +56,9 @@ class SourceSpec:
     )
     exit_when_done: bool = setting(False, "exit after the last element")
     exposure_ms: float = setting(30.0, "exposure time of a device camera", parse=positive_float)
-    camera_xml: str | None = setting(None, "camera description (camera metadata XML)")
+    camera_xml: str | None = setting(
+        None, "description of a device camera (camera metadata XML; --source device only)"
+    )
     floor: str = setting(
         "default", "floor of the simulated approach (sim, prerendered): smooth, default or rough"
     )
@@ -299,8 +301,20 @@ def _same(image: npt.NDArray[np.uint8]) -> npt.NDArray[np.uint8]:
     return image
 
 
+def check_device_only(kind: str, camera_xml: str | None) -> None:
+    """ConfigError for a camera description given to a source that is no device: only a
+    device reads it (a simulated or recorded source brings its own), so it would be
+    silently ignored."""
+    if camera_xml is not None and kind != "device":
+        raise ConfigError(
+            f"--camera-xml describes a device camera (--source device); a {kind} source "
+            "brings its own description: leave --camera-xml out"
+        )
+
+
 def open_frame_source(spec: SourceSpec) -> FrameSource | DeviceSource:
     """The frame source a spec names."""
+    check_device_only(spec.kind, spec.camera_xml)
     return DeviceSource(spec) if spec.kind == "device" else FrameSource(spec)
 
 

@@ -166,6 +166,11 @@ class Status:
     def get(self, name: str) -> BufferInfo | None:
         return self.buffers.get(name)
 
+    def update(self, newer: Status) -> None:
+        """Take ``newer``'s descriptions; a buffer it lacks (its service answered late: a
+        busy machine, a stopped process) keeps its last one, so no count drops to zero."""
+        self.buffers.update(newer.buffers)
+
     def counts(self) -> dict[str, Any]:
         cam, gyro = self.get("camera/images"), self.get("gyro/rates")
         out, dec = self.get("mediator/images"), self.get("mediator/decisions")
@@ -305,13 +310,15 @@ def run_demo(
     )
     started = time.monotonic()
     last_print = 0.0
-    counts: dict[str, Any] = Status().counts()
+    known = Status()  # each buffer as last described
+    counts: dict[str, Any] = known.counts()
     tallies = {name: MarkerTally(name) for name in (FILTERED, UNCONTROLLED)}
     with Node(network=network) as node:
 
         def refresh() -> None:
             nonlocal counts
-            counts = read_status(node).counts()
+            known.update(read_status(node))
+            counts = known.counts()
             for tally in tallies.values():
                 tally.update(node)
 

@@ -18,6 +18,7 @@ import pytest
 import zenoh
 
 from middleware import (
+    ClosedError,
     ConfigError,
     FlowControlRefused,
     NetworkConfig,
@@ -355,3 +356,15 @@ def test_put_refusal_names_the_full_subscription(
         _put(images, 1)
         with pytest.raises(FlowControlRefused, match=re.escape(sub.subscription_id)):
             _put(images, 2)
+
+
+def test_a_put_on_a_closed_buffer_is_a_closed_error(listen_net: NetworkConfig) -> None:
+    """What a service's timer meets between a stop and its end: its own kind of error, so
+    the service can tell a stop from a failure (and stay quiet about it)."""
+    with Node("cam", listen_net) as service:
+        images = service.offer("images")
+        images.close()
+        with pytest.raises(ClosedError, match="is closed"):
+            images.put(1, b"x", make_metadata("generic", 1))
+        with pytest.raises(ClosedError):
+            images.put_many([(2, b"x", make_metadata("generic", 2))])

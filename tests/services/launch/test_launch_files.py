@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from middleware import ConfigError, NetworkConfig
-from services.launch import parse_deployment, process_specs
+from services.launch import load_deployment, parse_deployment, process_specs
 from tests.conftest import REPO, child_env, free_port, wait_until
 
 _TLS_CONFIG = """{
@@ -69,6 +69,8 @@ def test_a_config_with_every_certificate_passes(tmp_path: Path) -> None:
         ),
         ("{source: replay, path: /no/dataset}", r"dataset /no/dataset"),
         ("{source: device, path: /dev/no-video9}", r"video device /dev/no-video9 does not exist"),
+        # Only a device reads it: elsewhere it would be silently ignored.
+        ("{source: prerendered, camera_xml: /no/cam.xml}", r"--camera-xml describes a device"),
     ],
 )
 def test_a_file_a_service_argument_names_must_be_readable(args: str, message: str) -> None:
@@ -153,3 +155,11 @@ def test_launch_renders_a_prerendered_approach_first_and_a_stop_there_starts_not
     assert proc.returncode == 0, (out, err)
     assert "launching" not in out, out
     assert not list(cache.glob("*.partial-*")), "a stopped render leaves no partial directory"
+
+
+def test_a_deploy_file_that_is_no_text_is_one_error(tmp_path: Path) -> None:
+    """A recording or an image given where a deploy file goes (not UTF-8)."""
+    binary = tmp_path / "run.mcap"
+    binary.write_bytes(b"\x89MCAP0\r\n" + bytes(range(256)))
+    with pytest.raises(ConfigError, match=r"run\.mcap is no deploy file: not text"):
+        load_deployment(binary)

@@ -6,12 +6,13 @@ import json
 import signal
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import psutil
 import pytest
 
-from middleware import ConfigError, NetworkConfig, Node
+from middleware import BufferInfo, ConfigError, NetworkConfig, Node, Retention
 from services.cli import build_parser
 from services.lib.decisions import POLICIES
 from services.lib.sim import ScenarioConfig, cached_dataset, scenario_hash
@@ -47,6 +48,24 @@ def test_status_line_shows_late_skips_load_and_the_gain() -> None:
     assert "   7 late" in line and "120 fwd   180 left load 0.50" in line
     assert line.endswith("found    33 vs    30  +10%")
     assert status_line(counts, {}, 1.0).endswith("  n/a")
+
+
+def test_a_service_that_answers_late_keeps_its_last_counts_on_the_line() -> None:
+    """A camera stopped for a moment (or starved on a busy machine) misses a reading: its
+    frames stay as last seen, they do not fall to 0 (and "left" with them)."""
+    camera = BufferInfo(
+        "camera", "images", "frame", Retention(), 10, 0, 1, 2, 15.0, 57, 3, 0,
+        skipped={"late": 4},
+    )  # fmt: skip
+    mediator = BufferInfo(
+        "mediator", "images", "frame", Retention(), 10, 0, 1, 2, 5.0, 35, 0, 0
+    )  # fmt: skip
+    known = Status()
+    known.update(Status({"camera/images": camera, "mediator/images": mediator}))
+    known.update(Status({"mediator/images": replace(mediator, puts=36)}))  # camera late
+    counts = known.counts()
+    assert (counts["frames"], counts["late"], counts["accepted"]) == (57, 4, 36)
+    assert counts["rejected"] == 57 - 36
 
 
 def test_gain_is_relative_to_the_uncontrolled_detector() -> None:
