@@ -144,7 +144,7 @@ def run(args: argparse.Namespace) -> int:
         return 0
     _print_table(elements)
     if args.save is not None:
-        print(f"saved {len(elements)} elements to {args.save}")
+        print(f"saved {_elements(len(elements))} to {args.save}")
     return 0
 
 
@@ -196,7 +196,7 @@ def _print_table(elements: list[DataObject]) -> None:
             f"{format_ns(e.timestamp_ns):<28} {e.timestamp_ns:>20}  {kind:<10}"
             f" {format_bytes(len(e.payload)):>10}  {shown}"
         )
-    print(f"{len(elements)} elements")
+    print(_elements(len(elements)))
 
 
 def _save_all(directory: Path, elements: list[DataObject], force: bool) -> dict[int, list[str]]:
@@ -246,3 +246,7 @@ def _png(payload: bytes, layout: Any) -> bytes:
     if not ok:
         raise OutputError("cannot encode a frame as PNG: OpenCV refused the image")
     return bytes(encoded)
+
+
+def _elements(count: int) -> str:
+    return f"{count} element" if count == 1 else f"{count} elements"

@@ -42,6 +42,7 @@ def _framegate(*args: str) -> subprocess.CompletedProcess[str]:
     ("args", "expected"),
     [
         (("lss",), "(did you mean ls?)"),
+        (("sl",), "(did you mean ls?)"),  # two letters swapped
         (("query", "camera/images", "--lats", "3"), "unknown option '--lats' (did you mean --last?)"),  # noqa: E501
         (("query", "camera/images", "--from", "-5x"), "bad time '-5x' for --from"),
         (("run", "camera", "--source", "sim", "--rate", "nan"), "argument --rate: must be a number > 0, got 'nan'"),  # noqa: E501
