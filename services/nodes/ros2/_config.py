@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from middleware import (
+    FLOW_QUEUE_MAX,
     ConfigError,
     FramegateError,
     NetworkConfig,
@@ -235,8 +236,11 @@ class Ros2Config:
         self._check_consumer()
 
     def _check_consumer(self) -> None:
-        if self.consumer_queue < 1:
-            raise ConfigError(f"--consumer-queue must be >= 1, got {self.consumer_queue}")
+        if not 1 <= self.consumer_queue <= FLOW_QUEUE_MAX:
+            raise ConfigError(
+                f"--consumer-queue must be 1..{FLOW_QUEUE_MAX} (the largest flow-controlled "
+                f"queue a producer grants), got {self.consumer_queue}"
+            )
         if not self.consumer_timeout_ms > 0:
             raise ConfigError(f"--consumer-timeout-ms must be > 0, got {self.consumer_timeout_ms}")
         if self.consumer_done is None:

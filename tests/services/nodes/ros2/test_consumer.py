@@ -160,6 +160,10 @@ def test_the_loop_needs_one_image_out_mapping_or_its_name() -> None:
     assert config.consumer_mapping == two[1]
     with pytest.raises(ConfigError, match="--consumer-queue"):
         Ros2Config(image_out=one, consumer_done="/det", consumer_queue=0)
+    # Beyond what a producer grants one flow queue: said at start, naming the flag.
+    with pytest.raises(ConfigError, match=r"--consumer-queue must be 1\.\.32768 .* got 600000"):
+        Ros2Config(image_out=one, consumer_done="/det", consumer_queue=600_000)
+    assert Ros2Config(image_out=one, consumer_done="/det", consumer_queue=32768)
 
 
 @pytest.mark.parametrize(
