@@ -165,7 +165,9 @@ class ConsumerLoop:
     def _publish(self, note: Any) -> None:
         if note.missed:
             self._skips.count(
-                self.results, "missed-image", f"{note.missed} notification(s) of {note.buffer}"
+                self.results,
+                "missed-image",
+                f"{note.missed} notification(s) of {note.service}/{note.buffer}",
             )
             self._resolved_without_image(note.missed)
         try:
