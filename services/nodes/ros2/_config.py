@@ -145,6 +145,13 @@ class Ros2Config:
     stamp: str = setting(
         "start", "where in the exposure header.stamp lies", choices=STAMPS, group=_IN
     )
+    max_ahead_ms: float = setting(
+        1000.0,
+        "a stamp further ahead of this host's clock is a counted future-stamp (the buffers "
+        "refuse it too: one accepted far ahead would hold back every later message)",
+        parse=positive_float,
+        group=_IN,
+    )
     gyro_batch: int = setting(10, "IMU samples per put", parse=positive_int, group=_IN)
     gyro_wait_ms: float = setting(
         50.0,

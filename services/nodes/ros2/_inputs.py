@@ -242,6 +242,7 @@ class ImagesIn(_Input):
             "images",
             kind="frame",
             retention=Retention(max_count=config.retention_frames, max_bytes=512 * 2**20),
+            horizon_s=config.max_ahead_ms / 1e3,
         )
         super().__init__(producer, skips, config.image_in, config.in_depth, _IMAGE_QUEUE_BYTES)
         self._codec, self._config = codec, config
@@ -330,7 +331,10 @@ class ImuIn(_Input):
         cameras: CameraSource | None = None,
     ) -> None:
         producer = node.offer(
-            "rates", kind="gyro", retention=Retention(max_count=None, max_age_ns=30_000_000_000)
+            "rates",
+            kind="gyro",
+            retention=Retention(max_count=None, max_age_ns=30_000_000_000),
+            horizon_s=config.max_ahead_ms / 1e3,
         )
         # Room for seconds of samples: those that arrive while the worker waits are kept.
         super().__init__(

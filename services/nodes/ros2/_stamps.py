@@ -5,10 +5,12 @@ accepted* (stored, or refused by flow control, which only happens to an element 
 the producer found valid). So one message stamped an hour ahead (or ``sec = 2**31 - 1``)
 is a counted ``future-stamp`` and every later good message still passes; had it been
 remembered, every good one after it would be ``out-of-order`` until that hour had passed.
+The bound ahead is the bridge's ``--max-ahead-ms`` (1 s), which its buffers enforce too: a
+message accepted 9 s ahead would hold back every later one for 9 s, at the buffer as here.
 
 Reasons (counted skips): ``bad-stamp`` (zero, or fields out of range: see
-``_cdr.stamp_ns``), ``future-stamp`` (beyond the producer's horizon of the bridge's
-clock, the same bound the producer enforces), ``duplicate-stamp`` and ``out-of-order``
+``_cdr.stamp_ns``), ``future-stamp`` (beyond ``--max-ahead-ms`` of the bridge's clock,
+the same bound its producers enforce), ``duplicate-stamp`` and ``out-of-order``
 (not newer than the last accepted one).
 """
 
