@@ -67,9 +67,10 @@ def rewind_after(
 
     Only if all hold: both the old stream's clock (``before``) and the new one's
     (``after``) were sampled; they are different clocks (another process, or the same one
-    after a clock step); the old clock ran ahead of the new one by at least the step back
-    (within the samples' errors), so the removed elements were stamped by the wrong one;
+    after a clock step); the old clock ran ahead of the new one by at least the step back,
+    so the removed elements were stamped by the wrong one;
     the new clock is the nearer to ours; and the step back is within ``horizon_ns``.
+    "By at least the step back" is proven: the lead less both samples' errors covers it.
     Otherwise nothing is removed and the new stream's early frames are dropped as late.
     """
     span = newest_put_ns - first_ns + 1
@@ -79,8 +80,11 @@ def rewind_after(
         return RewindCheck(None, "clock-unknown")
     if before.identity == after.identity:
         return RewindCheck(None, "same-clock")
+    # The lead must be proven, not merely possible: a peer that answers slowly makes its
+    # sample's error as large as it likes (half the round trip), and "within the error" would
+    # then explain any small step back.
     lead = before.offset_ns - after.offset_ns
-    if lead + before.error_ns + after.error_ns < span:
+    if lead - before.error_ns - after.error_ns < span:
         return RewindCheck(None, "not-a-clock-step")
     if abs(after.offset_ns) >= abs(before.offset_ns):
         return RewindCheck(None, "new-clock-further-off")

@@ -12,13 +12,17 @@ HORIZON = 10 * S
 NEWEST = 1_000 * S
 
 
-def _clock(offset_ns: int, pid: int = 1, steps: int | None = 0) -> SourceClock:
-    return SourceClock("host", pid, steps, offset_ns, MS)
+def _clock(offset_ns: int, pid: int = 1, steps: int | None = 0, error_ns: int = MS) -> SourceClock:
+    return SourceClock("host", pid, steps, offset_ns, error_ns)
 
 
 def test_a_camera_whose_old_clock_ran_ahead_is_rewound_to_its_new_start() -> None:
     # A rogue (or a camera) 9 s ahead, then the real camera: 4 s back from the newest put.
     check = rewind_after(NEWEST, NEWEST - 4 * S, _clock(9 * S), _clock(0, pid=2), HORIZON)
+    assert check.after_ns == NEWEST - 4 * S - 1
+    # Slow answers on a loaded machine (250 ms round trips) do not hide a real step.
+    slow = _clock(0, pid=2, error_ns=125 * MS)
+    check = rewind_after(NEWEST, NEWEST - 4 * S, _clock(9 * S, error_ns=125 * MS), slow, HORIZON)
     assert check.after_ns == NEWEST - 4 * S - 1
 
 
@@ -28,6 +32,14 @@ def test_a_camera_whose_old_clock_ran_ahead_is_rewound_to_its_new_start() -> Non
         # A rogue's single stale put: another process, but its clock is right.
         (NEWEST - 3600 * S, _clock(0), _clock(0, pid=2), "not-a-clock-step"),
         (1, _clock(0), _clock(0, pid=2), "not-a-clock-step"),
+        # A rogue that answers its clock query slowly (0.9 s round trip: error 0.45 s) and
+        # puts one frame 0.3 s back: a step its clock's error could explain, not proves.
+        (
+            NEWEST - 300 * MS,
+            _clock(20 * MS),
+            _clock(0, pid=2, error_ns=450 * MS),
+            "not-a-clock-step",
+        ),
         # A camera restarted with its clock 5 s behind: the frames before were right.
         (NEWEST - 3 * S, _clock(0), _clock(-5 * S, pid=2), "new-clock-further-off"),
         # The same process and clock: its stamps never go back, one element proves nothing.
