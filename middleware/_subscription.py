@@ -405,12 +405,12 @@ class Subscription:
         service, buffer = self.service, self.buffer
         notes: list[Notification] = []
         append = notes.append
-        for _epoch, seq, (timestamp, metadata, pushed), missed in entries:
+        for epoch, seq, (timestamp, metadata, pushed), missed in entries:
             element = None
             if pushed is not None and metadata is not None:
                 payload = pushed if type(pushed) is bytes else pushed.to_bytes()
                 element = data_object(timestamp, payload, metadata)
-            append(notification(service, buffer, timestamp, seq, metadata, element, missed))
+            append(notification(service, buffer, timestamp, seq, metadata, element, missed, epoch))
         return notes
 
     def __iter__(self) -> Iterator[Notification]:

@@ -15,7 +15,7 @@ import logging
 import time
 from dataclasses import dataclass
 
-from middleware import FramegateError, Node, Producer, Rewind, ServiceInfo
+from middleware import FramegateError, Node, Notification, Producer, Rewind, ServiceInfo
 
 
 @dataclass(frozen=True, slots=True)
@@ -104,12 +104,16 @@ class RewindFollower:
     """For a stage whose output is keyed by its input's stamps (the detector): follow
     only the rewinds its input producer recorded.
 
-    Call ``follow(stamp)`` when an input element is stamped at or before the newest element
-    of ``output``: it reads the input's ``info`` once, and for each rewind recorded there
-    and not yet followed whose bound lies below ``stamp``, removes what ``output`` holds
-    after that bound (``cause``: ``rewound``). True when ``stamp`` may now be put; False
-    when no such rewind explains it, so the element is late and must be skipped (counted)
-    while ``output`` keeps everything.
+    Call ``seen(note)`` for every input notification, and ``follow(stamp)`` when an input
+    element is stamped at or before the newest element of ``output``: it reads the input's
+    ``info`` once, and for each rewind recorded there and not yet followed whose bound lies
+    below ``stamp``, removes what ``output`` holds after that bound (``cause``: ``rewound``).
+    True when ``stamp`` may now be put; False when no such rewind explains it, so the element
+    is late and must be skipped (counted) while ``output`` keeps everything.
+
+    A producer can only rewind what it delivered: when the input's producer changes (it
+    restarted, or another process took its name: a new producer epoch), what ``output``
+    holds by then came from the one before, and no rewind of the new one removes it.
     """
 
     def __init__(
@@ -126,10 +130,25 @@ class RewindFollower:
         self._log = log
         self._timeout_s = timeout_s
         self._followed: set[Rewind] = set()
+        self._producer: str | None = None  # the input's producer epoch, as last seen
+        # What ``output`` held when that producer's first notification came: older
+        # results are not its to rewind (None: everything in ``output`` came from it).
+        self._floor_ns: int | None = None
         self._warned = False
         self._asked: collections.deque[int] = collections.deque(maxlen=ASKS_PER_S)
 
+    def seen(self, note: Notification) -> None:
+        """An input notification came (before it is processed): note its producer."""
+        producer = note.producer_epoch
+        if producer != self._producer:
+            if self._producer is not None:
+                self._floor_ns = self._output.series.newest_ns
+            self._producer = producer
+
     def follow(self, stamp_ns: int) -> bool:
+        floor = self._floor_ns
+        if floor is not None and stamp_ns <= floor:
+            return False  # before this producer's time: none of its rewinds explains it
         now = time.monotonic_ns()
         if len(self._asked) == ASKS_PER_S and now - self._asked[0] < 1_000_000_000:
             return False  # a burst of stale elements (a peer's, perhaps): asked enough
@@ -160,6 +179,7 @@ class RewindFollower:
             if not rewind.after_ns < stamp_ns <= newest <= (rewind.last_ns or -1):
                 continue
             self._followed.add(rewind)
-            self._output.discard_after(rewind.after_ns, "rewound")
+            bound = rewind.after_ns if floor is None else max(rewind.after_ns, floor)
+            self._output.discard_after(bound, "rewound")
         newest = self._output.series.newest_ns
         return newest is None or stamp_ns > newest

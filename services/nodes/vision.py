@@ -298,6 +298,7 @@ class Runner:
             if self.stop.is_set():
                 return
             taken_ns = now_ns()  # the frames' clock: what the runner did when, beside them
+            self.rewinds.seen(note)
             if note.missed:  # an observer's full queue (keep-last), or a lapse: never seen
                 self.output.count_skip("not-observed", note.missed)
             if not self._in_order(note.timestamp_ns):

@@ -81,3 +81,82 @@ def test_a_burst_of_stale_elements_asks_the_input_a_bounded_number_of_times() ->
     # A peer's thousand stale elements: each is skipped (nothing removed), few asks made.
     assert not any(follower.follow(500) for _ in range(1000))
     assert len(asks) == ASKS_PER_S
+
+
+class _Output:
+    """A stage's output as the follower sees it: stamps, newest, discard_after."""
+
+    def __init__(self, stamps: list[int]) -> None:
+        self.stamps = stamps
+        self.removed: list[int] = []
+
+    @property
+    def series(self) -> object:
+        from types import SimpleNamespace
+
+        return SimpleNamespace(newest_ns=max(self.stamps, default=None))
+
+    def discard_after(self, after_ns: int, reason: str) -> int:
+        gone = [s for s in self.stamps if s > after_ns]
+        self.stamps = [s for s in self.stamps if s <= after_ns]
+        self.removed += gone
+        return len(gone)
+
+
+def _follower(output: _Output, rewinds: list[object]) -> object:
+    import logging
+    from types import SimpleNamespace
+    from typing import Any, cast
+
+    from services.lib.rewind import RewindFollower
+
+    def buffer_info(target: str, timeout_s: float, unambiguous: bool) -> Any:
+        return SimpleNamespace(rewinds=tuple(rewinds))
+
+    node = SimpleNamespace(buffer_info=buffer_info)
+    return RewindFollower(
+        cast(Any, node), "mediator/images", cast(Any, output), logging.getLogger("test")
+    )
+
+
+def _note(stamp: int, epoch: str) -> object:
+    from middleware import Notification
+
+    return Notification("mediator", "images", stamp, 1, epoch=epoch)
+
+
+def test_a_producer_that_took_the_name_cannot_rewind_what_it_never_delivered() -> None:
+    """A rogue offers mediator/images while the mediator is down, puts one frame after the
+    detector's newest result, removes it with a genuine rewind reaching 95 s back, and sends
+    a stale frame: only the result of the rogue's own frame may go."""
+    from middleware import Rewind
+
+    output = _Output(list(range(10, 101, 10)))  # results of the real mediator's frames
+    rewind = Rewind(after_ns=5, count=1, first_ns=110, last_ns=110, cause="rewound")
+    follower = _follower(output, [rewind])
+    for stamp in range(10, 101, 10):
+        follower.seen(_note(stamp, "real.1"))  # type: ignore[attr-defined]
+    follower.seen(_note(110, "rogue.1"))  # type: ignore[attr-defined]
+    output.stamps.append(110)  # its result
+    # A stale frame from before the rogue's time: nothing of the rogue's explains it.
+    assert not follower.follow(50)  # type: ignore[attr-defined]
+    assert output.removed == []
+    # One within its time: the rewind removes its own frame's result, nothing older.
+    assert follower.follow(105)  # type: ignore[attr-defined]
+    assert output.removed == [110]
+    assert output.stamps == list(range(10, 101, 10))
+
+
+def test_the_same_producer_rewinds_what_it_delivered() -> None:
+    """A mediator that rewound after a camera's clock stepped back (it kept running): its
+    rewind removes every result after its bound, as before."""
+    from middleware import Rewind
+
+    output = _Output(list(range(10, 101, 10)))
+    rewind = Rewind(after_ns=55, count=5, first_ns=60, last_ns=100, cause="rewound")
+    follower = _follower(output, [rewind])
+    for stamp in range(10, 101, 10):
+        follower.seen(_note(stamp, "real.1"))  # type: ignore[attr-defined]
+    follower.seen(_note(57, "real.2"))  # a new registration of the same producer
+    assert follower.follow(57)  # type: ignore[attr-defined]
+    assert output.removed == [60, 70, 80, 90, 100]
