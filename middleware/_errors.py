@@ -14,6 +14,7 @@ tool defines its own errors next to its code, always below ``FramegateError``::
     ├── RegistrationRefused        a producer refused a subscription (a limit it names)
     ├── DuplicateTimestampError    a put's timestamp is not newer than the newest element
     ├── PayloadTooLargeError       a payload exceeds the buffer's configured limit
+    ├── ClosedError                a put on a closed buffer: the process is stopping
     ├── TransportError             Zenoh failed underneath us (every zenoh.ZError maps here)
     ├── CoverageError              (services.lib.quality) gyro samples do not cover an exposure
     ├── CalibrationError           (services.lib.quality) data cannot determine b0 or an offset

@@ -19,8 +19,10 @@ has taken, cumulative), and, for flow control, the headers of the un-acked notif
 Messages in, and what they do in every state:
 
 ``token_put(key)``
-    unknown key: register it (new epoch, sent = acked = 0), unless the table holds
-    ``MAX_REGISTRATIONS`` already (then counted in ``refused_registrations`` and ignored).
+    unknown key: register it (new epoch, sent = acked = 0), unless the table holds its
+    ``max_registrations`` already (``MAX_REGISTRATIONS`` by default; the producer's protocol
+    passes its two pools of slots together) (then counted in ``refused_registrations`` and
+    ignored).
     Known key (a repeat, e.g. history and live both delivering it): nothing.
 ``token_delete(key)``
     known key: remove the registration (its credits with it) and hand it back so that the
@@ -50,13 +52,13 @@ Messages in, and what they do in every state:
     flow registrations with outstanding notifications and no progress for
     ``RETRANSMIT_NS`` get them again (``Send(..., again=True)``), oldest first, one element
     per notification (a resend never batches).
-``send_failed(key, epoch, seq)``
+``send_failed(key, epoch)``
     the notification stays outstanding (its credit is not lost) and is due at the next tick.
 
 Properties (checked by tests/middleware/test_protocol_model.py after every step):
 - ``0 <= acked <= sent`` and, for flow control, ``sent - acked <= queue_size`` (elements,
   however they were batched);
-- the table holds at most ``MAX_REGISTRATIONS`` registrations and each at most
+- the table holds at most ``max_registrations`` registrations and each at most
   ``queue_size`` outstanding headers, whatever peers send;
 - only the subscriber that owns an epoch (or a peer allowed to ack for it, see the README's
   trust profiles) can move its ``acked``.
@@ -71,7 +73,7 @@ from typing import Generic, NamedTuple, TypeVar
 from ._records import SubscriptionInfo, SubscriptionMode
 from ._wire import descriptor_of
 
-# Registrations one producer keeps; tokens beyond it are ignored (and counted).
+# Registrations one ledger keeps by default; tokens beyond it are ignored (and counted).
 MAX_REGISTRATIONS = 1024
 # Outstanding flow-control notifications are sent again after this long without progress.
 RETRANSMIT_NS = 500_000_000

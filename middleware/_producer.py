@@ -389,7 +389,7 @@ class Producer:
                     event.key.sub_id,
                     exc,
                 )
-                if event.epoch is not None:
+                if event.epoch is not None:  # a notification (a control is not resent)
                     with self._lock:
                         self._protocol.send_failed(event.key, event.epoch)
 

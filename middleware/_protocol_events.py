@@ -11,17 +11,18 @@ from ._ledger_producer import RegistrationKey
 
 class Publish(NamedTuple):
     """Send ``payload`` with ``attachment`` to ``key``'s subscriber on ``keyexpr``; ``block``:
-    flow-controlled (Zenoh's BLOCK congestion control), else DROP. The first ``Publish`` of
-    a key declares its publisher. (A named tuple: as immutable as a frozen dataclass, and
-    built in a third of the time, once per put.)"""
+    flow-controlled (Zenoh's BLOCK congestion control), else DROP. The first notification
+    to a key declares its publisher (a control message is sent without one). (A named
+    tuple: as immutable as a frozen dataclass, and built in a third of the time, once per
+    put.)"""
 
     key: RegistrationKey
     keyexpr: str
     payload: bytes
     attachment: bytes
     block: bool
-    # (epoch, seq) of the notification, None for control messages: a send that fails is
-    # reported back with it (``send_failed``).
+    # The registration epoch of a notification, None for a control message: a notification
+    # whose send fails is reported back with it (``send_failed``).
     epoch: str | None = None
 
     @property
@@ -43,7 +44,8 @@ Event = Publish | Retire
 
 @dataclass(frozen=True, slots=True)
 class Refusal:
-    """Why ``count`` elements cannot be stored now: ``registration`` has no room for them.
+    """Why ``count`` elements cannot be stored now: the registration ``sub_id`` of producer
+    ``name`` has ``queued`` of its ``queue_size`` places taken, too few for them.
     ``wait``: the caller may wait for credit (it has time left and the batch can fit)."""
 
     name: str

@@ -373,6 +373,7 @@ class Subscription:
             self._feed(BUDGET)
             entries = protocol.take_many(max_count)
             acks = protocol.acks(time.monotonic_ns(), idle=idle and not entries)
+            fetching = protocol.fetching
             if entries and self._wake.threads and len(protocol):
                 self._cond.notify_all()  # more queued: another caller may take them
         self._send_acks(acks)
@@ -385,7 +386,7 @@ class Subscription:
         # its longest sleep). Meanwhile the producer sees at most ``N // 2 - 1`` taken
         # elements as queued, as between two acks of a busy subscriber.
         notes = self._notifications(entries)
-        if self._protocol.fetching:
+        if fetching:
             self._fetch_ahead(notes)
         return notes
 
@@ -431,11 +432,11 @@ class Subscription:
             return notification.element
         with self._lock:
             pending = self._inflight.pop(notification.timestamp_ns, None)
-        if pending is not None:
-            self.fetched_ahead += 1
+            if pending is not None:
+                self.fetched_ahead += 1
+            elif self._prefetch is not None:
+                self._protocol.fetching = True  # from now on, fetch ahead
         if pending is None or self._prefetch is None:
-            if self._prefetch is not None:
-                self._protocol.fetching = True
             return self._fetch(self.name, notification.timestamp_ns, timeout_s)
         return self._prefetch[1](self.name, notification.timestamp_ns, pending)
 

@@ -48,9 +48,16 @@ def _wall_ns(monotonic_ns: int | None) -> int | None:
 class Output:
     """mediator/images and mediator/decisions, and the frames whose bytes are kept."""
 
-    def __init__(self, node: Node, *, policy: str, b0_px: float, log: logging.Logger) -> None:
+    def __init__(
+        self, node: Node, *, policy: str, b0_px: float, horizon_s: float, log: logging.Logger
+    ) -> None:
+        # Frames are taken up to ``horizon_s`` ahead (the mediator's own bound): the buffer
+        # must take what the mediator takes.
         self.images: Producer = node.offer(
-            "images", kind="frame", retention=Retention(max_count=64, max_bytes=256 * 2**20)
+            "images",
+            kind="frame",
+            retention=Retention(max_count=64, max_bytes=256 * 2**20),
+            horizon_s=horizon_s,
         )
         self.decisions: Producer = node.offer(
             "decisions", kind="decision", retention=Retention(max_count=100_000)

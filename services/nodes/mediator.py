@@ -127,7 +127,13 @@ class Mediator:
     def __init__(self, node: Node, config: MediatorConfig, log_name: str = "mediator") -> None:
         self.config = config
         self.log = setup_logging(log_name)
-        self.out = Output(node, policy=config.policy, b0_px=config.b0_px, log=self.log)
+        self.out = Output(
+            node,
+            policy=config.policy,
+            b0_px=config.b0_px,
+            horizon_s=config.horizon_s,
+            log=self.log,
+        )
         self.images = self.out.images
         self.decisions = self.out.decisions
         # Every frame is taken and assessed, so frames come pushed with their notification.
