@@ -245,6 +245,9 @@ def decode_service_info(raw: bytes, start_ns: int, end_ns: int, *, service: str)
         clock_lead_ns=lead,
         threads=_names(body.get("threads")),
         listen=_names(body.get("listen")) or (),
+        dropped_queries=(
+            _field(body, "dropped_queries", int, what) if "dropped_queries" in body else 0
+        ),
     )
 
 

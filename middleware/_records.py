@@ -225,6 +225,9 @@ class ServiceInfo:
     # What the service's process listens on, from its operating system (``tcp/HOST:PORT``);
     # empty from old peers.
     listen: tuple[str, ...] = ()
+    # Queries the service ended unanswered because more were waiting than its inbox holds
+    # (a flood: ``QueryInbox``); 0 from old peers.
+    dropped_queries: int = 0
 
 
 # -- hot-path builders --------------------------------------------------------------------

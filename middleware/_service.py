@@ -336,6 +336,7 @@ class ServiceEndpoint:
             "buffers": [buffer_info_json(p.info()) for p in self.producers()],
             "listen": listening_endpoints(),  # so `framegate ls` shows a wide listener
             "threads": sorted(t.name for t in threading.enumerate()),  # see docs/threads.md
+            "dropped_queries": self._queries.dropped,
         }
         query.reply(self._keys.info(self.service), json.dumps(body).encode("utf-8"))
 

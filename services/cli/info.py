@@ -66,6 +66,7 @@ def service_json(info: ServiceInfo) -> dict[str, Any]:
         "clock_lead_ns": info.clock_lead_ns,
         "listen": list(info.listen),
         "threads": list(info.threads) if info.threads is not None else None,
+        "dropped_queries": info.dropped_queries,
     }
 
 
