@@ -175,7 +175,6 @@ class Executor:
         self._wake_at_ns = 0
         self._thread: threading.Thread | None = None
         self.error: BaseException | None = None  # the first handler failure, for ``spin``
-        self.error_event = threading.Event()
 
     # -- any thread ----------------------------------------------------------------------------
     def signal(self, source: Source) -> None:
@@ -338,7 +337,6 @@ class Executor:
         log.error("%s: %s failed: %s", self.name, what, exc, exc_info=exc)
         if self.error is None:
             self.error = exc
-            self.error_event.set()
 
     def close(self) -> None:
         with self._cond:

@@ -103,7 +103,7 @@ class SubscriberProtocol:
         self.garbage = 0
         # The producer's answer to our token: its registration's epoch, or why it refused
         # and which session said so (judged once the producer's sessions are known).
-        self.registered: str | None = None
+        self.registered_epoch: str | None = None
         self._refusal: tuple[str, str | None] | None = None
         self._unjudged = False
         # Which session greeted us: a refusal from another one contests the greeting.
@@ -226,18 +226,18 @@ class SubscriberProtocol:
         if control.descriptor != self.descriptor:
             return  # meant for another registration of this key: not ours to judge
         if control.kind == "hello":
-            if self.registered is not None and self.registered != control.text:
+            if self.registered_epoch is not None and self.registered_epoch != control.text:
                 self.registrations += 1  # a producer restart, or our token had lapsed
-            elif self.registered is None:
+            elif self.registered_epoch is None:
                 self.registrations = 1
-            self.registered = control.text
+            self.registered_epoch = control.text
             self.ledger.pin(control.text)
             self._greeted_by = sender
             if control.base is not None:
                 self._greeted(control.text, control.base)
             self._refusal = None
             self._retry_at_ns = None
-        elif self.registered is None or sender != self._greeted_by:
+        elif self.registered_epoch is None or sender != self._greeted_by:
             # Unanswered yet, or a refusal from another session than the greeting's: one of
             # the two is forged, and the producer's sessions decide which (``judge``).
             self._refusal = (control.text, sender)
@@ -261,10 +261,10 @@ class SubscriberProtocol:
             # Not from the producer's session (a forgery), or more than one session answers
             # as the service (any peer can answer as any service): not trusted.
             self._refusal = None
-        elif self.registered is not None:
+        elif self.registered_epoch is not None:
             # The producer refused us after another session greeted us in its name: that
             # greeting was forged, and the refusal stands (logged, retried).
-            self.registered = None
+            self.registered_epoch = None
             self._greeted_by = None
         if self._retry_at_ns is None:
             self._retry_at_ns = now_ns + RETRY_NS
@@ -297,7 +297,7 @@ class SubscriberProtocol:
     def retry_due(self, now_ns: int) -> bool:
         """True when a refused subscription should declare its token again: the refusal is
         forgotten, the producer's next answer decides."""
-        if self._retry_at_ns is None or now_ns < self._retry_at_ns or self.registered:
+        if self._retry_at_ns is None or now_ns < self._retry_at_ns or self.registered_epoch:
             return False
         self._retry_at_ns = now_ns + RETRY_NS
         self._refusal = None
@@ -319,7 +319,7 @@ class SubscriberProtocol:
         if self._unjudged:
             return 0  # a refusal to judge: at once
         due = self.ledger.flush_at_ns()
-        retry = self._retry_at_ns if self.registered is None else None
+        retry = self._retry_at_ns if self.registered_epoch is None else None
         if retry is not None and (due is None or retry < due):
             return retry
         return due

@@ -35,6 +35,7 @@ from typing import Any, cast
 import msgpack
 import zenoh
 
+from ._buffer import TimeSeries
 from ._clock import CLOCK, now_ns
 from ._config import listening_endpoints
 from ._decode import decode_instance
@@ -75,7 +76,7 @@ def answer_end(attachment: bytes | None) -> int | None:
     return None
 
 
-def answer(series_for: Producer, parameters: dict[str, str]) -> list[DataObject]:
+def answer(series: TimeSeries, parameters: dict[str, str]) -> list[DataObject]:
     """The elements a data query asks for. QueryError names what is malformed."""
     unknown = set(parameters) - _PARAMS
     if unknown:
@@ -83,7 +84,6 @@ def answer(series_for: Producer, parameters: dict[str, str]) -> list[DataObject]
             f"unknown query parameter(s) {', '.join(sorted(unknown))}; "
             "use _time=[a..b], last=N, at=<ns> (nearest) or ts=<ns> (exact)"
         )
-    series = series_for.series
     if "at" in parameters or "ts" in parameters:
         if len(parameters) != 1:
             raise QueryError("at= and ts= stand alone; do not combine them with other parameters")
@@ -317,7 +317,7 @@ class ServiceEndpoint:
         parameters = dict(cast(Any, query.parameters))
         for producer in matches:
             reply_key = self._keys.data(self.service, producer.buffer)
-            elements = answer(producer, parameters)
+            elements = answer(producer.series, parameters)
             for element in elements:
                 query.reply(
                     reply_key, element.payload, attachment=encode_element_attachment(element)

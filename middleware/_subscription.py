@@ -198,7 +198,7 @@ class Subscription:
                 return False
             self._feed(budget)
             handler = self._handler
-            answered = self._protocol.registered is not None
+            answered = self._protocol.registered_epoch is not None
             self._wake.executor_owned = handler is not None or not answered
             if self._protocol.next_deadline_ns() == 0:
                 self._executor.poke(0)  # a refusal to judge
@@ -268,11 +268,11 @@ class Subscription:
 
         def answered() -> bool:
             self._feed(BUDGET)
-            if self._protocol.refusal is not None and self._protocol.registered is None:
+            if self._protocol.refusal is not None and self._protocol.registered_epoch is None:
                 raise RegistrationRefused(
                     f"{self.name} refused this subscription: {printable(self._protocol.refusal)}"
                 )
-            return self._protocol.registered is not None
+            return self._protocol.registered_epoch is not None
 
         try:
             with self._cond:
@@ -302,7 +302,7 @@ class Subscription:
             due = self._protocol.next_deadline_ns()
             ready = idle or (due is not None and due <= now_ns)
             acks = self._protocol.acks(now_ns, idle=idle) if ready else []
-            refused = self._protocol.registered is None
+            refused = self._protocol.registered_epoch is None
         self._send_acks(acks)
         if refused:
             self._refused(now_ns)

@@ -55,14 +55,14 @@ def test_a_refusal_from_another_session_than_the_greeting_is_judged(
     sub = SubscriberProtocol(SubscriptionMode.FLOW, 4, -1)
     hello = encode_control("hello", sub.descriptor, "forged.1", base=0)
     sub.receive(hello, b"", sender=greeter)
-    assert sub.registered == "forged.1"
+    assert sub.registered_epoch == "forged.1"
     refusal = encode_control("refused", sub.descriptor, "observe share used up")
     sub.receive(refusal, b"", sender=refuser)
     assert sub.next_deadline_ns() == 0, "to be judged at once"
     assert sub.judge(0) is True
     sub.trust_producer(frozenset(answering), 0)
     assert (sub.refusal == "observe share used up") is refused
-    assert (sub.registered is None) is refused
+    assert (sub.registered_epoch is None) is refused
     if refused:
         assert sub.refusal_news() == "observe share used up"
         assert sub.retry_due(10**10), "a refused subscription declares its token again"
