@@ -15,10 +15,8 @@ import numpy.typing as npt
 
 from middleware import SchemaError, field_text, make_metadata, validate_metadata
 from services.lib.camera_model import CameraModel
+from services.lib.frame_layout import FRAME_CHANNELS, FrameLayout, LayoutError
 from services.lib.quality import Exposure, GyroSamples
-
-# Bytes per pixel of the raw encodings frame.xsd allows.
-FRAME_CHANNELS = {"mono8": 1, "bgr8": 3, "rgb8": 3}
 
 
 class FrameError(SchemaError):
@@ -105,8 +103,10 @@ MAX_EXPOSURE_NS = 10_000_000_000
 def check_frame(meta: FrameMeta, payload_bytes: int) -> None:
     """The one check of a frame's size, exposure and encoding against its payload:
     FrameError for a frame no consumer could use, whatever its XSD allowed."""
-    if meta.width_px <= 0 or meta.height_px <= 0:
-        raise FrameError("bad-size", f"size {meta.width_px}x{meta.height_px}")
+    try:
+        layout = FrameLayout.checked(meta.encoding, meta.width_px, meta.height_px)
+    except LayoutError as exc:
+        raise FrameError(exc.reason, str(exc)) from None
     duration_ns = meta.exposure.duration_ns
     if not 0 < duration_ns <= MAX_EXPOSURE_NS:
         raise FrameError("bad-exposure", f"exposure of {duration_ns} ns")
@@ -119,16 +119,10 @@ def check_frame(meta: FrameMeta, payload_bytes: int) -> None:
             "bad-exposure",
             f"exposure starts {apart_ns / 1e9:.3g} s from the frame's stamp",
         )
-    channels = FRAME_CHANNELS.get(meta.encoding)
-    if channels is None:
-        raise FrameError("bad-encoding", f"encoding {meta.encoding!r}")
-    expected = meta.width_px * meta.height_px * channels
-    if payload_bytes != expected:
-        raise FrameError(
-            "bad-payload-size",
-            f"frame {meta.frame_id}: payload is {payload_bytes} bytes, metadata says "
-            f"{meta.width_px}x{meta.height_px} {meta.encoding} = {expected}",
-        )
+    try:
+        layout.check_payload(payload_bytes, f"frame {meta.frame_id}")
+    except LayoutError as exc:
+        raise FrameError(exc.reason, str(exc)) from None
 
 
 def decode_image(payload: bytes, meta: FrameMeta) -> npt.NDArray[np.uint8]:

@@ -47,15 +47,14 @@ from middleware import (
     NetworkConfig,
     Node,
     SubscriptionMode,
-    field_text,
-    parse_untrusted,
     validate_metadata,
 )
+from services.lib.frame_layout import read_frame_layout
 from services.lib.messages import DecisionRecord
 from services.nodes._runtime import setup_logging
 
 from ._camera_info import CAMERA_INFO, TF_MESSAGE, TF_STATIC, CameraSource
-from ._cdr import CHANNELS, DETECTIONS, IMAGE, IMU, STRING, Codec
+from ._cdr import DETECTIONS, IMAGE, IMU, STRING, Codec
 from ._config import DEFAULT_FRAME_ID, Mapping, Ros2Config
 from ._inputs import (
     ImagesIn,
@@ -150,21 +149,9 @@ class Encoders:
 
     def image(self, element: Any) -> bytes:
         # Only size and encoding are needed, and the producer validated the metadata against
-        # its schema when it was put: a hardened parse and three fields (about a tenth of a
-        # full read), then the same consistency checks as the mediator's.
-        root = parse_untrusted(element.metadata)
-        if root.get("kind") != "frame":
-            raise ValueError(f"metadata of kind {root.get('kind')!r}, expected frame")
-        width = int(field_text(root, "width_px") or 0)
-        height = int(field_text(root, "height_px") or 0)
-        encoding = str(field_text(root, "encoding"))
-        if encoding not in CHANNELS:
-            raise ValueError(f"encoding {encoding!r}")
-        expected = width * height * CHANNELS[encoding]
-        if width <= 0 or height <= 0 or len(element.payload) != expected:
-            raise ValueError(
-                f"payload of {len(element.payload)} bytes for {width}x{height} {encoding}"
-            )
+        # its schema when it was put: the layout's three fields, checked against the payload.
+        layout = read_frame_layout(element.metadata, len(element.payload))
+        width, height, encoding = layout.width_px, layout.height_px, layout.encoding
         # The frame's one copy: after the CDR head, into the message that goes to Zenoh.
         return self._codec.encode_image(
             self._config.stamp_ns(element.timestamp_ns),

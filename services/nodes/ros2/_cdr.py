@@ -21,7 +21,7 @@ import numpy.typing as npt
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from middleware import ConfigError
-from services.lib.messages import FRAME_CHANNELS
+from services.lib.frame_layout import FRAME_CHANNELS
 
 IMAGE = "sensor_msgs/msg/Image"
 IMU = "sensor_msgs/msg/Imu"

@@ -8,6 +8,8 @@ and plots (verdict and detection annotations, verdict and gyro-rate plots), whic
 writes and ``view`` streams live under the same topics.
 """
 
+from services.lib.frame_layout import FrameLayout, frame_layout, metadata_kind
+
 from ._derived import (
     DerivedMessage,
     DerivedTopic,
@@ -36,7 +38,6 @@ from ._format import (
     encode_element,
     image_topic,
 )
-from ._frames import FrameLayout, frame_layout, metadata_kind
 from ._info import BufferRecord, ChannelInfo, RecordingInfo, recording_info
 from ._reader import Bag, RecordedBuffer, open_bag
 from ._recorder import STOP_SLACK_S, TAIL_FLOOR_S, Progress, Recorder, WriteQueue, at_start

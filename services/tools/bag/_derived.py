@@ -53,8 +53,9 @@ if TYPE_CHECKING:
 
     from services.lib.messages import DecisionRecord
 
+from services.lib.frame_layout import FrameLayout, frame_layout
+
 from ._format import BagError, image_topic
-from ._frames import FrameLayout, frame_layout
 
 PROTOBUF = "protobuf"
 JSON = "json"

@@ -30,8 +30,7 @@ from typing import Any
 import msgpack
 
 from middleware import DataObject, FramegateError, Retention
-
-from ._frames import FrameLayout
+from services.lib.frame_layout import FrameLayout
 
 FORMAT_VERSION = "1"
 PROFILE = ""  # no MCAP profile fits (ros1/ros2 do not); the empty profile is the spec's default

@@ -15,6 +15,7 @@ from mcap.writer import CompressionType, Writer
 
 from middleware import ConfigError, DataObject, Retention
 from services.lib.files import create_file
+from services.lib.frame_layout import frame_layout
 
 from ._derived import DerivedMessage, Deriver
 from ._format import (
@@ -36,7 +37,6 @@ from ._format import (
     encode_raw_image,
     image_topic,
 )
-from ._frames import frame_layout
 
 COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": None}
 # Where mcap's Writer keeps the compression of the chunks it closes (see ``catch_up``).

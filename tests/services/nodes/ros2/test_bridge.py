@@ -17,6 +17,7 @@ import pytest
 import zenoh
 
 from middleware import DataObject, NetworkConfig, Node, Producer
+from services.lib.frame_layout import LayoutError
 from services.nodes.ros2 import _link as link_module
 from services.nodes.ros2._bridge import ImagesIn, ImuIn, _Skips
 from services.nodes.ros2._cdr import IMAGE, IMU, Codec
@@ -287,14 +288,14 @@ def test_out_images_keep_pixels_and_refuse_inconsistent_elements(codec: Codec) -
     assert message.data.tobytes() == pixels
     assert (message.header.stamp.sec, message.header.stamp.nanosec) == divmod(now, 10**9)
     for bad, match in (
-        (DataObject(now, pixels[:-1], good.metadata), "payload of"),
+        (DataObject(now, pixels[:-1], good.metadata), "payload is 31 bytes"),
         (
             DataObject(now, pixels, frame_metadata_of(1, Exposure(now, 5), "yuv422", W, H, None)),
             "encoding",
         ),
         (DataObject(now, b"", make_metadata("generic", now, {})), "kind"),
     ):
-        with pytest.raises(ValueError, match=match):
+        with pytest.raises(LayoutError, match=match):
             encoders.image(bad)
 
 

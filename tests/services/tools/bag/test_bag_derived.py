@@ -11,6 +11,7 @@ from foxglove.messages import PointsAnnotationType
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 
 from middleware import DataObject
+from services.lib.frame_layout import FrameLayout
 from services.lib.messages import DecisionRecord, detections_metadata, frame_metadata, gyro_metadata
 from services.lib.quality import Exposure, GyroSamples
 from services.tools.bag import (
@@ -21,7 +22,6 @@ from services.tools.bag import (
     verdict_annotations,
 )
 from services.tools.bag._derived import jpeg_image
-from services.tools.bag._frames import FrameLayout
 
 T = 1_700_000_000_123_456_789
 
