@@ -22,6 +22,8 @@ from middleware import (
     Node,
     NotFoundError,
     ServiceInfo,
+    Subscription,
+    SubscriptionMode,
     endpoint_parts,
     split_target,
 )
@@ -147,6 +149,14 @@ def resolve(node: Node, target: str, timeout_s: float) -> tuple[ServiceInfo, Buf
     raise NotFoundError(
         f"service {service!r} has no buffer {buffer!r}{did_you_mean(buffer, offered, quote=True)}; "
         f"it offers: {', '.join(offered) or 'none'}"
+    )
+
+
+def observer(node: Node, target: str, queue: int, timeout_s: float) -> Subscription:
+    """An observer of ``target`` with a queue of ``queue``: how ``echo``, ``hz`` and
+    ``record`` watch a buffer (``resolve`` it first: a misspelt name is then one line)."""
+    return node.subscribe(
+        target, queue_size=queue, mode=SubscriptionMode.OBSERVE, wait_s=max(2.0, timeout_s)
     )
 
 

@@ -12,12 +12,12 @@ import json
 import sys
 from typing import Any
 
-from middleware import FramegateError, Node, Notification, SubscriptionMode
+from middleware import FramegateError, Node, Notification
 from services.lib.argtypes import did_you_mean, positive_float, positive_int
 
 from ._common import command_parser, exit_on_sigterm, format_ns, network, notifications
 from ._fields import decode_metadata, field_value, flat_names, payload_summary
-from ._target import add_timeout_argument, print_json_line, resolve
+from ._target import add_timeout_argument, observer, print_json_line, resolve
 
 DEFAULT_QUEUE = 10
 
@@ -87,12 +87,7 @@ def run(args: argparse.Namespace) -> int:
     shown = 0
     with Node(network=network(args)) as node:
         resolve(node, args.target, args.timeout)
-        sub = node.subscribe(
-            args.target,
-            queue_size=args.queue,
-            mode=SubscriptionMode.OBSERVE,
-            wait_s=max(2.0, args.timeout),
-        )
+        sub = observer(node, args.target, args.queue, args.timeout)
         if not args.json and args.field is None:
             print(f"echoing {sub.name}; Ctrl-C to stop", file=sys.stderr, flush=True)
         try:

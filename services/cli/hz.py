@@ -35,12 +35,11 @@ from middleware import (
     Node,
     Notification,
     Subscription,
-    SubscriptionMode,
 )
 from services.lib.argtypes import positive_float, positive_int
 
 from ._common import command_parser, exit_on_sigterm, format_bytes, network
-from ._target import add_timeout_argument, print_json_line, resolve
+from ._target import add_timeout_argument, observer, print_json_line, resolve
 
 DEFAULT_WINDOW = 100
 # Notifications taken at once: one arrival. Bounded so that fetching the sizes of one take
@@ -206,12 +205,7 @@ def run(args: argparse.Namespace) -> int:
     arrivals: deque[tuple[int, int]] = deque(maxlen=args.window)
     with Node(network=network(args)) as node:
         resolve(node, args.target, args.timeout)
-        sub = node.subscribe(
-            args.target,
-            queue_size=args.queue,
-            mode=SubscriptionMode.OBSERVE,
-            wait_s=max(2.0, args.timeout),
-        )
+        sub = observer(node, args.target, args.queue, args.timeout)
         deadline = None if args.duration is None else time.monotonic() + args.duration
         next_report = time.monotonic() + args.interval
         try:

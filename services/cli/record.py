@@ -34,13 +34,12 @@ from middleware import (
     ConfigError,
     FramegateError,
     Node,
-    SubscriptionMode,
 )
 from services.lib.argtypes import positive_float, positive_int
 from services.tools.bag import STOP_SLACK_S, TAIL_FLOOR_S
 
 from ._common import command_parser, exit_on_sigterm, format_bytes, network, print_json
-from ._target import add_timeout_argument, nothing_answered, resolve, where
+from ._target import add_timeout_argument, nothing_answered, observer, resolve, where
 
 if TYPE_CHECKING:
     from services.tools.bag import BagWriter, Recorder, WriteQueue
@@ -214,12 +213,7 @@ def _start(
     recorders = []
     for b in buffers:
         initial = at_start(node, b.name, args.started_ns, args.stop_ns)
-        sub = node.subscribe(
-            b.name,
-            queue_size=args.queue,
-            mode=SubscriptionMode.OBSERVE,
-            wait_s=max(2.0, args.timeout),
-        )
+        sub = observer(node, b.name, args.queue, args.timeout)
         progress = Progress(b.name, b.kind)
         recorder = Recorder(node, sub, queue, progress, stop, args.count, initial)
         recorder.stop_ns, recorder.deadline = args.stop_ns, args.fetch_deadline

@@ -14,7 +14,8 @@ from collections.abc import Callable
 
 import numpy as np
 
-from middleware import FramegateError, Node, Notification, ServiceInfo, Subscription
+from middleware import ClockSample, FramegateError, Node, Notification, ServiceInfo, Subscription
+from services.lib.clock import best_sample
 from services.lib.quality import GyroSamples
 from services.lib.rewind import SourceClock
 
@@ -192,9 +193,8 @@ class ClockOffsets:
         self._node = node
         self._camera = camera
         self._gyro = gyro
-        self._samples: collections.deque[tuple[int, int]] = collections.deque(
-            maxlen=_OFFSET_SAMPLES
-        )
+        # (camera - gyro offset, twice its uncertainty as the round trip that bounds it)
+        self._samples: collections.deque[ClockSample] = collections.deque(maxlen=_OFFSET_SAMPLES)
         # (host, pid, clock steps) of camera and gyro when the samples were taken.
         self._clocks: tuple[tuple[str, int, int | None], ...] | None = None
         self._sources: dict[str, SourceClock] = {}
@@ -301,7 +301,7 @@ class ClockOffsets:
             if clocks != self._clocks:
                 self._samples.clear()
                 self._clocks = clocks
-            self._samples.append((offset, error))
+            self._samples.append(ClockSample(offset, 2 * error))
 
     def clock(self, service: str) -> SourceClock | None:
         """The latest clock sample of ``service`` (the camera's or the gyro's), if any."""
@@ -321,4 +321,5 @@ class ClockOffsets:
         with self._lock:
             if not self._samples:
                 return None
-            return min(self._samples, key=lambda sample: sample[1])
+            best = best_sample(self._samples)
+        return best.offset_ns, best.round_trip_ns // 2
