@@ -50,7 +50,7 @@ from typing import Any, Generic, TypeVar
 import zenoh
 
 from ._ledger_producer import REPEAT_RESEND_NS
-from ._wire import encode_ack
+from ._wire import ACK_KEYS_REMEMBERED, AckFilter
 
 # Zenoh threads whose Python thread state is kept (see the module doc).
 _PINNED: set[int] = set()
@@ -76,8 +76,6 @@ T = TypeVar("T")
 ACK_INBOX = 8192
 ACK_MAX_BYTES = 256
 TOKEN_INBOX = 4096
-# Every ack starts with this byte (a msgpack map of two: ``encode_ack``).
-_ACK_FIRST_BYTE = encode_ack("", 0)[:1]
 # A key longer than this is no key of ours (names are short): dropped and counted.
 KEY_MAX_BYTES = 1024
 # What one held ``Control`` costs beyond its payload and key: the object and the two
@@ -85,16 +83,12 @@ KEY_MAX_BYTES = 1024
 CONTROL_OVERHEAD_BYTES = 256
 
 
-# Keys whose last kept ack an ``AckInbox`` remembers (to drop repeats).
-ACK_LAST_KEYS = 1024
-
-
 def control_inbox_bytes() -> int:
     """The most a producer's two control inboxes can hold (``BufferLimits``), with the last
     ack kept per key (``AckInbox``)."""
     per_ack = ACK_MAX_BYTES + KEY_MAX_BYTES + CONTROL_OVERHEAD_BYTES
     tokens = TOKEN_INBOX * (KEY_MAX_BYTES + CONTROL_OVERHEAD_BYTES)
-    return (ACK_INBOX + ACK_LAST_KEYS) * per_ack + tokens
+    return (ACK_INBOX + ACK_KEYS_REMEMBERED) * per_ack + tokens
 
 
 @dataclass(frozen=True, slots=True)
@@ -256,9 +250,7 @@ class AckInbox(ControlInbox):
         super().__init__(capacity=capacity, max_bytes=max_bytes, signal=signal)
         self.malformed = 0
         self.repeats = 0
-        # The last payload kept per key and when; cleared when it reaches ``ACK_LAST_KEYS``
-        # keys (a flood of keys: it is only a shortcut, the protocol checks again).
-        self._last: dict[str, tuple[bytes, int]] = {}
+        self._filter = AckFilter(REPEAT_RESEND_NS)  # only a shortcut: the protocol checks again
 
     @property
     def dropped(self) -> int:
@@ -266,7 +258,7 @@ class AckInbox(ControlInbox):
 
     def _keep(self, sample: zenoh.Sample, payload: zenoh.ZBytes) -> Control | _Drop | None:
         data = payload.to_bytes()  # at most ``max_bytes``: checked before
-        if data[:1] != _ACK_FIRST_BYTE:
+        if self._filter.malformed(data):
             with self._count_lock:
                 self.malformed += 1
             return DROPPED
@@ -274,14 +266,11 @@ class AckInbox(ControlInbox):
         if len(key) > KEY_MAX_BYTES:
             return None
         now_ns = time.monotonic_ns()
-        last = self._last.get(key)
-        if last is not None and last[0] == data and now_ns - last[1] < REPEAT_RESEND_NS:
+        if self._filter.repeat(key, data, now_ns):
             with self._count_lock:
                 self.repeats += 1
             return DROPPED
-        if len(self._last) >= ACK_LAST_KEYS:
-            self._last.clear()
-        self._last[key] = (data, now_ns)
+        self._filter.remember(key, data, now_ns)
         return Control(key, data, sample.kind == zenoh.SampleKind.PUT)
 
 

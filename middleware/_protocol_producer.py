@@ -71,6 +71,7 @@ from ._protocol_shares import MAX_OBSERVE_REGISTRATIONS as MAX_OBSERVE_REGISTRAT
 from ._protocol_shares import QUEUE_BUDGET as QUEUE_BUDGET
 from ._records import BufferLimits, DataObject, SubscriptionInfo, SubscriptionMode
 from ._wire import (
+    AckFilter,
     Keys,
     decode_ack,
     encode_batch_header,
@@ -88,9 +89,6 @@ RESEND_BURST = 16
 # reading at most this many of them.
 RESYNC_NS = 2_000_000_000
 RESYNC_TOKENS = 4 * (MAX_FLOW_REGISTRATIONS + MAX_OBSERVE_REGISTRATIONS)
-# An ack is a msgpack map of two (``_wire.encode_ack``); keys whose last ack is remembered.
-_ACK_FIRST_BYTE = b"\x82"
-_LAST_ACKS = 1024
 # Distinct refusal reasons counted by text (their count is bounded: a peer chooses them).
 _REFUSAL_REASONS = 64
 RESEND_PACE_NS = 5_000_000
@@ -146,8 +144,8 @@ class ProducerProtocol:
         # Lost token events: when a resync is due (None: none), when the last one was.
         self._resync_at_ns: int | None = None
         self._resynced_ns = -RESYNC_NS
-        # The last ack seen per ack key and when (see ``ack``), at most ``_LAST_ACKS``.
-        self._last_acks: dict[str, tuple[bytes, int]] = {}
+        # The last ack decoded per ack key and when (see ``ack``).
+        self._acks_seen = AckFilter(REPEAT_RESEND_NS)
         self.counters = ProtocolCounters()
 
     # -- input -----------------------------------------------------------------------------
@@ -242,11 +240,10 @@ class ProducerProtocol:
         it, and an ack repeating the last one of its key within ``REPEAT_RESEND_NS`` can
         change nothing (acks are cumulative; a repeat makes resends due at most that often).
         """
-        if payload[:1] != _ACK_FIRST_BYTE:
+        if self._acks_seen.malformed(payload):
             self.counters.bad_messages += 1
             return False
-        seen = self._last_acks.get(keyexpr)
-        if seen is not None and seen[0] == payload and now_ns - seen[1] < REPEAT_RESEND_NS:
+        if self._acks_seen.repeat(keyexpr, payload, now_ns):
             return False
         sub_id = keyexpr.rsplit("/", 1)[-1]
         try:
@@ -254,9 +251,7 @@ class ProducerProtocol:
         except Exception:  # garbage on our ack key is counted, never raised
             self.counters.bad_messages += 1
             return False
-        if len(self._last_acks) >= _LAST_ACKS:
-            self._last_acks.clear()  # a flood of keys: the cache is only a shortcut
-        self._last_acks[keyexpr] = (payload, now_ns)
+        self._acks_seen.remember(keyexpr, payload, now_ns)
         freed = self._ledger.ack(sub_id, epoch, seq, now_ns)
         if freed:
             reg = self._ledger.by_epoch(epoch)

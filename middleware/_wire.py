@@ -336,6 +336,42 @@ def encode_ack(epoch: str, seq: int) -> bytes:
     return bytes(msgpack.packb({"e": epoch, "s": seq}))
 
 
+# Every ack starts with this byte: a msgpack map of two (``encode_ack``).
+ACK_FIRST_BYTE = b"\x82"
+# Ack keys whose last ack an ``AckFilter`` remembers (a flood of keys clears it: it is only
+# a shortcut, the ledger decides).
+ACK_KEYS_REMEMBERED = 1024
+
+
+class AckFilter:
+    """What an ack flood is made of, recognised before an ack is decoded: a payload whose
+    first byte is not an ack's (garbage), and the same payload on the same key as the last
+    one remembered for it within ``repeat_window_ns`` (acks are cumulative: a repeat changes
+    nothing but making resends due, at most that often). Used on Zenoh's thread before an
+    ack is buffered (``AckInbox``), and by the producer's protocol, which the model checker
+    drives without an inbox."""
+
+    def __init__(self, repeat_window_ns: int) -> None:
+        self._window_ns = repeat_window_ns
+        self._last: dict[str, tuple[bytes, int]] = {}
+
+    @staticmethod
+    def malformed(payload: bytes) -> bool:
+        """Garbage: not even an ack's first byte (looked at before the key is read)."""
+        return payload[:1] != ACK_FIRST_BYTE
+
+    def repeat(self, key: str, payload: bytes, now_ns: int) -> bool:
+        """The last ack remembered for ``key``, again within the window."""
+        last = self._last.get(key)
+        return last is not None and last[0] == payload and now_ns - last[1] < self._window_ns
+
+    def remember(self, key: str, payload: bytes, now_ns: int) -> None:
+        """``payload`` is now the last ack of ``key``."""
+        if len(self._last) >= ACK_KEYS_REMEMBERED:
+            self._last.clear()
+        self._last[key] = (payload, now_ns)
+
+
 def decode_ack(raw: bytes) -> tuple[str, int]:
     body = msgpack.unpackb(raw, raw=False)
     if not isinstance(body, dict):

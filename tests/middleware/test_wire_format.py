@@ -54,3 +54,12 @@ def test_raw_zenoh_client_reads_a_time_range(
             if r.err is not None
         ]
         assert errors == ["bad-query: last='zero' is not an integer"]
+
+
+def test_every_ack_starts_with_the_byte_the_ack_filter_looks_for() -> None:
+    from middleware._wire import ACK_FIRST_BYTE, AckFilter, encode_ack
+
+    for epoch, seq in (("", 0), ("a1b2c3.7", 2**62), ("x" * 200, 1)):
+        ack = encode_ack(epoch, seq)
+        assert ack[:1] == ACK_FIRST_BYTE and not AckFilter.malformed(ack)
+    assert AckFilter.malformed(b"\x00garbage") and AckFilter.malformed(b"")
