@@ -91,7 +91,7 @@ class Wake:
     blocked in the object's condition (``take``, a waiting ``put``), which then feed the
     input themselves; else nobody: the input waits in its bounded inbox for the next caller
     that looks (a ``put``, ``fill``, ``take``, or the executor at the object's deadline).
-    ``threads`` and ``handler`` are changed under the condition's lock, and set *before*
+    ``threads`` and ``handler_waiting`` are changed under the condition's lock, and set *before*
     the waiter's last look at the inbox, so an append that the look missed sees them.
     """
 
@@ -108,13 +108,13 @@ class Wake:
         self._backlog = backlog
         self.executor_owned = False
         self.threads = 0  # callers blocked in the condition
-        self.handler = False  # a handler on the executor waits for this object
+        self.handler_waiting = False  # a handler on the executor waits for this object
 
     def signal(self) -> None:
         """(Zenoh's thread, after appending to the inbox) A backlog of a batch or more is
         the executor's to work off in any case (a flood must not wait for the next caller:
         it would push honest input out of the bounded inbox meanwhile)."""
-        if self.executor_owned or self.handler or self._backlog() >= BUDGET:
+        if self.executor_owned or self.handler_waiting or self._backlog() >= BUDGET:
             if not self._source.scheduled:
                 self._executor.signal(self._source)
         elif self.threads:
@@ -127,7 +127,7 @@ class Wake:
         executor = self._executor
         on_executor = executor.on_thread
         if on_executor:
-            self.handler = True
+            self.handler_waiting = True
         else:
             self.threads += 1
         try:
@@ -144,7 +144,7 @@ class Wake:
             return False
         finally:
             if on_executor:
-                self.handler = False
+                self.handler_waiting = False
             else:
                 self.threads -= 1
 

@@ -151,14 +151,16 @@ class BufferLimits:
     One holder (a token's ``<node>~<host>``) may hold at most half of what the other
     holders leave free of the queue budget and of each pool of slots."""
 
-    flow_registrations: int = 256
-    observe_registrations: int = 256
-    queue_budget: int = 1 << 16
+    # Every number as the producer applies it (its values live with the protocol's shares,
+    # ``_protocol_shares``; none is repeated here).
+    flow_registrations: int
+    observe_registrations: int
+    queue_budget: int
     # The largest flow queue one subscriber can get (a holder's share of an idle producer).
-    flow_queue_max: int = 1 << 15
+    flow_queue_max: int
     # Registrations that get payloads above the producer's inline limit pushed.
-    large_push_per_holder: int = 4
-    large_push_total: int = 16
+    large_push_per_holder: int
+    large_push_total: int
     holder_share: str = "half of what other holders leave free"
     # The most the producer's control inboxes (acks, subscription tokens) hold, whatever a
     # peer sends; 0 where a producer does not say. Zenoh's own share comes on top

@@ -116,7 +116,6 @@ positive_float = _number(float, 0, strict=True)
 #: Finite, >= 0: delays, waits, minimums.
 non_negative_float = _number(float, 0, strict=False)
 #: Finite, any sign.
-finite_float = _number(float, None, strict=False)
 #: In [0, 1]: qualities, fractions.
 unit_float = _number(float, 0, strict=False, high=1)
 #: >= 1: counts, queue sizes, retention.
