@@ -113,6 +113,7 @@ class SubscriberProtocol:
         self._refusal_reported = False
         self._retry_at_ns: int | None = None
         self.registrations = 0  # greetings under distinct epochs
+        self._registered_again = False  # since ``registration_news``
         # Lapses: the epoch of the last notification queued and its base; per producer
         # instance the highest element number queued; elements counted as never notified.
         self._epoch: str | None = None
@@ -202,6 +203,23 @@ class SubscriberProtocol:
         if len(self._high) > _INSTANCES:
             self._high.popitem(last=False)
 
+    @staticmethod
+    def needs_sender(payload: Any) -> bool:
+        """Whether ``receive`` needs to know who sent this message: only a control message
+        (a greeting or a refusal: an empty payload) is judged by its sender."""
+        return not len(payload)
+
+    @property
+    def refusal_to_judge(self) -> bool:
+        """A refusal arrived that is not judged yet (the executor judges it at once)."""
+        return self._unjudged
+
+    def registration_news(self) -> bool:
+        """Whether the subscription was registered again (the producer restarted, or the
+        subscription had lapsed) since the last call (to log once each)."""
+        again, self._registered_again = self._registered_again, False
+        return again
+
     def lapse_news(self) -> int:
         """Elements counted as never notified since the last call (to log once each)."""
         lapsed, self._lapsed = self._lapsed, 0
@@ -228,6 +246,7 @@ class SubscriberProtocol:
         if control.kind == "hello":
             if self.registered_epoch is not None and self.registered_epoch != control.text:
                 self.registrations += 1  # a producer restart, or our token had lapsed
+                self._registered_again = True
             elif self.registered_epoch is None:
                 self.registrations = 1
             self.registered_epoch = control.text
@@ -317,7 +336,7 @@ class SubscriberProtocol:
         """When a delayed ack falls due with nobody taking, or a refused subscription tries
         again (None: none waits)."""
         if self._unjudged:
-            return 0  # a refusal to judge: at once
+            return 0  # a refusal to judge (``refusal_to_judge``): at once
         due = self.ledger.flush_at_ns()
         retry = self._retry_at_ns if self.registered_epoch is None else None
         if retry is not None and (due is None or retry < due):

@@ -168,19 +168,18 @@ class Subscription:
     def _feed(self, budget: int) -> None:
         """(under _lock) Feed the protocol at most ``budget`` waiting notifications."""
         protocol = self._protocol
+        needs_sender = protocol.needs_sender
         for sample in self._inbox.take(budget):
             attachment = sample.attachment
             raw = attachment.to_bytes() if attachment is not None else None
-            before = protocol.registrations
             payload = sample.payload
-            # Control messages (the only ones whose sender matters) have an empty payload.
-            protocol.receive(raw, payload, None if len(payload) else _sender(sample))
-            if protocol.registrations > before > 0:
-                log.info(
-                    "subscription to %s registered again (the producer restarted, or this "
-                    "subscription had lapsed)",
-                    self.name,
-                )
+            protocol.receive(raw, payload, _sender(sample) if needs_sender(payload) else None)
+        if protocol.registration_news():
+            log.info(
+                "subscription to %s registered again (the producer restarted, or this "
+                "subscription had lapsed)",
+                self.name,
+            )
         lapsed = protocol.lapse_news()
         if lapsed:
             log.warning(
@@ -200,8 +199,8 @@ class Subscription:
             handler = self._handler
             answered = self._protocol.registered_epoch is not None
             self._wake.executor_owned = handler is not None or not answered
-            if self._protocol.next_deadline_ns() == 0:
-                self._executor.poke(0)  # a refusal to judge
+            if self._protocol.refusal_to_judge:
+                self._executor.poke(0)  # judged on the executor's next turn
             if handler is None:
                 if self._wake.threads:
                     self._cond.notify_all()
