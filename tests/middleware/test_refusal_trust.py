@@ -66,3 +66,16 @@ def test_a_refusal_from_another_session_than_the_greeting_is_judged(
     if refused:
         assert sub.refusal_news() == "observe share used up"
         assert sub.retry_due(10**10), "a refused subscription declares its token again"
+
+
+def test_a_greeting_under_a_new_epoch_is_news_once_and_a_refusal_waits_to_be_judged() -> None:
+    """What the wrapper logs and when it wakes the executor is the protocol's to say."""
+    sub = SubscriberProtocol(SubscriptionMode.FLOW, 4, -1)
+    assert sub.needs_sender(b"") and not sub.needs_sender(b"payload")
+    sub.receive(encode_control("hello", sub.descriptor, "p1.1", base=0), b"", sender=PRODUCER)
+    assert not sub.registration_news()  # the first greeting is no "again"
+    sub.receive(encode_control("hello", sub.descriptor, "p2.1", base=0), b"", sender=PRODUCER)
+    assert sub.registration_news() and not sub.registration_news()
+    assert not sub.refusal_to_judge
+    sub.receive(encode_control("refused", sub.descriptor, "full"), b"", sender=ROGUE)
+    assert sub.refusal_to_judge and sub.next_deadline_ns() == 0
