@@ -219,8 +219,8 @@ class Discovery:
         return buffer_of(info, target)
 
 
-# Sessions whose answers to one ``@info`` query are kept (a crowd of rogue repliers beyond
-# this is no less ambiguous than this many).
+# Sessions whose answers to one ``@info`` query are kept; one more makes the answers
+# ambiguous (a crowd of rogue repliers could otherwise push the real one out unseen).
 MAX_REPLIERS = 8
 
 
@@ -232,13 +232,18 @@ class Answers:
         self.service = service
         self.start_ns = start_ns
         self._first: dict[str, tuple[bytes, int]] = {}
+        self._turned_away = 0  # replies of further sessions, not kept
 
     def add(self, reply: zenoh.Reply, end_ns: int) -> None:
         """(any thread) Keep ``reply`` if it is its session's first (bounded, undecoded)."""
-        if reply.ok is None or len(self._first) >= MAX_REPLIERS:
+        if reply.ok is None:
             return
         replier = str(reply.replier_id.zid) if reply.replier_id is not None else "?"
-        if replier not in self._first and len(reply.ok.payload) <= MAX_REPLY_BYTES:
+        if replier in self._first:
+            return
+        if len(self._first) >= MAX_REPLIERS:
+            self._turned_away += 1
+        elif len(reply.ok.payload) <= MAX_REPLY_BYTES:
             self._first[replier] = (reply.ok.payload.to_bytes(), end_ns)
 
     def __len__(self) -> int:
@@ -263,8 +268,13 @@ class Answers:
 
     def trusted(self) -> ServiceInfo | None:
         """The one valid description of the service among the answers (None: none came);
-        QueryError when more than one session gave one. A reply that is no valid
-        description of the service counts for nothing."""
+        QueryError when more than one session gave one, or more sessions answered than are
+        kept. A reply that is no valid description of the service counts for nothing."""
+        if self._turned_away:
+            raise QueryError(
+                f"more than {MAX_REPLIERS} Zenoh sessions answer as {self.service!r}: its "
+                "description is not trusted (peers answer in its name)"
+            )
         valid = [d for d in self._decoded() if isinstance(d, ServiceInfo)]
         if len(valid) > 1:
             raise QueryError(

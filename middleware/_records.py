@@ -80,14 +80,6 @@ class Notification:
     metadata: bytes | None = None
     element: DataObject | None = None
     missed: int = 0
-    # The registration it came by, ``<producer epoch>.<n>``: the producer epoch is new when
-    # the producer restarted or another process took its name (``producer_epoch``).
-    epoch: str = ""
-
-    @property
-    def producer_epoch(self) -> str:
-        """The producing instance: it changes when the producer restarted or was replaced."""
-        return self.epoch.partition(".")[0]
 
 
 @dataclass(frozen=True, slots=True)
@@ -242,7 +234,7 @@ _new = object.__new__
 _data_slots = tuple(vars(DataObject)[n].__set__ for n in ("timestamp_ns", "payload", "metadata"))
 _note_slots = tuple(
     vars(Notification)[n].__set__
-    for n in ("service", "buffer", "timestamp_ns", "seq", "metadata", "element", "missed", "epoch")
+    for n in ("service", "buffer", "timestamp_ns", "seq", "metadata", "element", "missed")
 )
 
 
@@ -270,13 +262,12 @@ def notification(
     metadata: bytes | None,
     element: DataObject | None,
     missed: int,
-    epoch: str,
     _new: Any = _new,
     _slots: tuple[Any, ...] = _note_slots,
 ) -> Notification:
     """``Notification(...)`` with every field given, faster (see above)."""
     obj = _new(Notification)
-    s0, s1, s2, s3, s4, s5, s6, s7 = _slots
+    s0, s1, s2, s3, s4, s5, s6 = _slots
     s0(obj, service)
     s1(obj, buffer)
     s2(obj, timestamp_ns)
@@ -284,5 +275,4 @@ def notification(
     s4(obj, metadata)
     s5(obj, element)
     s6(obj, missed)
-    s7(obj, epoch)
     return obj  # type: ignore[no-any-return]

@@ -180,9 +180,11 @@ def _taken(service: str, other: dict[str, Any]) -> NameTakenError:
     )
 
 
-# Queries waiting to be answered, per queryable. A peer that asks faster than the service
-# answers gets the oldest of its excess finalized unanswered (its querier sees an empty
-# answer, as after a lost reply) and counted; honest tools ask one query at a time.
+# Queries waiting to be answered, per queryable. Beyond, an arriving query is finalized
+# unanswered (its querier sees an empty answer, as after a lost reply, and a framegate
+# querier asks again) and counted: a peer that asks faster than the service answers loses
+# its excess, and while it floods, an honest query may be among what is dropped; what is
+# already waiting is answered.
 DATA_QUERIES = 256
 INFO_QUERIES = 64
 
@@ -195,6 +197,7 @@ class QueryInbox:
         self._cond = threading.Condition()
         self._waiting: dict[str, deque[zenoh.Query]] = {"data": deque(), "info": deque()}
         self._capacity = {"data": DATA_QUERIES, "info": INFO_QUERIES}
+        self._order = ("info", "data")  # whose turn is first; they alternate
         self.dropped = 0
         self.closed = False
 
@@ -208,20 +211,21 @@ class QueryInbox:
                 if self.closed:
                     return
                 if len(waiting) >= capacity:
-                    waiting.popleft()  # finalized when dropped: the querier's answer ends
-                    self.dropped += 1
+                    self.dropped += 1  # finalized when dropped: its querier's answer ends
+                    return
                 waiting.append(query)
                 self._cond.notify()
 
         return zenoh.handlers.Callback(on_query, indirect=False)
 
     def take(self) -> tuple[str, zenoh.Query] | None:
-        """The next query, info first (they are cheap and tools wait on them); None once
-        closed. Sleeps until one comes."""
+        """The next query, data and info in turn (a flood of one kind cannot hold up the
+        other); None once closed. Sleeps until one comes."""
         with self._cond:
             while not self.closed:
-                for which in ("info", "data"):
+                for which in self._order:
                     if self._waiting[which]:
+                        self._order = self._order[::-1] if which == self._order[0] else self._order
                         return which, self._waiting[which].popleft()
                 self._cond.wait()
             return None

@@ -306,6 +306,16 @@ class Subscription:
         if refused:
             self._refused(now_ns)
 
+    @property
+    def producer_epoch(self) -> str | None:
+        """The producing instance that greeted this subscription (None: not registered): it
+        changes when the producer restarted or another process took its name. A
+        notification cannot change it, only a greeting."""
+        with self._lock:
+            self._feed(BUDGET)  # a greeting waiting in the inbox counts
+            epoch = self._protocol.registered_epoch
+        return None if epoch is None else epoch.partition(".")[0]
+
     # -- taking ----------------------------------------------------------------------------
     @property
     def pending(self) -> int:
@@ -405,12 +415,12 @@ class Subscription:
         service, buffer = self.service, self.buffer
         notes: list[Notification] = []
         append = notes.append
-        for epoch, seq, (timestamp, metadata, pushed), missed in entries:
+        for _epoch, seq, (timestamp, metadata, pushed), missed in entries:
             element = None
             if pushed is not None and metadata is not None:
                 payload = pushed if type(pushed) is bytes else pushed.to_bytes()
                 element = data_object(timestamp, payload, metadata)
-            append(notification(service, buffer, timestamp, seq, metadata, element, missed, epoch))
+            append(notification(service, buffer, timestamp, seq, metadata, element, missed))
         return notes
 
     def __iter__(self) -> Iterator[Notification]:

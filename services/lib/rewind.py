@@ -15,7 +15,7 @@ import logging
 import time
 from dataclasses import dataclass
 
-from middleware import FramegateError, Node, Notification, Producer, Rewind, ServiceInfo
+from middleware import FramegateError, Node, Producer, Rewind, ServiceInfo
 
 
 @dataclass(frozen=True, slots=True)
@@ -104,7 +104,8 @@ class RewindFollower:
     """For a stage whose output is keyed by its input's stamps (the detector): follow
     only the rewinds its input producer recorded.
 
-    Call ``seen(note)`` for every input notification, and ``follow(stamp)`` when an input
+    Call ``seen(producer)`` with the input subscription's ``producer_epoch`` before each
+    input element, and ``follow(stamp)`` when an input
     element is stamped at or before the newest element of ``output``: it reads the input's
     ``info`` once, and for each rewind recorded there and not yet followed whose bound lies
     below ``stamp``, removes what ``output`` holds after that bound (``cause``: ``rewound``).
@@ -112,8 +113,10 @@ class RewindFollower:
     is late and must be skipped (counted) while ``output`` keeps everything.
 
     A producer can only rewind what it delivered: when the input's producer changes (it
-    restarted, or another process took its name: a new producer epoch), what ``output``
-    holds by then came from the one before, and no rewind of the new one removes it.
+    restarted, or another process took its name: it greets the subscription under a new
+    producer epoch), what ``output`` holds by then came from the one before, and no rewind
+    of the new one removes it. Only a greeting moves this floor: a forged notification under
+    a made-up epoch does not.
     """
 
     def __init__(
@@ -137,10 +140,10 @@ class RewindFollower:
         self._warned = False
         self._asked: collections.deque[int] = collections.deque(maxlen=ASKS_PER_S)
 
-    def seen(self, note: Notification) -> None:
-        """An input notification came (before it is processed): note its producer."""
-        producer = note.producer_epoch
-        if producer != self._producer:
+    def seen(self, producer: str | None) -> None:
+        """The input's producer as the subscription was last greeted by (before an input
+        element is processed); None while not registered changes nothing."""
+        if producer is not None and producer != self._producer:
             if self._producer is not None:
                 self._floor_ns = self._output.series.newest_ns
             self._producer = producer

@@ -291,14 +291,19 @@ class Runner:
         self.stop = stop
 
     def handle(
-        self, notes: list[Notification], fetch: Callable[[Notification], DataObject]
+        self,
+        notes: list[Notification],
+        fetch: Callable[[Notification], DataObject],
+        producer_epoch: str | None = None,
     ) -> None:
-        """Process a batch of notifications (one per turn today; an executor handler later)."""
+        """Process a batch of notifications (one per turn today; an executor handler later);
+        ``producer_epoch``: the input subscription's (rewinds are followed only as far as
+        the producer that greeted it delivered)."""
         for note in notes:
             if self.stop.is_set():
                 return
             taken_ns = now_ns()  # the frames' clock: what the runner did when, beside them
-            self.rewinds.seen(note)
+            self.rewinds.seen(producer_epoch)
             if note.missed:  # an observer's full queue (keep-last), or a lapse: never seen
                 self.output.count_skip("not-observed", note.missed)
             if not self._in_order(note.timestamp_ns):
@@ -396,7 +401,8 @@ def serve(spec: RunnerSpec, handler: Handler, network: NetworkConfig, stop: thre
         say_at: float | None = time.monotonic() + _SAY_AFTER_S  # None: looked once already
         try:
             while not stop.is_set():
-                runner.handle(frames.take_many(1, timeout_s=0.5), frames.fetch)
+                notes = frames.take_many(1, timeout_s=0.5)
+                runner.handle(notes, frames.fetch, frames.producer_epoch)
                 if say_at is not None and time.monotonic() > say_at:
                     say_at = None
                     if not frames.wait_registered(0):

@@ -335,6 +335,39 @@ def test_garbage_beside_the_real_description_does_not_void_it(
             assert isinstance(answers[0], ServiceInfo) and answers[0].service == "cam"
 
 
+def test_a_crowd_of_repliers_makes_the_description_ambiguous(
+    listen_net: NetworkConfig, endpoint: str
+) -> None:
+    """Seven garbage answers and one forged valid one come before the real one: the real
+    one, turned away as the ninth session, must not leave the forgery trusted."""
+    from types import SimpleNamespace
+
+    from middleware._discovery import MAX_REPLIERS, Answers
+
+    with _cam_rogue_client(listen_net, endpoint) as (service, rogue, _client):
+        service.offer("images")
+        real = next(r.ok.payload.to_bytes() for r in rogue.get(KEYS.info("cam")) if r.ok)
+
+    def reply(session: str, payload: bytes) -> object:
+        return SimpleNamespace(
+            ok=SimpleNamespace(payload=zenoh.ZBytes(payload)),
+            replier_id=SimpleNamespace(zid=session),
+        )
+
+    answers = Answers("cam", now_ns())
+    for i in range(MAX_REPLIERS - 1):
+        answers.add(reply(f"garbage{i}", b"garbage!"), now_ns())  # type: ignore[arg-type]
+    answers.add(reply("forger", real), now_ns())  # type: ignore[arg-type]
+    answers.add(reply("camera", real), now_ns())  # type: ignore[arg-type]
+    with pytest.raises(QueryError, match="more than 8 Zenoh sessions answer as 'cam'"):
+        answers.trusted()
+    alone = Answers("cam", now_ns())
+    alone.add(reply("garbage", b"garbage!"), now_ns())  # type: ignore[arg-type]
+    alone.add(reply("camera", real), now_ns())  # type: ignore[arg-type]
+    found = alone.trusted()
+    assert found is not None and found.service == "cam"
+
+
 def test_a_bare_service_token_does_not_stop_the_service(
     node_process: Callable[..., NodeProcess], endpoint: str
 ) -> None:

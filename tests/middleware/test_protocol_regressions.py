@@ -368,3 +368,22 @@ def test_a_put_on_a_closed_buffer_is_a_closed_error(listen_net: NetworkConfig) -
             images.put(1, b"x", make_metadata("generic", 1))
         with pytest.raises(ClosedError):
             images.put_many([(2, b"x", make_metadata("generic", 2))])
+
+
+def test_producer_epoch_is_the_greeting_producer_and_a_new_instance_changes_it(
+    endpoint: str,
+) -> None:
+    """What a stage that follows rewinds relies on: only a new producer instance (here one
+    that took the name after the first closed) changes it."""
+    server_net = NetworkConfig(connect=(endpoint,))  # each instance joins the client's port
+    with Node(network=NetworkConfig(listen=(endpoint,))) as client:
+        with Node(SERVICE, server_net) as first:
+            images = first.offer(BUFFER)
+            sub = client.subscribe(f"{SERVICE}/{BUFFER}", queue_size=4, await_service=True)
+            assert images.wait_for_subscribers(1, timeout_s=scaled(10))
+            wait_until(lambda: sub.producer_epoch == images.epoch, scaled(10), "the greeting")
+        with Node(SERVICE, server_net) as second:
+            again = second.offer(BUFFER)
+            wait_until(lambda: sub.producer_epoch == again.epoch, scaled(30), "a new greeting")
+            assert again.epoch != images.epoch
+        sub.close()

@@ -21,7 +21,6 @@ def test_builders_equal_the_constructors() -> None:
     assert element == DataObject(7, b"payload", b"<m/>")
     assert type(element) is DataObject
     assert hash(element) == hash(DataObject(7, b"payload", b"<m/>"))
-    note = notification("svc", "buf", 7, 3, b"<m/>", element, 1, "e1.2")
-    assert note == Notification("svc", "buf", 7, 3, b"<m/>", element, 1, "e1.2")
-    assert repr(note) == repr(Notification("svc", "buf", 7, 3, b"<m/>", element, 1, "e1.2"))
-    assert note.producer_epoch == "e1"
+    note = notification("svc", "buf", 7, 3, b"<m/>", element, 1)
+    assert note == Notification("svc", "buf", 7, 3, b"<m/>", element, 1)
+    assert repr(note) == repr(Notification("svc", "buf", 7, 3, b"<m/>", element, 1))
