@@ -7,8 +7,7 @@ tool defines its own errors next to its code, always below ``FramegateError``::
     ├── ConfigError                a configuration, deploy file or endpoint is wrong
     │   └── NameTakenError         another live instance already offers this service name
     ├── SchemaError                metadata is not well-formed, hostile, or fails its XSD
-    │   ├── FrameError             (services.lib.messages) a frame no consumer could use
-    │   └── LayoutError            (services.lib.frame_layout) no raw frame, or a payload unlike it
+    │   └── FrameError             (services.lib.frame_layout) a frame no consumer could use
     ├── QueryError                 a query is malformed or the service answered with an error
     │   └── NotFoundError          no such service, buffer or element
     ├── FlowControlRefused         a subscriber's notification queue is full; nothing was stored

@@ -15,10 +15,11 @@ from middleware import FramegateError, SchemaError, field_text, parse_untrusted
 FRAME_CHANNELS = {"mono8": 1, "bgr8": 3, "rgb8": 3}
 
 
-class LayoutError(SchemaError):
-    """Metadata that names no raw frame, or a payload that does not hold the frame it
-    names; ``reason`` is the check (``bad-encoding``, ``bad-size``, ``bad-payload-size``,
-    ``not-a-frame``)."""
+class FrameError(SchemaError):
+    """A frame no consumer could use, whatever its XSD allowed: metadata that names no raw
+    frame, a payload that does not hold the frame it names, an exposure no camera takes;
+    ``reason`` names the check (``bad-size``, ``bad-encoding``, ``bad-payload-size``,
+    ``bad-exposure``, ``not-a-frame``)."""
 
     def __init__(self, reason: str, detail: str) -> None:
         super().__init__(detail)
@@ -48,17 +49,17 @@ class FrameLayout:
 
     @classmethod
     def checked(cls, encoding: str, width_px: int, height_px: int) -> FrameLayout:
-        """The layout, or LayoutError for an encoding or size no raw frame has."""
+        """The layout, or FrameError for an encoding or size no raw frame has."""
         if encoding not in FRAME_CHANNELS:
-            raise LayoutError("bad-encoding", f"encoding {encoding!r}")
+            raise FrameError("bad-encoding", f"encoding {encoding!r}")
         if width_px <= 0 or height_px <= 0:
-            raise LayoutError("bad-size", f"size {width_px}x{height_px}")
+            raise FrameError("bad-size", f"size {width_px}x{height_px}")
         return cls(encoding, width_px, height_px)
 
     def check_payload(self, payload_bytes: int, what: str = "frame") -> None:
-        """LayoutError unless a payload of ``payload_bytes`` holds exactly this frame."""
+        """FrameError unless a payload of ``payload_bytes`` holds exactly this frame."""
         if payload_bytes != self.size_bytes:
-            raise LayoutError(
+            raise FrameError(
                 "bad-payload-size",
                 f"{what}: payload is {payload_bytes} bytes, metadata says "
                 f"{self.width_px}x{self.height_px} {self.encoding} = {self.size_bytes}",
@@ -78,18 +79,18 @@ def read_frame_layout(metadata: bytes, payload_bytes: int | None = None) -> Fram
     """The layout a ``frame`` element's metadata names (a hardened parse of three fields,
     about a tenth of a full read: for a consumer that trusts a framegate producer's schema
     check and needs only the size); with ``payload_bytes``, also checked against the
-    payload. LayoutError says what is wrong."""
+    payload. FrameError says what is wrong."""
     try:
         root = parse_untrusted(metadata)
     except FramegateError as exc:
-        raise LayoutError("not-a-frame", f"unreadable metadata: {exc}") from None
+        raise FrameError("not-a-frame", f"unreadable metadata: {exc}") from None
     if root.get("kind") != "frame":
-        raise LayoutError("not-a-frame", f"metadata of kind {root.get('kind')!r}, not frame")
+        raise FrameError("not-a-frame", f"metadata of kind {root.get('kind')!r}, not frame")
     try:
         width = int(field_text(root, "width_px") or 0)
         height = int(field_text(root, "height_px") or 0)
     except ValueError:
-        raise LayoutError("bad-size", "width_px or height_px is no integer") from None
+        raise FrameError("bad-size", "width_px or height_px is no integer") from None
     layout = FrameLayout.checked(str(field_text(root, "encoding")), width, height)
     if payload_bytes is not None:
         layout.check_payload(payload_bytes)
@@ -102,5 +103,5 @@ def frame_layout(metadata: bytes, payload_bytes: int | None = None) -> FrameLayo
     is never drawn as an image)."""
     try:
         return read_frame_layout(metadata, payload_bytes)
-    except LayoutError:
+    except FrameError:
         return None

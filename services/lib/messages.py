@@ -13,19 +13,10 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from middleware import SchemaError, field_text, make_metadata, validate_metadata
+from middleware import field_text, make_metadata, validate_metadata
 from services.lib.camera_model import CameraModel
-from services.lib.frame_layout import FRAME_CHANNELS, FrameLayout, LayoutError
+from services.lib.frame_layout import FRAME_CHANNELS, FrameError, FrameLayout
 from services.lib.quality import Exposure, GyroSamples
-
-
-class FrameError(SchemaError):
-    """A frame no consumer could use, whatever its XSD allowed; ``reason`` names the check
-    (``bad-size``, ``bad-exposure``, ``bad-encoding``, ``bad-payload-size``, ...)."""
-
-    def __init__(self, reason: str, detail: str) -> None:
-        super().__init__(detail)
-        self.reason = reason
 
 
 @dataclass(frozen=True, slots=True)
@@ -103,10 +94,7 @@ MAX_EXPOSURE_NS = 10_000_000_000
 def check_frame(meta: FrameMeta, payload_bytes: int) -> None:
     """The one check of a frame's size, exposure and encoding against its payload:
     FrameError for a frame no consumer could use, whatever its XSD allowed."""
-    try:
-        layout = FrameLayout.checked(meta.encoding, meta.width_px, meta.height_px)
-    except LayoutError as exc:
-        raise FrameError(exc.reason, str(exc)) from None
+    layout = FrameLayout.checked(meta.encoding, meta.width_px, meta.height_px)
     duration_ns = meta.exposure.duration_ns
     if not 0 < duration_ns <= MAX_EXPOSURE_NS:
         raise FrameError("bad-exposure", f"exposure of {duration_ns} ns")
@@ -119,10 +107,7 @@ def check_frame(meta: FrameMeta, payload_bytes: int) -> None:
             "bad-exposure",
             f"exposure starts {apart_ns / 1e9:.3g} s from the frame's stamp",
         )
-    try:
-        layout.check_payload(payload_bytes, f"frame {meta.frame_id}")
-    except LayoutError as exc:
-        raise FrameError(exc.reason, str(exc)) from None
+    layout.check_payload(payload_bytes, f"frame {meta.frame_id}")
 
 
 def decode_image(payload: bytes, meta: FrameMeta) -> npt.NDArray[np.uint8]:

@@ -27,7 +27,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from middleware import FramegateError
-from services.lib.messages import FrameError, FrameMeta
+from services.lib.frame_layout import FrameError
+from services.lib.messages import FrameMeta
 from services.lib.quality import (
     BlurOptions,
     CoverageError,

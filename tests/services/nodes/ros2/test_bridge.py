@@ -17,7 +17,7 @@ import pytest
 import zenoh
 
 from middleware import DataObject, NetworkConfig, Node, Producer
-from services.lib.frame_layout import LayoutError
+from services.lib.frame_layout import FrameError
 from services.nodes.ros2 import _link as link_module
 from services.nodes.ros2._bridge import ImagesIn, ImuIn, _Skips
 from services.nodes.ros2._cdr import IMAGE, IMU, Codec
@@ -295,7 +295,7 @@ def test_out_images_keep_pixels_and_refuse_inconsistent_elements(codec: Codec) -
         ),
         (DataObject(now, b"", make_metadata("generic", now, {})), "kind"),
     ):
-        with pytest.raises(LayoutError, match=match):
+        with pytest.raises(FrameError, match=match):
             encoders.image(bad)
 
 
