@@ -131,7 +131,8 @@ class _Bounded(Generic[T]):
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         """(Zenoh's thread) Check the size, append, signal; never blocks, never calls Zenoh."""
-        pin_thread_state()
+        if threading.get_ident() not in _PINNED:  # once per thread: no call per sample
+            pin_thread_state()
         if self.closed:
             return
         payload = sample.payload  # one wrapper, read once (each access makes a new one)
