@@ -46,7 +46,12 @@ MAX_DEPTH = 32
 # Characters of one string field (names, hosts, reasons) at most.
 MAX_TEXT = 1024
 _INT_END = 2**63
-_UNPRINTABLE = re.compile("[\x00-\x1f\x7f-\x9f\ud800-\udfff]")
+# Control characters and lone surrogates, and the invisible ones that reorder or hide what
+# a terminal shows (bidi overrides and isolates, zero-width marks, line separators): a peer
+# could make a name read as another.
+_UNPRINTABLE = re.compile(
+    "[\x00-\x1f\x7f-\x9f\ud800-\udfff\u200b-\u200f\u2028-\u202e\u2060-\u2069\ufeff]"
+)
 # Thread names of a service listed at most (``ServiceInfo.threads``).
 MAX_THREADS = 256
 
@@ -233,8 +238,11 @@ def decode_service_info(raw: bytes, start_ns: int, end_ns: int, *, service: str)
         steps = _field(clock, "steps", int, what)
         lead = _field(clock, "lead_ns", int, what, least=-_INT_END)
     sample = ClockSample.from_times(start_ns, clock_ns, end_ns)
+    named = _field(body, "service", str, what)
+    if named != service:  # a peer's reply on another key (or on ``*``) may not pose as it
+        raise QueryError(f"{what}: it names itself {printable(named, 64)!r}")
     return ServiceInfo(
-        service=_field(body, "service", str, what),
+        service=named,
         host=_field(body, "host", str, what),
         pid=_field(body, "pid", int, what),
         clock_ns=clock_ns,

@@ -45,9 +45,13 @@ class Retention:
             value = getattr(self, name)
             if value is None and name != "max_payload_bytes":
                 continue
-            if type(value) is not int or value < 1:
+            # Below 2^63 as every int on the wire: a peer's 10^400 is no retention, and
+            # breaks whatever formats it as a float.
+            if type(value) is not int or not 1 <= value < 2**63:
                 none = "" if name == "max_payload_bytes" else " or None"
-                raise ValueError(f"Retention.{name} must be an int >= 1{none}, got {value!r}")
+                raise ValueError(
+                    f"Retention.{name} must be an int in 1 .. 2^63 - 1{none}, got {value!r}"
+                )
 
 
 class SubscriptionMode(enum.Enum):

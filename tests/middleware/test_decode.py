@@ -71,6 +71,36 @@ def _bool_pid() -> dict[str, Any]:
     return body
 
 
+def _changed(path: str, value: Any) -> dict[str, Any]:
+    """The good description with one field (``a.b.0.c``) set to ``value``."""
+    body = _good()
+    *parents, last = path.split(".")
+    node: Any = body
+    for part in parents:
+        node = node[int(part)] if part.isdigit() else node[part]
+    node[last] = value
+    return body
+
+
+@pytest.mark.parametrize(
+    ("body", "says"),
+    [
+        # A number past 2^63 in a retention broke whatever formats it as a float later.
+        (_changed("buffers.0.retention", {"max_bytes": 10**400}), "max_bytes"),
+        (_changed("buffers.0.retention", {"max_age_ns": 2**63}), "max_age_ns"),
+        # Invisible characters that reorder or hide what a terminal shows.
+        (_changed("host", "a\u202egnp.exe"), "unprintable character \\(U\\+202E\\)"),
+        (_changed("buffers.0.subscriptions.0.node", "x\u200by"), "U\\+200B"),
+        # A reply that poses as another service than the one it answered for.
+        (_changed("service", "camera"), "names itself 'camera'"),
+    ],
+)
+def test_a_sane_looking_but_false_reply_is_one_line_query_error(body: Any, says: str) -> None:
+    with pytest.raises(QueryError, match=says) as caught:
+        _decode(body)
+    assert "\n" not in str(caught.value)
+
+
 @pytest.mark.parametrize(
     ("body", "says"),
     [

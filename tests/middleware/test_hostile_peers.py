@@ -597,7 +597,13 @@ def _error_reply(query: zenoh.Query) -> None:
         query.reply_err(b"bad-query: \x1b[2J\x1b[31mowned\nerror: fake second line")
 
 
+def _not_utf8_error_reply(query: zenoh.Query) -> None:
+    with query:  # raised a ValueError out of Node.query (the mediator exited)
+        query.reply_err(b"bad-query: \xff\xfe not UTF-8")
+
+
 HOSTILE_REPLIES = {
+    "an error reply that is not UTF-8": _not_utf8_error_reply,
     "a float stamp": _element_reply(1e300),
     "a negative stamp": _element_reply(-(2**63)),
     "a stamp of True": _element_reply(True),
