@@ -6,19 +6,23 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from typing import Any
 
 import zenoh
 
 from ._decode import printable
 from ._discovery import Discovery, split_target
-from ._errors import NotFoundError, QueryError
+from ._errors import FramegateError, NotFoundError, QueryError
 from ._records import DataObject
 from ._service import answer_end
 from ._session import zenoh_errors
 from ._timerange import TimeRange
 from ._wire import ERR_NOT_FOUND, decode_element
 
+# Replies an ``ask_query`` keeps at most (the rest is not read: the answer then reads as
+# cut short, an error), as a handler's question must not hold unbounded memory.
+_ASK_REPLIES_MAX = 4096
 # How long a fetch started ahead, whose answer was empty, waits for its second ask.
 _ASK_AGAIN_S = 2.0
 
@@ -38,12 +42,43 @@ class Queries(Discovery):
         such as ``[now(-2s)..]``) and/or the newest ``last``, in timestamp order."""
         params: dict[str, str] = {}
         if time_range is not None:
-            params["_time"] = (
-                time_range.to_selector_value() if isinstance(time_range, TimeRange) else time_range
-            )
+            params["_time"] = _time_value(time_range)
         if last is not None:
             params["last"] = str(last)
         return self._get(target, params, timeout_s, most=last)
+
+    def ask_query(
+        self,
+        target: str,
+        answer: Callable[[list[DataObject] | FramegateError], object],
+        *,
+        time_range: TimeRange | str,
+        timeout_s: float = 5.0,
+    ) -> None:
+        """``query`` without waiting, for handlers: ``answer(elements)`` runs once on the
+        node's executor when the query ends, ``answer(error)`` when it failed or was cut
+        short. Asked once (``query`` asks again an answer that reached no one; a handler
+        that needs the elements asks again itself, later)."""
+        replies: list[zenoh.Reply] = []
+
+        def on_reply(reply: zenoh.Reply) -> None:  # (Zenoh's thread) kept, decoded later
+            if len(replies) < _ASK_REPLIES_MAX:  # any peer may answer: bounded
+                replies.append(reply)
+
+        def deliver(_now_ns: int) -> None:
+            try:
+                elements = self._answer(target, replies)[0]
+            except FramegateError as exc:
+                answer(exc)
+                return
+            elements.sort(key=lambda e: e.timestamp_ns)
+            answer(elements)
+
+        def finished() -> None:  # (Zenoh's thread) the query ended: replied or timed out
+            self._executor.schedule(deliver, time.monotonic_ns())
+
+        handler = zenoh.handlers.Callback(on_reply, finished, indirect=False)
+        self._start_get(target, {"_time": _time_value(time_range)}, timeout_s, handler)
 
     def get(self, target: str, timestamp_ns: int, *, timeout_s: float = 5.0) -> DataObject:
         """The element with exactly this timestamp; NotFoundError if there is none."""
@@ -81,12 +116,14 @@ class Queries(Discovery):
             return self.get(target, timestamp_ns, timeout_s=_ASK_AGAIN_S)
         return found
 
-    def _start_get(self, target: str, params: dict[str, str], timeout_s: float) -> Any:
+    def _start_get(
+        self, target: str, params: dict[str, str], timeout_s: float, handler: Any = None
+    ) -> Any:
         service, buffer = split_target(target)
         selector = zenoh.Selector(self.keys.data(service, buffer), params)
         with zenoh_errors(f"querying {target}"):
             return self._session.get(
-                selector, consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout_s
+                selector, handler, consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout_s
             )
 
     def _answer(
@@ -135,7 +172,8 @@ class Queries(Discovery):
                 else:
                     assert reply.err is not None
                     if error is None:
-                        error = reply.err.payload.to_string()
+                        # Any bytes (a peer's): not UTF-8 is read, replaced, not raised.
+                        error = reply.err.payload.to_bytes().decode("utf-8", "replace")
         if error is not None and not elements and not answered:
             raise _error_from_reply(target, error)
         complete = not short and not any(since.values())
@@ -165,6 +203,11 @@ class Queries(Discovery):
                 elements = self._answer(target, replies, most=most)[0]
         elements.sort(key=lambda e: e.timestamp_ns)
         return elements
+
+
+def _time_value(time_range: TimeRange | str) -> str:
+    """A ``_time`` selector value (a ``TimeRange`` or already a string)."""
+    return time_range.to_selector_value() if isinstance(time_range, TimeRange) else time_range
 
 
 def _exactly(elements: list[DataObject], timestamp_ns: int) -> DataObject | None:

@@ -197,7 +197,6 @@ class ClockOffsets:
         self._samples: collections.deque[ClockSample] = collections.deque(maxlen=_OFFSET_SAMPLES)
         # (host, pid, clock steps) of camera and gyro when the samples were taken.
         self._clocks: tuple[tuple[str, int, int | None], ...] | None = None
-        self._sources: dict[str, SourceClock] = {}
         self._lock = threading.Lock()
         self.asked = threading.Event()  # set: measure again at once (a source started over)
         # Counts ``forget``: an answer to a question asked before belongs to clocks that
@@ -227,18 +226,19 @@ class ClockOffsets:
             time.monotonic_ns() + int(periods * OFFSET_PERIOD_S * 1e9),
         )
 
-    def ask(self, service: str) -> SourceClock | None:
+    def ask(self, service: str, then: Callable[[SourceClock | None], object]) -> None:
+        """Ask one service for its clock without waiting: ``then(clock)`` runs on the
+        node's executor with its sample, or None when it did not answer (or answered more
+        than once, or without a clock)."""
+
+        def answered(info: ServiceInfo | None) -> None:
+            self._answered(service, info is not None)
+            then(SourceClock.of(info) if info is not None else None)
+
         try:
-            info = self._node.service_info(service, timeout_s=_ASK_TIMEOUT_S, unambiguous=True)
+            self._node.ask_service_info(service, answered, timeout_s=_ASK_TIMEOUT_S)
         except FramegateError:
-            self._answered(service, False)
-            return None
-        self._answered(service, True)
-        clock = SourceClock.of(info)
-        if clock is not None:
-            with self._lock:
-                self._sources[service] = clock
-        return clock
+            answered(None)
 
     def measure(
         self,
@@ -267,30 +267,18 @@ class ClockOffsets:
         answers: dict[str, SourceClock | None] = {}
         generation = self._generation
 
-        def answered(service: str, info: ServiceInfo | None) -> None:
-            self._answered(service, info is not None)
-            clock = SourceClock.of(info) if info is not None else None
+        def answered(service: str, clock: SourceClock | None) -> None:
             answers[service] = clock
             if len(answers) < len(wanted):
                 return
             camera, gyro = answers.get(self._camera), answers.get(self._gyro)
-            with self._lock:
-                current = generation == self._generation
-                for name, sample in ((self._camera, camera), (self._gyro, gyro)):
-                    if current and sample is not None:
-                        self._sources[name] = sample
-            if current and camera is not None and gyro is not None:
+            if generation == self._generation and camera is not None and gyro is not None:
                 self.add(camera, gyro)
             if then is not None:
                 then()
 
         for service in wanted:
-            try:
-                self._node.ask_service_info(
-                    service, functools.partial(answered, service), timeout_s=_ASK_TIMEOUT_S
-                )
-            except FramegateError:
-                answered(service, None)
+            self.ask(service, functools.partial(answered, service))
 
     def add(self, camera: SourceClock, gyro: SourceClock) -> None:
         """One sample of both clocks (``measure``'s, or a test's)."""
@@ -302,11 +290,6 @@ class ClockOffsets:
                 self._samples.clear()
                 self._clocks = clocks
             self._samples.append(ClockSample(offset, 2 * error))
-
-    def clock(self, service: str) -> SourceClock | None:
-        """The latest clock sample of ``service`` (the camera's or the gyro's), if any."""
-        with self._lock:
-            return self._sources.get(service)
 
     def forget(self) -> None:
         """Drop the samples (a source started over): unknown until measured again."""

@@ -59,7 +59,8 @@ recovery are logged.
 
 Modules: ``_mediator_config`` (settings and flags), ``_mediator_inputs`` (gyro cache, clock
 offsets), ``_mediator_pairing`` (frame + gyro -> quality), ``_mediator_output`` (verdicts
-carried out and recorded); this one routes between them.
+carried out and recorded), ``_mediator_restart`` (a camera stream that starts over); this
+one routes between them.
 
 Threads: none of its own. The handlers (``on_camera``, ``on_gyro``, ``on_time``, the clock
 measurements) run on the node's executor (``attach``): camera and gyro notifications as
@@ -88,7 +89,6 @@ from middleware import (
 from services.lib.decisions import Action, Candidate, Decider, Rules, Verdict, make_policy
 from services.lib.messages import check_frame, read_frame_metadata
 from services.lib.quality import BlurOptions
-from services.lib.rewind import SourceClock, rewind_after
 from services.nodes._contract import Service, ServiceEntry
 from services.nodes._mediator_config import MediatorConfig, add_arguments, config_from_args
 from services.nodes._mediator_inputs import (
@@ -106,6 +106,7 @@ from services.nodes._mediator_pairing import (
     Waiting,
     blur_quality,
 )
+from services.nodes._mediator_restart import StreamStarts
 from services.nodes._runtime import setup_logging
 
 
@@ -117,8 +118,6 @@ class _Deadline(Protocol):
 
 # Gyro notifications queued (deep: a busy mediator never stalls the gyro; see AckPolicy).
 GYRO_QUEUE = 256
-# Looks for the frames stored while our subscription had lapsed, 1 s apart (_record_missed).
-_MISSED_TRIES = 5
 
 
 class Mediator:
@@ -163,7 +162,6 @@ class Mediator:
         self._horizon_ns = int(config.horizon_s * 1e9)
         self._node = node
         self._camera_seq: int | None = None
-        self._stream_clock: SourceClock | None = None  # the camera's, when its stream began
         self._newest_camera_ns: int | None = None
         self.decider = Decider(
             make_policy(config.policy),
@@ -172,6 +170,9 @@ class Mediator:
                 gyro_missing=config.gyro_missing,
                 max_hold_ns=int(config.max_hold_ms * 1e6),
             ),
+        )
+        self.starts = StreamStarts(
+            node, config.camera, self._offsets, self.out, self.decider, self.log, self._clock_came
         )
         self._attached = False
         self._timer: _Deadline | None = None
@@ -240,6 +241,8 @@ class Mediator:
 
     def on_time(self, now: int) -> None:
         """Frames paired or due are decided, held frames may go out or go stale."""
+        if not self.starts.resume():
+            return
         ready = self.pairing.ready(now)
         for paired in ready:
             self._decide(paired, now)
@@ -250,6 +253,8 @@ class Mediator:
     def next_deadline_ns(self) -> int | None:
         """When ``on_time`` has work next without any input (None: only on input): a
         frame's gyro wait ends, or the decider may decide on held frames."""
+        if self.starts.holding:
+            return None  # until the camera's clock answers (``_clock_came``)
         due = (self.pairing.next_deadline_ns(), self.decider.next_due_ns(time.monotonic_ns()))
         return min((d for d in due if d is not None), default=None)
 
@@ -293,70 +298,25 @@ class Mediator:
     # -- a camera stream that starts (over) -------------------------------------------------
     def _started_over(self, note: Notification) -> None:
         """The first frame, or a new epoch of the camera's stream (it restarted, or our
-        subscription was registered again): its frames are judged afresh."""
-        # The clock of the stream that ends, sampled when it started (a periodic sample may
-        # already be of the new process), and the new one's first sample, before pairing.
-        before = self._stream_clock
-        after = self._stream_clock = self._offsets.ask(self._camera_name)
-        if self._camera_seq is None:
-            return
-        self.log.info("camera stream started over (seq %d): time order restarts", note.seq)
-        now = time.monotonic_ns()
-        for paired in self.pairing.drain():  # the old stream's frames, still in order
-            self._decide(paired, now)
-        floor = self.out.newest_put_ns
-        if floor is not None and note.timestamp_ns <= floor:
-            check = rewind_after(floor, note.timestamp_ns, before, after, self.images.horizon_ns)
-            if check.after_ns is not None:
-                # The frames forwarded after the new stream's start were stamped by the
-                # camera's old clock, now known to have been ahead: kept, they would hold
-                # every later frame out of the detector's time-ordered buffer.
-                self.images.discard_after(check.after_ns, "rewound")
-                self.out.newest_put_ns = self.images.series.newest_ns
-                floor = self.out.newest_put_ns or 0  # 0: nothing left below which to stay
-            else:
-                self.log.warning(
-                    "camera stream starts %.3f s before the newest frame forwarded, and that "
-                    "is not a step of the camera's clock (%s): nothing is removed; its frames "
-                    "until then are dropped out-of-order",
-                    (floor - note.timestamp_ns) / 1e9,
-                    check.why,
-                )
-        self.decider.restart_order(floor)
-        self._offsets.forget()  # maybe another process, another clock: measured at once
-        self._measure_soon(time.monotonic_ns())
-        self._record_missed(note.timestamp_ns)
+        subscription was registered again): the old stream's frames are decided, and the
+        new one's are judged afresh once its clock has answered (``StreamStarts``)."""
+        restarted = self._camera_seq is not None
+        if restarted:
+            self.log.info("camera stream started over (seq %d): time order restarts", note.seq)
+            now = time.monotonic_ns()
+            for paired in self.pairing.drain():  # the old stream's frames, still in order
+                self._decide(paired, now)
+            self._offsets.forget()  # maybe another process, another clock: measured at once
+            self._measure_soon(now)
+            if self._newest_camera_ns is not None:
+                self.starts.missed(self._newest_camera_ns, note.timestamp_ns)
+        self.starts.begin(note.timestamp_ns, restarted)
 
-    def _record_missed(self, until_ns: int, since_ns: int | None = None, tries: int = 0) -> None:
-        """Record the frames the camera stored between the last one we took and ``until_ns``
-        (``since_ns`` when asked again): stored while our subscription had lapsed (stopped,
-        cut off past the lease) or before it registered with a restarted camera, none will
-        be notified; each gets a ``mediator-lapsed`` record. A look-up that is not answered
-        is made again; frames the camera's retention evicted cannot be named."""
-        last = self._newest_camera_ns if since_ns is None else since_ns
-        if last is None or until_ns <= last + 1:
-            return
-        try:
-            missed = self._node.query(
-                self.config.camera, time_range=f"[{last + 1}..{until_ns - 1}]", timeout_s=5.0
-            )
-        except FramegateError as exc:
-            self.log.warning("cannot look up the frames missed before %d: %s", until_ns, exc)
-            if tries + 1 < _MISSED_TRIES:
-                again = time.monotonic_ns() + 1_000_000_000
-                self._node.at(again, lambda _: self._record_missed(until_ns, last, tries + 1))
-            return
-        for element in missed:
-            try:
-                frame_id = read_frame_metadata(element.metadata).frame_id
-            except (FramegateError, ValueError, TypeError):
-                frame_id = 0
-            self.out.skip(
-                element.timestamp_ns, frame_id, "mediator-lapsed", "stored while not taken"
-            )
-        if missed:
-            what = "stored while our camera subscription had lapsed: recorded mediator-lapsed"
-            self.log.warning("%d frames were %s", len(missed), what)
+    def _clock_came(self) -> None:
+        """(the executor) A new stream's clock answered: its frames may be decided now."""
+        if self._attached:
+            self.on_time(time.monotonic_ns())
+            self._schedule()
 
     # -- driving it ---------------------------------------------------------------------
     def attach(self) -> None:

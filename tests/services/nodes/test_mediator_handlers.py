@@ -9,19 +9,29 @@ from collections.abc import Callable, Iterator
 import numpy as np
 import pytest
 
-from middleware import DataObject, NetworkConfig, Node, Notification, TransportError, now_ns
+from middleware import (
+    DataObject,
+    FramegateError,
+    NetworkConfig,
+    Node,
+    Notification,
+    TransportError,
+    now_ns,
+)
 from services.lib.camera_model import CameraModel
 from services.lib.decisions import GyroMissing, Load
 from services.lib.messages import DecisionRecord, frame_metadata
 from services.lib.quality import Exposure, GyroSamples
 from services.lib.rewind import SourceClock
-from services.nodes.mediator import _MISSED_TRIES, Mediator, MediatorConfig
+from services.nodes._mediator_restart import MISSED_TRIES
+from services.nodes.mediator import Mediator, MediatorConfig
 from tests.conftest import free_port
 
 MS = 1_000_000
 IMAGE = np.zeros((48, 64), dtype=np.uint8)
 CAMERA = CameraModel(width_px=64, height_px=48, fx_px=50.0, fy_px=50.0, cx_px=32.0, cy_px=24.0)
 WAIT_MS = 150.0
+Answer = Callable[[list[DataObject] | FramegateError], object]
 
 
 class Fed:
@@ -42,6 +52,9 @@ class Fed:
         self.mediator.out.write = keep  # type: ignore[method-assign]
         clock = SourceClock("host", 1, 0, 0, 100_000)
         self.mediator._offsets.add(clock, clock)  # both clocks measured: they agree
+        # The camera's stream is under way (its start asks the camera's clock, and there is
+        # no camera here): the frames fed are decided at once.
+        self.mediator._camera_seq = 0
         self.seq = 0
 
     def frame(self, start_ms: int) -> None:
@@ -147,23 +160,19 @@ def test_frames_stored_while_lapsed_are_looked_up_again_when_the_camera_does_not
     # On a loaded machine the look-up of the frames stored while the mediator's subscription
     # had lapsed can go unanswered; without asking again those frames got no record at all.
     mediator = fed.mediator
-    mediator._newest_camera_ns = 10 * MS
     metadata = frame_metadata(7, Exposure(20 * MS, 10 * MS), IMAGE, CAMERA)
     stored = DataObject(20 * MS, IMAGE.tobytes(), metadata)
     asked: list[str] = []
     later: list[Callable[[int], object]] = []
 
-    def query(target: str, time_range: str, timeout_s: float) -> list[DataObject]:
-        asked.append(time_range)
-        if len(asked) == 1:
-            raise TransportError("the camera did not answer")
-        return [stored]
+    def ask_query(target: str, answer: Answer, time_range: str, timeout_s: float) -> None:
+        asked.append(time_range)  # answered at once here; the executor runs it later
+        answer(TransportError("the camera did not answer") if len(asked) == 1 else [stored])
 
-    mediator._node.query = query  # type: ignore[method-assign,assignment]
+    mediator._node.ask_query = ask_query  # type: ignore[method-assign,assignment]
     mediator._node.at = lambda deadline_ns, fn: later.append(fn)  # type: ignore[method-assign,assignment,return-value]
-    mediator._record_missed(30 * MS)
+    mediator.starts.missed(10 * MS, 30 * MS)
     assert fed.records == [] and len(later) == 1
-    mediator._newest_camera_ns = 40 * MS  # frames came meanwhile: the range stays the gap's
     later.pop()(0)
     assert asked == [f"[{10 * MS + 1}..{30 * MS - 1}]"] * 2
     assert fed.reasons() == ["mediator-lapsed"] and fed.records[0].frame_timestamp_ns == 20 * MS
@@ -171,17 +180,69 @@ def test_frames_stored_while_lapsed_are_looked_up_again_when_the_camera_does_not
 
 def test_the_look_up_of_lapsed_frames_is_asked_a_bounded_number_of_times(fed: Fed) -> None:
     mediator = fed.mediator
-    mediator._newest_camera_ns = 10 * MS
     asked: list[str] = []
     later: list[Callable[[int], object]] = []
 
-    def query(target: str, time_range: str, timeout_s: float) -> list[DataObject]:
+    def ask_query(target: str, answer: Answer, time_range: str, timeout_s: float) -> None:
         asked.append(time_range)
-        raise TransportError("the camera did not answer")
+        answer(TransportError("the camera did not answer"))
 
-    mediator._node.query = query  # type: ignore[method-assign,assignment]
+    mediator._node.ask_query = ask_query  # type: ignore[method-assign,assignment]
     mediator._node.at = lambda deadline_ns, fn: later.append(fn)  # type: ignore[method-assign,assignment,return-value]
-    mediator._record_missed(30 * MS)
+    mediator.starts.missed(10 * MS, 30 * MS)
     while later:
         later.pop()(0)
-    assert len(asked) == _MISSED_TRIES and fed.records == []
+    assert len(asked) == MISSED_TRIES and fed.records == []
+
+
+def test_a_restarted_camera_stream_waits_for_its_clock_without_holding_the_handlers(
+    fed: Fed,
+) -> None:
+    # The camera's clock is asked when its stream starts over (a rewind is judged by it);
+    # the question used to block the executor for a round trip, up to a second for a camera
+    # gone again. Now the stream's frames wait, and are decided when the answer comes.
+    mediator = fed.mediator
+    asked: list[Callable[[SourceClock | None], object]] = []
+    mediator._offsets.ask = lambda service, then: asked.append(then)  # type: ignore[method-assign]
+    fed.gyro(0, 200)
+    fed.frame(10)
+    assert len(fed.records) == 1 and asked == []  # a stream under way asks nothing
+    fed.seq = 0  # the camera restarted: its sequence starts over
+    fed.frame(50)
+    fed.frame(100)
+    assert len(fed.records) == 1 and len(asked) == 1  # returned at once; nothing decided
+    assert mediator.starts.holding and mediator.next_deadline_ns() is None
+    mediator.on_time(time.monotonic_ns())  # nothing yet, however often asked
+    assert len(fed.records) == 1
+    clock = SourceClock("host", 2, 0, 0, 100_000)
+    asked[0](clock)  # the executor runs the answer
+    mediator._offsets.add(clock, clock)  # and the measurement asked at the restart
+    mediator.on_time(time.monotonic_ns())
+    assert not mediator.starts.holding
+    assert [r.frame_timestamp_ns for r in fed.records] == [10 * MS, 50 * MS, 100 * MS]
+
+
+def test_a_camera_that_restarts_again_before_its_clock_answered_removes_nothing(
+    fed: Fed,
+) -> None:
+    # Two starts in a row: the first is carried out without its clock (no rewind can be
+    # proven), the second waits for its own and the first one's answer.
+    mediator = fed.mediator
+    asked: list[Callable[[SourceClock | None], object]] = []
+    mediator._offsets.ask = lambda service, then: asked.append(then)  # type: ignore[method-assign]
+    fed.gyro(0, 300)
+    fed.frame(200)
+    fed.seq = 0
+    fed.frame(100)  # started over, stamped before the frame forwarded
+    fed.seq = 0
+    fed.frame(150)  # and again, before the first restart's clock answered
+    assert len(asked) == 2 and mediator.starts.holding
+    asked[1](SourceClock("host", 3, 0, 0, 100_000))
+    mediator.on_time(time.monotonic_ns())
+    assert mediator.starts.holding  # the stream before it has not answered yet
+    asked[0](None)
+    clock = SourceClock("host", 3, 0, 0, 100_000)
+    mediator._offsets.add(clock, clock)  # the measurement asked at the restart
+    mediator.on_time(time.monotonic_ns())
+    assert not mediator.starts.holding and mediator.images.info().rewinds == ()
+    assert fed.reasons()[0] != "out-of-order" and fed.reasons()[1:] == ["out-of-order"] * 2
