@@ -50,7 +50,7 @@ from typing import Any, Generic, TypeVar
 import zenoh
 
 from ._ledger_producer import REPEAT_RESEND_NS
-from ._wire import ACK_KEYS_REMEMBERED, AckFilter
+from ._wire import ACK_KEYS_REMEMBERED, AckFilter, decode_ack
 
 # Zenoh threads whose Python thread state is kept (see the module doc).
 _PINNED: set[int] = set()
@@ -239,23 +239,35 @@ class AckInbox(ControlInbox):
       (it can only make resends due, at most that often), so it carries nothing, an honest
       subscriber's included (it repeats an ack when a resent notification crosses its ack):
       an ack that never reached the inbox is no repeat of anything kept, and a repeat after
-      the window passes.
+      the window passes;
+    - ``foreign``: an ack that cannot count (``plausible`` says no: no live registration owns
+      its epoch under its key's id, or it acks more than was sent): forged acks of made-up
+      epochs, ids or numbers, distinct each (undecodable ones count as ``malformed``).
 
-    Garbage and repeated forged acks then cost Zenoh's thread a copy of at most
-    ``max_bytes`` and a comparison, and the executor nothing: they never fill the inbox, so
-    an honest ack that arrives among them is kept (measured: ``docs/limits.md``)."""
+    Garbage and forged acks then cost Zenoh's thread a copy of at most ``max_bytes``, a
+    comparison or a decode, and the executor nothing: they never fill the inbox, so an
+    honest ack that arrives among them is kept (measured: ``docs/limits.md``). Only acks a
+    live registration could take reach it (a peer that read a subscriber's epoch off its
+    notify key can still send those: the default profile's limit, docs/security.md)."""
 
     def __init__(
-        self, *, capacity: int = ACK_INBOX, max_bytes: int, signal: Callable[[], None]
+        self,
+        *,
+        capacity: int = ACK_INBOX,
+        max_bytes: int,
+        signal: Callable[[], None],
+        plausible: Callable[[str, str, int], bool],
     ) -> None:
         super().__init__(capacity=capacity, max_bytes=max_bytes, signal=signal)
         self.malformed = 0
         self.repeats = 0
+        self.foreign = 0
         self._filter = AckFilter(REPEAT_RESEND_NS)  # only a shortcut: the protocol checks again
+        self._plausible = plausible
 
     @property
     def dropped(self) -> int:
-        return self.oversize + self.overflow + self.malformed + self.repeats
+        return self.oversize + self.overflow + self.malformed + self.repeats + self.foreign
 
     def _keep(self, sample: zenoh.Sample, payload: zenoh.ZBytes) -> Control | _Drop | None:
         data = payload.to_bytes()  # at most ``max_bytes``: checked before
@@ -270,6 +282,16 @@ class AckInbox(ControlInbox):
         if self._filter.repeat(key, data, now_ns):
             with self._count_lock:
                 self.repeats += 1
+            return DROPPED
+        try:
+            epoch, seq = decode_ack(data)
+        except Exception:  # garbage that starts like an ack: the protocol would drop it too
+            with self._count_lock:
+                self.malformed += 1
+            return DROPPED
+        if not self._plausible(key.rsplit("/", 1)[-1], epoch, seq):
+            with self._count_lock:
+                self.foreign += 1
             return DROPPED
         self._filter.remember(key, data, now_ns)
         return Control(key, data, sample.kind == zenoh.SampleKind.PUT)

@@ -206,12 +206,21 @@ class ProducerLedger(Generic[H]):
         return reg
 
     # -- acks ------------------------------------------------------------------------------
+    def plausible(self, sub_id: str, epoch: str, seq: int) -> bool:
+        """Whether ``ack`` would look at this ack at all: a live registration owns the
+        epoch, under this id, and sent at least ``seq``. The one method safe to call from
+        another thread (an ack inbox on Zenoh's thread: one dict look-up and two reads,
+        each atomic under the GIL; a registration made or retired meanwhile is seen either
+        way, and ``ack`` checks again)."""
+        reg = self._by_epoch.get(epoch)
+        return reg is not None and reg.key.sub_id == sub_id and seq <= reg.sent
+
     def ack(self, sub_id: str, epoch: str, seq: int, now_ns: int) -> bool:
         """Apply a cumulative ack; True if it freed credit."""
-        reg = self._by_epoch.get(epoch)
-        if reg is None or reg.key.sub_id != sub_id or seq > reg.sent:
+        if not self.plausible(sub_id, epoch, seq):
             self.counters.foreign_acks += 1
             return False
+        reg = self._by_epoch[epoch]
         new = seq
         if new <= reg.acked:
             if (

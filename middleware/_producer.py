@@ -124,7 +124,11 @@ class Producer:
         self._wake = Wake(self, self._cond, executor, lambda: len(self._acks))
         # Acks are fed by whoever needs credit next (a put, ``fill``, the executor before a
         # resend); only a waiting put, or a backlog, wakes anyone (``Wake``).
-        self._acks = AckInbox(max_bytes=ACK_MAX_BYTES, signal=self._wake.signal)
+        self._acks = AckInbox(
+            max_bytes=ACK_MAX_BYTES,
+            signal=self._wake.signal,
+            plausible=self._protocol.plausible_ack,
+        )
         # A token is the executor's at once: a new subscriber waits for its greeting. A token
         # is its key; it carries no payload.
         self._token_keys = keys.subscription_tokens(service, buffer)

@@ -259,6 +259,11 @@ class ProducerProtocol:
                 self._paced.pop(reg.key, None)
         return freed
 
+    def plausible_ack(self, sub_id: str, epoch: str, seq: int) -> bool:
+        """Whether an ack could count (``ProducerLedger.plausible``; safe from another
+        thread): what an ack inbox keeps, so that forged acks never fill it."""
+        return self._ledger.plausible(sub_id, epoch, seq)
+
     def full(self, count: int = 1) -> Registration[_Kept] | None:
         """A flow registration without room for ``count`` more elements, or None."""
         return self._ledger.full(count)

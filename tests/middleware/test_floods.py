@@ -167,3 +167,40 @@ def test_garbage_and_repeated_acks_are_dropped_before_they_are_buffered(
                 rogue.put(key, forged, congestion_control=block)
             note = sub.take(timeout_s=scaled(10))
             assert note is not None and note.timestamp_ns == t
+
+
+def test_distinct_forged_acks_are_dropped_before_they_are_buffered(
+    listen_net, connect_net, endpoint
+) -> None:
+    """Valid-looking acks, each different (made-up epochs, another id's epoch, numbers beyond
+    what was sent), on a live subscription's ack key: none can count, so each is dropped on
+    Zenoh's thread (``foreign``) and none is buffered. They used to fill the inbox ahead of
+    the subscription's own acks (a camera stalled ~10 s under such a flood)."""
+    with (
+        Node("cam", listen_net) as service,
+        Node(network=connect_net) as client,
+        open_session(endpoint) as rogue,
+    ):
+        images = service.offer("images")
+        sub = client.subscribe("cam/images", queue_size=1)
+        other = client.subscribe("cam/images", queue_size=1)
+        key = f"framegate/@ack/cam/images/{sub.subscription_id}"
+        wait_until(lambda: len(images.subscriptions()) == 2, 30, "both registered")
+        epochs = [f"{images.epoch}.{n}" for n in (1, 2)]  # sub's, and other's
+        block = zenoh.CongestionControl.BLOCK
+        forged = [encode_ack(f"made-up.{n}", 1) for n in range(300)]
+        forged += [encode_ack(epoch, 10**6 + n) for n in range(300) for epoch in epochs[:1]]
+        forged += [encode_ack(epochs[1], n) for n in range(300)]  # not this key's epoch
+        for payload in forged:
+            rogue.put(key, payload, congestion_control=block)
+        acks = images._acks
+        # sub's own epoch on sub's key, beyond sent: the first 300 + 300 + 300 are foreign.
+        wait_until(lambda: acks.foreign == len(forged), 30, "every forged ack counted")
+        assert len(acks) == 0 and acks.overflow == 0
+        for t in range(1, 6):  # the subscription's own acks free its credit among them
+            images.put(t, b"x", _meta(t), wait_s=scaled(10))
+            for payload in forged[:20]:
+                rogue.put(key, payload, congestion_control=block)
+            note = sub.take(timeout_s=scaled(10))
+            assert note is not None and note.timestamp_ns == t
+            assert other.take(timeout_s=scaled(10)) is not None
