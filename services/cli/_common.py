@@ -121,3 +121,8 @@ def report_failures(failures: list[str]) -> int:
     for line in failures:
         print(f"error: {line}", file=sys.stderr, flush=True)
     return 1 if failures else 0
+
+
+def counted(count: int, noun: str) -> str:
+    """``1 element``, ``2 elements``: a count with its noun (regular plurals only)."""
+    return f"{count} {noun}" if count == 1 else f"{count} {noun}s"

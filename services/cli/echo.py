@@ -34,7 +34,9 @@ def register(subparsers: Any) -> None:
     parser.add_argument(
         "--field",
         metavar="NAME",
-        help="print only this metadata field (dotted for nested ones: camera.fx_px)",
+        action="append",
+        help="print only this metadata field (dotted for nested ones: camera.fx_px); "
+        "repeat it for several, printed on one line in that order",
     )
     parser.add_argument("--count", type=positive_int, metavar="K", help="stop after K elements")
     parser.add_argument("--duration", type=positive_float, metavar="S", help="stop after S s")
@@ -82,6 +84,18 @@ def _print_element(row: dict[str, Any]) -> None:
     print("\n".join(lines), flush=True)
 
 
+def _field(row: dict[str, Any], name: str) -> Any:
+    """One metadata field of an element's row; FramegateError naming the fields it has."""
+    try:
+        return field_value(row["fields"], name)
+    except KeyError:
+        hint = did_you_mean(name, flat_names(row["fields"]))
+        raise FramegateError(
+            f"{row['kind']} metadata has no field {name!r}{hint}; "
+            f"it has: {', '.join(flat_names(row['fields'])) or 'none'}"
+        ) from None
+
+
 def run(args: argparse.Namespace) -> int:
     exit_on_sigterm()
     shown = 0
@@ -100,18 +114,11 @@ def run(args: argparse.Namespace) -> int:
                 row = element_json(note, element.payload, element.metadata)
                 shown += 1
                 if args.field is not None:
-                    try:
-                        value = field_value(row["fields"], args.field)
-                    except KeyError:
-                        hint = did_you_mean(args.field, flat_names(row["fields"]))
-                        raise FramegateError(
-                            f"{row['kind']} metadata has no field {args.field!r}{hint}; "
-                            f"it has: {', '.join(flat_names(row['fields'])) or 'none'}"
-                        ) from None
+                    values = [_field(row, name) for name in args.field]
                     if args.json:
-                        print_json_line(value)
+                        print_json_line(values[0] if len(values) == 1 else values)
                     else:
-                        print(_text(value), flush=True)
+                        print(" ".join(_text(v) for v in values), flush=True)
                 elif args.json:
                     print_json_line(row)
                 else:

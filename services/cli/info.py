@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Any
 
 from middleware import BufferInfo, Node, ServiceInfo, check_name
 
-from ._common import command_parser, format_bytes, format_ns, network, print_json
+from ._common import command_parser, counted, format_bytes, format_ns, network, print_json
 from ._target import add_timeout_argument, resolve, wait_for_service
 from .ls import clock_steps_text, holder, listen_text
 
@@ -120,7 +120,7 @@ def _print_buffer(service: ServiceInfo, b: BufferInfo) -> None:
         f"{_limit(r.max_bytes, format_bytes)}, age {age}, "
         f"element payload <= {format_bytes(r.max_payload_bytes)}"
     )
-    print(f"  size           {b.count} elements, {format_bytes(b.payload_bytes)}")
+    print(f"  size           {counted(b.count, 'element')}, {format_bytes(b.payload_bytes)}")
     print(f"  span           {format_ns(b.oldest_ns)} .. {format_ns(b.newest_ns)}{span}")
     print(f"  rate           {b.rate_hz:.1f} Hz")
     skipped = "".join(f", skipped {reason} {n}" for reason, n in sorted(b.skipped.items()))

@@ -23,7 +23,7 @@ from middleware import (
 from services.lib.argtypes import positive_int
 from services.lib.files import OutputError, create_file, open_directory
 
-from ._common import command_parser, format_bytes, format_ns, network, print_json
+from ._common import command_parser, counted, format_bytes, format_ns, network, print_json
 from ._fields import decode_metadata
 from ._target import add_timeout_argument, resolve
 
@@ -144,7 +144,7 @@ def run(args: argparse.Namespace) -> int:
         return 0
     _print_table(elements)
     if args.save is not None:
-        print(f"saved {_elements(len(elements))} to {args.save}")
+        print(f"saved {counted(len(elements), 'element')} to {args.save}")
     return 0
 
 
@@ -192,11 +192,13 @@ def _print_table(elements: list[DataObject]) -> None:
             f"{k}={v if len(v) <= 24 else v[:21] + '...'}"
             for k, v in list(fields.items())[:TABLE_FIELDS]
         )
+        if len(fields) > TABLE_FIELDS:  # the rest: --json, or echo --field
+            shown += f" (+{len(fields) - TABLE_FIELDS} more)"
         print(
             f"{format_ns(e.timestamp_ns):<28} {e.timestamp_ns:>20}  {kind:<10}"
             f" {format_bytes(len(e.payload)):>10}  {shown}"
         )
-    print(_elements(len(elements)))
+    print(counted(len(elements), "element"))
 
 
 def _save_all(directory: Path, elements: list[DataObject], force: bool) -> dict[int, list[str]]:
@@ -246,7 +248,3 @@ def _png(payload: bytes, layout: Any) -> bytes:
     if not ok:
         raise OutputError("cannot encode a frame as PNG: OpenCV refused the image")
     return bytes(encoded)
-
-
-def _elements(count: int) -> str:
-    return f"{count} element" if count == 1 else f"{count} elements"

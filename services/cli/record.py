@@ -38,7 +38,7 @@ from middleware import (
 from services.lib.argtypes import positive_float, positive_int
 from services.tools.bag import STOP_SLACK_S, TAIL_FLOOR_S
 
-from ._common import command_parser, exit_on_sigterm, format_bytes, network, print_json
+from ._common import command_parser, counted, exit_on_sigterm, format_bytes, network, print_json
 from ._target import add_timeout_argument, nothing_answered, observer, resolve, where
 
 if TYPE_CHECKING:
@@ -352,11 +352,12 @@ def _summary(
         return
     total = sum(r.progress.recorded for r in recorders)
     size_text = format_bytes(size)
-    print(f"recorded {total} elements to {args.output} ({size_text}) in {duration_s:.1f} s")
+    recorded = counted(total, "element")
+    print(f"recorded {recorded} to {args.output} ({size_text}) in {duration_s:.1f} s")
     for r in recorders:
         p = r.progress
         print(
-            f"  {p.name:<28} {p.recorded:>7} elements ({p.backfilled} backfilled, "
+            f"  {p.name:<28} {counted(p.recorded, 'element'):>15} ({p.backfilled} backfilled, "
             f"{p.evicted} evicted, {p.dropped} dropped)"
         )
         if p.evicted:

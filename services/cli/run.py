@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from middleware import EXIT_NAME_TAKEN, NameTakenError, add_network_arguments
+from middleware import EXIT_NAME_TAKEN, ConfigError, NameTakenError, add_network_arguments
 from services.lib.argtypes import FramegateParser, print_error
 from services.nodes import SERVICES, describe, exit_with_parent, service
 
@@ -21,12 +21,16 @@ def register(subparsers: Any) -> None:
     )
     # The service's own flags are parsed in run(): registering them here would import all
     # four services (OpenCV, SciPy) for every command and slow every restart.
-    parser.add_argument("service", choices=SERVICES, metavar="SERVICE", help=", ".join(SERVICES))
+    parser.add_argument(
+        "service", nargs="?", choices=SERVICES, metavar="SERVICE", help=", ".join(SERVICES)
+    )
     parser.add_argument(
         "args",
         nargs=argparse.REMAINDER,
+        metavar="FLAGS",
         help="the service's flags (framegate run SERVICE --help)",
     )
+    parser.usage = "framegate run [-h] SERVICE [FLAGS ...]"  # SERVICE is optional only to argparse
     parser.set_defaults(func=run)
 
 
@@ -39,6 +43,8 @@ def service_parser(name: str) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.service is None:  # argparse would name its own "args" as missing too
+        raise ConfigError(f"framegate run: name a service: {', '.join(SERVICES)}")
     svc = service(args.service)
     parsed = service_parser(args.service).parse_args(args.args)
     config = svc.config_from_args(parsed)

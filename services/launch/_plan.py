@@ -162,6 +162,9 @@ def process_specs(
                 # Loopback unless the deploy file says where: no wide listener by accident;
                 # on the rendezvous port, as `framegate router` itself.
                 net = replace(net, listen=(f"tcp/127.0.0.1:{net.local_port}",))
+            # A file-wide ``connect`` names the router every process reaches: the router
+            # itself does not connect to where it listens (it did, a link to itself).
+            net = replace(net, connect=tuple(e for e in net.connect if e not in net.listen))
             argv = [sys.executable, "-m", "services.cli", "router", *net.to_args()]
         else:
             argv = [

@@ -20,6 +20,7 @@ from middleware import (
     Node,
     Producer,
     Retention,
+    SubscriptionInfo,
     now_ns,
 )
 from services.lib.decisions import Action, Candidate, Decider, Load, Verdict, tightest_load
@@ -35,6 +36,14 @@ class Frame:
     payload: bytes
     metadata: bytes
     candidate: Candidate
+
+
+def _consumer(sub: SubscriptionInfo | None) -> str:
+    """The flow-controlled consumer as a log line names it (its node, as ``info`` shows)."""
+    if sub is None:
+        return "the consumer"
+    where = f"{sub.node}@{sub.host}" if sub.node and sub.host else sub.node or sub.subscription_id
+    return f"the consumer {where}"
 
 
 def _wall_ns(monotonic_ns: int | None) -> int | None:
@@ -69,6 +78,7 @@ class Output:
         # The flow-controlled consumer (the detector): whether one was ever seen, whether
         # its subscription has lapsed, and the frames last seen waiting in its queue.
         self._consumer_capacity: int | None = None
+        self._consumer: SubscriptionInfo | None = None  # the last one seen, for the log
         self.lapsed = False
         self._queued_frames: collections.deque[Frame] = collections.deque()
         self.last_load = Load(0, 0)
@@ -93,7 +103,8 @@ class Output:
         if tightest is not None:
             if self.lapsed:
                 self.lapsed = False
-                self.log.warning("the detector's subscription is back: forwarding again")
+                self.log.warning("%s subscribes again: forwarding again", _consumer(tightest))
+            self._consumer = tightest
             self._consumer_capacity = tightest.queue_size
             self.last_load = load
             return load
@@ -105,10 +116,11 @@ class Output:
             queued = self.last_load.queued
             waiting = list(self._queued_frames)[-queued:] if queued else []
             self.log.warning(
-                "the detector's subscription lapsed (a stopped or unreachable consumer); "
-                "frames are recorded consumer-lapsed, not forwarded, until it is back "
-                "(%d forwarded frames were waiting in its queue)",
-                len(waiting),
+                "%s no longer subscribes (it stopped, exited or became unreachable); frames "
+                "are recorded consumer-lapsed, not forwarded, until a consumer subscribes "
+                "(%s waiting in its queue)",
+                _consumer(self._consumer),
+                "1 forwarded frame was" if len(waiting) == 1 else f"{len(waiting)} were",
             )
             for frame in waiting:
                 self.record(frame, Verdict(frame.candidate, Action.DROP, "consumer-lapsed"), full)

@@ -74,14 +74,32 @@ def load_handler(spec: str, *, bind: bool = True) -> Handler:
                 f"handler {spec!r}: {module_name!r} has no {attr_path!r}"
                 + did_you_mean(part, names, quote=True)
             ) from exc
-    if bind and inspect.isclass(owner) and inspect.isfunction(inspect.getattr_static(owner, part)):
+    method = inspect.isclass(owner) and inspect.isfunction(inspect.getattr_static(owner, part))
+    if bind and method and inspect.isclass(owner):
         target = _bound(spec, owner, part)  # ``module:Class.method``: an instance method
     if not callable(target):
+        kind = type(target).__name__
         raise ConfigError(
-            f"handler {spec!r} is a {type(target).__name__}, not a function; "
-            "it must be callable as handler(image, frame)"
+            f"handler {spec!r} is {'an' if kind[:1] in 'aeiou' else 'a'} {kind}, not a "
+            "function; it must be callable as handler(image, frame)"
         )
+    _check_signature(spec, target, self_too=method and not bind)
     return typing.cast(Handler, target)
+
+
+def _check_signature(spec: str, target: object, *, self_too: bool) -> None:
+    """ConfigError unless ``target`` takes (image, frame) positionally (plus ``self`` for a
+    method not yet bound): a wrong arity failed on every frame, counted, not at start."""
+    try:
+        signature = inspect.signature(target)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        return  # no signature to read (some built-ins): it is called as it is
+    try:
+        signature.bind(*([None] * (3 if self_too else 2)))
+    except TypeError as exc:
+        raise ConfigError(
+            f"handler {spec!r} cannot be called as handler(image, frame): {exc}"
+        ) from None
 
 
 def _bound(spec: str, cls: type, name: str) -> object:

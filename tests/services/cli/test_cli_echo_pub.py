@@ -72,17 +72,25 @@ def test_pub_json_prints_one_object_per_element_then_done(cli: Cli, endpoint: st
 def test_echo_field_prints_one_value_per_element(service: Node, cli: Cli) -> None:
     images = service.offer("images", kind="frame")
     echo = cli.start("echo", "cam/images", "--field", "frame_id", "--count", "2")
+    # Several fields, in the order asked (a repeated --field kept only the last one).
+    both = cli.start(
+        "echo", "cam/images", "--field", "width_px", "--field", "frame_id", "--count", "2"
+    )
 
     def subscribed() -> bool:
-        return bool(images.subscriptions())
+        return len(images.subscriptions()) == 2
 
-    wait_until(subscribed, DISCOVERY_TIMEOUT_S * 3, "echo's subscription")
+    wait_until(subscribed, DISCOVERY_TIMEOUT_S * 3, "echo's subscriptions")
     base = time.time_ns()
     put_frame(images, base, 7)
     put_frame(images, base + 1000, 8)
     out, err = echo.communicate(timeout=scaled(60))
     assert echo.returncode == 0, err
     assert out.split() == ["7", "8"]
+    out, err = both.communicate(timeout=scaled(60))
+    assert both.returncode == 0, err
+    width = out.split()[0]
+    assert out.splitlines() == [f"{width} 7", f"{width} 8"] and width.isdigit()
 
 
 @pytest.mark.integration

@@ -114,6 +114,21 @@ services:
     assert "--namespace" in argv and "lab" in argv
 
 
+def test_the_readmes_deploy_file_starts_a_router_that_does_not_connect_to_itself() -> None:
+    # The file-wide connect names the router every process reaches; the router got it
+    # too, and connected to its own listen address.
+    readme = (REPO / "README.md").read_text()
+    text = readme.split("## Deploy files", 1)[1].split("```yaml\n", 1)[1].split("```", 1)[0]
+    deployment = parse_deployment(text, "README.md")
+    base = {p.name: p.argv for p in process_specs(deployment, "base", NetworkConfig(), text=text)}
+    assert set(base) == {"router", "mediator", "detector"}
+    router = base["router"]
+    assert "--connect" not in router and "tcp/10.0.0.1:7447" in router
+    assert "tcp/10.0.0.1:7447" in base["mediator"]
+    robot = process_specs(deployment, "robot", NetworkConfig(), text=text)
+    assert {p.name for p in robot} == {"camera", "gyro"}
+
+
 def test_supervisor_restarts_a_crashing_process_and_stops_cleanly(tmp_path: Path) -> None:
     marker = tmp_path / "runs"
     script = (

@@ -159,7 +159,12 @@ def test_a_handler_is_loaded_by_name() -> None:
             "tests.services.nodes.vision_handlers:brightst",
             r"has no 'brightst' \(did you mean 'brightest'\?\)",
         ),
-        ("tests.services.nodes.vision_handlers:NOT_A_FUNCTION", "is a int, not a function"),
+        ("tests.services.nodes.vision_handlers:NOT_A_FUNCTION", "is an int, not a function"),
+        (
+            "tests.services.nodes.vision_handlers:one_argument",
+            r"cannot be called as handler\(image, frame\): too many positional arguments",
+        ),
+        ("tests.services.nodes.vision_handlers:TakesNothing", "cannot be called as handler"),
     ],
 )
 def test_a_handler_that_cannot_be_loaded_is_a_config_error(spec: str, match: str) -> None:

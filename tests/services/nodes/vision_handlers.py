@@ -43,3 +43,12 @@ def stuck(image: npt.NDArray[np.uint8], frame: FrameMeta) -> list[Box]:
     """Never returns in any test's lifetime: a stop must not wait for it."""
     time.sleep(600)
     return []
+
+
+def one_argument(image: npt.NDArray[np.uint8]) -> list[Box]:
+    """Takes the image alone: every frame failed with a TypeError, counted, not at start."""
+    return []
+
+
+class TakesNothing:
+    """A class named as the handler, whose instances take no (image, frame)."""
