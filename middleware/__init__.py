@@ -18,8 +18,10 @@ Reading order, for whoever must change something:
    ``_producer``, which only moves bytes and time between Zenoh and that object. The same
    for the subscriber: ``_protocol_subscriber``, ``_ledger_subscriber``, ``_subscription``.
 4. ``_wire`` (the bytes on the wire), ``_service`` (queryables answering reads and
-   ``@info``), ``_buffer`` (the time series), ``_records`` (the typed records), then the rest
-   (``_xml``, ``_shapes``, ``_timerange``, ``_clock``, ``_config``, ``_rendezvous``).
+   ``@info``), ``_info_codec`` (the ``@info`` reply both ways, through the bounded gate of
+   ``_decode``), ``_buffer`` (the time series), ``_records`` (the typed records and their one
+   JSON form), then the rest (``_xml``, ``_shapes``, ``_timerange``, ``_clock``, ``_config``,
+   ``_rendezvous``).
 
 docs/threads.md says which thread runs what and what each lock guards.
 """

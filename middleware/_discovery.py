@@ -13,9 +13,10 @@ import zenoh
 
 from ._clock import now_ns
 from ._config import NetworkConfig, check_name
-from ._decode import MAX_REPLY_BYTES, decode_service_info
+from ._decode import MAX_REPLY_BYTES
 from ._errors import ConfigError, NotFoundError, QueryError
 from ._executor import Executor
+from ._info_codec import decode_service_info
 from ._records import BufferInfo, ServiceInfo
 from ._service import answering_sessions
 from ._session import zenoh_errors

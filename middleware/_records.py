@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import enum
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields, is_dataclass
 from typing import Any
 
 
@@ -201,6 +201,10 @@ class BufferInfo:
         """``service/buffer``."""
         return f"{self.service}/{self.buffer}"
 
+    def to_json(self) -> dict[str, Any]:
+        """This buffer as JSON values (``json_form``)."""
+        return json_form(self)  # type: ignore[no-any-return]
+
 
 @dataclass(frozen=True, slots=True)
 class ServiceInfo:
@@ -226,6 +230,30 @@ class ServiceInfo:
     # Queries the service ended unanswered because more were waiting than its inbox holds
     # (a flood: ``QueryInbox``); 0 from old peers.
     dropped_queries: int = 0
+
+    def to_json(self) -> dict[str, Any]:
+        """This service and its buffers as JSON values (``json_form``)."""
+        return json_form(self)  # type: ignore[no-any-return]
+
+
+def json_form(value: Any) -> Any:
+    """A record (or what it holds) as JSON values: every dataclass field by its name, an enum
+    by its value, a tuple as a list, and a subscription's ``fill`` beside its fields (the load
+    indicator, so that no reader computes it again). The one JSON form of these records:
+    ``framegate ls --json`` and ``info --json`` print it, the ``@info`` reply carries it
+    (``_info_codec``), so a field added to a record is sent and shown with no other edit."""
+    if is_dataclass(value) and not isinstance(value, type):
+        out = {f.name: json_form(getattr(value, f.name)) for f in fields(value)}
+        if isinstance(value, SubscriptionInfo):
+            out["fill"] = value.fill
+        return out
+    if isinstance(value, enum.Enum):
+        return value.value
+    if isinstance(value, list | tuple):
+        return [json_form(v) for v in value]
+    if isinstance(value, dict):
+        return {k: json_form(v) for k, v in value.items()}
+    return value
 
 
 # -- hot-path builders --------------------------------------------------------------------

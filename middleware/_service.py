@@ -13,7 +13,7 @@ old instance is dead finds no token and takes over). Two instances started at th
 moment can both pass that check; right after declaring, each asks again and the younger one
 (later ``started_ns``, then larger instance id) withdraws with the same error. A token counts
 as "offered elsewhere" only when its holder answers as that service (a valid ``@info``
-description naming it, decoded by ``_decode``): a bare liveliness token, or one whose holder
+description naming it, decoded by ``_info_codec``): a bare liveliness token, or one whose holder
 answers garbage, gets a one-line warning naming the token, and the service starts.
 """
 
@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import contextlib
 import difflib
-import json
 import logging
 import os
 import secrets
@@ -29,7 +28,6 @@ import socket
 import threading
 from collections import deque
 from collections.abc import Callable
-from dataclasses import asdict
 from typing import Any, cast
 
 import msgpack
@@ -38,11 +36,11 @@ import zenoh
 from ._buffer import TimeSeries
 from ._clock import CLOCK, now_ns
 from ._config import listening_endpoints
-from ._decode import decode_instance
 from ._errors import FramegateError, NameTakenError, NotFoundError, QueryError
 from ._inbox import pin_thread_state
+from ._info_codec import decode_instance, encode_service_info
 from ._producer import Producer
-from ._records import BufferInfo, DataObject
+from ._records import DataObject, ServiceInfo
 from ._timerange import parse_time_range
 from ._wire import ERR_BAD_QUERY, ERR_NOT_FOUND, Keys, encode_element_attachment, error_text
 
@@ -106,23 +104,6 @@ def _int_param(parameters: dict[str, str], name: str) -> int:
         return int(raw)
     except ValueError as exc:
         raise QueryError(f"{name}={raw!r} is not an integer") from exc
-
-
-def buffer_info_json(info: BufferInfo) -> dict[str, Any]:
-    data = asdict(info)
-    data["subscriptions"] = [
-        {
-            "id": s.subscription_id,
-            "mode": s.mode.value,
-            "queue_size": s.queue_size,
-            "queued": s.queued,
-            "fill": s.fill,
-            "node": s.node,
-            "host": s.host,
-        }
-        for s in info.subscriptions
-    ]
-    return data
 
 
 # How long the checks for another live instance wait for answers.
@@ -329,20 +310,20 @@ class ServiceEndpoint:
             query.reply(reply_key, b"", attachment=encode_answer_end(len(elements)))
 
     def _on_info(self, query: zenoh.Query) -> None:
-        body = {
-            "service": self.service,
-            "host": socket.gethostname(),
-            "pid": os.getpid(),
-            "clock_ns": now_ns(),
-            "clock": asdict(CLOCK.status()),
-            "instance": self.instance,
-            "started_ns": self.started_ns,
-            "buffers": [buffer_info_json(p.info()) for p in self.producers()],
-            "listen": listening_endpoints(),  # so `framegate ls` shows a wide listener
-            "threads": sorted(t.name for t in threading.enumerate()),  # see docs/threads.md
-            "dropped_queries": self._queries.dropped,
-        }
-        query.reply(self._keys.info(self.service), json.dumps(body).encode("utf-8"))
+        info = ServiceInfo(
+            service=self.service,
+            host=socket.gethostname(),
+            pid=os.getpid(),
+            clock_ns=now_ns(),
+            buffers=tuple(p.info() for p in self.producers()),
+            listen=tuple(listening_endpoints()),  # so `framegate ls` shows a wide listener
+            threads=tuple(sorted(t.name for t in threading.enumerate())),  # docs/threads.md
+            dropped_queries=self._queries.dropped,
+        )
+        body = encode_service_info(
+            info, CLOCK.status(), instance=self.instance, started_ns=self.started_ns
+        )
+        query.reply(self._keys.info(self.service), body)
 
     def close(self) -> None:
         for producer in self.producers():

@@ -4,7 +4,6 @@ or, given a recording (``FILE.mcap``), what it holds, like ``ros2 bag info``."""
 from __future__ import annotations
 
 import argparse
-from dataclasses import asdict
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -35,39 +34,23 @@ def register(subparsers: Any) -> None:
 
 
 def buffer_json(b: BufferInfo) -> dict[str, Any]:
-    """A buffer as ``ls --json`` shows it, plus readable times."""
-    data = asdict(b)
+    """A buffer in the records' JSON form (as ``ls --json`` shows it), plus its name and
+    readable times."""
+    data = b.to_json()
+    for sub in data["subscriptions"]:
+        del sub["taken_ns"]  # never known of a peer's subscription (left out, as always here)
     data["name"] = b.name
     data["oldest"] = format_ns(b.oldest_ns) if b.oldest_ns is not None else None
     data["newest"] = format_ns(b.newest_ns) if b.newest_ns is not None else None
-    data["subscriptions"] = [
-        {
-            "subscription_id": s.subscription_id,
-            "node": s.node,
-            "host": s.host,
-            "mode": s.mode.value,
-            "queue_size": s.queue_size,
-            "queued": s.queued,
-            "fill": s.fill,
-        }
-        for s in b.subscriptions
-    ]
     return data
 
 
 def service_json(info: ServiceInfo) -> dict[str, Any]:
-    return {
-        "service": info.service,
-        "host": info.host,
-        "pid": info.pid,
-        "clock_offset_ns": info.clock_offset_ns,
-        "round_trip_ns": info.round_trip_ns,
-        "clock_steps": info.clock_steps,
-        "clock_lead_ns": info.clock_lead_ns,
-        "listen": list(info.listen),
-        "threads": list(info.threads) if info.threads is not None else None,
-        "dropped_queries": info.dropped_queries,
-    }
+    """A service in the records' JSON form, without its buffers (the caller adds those) and
+    its raw clock reading (left out, as always here: its offset says what it means)."""
+    data = info.to_json()
+    del data["buffers"], data["clock_ns"]
+    return data
 
 
 def run(args: argparse.Namespace) -> int:

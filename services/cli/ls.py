@@ -7,7 +7,6 @@ import ipaddress
 import socket
 import sys
 from collections.abc import Sequence
-from dataclasses import asdict
 from typing import Any
 
 from middleware import Node, NotFoundError, ServiceInfo, SubscriptionInfo
@@ -39,16 +38,12 @@ def register(subparsers: Any) -> None:
 
 
 def service_json(info: ServiceInfo, clock: ClockEstimate | None = None) -> dict[str, Any]:
-    data = asdict(info)
+    """A service in the records' JSON form, with the clock estimate of ``ls``."""
+    data = info.to_json()
     if clock is not None:  # the best of several round trips, not the one listing query
         data["clock_offset_ns"] = clock.offset_ns
         data["round_trip_ns"] = clock.round_trip_ns
     data["clock_error_ns"] = None if clock is None else clock.error_ns
-    data["listen"] = list(info.listen)
-    for buffer in data["buffers"]:
-        for sub in buffer["subscriptions"]:
-            sub["mode"] = sub["mode"].value
-            sub["fill"] = min(1.0, sub["queued"] / sub["queue_size"])
     return data
 
 

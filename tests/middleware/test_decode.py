@@ -9,7 +9,8 @@ from typing import Any
 import pytest
 
 from middleware import QueryError
-from middleware._decode import MAX_DEPTH, MAX_REPLY_BYTES, decode_json, decode_service_info
+from middleware._decode import MAX_DEPTH, MAX_REPLY_BYTES, decode_json
+from middleware._info_codec import decode_service_info
 
 
 def _good() -> dict[str, Any]:
