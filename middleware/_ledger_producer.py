@@ -40,7 +40,7 @@ Messages in, and what they do in every state:
     moves nothing while notifications are outstanding is an idle subscriber's repeat: the
     outstanding ones are due again (a lost notification heals), at most once per
     ``REPEAT_RESEND_NS`` since the last progress or resend.
-``put_many(n elements, now)`` (``put`` is ``n = 1``)
+``put_many(n elements, now)``
     ``stored`` (the producer's element count; every registration's notifications carry the
     ``base`` it had when they registered) grows by n. The queue is counted in elements:
     refused, whole, while a flow registration has ``sent - acked + n > queue_size``
@@ -70,7 +70,7 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Generic, NamedTuple, TypeVar
 
-from ._records import SubscriptionInfo, SubscriptionMode
+from ._records import SubscriptionMode
 from ._wire import descriptor_of
 
 # Registrations one ledger keeps by default; tokens beyond it are ignored (and counted).
@@ -139,10 +139,6 @@ class Registration(Generic[H]):
     @property
     def flow(self) -> bool:
         return self.key.mode is SubscriptionMode.FLOW
-
-    def info(self) -> SubscriptionInfo:
-        k = self.key
-        return SubscriptionInfo(k.sub_id, k.mode, k.queue_size, self.queued, self.taken_ns)
 
 
 class Send(NamedTuple, Generic[H]):
@@ -247,10 +243,6 @@ class ProducerLedger(Generic[H]):
             if reg.flow and reg.queued + count > reg.key.queue_size:
                 return reg
         return None
-
-    def put(self, header: H, now_ns: int) -> list[Send[H]]:
-        """Count one stored element; the notifications to send. Call only when not full."""
-        return self.put_many((header,), now_ns)
 
     def put_many(self, headers: tuple[H, ...], now_ns: int) -> list[Send[H]]:
         """Count ``len(headers)`` stored elements, in order; one notification per

@@ -51,8 +51,8 @@ A batch notification ``(epoch, seq, n elements)`` is exactly the n notifications
 ``(epoch, seq + i)`` received one after another (``receive_many``): every rule above
 applies per element, so a batch changes nothing the properties below depend on.
 
-``take`` pops the oldest notification, sets ``taken`` of its epoch to its seq and makes an
-ack ``(epoch, seq)`` due (cumulative: it covers every earlier seq of that epoch). The ack
+``take_many`` pops the oldest notifications; each sets ``taken`` of its epoch to its seq and
+makes an ack ``(epoch, seq)`` due (cumulative: it covers every earlier seq of that epoch). The ack
 policy decides when due acks leave: ``AckPolicy(every=1)`` sends each at once; a larger
 ``every`` coalesces acks of queues > 1 (fewer messages, same credits once sent);
 ``AckPolicy.for_queue(N)`` is what subscriptions use: each take for N <= 3 (a queue of 1
@@ -383,20 +383,8 @@ class SubscriberLedger(Generic[T]):
         return False
 
     # -- taking and acking -----------------------------------------------------------------
-    def take(self) -> Entry[T] | None:
-        """The oldest queued notification (it leaves the queue), or None."""
-        if not self._queue:
-            return None
-        entry = self._queue.popleft()
-        track = self._epochs[entry.epoch]
-        track.queued -= 1
-        track.taken = entry.seq
-        track.unacked_takes += 1
-        self._takes += 1
-        return entry
-
     def take_many(self, max_count: int) -> list[Entry[T]]:
-        """Up to ``max_count`` of the oldest queued notifications: ``take`` that many times."""
+        """Up to ``max_count`` of the oldest queued notifications (they leave the queue)."""
         queue = self._queue
         entries = [queue.popleft() for _ in range(min(max_count, len(queue)))]
         name, track = None, None

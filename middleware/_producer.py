@@ -44,7 +44,6 @@ from ._records import (
     Retention,
     Rewind,
     SubscriptionInfo,
-    tightest_flow,
 )
 from ._wire import Keys
 from ._xml import XmlLimits
@@ -426,11 +425,6 @@ class Producer:
             skipped[reason] = skipped.get(reason, 0) + count
 
     # -- reading state -------------------------------------------------------------------
-    def fill(self) -> float:
-        """The paper's load indicator: ``tightest_flow``'s queued/N in [0, 1]; 0 with none."""
-        tightest = tightest_flow(self.subscriptions())
-        return tightest.fill if tightest is not None else 0.0
-
     def subscriptions(self) -> list[SubscriptionInfo]:
         """Every live subscription (registration) as this producer counts it."""
         with self._lock:

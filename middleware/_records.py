@@ -114,7 +114,7 @@ class SubscriptionInfo:
 def tightest_flow(subscriptions: Iterable[SubscriptionInfo]) -> SubscriptionInfo | None:
     """The flow-controlled subscription that will refuse the producer first (fewest free
     slots; the fullest of those), or None with none: whose ``fill`` is *the* load
-    indicator (``Producer.fill``, the mediator's load, the demo's)."""
+    indicator (the mediator's load, the demo's)."""
     flows = [s for s in subscriptions if s.mode is SubscriptionMode.FLOW]
     return min(flows, key=lambda s: (s.queue_size - s.queued, -s.fill), default=None)
 

@@ -25,6 +25,7 @@ from middleware import (
     add_network_arguments,
     make_metadata,
     network_from_args,
+    tightest_flow,
 )
 from tests.helpers.timing import scaled
 
@@ -129,12 +130,12 @@ def _do(
         producer.put(t, payload, metadata, wait_s=scaled(float(cmd.get("wait_s", 0))))
         return {}
     if op == "fill":
-        producer = producers[cmd["buffer"]]
+        subs = producers[cmd["buffer"]].subscriptions()
+        tightest = tightest_flow(subs)  # the load indicator, as the mediator reads it
         return {
-            "fill": producer.fill(),
+            "fill": tightest.fill if tightest is not None else 0.0,
             "subscriptions": [
-                {"id": s.subscription_id, "mode": s.mode.value, "queued": s.queued}
-                for s in producer.subscriptions()
+                {"id": s.subscription_id, "mode": s.mode.value, "queued": s.queued} for s in subs
             ],
         }
     if op == "wait_subscribers":

@@ -28,14 +28,14 @@ def _pair(queue_size: int) -> tuple[ProducerLedger[int], SubscriberLedger[int], 
 
 def _fill(producer: ProducerLedger[int], subscriber: SubscriberLedger[int], count: int) -> None:
     for t in range(count):
-        for send in producer.put(t, 0):
+        for send in producer.put_many((t,), 0):
             assert subscriber.receive(send.epoch, send.seq, send.headers[0], descriptor=None)
 
 
 def _take_counting_acks(subscriber: SubscriberLedger[int], count: int) -> list[tuple[str, int]]:
     acks: list[tuple[str, int]] = []
     for _ in range(count):
-        assert subscriber.take() is not None
+        assert subscriber.take_many(1)
         acks += subscriber.acks_due(0, idle=False)
     return acks
 
@@ -94,7 +94,7 @@ def test_a_slow_stream_acks_each_take_at_once_without_a_timer() -> None:
     for t in range(1, 6):
         now = t * 10 * ACK_DELAY_NS
         _fill(producer, subscriber, 1)
-        assert subscriber.take() is not None
+        assert subscriber.take_many(1)
         assert [seq for _, seq in subscriber.acks_due(now, idle=False)] == [t]
         assert subscriber.flush_at_ns() is None
 
@@ -109,7 +109,7 @@ def test_a_deep_queue_shares_one_ack_among_the_takes_of_its_delay() -> None:
     for t in range(10):
         _fill(producer, subscriber, 10)
         for _ in range(10):
-            assert subscriber.take() is not None
+            assert subscriber.take_many(1)
         acks += [seq for _, seq in subscriber.acks_due(t * step, idle=False)]
         due = subscriber.flush_at_ns()
         assert due is None or due - t * step <= DEEP_ACK_DELAY_NS
@@ -136,11 +136,11 @@ def test_only_a_deep_queue_waits_longer_than_the_short_delay() -> None:
 def test_a_fast_stream_still_coalesces_its_acks() -> None:
     producer, subscriber, _ = _pair(8)
     _fill(producer, subscriber, 1)
-    assert subscriber.take() is not None
+    assert subscriber.take_many(1)
     subscriber.acks_due(0, idle=False)  # the first take of the stream
     for t in range(1, 3):  # then one every tenth of the delay: coalesced
         _fill(producer, subscriber, 1)
-        assert subscriber.take() is not None
+        assert subscriber.take_many(1)
         assert subscriber.acks_due(t * ACK_DELAY_NS // 10, idle=False) == []
     assert subscriber.flush_at_ns() is not None
 
@@ -176,8 +176,8 @@ def test_a_batch_is_one_send_that_the_subscriber_queues_as_its_elements() -> Non
     assert (send.seq, send.headers) == (3, (10, 11, 12))
     assert subscriber.receive_many(send.epoch, send.seq, list(send.headers), descriptor=None) == 3
     assert producer.registrations()[0].queued == 5
-    taken = [subscriber.take() for _ in range(5)]
-    assert [(e.seq, e.item) for e in taken if e] == [(1, 0), (2, 1), (3, 10), (4, 11), (5, 12)]
+    taken = subscriber.take_many(5)
+    assert [(e.seq, e.item) for e in taken] == [(1, 0), (2, 1), (3, 10), (4, 11), (5, 12)]
     assert subscriber.acks_due(0, idle=False) == [(send.epoch, 5)], "one cumulative ack"
 
 
@@ -192,21 +192,20 @@ def test_a_lost_batch_is_resent_element_by_element() -> None:
     ]
     for send in resent:
         assert subscriber.receive(send.epoch, send.seq, send.headers[0], descriptor=None)
-    assert [subscriber.take().item for _ in range(3)] == [10, 11, 12]  # type: ignore[union-attr]
+    assert [e.item for e in subscriber.take_many(3)] == [10, 11, 12]
 
 
 def test_the_producer_dates_the_last_take_by_the_ack_that_freed_credit() -> None:
     producer, subscriber, _key = _pair(2)
     _fill(producer, subscriber, 2)
-    [info] = [r.info() for r in producer.registrations()]
-    assert info.taken_ns is None
-    assert subscriber.take() is not None
+    [reg] = producer.registrations()
+    assert reg.taken_ns is None
+    assert subscriber.take_many(1)
     [(epoch, seq)] = subscriber.acks_due(0, idle=False)
     assert producer.ack("s", epoch, seq, 70)
     assert not producer.ack("s", epoch, seq, 90)  # a repeat moves nothing: not a take
     assert not producer.ack("s", "forged", seq + 1, 95)
-    [info] = [r.info() for r in producer.registrations()]
-    assert (info.queued, info.taken_ns) == (1, 70)
+    assert (reg.queued, reg.taken_ns) == (1, 70)
 
 
 def _observer(queue_size: int) -> SubscriberLedger[int]:

@@ -84,7 +84,7 @@ def tightest_load(
     subscriptions: Iterable[SubscriptionInfo],
 ) -> tuple[Load, SubscriptionInfo | None]:
     """The detector's load from a producer's subscriptions: that of the flow-controlled
-    subscription that will refuse first (``middleware.tightest_flow``, as ``Producer.fill``
+    subscription that will refuse first (``middleware.tightest_flow``, as the demo
     reads it), and that subscription; Load(0, 0) and None without one."""
     tightest = tightest_flow(subscriptions)
     if tightest is None:
