@@ -242,7 +242,8 @@ class AckInbox(ControlInbox):
       the window passes;
     - ``foreign``: an ack that cannot count (``plausible`` says no: no live registration owns
       its epoch under its key's id, or it acks more than was sent): forged acks of made-up
-      epochs, ids or numbers, distinct each (undecodable ones count as ``malformed``).
+      epochs, ids or numbers, distinct each (undecodable ones count as ``malformed``);
+      reported with the protocol's own count of them (``BufferInfo.foreign_acks``).
 
     Garbage and forged acks then cost Zenoh's thread a copy of at most ``max_bytes``, a
     comparison or a decode, and the executor nothing: they never fill the inbox, so an
@@ -267,7 +268,7 @@ class AckInbox(ControlInbox):
 
     @property
     def dropped(self) -> int:
-        return self.oversize + self.overflow + self.malformed + self.repeats + self.foreign
+        return self.oversize + self.overflow + self.malformed + self.repeats  # foreign: apart
 
     def _keep(self, sample: zenoh.Sample, payload: zenoh.ZBytes) -> Control | _Drop | None:
         data = payload.to_bytes()  # at most ``max_bytes``: checked before

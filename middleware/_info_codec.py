@@ -77,10 +77,11 @@ def decode_service_info(raw: bytes, start_ns: int, end_ns: int, *, service: str)
     body = decode_json(raw, what)
     clock_ns = typed_field(body, "clock_ns", int, what)
     clock = body.get("clock")
-    steps = lead = None
+    steps = lead = last_step = None
     if isinstance(clock, dict):
         steps = typed_field(clock, "steps", int, what)
         lead = typed_field(clock, "lead_ns", int, what, least=-INT_END)
+        last_step = typed_field(clock, "last_step_ns", int, what, optional=True, least=-INT_END)
     sample = ClockSample.from_times(start_ns, clock_ns, end_ns)
     named = typed_field(body, "service", str, what)
     if named != service:  # a peer's reply on another key (or on ``*``) may not pose as it
@@ -95,6 +96,7 @@ def decode_service_info(raw: bytes, start_ns: int, end_ns: int, *, service: str)
         round_trip_ns=sample.round_trip_ns,
         clock_steps=steps,
         clock_lead_ns=lead,
+        clock_last_step_ns=last_step,
         threads=_names(body.get("threads")),
         listen=_names(body.get("listen")) or (),
         dropped_queries=(
@@ -146,6 +148,8 @@ def _buffer(b: Any, what: str) -> BufferInfo:
         limits=_limits(b.get("limits"), what),
         dropped_messages=counter("dropped_messages"),
         bad_messages=counter("bad_messages"),
+        foreign_acks=counter("foreign_acks"),
+        collapsed_tokens=counter("collapsed_tokens"),
         rewinds=tuple(
             _rewind(r, what)
             for r in (typed_field(b, "rewinds", list, what, optional=True) or [])[:_REWINDS_READ]

@@ -21,8 +21,7 @@ Messages in, and what they do in every state:
 ``token_put(key)``
     unknown key: register it (new epoch, sent = acked = 0), unless the table holds its
     ``max_registrations`` already (``MAX_REGISTRATIONS`` by default; the producer's protocol
-    passes its two pools of slots together) (then counted in ``refused_registrations`` and
-    ignored).
+    passes its two pools of slots together): then ignored (the caller counts the refusal).
     Known key (a repeat, e.g. history and live both delivering it): nothing.
 ``token_delete(key)``
     known key: remove the registration (its credits with it) and hand it back so that the
@@ -158,10 +157,9 @@ class Send(NamedTuple, Generic[H]):
 
 @dataclass(slots=True)
 class ProducerCounters:
-    """What the ledger refused or ignored, for ``info`` and the tests."""
+    """What the ledger ignored, reported by ``info`` (``BufferInfo.foreign_acks``)."""
 
     foreign_acks: int = 0
-    refused_registrations: int = 0
 
 
 class ProducerLedger(Generic[H]):
@@ -184,7 +182,6 @@ class ProducerLedger(Generic[H]):
         if key in self._regs:
             return None
         if len(self._regs) >= self._max:
-            self.counters.refused_registrations += 1
             return None
         self._count += 1
         reg: Registration[H] = Registration(

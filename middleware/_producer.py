@@ -455,10 +455,10 @@ class Producer:
             c = self._counters
             times = list(c.put_times)
             puts, refused, rejected = c.puts, c.refused, c.rejected
-            skipped = dict(c.skipped)
-            rewinds = tuple(c.rewinds)
+            skipped, rewinds = dict(c.skipped), tuple(c.rewinds)
             subs = tuple(self._protocol.subscriptions())
-            protocol = self._protocol.counters
+            protocol = replace(self._protocol.counters)  # a copy: read outside the lock
+            foreign = self._protocol.foreign_acks + self._acks.foreign  # either drops one
         rate = put_rate_hz(times, time.monotonic_ns())
         return BufferInfo(
             service=self.service,
@@ -480,6 +480,8 @@ class Producer:
             limits=replace(self._protocol.limits(), control_inbox_bytes=control_inbox_bytes()),
             dropped_messages=self._acks.dropped + self._tokens.dropped,
             bad_messages=protocol.bad_messages,
+            foreign_acks=foreign,
+            collapsed_tokens=self._tokens.collapsed,
         )
 
     def close(self) -> None:

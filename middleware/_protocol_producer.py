@@ -52,7 +52,7 @@ registration is greeted (``["hello", descriptor, epoch]``), so ``subscribe`` lea
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 from ._ledger_producer import (
     REPEAT_RESEND_NS,
@@ -89,18 +89,17 @@ RESEND_BURST = 16
 # reading at most this many of them.
 RESYNC_NS = 2_000_000_000
 RESYNC_TOKENS = 4 * (MAX_FLOW_REGISTRATIONS + MAX_OBSERVE_REGISTRATIONS)
-# Distinct refusal reasons counted by text (their count is bounded: a peer chooses them).
-_REFUSAL_REASONS = 64
 RESEND_PACE_NS = 5_000_000
 
 
 @dataclass(slots=True)
 class ProtocolCounters:
-    """What the producer's protocol refused or ignored, for ``info`` and the tests."""
+    """What the producer's protocol refused or ignored, reported by ``info``. A refusal's
+    reason goes to the refused subscriber (its ``RegistrationRefused``), not here: each names
+    its holder and counts, so counting by text would only keep the first few."""
 
     bad_messages: int = 0
     refused_registrations: int = 0
-    refusals: dict[str, int] = field(default_factory=dict)
 
 
 # What the ledger keeps per outstanding notification: never the payload.
@@ -172,8 +171,6 @@ class ProducerProtocol:
         reason = self._shares.refusal(key, holder)
         if reason is not None:
             self.counters.refused_registrations += 1
-            if len(self.counters.refusals) < _REFUSAL_REASONS or reason in self.counters.refusals:
-                self.counters.refusals[reason] = self.counters.refusals.get(reason, 0) + 1
             log.debug("%s: refused subscription %s: %s", self.name, key.sub_id, reason)
             self._control(key, encode_control("refused", key.descriptor, reason))
             return
@@ -417,6 +414,12 @@ class ProducerProtocol:
 
     def get(self, key: RegistrationKey) -> Registration[_Kept] | None:
         return self._ledger.get(key)
+
+    @property
+    def foreign_acks(self) -> int:
+        """Acks the ledger ignored: of no live registration (stale or forged), or beyond
+        what was sent (``ProducerCounters``)."""
+        return self._ledger.counters.foreign_acks
 
     def subscriptions(self) -> list[SubscriptionInfo]:
         out = []

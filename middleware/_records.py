@@ -195,6 +195,12 @@ class BufferInfo:
     dropped_messages: int = 0
     # Control messages read and ignored: malformed, or a token no client could read back.
     bad_messages: int = 0
+    # Acks ignored as of no live registration (from before a subscription re-registered, or
+    # forged) or acking more than was sent (a forgery).
+    foreign_acks: int = 0
+    # Subscription tokens declared and withdrawn before the producer looked (churn): they
+    # cost no registration (``TokenInbox``).
+    collapsed_tokens: int = 0
 
     @property
     def name(self) -> str:
@@ -230,6 +236,9 @@ class ServiceInfo:
     # Queries the service ended unanswered because more were waiting than its inbox holds
     # (a flood: ``QueryInbox``); 0 from old peers.
     dropped_queries: int = 0
+    # The size of the service's last clock step (+ forward, - backward; see ``clock_steps``),
+    # last so that positional construction stays as it was; None from old peers.
+    clock_last_step_ns: int | None = None
 
     def to_json(self) -> dict[str, Any]:
         """This service and its buffers as JSON values (``json_form``)."""

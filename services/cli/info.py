@@ -108,11 +108,8 @@ def _print_buffer(service: ServiceInfo, b: BufferInfo) -> None:
     print(f"  rate           {b.rate_hz:.1f} Hz")
     skipped = "".join(f", skipped {reason} {n}" for reason, n in sorted(b.skipped.items()))
     print(f"  producer       puts {b.puts}, refused {b.refused}, rejected {b.rejected}{skipped}")
-    if b.dropped_messages or b.bad_messages:  # a flood or a hostile peer (docs/limits.md)
-        print(
-            f"  control        {b.bad_messages} malformed acks or tokens ignored, "
-            f"{b.dropped_messages} dropped unread"
-        )
+    if control := _control_text(b):  # a flood, churn or a hostile peer (docs/limits.md)
+        print(f"  control        {control}")
     for w in b.rewinds:  # what a rewind removed is shown, never only logged
         print(f"  rewound        {w.count} after {format_ns(w.after_ns)} ({w.cause})")
     if b.limits is not None:  # docs/limits.md
@@ -138,6 +135,17 @@ def _print_buffer(service: ServiceInfo, b: BufferInfo) -> None:
             f"    {holder(s):<32} {s.mode.value:<8} queue {s.queue_size:<4}"
             f" queued {s.queued:<4} fill {s.fill:.0%}  ({s.subscription_id})"
         )
+
+
+def _control_text(b: BufferInfo) -> str:
+    """The producer's counts of control messages it ignored, those that are not 0."""
+    counts = (
+        (b.bad_messages, "malformed acks or tokens ignored"),
+        (b.dropped_messages, "dropped unread"),
+        (b.foreign_acks, "acks of no live registration ignored"),
+        (b.collapsed_tokens, "tokens withdrawn before they registered"),
+    )
+    return ", ".join(f"{n} {what}" for n, what in counts if n)
 
 
 def _recording(args: argparse.Namespace, path: Path) -> int:

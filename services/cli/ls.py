@@ -69,13 +69,20 @@ def listen_text(endpoints: Sequence[str]) -> str:
 
 
 def clock_steps_text(info: ServiceInfo) -> str:
-    """``, clock stepped 2x (lead +20.0 s)`` when the service's system clock stepped, else ''.
+    """``, clock stepped 2x, last -20.0 s (lead +20.0 s)`` when the service's system clock
+    stepped, else ''.
 
-    Its stamps never went backward (see the README's *Time model*); the lead is how far its
-    process clock is still ahead of its system clock after a backward step."""
+    Its stamps never went backward (see the README's *Time model*); the last step's size is
+    signed (- backward); the lead is how far its process clock is still ahead of its system
+    clock after a backward step."""
     if not info.clock_steps:
         return ""
-    return f", clock stepped {info.clock_steps}x (lead {(info.clock_lead_ns or 0) / 1e9:+.1f} s)"
+    last = (
+        "" if info.clock_last_step_ns is None else f", last {info.clock_last_step_ns / 1e9:+.1f} s"
+    )
+    return (
+        f", clock stepped {info.clock_steps}x{last} (lead {(info.clock_lead_ns or 0) / 1e9:+.1f} s)"
+    )
 
 
 def holder(sub: SubscriptionInfo) -> str:

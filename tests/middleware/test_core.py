@@ -21,8 +21,9 @@ from middleware import (
     make_metadata,
     now_ns,
 )
+from middleware._inbox import Control
 from middleware._protocol_producer import FLOW_QUEUE_MAX
-from middleware._wire import MAX_QUEUE_SIZE, Keys
+from middleware._wire import MAX_QUEUE_SIZE, Keys, encode_ack
 from tests.conftest import child_env, wait_until
 from tests.helpers.raw_zenoh import open_session
 from tests.helpers.timing import scaled
@@ -320,3 +321,23 @@ def test_subscribe_to_a_service_that_is_not_live_is_refused_unless_awaited(
             data.put(1, b"x", _meta(1))
             note = early.take(timeout_s=scaled(5))
             assert note is not None and note.timestamp_ns == 1
+
+
+def test_ignored_acks_and_churned_tokens_reach_the_buffers_description(
+    listen_net, connect_net
+) -> None:
+    """What the producer ignored is counted in ``info`` and so in every peer's description
+    (``framegate info --json``): an ack of an epoch it never gave, and a token withdrawn in
+    the batch that declared it (both appended as Zenoh's thread appends them)."""
+    keys = Keys("framegate")
+    with Node("cam", listen_net) as service, Node(network=connect_net) as client:
+        images = service.offer("images")
+        token = keys.subscription_tokens("cam", "images").replace("**", "churn/flow/2/-1")
+        images._tokens._items.extend([Control(token, b"", True), Control(token, b"", False)])
+        forged = Control(keys.ack("cam", "images", "nobody"), encode_ack("forged.1", 1), True)
+        images._acks._items.append(forged)
+        local = images.info()
+        assert (local.foreign_acks, local.collapsed_tokens) == (1, 1)
+        assert local.subscriptions == ()
+        told = client.buffer_info("cam/images", timeout_s=scaled(10))
+        assert (told.foreign_acks, told.collapsed_tokens) == (1, 1)

@@ -114,7 +114,6 @@ def test_token_churn_leaves_no_state_behind() -> None:
     assert producer._shares.holders() == {"mediator~x"}
     assert set(producer._holders) == {stay} and not producer._paced
     assert producer.counters.refused_registrations > 0
-    assert len(producer.counters.refusals) <= 64
 
 
 def test_a_resync_after_lost_token_events_repairs_the_table() -> None:

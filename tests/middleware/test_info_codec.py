@@ -49,6 +49,8 @@ def _service() -> ServiceInfo:
         limits=BufferLimits(1, 2, 3, 4, 5, 6, holder_share="some", control_inbox_bytes=99),
         dropped_messages=8,
         bad_messages=9,
+        foreign_acks=10,
+        collapsed_tokens=13,
     )
     return ServiceInfo(
         service="cam",
@@ -60,6 +62,7 @@ def _service() -> ServiceInfo:
         round_trip_ns=None,
         clock_steps=CLOCK.steps,
         clock_lead_ns=CLOCK.lead_ns,
+        clock_last_step_ns=CLOCK.last_step_ns,
         threads=("MainThread", "fg-serve-cam"),
         listen=("tcp/127.0.0.1:7447",),
         dropped_queries=11,
@@ -112,3 +115,20 @@ def test_ls_and_info_print_the_records_json_form_plus_their_extras() -> None:
     assert shown["subscriptions"][0]["fill"] == 0.75
     assert shown["subscriptions"][0]["subscription_id"] == "s1"
     assert set(info_cli.service_json(sent)) == set(form) - {"buffers", "clock_ns"}
+
+
+def test_info_shows_the_producers_control_counts_only_when_not_zero(capsys) -> None:
+    sent = _service()
+    quiet = dataclasses.replace(
+        sent.buffers[0], dropped_messages=0, bad_messages=0, foreign_acks=0, collapsed_tokens=0
+    )
+    info_cli._print_buffer(sent, quiet)
+    assert "\n  control " not in capsys.readouterr().out
+    info_cli._print_buffer(sent, dataclasses.replace(quiet, foreign_acks=2, collapsed_tokens=5))
+    lines = [line for line in capsys.readouterr().out.splitlines() if line.startswith("  control ")]
+    assert lines == [
+        "  control        2 acks of no live registration ignored, "
+        "5 tokens withdrawn before they registered"
+    ]
+    info_cli._print_buffer(sent, quiet)  # the clock's last step, on the service's line
+    assert "clock stepped 2x, last -20.0 s (lead +19.0 s)" in capsys.readouterr().out
