@@ -31,7 +31,10 @@ def register(subparsers: Any) -> None:
     )
     d = DemoConfig()
     parser.add_argument(
-        "--duration", type=positive_float, default=d.duration_s, help="seconds to run"
+        "--duration",
+        type=positive_float,
+        default=d.duration_s,
+        help="seconds to run, after the approach is rendered (default %(default)g)",
     )
     parser.add_argument("--seed", type=non_negative_int, default=d.seed, help="simulator seed")
     parser.add_argument(

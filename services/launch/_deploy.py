@@ -20,7 +20,7 @@ from typing import Any
 import yaml
 
 from middleware import ConfigError, NetworkConfig, check_name, checked_endpoints
-from services.lib.argtypes import did_you_mean
+from services.lib.argtypes import closest, did_you_mean
 from services.nodes import SERVICES
 
 LOCAL_HOST = "local"
@@ -95,6 +95,9 @@ class Deployment:
         )
 
 
+_YAML = (".yaml", ".yml")
+
+
 def load_deployment(path: str | Path) -> Deployment:
     """Read and validate a deploy file; ConfigError names the line of any problem."""
     path = Path(path)
@@ -103,8 +106,12 @@ def load_deployment(path: str | Path) -> Deployment:
     except OSError as exc:
         near = ""
         if not path.exists() and path.parent.is_dir():  # deploy/local.yml for .yaml
-            siblings = [p.name for p in path.parent.iterdir() if p.suffix in (".yaml", ".yml")]
-            near = did_you_mean(path.name, siblings, quote=True)
+            # Names compared without the suffix, which every candidate shares (it made
+            # ``nosuch.yaml`` look like ``ros2.yaml``); the suffix alone may differ.
+            siblings = {p.stem: p.name for p in path.parent.iterdir() if p.suffix in _YAML}
+            hint = closest(path.stem, siblings)
+            if hint is not None:
+                near = f" (did you mean {siblings[hint]!r}?)"
         raise ConfigError(f"cannot read deploy file {path}: {exc.strerror}{near}") from exc
     except UnicodeDecodeError as exc:
         raise ConfigError(

@@ -24,16 +24,22 @@ from typing import Any, NoReturn
 USAGE_EXIT_CODE = 1
 
 
-def did_you_mean(word: str, candidates: Iterable[str], *, quote: bool = False) -> str:
-    """`` (did you mean x?)`` for the closest candidate, or ``""``; ``quote``: a name the
-    message quotes (``'x'``), as opposed to a flag or command word."""
+def closest(word: str, candidates: Iterable[str]) -> str | None:
+    """The candidate ``word`` is most likely a misspelling of, if any."""
     names = list(candidates)
     hint = difflib.get_close_matches(word, names, n=1, cutoff=0.6)
     if not hint:  # two letters swapped in a short word (``sl``) are too far for difflib
         hint = [n for n in names if len(n) == len(word) and sorted(n) == sorted(word)][:1]
-    if not hint:
+    return hint[0] if hint else None
+
+
+def did_you_mean(word: str, candidates: Iterable[str], *, quote: bool = False) -> str:
+    """`` (did you mean x?)`` for the closest candidate, or ``""``; ``quote``: a name the
+    message quotes (``'x'``), as opposed to a flag or command word."""
+    hint = closest(word, candidates)
+    if hint is None:
         return ""
-    return f" (did you mean {hint[0]!r}?)" if quote else f" (did you mean {hint[0]}?)"
+    return f" (did you mean {hint!r}?)" if quote else f" (did you mean {hint}?)"
 
 
 def _options(parser: argparse.ArgumentParser) -> list[str]:

@@ -45,6 +45,7 @@ import collections
 import logging
 import threading
 import time
+import traceback
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -183,6 +184,17 @@ def _guarded(handler: Handler, image: Image, frame: FrameMeta) -> object:
         raise _HandlerExit(exc) from exc
 
 
+def user_traceback(exc: BaseException) -> str:
+    """``exc``'s traceback from the handler's own frame on (below ``_guarded``), the same for
+    every exception type: the runner's frames before it are framegate's, not the user's."""
+    tb, shown = exc.__traceback__, exc.__traceback__
+    while tb is not None:
+        if tb.tb_frame.f_code is _guarded.__code__ and tb.tb_next is not None:
+            shown = tb.tb_next
+        tb = tb.tb_next
+    return "".join(traceback.format_exception(type(exc), exc, shown)).rstrip("\n")
+
+
 def _text(exc: BaseException) -> str:
     """``str(exc)``, or a placeholder when the handler's exception cannot even say what
     it is (its ``__str__`` raises)."""
@@ -259,18 +271,17 @@ class VisionStep:
             reason = "handler-error:other"
         self.skipped[reason] += 1
         if warn:
-            self.warn_once(
-                reason,
-                f"{detail} (skipped; further '{reason}' skips are counted, not logged)",
-                exc_info,
-            )
+            text = f"{detail} (skipped; further '{reason}' skips are counted, not logged)"
+            if exc_info is not None:
+                text += "\n" + user_traceback(exc_info)
+            self.warn_once(reason, text)
         return Skipped(reason, detail)
 
-    def warn_once(self, kind: str, text: str, exc_info: BaseException | None = None) -> None:
+    def warn_once(self, kind: str, text: str) -> None:
         """Log ``text`` as a warning the first time ``kind`` is seen."""
         if kind not in self._warned:
             self._warned.add(kind)
-            self.log.warning("%s", text, exc_info=exc_info)
+            self.log.warning("%s", text)
 
 
 # -- the service ---------------------------------------------------------------------------

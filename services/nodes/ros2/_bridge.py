@@ -269,7 +269,8 @@ def run(config: Ros2Config, network: NetworkConfig, stop: threading.Event | None
                 outputs.append(output)
                 start(f"ros2-out-{mapping.topic}", lambda o=output: o.run(stop, skips))  # type: ignore[misc]
         log.info(
-            "ros2: node %s in domain %d via %s (%s); in: %s; out: %s",
+            "%s: node %s in domain %d via %s (%s); in: %s; out: %s",
+            config.name,
             config.node_name,
             config.domain_id,
             ", ".join(config.ros_connect),
@@ -323,18 +324,21 @@ def run(config: Ros2Config, network: NetworkConfig, stop: threading.Event | None
         deadline = time.monotonic() + 1.0
         for thread in threads:
             thread.join(max(0.0, deadline - time.monotonic()))
+        skipped = ", ".join(f"{reason} {n}" for reason, n in sorted(skips.counts.items()))
         log.info(
-            "ros2: %d frames stored, %d dropped at the bridge (flow control); %d IMU samples "
-            "stored, %d dropped; %s published; skipped: %s",
+            "%s: %d frames stored, %d dropped at the bridge (flow control); %d IMU samples "
+            "stored, %d dropped; %d messages handed to ROS 2 by the outputs (whether a ROS 2 "
+            "node received them is ROS 2's to say); skipped: %s",
+            config.name,
             images.stored if images else 0,
             images.dropped if images else 0,
             imu.stored if imu else 0,
             imu.dropped if imu else 0,
             sum(o.published for o in outputs),
-            dict(skips.counts) or "none",
+            skipped or "none",
         )
-        if consumer is not None:
-            log.info("ros2: consumer loop: %s", consumer.counts().text())
+        if consumer is not None:  # its images are handed to ROS 2 too, counted apart
+            log.info("%s: consumer loop: %s", config.name, consumer.counts().text())
             consumer.close()
     return 0
 

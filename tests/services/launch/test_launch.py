@@ -114,6 +114,22 @@ services:
     assert "--namespace" in argv and "lab" in argv
 
 
+@pytest.mark.parametrize(
+    ("name", "hint"),
+    [("local.yml", " (did you mean 'local.yaml'?)"), ("locl.yaml", " (did you mean 'local.yaml'?)"),
+     ("nosuch.yaml", "")],
+)  # fmt: skip
+def test_a_missing_deploy_file_suggests_a_sibling_only_by_its_name(
+    tmp_path: Path, name: str, hint: str
+) -> None:
+    # Compared with the suffix, every name was close: nosuch.yaml suggested ros2.yaml.
+    for sibling in ("local.yaml", "ros2.yaml", "two-hosts.yaml"):
+        (tmp_path / sibling).write_text("services: {}\n")
+    with pytest.raises(ConfigError) as caught:
+        load_deployment(tmp_path / name)
+    assert str(caught.value).endswith("No such file or directory" + hint), caught.value
+
+
 def test_the_readmes_deploy_file_starts_a_router_that_does_not_connect_to_itself() -> None:
     # The file-wide connect names the router every process reaches; the router got it
     # too, and connected to its own listen address.

@@ -5,6 +5,8 @@ from __future__ import annotations
 import logging
 import subprocess
 import sys
+import threading
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +16,7 @@ from middleware import ConfigError, SchemaError
 from services.lib.messages import frame_metadata, read_detections
 from services.lib.quality import Exposure
 from services.lib.vision import Box, FrameMeta, Output, ResultKind
+from services.nodes._runtime import unless_stopped
 from services.nodes._vision_handler import (
     handler_argument,
     handler_name,
@@ -69,6 +72,29 @@ def test_a_raising_handler_is_a_counted_skip_with_one_warning_per_exception_type
     warnings = [r.getMessage() for r in caplog.records]
     assert len(warnings) == 2, warnings
     assert "handler raised KeyError" in warnings[0] and "handler raised ValueError" in warnings[1]
+
+
+@pytest.mark.parametrize("raised", [ValueError("bad"), SystemExit(3)])
+def test_a_handler_s_traceback_shows_its_own_frames_only(
+    raised: BaseException, caplog: pytest.LogCaptureFixture
+) -> None:
+    # framegate's own frames (the runner, its stop guard) came first, and only for an
+    # Exception: a SystemExit showed a different, shorter traceback.
+    def handler(image: np.ndarray, frame: FrameMeta) -> list[Box]:
+        raise raised
+
+    def guarded(work: Callable[[], object]) -> object:  # as the service calls it
+        return unless_stopped(work, threading.Event())
+
+    step = VisionStep(handler, ResultKind.DETECTIONS, "in/put", LOG, call=guarded)
+    with caplog.at_level(logging.WARNING, logger="test.vision"):
+        step.process(*_frame(1))
+    (message,) = [r.getMessage() for r in caplog.records]
+    lines = message.splitlines()
+    start = lines.index("Traceback (most recent call last):")
+    assert __file__ in lines[start + 1] and "in handler" in lines[start + 1], message
+    assert "nodes/vision.py" not in message and "_runtime.py" not in message, message
+    assert caplog.records[0].exc_info is None  # the text is the whole traceback
 
 
 class _Unprintable(Exception):
