@@ -85,6 +85,8 @@ class Output:
         self._keys = Monotonic()
         self.pending: dict[int, Frame] = {}  # frames the decider holds, by key
         self.skipped = collections.Counter[str]()
+        self.reasons = collections.Counter[str]()  # every verdict recorded, by reason
+        self.forwarded = 0
         self.decisions_dropped = 0
         self._policy_faults_logged = 0
 
@@ -175,6 +177,15 @@ class Output:
             self._queued_frames.popleft()
         return None
 
+    def summary(self) -> str:
+        """The service's last log line: what became of the frames it decided on."""
+        reasons = ", ".join(f"{r} {n}" for r, n in self.reasons.most_common())
+        skipped = ", ".join(f"{r} {n}" for r, n in self.skipped.most_common())
+        return (
+            f"{sum(self.reasons.values())} frames decided, {self.forwarded} forwarded "
+            f"({reasons or 'none'}); skipped: {skipped or 'none'}"
+        )
+
     def record(
         self, frame: Frame, verdict: Verdict, load: Load, decided_ns: int | None = None
     ) -> None:
@@ -182,6 +193,8 @@ class Output:
         None), from which the record's latency counts."""
         candidate = frame.candidate
         decided_ns = now_ns() if decided_ns is None else decided_ns
+        self.reasons[verdict.reason] += 1
+        self.forwarded += verdict.action is Action.FORWARD
         self.write(
             DecisionRecord(
                 frame_timestamp_ns=candidate.timestamp_ns,

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -90,6 +91,10 @@ class Paired:
     error: BadFrame | None = None
 
 
+# A gyro outage is warned about once it lasts this long (briefer ones are counted).
+_OUTAGE_SAY_NS = 1_000_000_000
+
+
 class Pairing:
     """Frames waiting for gyro coverage, handed on in arrival order (module docstring)."""
 
@@ -117,6 +122,11 @@ class Pairing:
         # The newest gyro sample when the gyro was found out; None while it is not.
         self._out_at: int | None = None
         self._gyro_ok = True
+        # A gyro outage is warned about once it has lasted ``_OUTAGE_SAY_NS``: a loaded
+        # machine makes many brief ones (a late batch), counted and said with the next.
+        self._out_since_ns = 0
+        self._outage_said = False
+        self._brief_outages = 0
         self._offset_ok = True
         self._unmeasured_logged = False
 
@@ -181,22 +191,31 @@ class Pairing:
         except BadFrame as exc:
             return Paired(frame, None, None, error=exc)
         if not self._gyro_ok:
-            self._log.warning("gyro covers frames again from frame %d", meta.frame_id)
+            if self._outage_said:
+                self._log.warning("gyro covers frames again from frame %d", meta.frame_id)
+            else:
+                self._brief_outages += 1
             self._gyro_ok = True
         return Paired(frame, blur, q)
 
     def _missing(self, meta: FrameMeta, newest: int | None) -> None:
         """The gyro does not cover this frame: out until a new sample arrives."""
         self._out_at = newest
+        now = time.monotonic_ns()
         if self._gyro_ok:
-            self._log.warning(
-                "gyro does not cover frame %d (newest gyro sample %s); policy: %s, "
-                "decided at once until gyro samples arrive again",
-                meta.frame_id,
-                newest,
-                self._policy,
-            )
-        self._gyro_ok = False
+            self._gyro_ok, self._out_since_ns, self._outage_said = False, now, False
+        if self._outage_said or now - self._out_since_ns < _OUTAGE_SAY_NS:
+            return
+        self._outage_said = True
+        brief, self._brief_outages = self._brief_outages, 0
+        self._log.warning(
+            "gyro does not cover frame %d (newest gyro sample %s); policy: %s, decided at "
+            "once until gyro samples arrive again%s",
+            meta.frame_id,
+            "none yet" if newest is None else newest,
+            self._policy,
+            f" ({brief} briefer outages before, not logged)" if brief else "",
+        )
 
     def _clocks(self, meta: FrameMeta, due: bool) -> str | None:
         """Why camera and gyro stamps cannot be paired now, or None when they can.

@@ -7,14 +7,16 @@ import contextlib
 import ctypes
 import logging
 import os
+import queue
 import signal
 import sys
 import threading
 import time
 from collections.abc import Callable
-from typing import Protocol, TypeVar
+from dataclasses import dataclass
+from typing import Any, Generic, Protocol, TypeVar
 
-from middleware import ConfigError, NetworkConfig, Node, now_ns
+from middleware import ConfigError, FramegateError, NetworkConfig, Node, now_ns
 
 START_AT_ENV = "FRAMEGATE_START_AT_NS"
 # Set by the launch supervisor (services/launch/_supervisor.py) for each child it starts.
@@ -168,6 +170,65 @@ def unless_stopped(work: Callable[[], T], stop: threading.Event) -> T | None:
     return result[0]
 
 
+@dataclass(frozen=True, slots=True)
+class Outcome(Generic[T]):
+    """What a ``Worker`` step came to: its value, or what it raised."""
+
+    value: T | None = None
+    error: BaseException | None = None
+
+
+_Step = tuple[Callable[[], Any], Callable[["Outcome[Any]"], object]]
+
+
+class Worker:
+    """One long-lived thread for a service's slow steps (a simulator's render, a dataset's
+    read): ``submit(work, then)`` runs ``work()`` there and hands its ``Outcome`` to
+    ``then`` on the node's executor, so the executor never waits for a step (the
+    subscribers' acks and the deadlines go on meanwhile) and no thread is made per step.
+    Steps run one at a time, in order. A step still inside native code when the service
+    stops is abandoned (``close``): the process then ends without finalising the
+    interpreter (``_exit_past_workers``).
+
+    Threads: the worker runs only ``work`` (which must not touch Zenoh) and hands the
+    outcome over with ``Node.at``; ``then`` runs on the executor."""
+
+    def __init__(self, name: str, node: Node) -> None:
+        self._node = node
+        self._steps: queue.SimpleQueue[_Step | None] = queue.SimpleQueue()
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        with _workers_lock:
+            _workers.add(self._thread)
+        self._thread.start()
+
+    def submit(self, work: Callable[[], T], then: Callable[[Outcome[T]], object]) -> None:
+        self._steps.put((work, then))
+
+    def _run(self) -> None:
+        while (step := self._steps.get()) is not None:
+            work, then = step
+            try:
+                outcome: Outcome[Any] = Outcome(work())
+            except BaseException as exc:  # handed to ``then``, on the executor
+                outcome = Outcome(error=exc)
+            with contextlib.suppress(FramegateError):  # the node closed meanwhile: a stop
+                self._node.at(time.monotonic_ns(), _handing(then, outcome))
+
+    def close(self) -> None:
+        """Stop after the current step; one still running after ``_WORKER_GRACE_S`` is
+        abandoned (see the class doc)."""
+        self._steps.put(None)
+        self._thread.join(_WORKER_GRACE_S)
+        if not self._thread.is_alive():
+            with _workers_lock:
+                _workers.discard(self._thread)
+
+
+def _handing(then: Callable[[Outcome[T]], object], outcome: Outcome[T]) -> Callable[[int], object]:
+    """A deadline handler that hands ``outcome`` to ``then``."""
+    return lambda _now_ns: then(outcome)
+
+
 # How long a stopped service waits for a worker in native code before abandoning it.
 _WORKER_GRACE_S = 0.5
 _workers: set[threading.Thread] = set()
@@ -198,11 +259,14 @@ atexit.register(_exit_past_workers)
 
 class Pump(Protocol):
     """What a source service runs on its node: a deadline handler that puts what is due and
-    sets the next deadline itself, and the summary logged when the service ends."""
+    sets the next deadline itself, the summary logged when the service ends, and its close
+    (a worker to stop)."""
 
     def on_time(self, now: int) -> None: ...
 
     def summary(self) -> str: ...
+
+    def close(self) -> None: ...
 
 
 def run_source(
@@ -227,8 +291,11 @@ def run_source(
     with Node(name, network) as node:
         running = pump(node, source, log)
         node.at(time.monotonic_ns(), running.on_time)
-        with contextlib.suppress(KeyboardInterrupt):
-            node.spin(stop)
+        try:
+            with contextlib.suppress(KeyboardInterrupt):
+                node.spin(stop)
+        finally:
+            running.close()
         log.info("%s", running.summary())
     return 0
 

@@ -12,14 +12,17 @@ Sources (services/nodes/sources.py): ``sim`` renders live from the simulator, ``
 plays a dataset at real-time pace (``--rate``) with timestamps rebased onto the wall clock,
 ``device N|URL`` reads a cv2.VideoCapture.
 
-Threads: none of its own beyond ``unless-stopped`` (a render or read a stop must not wait
-for); each frame is made and put from a deadline on the node's executor (``CameraPump``),
-and the main thread waits in ``Node.spin``.
+Threads: one of its own, ``camera-frames`` (a ``Worker``), that renders or reads each
+frame, one at a time; everything else is a deadline or a handler on the node's executor
+(``CameraPump``: it asks the worker for a frame, puts the frame once its exposure has ended,
+and the producer's acks go on while a frame is made), and the main thread waits in
+``Node.spin``.
 """
 
 from __future__ import annotations
 
 import collections
+import functools
 import logging
 import os
 import statistics
@@ -45,7 +48,7 @@ from services.lib.messages import frame_metadata
 from services.lib.quality import Exposure
 from services.lib.settings import setting
 from services.nodes._contract import Service
-from services.nodes._runtime import Timeline, run_source, start_at_ns, unless_stopped
+from services.nodes._runtime import Outcome, Timeline, Worker, run_source, start_at_ns
 from services.nodes.sources import (
     DeviceSource,
     FrameSource,
@@ -130,6 +133,8 @@ class CameraPump:
         )
         # A frame made and waiting for its exposure to end: (frame, image, start_rel).
         self._made: tuple[SourceFrame, npt.NDArray[np.uint8], int] | None = None
+        # Renders and reads: on a thread of their own, so the executor never waits for one.
+        self._worker = Worker("camera-frames", node)
         self.produced = self.dropped = 0
 
     def summary(self) -> str:
@@ -139,24 +144,21 @@ class CameraPump:
         )
 
     def on_time(self, now: int) -> None:
-        """Put the frame whose exposure has ended, make the next one, and come back when
-        its exposure ends (a device: at once, its read waits for the frame)."""
+        """Put the frame whose exposure has ended, then have the next one made."""
         if self._made is not None:
             frame, image, start_rel = self._made
             self._made = None
             exposure = Exposure(self._timeline.stamp_ns(start_rel), frame.exposure_ns)
             self._put(frame, image, exposure)
+        self._next()
+
+    def _next(self) -> None:
+        """Have the next frame due made on the worker (the executor goes on meanwhile:
+        acks, queries), skipping those already late; at a device's end, or with
+        ``--exit-when-done`` at the source's, stop."""
         for frame in self._frames:
-            if not self._source.relative:
-                try:
-                    read = self.rate.timed_load(frame.load, self._stop)
-                except FramegateError as exc:
-                    self._unreadable(frame, exc)
-                else:
-                    if read is None:
-                        return
-                    self._put(frame, read, Exposure(frame.exposure_start_ns, frame.exposure_ns))
-                self._node.at(time.monotonic_ns(), self.on_time)  # others' turn between reads
+            if not self._source.relative:  # a device: its read waits for the frame
+                self._worker.submit(_timed(frame.load), functools.partial(self._read, frame))
                 return
             start_rel = self._source.scale(frame.exposure_start_ns)
             end_rel = start_rel + frame.exposure_ns
@@ -168,19 +170,44 @@ class CameraPump:
                 self._images.count_skip("late")
                 self.rate.late(self._log)
                 continue
-            try:
-                made = self.rate.timed_load(frame.load, self._stop)
-            except FramegateError as exc:
-                self._unreadable(frame, exc)
-                continue
-            if made is None:
-                return  # stopped while rendering
-            # The image exists once its exposure has ended, not before.
-            self._made = (frame, made, start_rel)
-            self._node.at(time.monotonic_ns() - self._timeline.late_ns(end_rel), self.on_time)
+            made = functools.partial(self._made_at, frame, start_rel, end_rel)
+            self._worker.submit(_timed(frame.load), made)
             return
         if self._config.source.kind == "device" or self._config.source.exit_when_done:
             self._stop.set()
+
+    def _made_at(self, frame: SourceFrame, start_rel: int, end_rel: int, made: Loaded) -> None:
+        """(the executor) A frame is made: it exists once its exposure has ended, not
+        before, so it is put then (``on_time``)."""
+        image = self._loaded(frame, made)
+        if image is None:
+            self._next()
+            return
+        self._made = (frame, image, start_rel)
+        self._node.at(time.monotonic_ns() - self._timeline.late_ns(end_rel), self.on_time)
+
+    def _read(self, frame: SourceFrame, read: Loaded) -> None:
+        """(the executor) A device's frame is read: put at once, then the next read."""
+        image = self._loaded(frame, read)
+        if image is not None:
+            self._put(frame, image, Exposure(frame.exposure_start_ns, frame.exposure_ns))
+        self._node.at(time.monotonic_ns(), self.on_time)  # others' turn between reads
+
+    def _loaded(self, frame: SourceFrame, outcome: Loaded) -> npt.NDArray[np.uint8] | None:
+        """The image a step made, its time counted; None for a frame its source cannot
+        give (counted ``unreadable``); anything else it raised is the executor's to log."""
+        if isinstance(outcome.error, FramegateError):
+            self._unreadable(frame, outcome.error)
+            return None
+        if outcome.error is not None:
+            raise outcome.error
+        assert outcome.value is not None  # a step that did not raise returned its image
+        image, load_ns = outcome.value
+        self.rate.loaded(load_ns)
+        return image
+
+    def close(self) -> None:
+        self._worker.close()
 
     def _unreadable(self, frame: SourceFrame, exc: FramegateError) -> None:
         """A frame its source cannot give (a replayed dataset's missing or damaged image):
@@ -216,6 +243,23 @@ class CameraPump:
             self._log.warning("frame %d not stored: %s", frame.frame_id, exc)
 
 
+# A frame made by the worker, with how long it took (ns).
+Loaded = Outcome[tuple[npt.NDArray[np.uint8], int]]
+
+
+def _timed(
+    load: Callable[[], npt.NDArray[np.uint8]],
+) -> Callable[[], tuple[npt.NDArray[np.uint8], int]]:
+    """``load`` as a worker step that also says how long it took."""
+
+    def step() -> tuple[npt.NDArray[np.uint8], int]:
+        started = time.monotonic_ns()
+        image = load()
+        return image, time.monotonic_ns() - started
+
+    return step
+
+
 # The share of its nominal rate below which a source says it cannot keep up.
 KEEP_UP_SHARE = 0.9
 # Frames (at least) over which the rate is judged.
@@ -238,14 +282,9 @@ class RateWatch:
         self.late_total = 0
         self.warned = False
 
-    def timed_load(
-        self, load: Callable[[], npt.NDArray[np.uint8]], stop: threading.Event
-    ) -> npt.NDArray[np.uint8] | None:
-        started = time.monotonic_ns()
-        image = unless_stopped(load, stop)
-        if image is not None:
-            self._load_ns.append(time.monotonic_ns() - started)
-        return image
+    def loaded(self, load_ns: int) -> None:
+        """A frame took ``load_ns`` to render or read."""
+        self._load_ns.append(load_ns)
 
     def late(self, log: logging.Logger) -> None:
         self.late_total += 1

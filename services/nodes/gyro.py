@@ -111,6 +111,9 @@ class GyroPump:
         self._pending: tuple[list[int], npt.NDArray[np.float64]] | None = None
         self.stored = self.dropped = 0
 
+    def close(self) -> None:
+        """Nothing to stop: the gyro makes its samples on the executor."""
+
     def summary(self) -> str:
         return f"gyro: {self.stored} samples stored, {self.dropped} dropped"
 

@@ -412,6 +412,7 @@ def run(config: MediatorConfig, network: NetworkConfig, stop: threading.Event | 
             pass
         finally:
             mediator.close()
+            mediator.log.info("%s: %s", config.name, mediator.out.summary())
     return 0
 
 

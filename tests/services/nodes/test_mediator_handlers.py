@@ -3,6 +3,7 @@ executor, no camera or gyro process, no thread waits for anything."""
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Callable, Iterator
 
@@ -23,6 +24,7 @@ from services.lib.decisions import GyroMissing, Load
 from services.lib.messages import DecisionRecord, frame_metadata
 from services.lib.quality import Exposure, GyroSamples
 from services.lib.rewind import SourceClock
+from services.nodes import _mediator_pairing
 from services.nodes._mediator_restart import MISSED_TRIES
 from services.nodes.mediator import Mediator, MediatorConfig
 from tests.conftest import free_port
@@ -246,3 +248,27 @@ def test_a_camera_that_restarts_again_before_its_clock_answered_removes_nothing(
     mediator.on_time(time.monotonic_ns())
     assert not mediator.starts.holding and mediator.images.info().rewinds == ()
     assert fed.reasons()[0] != "out-of-order" and fed.reasons()[1:] == ["out-of-order"] * 2
+
+
+def test_a_brief_gyro_outage_is_counted_and_a_long_one_warned(
+    fed: Fed, caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # A loaded machine made 52 warning pairs in 10 minutes out of late gyro batches.
+    mediator = fed.mediator
+    fed.gyro(0, 5)
+    with caplog.at_level(logging.WARNING, logger="framegate.mediator"):
+        fed.frame(10)
+        mediator.on_time(time.monotonic_ns() + int(WAIT_MS * MS))  # out, but briefly
+        fed.gyro(6, 100)
+        fed.frame(50)  # covered again
+        assert fed.reasons() == ["gyro-missing-reject", "quality>load"]
+        assert not [r for r in caplog.records if "gyro" in r.getMessage()]
+        monkeypatch.setattr(_mediator_pairing, "_OUTAGE_SAY_NS", 0)  # now out long enough
+        fed.frame(200)
+        mediator.on_time(time.monotonic_ns() + int(WAIT_MS * MS))
+        fed.gyro(101, 300)
+        fed.frame(250)
+    said = [r.getMessage() for r in caplog.records if "gyro" in r.getMessage()]
+    assert len(said) == 2, said
+    assert "does not cover frame" in said[0] and "(1 briefer outages before" in said[0]
+    assert "covers frames again" in said[1]

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+import signal
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -165,12 +167,20 @@ def test_gyro_outage_keeps_mediator_running_and_it_recovers(
         lambda: pipe.counter("mediator/decisions") >= 10, 60, lambda: "decisions\n" + pipe.log()
     )
     mediator_pid = pipe.pid("mediator")
-    pipe.kill("gyro")
-    wait_until(
-        lambda: any(r.reason.startswith("gyro-missing") for r in _decisions(pipe)),
-        60,
-        "a gyro-missing decision",
-    )
+    # Stopped, not killed: a killed gyro is restarted and back within ~0.3 s, an outage
+    # as brief as a late batch on a loaded machine, counted but not warned about.
+    gyro_pid = pipe.pid("gyro")
+    assert gyro_pid is not None
+    os.kill(gyro_pid, signal.SIGSTOP)
+    try:
+        wait_until(
+            lambda: any(r.reason.startswith("gyro-missing") for r in _decisions(pipe)),
+            60,
+            "a gyro-missing decision",
+        )
+        wait_until(lambda: "gyro does not cover frame" in pipe.log(), 30, "the outage warning")
+    finally:
+        os.kill(gyro_pid, signal.SIGCONT)
     missing = [r for r in _decisions(pipe) if r.reason.startswith("gyro-missing")]
     # Stated policy (idle): without gyro a frame is accepted only when the detector is idle.
     assert all(r.accepted == (r.load == 0.0) for r in missing), missing
