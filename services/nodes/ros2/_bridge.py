@@ -28,14 +28,18 @@ never notified of (``not-observed``: its queue was full, or its subscription had
 skipped the same way, and anything unforeseen with one message is logged with its traceback
 (``internal-error``) while the bridge goes on.
 
-Threads: Zenoh's callback thread only appends to the in-queues (see ``_link``); one thread
-per input decodes and puts; one thread per output takes, encodes and publishes; one watches
-for the ROS 2 router (``_link.watch_router``); the caller's thread waits for ``stop``. Each
-in-queue is guarded by its condition; ``_Skips`` by its lock.
+Threads: Zenoh's callback thread only appends to the in-queues (see ``_link``). On the
+node's executor: the images in (decoded and put a few per run, ``_inputs``), the outputs
+(``Output.on_notes``), and the watch for the ROS 2 router and the first look at the graph,
+a timer and deadlines (``_graph``). On threads of their own: the IMU in (``ros2-imu-in``: its
+put waits for credit, which on the executor would hold all the rest, ``_inputs``) and the
+``--consumer-done`` loop (``_consumer_loop`` says why). The caller's thread spins the node
+until ``stop``. Each in-queue is guarded by its condition; ``_Skips`` by its lock.
 """
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from collections.abc import Callable
@@ -46,6 +50,7 @@ from middleware import (
     FramegateError,
     NetworkConfig,
     Node,
+    Notification,
     SubscriptionMode,
     validate_metadata,
 )
@@ -56,28 +61,34 @@ from services.nodes._runtime import setup_logging
 from ._camera_info import CAMERA_INFO, TF_MESSAGE, TF_STATIC, CameraSource
 from ._cdr import DETECTIONS, IMAGE, IMU, STRING, Codec
 from ._config import DEFAULT_FRAME_ID, Mapping, Ros2Config
+from ._graph import StartWatch
 from ._inputs import (
     ImagesIn,
     ImuIn,
     _camera,
-    _settle_graph,
     _subscribe_camera,
 )
 from ._inputs import _InQueue as _InQueue  # re-exported: other loops queue the same way
 from ._inputs import _Skips as _Skips
-from ._link import RosLink, RosPublisher, watch_router
+from ._link import RosLink, RosPublisher
 from ._rmw import TopicCheck, dds_type_name, type_hash
 from ._sequence import SequenceWatch
 
 __all__ = ["Encoders", "ImagesIn", "ImuIn", "Output", "run"]
 
 _NS = "{urn:framegate:1}"
-# How long an output thread waits for a notification before looking at ``stop``.
-_POLL_S = 0.2
+_log = logging.getLogger("framegate.ros2")
 
 
 class Output:
-    """One framegate buffer → one ROS 2 topic, observed (never holding framegate back)."""
+    """One framegate buffer → one ROS 2 topic, observed (never holding framegate back).
+
+    A handler on the node's executor (``attach``): each notification is fetched (its element
+    came along: ``PUSH_ALL``), encoded and published. Publishing only hands the message to
+    Zenoh, which drops it rather than wait, except for a reliable keep-all topic
+    (``--out-depth 0``), which may lose nothing: its publish waits for room, and the node's
+    other handlers with it, as a ROS 2 keep-all publisher's caller does.
+    """
 
     def __init__(
         self,
@@ -86,10 +97,13 @@ class Output:
         mapping: Mapping,
         encode: Callable[[Any], bytes | bytearray | None],
         config: Ros2Config,
+        skips: _Skips,
     ) -> None:
         self.mapping = mapping
+        self._node = node
         self._publisher = publisher
         self._encode = encode
+        self._skips = skips
         self._sub = node.subscribe(
             mapping.buffer,
             queue_size=config.out_queue,
@@ -100,33 +114,41 @@ class Output:
         )
         self.published = 0
 
-    def run(self, stop: threading.Event, skips: _Skips) -> None:
-        while not stop.is_set():
-            note = self._sub.take(timeout_s=_POLL_S)
-            if note is None:
-                continue
-            if note.missed:  # never notified (a full queue, or a lapse): never published
-                skips.count(
-                    None,
-                    "not-observed",
-                    f"{note.missed} element(s) of {self.mapping.buffer} before {note.timestamp_ns}",
-                    note.missed,
-                )
+    def attach(self) -> None:
+        """Run ``on_notes`` on the node's executor for what the subscription queues."""
+        self._node.on(self._sub, self.on_notes)
+
+    def on_notes(self, notes: list[Notification]) -> None:
+        """(the executor) Carry each notification to ROS 2; every failure is a counted skip."""
+        for note in notes:
             try:
-                element = self._sub.fetch(note)
-                cdr = self._encode(element)
-            except (FramegateError, ValueError, KeyError, TypeError) as exc:
-                skips.count(
-                    None, "bad-element", f"{self.mapping.buffer} at {note.timestamp_ns}: {exc}"
-                )
-                continue
-            if cdr is None:
-                continue
-            try:
-                self._publisher.publish(cdr)
-                self.published += 1
-            except FramegateError as exc:
-                skips.count(None, "publish-failed", str(exc))
+                self._carry(note)
+            except Exception as exc:  # one element must never stop the bridge's executor
+                _log.exception("output to %s: unexpected error", self.mapping.topic)
+                self._skips.count(None, "internal-error", repr(exc))
+
+    def _carry(self, note: Notification) -> None:
+        skips = self._skips
+        if note.missed:  # never notified (a full queue, or a lapse): never published
+            skips.count(
+                None,
+                "not-observed",
+                f"{note.missed} element(s) of {self.mapping.buffer} before {note.timestamp_ns}",
+                note.missed,
+            )
+        try:
+            element = self._sub.fetch(note)
+            cdr = self._encode(element)
+        except (FramegateError, ValueError, KeyError, TypeError) as exc:
+            skips.count(None, "bad-element", f"{self.mapping.buffer} at {note.timestamp_ns}: {exc}")
+            return
+        if cdr is None:
+            return
+        try:
+            self._publisher.publish(cdr)
+            self.published += 1
+        except FramegateError as exc:
+            skips.count(None, "publish-failed", str(exc))
 
 
 class Encoders:
@@ -229,9 +251,9 @@ def run(config: Ros2Config, network: NetworkConfig, stop: threading.Event | None
         watches: list[SequenceWatch] = []
         if config.image_in:
             images = ImagesIn(node, codec, config, skips, cameras)
+            images.attach(node)  # decoded and put on the node's executor
             link.subscribe(config.image_in, IMAGE, hashed(IMAGE), config.in_qos, images.on_sample)
             watches.append(images.sequence)
-            start("ros2-images-in", lambda: images.run(stop))  # type: ignore[union-attr]
             _subscribe_camera(link, cameras, config, hashed)
         if config.imu_in:
             imu = ImuIn(node, codec, config, skips, cameras)
@@ -265,9 +287,9 @@ def run(config: Ros2Config, network: NetworkConfig, stop: threading.Event | None
                         node, link, publisher, encode, config, skips, start, stop
                     )
                     continue
-                output = Output(node, publisher, mapping, encode, config)
+                output = Output(node, publisher, mapping, encode, config, skips)
+                output.attach()
                 outputs.append(output)
-                start(f"ros2-out-{mapping.topic}", lambda o=output: o.run(stop, skips))  # type: ignore[misc]
         log.info(
             "%s: node %s in domain %d via %s (%s); in: %s; out: %s",
             config.name,
@@ -312,15 +334,17 @@ def run(config: Ros2Config, network: NetworkConfig, stop: threading.Event | None
                 log.warning("ros2: %s", said)
 
         link.watch_graph(on_token)
-        start("ros2-graph", lambda: _settle_graph(link, watches, stop, log))
         where = ", ".join(config.ros_connect) or "the --ros-config endpoints"
-        start("ros2-router", lambda: watch_router(link.routers, where, stop, log))
+        start_watch = StartWatch(node, link, watches, where, log)
         try:
-            while not stop.wait(0.5):
-                pass
+            node.spin(stop)
         except KeyboardInterrupt:
             stop.set()
-        stop.set()
+        finally:
+            stop.set()
+            start_watch.close()
+        if images is not None:
+            images.finish()
         deadline = time.monotonic() + 1.0
         for thread in threads:
             thread.join(max(0.0, deadline - time.monotonic()))

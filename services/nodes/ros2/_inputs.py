@@ -6,9 +6,14 @@ Beside those: ``future-stamp`` (beyond the producer's horizon), ``lost-in-transp
 ``tf-queue-full`` (``_camera_info``), and ``stopped`` for what was still queued when the
 bridge stopped: every image received is stored, refused or counted under a reason.
 
-Threads: Zenoh's callback thread only notes the sample's sequence number and appends to the
-in-queue (``on_sample``); one worker per input decodes and puts. Each in-queue is guarded by
-its condition, ``_Skips`` by its lock.
+Threads: Zenoh's callback thread only notes the sample's sequence number, appends to the
+in-queue (``on_sample``) and, for the images, schedules a drain on the node's executor when
+none is due (``attach``): the images are decoded and put there, a few per run, as the camera
+service puts its frames, since their put never waits (a refused frame is dropped). The IMU
+keeps a worker thread (``ros2-imu-in``): a refused batch waits up to ``--gyro-wait-ms`` for
+credit (the mediator needs every sample), and that wait on the executor would hold every
+output and the images with it. Each in-queue is guarded by its condition, ``_Skips`` by its
+lock.
 """
 
 from __future__ import annotations
@@ -16,6 +21,7 @@ from __future__ import annotations
 import collections
 import logging
 import threading
+import time
 from collections.abc import Callable
 
 import numpy as np
@@ -44,6 +50,9 @@ from ._stamps import StampGate
 
 # How long an input worker waits for a sample before looking at ``stop``.
 _POLL_S = 0.2
+# Samples an input on the executor decodes and puts per run: an image costs milliseconds
+# (decoding, its one copy), so a few, then the node's other handlers get their turn.
+_PER_RUN = 4
 # A partial IMU batch goes out after this long without a new sample.
 _IMU_IDLE_S = 0.05
 # The IMU in-queue's least depth, in samples. The mediator needs every sample (two lost in a
@@ -56,8 +65,6 @@ _IMU_QUEUE = 2048
 # messages are ~0.7 MB; five 1280x1024 images ~6.5 MB (a 4K RGB image is 25 MB).
 _IMU_QUEUE_BYTES = 8 << 20
 _IMAGE_QUEUE_BYTES = 256 << 20
-# How long after the first look at the ROS graph the bridge looks again (see _settle_graph).
-_GRAPH_SECOND_LOOK_S = 0.5
 
 
 class _Skips:
@@ -88,6 +95,10 @@ class _InQueue:
         self._bytes = 0
         self._cond = threading.Condition()
         self._on_overflow = on_overflow
+        # Set by ``drain_to``'s owner: called (Zenoh's thread) when the queue gets work while
+        # no drain is due, so one executor deadline is scheduled per burst, not per sample.
+        self.on_ready: Callable[[], object] | None = None
+        self._due = False
 
     def put(self, payload: bytes, attachment: bytes | None) -> None:
         size = len(payload) + len(attachment or b"")
@@ -103,8 +114,21 @@ class _InQueue:
             self._items.append((payload, attachment))
             self._bytes += size
             self._cond.notify()
+            ready = self.on_ready if not self._due else None
+            self._due = ready is not None
         for _ in range(dropped):
             self._on_overflow()
+        if ready is not None:
+            ready()
+
+    def drain(self, budget: int) -> tuple[list[tuple[bytes, bytes | None]], bool]:
+        """(the executor) At most ``budget`` items, oldest first, and whether more wait (the
+        caller then schedules the next drain itself; else the next ``put`` asks for one)."""
+        with self._cond:
+            items = [self._items.popleft() for _ in range(min(budget, len(self._items)))]
+            self._bytes -= sum(len(p) + len(a or b"") for p, a in items)
+            self._due = bool(self._items)
+            return items, self._due
 
     def get(self, timeout_s: float) -> tuple[bytes, bytes | None] | None:
         with self._cond:
@@ -190,6 +214,8 @@ class _Input:
         # A stamp is remembered only once its sample can be stored (``StampGate.accept``).
         self.gate = StampGate(producer.horizon_ns, self.what)
         self.stored = self.dropped = 0
+        self._count = 0  # samples taken: the sequence number of one without an attachment
+        self._finished = False
 
     def on_sample(self, payload: bytes, attachment: bytes | None) -> None:
         """Zenoh's callback: note the sequence number, enqueue."""
@@ -197,25 +223,55 @@ class _Input:
         self.queue.put(payload, attachment)
 
     def run(self, stop: threading.Event) -> None:
-        """The input's worker, until ``stop`` is set."""
-        count = 0
+        """The input's worker thread (the IMU, see ``ImuIn``), until ``stop`` is set."""
         while not stop.is_set():
             item = self.queue.get(self.idle_s)
             _count_lost(self.producer, self.sequence, self._skips)
             if item is None:
                 self.idle()
                 continue
-            count += 1
-            try:
-                self.take(item[0], _sequence(item[1], count))
-            except Exception as exc:  # one message must never stop the bridge
-                logging.getLogger("framegate.ros2").exception("%s: unexpected error", self.what)
-                self._skips.count(self.producer, "internal-error", repr(exc))
+            self._count += 1
+            self._take_one(item[0], _sequence(item[1], self._count))
+        self.finish()
+
+    def attach(self, node: Node) -> None:
+        """Decode and put on ``node``'s executor instead of a worker thread (the images: their
+        put never waits, see ``ImagesIn``): a deadline at once when samples arrive, at most
+        ``_PER_RUN`` of them per run, and every ``idle_s`` what the sequence watch found lost
+        meanwhile (a publisher's first samples are lost without any arriving)."""
+
+        def drain(_now_ns: int) -> None:
+            if self._finished:  # stopping: what is queued is counted by ``finish``
+                return
+            items, more = self.queue.drain(_PER_RUN)
+            for raw, attachment in items:
+                self._count += 1
+                self._take_one(raw, _sequence(attachment, self._count))
+            _count_lost(self.producer, self.sequence, self._skips)
+            if more:  # behind the node's other work, as the executor's round robin
+                node.at(time.monotonic_ns(), drain)
+
+        self.queue.on_ready = lambda: node.at(time.monotonic_ns(), drain)
+        node.every(
+            self.idle_s, lambda _now_ns: _count_lost(self.producer, self.sequence, self._skips)
+        )
+
+    def finish(self) -> None:
+        """The bridge stops: send what waits, count what was received and never put."""
+        self._finished = True
+        self.queue.on_ready = None
         self.idle()  # what was accepted goes out (or is counted as refused)
-        if left := self.queue.clear():  # received, never put: counted as well
+        if left := self.queue.clear():
             self._skips.count(
                 self.producer, "stopped", f"{left} {self.what} samples at the stop", left
             )
+
+    def _take_one(self, raw: bytes, sequence: int) -> None:
+        try:
+            self.take(raw, sequence)
+        except Exception as exc:  # one message must never stop the bridge
+            logging.getLogger("framegate.ros2").exception("%s: unexpected error", self.what)
+            self._skips.count(self.producer, "internal-error", repr(exc))
 
     def take(self, raw: bytes, sequence: int) -> None:
         """One sample from the in-queue, with its publisher's sequence number."""
@@ -226,7 +282,8 @@ class _Input:
 
 
 class ImagesIn(_Input):
-    """ROS 2 images → NAME/images (see the module docstring for the rules)."""
+    """ROS 2 images → NAME/images (see the module docstring for the rules), on the node's
+    executor once attached: ``put`` without ``wait_s`` refuses at once, never waits."""
 
     what = "image"
 
@@ -317,7 +374,8 @@ class ImagesIn(_Input):
 
 
 class ImuIn(_Input):
-    """ROS 2 IMU samples → one-sample ``gyro`` elements of NAME/rates, in batches."""
+    """ROS 2 IMU samples → one-sample ``gyro`` elements of NAME/rates, in batches, on a
+    worker thread of its own (``run``): its put may wait for credit (see the module)."""
 
     what = "IMU"
     idle_s = _IMU_IDLE_S  # a partial batch goes out when the IMU is this long quiet
@@ -414,32 +472,3 @@ def _subscribe_camera(
         )
     if cameras.wants_tf:
         link.subscribe(TF_STATIC, TF_MESSAGE, hashed(TF_MESSAGE), _TF_STATIC_QOS, cameras.on_tf)
-
-
-def _settle_graph(
-    link: RosLink, watches: list[SequenceWatch], stop: threading.Event, log: logging.Logger
-) -> None:
-    """Once connected to the ROS 2 router, take the graph as it is: a publisher announced
-    after that started after the bridge, and its first lost samples are counted."""
-    while link.routers() == 0:
-        if stop.wait(0.1):
-            return
-    # Just after connecting, a query of the graph may miss tokens the router already holds
-    # (seen: its own session's publisher): a second look a moment later is joined to the
-    # first, so a publisher that was there is never taken for a new one. One that starts in
-    # between is counted from its first sample seen, as one that was there.
-    tokens = set(link.graph())
-    if stop.wait(_GRAPH_SECOND_LOOK_S):
-        return
-    tokens.update(link.graph())
-    for token in tokens:
-        for watch in watches:
-            watch.announce(token)
-    for watch in watches:
-        watch.settle()
-    log.info(
-        "ros2: ROS graph taken by %s (%d entities); the first samples of publishers starting "
-        "from now are counted if lost",
-        link.identity.node_name,
-        len(tokens),
-    )

@@ -8,15 +8,13 @@ subscriber with its own token. Publishers attach rmw_zenoh's per-sample attachme
 
 Threads: Zenoh's callback thread only hands each received sample's payload and attachment
 bytes to the subscription's ``on_sample`` (which must only enqueue); everything else runs
-on the caller's threads (``watch_router`` on one of its own, asking the session only how many
-routers it has). A publisher's sequence counter is guarded by its own lock.
+on the caller's threads, and the end of a look at the graph (``ask_graph``) is only handed on.
+A publisher's sequence counter is guarded by its own lock.
 """
 
 from __future__ import annotations
 
 import contextlib
-import itertools
-import logging
 import threading
 import time
 from collections.abc import Callable
@@ -44,8 +42,6 @@ OnSample = Callable[[bytes, bytes | None], None]
 _Subscriber = zenoh.Subscriber[None] | zenoh.ext.AdvancedSubscriber[None]
 # The most liveliness tokens one snapshot of the ROS graph keeps.
 GRAPH_MAX = 65_536
-# How long the bridge waits for the ROS 2 router before it says none answers.
-ROUTER_WAIT_S = 3.0
 
 
 class RosPublisher:
@@ -124,18 +120,29 @@ class RosLink:
             raise TransportError(f"cannot watch the ROS 2 graph: {exc}") from exc
         self._watchers.append(watcher)
 
-    def graph(self, timeout_s: float = 2.0) -> list[str]:
-        """The liveliness tokens of the domain's ROS graph now (one query, bounded by
-        ``timeout_s``); empty when no one answers."""
-        try:
-            replies = self._session.liveliness().get(
-                f"{ADMIN_SPACE}/{self.identity.domain_id}/**", timeout=timeout_s
-            )
+    def ask_graph(self, answer: Callable[[list[str]], object], timeout_s: float = 2.0) -> None:
+        """Ask for the liveliness tokens of the domain's ROS graph without waiting for them:
+        ``answer(tokens)`` runs once when the query ends (replied, or ``timeout_s`` passed), on
+        Zenoh's thread, so it must only hand them on; ``[]`` when no one answers, and then at
+        once on the caller's thread when Zenoh refuses the query."""
+        tokens: list[str] = []
+
+        def on_reply(reply: zenoh.Reply) -> None:
             # Bounded: a peer may declare any number of tokens.
-            kept = itertools.islice((r.ok for r in replies if r.ok is not None), GRAPH_MAX)
-            return [str(sample.key_expr) for sample in kept]
+            if reply.ok is not None and len(tokens) < GRAPH_MAX:
+                tokens.append(str(reply.ok.key_expr))
+
+        def finished() -> None:
+            answer(tokens)
+
+        try:
+            self._session.liveliness().get(
+                f"{ADMIN_SPACE}/{self.identity.domain_id}/**",
+                zenoh.handlers.Callback(on_reply, finished, indirect=False),
+                timeout=timeout_s,
+            )
         except zenoh.ZError:
-            return []
+            answer([])
 
     def routers(self) -> int:
         """How many Zenoh routers (``rmw_zenohd``) the session is connected to now."""
@@ -247,32 +254,3 @@ class RosLink:
         _tb: TracebackType | None,
     ) -> None:
         self.close()
-
-
-def watch_router(
-    routers: Callable[[], int], where: str, stop: threading.Event, log: logging.Logger
-) -> None:
-    """Warn once when no ROS 2 router answers within ROUTER_WAIT_S (as rmw_zenoh does: its
-    nodes see no other node without one), then say when one does; Zenoh keeps retrying."""
-    if stop.wait(0) or _wait_for_router(routers, stop, ROUTER_WAIT_S):
-        return
-    log.warning(
-        "ros2: no ROS 2 router at %s yet (is rmw_zenohd running? 'ros2 run rmw_zenoh_cpp "
-        "rmw_zenohd'); nothing reaches ROS 2 until one answers, still trying",
-        where,
-    )
-    if _wait_for_router(routers, stop, None):
-        log.info("ros2: connected to the ROS 2 router at %s", where)
-
-
-def _wait_for_router(
-    routers: Callable[[], int], stop: threading.Event, limit_s: float | None
-) -> bool:
-    deadline = None if limit_s is None else time.monotonic() + limit_s
-    while not stop.is_set():
-        if routers() > 0:
-            return True
-        if deadline is not None and time.monotonic() >= deadline:
-            return False
-        stop.wait(0.1)
-    return False

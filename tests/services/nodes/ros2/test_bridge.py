@@ -18,7 +18,6 @@ import zenoh
 
 from middleware import DataObject, NetworkConfig, Node, Producer
 from services.lib.frame_layout import FrameError
-from services.nodes.ros2 import _link as link_module
 from services.nodes.ros2._bridge import ImagesIn, ImuIn, _Skips
 from services.nodes.ros2._cdr import IMAGE, IMU, Codec
 from services.nodes.ros2._config import Ros2Config
@@ -297,35 +296,6 @@ def test_out_images_keep_pixels_and_refuse_inconsistent_elements(codec: Codec) -
     ):
         with pytest.raises(FrameError, match=match):
             encoders.image(bad)
-
-
-def test_a_missing_ros2_router_is_said_once_and_its_arrival_too(
-    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
-) -> None:
-    monkeypatch.setattr(link_module, "ROUTER_WAIT_S", 0.2)
-    routers = [0]
-    stop = threading.Event()
-    log = logging.getLogger("test.router")
-    with caplog.at_level(logging.INFO, logger="test.router"):
-        watcher = threading.Thread(
-            target=link_module.watch_router,
-            args=(lambda: routers[0], "tcp/localhost:7447", stop, log),
-        )
-        watcher.start()
-        wait_until(lambda: "no ROS 2 router at tcp/localhost:7447" in caplog.text, 5, "warning")
-        routers[0] = 1
-        watcher.join(5)
-    assert not watcher.is_alive()
-    assert caplog.text.count("no ROS 2 router") == 1
-    assert "connected to the ROS 2 router at tcp/localhost:7447" in caplog.text
-
-
-def test_a_present_ros2_router_is_not_warned_about(caplog: pytest.LogCaptureFixture) -> None:
-    with caplog.at_level(logging.INFO, logger="test.router"):
-        link_module.watch_router(
-            lambda: 1, "tcp/localhost:7447", threading.Event(), logging.getLogger("test.router")
-        )
-    assert caplog.text == ""
 
 
 @pytest.mark.integration

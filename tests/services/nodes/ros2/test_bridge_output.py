@@ -5,7 +5,6 @@ is a counted ``not-observed`` skip, never a silent gap on the ROS 2 topic."""
 from __future__ import annotations
 
 import logging
-import threading
 from collections.abc import Iterator
 
 import pytest
@@ -42,30 +41,23 @@ def test_elements_an_output_was_never_notified_of_are_counted_not_observed(
     producer, bridge = nodes
     decisions = producer.offer("decisions")
     publisher = _Publisher()
+    skips = _Skips(logging.getLogger("test.bridge.output"))
     output = Output(
         bridge,
         publisher,  # type: ignore[arg-type]
         Mapping("mediator/decisions", "/framegate/verdicts"),
         lambda element: element.payload,
         Ros2Config(out_queue=1),
+        skips,
     )
     wait_until(lambda: decisions.subscriptions(), 30, "the output's subscription")
     # Nobody takes yet: a queue of one holds the first, the observer misses the rest.
     for t in range(1, COUNT):
         decisions.put(t, b"%d" % t, make_metadata("generic", t))
-    skips = _Skips(logging.getLogger("test.bridge.output"))
-    stop = threading.Event()
-    runner = threading.Thread(target=output.run, args=(stop, skips))
-    runner.start()
-    try:
-        wait_until(lambda: publisher.published, 30, "the first element published")
-        decisions.put(COUNT, b"%d" % COUNT, make_metadata("generic", COUNT))
-        wait_until(
-            lambda: publisher.published[-1] == b"%d" % COUNT, 30, "the last element published"
-        )
-    finally:
-        stop.set()
-        runner.join(timeout=10)
+    output.attach()  # the node's executor takes from now on
+    wait_until(lambda: publisher.published, 30, "the first element published")
+    decisions.put(COUNT, b"%d" % COUNT, make_metadata("generic", COUNT))
+    wait_until(lambda: publisher.published[-1] == b"%d" % COUNT, 30, "the last element published")
     missed = skips.counts["not-observed"]
     assert missed > 0, publisher.published
     # Every element either reached the ROS 2 topic or was counted as never observed.
