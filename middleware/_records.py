@@ -49,8 +49,9 @@ class Retention:
             # breaks whatever formats it as a float.
             if type(value) is not int or not 1 <= value < 2**63:
                 none = "" if name == "max_payload_bytes" else " or None"
+                got = repr(value) if len(repr(value)) <= 40 else f"{repr(value)[:24]}..."
                 raise ValueError(
-                    f"Retention.{name} must be an int in 1 .. 2^63 - 1{none}, got {value!r}"
+                    f"Retention.{name} must be an int in 1 .. 2^63 - 1{none}, got {got}"
                 )
 
 
@@ -190,10 +191,12 @@ class BufferInfo:
     rewinds: tuple[Rewind, ...] = field(default=())
     # The limits it refuses by (None from a peer that does not report them).
     limits: BufferLimits | None = None
-    # Control messages (acks, subscription tokens) dropped unread: larger than their format
-    # allows, or pushed out of a full inbox by newer ones (a flood).
+    # Control messages (acks, subscription tokens) dropped on Zenoh's thread, before they
+    # are buffered: larger than their format allows, an ack whose first byte is not an ack's
+    # (garbage) or that repeats the last one of its key, or one arriving at a full inbox.
     dropped_messages: int = 0
-    # Control messages read and ignored: malformed, or a token no client could read back.
+    # Control messages read by the producer and ignored: an ack that passed the first byte
+    # but does not decode, or a token no client could read back.
     bad_messages: int = 0
     # Acks ignored as of no live registration (from before a subscription re-registered, or
     # forged) or acking more than was sent (a forgery).
