@@ -94,11 +94,13 @@ def control_inbox_bytes() -> int:
 @dataclass(frozen=True, slots=True)
 class Control:
     """A control message detached from Zenoh's buffers: its key, its payload, and whether it
-    is a put (for a token: alive) or a delete."""
+    is a put (for a token: alive) or a delete; an ack also as the ack inbox decoded it
+    (epoch, seq), so that the protocol does not decode it again."""
 
     key: str
     payload: bytes
     alive: bool
+    ack: tuple[str, int] | None = None
 
 
 class _Bounded(Generic[T]):
@@ -295,7 +297,7 @@ class AckInbox(ControlInbox):
                 self.foreign += 1
             return DROPPED
         self._filter.remember(key, data, now_ns)
-        return Control(key, data, sample.kind == zenoh.SampleKind.PUT)
+        return Control(key, data, sample.kind == zenoh.SampleKind.PUT, (epoch, seq))
 
 
 class TokenInbox(ControlInbox):

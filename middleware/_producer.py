@@ -160,7 +160,7 @@ class Producer:
         ack = self._protocol.ack
         now = time.monotonic_ns()
         for message in self._acks.take(budget):
-            changed |= ack(message.key, message.payload, now)
+            changed |= ack(message.key, message.payload, now, message.ack)
         for message in self._tokens.take(budget):
             self._protocol.token(message.key, message.alive, now)
             changed = True

@@ -229,8 +229,15 @@ class ProducerProtocol:
         large = limit is not None and limit > self.inline_max_bytes
         self._shares.add(key, holder_of(node, host), large, -1)
 
-    def ack(self, keyexpr: str, payload: bytes, now_ns: int) -> bool:
-        """An ack arrived on ``keyexpr``; True if it freed credit.
+    def ack(
+        self,
+        keyexpr: str,
+        payload: bytes,
+        now_ns: int,
+        decoded: tuple[str, int] | None = None,
+    ) -> bool:
+        """An ack arrived on ``keyexpr``; True if it freed credit. ``decoded``: its (epoch,
+        seq) when the ack inbox has decoded it already (from ``payload``).
 
         Two cheap checks come first, because a flood is made of exactly these: anything
         that is not a msgpack map of two (an ack's first byte) is garbage without decoding
@@ -244,7 +251,7 @@ class ProducerProtocol:
             return False
         sub_id = keyexpr.rsplit("/", 1)[-1]
         try:
-            epoch, seq = decode_ack(payload)
+            epoch, seq = decoded if decoded is not None else decode_ack(payload)
         except Exception:  # garbage on our ack key is counted, never raised
             self.counters.bad_messages += 1
             return False
