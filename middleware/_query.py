@@ -20,9 +20,11 @@ from ._session import zenoh_errors
 from ._timerange import TimeRange
 from ._wire import ERR_NOT_FOUND, decode_element
 
-# Replies an ``ask_query`` keeps at most (the rest is not read: the answer then reads as
-# cut short, an error), as a handler's question must not hold unbounded memory.
+# Replies, and their payload bytes, an ``ask_query`` keeps at most (the rest is not read:
+# the answer then reads as cut short, an error): any peer may answer a handler's question,
+# and its answer must not hold unbounded memory until the query ends.
 _ASK_REPLIES_MAX = 4096
+_ASK_BYTES_MAX = 256 << 20
 # How long a fetch started ahead, whose answer was empty, waits for its second ask.
 _ASK_AGAIN_S = 2.0
 
@@ -60,9 +62,12 @@ class Queries(Discovery):
         short. Asked once (``query`` asks again an answer that reached no one; a handler
         that needs the elements asks again itself, later)."""
         replies: list[zenoh.Reply] = []
+        kept_bytes = [0]
 
         def on_reply(reply: zenoh.Reply) -> None:  # (Zenoh's thread) kept, decoded later
-            if len(replies) < _ASK_REPLIES_MAX:  # any peer may answer: bounded
+            size = len(reply.ok.payload) if reply.ok is not None else 0
+            if len(replies) < _ASK_REPLIES_MAX and kept_bytes[0] + size <= _ASK_BYTES_MAX:
+                kept_bytes[0] += size
                 replies.append(reply)
 
         def deliver(_now_ns: int) -> None:
