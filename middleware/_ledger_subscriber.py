@@ -33,7 +33,15 @@ A notification ``(epoch, seq, descriptor)``:
    registration with (``pin``; until a greeting comes, the first epoch adopted) is never
    evicted, from the table or from that memory: a flood of made-up epochs at seq 1 (any
    peer can send one) would otherwise push the live epoch out of both, and every later seq
-   of it would be ``out_of_order`` for good.
+   of it would be ``out_of_order`` for good. Nor, for flow control, is an epoch adopted
+   since the last greeting (``UNGREETED_EPOCHS`` at most; more are ignored, counted in
+   ``refused``, until the next greeting): a restarted producer's first notification can
+   come before its greeting (a lost or delayed one), and a flood between the two would
+   otherwise push its epoch out, and the producer's resend of an element already taken
+   would be taken again. Until its greeting, a made-up epoch and a restarted producer's
+   are alike; so the first ones are kept and the rest wait: the producer resends, and
+   greets again with the resend while nothing of the registration was acked
+   (``ProducerProtocol.tick``), so its epoch is adopted once the greeting has come.
 4. ``seq <= last``: a duplicate or stale copy: ignored (``duplicates``). If nothing of
    that epoch is queued, the producer evidently missed our ack: it is repeated.
 5. Flow control, ``seq > last + 1`` (a gap) or ``seq > taken + N`` (beyond any window the
@@ -92,6 +100,9 @@ from ._records import SubscriptionMode
 MAX_EPOCHS = 8
 # Evicted epochs remembered (last, taken), so that a live one is restored, not re-adopted.
 FORGOTTEN_EPOCHS = 256
+# Epochs a flow subscription adopts between two greetings (rule 3); well below the memory
+# above, which never evicts them.
+UNGREETED_EPOCHS = 32
 # An idle subscriber repeats its acks this often.
 REACK_NS = 500_000_000
 # A coalescing subscriber whose queue ran empty acks at most this much later.
@@ -192,6 +203,8 @@ class SubscriberLedger(Generic[T]):
         self._epochs: OrderedDict[str, EpochTrack] = OrderedDict()
         self._forgotten: OrderedDict[str, tuple[int, int]] = OrderedDict()
         self._pinned: str | None = None  # never evicted (``pin``)
+        # Flow control: epochs adopted since the last greeting, never evicted either.
+        self._ungreeted: set[str] = set()
         self._acked_ns: int | None = None  # when acks last left
         # Takes so far, and how many and when ``acks_due`` last saw: a take that comes the
         # delay or more after the one before is a slow stream's (see ``acks_due``).
@@ -234,8 +247,10 @@ class SubscriberLedger(Generic[T]):
 
     def pin(self, epoch: str) -> None:
         """Keep ``epoch`` (the one the producer greeted this registration with) tracked
-        whatever other epochs arrive; a later greeting moves the pin."""
+        whatever other epochs arrive; a later greeting moves the pin, and frees the epochs
+        adopted before it (rule 3)."""
         self._pinned = epoch
+        self._ungreeted.clear()
 
     # -- notifications in ------------------------------------------------------------------
     def receive(self, epoch: str, seq: int, item: T, *, descriptor: str | None) -> bool:
@@ -274,7 +289,10 @@ class SubscriberLedger(Generic[T]):
             if known is None and self.flow and seq != 1:
                 c.out_of_order += 1
                 return False
-            if not self._make_room():
+            ungreeted = (
+                known is None and self.flow and self._pinned is not None and epoch != self._pinned
+            )
+            if (ungreeted and len(self._ungreeted) >= UNGREETED_EPOCHS) or not self._make_room():
                 c.refused += 1
                 return False
             if known is not None:
@@ -284,6 +302,8 @@ class SubscriberLedger(Generic[T]):
             self._epochs[epoch] = track
             if self._pinned is None:  # the greeting was lost, or is still on its way
                 self._pinned = epoch
+            elif ungreeted:
+                self._ungreeted.add(epoch)
         self._epochs.move_to_end(epoch)
         self._recent, self._recent_track = epoch, track
         if seq <= track.last:
@@ -375,12 +395,18 @@ class SubscriberLedger(Generic[T]):
                     self._recent = None
                 self._forgotten[name] = (track.last, track.taken)
                 if len(self._forgotten) > FORGOTTEN_EPOCHS:
-                    oldest, known = self._forgotten.popitem(last=False)
-                    if oldest == self._pinned:  # evicted before its greeting came: kept
-                        self._forgotten[oldest] = known
-                        self._forgotten.popitem(last=False)
+                    self._forget_oldest()
                 return True
         return False
+
+    def _forget_oldest(self) -> None:
+        """Drop the oldest remembered epoch that is neither pinned nor adopted since the last
+        greeting (there is one: those are at most ``UNGREETED_EPOCHS + 1``, far fewer than
+        the memory holds, so this looks at that many at most)."""
+        for name in self._forgotten:
+            if name != self._pinned and name not in self._ungreeted:
+                del self._forgotten[name]
+                return
 
     # -- taking and acking -----------------------------------------------------------------
     def take_many(self, max_count: int) -> list[Entry[T]]:

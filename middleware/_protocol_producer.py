@@ -46,7 +46,8 @@ states them for users and ``info`` reports them as ``BufferLimits``):
 
 Every refusal reaches the subscriber as a control message on its notification key
 (``["refused", descriptor, reason]``; see ``_wire``) and is counted; an accepted
-registration is greeted (``["hello", descriptor, epoch]``), so ``subscribe`` learns at once.
+registration is greeted (``["hello", descriptor, epoch]``), so ``subscribe`` learns at once,
+and greeted again with each resend round while it has acked nothing (a lost greeting heals).
 """
 
 from __future__ import annotations
@@ -318,6 +319,14 @@ class ProducerProtocol:
                 started.add(send.key)
                 reg = self._ledger.get(send.key)
                 if reg is not None:
+                    if reg.acked == 0:
+                        # Nothing acked yet: the greeting may be what was lost, and a flow
+                        # subscription adopts a new epoch only after it (under a flood of
+                        # made-up ones: ``SubscriberLedger``, rule 3).
+                        self._control(
+                            reg.key,
+                            encode_control("hello", reg.key.descriptor, reg.epoch, reg.base),
+                        )
                     self._resend_from(reg, send.seq, now_ns)
         for key, (at, seq) in list(self._paced.items()):
             if at <= now_ns:
