@@ -141,7 +141,7 @@ class Discovery:
         that may remove elements): QueryError when more than one Zenoh session answers with
         a valid description of ``service`` (any peer can answer, and Zenoh would pass on only
         the newest answer). A reply that is no valid description counts for nothing."""
-        start = now_ns()
+        start, began = now_ns(), time.monotonic()
         with zenoh_errors(f"describing {service}"):
             replies = list(
                 self._session.get(
@@ -160,6 +160,14 @@ class Discovery:
         if answers:
             answers.first_error()  # raises: what was wrong with what came
         self._require_service(service, timeout_s=timeout_s)
+        elapsed = time.monotonic() - began
+        if elapsed < timeout_s * 0.9:
+            # Ended before the timeout with nothing: the service finalized it unanswered
+            # (its bounded inbox of queries was full), it did not time out.
+            raise NotFoundError(
+                f"service {service!r} ended the query without an answer after "
+                f"{elapsed:.1f} s (busy: it drops queries beyond its inbox)"
+            )
         raise NotFoundError(f"service {service!r} did not answer within {timeout_s} s")
 
     def ask_service_info(

@@ -65,7 +65,7 @@ Properties (checked by tests/middleware/test_protocol_model.py after every step)
 
 from __future__ import annotations
 
-from collections import deque
+from collections import OrderedDict, deque
 from dataclasses import dataclass, field
 from typing import Generic, NamedTuple, TypeVar
 
@@ -74,6 +74,8 @@ from ._wire import descriptor_of
 
 # Registrations one ledger keeps by default; tokens beyond it are ignored (and counted).
 MAX_REGISTRATIONS = 1024
+# Retired keys remembered with how far they were acked (``Registration.since``).
+RETIRED_KEYS = 1024
 # Outstanding flow-control notifications are sent again after this long without progress.
 RETRANSMIT_NS = 500_000_000
 # A repeated ack makes the outstanding ones due at most this often: a peer repeating a
@@ -130,6 +132,10 @@ class Registration(Generic[H]):
     # producer's element number base + s, so a subscriber whose registration lapsed and came
     # back under a new epoch counts what was stored in between (``missed``).
     base: int = 0
+    # A key registered before (its token lapsed and came back): the element number its
+    # last registration was acked up to (base + acked), for the subscriber's count of what
+    # the lapse lost when it knows no element number of ours (``SubscriberProtocol``).
+    since: int | None = None
 
     @property
     def queued(self) -> int:
@@ -174,6 +180,9 @@ class ProducerLedger(Generic[H]):
         self._count = 0
         # Elements stored so far (``put_many`` counts them): a new registration's base.
         self.stored = 0
+        # Retired keys and how far they were acked (``Registration.since``); the oldest
+        # are forgotten beyond ``RETIRED_KEYS``.
+        self._retired: OrderedDict[RegistrationKey, int] = OrderedDict()
         self.counters = ProducerCounters()
 
     # -- tokens ----------------------------------------------------------------------------
@@ -185,7 +194,11 @@ class ProducerLedger(Generic[H]):
             return None
         self._count += 1
         reg: Registration[H] = Registration(
-            key, f"{self.epoch}.{self._count}", progress_ns=now_ns, base=self.stored
+            key,
+            f"{self.epoch}.{self._count}",
+            progress_ns=now_ns,
+            base=self.stored,
+            since=self._retired.pop(key, None),
         )
         self._regs[key] = reg
         self._by_epoch[reg.epoch] = reg
@@ -196,6 +209,9 @@ class ProducerLedger(Generic[H]):
         reg = self._regs.pop(key, None)
         if reg is not None:
             del self._by_epoch[reg.epoch]
+            self._retired[key] = reg.base + reg.acked
+            if len(self._retired) > RETIRED_KEYS:
+                self._retired.popitem(last=False)
         return reg
 
     # -- acks ------------------------------------------------------------------------------

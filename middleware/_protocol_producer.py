@@ -187,7 +187,7 @@ class ProducerProtocol:
                 key.push_max_bytes if large else min(key.push_max_bytes, self.inline_max_bytes)
             )
         log.debug("%s: subscription %s registered as %s", self.name, key.sub_id, reg.epoch)
-        self._control(key, encode_control("hello", key.descriptor, reg.epoch, reg.base))
+        self._control(key, encode_control("hello", key.descriptor, reg.epoch, reg.base, reg.since))
 
     # -- lost token events ----------------------------------------------------------------
     def tokens_lost(self, now_ns: int) -> None:
@@ -325,7 +325,9 @@ class ProducerProtocol:
                         # made-up ones: ``SubscriberLedger``, rule 3).
                         self._control(
                             reg.key,
-                            encode_control("hello", reg.key.descriptor, reg.epoch, reg.base),
+                            encode_control(
+                                "hello", reg.key.descriptor, reg.epoch, reg.base, reg.since
+                            ),
                         )
                     self._resend_from(reg, send.seq, now_ns)
         for key, (at, seq) in list(self._paced.items()):

@@ -30,7 +30,10 @@ dropped and came back): they are counted in ``missed`` on the next notification 
 and reported once (``lapse_news``). The producer's greeting of the new registration carries
 its base as well, so the count is made when the greeting comes (``missed_total`` at once;
 the next notification taken carries it): a lapse at the end of a stream, with no element
-after it, is counted too.
+after it, is counted too. A subscription that knows no element number of that instance
+(every notification of its last registration was refused behind a peer's, and the greeting
+lost) counts from the greeting's ``since``: how far the producer saw that registration
+acked (the producer remembers it per key, for ``RETIRED_KEYS`` keys).
 """
 
 from __future__ import annotations
@@ -225,10 +228,16 @@ class SubscriberProtocol:
         lapsed, self._lapsed = self._lapsed, 0
         return lapsed
 
-    def _greeted(self, epoch: str, base: int) -> None:
-        """A registration of ours starts at element ``base`` of its producer instance."""
+    def _greeted(self, epoch: str, base: int, since: int | None) -> None:
+        """A registration of ours starts at element ``base`` of its producer instance;
+        ``since``: how far the producer saw our previous registration acked, if it had
+        one (what we know ourselves counts first: we may have taken more than was acked)."""
         self._raise_current()
         high = self._high.get(epoch.rpartition(".")[0])
+        if high is None:
+            # Nothing of that registration came through (refused behind a peer's
+            # notifications, its greeting lost) or it is forgotten: the producer's word.
+            high = since
         if high is not None and base > high:
             # A later registration of an instance we had: what it stored since the last
             # element queued was never notified (our token lapsed meanwhile).
@@ -253,7 +262,7 @@ class SubscriberProtocol:
             self.ledger.pin(control.text)
             self._greeted_by = sender
             if control.base is not None:
-                self._greeted(control.text, control.base)
+                self._greeted(control.text, control.base, control.since)
             self._refusal = None
             self._retry_at_ns = None
         elif self.registered_epoch is None or sender != self._greeted_by:

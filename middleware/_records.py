@@ -76,6 +76,9 @@ class Notification:
     ``element`` is filled when the producer sent the element inline (small payloads);
     otherwise fetch it with ``Subscription.fetch``. ``missed`` counts notifications this
     subscription lost before this one (observers only; always 0 for flow control).
+    ``epoch``: the registration it came with (``Subscription.registered_epoch`` names the
+    one the producer greeted; a notification of another epoch is an old registration's, or
+    a peer's that made one up).
     """
 
     service: str
@@ -85,6 +88,7 @@ class Notification:
     metadata: bytes | None = None
     element: DataObject | None = None
     missed: int = 0
+    epoch: str = ""
 
 
 @dataclass(frozen=True, slots=True)
@@ -278,7 +282,7 @@ _new = object.__new__
 _data_slots = tuple(vars(DataObject)[n].__set__ for n in ("timestamp_ns", "payload", "metadata"))
 _note_slots = tuple(
     vars(Notification)[n].__set__
-    for n in ("service", "buffer", "timestamp_ns", "seq", "metadata", "element", "missed")
+    for n in ("service", "buffer", "timestamp_ns", "seq", "metadata", "element", "missed", "epoch")
 )
 
 
@@ -306,12 +310,13 @@ def notification(
     metadata: bytes | None,
     element: DataObject | None,
     missed: int,
+    epoch: str,
     _new: Any = _new,
     _slots: tuple[Any, ...] = _note_slots,
 ) -> Notification:
     """``Notification(...)`` with every field given, faster (see above)."""
     obj = _new(Notification)
-    s0, s1, s2, s3, s4, s5, s6 = _slots
+    s0, s1, s2, s3, s4, s5, s6, s7 = _slots
     s0(obj, service)
     s1(obj, buffer)
     s2(obj, timestamp_ns)
@@ -319,4 +324,5 @@ def notification(
     s4(obj, metadata)
     s5(obj, element)
     s6(obj, missed)
+    s7(obj, epoch)
     return obj  # type: ignore[no-any-return]

@@ -307,13 +307,18 @@ class Subscription:
             self._refused(now_ns)
 
     @property
-    def producer_epoch(self) -> str | None:
-        """The producing instance that greeted this subscription (None: not registered): it
-        changes when the producer restarted or another process took its name. A
-        notification cannot change it, only a greeting."""
+    def registered_epoch(self) -> str | None:
+        """The epoch the producer greeted this subscription with (None: not registered);
+        only a greeting changes it."""
         with self._lock:
             self._feed(BUDGET)  # a greeting waiting in the inbox counts
-            epoch = self._protocol.registered_epoch
+            return self._protocol.registered_epoch
+
+    @property
+    def producer_epoch(self) -> str | None:
+        """The instance part of ``registered_epoch``: it changes when the producer
+        restarted or another process took its name."""
+        epoch = self.registered_epoch
         return None if epoch is None else epoch.partition(".")[0]
 
     # -- taking ----------------------------------------------------------------------------
@@ -360,11 +365,10 @@ class Subscription:
                 with self._cond:
                     if self._closed:
                         return []
-                    wait_s = _REACK_S
-                    if deadline is not None:
-                        wait_s = min(deadline - time.monotonic(), _REACK_S)
-                        if wait_s <= 0:
-                            return []
+                    left = _REACK_S if deadline is None else deadline - time.monotonic()
+                    wait_s = min(left, _REACK_S)
+                    if wait_s <= 0:
+                        return []
                     # A delayed ack that falls due while this caller waits is sent by it
                     # (the next ``_take``), not by waking the executor (see ``_take``).
                     due_ns = self._protocol.next_deadline_ns()
@@ -415,12 +419,12 @@ class Subscription:
         service, buffer = self.service, self.buffer
         notes: list[Notification] = []
         append = notes.append
-        for _epoch, seq, (timestamp, metadata, pushed), missed in entries:
+        for epoch, seq, (timestamp, metadata, pushed), missed in entries:
             element = None
             if pushed is not None and metadata is not None:
                 payload = pushed if type(pushed) is bytes else pushed.to_bytes()
                 element = data_object(timestamp, payload, metadata)
-            append(notification(service, buffer, timestamp, seq, metadata, element, missed))
+            append(notification(service, buffer, timestamp, seq, metadata, element, missed, epoch))
         return notes
 
     def __iter__(self) -> Iterator[Notification]:

@@ -275,13 +275,14 @@ def decode_notification_header(raw: bytes) -> Header | BatchHeader | Control:
     mean for the protocol (epochs, seqs, descriptors) is the ledger's to judge.
     """
     body = msgpack.unpackb(raw, use_list=False)
-    if type(body) is tuple and len(body) in (3, 4):
-        kind, descriptor, text, base = body if len(body) == 4 else (*body, None)
+    if type(body) is tuple and len(body) in (3, 4, 5):
+        kind, descriptor, text, base, since = (*body, None, None)[:5]
         if kind not in CONTROL_KINDS or type(descriptor) is not str or type(text) is not str:
             raise ValueError("control message is not [kind, descriptor, text]")
-        if base is not None and (type(base) is not int or not 0 <= base <= MAX_SEQ):
-            raise ValueError("control message base is not an int in 0..2^63-1")
-        return Control(kind, descriptor, text, base)
+        for number in (base, since):
+            if number is not None and (type(number) is not int or not 0 <= number <= MAX_SEQ):
+                raise ValueError("control message base or since is not an int in 0..2^63-1")
+        return Control(kind, descriptor, text, base, since)
     if type(body) is not tuple or len(body) not in (7, 8):
         raise ValueError("notification header is not an array of 8 (or 7)")
     if len(body) == 7:
@@ -324,10 +325,16 @@ class Control(NamedTuple):
     descriptor: str
     text: str
     base: int | None = None
+    # A greeting of a key registered before: how far its last registration was acked.
+    since: int | None = None
 
 
-def encode_control(kind: str, descriptor: str, text: str, base: int | None = None) -> bytes:
-    body = (kind, descriptor, text) if base is None else (kind, descriptor, text, base)
+def encode_control(
+    kind: str, descriptor: str, text: str, base: int | None = None, since: int | None = None
+) -> bytes:
+    body: tuple[object, ...] = (kind, descriptor, text)
+    if base is not None:
+        body = (*body, base) if since is None else (*body, base, since)
     return bytes(msgpack.packb(body))
 
 

@@ -205,6 +205,8 @@ class ClockOffsets:
         # Per service that did not answer its last ask: (failures in a row, when to ask
         # again regardless of data, monotonic ns). Absent: it answered.
         self._unanswered: dict[str, tuple[int, int]] = {}
+        self.measuring = False  # a measurement's questions are out
+        self.began_ns = 0  # when the last measurement began (monotonic ns)
 
     def due(self, service: str, now_ns: int) -> bool:
         """Whether to ask ``service`` although no data of it came: it answered last time
@@ -252,6 +254,7 @@ class ClockOffsets:
         service that does not answer, or whose data stopped coming (``*_alive`` False: it
         may be stopped and would not answer either), leaves the samples as they are."""
         self.asked.clear()
+        self.began_ns = time.monotonic_ns()
         # One question per service: camera and gyro may be one (the ros2 bridge offers both).
         wanted = list(
             dict.fromkeys(
@@ -271,12 +274,14 @@ class ClockOffsets:
             answers[service] = clock
             if len(answers) < len(wanted):
                 return
+            self.measuring = False
             camera, gyro = answers.get(self._camera), answers.get(self._gyro)
             if generation == self._generation and camera is not None and gyro is not None:
                 self.add(camera, gyro)
             if then is not None:
                 then()
 
+        self.measuring = True
         for service in wanted:
             self.ask(service, functools.partial(answered, service))
 

@@ -82,6 +82,10 @@ class StreamStarts:
         that is gone by then cannot be asked)."""
         return self._pending is not None
 
+    def clock(self) -> SourceClock | None:
+        """The current stream's camera clock, sampled when it began (None: not answered)."""
+        return self._current.clock if self._current is not None else None
+
     def begin(self, first_ns: int, restarted: bool) -> None:
         """A stream starts at ``first_ns`` (``restarted``: after another one)."""
         if self._pending is not None:  # started over again before the clocks answered

@@ -35,8 +35,11 @@ than everything kept is a restarted gyro and starts the cache over. Late or out-
 frames are the decider's (``out-of-order``).
 
 Time and stalls: a frame stamped more than ``horizon_s`` ahead of our clock is skipped
-(``future-stamp``) before it can become the time-order reference; a new epoch of the camera
-stream (a restarted camera, our subscription registered again) restarts the time order, and
+(``future-stamp``) before it can become the time-order reference, and so is one stamped more
+than 1 s ahead of the camera's own clock (sampled when its stream began, within that
+sample's error). A new epoch of the camera stream (a restarted camera, our subscription
+registered again: the epoch the camera greeted us with; a notification of another epoch, a
+peer's made-up one, is skipped ``foreign-epoch``) restarts the time order, and
 the frames the camera stored in the gap get ``mediator-lapsed`` records. A new stream that
 starts before frames already forwarded removes those from ``images`` only when the camera
 itself is known to have started over with a clock that explains the step back (the old
@@ -118,6 +121,11 @@ class _Deadline(Protocol):
 
 # Gyro notifications queued (deep: a busy mediator never stalls the gyro; see AckPolicy).
 GYRO_QUEUE = 256
+# Clock measurements asked for at once (frames wait for them) begin at most this often.
+_SOON_GAP_NS = 250_000_000
+# A frame stamped further ahead of its camera's own clock (beyond that clock's error) is
+# skipped ``future-stamp``: a camera stamps its frames when it makes them.
+_MAX_AHEAD_NS = 1_000_000_000
 
 
 class Mediator:
@@ -161,7 +169,8 @@ class Mediator:
         )
         self._horizon_ns = int(config.horizon_s * 1e9)
         self._node = node
-        self._camera_seq: int | None = None
+        # The epoch of the camera stream being decided (None: no frame yet).
+        self._camera_epoch: str | None = None
         self._newest_camera_ns: int | None = None
         self.decider = Decider(
             make_policy(config.policy),
@@ -198,9 +207,21 @@ class Mediator:
     def on_camera(self, note: Notification) -> None:
         """One camera notification. Never raises for input."""
         self._camera_notes += 1
-        if self._camera_seq is None or note.seq <= self._camera_seq:
+        if note.epoch != self._camera_epoch:
+            greeted = self._camera.registered_epoch
+            if self._camera_epoch is not None and greeted is not None and note.epoch != greeted:
+                # Only the camera's greeting starts a stream over: a peer's made-up epoch
+                # (or an old registration's straggler) must not drop the clock samples or
+                # restart the time order, and its frame is not the camera's.
+                self.out.skip(
+                    note.timestamp_ns,
+                    0,
+                    "foreign-epoch",
+                    f"epoch {note.epoch!r} is not the one the camera greeted us with",
+                )
+                return
             self._started_over(note)
-        self._camera_seq = note.seq
+            self._camera_epoch = note.epoch
         if note.timestamp_ns > now_ns() + self._horizon_ns:
             ahead_s = (note.timestamp_ns - now_ns()) / 1e9
             self.out.skip(
@@ -210,6 +231,20 @@ class Mediator:
                 f"stamped {ahead_s:.1f} s ahead of our clock (horizon {self.config.horizon_s:g} s)",
             )
             return
+        clock = self.starts.clock()
+        if clock is not None:
+            # The camera stamps with its own clock, measured when its stream began: a frame
+            # stamped well ahead of it is no frame of that camera (inside the horizon it
+            # would hold every later frame out of the time order for that long).
+            ahead_ns = note.timestamp_ns - (now_ns() + clock.offset_ns)
+            if ahead_ns > _MAX_AHEAD_NS + clock.error_ns:
+                self.out.skip(
+                    note.timestamp_ns,
+                    0,
+                    "future-stamp",
+                    f"stamped {ahead_ns / 1e9:.1f} s ahead of the camera's own clock",
+                )
+                return
         self._newest_camera_ns = note.timestamp_ns
         try:
             frame = self._read(note)
@@ -232,12 +267,16 @@ class Mediator:
         self.on_time(now)
 
     def _measure_soon(self, now: int) -> None:
-        """Measure the clocks at once (once: until that measurement ran)."""
+        """Measure the clocks at once: once, and not while a measurement is out (its end
+        starts the next, ``_measured``), nor sooner than ``_SOON_GAP_NS`` after the last
+        one began. Asked for on every gyro batch while frames wait for the clocks, it
+        asked both services 80 times a second when answers came slowly, and the camera's
+        bounded inbox of info queries dropped them: the clocks stayed unknown."""
         if self._offsets.asked.is_set():
             return
         self._offsets.asked.set()
-        if self._attached:
-            self._node.at(now, self._measure)
+        if self._attached and not self._offsets.measuring:
+            self._node.at(max(now, self._offsets.began_ns + _SOON_GAP_NS), self._measure)
 
     def on_time(self, now: int) -> None:
         """Frames paired or due are decided, held frames may go out or go stale."""
@@ -300,7 +339,7 @@ class Mediator:
         """The first frame, or a new epoch of the camera's stream (it restarted, or our
         subscription was registered again): the old stream's frames are decided, and the
         new one's are judged afresh once its clock has answered (``StreamStarts``)."""
-        restarted = self._camera_seq is not None
+        restarted = self._camera_epoch is not None
         if restarted:
             self.log.info("camera stream started over (seq %d): time order restarts", note.seq)
             now = time.monotonic_ns()
@@ -347,6 +386,8 @@ class Mediator:
         self._node.at(time.monotonic_ns(), self._measure)
 
     def _measure(self, now: int) -> None:
+        if self._offsets.measuring:
+            return  # one at a time: its end measures again if that was asked meanwhile
         # A source is asked when its data came since the last measurement, or it answered
         # the last ask, or its back-off after a miss passed (``ClockOffsets.due``): a
         # stopped one holds the executor for the whole timeout only once per back-off. Not
@@ -365,6 +406,9 @@ class Mediator:
 
     def _measured(self) -> None:
         """(the executor) A clock measurement is in: frames may have waited for it."""
+        if self._attached and self._offsets.asked.is_set():  # asked while it was out
+            at = max(time.monotonic_ns(), self._offsets.began_ns + _SOON_GAP_NS)
+            self._node.at(at, self._measure)
         if self._attached and self.pairing.waiting:
             self.on_time(time.monotonic_ns())
             self._schedule()

@@ -7,7 +7,12 @@ from middleware._protocol_events import Publish
 from middleware._protocol_producer import ProducerProtocol
 from middleware._protocol_subscriber import SubscriberProtocol
 from middleware._records import DataObject, SubscriptionMode
-from middleware._wire import Control, Keys, decode_notification_header
+from middleware._wire import (
+    Control,
+    Keys,
+    decode_notification_header,
+    encode_notification_header,
+)
 
 KEYS = Keys("framegate")
 SERVICE, BUFFER, SUB = "svc", "buf", "s1"
@@ -81,3 +86,26 @@ def test_a_repeated_greeting_and_a_lapse_with_nothing_stored_count_nothing() -> 
     assert pair.take_all() == [0, 0]
     assert pair.sub.ledger.missed_total == 0
     assert pair.sub.lapse_news() == 0
+
+
+def test_a_lapse_is_counted_when_nothing_of_the_registration_came_through() -> None:
+    # Found by the protocol model: the greeting lost and every notification refused (a
+    # peer's made-up ones filled the queue), then the token lapsed. The subscriber knew no
+    # element number of the producer, so the two elements before the lapse went uncounted.
+    pair = _Pair()
+    pair.producer.token(pair.token, True, pair.now)
+    pair.producer.events()  # the greeting is lost
+    for i in range(4):  # a peer's notifications fill the queue of 4
+        forged = encode_notification_header(
+            f"F{i}.1", 1, 0, b"m", pushed=True, acked=None, descriptor=pair.sub.descriptor
+        )
+        assert pair.sub.receive(forged, b"")
+    pair.put(2)  # ignored: the queue is full (the first refused, the next out of order)
+    counters = pair.sub.ledger.counters
+    assert len(pair.sub) == 4 and counters.refused + counters.out_of_order == 2
+    pair.producer.token(pair.token, False, pair.now)  # the lapse
+    pair.producer.events()
+    pair.kinds.clear()
+    pair.declare(True)
+    assert pair.kinds == ["hello"]
+    assert pair.sub.ledger.missed_total == 2  # from the greeting's ``since``: acked 0 of 2

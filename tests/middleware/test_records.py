@@ -21,6 +21,6 @@ def test_builders_equal_the_constructors() -> None:
     assert element == DataObject(7, b"payload", b"<m/>")
     assert type(element) is DataObject
     assert hash(element) == hash(DataObject(7, b"payload", b"<m/>"))
-    note = notification("svc", "buf", 7, 3, b"<m/>", element, 1)
-    assert note == Notification("svc", "buf", 7, 3, b"<m/>", element, 1)
-    assert repr(note) == repr(Notification("svc", "buf", 7, 3, b"<m/>", element, 1))
+    note = notification("svc", "buf", 7, 3, b"<m/>", element, 1, "P.1")
+    assert note == Notification("svc", "buf", 7, 3, b"<m/>", element, 1, "P.1")
+    assert repr(note) == repr(Notification("svc", "buf", 7, 3, b"<m/>", element, 1, "P.1"))

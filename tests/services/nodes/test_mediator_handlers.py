@@ -16,6 +16,7 @@ from middleware import (
     NetworkConfig,
     Node,
     Notification,
+    Subscription,
     TransportError,
     now_ns,
 )
@@ -56,15 +57,23 @@ class Fed:
         self.mediator._offsets.add(clock, clock)  # both clocks measured: they agree
         # The camera's stream is under way (its start asks the camera's clock, and there is
         # no camera here): the frames fed are decided at once.
-        self.mediator._camera_seq = 0
+        self.mediator._camera_epoch = self.epoch = "C0.1"
         self.seq = 0
+
+    def restart(self) -> None:
+        """The camera restarted: a new epoch (no greeting here, so the mediator takes the
+        new epoch as the camera's), its sequence starting over."""
+        self.seq = 0
+        self.epoch = f"C{int(self.epoch[1:].split('.')[0]) + 1}.1"
 
     def frame(self, start_ms: int) -> None:
         self.seq += 1
         exposure = Exposure(start_ms * MS, 10 * MS)
         metadata = frame_metadata(self.seq, exposure, IMAGE, CAMERA)
         element = DataObject(exposure.start_ns, IMAGE.tobytes(), metadata)
-        note = Notification("camera", "images", exposure.start_ns, self.seq, element=element)
+        note = Notification(
+            "camera", "images", exposure.start_ns, self.seq, element=element, epoch=self.epoch
+        )
         self.mediator.on_camera(note)
 
     def gyro(self, first_ms: int, last_ms: int) -> None:
@@ -209,7 +218,7 @@ def test_a_restarted_camera_stream_waits_for_its_clock_without_holding_the_handl
     fed.gyro(0, 200)
     fed.frame(10)
     assert len(fed.records) == 1 and asked == []  # a stream under way asks nothing
-    fed.seq = 0  # the camera restarted: its sequence starts over
+    fed.restart()
     fed.frame(50)
     fed.frame(100)
     assert len(fed.records) == 1 and len(asked) == 1  # returned at once; nothing decided
@@ -234,9 +243,9 @@ def test_a_camera_that_restarts_again_before_its_clock_answered_removes_nothing(
     mediator._offsets.ask = lambda service, then: asked.append(then)  # type: ignore[method-assign]
     fed.gyro(0, 300)
     fed.frame(200)
-    fed.seq = 0
+    fed.restart()
     fed.frame(100)  # started over, stamped before the frame forwarded
-    fed.seq = 0
+    fed.restart()
     fed.frame(150)  # and again, before the first restart's clock answered
     assert len(asked) == 2 and mediator.starts.holding
     asked[1](SourceClock("host", 3, 0, 0, 100_000))
@@ -272,3 +281,65 @@ def test_a_brief_gyro_outage_is_counted_and_a_long_one_warned(
     assert len(said) == 2, said
     assert "does not cover frame" in said[0] and "(1 briefer outages before" in said[0]
     assert "covers frames again" in said[1]
+
+
+def test_a_made_up_epoch_is_skipped_and_starts_nothing_over(
+    fed: Fed, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # A peer's notifications under made-up epochs on the mediator's camera key each counted
+    # as a camera restart: the clock samples were dropped (162 of 173 frames then decided
+    # clock-unmeasured) and two lines logged per forgery. Only the camera's greeting
+    # starts a stream over.
+    real = fed.epoch
+    monkeypatch.setattr(Subscription, "registered_epoch", property(lambda _: real))
+    mediator = fed.mediator
+    asked: list[Callable[[SourceClock | None], object]] = []
+    mediator._offsets.ask = lambda service, then: asked.append(then)  # type: ignore[method-assign]
+    fed.gyro(0, 200)
+    fed.frame(10)
+    fed.epoch, fed.seq = "F1.1", 0
+    fed.frame(20)  # the forgery: seq 1 of an epoch the camera never greeted us with
+    fed.epoch, fed.seq = real, 1
+    fed.frame(30)
+    assert fed.reasons()[1] == "foreign-epoch"
+    assert asked == [] and mediator._offsets.current() is not None  # nothing started over
+    assert fed.reasons()[2] not in ("foreign-epoch", "out-of-order", "clock-unmeasured")
+
+
+def test_a_frame_far_ahead_of_the_cameras_own_clock_holds_nothing_back(fed: Fed) -> None:
+    # One frame stamped 9 s ahead (inside the 10 s horizon) became the time-order
+    # reference: the next 136 real frames were dropped out-of-order.
+    mediator = fed.mediator
+    asked: list[Callable[[SourceClock | None], object]] = []
+    mediator._offsets.ask = lambda service, then: asked.append(then)  # type: ignore[method-assign]
+    fed.gyro(0, 300)
+    fed.restart()
+    fed.frame(10)
+    clock = SourceClock("host", 2, 0, 0, 100_000)  # the camera's clock is ours
+    asked[0](clock)
+    mediator._offsets.add(clock, clock)
+    mediator.on_time(time.monotonic_ns())
+    fed.frame((now_ns() + 5 * 10**9) // MS)
+    fed.frame(50)
+    assert fed.reasons()[1] == "future-stamp"
+    assert fed.reasons()[2] != "out-of-order"
+
+
+def test_clock_measurements_never_pile_up(fed: Fed) -> None:
+    # While frames waited for the clocks, every gyro batch asked for a measurement: with
+    # answers slower than a batch, 80 questions a second went to camera and gyro, whose
+    # bounded inboxes dropped them, and the clocks stayed unknown for minutes.
+    mediator = fed.mediator
+    asked: list[Callable[[SourceClock | None], object]] = []
+    mediator._offsets.ask = lambda service, then: asked.append(then)  # type: ignore[method-assign]
+    now = time.monotonic_ns()
+    mediator._measure(now)
+    assert len(asked) == 2 and mediator._offsets.measuring
+    for _ in range(10):
+        mediator._measure(now)
+    assert len(asked) == 2  # one measurement out at a time
+    for then in asked:
+        then(None)
+    assert not mediator._offsets.measuring
+    mediator._measure(now)
+    assert len(asked) == 4
