@@ -33,7 +33,7 @@ from ._errors import ConfigError
 from ._rendezvous import known_peers
 
 # Matched with fullmatch: "$" alone would also accept a trailing newline ("camera\n").
-_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.\-]*")
+NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.\-]*")  # a plain key-expression chunk
 DEFAULT_NAMESPACE = "framegate"
 DEFAULT_LOCAL_PORT = 7447
 # Where a process listens when nothing asks for more: loopback, so no other host can reach it.
@@ -72,7 +72,7 @@ def zenoh_message(exc: BaseException) -> str:
 
 def check_name(value: str, what: str) -> str:
     """A service, buffer or namespace name must be one plain key-expression chunk."""
-    if not _NAME.fullmatch(value):
+    if not NAME.fullmatch(value):
         raise ConfigError(
             f"bad {what} name {value!r}: use letters, digits, '_', '.', '-' "
             "(no '/', '*', '$', '@', '?', '#', spaces or control characters)"

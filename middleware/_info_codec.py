@@ -18,6 +18,7 @@ import json
 from typing import Any
 
 from ._clock import ClockSample, ClockStatus
+from ._config import NAME
 from ._decode import INT_END, check_text, decode_json, is_text, printable, typed_field
 from ._errors import QueryError
 from ._records import (
@@ -122,6 +123,8 @@ def decode_instance(raw: bytes, service: str) -> dict[str, Any]:
 
 def _buffer(b: Any, what: str) -> BufferInfo:
     name = typed_field(b, "buffer", str, what)
+    if not NAME.fullmatch(name):  # no producer offers it: a peer's ``../../etc``
+        raise QueryError(f"{what}: {name[:64]!r} is no buffer name")
     what = f"{what}, buffer {name[:64]!r}"
     subs = typed_field(b, "subscriptions", list, what)
     skipped = typed_field(b, "skipped", dict, what, optional=True) or {}

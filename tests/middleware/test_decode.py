@@ -94,6 +94,8 @@ def _changed(path: str, value: Any) -> dict[str, Any]:
         (_changed("buffers.0.subscriptions.0.node", "x\u200by"), "U\\+200B"),
         # A reply that poses as another service than the one it answered for.
         (_changed("service", "camera"), "names itself 'camera'"),
+        # A buffer no producer could offer (``ls`` showed it as ``cam/../../etc``).
+        (_changed("buffers.0.buffer", "../../etc"), "is no buffer name"),
     ],
 )
 def test_a_sane_looking_but_false_reply_is_one_line_query_error(body: Any, says: str) -> None:
