@@ -39,7 +39,8 @@ Time and stalls: a frame stamped more than ``horizon_s`` ahead of our clock is s
 than 1 s ahead of the camera's own clock (sampled when its stream began, within that
 sample's error). A new epoch of the camera stream (a restarted camera, our subscription
 registered again: the epoch the camera greeted us with; a notification of another epoch, a
-peer's made-up one, is skipped ``foreign-epoch``) restarts the time order, and
+peer's made-up one, is decided as a frame but starts nothing over) restarts the time order,
+and
 the frames the camera stored in the gap get ``mediator-lapsed`` records. A new stream that
 starts before frames already forwarded removes those from ``images`` only when the camera
 itself is known to have started over with a clock that explains the step back (the old
@@ -209,19 +210,13 @@ class Mediator:
         self._camera_notes += 1
         if note.epoch != self._camera_epoch:
             greeted = self._camera.registered_epoch
-            if self._camera_epoch is not None and greeted is not None and note.epoch != greeted:
-                # Only the camera's greeting starts a stream over: a peer's made-up epoch
-                # (or an old registration's straggler) must not drop the clock samples or
-                # restart the time order, and its frame is not the camera's.
-                self.out.skip(
-                    note.timestamp_ns,
-                    0,
-                    "foreign-epoch",
-                    f"epoch {note.epoch!r} is not the one the camera greeted us with",
-                )
-                return
-            self._started_over(note)
-            self._camera_epoch = note.epoch
+            if self._camera_epoch is None or greeted is None or note.epoch == greeted:
+                self._started_over(note)
+                self._camera_epoch = note.epoch
+            # Otherwise an epoch the camera did not greet us with (a peer's made-up one, an
+            # old registration's straggler): decided as any frame is, but it starts nothing
+            # over (the clock samples stay, the time order stands). Not skipped: a forged
+            # greeting would then make every real frame "foreign".
         if note.timestamp_ns > now_ns() + self._horizon_ns:
             ahead_s = (note.timestamp_ns - now_ns()) / 1e9
             self.out.skip(
