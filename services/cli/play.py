@@ -58,7 +58,11 @@ def register(subparsers: Any) -> None:
         help="pace factor (default 1: as recorded; 0: as fast as flow control allows)",
     )
     parser.add_argument("--fast", action="store_true", help="same as --rate 0")
-    parser.add_argument("--loop", action="store_true", help="play again and again (shifted)")
+    parser.add_argument(
+        "--loop",
+        action="store_true",
+        help="play again and again, each pass shifted later by the span played, as --rebase",
+    )
     parser.add_argument(
         "--as-service",
         metavar="NAME",
@@ -67,7 +71,10 @@ def register(subparsers: Any) -> None:
     parser.add_argument(
         "--rebase",
         action="store_true",
-        help="shift timestamps so the first element is now (metadata timestamps move along)",
+        help=(
+            "shift timestamps so the first element is now: keys, metadata timestamps and "
+            "the sample times in gyro payloads all move by the same amount"
+        ),
     )
     parser.add_argument(
         "--only",

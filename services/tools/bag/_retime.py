@@ -3,8 +3,11 @@
 A buffer refuses an element whose metadata ``timestamp_ns`` differs from its key, so a
 shifted element needs shifted metadata. Besides that attribute, every metadata field whose
 XSD type is ``TimestampNs`` (e.g. a frame's ``exposure_start_ns``, a gyro batch's
-``first_ns``/``last_ns``) moves with it; durations do not. Payloads are never touched (a
-gyro batch's binary sample times stay as recorded).
+``first_ns``/``last_ns``) moves with it; durations do not. A gyro batch's payload holds
+its samples' times too (``GYRO_DTYPE`` records), and consumers such as the mediator read
+the samples from there, so they move by the same shift; the rates stay bit for bit. Other
+kinds' payloads carry no times and are passed on as recorded, as is a gyro payload that is
+no whole number of records (nothing in it can be read as a time; consumers refuse it).
 """
 
 from __future__ import annotations
@@ -14,9 +17,10 @@ from functools import cache
 from lxml import etree
 
 import schemas
-from middleware import DataObject, parse_untrusted
+from middleware import DataObject, SchemaError, parse_untrusted
 
 _XS = "{http://www.w3.org/2001/XMLSchema}"
+_INT64_MAX = 2**63 - 1
 
 
 @cache
@@ -48,4 +52,28 @@ def shift_element(element: DataObject, kind: str, shift_ns: int) -> DataObject:
         if etree.QName(node).localname in fields and node.text and node.text.strip().isdigit():
             node.text = str(int(node.text) + shift_ns)
     metadata = bytes(etree.tostring(root, encoding="utf-8", xml_declaration=False))
-    return DataObject(timestamp, element.payload, metadata)
+    payload = shift_gyro_payload(element.payload, shift_ns) if kind == "gyro" else element.payload
+    return DataObject(timestamp, payload, metadata)
+
+
+def shift_gyro_payload(payload: bytes, shift_ns: int) -> bytes:
+    """A gyro batch's payload with every sample time ``shift_ns`` later, rates untouched.
+
+    A payload that is no whole number of records is returned as it is; SchemaError when a
+    shifted time would leave the int64 range.
+    """
+    import numpy as np  # imported here: only a rebased or looped gyro buffer needs it
+
+    from services.lib.quality import GYRO_DTYPE
+
+    if shift_ns == 0 or not payload or len(payload) % GYRO_DTYPE.itemsize:
+        return payload
+    records = np.frombuffer(payload, dtype=GYRO_DTYPE).copy()
+    times = records["t"]
+    low, high = int(times.min()), int(times.max())
+    if high + shift_ns > _INT64_MAX or low + shift_ns < -_INT64_MAX - 1:
+        raise SchemaError(
+            f"gyro sample times {low}..{high} ns shifted by {shift_ns} ns leave the int64 range"
+        )
+    records["t"] = times + np.int64(shift_ns)
+    return records.tobytes()

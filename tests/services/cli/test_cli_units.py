@@ -136,6 +136,30 @@ def test_shifting_moves_timestamps_but_not_durations() -> None:
     assert shift_element(element, "frame", 0) is element
 
 
+def test_shifting_a_gyro_batch_moves_its_sample_times_with_its_key() -> None:
+    # The mediator reads the samples' times from the payload: with --rebase/--loop they
+    # stayed as recorded, minutes away from the frames, and every frame was gyro-missing.
+    import numpy as np
+
+    from services.lib.messages import gyro_metadata
+    from services.lib.quality import GyroSamples
+
+    t_ns = np.arange(5 * SECOND, 5 * SECOND + 10 * MS, MS, dtype=np.int64)
+    rates = np.linspace(-1.0, 1.0, t_ns.size * 3).reshape(-1, 3)
+    samples = GyroSamples(t_ns, rates)
+    element = DataObject(int(t_ns[-1]), samples.to_bytes(), gyro_metadata(samples))
+    shifted = shift_element(element, "gyro", 3 * SECOND)
+    moved = GyroSamples.from_bytes(shifted.payload)
+    assert shifted.timestamp_ns == element.timestamp_ns + 3 * SECOND
+    assert moved.t_ns.tolist() == (t_ns + 3 * SECOND).tolist()
+    assert moved.rates_rad_s.tobytes() == samples.rates_rad_s.tobytes()
+    assert shifted.metadata == gyro_metadata(moved)
+    validate_metadata(shifted.metadata, "gyro")
+    # A payload that holds no whole record has no times to move; it is passed on as it is.
+    garbled = DataObject(element.timestamp_ns, b"\x01\x02\x03", element.metadata)
+    assert shift_element(garbled, "gyro", SECOND).payload == b"\x01\x02\x03"
+
+
 def test_frame_layout_needs_a_raw_encoding_and_a_matching_payload() -> None:
     layout = frame_layout(frame_metadata(1, 1), WIDTH * HEIGHT)
     assert layout is not None and (layout.step_bytes, layout.size_bytes) == (WIDTH, WIDTH * HEIGHT)
