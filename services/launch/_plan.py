@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 import time
 from collections.abc import Callable
@@ -24,7 +25,8 @@ START_DELAY_S = 2.0
 def _check_args(
     spec: ServiceSpec, deployment: Deployment, text: str | None
 ) -> argparse.Namespace | None:
-    """Parse a service's args with its own parser; name the deploy-file line on error."""
+    """Parse a service's args with its own parser and make its config from them, as
+    ``framegate run`` does; name the deploy-file line on error."""
     if spec.type == "router":
         if spec.args:
             raise ConfigError(f"{deployment.path}: router {spec.name!r} takes no args")
@@ -71,6 +73,17 @@ def _check_args(
             f"{deployment.path}{where}: service {spec.name!r} {what} "
             f"(see 'framegate run {spec.type} --help'; network settings go under 'network')"
         )
+    # Then what `framegate run` does with the flags, so that each value is checked once, by
+    # the service itself (a port past 65535 in `ros_connect` passed --check before).
+    try:
+        service(spec.type).config_from_args(_args)
+    except FramegateError as exc:
+        flag = next((f for f in re.findall(r"--[a-z0-9][a-z0-9-]*", str(exc)) if f in lines), "")
+        where = f":{lines[flag]}" if flag else ""
+        raise ConfigError(
+            f"{deployment.path}{where}: service {spec.name!r}: {exc}"
+            f" (see 'framegate run {spec.type} --help')"
+        ) from exc
     return _args
 
 

@@ -262,6 +262,21 @@ def test_deploy_args_are_checked_short_long_and_exact(args: str, message: str) -
         process_specs(deployment, None, NetworkConfig(), text=text)
 
 
+def test_deploy_args_are_checked_as_the_service_checks_its_flags() -> None:
+    # --check said "ok" to a port that `framegate run ros2 --ros-connect` refuses.
+    text = (
+        "services:\n  ros2:\n    args:\n      image_in: /cam\n"
+        "      ros_connect: tcp/localhost:99999\n"
+    )
+    deployment = parse_deployment(text, "x.yaml")
+    with pytest.raises(
+        ConfigError,
+        match=r"x\.yaml:5: service 'ros2': --ros-connect tcp/localhost:99999: "
+        r"99999 is not a port number",
+    ):
+        process_specs(deployment, None, NetworkConfig(), text=text)
+
+
 def test_two_host_deploy_opens_no_wide_listener() -> None:
     path = REPO / "deploy" / "two-hosts.yaml"
     deployment = load_deployment(path)
