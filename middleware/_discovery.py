@@ -73,6 +73,21 @@ class Discovery:
             names = [str(r.ok.key_expr)[len(prefix) :] for r in replies if r.ok is not None]
         return sorted(set(names))
 
+    def live_namespaces(self, *, timeout_s: float = 1.0) -> dict[str, list[str]]:
+        """The live services of every namespace this node can see, its own included
+        (to tell "nothing is live" from "live under another namespace")."""
+        self._settle()
+        found: dict[str, set[str]] = {}
+        with zenoh_errors("listing live namespaces"):
+            replies = self._session.liveliness().get(
+                Keys("*").service_token("*"), timeout=timeout_s
+            )
+            for reply in replies:
+                if reply.ok is not None:
+                    namespace, _svc, service = str(reply.ok.key_expr).split("/", 2)
+                    found.setdefault(namespace, set()).add(service)
+        return {ns: sorted(names) for ns, names in sorted(found.items())}
+
     def connected(self) -> int:
         """How many other Zenoh sessions (peers and routers) this node is connected to now:
         0 means nothing answered at all, which a command tells from "nothing is live"."""

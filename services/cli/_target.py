@@ -18,6 +18,7 @@ from typing import Any
 
 from middleware import (
     BufferInfo,
+    FramegateError,
     NetworkConfig,
     Node,
     NotFoundError,
@@ -105,6 +106,28 @@ def nothing_answered(node: Node, waited_s: float) -> NotFoundError | None:
     )
 
 
+def other_namespaces(node: Node, timeout_s: float = 1.0) -> str | None:
+    """Where services are live when none is in the node's namespace, and how to go there
+    (a FRAMEGATE_NAMESPACE left set in a shell hid every service), or None."""
+    own = node.network.namespace
+    try:
+        found = node.live_namespaces(timeout_s=min(timeout_s, 1.0))
+    except FramegateError:
+        return None
+    others = [(ns, names) for ns, names in found.items() if ns != own]
+    if not others:
+        return None
+    listed = "; ".join(
+        f"{ns!r} ({', '.join(names[:4])}{', ...' if len(names) > 4 else ''})"
+        for ns, names in others[:3]
+    )
+    first = others[0][0]
+    return (
+        f"services are live under namespace {listed}: pass --namespace {first} "
+        f"or set FRAMEGATE_NAMESPACE={first}"
+    )
+
+
 def wait_for_service(node: Node, service: str, timeout_s: float) -> None:
     """Return once ``service`` is live; NotFoundError naming the endpoint otherwise."""
     deadline = time.monotonic() + timeout_s
@@ -122,8 +145,9 @@ def wait_for_service(node: Node, service: str, timeout_s: float) -> None:
         if bad := unreachable(node.network):
             raise NotFoundError(f"cannot reach {bad}; is the router or service running there?")
         raise NotFoundError(
-            f"no live services reachable {where(node.network)} (waited {timeout_s:g} s); "
-            "is the service running and is --connect right?"
+            f"no live services reachable {where(node.network)} in namespace "
+            f"{node.network.namespace!r} (waited {timeout_s:g} s); "
+            + (other_namespaces(node) or "is the service running and is --connect right?")
         )
     raise NotFoundError(
         f"no live service named {service!r}{did_you_mean(service, live, quote=True)}; "

@@ -14,7 +14,7 @@ from services.lib.argtypes import positive_float, positive_int
 from services.lib.clock import CLOCK_WARN_NS, ClockEstimate, clock_warning, estimate_clocks
 
 from ._common import command_parser, format_bytes, format_ns, network, print_json
-from ._target import connected_late, nothing_answered, unreachable, where
+from ._target import connected_late, nothing_answered, other_namespaces, unreachable, where
 
 
 def register(subparsers: Any) -> None:
@@ -126,6 +126,7 @@ def run(args: argparse.Namespace) -> int:
         }
         # Like `info`: an endpoint where nothing answered is an error, not an empty list.
         silent = nothing_answered(node, args.timeout) if not (infos or invalid) else None
+        elsewhere = other_namespaces(node) if not (infos or invalid or silent) else None
     for reason in invalid:  # a peer answering garbage is named, never silently absent
         print(f"warning: left out: {reason}", file=sys.stderr)
     if silent is not None:
@@ -136,7 +137,8 @@ def run(args: argparse.Namespace) -> int:
         print_json({"services": [service_json(i, clocks.get(i.service)) for i in infos]})
         return 0
     if not infos:
-        print(f"no live services {where(net)}")
+        hint = f"; {elsewhere}" if elsewhere else ""
+        print(f"no live services {where(net)} in namespace {net.namespace!r}{hint}")
         return 0
     warnings = []
     for info in infos:

@@ -12,7 +12,9 @@ from pathlib import Path
 
 import pytest
 
+from middleware import Node
 from tests.conftest import REPO, child_env, free_port, run_framegate, start_framegate
+from tests.services.cli.conftest import Cli
 
 pytestmark = pytest.mark.integration
 
@@ -72,6 +74,26 @@ def test_ls_of_a_live_router_with_no_services_is_an_empty_answer() -> None:
     finally:
         router.terminate()
         router.communicate(timeout=TIMEOUT_S)
+
+
+def test_nothing_live_in_a_namespace_names_it_and_where_services_are(
+    cli: Cli, service: Node
+) -> None:
+    # A FRAMEGATE_NAMESPACE left set hid every service behind "is the service running and
+    # is --connect right?", though the rendezvous answered.
+    service.offer("images", kind="frame")
+    listed, info = cli.run_many(
+        [("ls", "--namespace", "other"), ("info", "cam/images", "--namespace", "other")]
+    )
+    assert listed.returncode == 0, listed.describe()
+    assert info.returncode == 1, info.describe()
+    assert "in namespace 'other'" in listed.stdout, listed.describe()
+    assert "in namespace 'other'" in info.stderr, info.describe()
+    for said in (listed.stdout, info.stderr):
+        assert (
+            "services are live under namespace 'framegate' (cam): pass --namespace framegate"
+            in said
+        )
 
 
 @pytest.mark.parametrize("value", ["99999", "0", "-1"])
