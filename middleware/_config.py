@@ -98,6 +98,9 @@ class NetworkConfig:
     shared_memory: bool = True
     local_port: int = DEFAULT_LOCAL_PORT
     extra: tuple[tuple[str, str], ...] = field(default=())
+    # Where ``config_file`` came from when not a flag or deploy file ("FRAMEGATE_CONFIG"),
+    # so that an error about the file names the variable that set it.
+    config_origin: str = field(default="", compare=False)
 
     def __post_init__(self) -> None:
         check_name(self.namespace, "namespace")
@@ -125,6 +128,7 @@ class NetworkConfig:
             changes["listen"] = checked_endpoints(listen, "FRAMEGATE_LISTEN", lowest=0)
         if env.get("FRAMEGATE_CONFIG"):
             changes["config_file"] = Path(env["FRAMEGATE_CONFIG"])
+            changes["config_origin"] = "FRAMEGATE_CONFIG"
         if env.get("FRAMEGATE_NAMESPACE"):
             changes["namespace"] = env["FRAMEGATE_NAMESPACE"]
         if env.get("FRAMEGATE_LOCAL_PORT"):
@@ -140,6 +144,7 @@ class NetworkConfig:
             changes["listen"] = checked_endpoints(args.listen, "--listen", lowest=0)
         if getattr(args, "config", None):
             changes["config_file"] = Path(args.config)
+            changes["config_origin"] = ""
         if getattr(args, "namespace", None):
             changes["namespace"] = args.namespace
         if getattr(args, "no_shm", False):
@@ -160,6 +165,12 @@ class NetworkConfig:
         if not self.shared_memory:
             out += ["--no-shm"]
         return out
+
+    @property
+    def config_name(self) -> str:
+        """``Zenoh config PATH`` for messages, naming the variable that set it, if one did."""
+        origin = f" (set by {self.config_origin})" if self.config_origin else ""
+        return f"Zenoh config {self.config_file}{origin}"
 
     def zenoh_configs(self) -> list[zenoh.Config]:
         """Configs to try in order (the rendezvous default has two: hub, then spoke)."""
@@ -200,8 +211,7 @@ class NetworkConfig:
                     pass
             except OSError as exc:
                 raise ConfigError(
-                    f"cannot read {value}, the {key} of Zenoh config {self.config_file}: "
-                    f"{exc.strerror or exc}"
+                    f"cannot read {value}, the {key} of {self.config_name}: {exc.strerror or exc}"
                 ) from exc
 
     def _build(self, *, listen: list[str], connect: list[str]) -> zenoh.Config:
@@ -212,11 +222,9 @@ class NetworkConfig:
                 else zenoh.Config()
             )
         except zenoh.ZError as exc:
-            raise ConfigError(
-                f"cannot read Zenoh config {self.config_file}: {zenoh_message(exc)}"
-            ) from exc
+            raise ConfigError(f"cannot read {self.config_name}: {zenoh_message(exc)}") from exc
         except OSError as exc:
-            raise ConfigError(f"cannot read Zenoh config {self.config_file}: {exc}") from exc
+            raise ConfigError(f"cannot read {self.config_name}: {exc}") from exc
         settings: list[tuple[str, Any]] = []
         if not self.config_file:
             settings += [

@@ -48,7 +48,7 @@ def where(net: NetworkConfig) -> str:
     if net.connect:
         return "via " + ", ".join(net.connect)
     if net.config_file:
-        return f"with the Zenoh config {net.config_file}"
+        return f"with the {net.config_name}"
     if net.listen:
         return "listening on " + ", ".join(net.listen) + " (nobody connected)"
     return f"via the local rendezvous tcp/127.0.0.1:{net.local_port}"

@@ -89,6 +89,7 @@ class Deployment:
             connect=tuple(merged.get("connect", config.connect)),
             listen=tuple(merged.get("listen", config.listen)),
             config_file=Path(merged["config"]) if "config" in merged else config.config_file,
+            config_origin="" if "config" in merged else config.config_origin,
             namespace=merged.get("namespace", config.namespace),
             shared_memory=config.shared_memory,
             local_port=config.local_port,

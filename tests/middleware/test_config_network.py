@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import base64
 import ipaddress
 import json
@@ -167,3 +168,18 @@ def test_a_zenoh_error_reads_without_rust_source_paths(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match=r"cannot read Zenoh config .*: Endpoints must") as bad:
         NetworkConfig(config_file=path).zenoh_configs()
     assert ".rs:" not in str(bad.value)
+
+
+def test_a_config_file_set_by_the_environment_names_the_variable(tmp_path: Path) -> None:
+    # FRAMEGATE_CONNECT=foo named its variable; FRAMEGATE_CONFIG=/nonexistent did not.
+    missing = tmp_path / "nowhere.json5"
+    net = NetworkConfig().with_env({"FRAMEGATE_CONFIG": str(missing)})
+    with pytest.raises(
+        ConfigError, match=rf"cannot read Zenoh config {missing} \(set by FRAMEGATE_CONFIG\): "
+    ):
+        net.check_files()
+    # A --config flag outranks the variable, and its file is named as the flag's.
+    flag = argparse.Namespace(config=str(missing))
+    with pytest.raises(ConfigError, match=rf"cannot read Zenoh config {missing}: ") as bad:
+        net.with_args(flag).check_files()
+    assert "FRAMEGATE_CONFIG" not in str(bad.value)
