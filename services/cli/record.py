@@ -114,6 +114,9 @@ def _check(args: argparse.Namespace) -> None:
         raise ConfigError(f"--count {args.count}: must be >= 1")
     if args.duration is not None and args.duration <= 0:
         raise ConfigError(f"--duration {args.duration}: must be > 0 seconds")
+    if args.output.is_dir():  # --overwrite would not help: say so before anything
+        example = args.output / "run.mcap"
+        raise ConfigError(f"{args.output} is a directory; give a file path, e.g. -o {example}")
     if args.output.exists() and not args.overwrite:
         raise ConfigError(f"{args.output} exists; choose another file or pass --overwrite")
 

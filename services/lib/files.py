@@ -54,6 +54,8 @@ def create_file(
                 f"{name} is a symbolic link; refusing to write through it (remove it, "
                 "or choose another name)"
             ) from None
+        if _is_directory(path, dir_fd):
+            raise ConfigError(f"{name} is a directory; give a file path") from None
         raise ConfigError(
             f"{name} exists; choose another name or pass {overwrite_flag} to replace it"
         ) from None
@@ -100,6 +102,13 @@ def _is_link(path: Path | str, dir_fd: int | None) -> bool:
         return False
 
 
+def _is_directory(path: Path | str, dir_fd: int | None) -> bool:
+    try:
+        return stat.S_ISDIR(os.lstat(path, dir_fd=dir_fd).st_mode)
+    except OSError:
+        return False
+
+
 def _remove_regular_file(path: Path | str, dir_fd: int | None, name: str) -> None:
     try:
         mode = os.lstat(path, dir_fd=dir_fd).st_mode
@@ -109,6 +118,8 @@ def _remove_regular_file(path: Path | str, dir_fd: int | None, name: str) -> Non
         raise ConfigError(f"cannot inspect {name}: {exc.strerror}") from exc
     if stat.S_ISLNK(mode):
         raise ConfigError(f"{name} is a symbolic link; refusing to replace it (remove it first)")
+    if stat.S_ISDIR(mode):
+        raise ConfigError(f"{name} is a directory; give a file path")
     if not stat.S_ISREG(mode):
         raise ConfigError(f"{name} is not a regular file; refusing to replace it")
     try:

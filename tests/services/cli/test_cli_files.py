@@ -10,6 +10,7 @@ import pytest
 
 from middleware import ConfigError, Node
 from services.lib.files import create_file, open_directory
+from tests.conftest import run_framegate
 from tests.services.cli.conftest import MS, Cli, put_frame
 
 SECOND = 1_000_000_000
@@ -43,10 +44,24 @@ def test_create_file_refuses_an_existing_file_unless_told_to_overwrite(tmp_path:
     assert path.read_bytes() == b"new"
 
 
-def test_overwrite_never_replaces_a_directory(tmp_path: Path) -> None:
+def test_a_directory_is_never_replaced_and_is_named_as_one(tmp_path: Path) -> None:
     (tmp_path / "out.bin").mkdir()
-    with pytest.raises(ConfigError, match="not a regular file"):
-        create_file(tmp_path / "out.bin", overwrite=True)
+    # It said "exists; ... pass --force", and then with --force "not a regular file".
+    for overwrite in (False, True):
+        with pytest.raises(ConfigError, match=r"out\.bin is a directory; give a file path"):
+            create_file(tmp_path / "out.bin", overwrite=overwrite)
+    assert (tmp_path / "out.bin").is_dir()
+
+
+@pytest.mark.parametrize("overwrite", [(), ("--overwrite",)])
+def test_record_into_a_directory_says_to_give_a_file_path(
+    tmp_path: Path, overwrite: tuple[str, ...]
+) -> None:
+    result = run_framegate("record", "camera/images", "-o", str(tmp_path), *overwrite)
+    assert result.returncode == 1, result
+    assert result.stderr == (
+        f"error: {tmp_path} is a directory; give a file path, e.g. -o {tmp_path / 'run.mcap'}\n"
+    )
 
 
 def test_open_directory_refuses_a_symlinked_directory(tmp_path: Path) -> None:
