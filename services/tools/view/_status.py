@@ -33,17 +33,21 @@ class Status:
 
     def line(self) -> str:
         """At most ``LINE_COLUMNS`` characters (the URL is printed once at start; ``--json``
-        has every channel's rate): ``clients 1 | 12 channels 160.2 msg/s, images 15.0/s |
-        missed 0 lost 0 | slow: 127.0.0.1:5000 (1x)``; a slow client has its oldest messages
-        dropped."""
+        has every channel's rate): ``clients 1 | sent: 12 channels 160.2 msg/s, images
+        15.0/s | missed 0 lost 0 | slow: 127.0.0.1:5000 (1x)``. The rates are what was sent
+        to clients; ``missed`` counts the notifications passed over while a client watched
+        their buffer (the viewer fell behind and showed a newer one), ``lost`` the elements
+        it could not fetch for a client; a slow client has its oldest messages dropped."""
         total = sum(self.rates_hz.values())
         images = sum(hz for t, hz in self.rates_hz.items() if t.endswith(IMAGE_SUFFIXES))
         text = f"clients {self.clients} | "
-        text += (
-            f"{len(self.rates_hz)} channels {total:.1f} msg/s, images {images:.1f}/s"
-            if self.rates_hz
-            else "no data yet"
-        )
+        if self.clients == 0:
+            # Nothing is sent, so there is nothing to rate: say what the viewer waits for.
+            text += "waiting for a Foxglove client"
+        elif self.rates_hz:
+            text += f"sent: {len(self.rates_hz)} channels {total:.1f} msg/s, images {images:.1f}/s"
+        else:
+            text += f"{self.published} messages sent" if self.published else "nothing sent yet"
         text += f" | missed {self.missed} lost {self.lost}"
         if self.slow_clients:
             names = ", ".join(f"{a} ({n}x)" for a, n in sorted(self.slow_clients.items()))
@@ -70,8 +74,9 @@ class Counters:
     """What the viewer did since it started."""
 
     published: Counter[str] = field(default_factory=Counter)
-    # Per buffer: notifications the observer queue lost (the viewer fell behind) and
-    # elements it could not fetch (evicted first).
+    # Per buffer: notifications the observer queue passed over while a client watched the
+    # buffer (the viewer fell behind; unwatched, nothing is missed by anyone) and elements it
+    # could not fetch for a client (evicted first).
     missed: dict[str, int] = field(default_factory=dict)
     lost: Counter[str] = field(default_factory=Counter)
     # Client id → channel ids it subscribes to.

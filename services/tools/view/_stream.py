@@ -2,8 +2,10 @@
 
 Buffering rule: the viewer *observes* (``SubscriptionMode.OBSERVE``) with a small queue, so
 it never holds a producer back; when it falls behind it misses notifications and counts
-them (``missed`` in the status line). It shows the newest data, so a miss is never fetched
-back. A frame's payload is fetched only while some client subscribes to its image channel.
+them (``missed`` in the status line) while a client watches the buffer: with nobody
+watching, a notification passed over is missed by no one. It shows the newest data, so a
+miss is never fetched back. A frame's payload is fetched only while some client subscribes
+to its image channel.
 
 Threads: each buffer has its own daemon thread that takes notifications, fetches, derives
 and publishes. The shared ``FrameSizes`` (the newest frame's size, for verdict borders) is
@@ -107,6 +109,9 @@ class BufferStream:
             wait_s=max(2.0, config.discovery_timeout_s),
         )
         self.error: BaseException | None = None
+        # The subscription's missed total when last looked at, and the misses counted.
+        self._missed_seen = 0
+        self._missed = 0
         self.thread = threading.Thread(target=self._run, name=f"view-{self.name}", daemon=True)
         self.thread.start()
 
@@ -114,11 +119,19 @@ class BufferStream:
         try:
             while not self._stop.is_set():
                 note = self._sub.take(timeout_s=TAKE_TIMEOUT_S)
-                self._counters.set_missed(self.name, self._sub.missed_total)
+                self._count_missed()
                 if note is not None:
                     self._on_notification(note)
         except Exception as exc:  # the viewer says so and starts it again; the others go on
             self.error = exc
+
+    def _count_missed(self) -> None:
+        """Add the notifications passed over since the last look, if a client watches."""
+        total = self._sub.missed_total
+        passed, self._missed_seen = total - self._missed_seen, total
+        if passed > 0 and self._server.wanted(self._deriver.topics):
+            self._missed += passed
+            self._counters.set_missed(self.name, self._missed)
 
     def _on_notification(self, note: Notification) -> None:
         if self._deriver.kind == "frame" and note.metadata is not None:

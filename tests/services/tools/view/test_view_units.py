@@ -85,13 +85,14 @@ def test_clients_count_while_they_subscribe_to_something() -> None:
 def test_status_line_says_what_was_missed_and_which_client_is_slow() -> None:
     counters = Counters()
     counters.snapshot("ws://127.0.0.1:8765", 0.0)
+    counters.subscribed(1, 10)
     counters.count("/camera/images/image", 15)
     counters.set_missed("camera/images", 3)
     counters.add_lost("gyro/rates")
     counters.slow_client("127.0.0.1:5000")
     status = counters.snapshot("ws://127.0.0.1:8765", 1.0)
     line = status.line()
-    assert line.startswith("clients 0 | 1 channels 15.0 msg/s, images 15.0/s")
+    assert line.startswith("clients 1 | sent: 1 channels 15.0 msg/s, images 15.0/s")
     assert "missed 3 lost 1" in line
     assert line.endswith("| slow: 127.0.0.1:5000 (1x)")
     assert status.json()["slow_clients"] == {"127.0.0.1:5000": 1}
@@ -107,9 +108,54 @@ def test_status_line_fits_100_columns_with_many_channels_and_slow_clients() -> N
             counters.count(f"/{service}/{service}/{topic}", 15)
     for port in range(5000, 5010):
         counters.slow_client(f"127.0.0.1:{port}")
+        counters.subscribed(port, 1)
     line = counters.snapshot("ws://127.0.0.1:8765", 1.0).line()
     assert len(line) <= 100, line
-    assert line.startswith("clients 0 | 25 channels 375.0 msg/s, images 75.0/s")
+    assert line.startswith("clients 10 | sent: 25 channels 375.0 msg/s, images 75.0/s")
+
+
+def test_status_line_without_a_client_says_it_waits_for_one() -> None:
+    # It said "clients 0 | no data yet | missed 730", as if data were due and being lost.
+    counters = Counters()
+    counters.snapshot("ws://127.0.0.1:8765", 0.0)
+    assert counters.snapshot("u", 1.0).line() == (
+        "clients 0 | waiting for a Foxglove client | missed 0 lost 0"
+    )
+    counters.subscribed(1, 10)
+    assert counters.snapshot("u", 2.0).line().startswith("clients 1 | nothing sent yet |")
+
+
+class _Sub:
+    missed_total = 0
+
+
+class _Server:
+    watched = False
+
+    def wanted(self, topics: object) -> set[str]:
+        return {"/camera/images/image"} if self.watched else set()
+
+
+def test_notifications_passed_over_count_as_missed_only_while_a_client_watches() -> None:
+    from services.tools.view._stream import BufferStream
+
+    counters, sub, server = Counters(), _Sub(), _Server()
+    stream = object.__new__(BufferStream)
+    stream.name = "camera/images"
+    stream.__dict__.update(
+        _sub=sub,
+        _server=server,
+        _counters=counters,
+        _missed_seen=0,
+        _missed=0,
+        _deriver=type("D", (), {"topics": ()})(),
+    )
+    sub.missed_total = 730  # nobody watching: passed over, missed by no one
+    stream._count_missed()
+    assert counters.snapshot("u", 1.0).missed == 0
+    server.watched, sub.missed_total = True, 733
+    stream._count_missed()
+    assert counters.snapshot("u", 2.0).missed == 3
 
 
 def test_the_layout_files_are_the_generated_layout_and_names_only_produced_topics() -> None:
