@@ -114,7 +114,9 @@ def run(args: argparse.Namespace) -> int:
     report = None
     if args.report:
         dataset = read_dataset(result.root)
-        with tqdm(total=len(dataset), desc="decoding", unit="frame", disable=not progress) as bar:
+        # disable=None: no bar when stderr is no terminal (a log gets no \r updates).
+        disable = None if progress else True
+        with tqdm(total=len(dataset), desc="decoding", unit="frame", disable=disable) as bar:
             report = recognition_report(dataset, on_frame=lambda _i: bar.update())
         summary["report"] = str(write_report(result.root, report.to_dict()))
     if args.json:

@@ -129,7 +129,9 @@ def calibrate_b0(dataset_dir: Path, *, progress: bool = True) -> Calibration:
     hits: list[bool] = []
     per_marker: dict[str, tuple[list[float], list[bool]]] = {}
     skipped = 0
-    for index, info in enumerate(tqdm(dataset.frames, disable=not progress, unit="frame")):
+    # disable=None: no bar when stderr is no terminal (a log gets no \r updates).
+    bar = tqdm(dataset.frames, disable=None if progress else True, unit="frame")
+    for index, info in enumerate(bar):
         exposure = Exposure(info.exposure_start_ns, info.exposure_ns)
         try:
             blur_px = estimate_blur(gyro, exposure, dataset.camera).blur_px

@@ -327,7 +327,9 @@ def _replay(
             and time.monotonic() - seen["since"] > _STALL_S / 2
         )
 
-    with tqdm(total=frames, desc=what, unit="frame", disable=not progress, leave=False) as bar:
+    # disable=None: no bar when stderr is no terminal (a log gets no \r updates).
+    disable = None if progress else True
+    with tqdm(total=frames, desc=what, unit="frame", disable=disable, leave=False) as bar:
 
         def done(buffers: dict[str, BufferInfo]) -> bool:
             n = handled(buffers)

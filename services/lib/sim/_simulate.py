@@ -1,4 +1,5 @@
-"""Render a whole scenario into a dataset directory, with a progress bar."""
+"""Render a whole scenario into a dataset directory, with a progress bar on a terminal
+(``disable=None``: none when stderr is no terminal, so a log gets no \\r updates)."""
 
 from __future__ import annotations
 
@@ -60,7 +61,7 @@ def simulate(
         with (
             ThreadPoolExecutor(workers) as pool,
             tqdm(total=config.frame_count, desc="rendering", unit="frame",
-                 disable=not progress) as bar,
+                 disable=None if progress else True) as bar,
         ):  # fmt: skip
             # A short window of frames in flight bounds memory; results are taken in order.
             pending: deque[tuple[int, Future[tuple[np.ndarray, FrameTruth]]]] = deque()

@@ -169,3 +169,11 @@ def test_an_interrupted_simulation_leaves_no_half_dataset(
     monkeypatch.setattr(_simulate, "_write_next", real)
     simulate(small_config(frame_count=1), fresh, progress=False)
     assert len(read_dataset(fresh)) == 1
+
+
+def test_the_render_bar_writes_nothing_into_a_log(
+    tmp_path: Path, small_config: SmallConfig, capfd: pytest.CaptureFixture[str]
+) -> None:
+    # A demo or launch redirected to a file got hundreds of \r updates of the render bar.
+    simulate(small_config(frame_count=3), tmp_path, progress=True)
+    assert "\r" not in capfd.readouterr().err
