@@ -32,9 +32,10 @@ Handler = Callable[[Image, FrameMeta], object]
 
 def load_handler(spec: str, *, bind: bool = True) -> Handler:
     """The callable ``spec`` names: ``package.module:function``, ``module:Class.method``,
-    or ``path/to/file.py:function``. ``bind=False``: only check that it names one (an
-    instance method's class is not created: the flag check of a launcher or ``--check``
-    must not load a model).
+    ``module:Class`` (a class with ``__call__``: created once, the instance is called) or
+    ``path/to/file.py:function``. ``bind=False``: only check that it names one (a class is
+    not created, only checked that it can be with no arguments: the flag check of a launcher
+    or ``--check`` must not load a model).
 
     ConfigError, naming what is wrong, if the module cannot be imported (any exception
     while importing it counts), the name is missing or not callable. The current directory
@@ -74,16 +75,30 @@ def load_handler(spec: str, *, bind: bool = True) -> Handler:
                 f"handler {spec!r}: {module_name!r} has no {attr_path!r}"
                 + did_you_mean(part, names, quote=True)
             ) from exc
+    if inspect.isclass(target):
+        # ``module:Class``: built once, as for ``Class.method``, and its instances called.
+        if not any("__call__" in vars(k) for k in target.__mro__):
+            raise ConfigError(
+                f"handler {spec!r} is a class whose instances cannot be called as "
+                "handler(image, frame): it has no __call__ method"
+            )
+        what = f"{target.__name__} is a class"
+        _check_signature(spec, target.__call__, self_too=True)
+        _check_constructor(spec, target, what)
+        return typing.cast(Handler, _instance(spec, target, what) if bind else target)
     method = inspect.isclass(owner) and inspect.isfunction(inspect.getattr_static(owner, part))
-    if bind and method and inspect.isclass(owner):
-        target = _bound(spec, owner, part)  # ``module:Class.method``: an instance method
+    if method and inspect.isclass(owner):  # ``module:Class.method``: an instance method
+        what = f"{part!r} is an instance method"
+        _check_signature(spec, target, self_too=True)
+        _check_constructor(spec, owner, what)
+        return typing.cast(Handler, getattr(_instance(spec, owner, what), part) if bind else target)
     if not callable(target):
         kind = type(target).__name__
         raise ConfigError(
             f"handler {spec!r} is {'an' if kind[:1] in 'aeiou' else 'a'} {kind}, not a "
             "function; it must be callable as handler(image, frame)"
         )
-    _check_signature(spec, target, self_too=method and not bind)
+    _check_signature(spec, target, self_too=False)
     return typing.cast(Handler, target)
 
 
@@ -102,17 +117,32 @@ def _check_signature(spec: str, target: object, *, self_too: bool) -> None:
         ) from None
 
 
-def _bound(spec: str, cls: type, name: str) -> object:
-    """``cls().name``: an instance method's class is created once, with no arguments (a
-    handler that keeps a model loads it in ``__init__``)."""
+def _check_constructor(spec: str, cls: type, what: str) -> None:
+    """ConfigError unless ``cls()`` can be called with no arguments, read from its signature
+    without creating it: so ``launch --check`` and the flag check refuse what the runner
+    could never build (it restarted forever), without loading a model."""
     try:
-        instance = cls()
+        signature = inspect.signature(cls)
+    except (TypeError, ValueError):
+        return  # no signature to read: creating it says
+    try:
+        signature.bind()
+    except TypeError as exc:
+        raise ConfigError(
+            f"handler {spec!r}: {what}, and {cls.__name__}() failed: TypeError: {exc} "
+            f"(it is created once, with no arguments)"
+        ) from None
+
+
+def _instance(spec: str, cls: type, what: str) -> object:
+    """``cls()``: a handler's class is created once, with no arguments (a handler that keeps
+    a model loads it in ``__init__``)."""
+    try:
+        return cls()
     except (Exception, SystemExit) as exc:
         raise ConfigError(
-            f"handler {spec!r}: {name!r} is an instance method, and {cls.__name__}() "
-            f"failed: {type(exc).__name__}: {exc}"
+            f"handler {spec!r}: {what}, and {cls.__name__}() failed: {type(exc).__name__}: {exc}"
         ) from None
-    return getattr(instance, name)
 
 
 # Handler files loaded by path, so that one named twice (flag check, then run) loads once.

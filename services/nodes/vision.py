@@ -442,7 +442,10 @@ def run(config: VisionConfig, network: NetworkConfig, stop: threading.Event | No
     """Load the handler and serve until ``stop`` is set."""
     if config.handler is None:
         raise ConfigError("framegate run vision needs --handler package.module:function")
-    handler = load_handler(config.handler)
+    try:
+        handler = load_handler(config.handler)
+    except ConfigError as exc:  # its class failed as it was created: worded as the flag check
+        raise ConfigError(f"framegate run vision: argument --handler: {exc}") from exc
     kind = result_kind(handler, config.kind)
     output = config.output or ("detections" if kind is ResultKind.DETECTIONS else "results")
     return serve(config.spec(output, kind), handler, network, stop or threading.Event())

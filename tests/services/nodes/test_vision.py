@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import logging
 import subprocess
 import sys
@@ -258,6 +259,95 @@ def test_checking_a_method_handler_does_not_create_its_class(tmp_path: Path) -> 
     assert not made.exists()
     load_handler(f"{module}:Det.find")
     assert made.read_text() == "x"
+
+
+def test_a_class_named_as_the_handler_is_created_once_and_its_instance_called(
+    tmp_path: Path,
+) -> None:
+    """``module:Class`` with ``__call__``: as ``Class.method``, one instance for the run
+    (it was refused: "too many positional arguments", the class's own signature)."""
+    module = tmp_path / "class_handlers.py"
+    module.write_text(
+        "class Det:\n"
+        "    made = 0\n"
+        "    def __init__(self):\n"
+        "        Det.made += 1\n"
+        "        self.calls = 0\n"
+        "    def __call__(self, image, frame):\n"
+        "        self.calls += 1\n"
+        "        return self.calls\n"
+    )
+    handler_argument(f"{module}:Det")  # the flag check creates nothing
+    handler = load_handler(f"{module}:Det")
+    assert (handler(None, None), handler(None, None)) == (1, 2)  # type: ignore[arg-type]
+    assert type(handler).made == 1
+    assert handler_name(handler) == f"{module}:Det"
+
+
+def test_a_class_that_cannot_be_created_with_no_arguments_fails_the_flag_check(
+    tmp_path: Path,
+) -> None:
+    """As the runner would fail (and ``launch`` restart it forever), but without creating
+    it: ``launch --check`` and ``run vision --handler`` refuse it up front."""
+    made = tmp_path / "made"
+    module = tmp_path / "needy_handlers.py"
+    module.write_text(
+        "class Needs:\n"
+        "    def __init__(self, model):\n"
+        f"        open({str(made)!r}, 'a').write('x')\n"
+        "    def method(self, image, frame):\n"
+        "        return None\n"
+        "    def __call__(self, image, frame):\n"
+        "        return None\n"
+    )
+    failed = r"Needs\(\) failed: TypeError: missing a required argument: 'model'"
+    with pytest.raises(argparse.ArgumentTypeError, match=f"instance method, and {failed}"):
+        handler_argument(f"{module}:Needs.method")
+    with pytest.raises(argparse.ArgumentTypeError, match=f"Needs is a class, and {failed}"):
+        handler_argument(f"{module}:Needs")
+    assert not made.exists()
+
+
+def test_launch_check_and_run_vision_refuse_a_class_that_needs_an_argument(
+    tmp_path: Path,
+) -> None:
+    (tmp_path / "h.py").write_text(
+        "class NeedsArg:\n"
+        "    def __init__(self, x):\n"
+        "        pass\n"
+        "    def method(self, image, frame):\n"
+        "        return None\n"
+    )
+    deploy = tmp_path / "vision.yaml"
+    deploy.write_text(
+        "version: 1\nservices:\n  vision:\n    args:\n      handler: h.py:NeedsArg.method\n"
+    )
+    checked = _framegate("launch", str(deploy), "--check", cwd=tmp_path)
+    assert checked.returncode == 1, checked
+    assert f"{deploy}:5" in checked.stderr and "NeedsArg() failed" in checked.stderr, checked
+    ran = _framegate("run", "vision", "--handler", "h.py:NeedsArg.method", cwd=tmp_path)
+    assert ran.returncode == 1, ran
+    assert ran.stderr.startswith(
+        "error: framegate run vision: argument --handler: handler 'h.py:NeedsArg.method'"
+    ), ran.stderr
+
+
+def test_run_vision_words_a_class_that_fails_as_it_is_created_as_the_flag_check(
+    tmp_path: Path,
+) -> None:
+    (tmp_path / "h.py").write_text(
+        "class Boom:\n"
+        "    def __init__(self):\n"
+        "        raise RuntimeError('no model file')\n"
+        "    def method(self, image, frame):\n"
+        "        return None\n"
+    )
+    ran = _framegate("run", "vision", "--handler", "h.py:Boom.method", cwd=tmp_path)
+    assert ran.returncode == 1, ran
+    assert ran.stderr.strip().splitlines() == [
+        "error: framegate run vision: argument --handler: handler 'h.py:Boom.method': "
+        "'method' is an instance method, and Boom() failed: RuntimeError: no model file"
+    ], ran.stderr
 
 
 def test_a_return_annotation_only_a_type_checker_can_resolve_is_read_as_text(
