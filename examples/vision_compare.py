@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import signal
 import socket
 import statistics
 import subprocess
@@ -120,6 +121,7 @@ def main(*, seconds: float, warmup_s: float, seed: int) -> int:
             stderr=subprocess.DEVNULL,
         )
         try:
+            print(f"started the pipeline on port {port} (Ctrl-C stops it) ...", flush=True)
             with Node(network=NetworkConfig(local_port=port)) as node:
                 wait_live(node, 120)
                 time.sleep(warmup_s)
@@ -148,9 +150,16 @@ def main(*, seconds: float, warmup_s: float, seed: int) -> int:
 
 
 if __name__ == "__main__":
+    # Ctrl-C stops it even when its parent ignores SIGINT (a job a script put in the
+    # background starts that way, and Python then never raises KeyboardInterrupt).
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     parser = argparse.ArgumentParser(prog="vision_compare", description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=60.0, help="measuring window")
     parser.add_argument("--warmup-s", type=float, default=10.0, help="before the window")
     parser.add_argument("--seed", type=int, default=1, help="the simulated approach")
     args = parser.parse_args()
-    raise SystemExit(main(seconds=args.seconds, warmup_s=args.warmup_s, seed=args.seed))
+    try:
+        code = main(seconds=args.seconds, warmup_s=args.warmup_s, seed=args.seed)
+    except KeyboardInterrupt:  # Ctrl-C: the way to stop it early (main stops the pipeline)
+        code = 0
+    raise SystemExit(code)

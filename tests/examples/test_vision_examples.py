@@ -3,6 +3,7 @@ cheap-vs-expensive measurement against real processes."""
 
 from __future__ import annotations
 
+import signal
 import subprocess
 import sys
 
@@ -40,7 +41,44 @@ def test_the_vision_deploy_file_checks() -> None:
 def test_the_compare_example_measures_both_handlers_from_one_camera() -> None:
     result = _run("examples/vision_compare.py", "--seconds", "4", "--warmup-s", "1", timeout_s=300)
     assert result.returncode == 0, result
-    rows = {line.split()[0]: line.split()[1:] for line in result.stdout.splitlines()[2:]}
+    lines = result.stdout.splitlines()
+    header = next(i for i, line in enumerate(lines) if line.startswith("handler"))
+    rows = {line.split()[0]: line.split()[1:] for line in lines[header + 1 :]}
     assert sorted(rows) == ["cheap", "expensive"], result.stdout
     for values in rows.values():
         assert len(values) == 5 and values[-1].endswith("%"), result.stdout
+
+
+@pytest.mark.integration
+@pytest.mark.parametrize(
+    ("argv", "started"),
+    [
+        (["examples/vision_template.py", "--frames", "1000000"], "timing find_marker"),
+        (["examples/vision_compare.py", "--seconds", "3600"], "started the pipeline"),
+    ],
+)
+def test_a_vision_example_stops_on_ctrl_c_with_exit_0_and_no_traceback(
+    argv: list[str], started: str
+) -> None:
+    """As offer.py, query.py and subscribe.py do (these printed a KeyboardInterrupt
+    traceback and exited -2)."""
+    proc = subprocess.Popen(
+        [sys.executable, *argv],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=REPO,
+        env=child_env(),
+    )
+    try:
+        assert proc.stdout is not None
+        first = proc.stdout.readline()  # it is inside main(): Ctrl-C there is the case
+        assert started in first, first
+        proc.send_signal(signal.SIGINT)
+        _out, err = proc.communicate(timeout=scaled(60))
+        assert proc.returncode == 0, err
+        assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
