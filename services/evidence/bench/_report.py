@@ -1,7 +1,8 @@
 """The human-readable table of a report (the same dict that goes to ``--json``).
 
 Compact on purpose: one line per row, at most ``WIDTH`` columns — the row, its unit, the
-raw and framegate medians, framegate/raw and the goal (verdict, measured value, limit).
+raw and framegate medians, framegate/raw and the goal (verdict, measured value, limit); a
+scenario whose columns mean something else (``params["legend"]``) says so under its name.
 Everything else (min/max, every sample, CPU per process, the goals' full texts, the
 parameters) is in the JSON report.
 """
@@ -59,12 +60,28 @@ def load_warning(machine: dict[str, Any], share: float) -> str | None:
     )
 
 
+def _windows(report: dict[str, Any]) -> str:
+    """How long a pair's runs are: ``--duration``, or each scenario's own window where it
+    keeps one (ros2-loop's 15 s at least; the header said 0.5 s for it under --quick)."""
+    default = float(report["options"]["duration_s"])
+    own = {
+        name: float(window)
+        for name, scenario in report["scenarios"].items()
+        if isinstance(window := scenario.get("params", {}).get("window_s"), int | float)
+    }
+    windows = {name: own.get(name, default) for name in report["scenarios"]}
+    if len(set(windows.values())) == 1:
+        return f"{next(iter(windows.values())):g} s"
+    others = ", ".join(f"{name} {window:g} s" for name, window in own.items() if window != default)
+    return f"{default:g} s ({others})"
+
+
 def header(report: dict[str, Any]) -> str:
     machine, options = report["machine"], report["options"]
     load = machine.get("load_average_start")
     return _cut(
         f"framegate bench{' (quick)' if options['quick'] else ''}: "
-        f"{options['pairs']} pair(s) of {options['duration_s']:g} s; "
+        f"{options['pairs']} pair(s) of {_windows(report)}; "
         f"{machine['cpu_count']} cores" + (f", load {load[0]:.2f}" if load else "") + "; "
         f"Python {machine['python']}, zenoh {machine['zenoh']}",
         WIDTH,
@@ -97,6 +114,9 @@ def format_table(report: dict[str, Any], *, notes: bool = False) -> str:
             lines.append(_cut(f"{name}: {scenario['status']}: {_reason(scenario)}", WIDTH))
             continue
         lines.append(name)
+        if legend := scenario.get("params", {}).get("legend"):
+            # Columns that mean something else here than raw Zenoh against framegate.
+            lines += textwrap.wrap(legend, WIDTH, initial_indent="  ", subsequent_indent="    ")
         for r in scenario["rows"]:
             unit = _UNITS.get(str(r["unit"]), str(r["unit"]))
             lines.append(

@@ -258,6 +258,10 @@ def run_ros2_loop(options: BenchOptions) -> ScenarioResult:
             "consumer_queue": QUEUE,
             "raw": f"a ROS 2 node on the camera's images (KEEP_LAST {QUEUE - 1}), uncontrolled",
             "framegate": "the same node behind the mediator, in the bridge's loop",
+            "legend": (
+                "columns: raw = the node uncontrolled on the camera's images; framegate = "
+                "the same node in the bridge's loop; fg/raw = 1 + the loop's gain"
+            ),
         },
     )
     rows: dict[str, Row] = {}

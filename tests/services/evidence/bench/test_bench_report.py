@@ -74,6 +74,25 @@ def test_every_line_of_the_table_fits_the_width_and_rows_take_one_line() -> None
     assert "memory: error: BenchError: xxx" in table
 
 
+def test_the_header_gives_each_scenarios_own_window_and_a_legend_names_other_columns() -> None:
+    """ros2-loop runs 15 s windows and compares a node uncontrolled with the node in the
+    loop: the header said "pair(s) of 0.5 s" under --quick, and raw/framegate went unsaid."""
+    report = _report([True])
+    legend = "columns: raw = the node uncontrolled; framegate = the node in the loop"
+    loop = ScenarioResult("ros2-loop", params={"window_s": 15.0, "legend": legend})
+    row = Row("recognitions, all markers (15 s runs)", "recognitions", "count", True)
+    row.samples("raw").append({"pair": 0, "value": 100.0})
+    row.framegate.append({"pair": 0, "value": 110.0})
+    loop.rows = [row]
+    report["options"] = {"pairs": 1, "duration_s": 0.5, "quick": True}
+    report["scenarios"] = {"ros2-loop": loop.as_json()}
+    table = format_table(report).splitlines()
+    assert "1 pair(s) of 15 s;" in table[0], table[0]
+    assert table[table.index("ros2-loop") + 1] == f"  {legend}", table
+    report["scenarios"]["working-point"] = ScenarioResult("working-point").as_json()
+    assert "1 pair(s) of 0.5 s (ros2-loop 15 s);" in format_table(report).splitlines()[0]
+
+
 def test_short_goal_shows_verdict_measured_and_limit() -> None:
     goal = Goal("throughput >= 0.1x raw", 0.1, True, 0.019).as_json()
     assert short_goal(goal) == "MISS 0.019 >= 0.1x"
