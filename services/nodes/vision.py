@@ -34,7 +34,9 @@ a handler on the node's executor: a vision function runs for a frame period or m
 there it would hold up the node's other duties for that long -- among them a delayed ack of
 the frame just taken, so the mediator would read the queue fuller than it is while the
 handler runs, and acks and resends for watchers of the results. ``Runner.handle`` has an
-executor handler's shape (a batch of notifications) should that trade be wanted.
+executor handler's shape (a batch of notifications) should that trade be wanted. The
+executor's one duty of this service is a timer that counts the frames an ``--observe``
+runner's queue dropped while the handler runs (``NotObserved``).
 :class:`VisionStep` is the per-frame work with no I/O, called directly by tests.
 """
 
@@ -70,6 +72,7 @@ from services.lib.rewind import RewindFollower
 from services.lib.settings import add_flags, from_args, setting
 from services.lib.vision import Encoded, FrameMeta, ResultKind, encode_result
 from services.nodes._contract import Service, ServiceEntry
+from services.nodes._not_observed import NotObserved
 from services.nodes._runtime import setup_logging, unless_stopped
 from services.nodes._vision_handler import (
     Handler,
@@ -83,6 +86,8 @@ from services.nodes._vision_handler import (
 # Distinct warning kinds remembered; past this, further kinds share one (a handler raising
 # a new exception type per frame must not grow the log or this set without bound).
 _MAX_WARNING_KINDS = 64
+# How often the frames an --observe runner lost are counted while its handler runs.
+_MISSED_PERIOD_S = 0.5
 # How long reading the input producer's recorded rewinds waits for its answer.
 _INPUT_INFO_TIMEOUT_S = 1.0
 
@@ -300,6 +305,7 @@ class Runner:
             node, spec.input, output, step.log, timeout_s=_INPUT_INFO_TIMEOUT_S
         )
         self.stop = stop
+        self.not_observed = NotObserved(output)
 
     def handle(
         self,
@@ -316,7 +322,7 @@ class Runner:
             taken_ns = now_ns()  # the frames' clock: what the runner did when, beside them
             self.rewinds.seen(producer_epoch)
             if note.missed:  # an observer's full queue (keep-last), or a lapse: never seen
-                self.output.count_skip("not-observed", note.missed)
+                self.not_observed.carried(note.missed)
             if not self._in_order(note.timestamp_ns):
                 continue
             try:
@@ -397,6 +403,11 @@ def serve(spec: RunnerSpec, handler: Handler, network: NetworkConfig, stop: thre
         )
         step = VisionStep(handler, spec.kind, spec.input, log, call)
         runner = Runner(spec, step, node, output, stop)
+        # While the handler runs (for minutes, if it hangs), frames its full queue drops are
+        # counted from the subscription, not only when the next frame is taken.
+        node.every(
+            _MISSED_PERIOD_S, lambda _now_ns: runner.not_observed.total_is(frames.missed_total)
+        )
         log.info(
             "%s: %s -> %s/%s (%s, queue %d%s)",
             spec.name,

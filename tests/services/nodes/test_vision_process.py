@@ -342,3 +342,41 @@ def test_a_misspelt_input_is_said_once_with_what_the_service_offers() -> None:
             vision.send_signal(signal.SIGTERM)
             vision.communicate(timeout=scaled(30))
     assert vision.returncode == 0
+
+
+def _not_observed(node: Node, target: str) -> int:
+    try:
+        return int(node.buffer_info(target, timeout_s=2.0).skipped.get("not-observed", 0))
+    except FramegateError:
+        return 0
+
+
+def test_frames_an_observer_loses_while_its_handler_is_stuck_are_counted_meanwhile() -> None:
+    """The frames its full queue drops are counted while the handler runs, not only when it
+    takes its next frame (a handler that never returned showed no count at all)."""
+    port = free_port()
+    camera = start_framegate(["run", "camera", "--seed", "3", "--loop"], local_port=port)
+    vision = start_framegate(
+        ["run", "vision", "--handler", f"{HANDLERS}:stuck", "--input", "camera/images",
+         "--observe"],
+        local_port=port,
+    )  # fmt: skip
+    try:
+        with Node(network=NetworkConfig(local_port=port)) as node:
+            wait_until(
+                lambda: _not_observed(node, "vision/detections") > 0,
+                90,
+                "frames the stuck runner never saw to be counted",
+            )
+            counted = _not_observed(node, "vision/detections")
+            wait_until(
+                lambda: _not_observed(node, "vision/detections") > counted,
+                90,
+                "the count to go on rising while the handler is still stuck",
+            )
+            assert node.buffer_info("vision/detections", timeout_s=5.0).puts == 0
+    finally:
+        for proc in (vision, camera):
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()

@@ -1,0 +1,49 @@
+"""Counting the frames a runner will never see (``not-observed``) while they are lost, not
+only when it takes its next frame.
+
+Two sources tell the same monotonic total, each a lower bound of it: the notifications
+taken (each carries what was lost before it, ``Notification.missed``) and the
+subscription's ``missed_total`` (raised the moment a full observer queue drops its oldest
+notification, or a lapse is known). Counted from the notes alone, a handler that runs for
+minutes left ``framegate info NAME/detections`` at 0 while its queue dropped every frame;
+the subscription's total, read on the node's executor while the handler runs, keeps the
+count current. The output counts the larger of the two as each is read, so nothing is
+counted twice.
+
+Threads: ``carried`` runs on the runner's loop thread, ``total_is`` on the node's executor
+(a timer); the lock guards the two sums and the count given to the output.
+"""
+
+from __future__ import annotations
+
+import threading
+
+from middleware import Producer
+
+SKIP_REASON = "not-observed"
+
+
+class NotObserved:
+    """Frames lost before the runner saw them, counted on ``output`` as ``not-observed``."""
+
+    def __init__(self, output: Producer) -> None:
+        self._output = output
+        self._lock = threading.Lock()
+        self._carried = 0  # the sum of the ``missed`` of the notifications taken
+        self._counted = 0  # what the output has been told
+
+    def carried(self, missed: int) -> None:
+        """A notification taken carried ``missed`` frames lost before it."""
+        with self._lock:
+            self._carried += missed
+            self._raise(self._carried)
+
+    def total_is(self, missed_total: int) -> None:
+        """The subscription's ``missed_total`` now (it includes what notes carry later)."""
+        with self._lock:
+            self._raise(missed_total)
+
+    def _raise(self, total: int) -> None:
+        if total > self._counted:
+            self._output.count_skip(SKIP_REASON, total - self._counted)
+            self._counted = total
