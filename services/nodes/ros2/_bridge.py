@@ -349,22 +349,44 @@ def run(config: Ros2Config, network: NetworkConfig, stop: threading.Event | None
         for thread in threads:
             thread.join(max(0.0, deadline - time.monotonic()))
         skipped = ", ".join(f"{reason} {n}" for reason, n in sorted(skips.counts.items()))
+        counts = consumer.counts() if consumer is not None else None
         log.info(
-            "%s: %d frames stored, %d dropped at the bridge (flow control); %d IMU samples "
-            "stored, %d dropped; %d messages handed to ROS 2 by the outputs (whether a ROS 2 "
-            "node received them is ROS 2's to say); skipped: %s",
-            config.name,
-            images.stored if images else 0,
-            images.dropped if images else 0,
-            imu.stored if imu else 0,
-            imu.dropped if imu else 0,
-            sum(o.published for o in outputs),
-            skipped or "none",
+            "%s",
+            stop_summary(
+                config.name,
+                frames=(images.stored, images.dropped) if images else (0, 0),
+                imu=(imu.stored, imu.dropped) if imu else (0, 0),
+                outputs_published=sum(o.published for o in outputs),
+                loop_published=counts.published if counts is not None else None,
+                skipped=skipped,
+            ),
         )
-        if consumer is not None:  # its images are handed to ROS 2 too, counted apart
-            log.info("%s: consumer loop: %s", config.name, consumer.counts().text())
+        if consumer is not None and counts is not None:  # the loop's own line
+            log.info("%s: consumer loop: %s", config.name, counts.text())
             consumer.close()
     return 0
+
+
+def stop_summary(
+    name: str,
+    *,
+    frames: tuple[int, int],
+    imu: tuple[int, int],
+    outputs_published: int,
+    loop_published: int | None,
+    skipped: str,
+) -> str:
+    """The bridge's line when it stops. ``loop_published``: the ``--consumer-done`` loop's
+    images (None without it), said beside the outputs' messages: the line said "0 messages
+    handed to ROS 2" while the loop had published 93 images (its own line follows)."""
+    handed = f"{outputs_published} messages handed to ROS 2 by the outputs"
+    if loop_published is not None:
+        handed += f" and {loop_published} images by the consumer loop (next line)"
+    return (
+        f"{name}: {frames[0]} frames stored, {frames[1]} dropped at the bridge (flow control); "
+        f"{imu[0]} IMU samples stored, {imu[1]} dropped; {handed} (whether a ROS 2 node "
+        f"received them is ROS 2's to say); skipped: {skipped or 'none'}"
+    )
 
 
 def _start_consumer(

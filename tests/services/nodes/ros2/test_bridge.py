@@ -18,7 +18,7 @@ import zenoh
 
 from middleware import DataObject, NetworkConfig, Node, Producer
 from services.lib.frame_layout import FrameError
-from services.nodes.ros2._bridge import ImagesIn, ImuIn, _Skips
+from services.nodes.ros2._bridge import ImagesIn, ImuIn, _Skips, stop_summary
 from services.nodes.ros2._cdr import IMAGE, IMU, Codec
 from services.nodes.ros2._config import Ros2Config
 from services.nodes.ros2._rmw import HUMBLE_TYPE_HASH, EntityKind, NodeIdentity, Qos
@@ -343,3 +343,16 @@ def test_a_driver_on_another_distro_is_named_with_the_flag_to_change(endpoint: s
             proc.terminate()
             proc.wait(timeout=scaled(10))
             token.undeclare()
+
+
+def test_the_stop_line_counts_the_consumer_loops_images_beside_the_outputs() -> None:
+    """With ``--consumer-done`` it said "0 messages handed to ROS 2 by the outputs" while
+    the loop's own line below said "published 93"."""
+    common = {"frames": (120, 3), "imu": (0, 0), "outputs_published": 0, "skipped": ""}
+    with_loop = stop_summary("ros2", loop_published=93, **common)  # type: ignore[arg-type]
+    assert "0 messages handed to ROS 2 by the outputs and 93 images by the consumer loop" in (
+        with_loop
+    ), with_loop
+    alone = stop_summary("ros2", loop_published=None, **common)  # type: ignore[arg-type]
+    assert "by the outputs (whether" in alone and "consumer loop" not in alone, alone
+    assert alone.startswith("ros2: 120 frames stored, 3 dropped") and alone.endswith("none")
