@@ -107,6 +107,19 @@ def run_framegate(
     )
 
 
+def start_python(argv: list[str]) -> subprocess.Popen[str]:
+    """``python ARGV`` in a child process run from the repository, stdout and stderr apart,
+    as text (pipes: read them, or ``communicate``)."""
+    return subprocess.Popen(
+        [sys.executable, *argv],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=REPO,
+        env=child_env(),
+    )
+
+
 def start_framegate(argv: list[str], *, local_port: int) -> subprocess.Popen[str]:
     """``framegate ARGV`` in a child process meeting others on the rendezvous ``local_port``;
     stdout and stderr together, as text."""

@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-from tests.conftest import REPO, child_env
+from tests.conftest import REPO, child_env, start_python
 from tests.helpers.timing import scaled
 
 
@@ -62,14 +62,7 @@ def test_a_vision_example_stops_on_ctrl_c_with_exit_0_and_no_traceback(
 ) -> None:
     """As offer.py, query.py and subscribe.py do (these printed a KeyboardInterrupt
     traceback and exited -2)."""
-    proc = subprocess.Popen(
-        [sys.executable, *argv],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        cwd=REPO,
-        env=child_env(),
-    )
+    proc = start_python(argv)
     try:
         assert proc.stdout is not None
         first = proc.stdout.readline()  # it is inside main(): Ctrl-C there is the case

@@ -4,12 +4,11 @@ from __future__ import annotations
 
 import argparse
 import subprocess
-import sys
 
 import pytest
 
 from services.cli import COMMANDS, build_parser
-from tests.conftest import REPO, child_env, free_port, run_framegate
+from tests.conftest import free_port, run_framegate, start_python
 from tests.helpers.imports import modules_after
 from tests.helpers.timing import scaled
 
@@ -213,14 +212,7 @@ def test_a_bad_port_is_one_line_before_anything_starts(args: tuple[str, ...], sa
 
 
 def test_a_router_on_port_0_says_which_port_it_took() -> None:
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "services.cli", "router", "--listen", "tcp/127.0.0.1:0"],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        cwd=REPO,
-        env=child_env(),
-    )
+    proc = start_python(["-m", "services.cli", "router", "--listen", "tcp/127.0.0.1:0"])
     try:
         assert proc.stdout is not None
         line = proc.stdout.readline()
