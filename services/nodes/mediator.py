@@ -217,29 +217,10 @@ class Mediator:
             # old registration's straggler): decided as any frame is, but it starts nothing
             # over (the clock samples stay, the time order stands). Not skipped: a forged
             # greeting would then make every real frame "foreign".
-        if note.timestamp_ns > now_ns() + self._horizon_ns:
-            ahead_s = (note.timestamp_ns - now_ns()) / 1e9
-            self.out.skip(
-                note.timestamp_ns,
-                0,
-                "future-stamp",
-                f"stamped {ahead_s:.1f} s ahead of our clock (horizon {self.config.horizon_s:g} s)",
-            )
+        ahead = self._too_far_ahead(note.timestamp_ns)
+        if ahead is not None:
+            self.out.skip(note.timestamp_ns, 0, "future-stamp", ahead)
             return
-        clock = self.starts.clock()
-        if clock is not None:
-            # The camera stamps with its own clock, measured when its stream began: a frame
-            # stamped well ahead of it is no frame of that camera (inside the horizon it
-            # would hold every later frame out of the time order for that long).
-            ahead_ns = note.timestamp_ns - (now_ns() + clock.offset_ns)
-            if ahead_ns > _MAX_AHEAD_NS + clock.error_ns:
-                self.out.skip(
-                    note.timestamp_ns,
-                    0,
-                    "future-stamp",
-                    f"stamped {ahead_ns / 1e9:.1f} s ahead of the camera's own clock",
-                )
-                return
         self._newest_camera_ns = note.timestamp_ns
         try:
             frame = self._read(note)
@@ -252,6 +233,24 @@ class Mediator:
             return
         self.pairing.add(frame)
         self.on_time(time.monotonic_ns())
+
+    def _too_far_ahead(self, timestamp_ns: int) -> str | None:
+        """Why a frame stamped ``timestamp_ns`` is too far ahead to be decided (None: it is
+        not): beyond the horizon of our clock, or well ahead of the camera's own clock,
+        measured when its stream began (inside the horizon such a stamp would hold every
+        later frame out of the time order for that long)."""
+        now = now_ns()
+        if timestamp_ns > now + self._horizon_ns:
+            ahead_s = (timestamp_ns - now) / 1e9
+            return (
+                f"stamped {ahead_s:.1f} s ahead of our clock (horizon {self.config.horizon_s:g} s)"
+            )
+        clock = self.starts.clock()
+        if clock is not None:
+            ahead_ns = timestamp_ns - (now + clock.offset_ns)
+            if ahead_ns > _MAX_AHEAD_NS + clock.error_ns:
+                return f"stamped {ahead_ns / 1e9:.1f} s ahead of the camera's own clock"
+        return None
 
     def on_gyro(self, notes: list[Notification]) -> None:
         """Gyro notifications taken together: frames they cover may be decided now."""
