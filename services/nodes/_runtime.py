@@ -285,7 +285,12 @@ def run_source(
     buffers stay empty.
     """
     log = setup_logging(name)
-    source = open_source()
+    try:
+        source = open_source()
+    except FramegateError:
+        if stop.is_set():  # a stop while the source was opening (a render: RenderStopped)
+            return 0
+        raise
     if stop.is_set():  # interrupted while the source was opening
         return 0
     with Node(name, network) as node:

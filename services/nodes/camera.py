@@ -96,7 +96,9 @@ def run(config: CameraConfig, network: NetworkConfig, stop: threading.Event | No
         log.info("camera: %s -> %s/images", source.description, config.name)
         return CameraPump(node, images, source, config, Timeline(t0_wall), stop, log)
 
-    return run_source(config.name, network, stop, lambda: open_frame_source(config.source), pump)
+    return run_source(
+        config.name, network, stop, lambda: open_frame_source(config.source, stop), pump
+    )
 
 
 class CameraPump:

@@ -83,7 +83,9 @@ def run(config: GyroConfig, network: NetworkConfig, stop: threading.Event | None
         )
         return GyroPump(node, rates, source, config, stop, log)
 
-    return run_source(config.name, network, stop, lambda: open_gyro_source(config.source), pump)
+    return run_source(
+        config.name, network, stop, lambda: open_gyro_source(config.source, stop), pump
+    )
 
 
 class GyroPump:

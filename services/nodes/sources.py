@@ -121,7 +121,7 @@ class _Timeline:
 class FrameSource(_Timeline):
     """Frames of the simulator or a dataset on disk."""
 
-    def __init__(self, spec: SourceSpec) -> None:
+    def __init__(self, spec: SourceSpec, stop: threading.Event | None = None) -> None:
         if spec.kind == "sim":
             from services.lib.sim import Scenario
 
@@ -130,7 +130,7 @@ class FrameSource(_Timeline):
             infos = [self._scenario.frame_info(i) for i in range(self._scenario.frame_count)]
             self.description = f"simulated approach, seed {spec.seed}"
         else:
-            self._scenario = _dataset(spec)
+            self._scenario = _dataset(spec, stop)
             self.camera = self._scenario.camera
             infos = list(self._scenario.frames)
             self.description = _described(spec)
@@ -171,7 +171,7 @@ class FrameSource(_Timeline):
 class GyroSource(_Timeline):
     """Gyro samples of the simulator or a dataset, on the gyro clock."""
 
-    def __init__(self, spec: SourceSpec) -> None:
+    def __init__(self, spec: SourceSpec, stop: threading.Event | None = None) -> None:
         if spec.kind == "sim":
             from services.lib.sim import Scenario
 
@@ -181,7 +181,7 @@ class GyroSource(_Timeline):
             first_frame_ns = scenario.frame_info(0).exposure_start_ns
             self.description = f"simulated gyro, seed {spec.seed}"
         elif spec.kind in ("replay", "prerendered"):
-            dataset: Any = _dataset(spec)
+            dataset: Any = _dataset(spec, stop)
             trace = dataset.gyro
             starts = [f.exposure_start_ns for f in dataset.frames]
             period = int(np.median(np.diff(starts))) if len(starts) > 1 else 66_666_667
@@ -273,8 +273,9 @@ class DeviceSource:
             frame_id += 1
 
 
-def _dataset(spec: SourceSpec) -> Any:
-    """The dataset a replayed or prerendered spec plays (prerendered: rendered if not cached)."""
+def _dataset(spec: SourceSpec, stop: threading.Event | None) -> Any:
+    """The dataset a replayed or prerendered spec plays (prerendered: rendered if not cached;
+    ``RenderStopped`` if ``stop`` is set meanwhile)."""
     from services.lib.sim import (
         DatasetError,
         approach_cache_dir,
@@ -285,7 +286,7 @@ def _dataset(spec: SourceSpec) -> Any:
     try:
         if spec.kind == "prerendered":
             cache = Path(spec.path) if spec.path else approach_cache_dir()
-            return cached_dataset(spec.scenario(), cache)
+            return cached_dataset(spec.scenario(), cache, stop=stop)
         return read_dataset(Path(str(spec.path)))
     except DatasetError as exc:
         raise ConfigError(str(exc)) from exc
@@ -312,15 +313,17 @@ def check_device_only(kind: str, camera_xml: str | None) -> None:
         )
 
 
-def open_frame_source(spec: SourceSpec) -> FrameSource | DeviceSource:
-    """The frame source a spec names."""
+def open_frame_source(
+    spec: SourceSpec, stop: threading.Event | None = None
+) -> FrameSource | DeviceSource:
+    """The frame source a spec names (``stop``: see ``_dataset``)."""
     check_device_only(spec.kind, spec.camera_xml)
-    return DeviceSource(spec) if spec.kind == "device" else FrameSource(spec)
+    return DeviceSource(spec) if spec.kind == "device" else FrameSource(spec, stop)
 
 
-def open_gyro_source(spec: SourceSpec) -> GyroSource:
-    """The gyro source a spec names."""
-    return GyroSource(spec)
+def open_gyro_source(spec: SourceSpec, stop: threading.Event | None = None) -> GyroSource:
+    """The gyro source a spec names (``stop``: see ``_dataset``)."""
+    return GyroSource(spec, stop)
 
 
 # What only a camera device has.

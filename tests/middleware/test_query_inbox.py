@@ -98,8 +98,9 @@ def test_a_query_flood_is_bounded_and_an_honest_query_is_answered_after_it(
 
 # Info queries as fast as one process can ask, never reading an answer, until killed.
 _INFO_FLOODER = """
-import sys
+import os, sys
 from tests.helpers.raw_zenoh import open_session
+os.nice(10)
 with open_session(sys.argv[1]) as rogue:
     while True:
         rogue.get("framegate/@info/cam", timeout=10)
@@ -114,7 +115,10 @@ def test_an_info_flood_does_not_hold_up_data_queries(listen_net, connect_net, en
             log.put(t, b"x", make_metadata("generic", t))
         # Flooders in processes of their own, as a peer is: in this one they shared its
         # interpreter and Zenoh's threads with the service and the client, and in a worker
-        # that had run the suite before, a query waited out 60 s (twice in CI).
+        # that had run the suite before, a query waited out 60 s (twice in CI). Niced: the
+        # inbox's fairness is under test, not who wins the CPU on a busy machine (at load 19
+        # two flooders at full speed kept the service's process from answering for 60 s);
+        # they still overflow the info inbox (checked below).
         flooders = [
             subprocess.Popen(
                 [sys.executable, "-c", _INFO_FLOODER, endpoint], cwd=REPO, env=child_env()

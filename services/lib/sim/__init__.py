@@ -12,7 +12,7 @@ from ._dataset import Dataset, DatasetError, DatasetWriter, read_dataset, write_
 from ._records import FrameInfo, FrameTruth, GyroTrace, MarkerTruth
 from ._report import BlurBin, MarkerReport, RecognitionReport, recognition_report
 from ._scenario import Scenario
-from ._simulate import SimulationRun, simulate
+from ._simulate import RenderStopped, SimulationRun, simulate
 
 __all__ = [
     "BlurBin",
@@ -26,6 +26,7 @@ __all__ = [
     "MarkerReport",
     "MarkerTruth",
     "RecognitionReport",
+    "RenderStopped",
     "Scenario",
     "ScenarioConfig",
     "SimulationRun",

@@ -13,6 +13,7 @@ import hashlib
 import json
 import os
 import shutil
+import threading
 from pathlib import Path
 
 from ._config import ScenarioConfig
@@ -32,12 +33,19 @@ def scenario_hash(config: ScenarioConfig) -> str:
     return hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]
 
 
-def cached_dataset(config: ScenarioConfig, cache: Path, *, progress: bool = True) -> Dataset:
+def cached_dataset(
+    config: ScenarioConfig,
+    cache: Path,
+    *,
+    progress: bool = True,
+    stop: threading.Event | None = None,
+) -> Dataset:
     """The dataset of ``config`` from ``cache/<hash>``, rendering it first if it is not there.
 
     Rendering goes to ``<hash>.partial-<pid>`` and is renamed when complete, so an interrupted
     render is never mistaken for a dataset. Raises ``DatasetError`` naming the directory
-    when a cached entry is unreadable or holds another scenario.
+    when a cached entry is unreadable or holds another scenario; ``RenderStopped`` when
+    ``stop`` is set during a render (its partial directory is removed).
     """
     root = cache / scenario_hash(config)
     if not root.is_dir():
@@ -47,7 +55,11 @@ def cached_dataset(config: ScenarioConfig, cache: Path, *, progress: bool = True
         partial = cache / f"{root.name}.partial-{os.getpid()}"
         if partial.exists():
             shutil.rmtree(partial)
-        simulate(config, partial, progress=progress)
+        try:
+            simulate(config, partial, progress=progress, stop=stop)
+        except BaseException:
+            shutil.rmtree(partial, ignore_errors=True)
+            raise
         try:
             partial.rename(root)
         except OSError:

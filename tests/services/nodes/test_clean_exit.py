@@ -173,3 +173,38 @@ def test_twenty_signals_stop_launches_of_a_rendering_camera_with_exit_0(tmp_path
             pipe.close()
     # As above: the bound catches a hang, not a slow machine.
     assert max(stops) < scaled(20), f"slowest launch stop took {max(stops):.1f} s"
+
+
+@pytest.mark.parametrize(
+    ("service", "signum"), [("camera", signal.SIGTERM), ("gyro", signal.SIGINT)]
+)
+def test_a_signal_during_the_first_render_of_a_prerendered_approach_exits_0(
+    tmp_path: Path, service: str, signum: int
+) -> None:
+    """A prerendered source renders its approach before the service starts (minutes on 2
+    cores): the stop reaches the render, which ends after the frames in progress, removes
+    its partial directory, and the service exits 0 without having started."""
+    cache = tmp_path / "approaches"
+    argv = ["run", service, "--source", "prerendered", "--path", str(cache), "--seed", "4242"]
+    watched = _Watched(start_framegate(argv, local_port=free_port()))
+    try:
+        wait_until(
+            lambda: any(cache.glob("*.partial-*")) or watched.proc.poll() is not None,
+            60,
+            "the render's partial directory",
+        )
+        assert watched.proc.poll() is None, "\n".join(watched.lines)
+        code, took = watched.stop(signum)
+    finally:
+        if watched.proc.poll() is None:
+            watched.proc.kill()
+            watched.proc.wait()
+    watched.pump.join(timeout=scaled(10))
+    out = "\n".join(watched.lines)
+    assert code == 0, f"{service} exited {code} after {signum!r}\n{out}"
+    assert "Traceback" not in out, out
+    # A stop waits for at most the frames being rendered; the bound only catches a render
+    # that ignored the stop (a whole approach takes minutes).
+    assert took < scaled(20), f"{service} took {took:.1f} s to stop\n{out}"
+    assert not list(cache.glob("*.partial-*")), "a stopped render left its partial directory"
+    assert not [p for p in cache.iterdir() if p.is_dir()], "a stopped render was kept"
