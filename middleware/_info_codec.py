@@ -92,7 +92,7 @@ def decode_service_info(raw: bytes, start_ns: int, end_ns: int, *, service: str)
         host=typed_field(body, "host", str, what),
         pid=typed_field(body, "pid", int, what),
         clock_ns=clock_ns,
-        buffers=tuple(_buffer(b, what) for b in typed_field(body, "buffers", list, what)),
+        buffers=_buffers(typed_field(body, "buffers", list, what), service, what),
         clock_offset_ns=sample.offset_ns,
         round_trip_ns=sample.round_trip_ns,
         clock_steps=steps,
@@ -121,11 +121,26 @@ def decode_instance(raw: bytes, service: str) -> dict[str, Any]:
     }
 
 
-def _buffer(b: Any, what: str) -> BufferInfo:
+def _buffers(raw: list[Any], service: str, what: str) -> tuple[BufferInfo, ...]:
+    """A description's buffers: each the described service's own, each named once (a
+    peer's description may not list another service's buffer, or one buffer twice: a
+    recording of ``--all`` would hold it twice)."""
+    buffers = tuple(_buffer(b, service, what) for b in raw)
+    names = [b.buffer for b in buffers]
+    if len(set(names)) != len(names):
+        twice = next(n for n in names if names.count(n) > 1)
+        raise QueryError(f"{what}: it lists buffer {twice!r} more than once")
+    return buffers
+
+
+def _buffer(b: Any, service: str, what: str) -> BufferInfo:
     name = typed_field(b, "buffer", str, what)
     if not NAME.fullmatch(name):  # no producer offers it: a peer's ``../../etc``
         raise QueryError(f"{what}: {name[:64]!r} is no buffer name")
     what = f"{what}, buffer {name[:64]!r}"
+    owner = typed_field(b, "service", str, what)
+    if owner != service:
+        raise QueryError(f"{what}: it names another service, {printable(owner, 64)!r}")
     subs = typed_field(b, "subscriptions", list, what)
     skipped = typed_field(b, "skipped", dict, what, optional=True) or {}
 
@@ -133,7 +148,7 @@ def _buffer(b: Any, what: str) -> BufferInfo:
         return typed_field(b, key, int, what, optional=True) or 0
 
     return BufferInfo(
-        service=typed_field(b, "service", str, what),
+        service=owner,
         buffer=name,
         kind=typed_field(b, "kind", str, what),
         retention=_retention(typed_field(b, "retention", dict, what), what),

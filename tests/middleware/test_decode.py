@@ -72,6 +72,12 @@ def _bool_pid() -> dict[str, Any]:
     return body
 
 
+def _listed_twice() -> dict[str, Any]:
+    body = _good()
+    body["buffers"].append(body["buffers"][0])
+    return body
+
+
 def _changed(path: str, value: Any) -> dict[str, Any]:
     """The good description with one field (``a.b.0.c``) set to ``value``."""
     body = _good()
@@ -96,6 +102,11 @@ def _changed(path: str, value: Any) -> dict[str, Any]:
         (_changed("service", "camera"), "names itself 'camera'"),
         # A buffer no producer could offer (``ls`` showed it as ``cam/../../etc``).
         (_changed("buffers.0.buffer", "../../etc"), "is no buffer name"),
+        # Another service's buffer: ``record --all`` recorded camera/images twice, and a
+        # service field ``../..`` ended it with nothing recorded.
+        (_changed("buffers.0.service", "camera"), "names another service, 'camera'"),
+        (_changed("buffers.0.service", "../.."), "names another service"),
+        (_listed_twice(), "lists buffer 'images' more than once"),
     ],
 )
 def test_a_sane_looking_but_false_reply_is_one_line_query_error(body: Any, says: str) -> None:
