@@ -272,7 +272,12 @@ class VisionStep:
         self, reason: str, detail: str, *, warn: bool = True, exc_info: BaseException | None = None
     ) -> Skipped:
         """Count ``reason``; the first time it is seen, log ``detail`` as a warning."""
-        if reason.startswith("handler-error:") and len(self._warned) >= _MAX_WARNING_KINDS:
+        # A kind already counted keeps its own count; only new ones past the bound share one.
+        if (
+            reason.startswith("handler-error:")
+            and reason not in self.skipped
+            and len(self._warned) >= _MAX_WARNING_KINDS
+        ):
             reason = "handler-error:other"
         self.skipped[reason] += 1
         if warn:

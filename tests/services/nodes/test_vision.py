@@ -24,7 +24,7 @@ from services.nodes._vision_handler import (
     load_handler,
     result_kind,
 )
-from services.nodes.vision import Encoded, Skipped, VisionStep
+from services.nodes.vision import _MAX_WARNING_KINDS, Encoded, Skipped, VisionStep
 from tests.conftest import REPO, run_framegate
 from tests.services.nodes import vision_handlers
 
@@ -73,6 +73,27 @@ def test_a_raising_handler_is_a_counted_skip_with_one_warning_per_exception_type
     warnings = [r.getMessage() for r in caplog.records]
     assert len(warnings) == 2, warnings
     assert "handler raised KeyError" in warnings[0] and "handler raised ValueError" in warnings[1]
+
+
+def test_a_handler_error_counted_before_the_bound_on_kinds_keeps_its_own_count(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    # Past the bound on distinct kinds, a ValueError seen first was counted
+    # handler-error:other: `info` then said it happened once when it kept happening.
+    kinds = [type(f"Error{i}", (Exception,), {}) for i in range(_MAX_WARNING_KINDS + 5)]
+    raised = [ValueError, *kinds, ValueError, ValueError]
+
+    def handler(image: np.ndarray, frame: FrameMeta) -> list[Box]:
+        raise raised[frame.frame_id]()
+
+    step = VisionStep(handler, ResultKind.DETECTIONS, "in/put", LOG)
+    with caplog.at_level(logging.WARNING, logger="test.vision"):
+        for i in range(len(raised)):
+            step.process(*_frame(i))
+    assert step.skipped["handler-error:ValueError"] == 3
+    # The kinds past the bound share one count and one warning.
+    assert step.skipped["handler-error:other"] == len(kinds) - (_MAX_WARNING_KINDS - 1)
+    assert len(caplog.records) == _MAX_WARNING_KINDS + 1
 
 
 @pytest.mark.parametrize("raised", [ValueError("bad"), SystemExit(3)])
