@@ -32,6 +32,8 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
+
 from middleware import SchemaError, make_metadata
 from services.lib.messages import FrameMeta, detections_metadata
 
@@ -94,7 +96,8 @@ class Output:
     """A result that is not boxes: a payload and fields for a ``generic`` buffer.
 
     ``fields`` become child elements of the metadata, as ``make_metadata`` writes them
-    (names must be XML names; dicts nest; lists are space-separated text).
+    (names must be XML names; dicts nest; lists are space-separated text; a NumPy array is
+    written as the list of its values, flattened, and a NumPy scalar as its value).
     """
 
     payload: bytes = b""
@@ -188,7 +191,21 @@ def _fields(fields: object) -> dict[str, Any]:
     for name in fields:
         if not isinstance(name, str) or not name or name.startswith("@"):
             raise SchemaError(f"Output field names are XML element names, not {name!r:.40}")
-    return dict(fields)
+    return {name: _plain(value) for name, value in fields.items()}
+
+
+def _plain(value: object) -> object:
+    """``value`` with NumPy arrays and scalars as Python values: ``str`` of an array is its
+    summary (``[0 1 2 ... 1999]`` past 1,000 values), not its values."""
+    if isinstance(value, np.ndarray):
+        return value.ravel().tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, Mapping):
+        return {key: _plain(item) for key, item in value.items()}
+    if isinstance(value, list | tuple):
+        return [_plain(item) for item in value]
+    return value
 
 
 def _boxes(result: object) -> Sequence[Box]:

@@ -47,6 +47,26 @@ def test_an_output_becomes_a_generic_element_with_the_frame_fields() -> None:
     assert raw is not None and raw.payload == b"xyz"
 
 
+def test_numpy_values_in_output_fields_are_written_as_their_values() -> None:
+    # str() of an array past 1,000 values is its summary, "[   0    1    2 ... 1999]": a
+    # handler's vector was stored cut short, in brackets, and a NumPy bool as "True".
+    fields = {
+        "vector": np.arange(2000),
+        "pose": np.eye(2, dtype=np.float32),
+        "found": np.bool_(True),
+        "score": np.float32(0.5),
+        "nested": {"count": np.int64(3), "pair": (np.int16(1), np.float64(2.5))},
+    }
+    encoded = encode_result(Output(b"", fields), ResultKind.GENERIC, FRAME, "a/b", 5)
+    assert encoded is not None
+    root = validate_metadata(encoded.metadata, "generic")
+    text = {e.tag.split("}")[1]: e.text for e in root.iter() if e.text}
+    assert text["vector"] == " ".join(str(i) for i in range(2000))
+    assert text["pose"] == "1.0 0.0 0.0 1.0"
+    assert (text["found"], text["score"]) == ("true", "0.5")
+    assert (text["count"], text["pair"]) == ("3", "1 2.5")
+
+
 @pytest.mark.parametrize(
     ("result", "kind", "match"),
     [
