@@ -15,6 +15,7 @@ disturbs nothing else on the machine. No emulated delay anywhere: both costs are
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import signal
 import socket
@@ -105,6 +106,23 @@ def wait_live(node: Node, timeout_s: float) -> None:
         time.sleep(0.5)
 
 
+def duration(text: str) -> float:
+    """A flag's duration: a finite number of seconds >= 0, refused as it is parsed (before
+    the pipeline starts)."""
+    value = float(text)
+    if not math.isfinite(value) or value < 0:
+        raise argparse.ArgumentTypeError(f"must be a number of seconds >= 0, got {text!r}")
+    return value
+
+
+def window(text: str) -> float:
+    """The measuring window: a finite number of seconds > 0 (every rate is divided by it)."""
+    value = duration(text)
+    if value == 0:
+        raise argparse.ArgumentTypeError(f"must be a number of seconds > 0, got {text!r}")
+    return value
+
+
 def main(*, seconds: float, warmup_s: float, seed: int) -> int:
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))
@@ -154,8 +172,8 @@ if __name__ == "__main__":
     # background starts that way, and Python then never raises KeyboardInterrupt).
     signal.signal(signal.SIGINT, signal.default_int_handler)
     parser = argparse.ArgumentParser(prog="vision_compare", description=__doc__.splitlines()[0])
-    parser.add_argument("--seconds", type=float, default=60.0, help="measuring window")
-    parser.add_argument("--warmup-s", type=float, default=10.0, help="before the window")
+    parser.add_argument("--seconds", type=window, default=60.0, help="measuring window")
+    parser.add_argument("--warmup-s", type=duration, default=10.0, help="before the window")
     parser.add_argument("--seed", type=int, default=1, help="the simulated approach")
     args = parser.parse_args()
     try:

@@ -78,6 +78,14 @@ def find_marker(image: npt.NDArray[np.uint8], frame: FrameMeta) -> list[Box]:
     ]
 
 
+def positive(text: str) -> int:
+    """A flag's count: an integer >= 1 (``0`` would time nothing and divide by zero)."""
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text!r}")
+    return value
+
+
 def main(*, frames: int) -> int:
     """Time ``find_marker`` on a synthetic 1024x768 frame with the marker at a known place."""
     rng = np.random.default_rng(1)
@@ -103,7 +111,7 @@ if __name__ == "__main__":
     # background starts that way, and Python then never raises KeyboardInterrupt).
     signal.signal(signal.SIGINT, signal.default_int_handler)
     parser = argparse.ArgumentParser(prog="vision_template", description=__doc__.splitlines()[0])
-    parser.add_argument("--frames", type=int, default=10, help="frames to time (default 10)")
+    parser.add_argument("--frames", type=positive, default=10, help="frames to time (default 10)")
     frames = parser.parse_args().frames
     try:
         code = main(frames=frames)

@@ -75,3 +75,23 @@ def test_a_vision_example_stops_on_ctrl_c_with_exit_0_and_no_traceback(
         if proc.poll() is None:
             proc.kill()
             proc.communicate()
+
+
+@pytest.mark.parametrize(
+    ("argv", "expected"),
+    [
+        (["examples/vision_template.py", "--frames", "0"], "argument --frames: must be an integer >= 1"),  # noqa: E501
+        (["examples/vision_compare.py", "--seconds", "0"], "argument --seconds: must be a number of seconds > 0"),  # noqa: E501
+        (["examples/vision_compare.py", "--seconds", "-5"], "argument --seconds: must be a number of seconds >= 0"),  # noqa: E501
+        (["examples/vision_compare.py", "--warmup-s", "nan"], "argument --warmup-s: must be a number of seconds >= 0"),  # noqa: E501
+    ],
+)  # fmt: skip
+def test_a_vision_example_refuses_a_flag_value_it_cannot_use_as_parsed(
+    argv: list[str], expected: str
+) -> None:
+    # --frames 0 divided by zero; --seconds -5 started the whole pipeline, then raised in
+    # time.sleep; --seconds 0 printed rates divided by a few microseconds.
+    result = _run(*argv, timeout_s=60)
+    assert result.returncode == 2, result  # argparse's own usage error
+    assert "Traceback" not in result.stderr and expected in result.stderr, result
+    assert "started the pipeline" not in result.stdout, result
