@@ -127,47 +127,70 @@ class Monotonic:
             return self._last
 
 
-def unless_stopped(work: Callable[[], T], stop: threading.Event) -> T | None:
-    """``work()``, or None once ``stop`` is set while it runs.
+class CallThread:
+    """One long-lived thread that runs calls one at a time while the caller waits:
+    ``call(work, stop)`` is ``work()``, or None once ``stop`` is set while it runs.
 
-    For slow steps a stop must not wait for (the simulator's first frame takes seconds):
-    the work runs on a worker thread. After a stop the worker is given
-    ``_WORKER_GRACE_S`` to finish; one still running then is abandoned, and the process
-    exits without finalising the interpreter (``_exit_past_workers``): a thread that is
-    inside native code (OpenCV) when the interpreter finalises is ended by ``pthread_exit``,
-    which unwinds through C++ frames into ``std::terminate`` and aborts the process (exit
-    134 on an ordinary Ctrl-C).
+    For slow steps a stop must not wait for (a vision handler inside OpenCV): after a stop
+    the call is given ``_WORKER_GRACE_S`` to finish; one still running then is abandoned,
+    and the process exits without finalising the interpreter (``_exit_past_workers``): a
+    thread that is inside native code (OpenCV) when the interpreter finalises is ended by
+    ``pthread_exit``, which unwinds through C++ frames into ``std::terminate`` and aborts
+    the process (exit 134 on an ordinary Ctrl-C).
 
-    Threads: one short-lived worker thread per call; ``work`` must not touch Zenoh.
+    Every call runs on the same thread, so what one call leaves in per-thread state (a
+    thread-local cache, PyTorch's grad mode, a model or connection bound to the thread that
+    made it, when an earlier call made it) is there for the next: a new thread per call
+    lost it each time.
+
+    Threads: ``name``, a daemon, for the life of the object; ``work`` must not touch Zenoh.
     """
-    result: list[T] = []
-    failure: list[BaseException] = []
-    done = threading.Event()
 
-    def target() -> None:
-        try:
-            result.append(work())
-        except BaseException as exc:  # handed back to the caller's thread
-            failure.append(exc)
-        finally:
-            done.set()
+    def __init__(self, name: str) -> None:
+        self._calls: queue.SimpleQueue[Callable[[], None] | None] = queue.SimpleQueue()
+        self._abandoned = False
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        with _workers_lock:
+            _workers.add(self._thread)
+        self._thread.start()
 
-    worker = threading.Thread(target=target, name="unless-stopped", daemon=True)
-    with _workers_lock:
-        _workers.add(worker)
-    worker.start()
-    try:
+    def _run(self) -> None:
+        while (call := self._calls.get()) is not None:
+            call()
+
+    def call(self, work: Callable[[], T], stop: threading.Event) -> T | None:
+        """``work()`` on this thread (what it raises is raised here), or None once ``stop``
+        is set while it runs (then it is abandoned after ``_WORKER_GRACE_S``)."""
+        result: list[T] = []
+        failure: list[BaseException] = []
+        done = threading.Event()
+
+        def target() -> None:
+            try:
+                result.append(work())
+            except BaseException as exc:  # handed back to the caller's thread
+                failure.append(exc)
+            finally:
+                done.set()
+
+        self._calls.put(target)
         while not done.wait(0.05):
             if stop.is_set():
-                done.wait(_WORKER_GRACE_S)
+                if not done.wait(_WORKER_GRACE_S):
+                    self._abandoned = True
                 return None
-    finally:
-        if done.is_set():
+        if failure:
+            raise failure[0]
+        return result[0]
+
+    def close(self) -> None:
+        """End the thread once its call returns; a call abandoned after a stop is not
+        waited for again (its grace is spent), and keeps the process from finalising."""
+        self._calls.put(None)
+        self._thread.join(0 if self._abandoned else _WORKER_GRACE_S)
+        if not self._thread.is_alive():
             with _workers_lock:
-                _workers.discard(worker)
-    if failure:
-        raise failure[0]
-    return result[0]
+                _workers.discard(self._thread)
 
 
 @dataclass(frozen=True, slots=True)

@@ -27,17 +27,18 @@ clock behind) removes the results it explains (counted ``rewound``), mirroring w
 producer removed (``RewindFollower``). Any other stale element, forged or not, is
 ``out-of-order``, and nothing is removed.
 
-Threads: the service's main thread runs the loop (take one notification, process, put);
-the handler runs on a short-lived worker thread (``unless_stopped``), one call at a time,
-only so that a stop is honoured while it is inside native code. The loop is deliberately not
-a handler on the node's executor: a vision function runs for a frame period or more, and
-there it would hold up the node's other duties for that long -- among them a delayed ack of
-the frame just taken, so the mediator would read the queue fuller than it is while the
-handler runs, and acks and resends for watchers of the results. ``Runner.handle`` has an
-executor handler's shape (a batch of notifications) should that trade be wanted. The
+Threads: the service's main thread runs the loop (take one notification, process, put); the
+handler runs on one long-lived thread of its own (``CallThread``, ``vision-handler``), one
+call at a time, so that a stop is honoured while it is inside native code; a handler class
+is created on that thread too, so per-thread state carries from call to call. The loop is
+deliberately not a handler on the node's executor: a vision function runs for a frame period
+or more, and there it would hold up the node's other duties for that long -- among them a
+delayed ack of the frame just taken, so the mediator would read the queue fuller than it is
+while the handler runs, and acks and resends for watchers of the results. ``Runner.handle``
+has an executor handler's shape (a batch of notifications) should that trade be wanted. The
 executor's one duty of this service is a timer that counts the frames an ``--observe``
-runner's queue dropped while the handler runs (``NotObserved``).
-:class:`VisionStep` is the per-frame work with no I/O, called directly by tests.
+runner's queue dropped while the handler runs (``NotObserved``). :class:`VisionStep` is the
+per-frame work with no I/O, called directly by tests.
 """
 
 from __future__ import annotations
@@ -73,7 +74,7 @@ from services.lib.settings import add_flags, from_args, setting
 from services.lib.vision import Encoded, FrameMeta, ResultKind, encode_result
 from services.nodes._contract import Service, ServiceEntry
 from services.nodes._not_observed import NotObserved
-from services.nodes._runtime import setup_logging, unless_stopped
+from services.nodes._runtime import CallThread, setup_logging
 from services.nodes._vision_handler import (
     Handler,
     Image,
@@ -376,14 +377,41 @@ class Runner:
         return False
 
 
-def serve(spec: RunnerSpec, handler: Handler, network: NetworkConfig, stop: threading.Event) -> int:
-    """Run ``handler`` behind ``spec.input`` until ``stop`` is set (or KeyboardInterrupt)."""
+# The thread every call of a runner's handler runs on (and its class is created on).
+HANDLER_THREAD = "vision-handler"
+
+
+def serve(
+    spec: RunnerSpec,
+    handler: Handler,
+    network: NetworkConfig,
+    stop: threading.Event,
+    thread: CallThread | None = None,
+) -> int:
+    """Run ``handler`` behind ``spec.input`` until ``stop`` is set (or KeyboardInterrupt),
+    each call on ``thread`` (the one its class was created on; by default a new one)."""
+    if thread is not None:
+        return _serve(spec, handler, network, stop, thread)
+    calls = CallThread(HANDLER_THREAD)
+    try:
+        return _serve(spec, handler, network, stop, calls)
+    finally:
+        calls.close()
+
+
+def _serve(
+    spec: RunnerSpec,
+    handler: Handler,
+    network: NetworkConfig,
+    stop: threading.Event,
+    calls: CallThread,
+) -> int:
     log = setup_logging(spec.name)
 
     def call(work: Callable[[], object]) -> object:
-        # On a worker thread, so a stop is honoured while the handler is in native code.
+        # On the handler's thread, so a stop is honoured while it is in native code.
         started = time.monotonic()
-        result = unless_stopped(lambda: (True, work()), stop)
+        result = calls.call(lambda: (True, work()), stop)
         if result is None:
             raise _Stopped
         # Emulated load: the frame occupies the runner at least this long, and its
@@ -456,15 +484,25 @@ def _say_why_unregistered(node: Node, target: str, log: logging.Logger) -> None:
 
 def run(config: VisionConfig, network: NetworkConfig, stop: threading.Event | None = None) -> int:
     """Load the handler and serve until ``stop`` is set."""
-    if config.handler is None:
+    spec = config.handler
+    if spec is None:
         raise ConfigError("framegate run vision needs --handler package.module:function")
+    stop = stop or threading.Event()
+    # A handler class is created on the thread its calls run on (a model or connection its
+    # __init__ makes may be bound to that thread).
+    thread = CallThread(HANDLER_THREAD)
     try:
-        handler = load_handler(config.handler)
-    except ConfigError as exc:  # its class failed as it was created: worded as the flag check
-        raise ConfigError(f"framegate run vision: argument --handler: {exc}") from exc
-    kind = result_kind(handler, config.kind)
-    output = config.output or ("detections" if kind is ResultKind.DETECTIONS else "results")
-    return serve(config.spec(output, kind), handler, network, stop or threading.Event())
+        try:
+            loaded = thread.call(lambda: load_handler(spec), stop)
+        except ConfigError as exc:  # its class failed as it was created: worded as the flag check
+            raise ConfigError(f"framegate run vision: argument --handler: {exc}") from exc
+        if loaded is None:  # stopped while the class was created
+            return 0
+        kind = result_kind(loaded, config.kind)
+        output = config.output or ("detections" if kind is ResultKind.DETECTIONS else "results")
+        return serve(config.spec(output, kind), loaded, network, stop, thread)
+    finally:
+        thread.close()
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -17,7 +17,7 @@ from middleware import ConfigError, SchemaError
 from services.lib.messages import frame_metadata, read_detections
 from services.lib.quality import Exposure
 from services.lib.vision import Box, FrameMeta, Output, ResultKind
-from services.nodes._runtime import unless_stopped
+from services.nodes._runtime import CallThread
 from services.nodes._vision_handler import (
     handler_argument,
     handler_name,
@@ -105,12 +105,15 @@ def test_a_handler_s_traceback_shows_its_own_frames_only(
     def handler(image: np.ndarray, frame: FrameMeta) -> list[Box]:
         raise raised
 
+    thread = CallThread("test-handler")
+
     def guarded(work: Callable[[], object]) -> object:  # as the service calls it
-        return unless_stopped(work, threading.Event())
+        return thread.call(work, threading.Event())
 
     step = VisionStep(handler, ResultKind.DETECTIONS, "in/put", LOG, call=guarded)
     with caplog.at_level(logging.WARNING, logger="test.vision"):
         step.process(*_frame(1))
+    thread.close()
     (message,) = [r.getMessage() for r in caplog.records]
     lines = message.splitlines()
     start = lines.index("Traceback (most recent call last):")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 import time
 
 import numpy as np
@@ -52,3 +53,18 @@ def one_argument(image: npt.NDArray[np.uint8]) -> list[Box]:
 
 class TakesNothing:
     """A class named as the handler, whose instances take no (image, frame)."""
+
+
+class ThreadBound:
+    """A handler class with per-thread state, as a model bound to the thread that made it
+    has: each result says whether it runs on the thread ``__init__`` ran on, and how many
+    calls that thread has run."""
+
+    def __init__(self) -> None:
+        self._local = threading.local()
+        self._local.calls = 0
+
+    def __call__(self, image: npt.NDArray[np.uint8], frame: FrameMeta) -> Output:
+        created_here = hasattr(self._local, "calls")
+        self._local.calls = getattr(self._local, "calls", 0) + 1
+        return Output(b"", {"created_here": created_here, "calls_here": self._local.calls})
