@@ -14,6 +14,7 @@ from typing import NoReturn
 from middleware import ConfigError, FramegateError, NetworkConfig
 from services.lib.argtypes import did_you_mean
 from services.nodes import service
+from services.nodes._vision_handler import checked_apart
 
 from ._deploy import Deployment, ServiceSpec, arg_lines
 from ._supervisor import ProcessSpec
@@ -164,7 +165,8 @@ def process_specs(
     start = start_at_ns if start_at_ns is not None else time.time_ns() + int(START_DELAY_S * 1e9)
     out = []
     for spec in deployment.for_host(host):
-        parsed = _check_args(spec, deployment, text)
+        with checked_apart():  # the launcher runs no handler: it imports none
+            parsed = _check_args(spec, deployment, text)
         net = deployment.network_for(spec, base)
         if override is not None:
             net = override(net)

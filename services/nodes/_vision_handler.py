@@ -2,20 +2,25 @@
 
 ``framegate run vision --handler SPEC`` names the handler; :func:`handler_argument` loads it
 while the flags are parsed, so a bad name is one ``error:`` line before anything starts and
-``framegate launch --check`` names the deploy file's line.
+``framegate launch --check`` names the deploy file's line. A launcher checks it in a child
+process (:func:`checked_apart`): it runs no handler, and must not hold what a module does as
+it is imported (a model loaded at module level, a GPU context, a device) for its whole life.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import importlib.util
 import inspect
 import os
 import re
+import subprocess
 import sys
 import typing
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextvars import ContextVar
 from pathlib import Path
 from types import ModuleType
 
@@ -187,12 +192,72 @@ def _import_file(path: Path) -> ModuleType:
 
 def handler_argument(spec: str) -> str:
     """argparse type of ``--handler``: the spec, once it names a callable (so a deploy file
-    naming a missing handler fails ``launch --check``)."""
+    naming a missing handler fails ``launch --check``); in a child process within
+    ``checked_apart``."""
     try:
-        load_handler(spec, bind=False)
+        if _APART.get():
+            _check_in_child(spec)
+        else:
+            load_handler(spec, bind=False)
     except ConfigError as exc:
         raise argparse.ArgumentTypeError(str(exc)) from exc
     return spec
+
+
+# Set by ``checked_apart``: the flags are checked by a process that will not run the handler.
+_APART: ContextVar[bool] = ContextVar("handler_checked_apart", default=False)
+# A module may take long to import (a framework, a model), but a check must end.
+_CHILD_CHECK_S = 300.0
+# What the child prints before a ConfigError's message, so that a module's own output on
+# stderr is not taken for it.
+_MARK = "framegate-handler-check: "
+_CHILD = f"""
+import sys
+from middleware import ConfigError
+from services.nodes._vision_handler import load_handler
+try:
+    load_handler(sys.argv[1], bind=False)
+except ConfigError as exc:
+    sys.stderr.write({_MARK!r} + str(exc) + "\\n")
+    sys.exit(2)
+"""
+
+
+@contextlib.contextmanager
+def checked_apart() -> Iterator[None]:
+    """Within it, ``--handler`` is checked in a short-lived child process (a launcher's)."""
+    token = _APART.set(True)
+    try:
+        yield
+    finally:
+        _APART.reset(token)
+
+
+def _check_in_child(spec: str) -> None:
+    """``load_handler(spec, bind=False)`` in a child process (same interpreter, directory and
+    environment, so the same modules are found); ConfigError with its message."""
+    try:
+        done = subprocess.run(
+            [sys.executable, "-c", _CHILD, spec],
+            capture_output=True,
+            text=True,
+            timeout=_CHILD_CHECK_S,
+            check=False,
+        )
+    except subprocess.TimeoutExpired:
+        raise ConfigError(
+            f"handler {spec!r}: its module was still importing after {_CHILD_CHECK_S:g} s"
+        ) from None
+    if done.returncode == 0:
+        return
+    said = [line for line in done.stderr.splitlines() if line.startswith(_MARK)]
+    if said:
+        raise ConfigError(said[-1][len(_MARK) :])
+    last = done.stderr.strip().splitlines()[-1:] or ["no output"]
+    raise ConfigError(
+        f"handler {spec!r}: checking it in a child process failed "
+        f"(exit {done.returncode}): {last[0][:200]}"
+    )
 
 
 def result_kind(handler: Handler, requested: str) -> ResultKind:

@@ -25,7 +25,8 @@ from services.nodes._vision_handler import (
     result_kind,
 )
 from services.nodes.vision import _MAX_WARNING_KINDS, Encoded, Skipped, VisionStep
-from tests.conftest import REPO, run_framegate
+from tests.conftest import REPO, child_env, run_framegate
+from tests.helpers.timing import scaled
 from tests.services.nodes import vision_handlers
 
 LOG = logging.getLogger("test.vision")
@@ -409,6 +410,36 @@ def test_run_vision_refuses_a_bad_handler_in_one_line(argv: list[str], says: str
     assert result.returncode == 1, result
     assert result.stderr.startswith("error: ") and says in result.stderr, result
     assert len(result.stderr.strip().splitlines()) == 1, result.stderr
+
+
+def test_launch_check_imports_the_handler_module_in_a_child_not_in_the_launcher(
+    tmp_path: Path,
+) -> None:
+    """What a module does as it is imported (a model at module level, a GPU context) must
+    not stay in the launcher for its whole life: measured, a 200 MB module-level array
+    made the launcher 278 MB. The module notes each process that imports it."""
+    pids = tmp_path / "pids"
+    (tmp_path / "noted.py").write_text(
+        "import os\n"
+        f"open({str(pids)!r}, 'a').write(f'{{os.getpid()}} {{os.getppid()}}\\n')\n"
+        "def fn(image, frame):\n"
+        "    return None\n"
+    )
+    deploy = tmp_path / "vision.yaml"
+    deploy.write_text("version: 1\nservices:\n  vision:\n    args:\n      handler: noted.py:fn\n")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "services.cli", "launch", str(deploy), "--check"],
+        cwd=tmp_path,
+        env=child_env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    out, err = proc.communicate(timeout=scaled(120))
+    assert proc.returncode == 0, (out, err)
+    imports = [tuple(map(int, line.split())) for line in pids.read_text().splitlines()]
+    assert imports, "the handler was not checked"
+    assert all(pid != proc.pid and parent == proc.pid for pid, parent in imports), imports
 
 
 def test_launch_check_names_the_deploy_line_of_a_bad_handler(tmp_path: Path) -> None:
