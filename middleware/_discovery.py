@@ -148,14 +148,21 @@ class Discovery:
         return sorted(out, key=lambda s: s.service)
 
     def service_info(
-        self, service: str, *, timeout_s: float = 2.0, unambiguous: bool = False
+        self,
+        service: str,
+        *,
+        timeout_s: float = 2.0,
+        unambiguous: bool = False,
+        session: str | None = None,
     ) -> ServiceInfo:
         """One live service's description; NotFoundError if it is not live.
 
         ``unambiguous``: for a decision that must not rest on a peer's word (a clock sample
         that may remove elements): QueryError when more than one Zenoh session answers with
         a valid description of ``service`` (any peer can answer, and Zenoh would pass on only
-        the newest answer). A reply that is no valid description counts for nothing."""
+        the newest answer). ``session``: stricter, only that Zenoh session's answer counts
+        (a subscription's ``producer_session``). A reply that is no valid description
+        counts for nothing."""
         start, began = now_ns(), time.monotonic()
         with zenoh_errors(f"describing {service}"):
             replies = list(
@@ -169,7 +176,10 @@ class Discovery:
         answers = Answers(service, start)
         for reply in replies:
             answers.add(reply, end)
-        found = answers.trusted() if unambiguous else answers.first_valid()
+        if session is not None:
+            found = answers.of_session(session)
+        else:
+            found = answers.trusted() if unambiguous else answers.first_valid()
         if found is not None:
             return found
         if answers:
@@ -191,13 +201,16 @@ class Discovery:
         answer: Callable[[ServiceInfo | None], object],
         *,
         timeout_s: float = 2.0,
+        session: str | None = None,
     ) -> None:
         """Ask for one service's description without waiting for it: ``answer(info)``
         runs once on the node's executor when the query ends, with None when no valid
         description came within ``timeout_s``, or valid ones from more than one session
-        (``service_info``'s unambiguous). For handlers: ``service_info`` there would hold up
-        every other handler of the node for a round trip (100-250 ms measured on a loaded
-        2-core machine)."""
+        (``service_info``'s unambiguous). ``session``: only that Zenoh session's answer
+        counts (a subscription's ``producer_session``: a peer answering in the service's
+        name while the service's own answer is late is not taken for it). For handlers:
+        ``service_info`` there would hold up every other handler of the node for a round
+        trip (100-250 ms measured on a loaded 2-core machine)."""
         # (Zenoh's thread) each session's first reply is kept with when it came (the round
         # trip that bounds a clock sample's error), and decoded on the executor: a peer
         # that answers garbage beside the service does not void its answer.
@@ -208,7 +221,7 @@ class Discovery:
 
         def deliver(_now_ns: int) -> None:
             try:
-                info = answers.trusted()
+                info = answers.trusted() if session is None else answers.of_session(session)
             except QueryError:
                 info = None
             answer(info)
@@ -234,12 +247,19 @@ class Discovery:
             return frozenset()
 
     def buffer_info(
-        self, target: str, *, timeout_s: float = 2.0, unambiguous: bool = False
+        self,
+        target: str,
+        *,
+        timeout_s: float = 2.0,
+        unambiguous: bool = False,
+        session: str | None = None,
     ) -> BufferInfo:
         """One buffer's description (retention, size, rate, subscriptions, counters);
-        ``unambiguous`` as for ``service_info``."""
+        ``unambiguous`` and ``session`` as for ``service_info``."""
         service, _buffer = split_target(target)
-        info = self.service_info(service, timeout_s=timeout_s, unambiguous=unambiguous)
+        info = self.service_info(
+            service, timeout_s=timeout_s, unambiguous=unambiguous, session=session
+        )
         return buffer_of(info, target)
 
 
@@ -289,6 +309,16 @@ class Answers:
         for decoded in self._decoded():
             if isinstance(decoded, QueryError):
                 raise decoded
+
+    def of_session(self, session: str) -> ServiceInfo | None:
+        """``session``'s valid description of the service (None: it gave none)."""
+        if session not in self._first:
+            return None
+        raw, end_ns = self._first[session]
+        try:
+            return decode_service_info(raw, self.start_ns, end_ns, service=self.service)
+        except QueryError:
+            return None
 
     def trusted(self) -> ServiceInfo | None:
         """The one valid description of the service among the answers (None: none came);

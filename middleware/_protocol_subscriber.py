@@ -109,8 +109,9 @@ class SubscriberProtocol:
         self.registered_epoch: str | None = None
         self._refusal: tuple[str, str | None] | None = None
         self._unjudged = False
-        # Which session greeted us: a refusal from another one contests the greeting.
-        self._greeted_by: str | None = None
+        # Which session greeted us (as its control named it): a refusal from another one
+        # contests the greeting; answers in the service's name count only from it (a clock).
+        self.greeted_by: str | None = None
         self._producer_ids: frozenset[str] | None = None
         self._ids_at_ns = 0
         self._refusal_reported = False
@@ -260,12 +261,12 @@ class SubscriberProtocol:
                 self.registrations = 1
             self.registered_epoch = control.text
             self.ledger.pin(control.text)
-            self._greeted_by = sender
+            self.greeted_by = sender
             if control.base is not None:
                 self._greeted(control.text, control.base, control.since)
             self._refusal = None
             self._retry_at_ns = None
-        elif self.registered_epoch is None or sender != self._greeted_by:
+        elif self.registered_epoch is None or sender != self.greeted_by:
             # Unanswered yet, or a refusal from another session than the greeting's: one of
             # the two is forged, and the producer's sessions decide which (``judge``).
             self._refusal = (control.text, sender)
@@ -293,7 +294,7 @@ class SubscriberProtocol:
             # The producer refused us after another session greeted us in its name: that
             # greeting was forged, and the refusal stands (logged, retried).
             self.registered_epoch = None
-            self._greeted_by = None
+            self.greeted_by = None
         if self._retry_at_ns is None:
             self._retry_at_ns = now_ns + RETRY_NS
         return False

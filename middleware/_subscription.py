@@ -18,7 +18,7 @@ import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable, Iterator
-from typing import Any
+from typing import Any, TypeVar
 
 import zenoh
 
@@ -31,6 +31,8 @@ from ._protocol_subscriber import RETRY_NS, Item, SubscriberProtocol
 from ._records import DataObject, Notification, SubscriptionMode, data_object, notification
 from ._wire import Keys, holder_chunk
 
+T = TypeVar("T")
+
 log = logging.getLogger("framegate.middleware")
 
 # A push limit larger than any payload: everything travels with its notification.
@@ -40,9 +42,8 @@ _INBOX_SLACK = 64  # greetings, refusals
 
 
 def inbox_capacity(queue_size: int) -> int:
-    """Notifications honest traffic can leave in the inbox between two turns of the
-    executor: the credit (N), and N again per resend round (every 0.5 s), with room to
-    spare."""
+    """Notifications honest traffic can leave in the inbox between two executor turns: the
+    credit (N), and N again per resend round (every 0.5 s), with room to spare."""
     return 4 * queue_size + _INBOX_SLACK
 
 
@@ -139,16 +140,12 @@ class Subscription:
     @property
     def missed_total(self) -> int:
         """Notifications lost so far (observers only: flow control loses none)."""
-        with self._lock:
-            self._feed(BUDGET)
-            return self._protocol.missed_total
+        return self._fed(lambda protocol: protocol.missed_total)
 
     @property
     def counters(self) -> SubscriberCounters:
         """Notifications ignored so far, by reason (foreign, duplicate, out of order, ...)."""
-        with self._lock:
-            self._feed(BUDGET)
-            return self._protocol.counters()
+        return self._fed(lambda protocol: protocol.counters())
 
     @property
     def dropped(self) -> int:
@@ -160,11 +157,15 @@ class Subscription:
     @property
     def garbage(self) -> int:
         """Messages on this subscription's key that were not notifications."""
-        with self._lock:
-            self._feed(BUDGET)
-            return self._protocol.garbage
+        return self._fed(lambda protocol: protocol.garbage)
 
     # -- input (on the executor, or inline on a caller that looks) ------------------
+    def _fed(self, read: Callable[[SubscriberProtocol], T]) -> T:
+        """``read(protocol)`` after feeding it a bounded batch of waiting input."""
+        with self._lock:
+            self._feed(BUDGET)
+            return read(self._protocol)
+
     def _feed(self, budget: int) -> None:
         """(under _lock) Feed the protocol at most ``budget`` waiting notifications."""
         protocol = self._protocol
@@ -230,10 +231,7 @@ class Subscription:
         subscription's service (asked here, on the calling thread, when the protocol
         needs it; not under ``_lock``)."""
         now = time.monotonic_ns()
-        with self._lock:
-            self._feed(BUDGET)
-            ask = self._protocol.judge(now)
-        if ask:
+        if self._fed(lambda protocol: protocol.judge(now)):
             ids = self._producer_ids(self.service) if self._producer_ids else frozenset()
             with self._lock:
                 self._protocol.trust_producer(ids, now)
@@ -310,9 +308,13 @@ class Subscription:
     def registered_epoch(self) -> str | None:
         """The epoch the producer greeted this subscription with (None: not registered);
         only a greeting changes it."""
-        with self._lock:
-            self._feed(BUDGET)  # a greeting waiting in the inbox counts
-            return self._protocol.registered_epoch
+        return self._fed(lambda protocol: protocol.registered_epoch)  # a waiting greeting too
+
+    @property
+    def producer_session(self) -> str | None:
+        """The Zenoh session whose greeting registered this subscription (None: not
+        registered): the one whose answers in its service's name count (a clock sample)."""
+        return self._fed(lambda protocol: protocol.greeted_by)
 
     @property
     def producer_epoch(self) -> str | None:
@@ -325,9 +327,7 @@ class Subscription:
     @property
     def pending(self) -> int:
         """Notifications waiting in this process's queue."""
-        with self._lock:
-            self._feed(BUDGET)
-            return len(self._protocol)
+        return self._fed(len)
 
     def take(self, *, timeout_s: float | None = None) -> Notification | None:
         """Take the oldest notification (it leaves the queue now); None on timeout.

@@ -134,15 +134,18 @@ class RewindFollower:
         self._timeout_s = timeout_s
         self._followed: set[Rewind] = set()
         self._producer: str | None = None  # the input's producer epoch, as last seen
+        self._session: str | None = None  # and the Zenoh session that greeted us for it
         # What ``output`` held when that producer's first notification came: older
         # results are not its to rewind (None: everything in ``output`` came from it).
         self._floor_ns: int | None = None
         self._warned = False
         self._asked: collections.deque[int] = collections.deque(maxlen=ASKS_PER_S)
 
-    def seen(self, producer: str | None) -> None:
+    def seen(self, producer: str | None, session: str | None = None) -> None:
         """The input's producer as the subscription was last greeted by (before an input
-        element is processed); None while not registered changes nothing."""
+        element is processed): its epoch, and the Zenoh session that greeted it (whose
+        answer alone tells its rewinds); None while not registered changes nothing."""
+        self._session = session
         if producer is not None and producer != self._producer:
             if self._producer is not None:
                 self._floor_ns = self._output.series.newest_ns
@@ -157,9 +160,12 @@ class RewindFollower:
             return False  # a burst of stale elements (a peer's, perhaps): asked enough
         self._asked.append(now)
         try:
-            # Removing elements must not rest on a peer's word: a second session answering
-            # as the input's service (one that forges a rewind) makes the answer void.
-            info = self._node.buffer_info(self._input, timeout_s=self._timeout_s, unambiguous=True)
+            # Removing elements must not rest on a peer's word: only the session that greeted
+            # the input subscription counts; without it, a second session answering as the
+            # input's service (one that forges a rewind) makes the answer void.
+            info = self._node.buffer_info(
+                self._input, timeout_s=self._timeout_s, unambiguous=True, session=self._session
+            )
             rewinds = info.rewinds
         except FramegateError as exc:
             if not self._warned:  # once: each stale element asks again

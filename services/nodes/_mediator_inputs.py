@@ -189,8 +189,15 @@ class ClockOffsets:
     (the tests'); ``_lock`` guards the samples.
     """
 
-    def __init__(self, node: Node, camera: str, gyro: str) -> None:
+    def __init__(
+        self, node: Node, camera: str, gyro: str, session_of: Callable[[str], str | None]
+    ) -> None:
         self._node = node
+        # The Zenoh session that greeted our subscription to a service's data: only its
+        # answer is a sample of that service's clock (a peer answering in the service's name
+        # while the service's own answer is late or dropped gave the mediator a false clock,
+        # and every frame went unpaired).
+        self._session_of = session_of
         self._camera = camera
         self._gyro = gyro
         # (camera - gyro offset, twice its uncertainty as the round trip that bounds it)
@@ -237,8 +244,14 @@ class ClockOffsets:
             self._answered(service, info is not None)
             then(SourceClock.of(info) if info is not None else None)
 
+        session = self._session_of(service)
+        if session is None:  # not registered yet: nothing of it to pair, nobody to believe
+            answered(None)
+            return
         try:
-            self._node.ask_service_info(service, answered, timeout_s=_ASK_TIMEOUT_S)
+            self._node.ask_service_info(
+                service, answered, timeout_s=_ASK_TIMEOUT_S, session=session
+            )
         except FramegateError:
             answered(None)
 

@@ -157,7 +157,14 @@ class Mediator:
         self.gyro = GyroCache()
         self._camera_name = split_target(config.camera)[0]
         self._gyro_name = split_target(config.gyro)[0]
-        self._offsets = ClockOffsets(node, self._camera_name, self._gyro_name)
+        self._offsets = ClockOffsets(
+            node,
+            self._camera_name,
+            self._gyro_name,
+            lambda service: (
+                (self._camera if service == self._camera_name else self._gyro_sub).producer_session
+            ),
+        )
         self.pairing = Pairing(
             self.gyro,
             self._offsets,

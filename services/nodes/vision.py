@@ -318,15 +318,16 @@ class Runner:
         notes: list[Notification],
         fetch: Callable[[Notification], DataObject],
         producer_epoch: str | None = None,
+        producer_session: str | None = None,
     ) -> None:
         """Process a batch of notifications (one per turn today; an executor handler later);
-        ``producer_epoch``: the input subscription's (rewinds are followed only as far as
-        the producer that greeted it delivered)."""
+        ``producer_epoch``, ``producer_session``: the input subscription's (rewinds are
+        followed only as far as the producer that greeted it delivered, and as it tells)."""
         for note in notes:
             if self.stop.is_set():
                 return
             taken_ns = now_ns()  # the frames' clock: what the runner did when, beside them
-            self.rewinds.seen(producer_epoch)
+            self.rewinds.seen(producer_epoch, producer_session)
             if note.missed:  # an observer's full queue (keep-last), or a lapse: never seen
                 self.not_observed.carried(note.missed)
             if not self._in_order(note.timestamp_ns):
@@ -457,7 +458,7 @@ def _serve(
         try:
             while not stop.is_set():
                 notes = frames.take_many(1, timeout_s=0.5)
-                runner.handle(notes, frames.fetch, frames.producer_epoch)
+                runner.handle(notes, frames.fetch, frames.producer_epoch, frames.producer_session)
                 if say_at is not None and time.monotonic() > say_at:
                     say_at = None
                     if not frames.wait_registered(0):

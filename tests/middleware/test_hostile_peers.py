@@ -304,6 +304,39 @@ def test_a_description_two_sessions_give_decides_nothing(
             assert client.service_info("cam").service == "cam"  # for reading, as before
 
 
+def test_only_the_session_that_greeted_a_subscription_speaks_for_its_service(
+    listen_net: NetworkConfig, endpoint: str
+) -> None:
+    """A mediator's clock samples and a detector's rewinds ask with their subscription's
+    ``producer_session``: a peer answering with a copy of the service's description (a stale
+    clock) counts for nothing, even when the service's own answer does not come (measured:
+    with the camera's answers dropped by a flood, the copy alone was trusted, and every frame
+    went unpaired)."""
+    with _cam_rogue_client(listen_net, endpoint) as (service, rogue, client):
+        images = service.offer("images")
+        sub = client.subscribe("cam/images", queue_size=2, wait_s=scaled(10))
+        assert sub.wait_registered(scaled(10))
+        images.put(1, b"x", make_metadata("generic", 1), wait_s=scaled(5))
+        real = sub.producer_session
+        assert real == str(service._session.zid()), real  # type: ignore[attr-defined]
+
+        def ask(session: str | None) -> object:
+            answers: list[object] = []
+            client.ask_service_info("cam", answers.append, timeout_s=scaled(2), session=session)
+            wait_until(lambda: answers, scaled(10), "the answer")
+            return answers[0]
+
+        with _answering_as(rogue, "cam"):
+            wait_until(lambda: ask(None) is None, scaled(30), "the rogue's answer to arrive")
+            found = ask(real)  # the producer's own answer, beside the rogue's
+            assert isinstance(found, ServiceInfo) and found.service == "cam"
+            service.close()  # its answers stop; the rogue's copy goes on
+            wait_until(lambda: ask(None) is not None, scaled(30), "the rogue to answer alone")
+            assert ask(real) is None
+            with pytest.raises(FramegateError):
+                client.service_info("cam", session=real, timeout_s=scaled(2))
+
+
 @pytest.mark.parametrize(
     "garbage", [b"\xff\xfe not json", b"{}", b"[" * 1000], ids=["not-utf8", "empty-map", "deep"]
 )

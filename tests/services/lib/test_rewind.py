@@ -68,7 +68,7 @@ def test_a_burst_of_stale_elements_asks_the_input_a_bounded_number_of_times() ->
 
     asks: list[str] = []
 
-    def buffer_info(target: str, timeout_s: float, unambiguous: bool) -> Any:
+    def buffer_info(target: str, timeout_s: float, unambiguous: bool, session: Any) -> Any:
         assert unambiguous, "what removes elements must not rest on one peer's word"
         asks.append(target)
         return SimpleNamespace(rewinds=())  # the input recorded no rewind
@@ -103,14 +103,18 @@ class _Output:
         return len(gone)
 
 
-def _follower(output: _Output, rewinds: list[object]) -> object:
+def _follower(
+    output: _Output, rewinds: list[object], sessions: list[object] | None = None
+) -> object:
     import logging
     from types import SimpleNamespace
     from typing import Any, cast
 
     from services.lib.rewind import RewindFollower
 
-    def buffer_info(target: str, timeout_s: float, unambiguous: bool) -> Any:
+    def buffer_info(target: str, timeout_s: float, unambiguous: bool, session: Any) -> Any:
+        if sessions is not None:
+            sessions.append(session)
         return SimpleNamespace(rewinds=tuple(rewinds))
 
     node = SimpleNamespace(buffer_info=buffer_info)
@@ -149,11 +153,15 @@ def test_the_same_producer_rewinds_what_it_delivered() -> None:
 
     output = _Output(list(range(10, 101, 10)))
     rewind = Rewind(after_ns=55, count=5, first_ns=60, last_ns=100, cause="rewound")
-    follower = _follower(output, [rewind])
+    sessions: list[object] = []
+    follower = _follower(output, [rewind], sessions)
     # Greeted by the same producer throughout (a re-registration keeps its producer epoch;
     # a forged notification under a made-up epoch is no greeting and is not seen here).
     follower.seen("real")  # type: ignore[attr-defined]
     follower.seen(None)  # type: ignore[attr-defined]
-    follower.seen("real")  # type: ignore[attr-defined]
+    follower.seen("real", "zid-of-real")  # type: ignore[attr-defined]
     assert follower.follow(57)  # type: ignore[attr-defined]
     assert output.removed == [60, 70, 80, 90, 100]
+    # Asked of the session that greeted the subscription only (a peer answering in the
+    # mediator's name while its answer is late must not tell its rewinds).
+    assert sessions == ["zid-of-real"]
