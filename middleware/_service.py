@@ -110,9 +110,14 @@ def _int_param(parameters: dict[str, str], name: str) -> int:
 _CLAIM_TIMEOUT_S = 1.0
 
 
-def _instances(session: zenoh.Session, keys: Keys, service: str) -> list[dict[str, Any]]:
+def _instances(
+    session: zenoh.Session, keys: Keys, service: str, *, busy: bool = False
+) -> list[dict[str, Any]]:
     """Descriptions of every instance that answers as ``service`` (empty if none is live, or
-    if its token's holder does not answer as that service: then a warning names the token)."""
+    if its token's holder does not answer as that service: then a warning names the token).
+    ``busy``: a holder that gives no description but answers data queries of the service's
+    buffers as a service does is one too, busy (``{}``: its inbox of ``@info`` queries was
+    full, as in a flood of them; a bare token answers neither)."""
     token = keys.service_token(service)
     replies = list(session.liveliness().get(token, timeout=_CLAIM_TIMEOUT_S))
     if not any(r.ok is not None for r in replies):
@@ -127,6 +132,8 @@ def _instances(session: zenoh.Session, keys: Keys, service: str) -> list[dict[st
             found.append(decode_instance(reply.ok.payload.to_bytes(), service))
         except QueryError as exc:
             log.debug("%s: an answer that does not count as an instance: %s", service, exc)
+    if not found and busy and _answers_data(session, keys, service):
+        return [{}]
     if not found:
         log.warning(
             "the liveliness token %s is held by a session that does not answer as %r; "
@@ -135,6 +142,20 @@ def _instances(session: zenoh.Session, keys: Keys, service: str) -> list[dict[st
             service,
         )
     return found
+
+
+def _answers_data(session: zenoh.Session, keys: Keys, service: str) -> bool:
+    """Whether a data query of ``service``'s buffers (for no element) gets a service's answer
+    end: a data query waits in its own inbox, which a flood of ``@info`` does not fill."""
+    for reply in session.get(
+        f"{keys.service_data(service)}?ts=0",
+        consolidation=zenoh.ConsolidationMode.NONE,
+        timeout=_CLAIM_TIMEOUT_S,
+    ):
+        attachment = reply.ok.attachment if reply.ok is not None else None
+        if attachment is not None and answer_end(attachment.to_bytes()) is not None:
+            return True
+    return False
 
 
 def answering_sessions(session: zenoh.Session, keys: Keys, service: str) -> frozenset[str]:
@@ -155,6 +176,12 @@ def answering_sessions(session: zenoh.Session, keys: Keys, service: str) -> froz
 
 
 def _taken(service: str, other: dict[str, Any]) -> NameTakenError:
+    if not other:  # see ``_instances``
+        return NameTakenError(
+            f"service {service!r} is already offered (its process answers for its buffers "
+            "but not, now, for its description: it is busy); stop that instance first, or "
+            "choose another name"
+        )
     return NameTakenError(
         f"service {service!r} is already offered by pid {other.get('pid')} on host "
         f"{other.get('host')}; stop that instance first, or choose another name"
@@ -234,7 +261,7 @@ class ServiceEndpoint:
         self._lock = threading.Lock()
         self.instance = secrets.token_hex(6)
         self.started_ns = now_ns()
-        others = _instances(session, keys, service)
+        others = _instances(session, keys, service, busy=True)
         if others:
             raise _taken(service, others[0])
         self._token = session.liveliness().declare_token(keys.service_token(service))

@@ -27,6 +27,7 @@ from middleware import (
     BufferInfo,
     FlowControlRefused,
     FramegateError,
+    NameTakenError,
     NetworkConfig,
     Node,
     QueryError,
@@ -411,6 +412,25 @@ def test_a_bare_service_token_does_not_stop_the_service(
         service = node_process("cam", "--listen", "tcp/127.0.0.1:0", "--connect", endpoint)
         assert service.call("offer", buffer="images")["ok"]
         token.undeclare()
+
+
+def test_a_live_service_whose_descriptions_do_not_come_keeps_its_name(
+    listen_net: NetworkConfig, endpoint: str
+) -> None:
+    """A flood of ``@info`` queries fills a live service's bounded inbox of them, so a new
+    instance's question is dropped: it asks for data too (its own inbox, which the flood does
+    not fill), gets a service's answer, and is refused as a second instance (measured: it
+    took the token for a bare one and started, two cameras on one name)."""
+    with Node("cam", listen_net) as first:
+        first.offer("images")
+        endpoint_of_first = first._endpoint
+        assert endpoint_of_first is not None
+        # Every description dropped unanswered, as beyond a full inbox.
+        endpoint_of_first._handlers["info"] = lambda _query: None
+        with Node("cam", NetworkConfig(connect=(endpoint,))) as second:
+            wait_until(lambda: "cam" in second.live_services(), scaled(10), "the first")
+            with pytest.raises(NameTakenError, match="busy"):
+                second.offer("images")
 
 
 def _forge(rogue: zenoh.Session, sub: Any, *header: object) -> None:
