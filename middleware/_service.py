@@ -26,6 +26,7 @@ import os
 import secrets
 import socket
 import threading
+import time
 from collections import deque
 from collections.abc import Callable
 from typing import Any, cast
@@ -188,6 +189,12 @@ def _taken(service: str, other: dict[str, Any]) -> NameTakenError:
     )
 
 
+# An ``@info`` answer reads the process's listeners (a scan of its sockets: 8.0 of the
+# answer's 8.2 ms, measured) at most this often: listeners open with the session, and at
+# 40 queries/s a flood of them kept a loaded camera's answers from its mediator's clock.
+_LISTEN_FRESH_NS = 5_000_000_000
+
+
 # Queries waiting to be answered, per queryable. Beyond, an arriving query is finalized
 # unanswered (its querier sees an empty answer, as after a lost reply, and a framegate
 # querier asks again) and counted: a peer that asks faster than the service answers loses
@@ -274,6 +281,9 @@ class ServiceEndpoint:
             "data": self._on_data,
             "info": self._on_info,
         }
+        # (``_on_info``, on the serve thread) what the process listens on, and until when.
+        self._listen: tuple[str, ...] = ()
+        self._listen_until_ns = 0
         self._thread = threading.Thread(target=self._serve, daemon=True, name=f"fg-serve-{service}")
         self._thread.start()
         mine = (self.started_ns, self.instance)
@@ -337,13 +347,17 @@ class ServiceEndpoint:
             query.reply(reply_key, b"", attachment=encode_answer_end(len(elements)))
 
     def _on_info(self, query: zenoh.Query) -> None:
+        now = time.monotonic_ns()
+        if now >= self._listen_until_ns:
+            self._listen = tuple(listening_endpoints())  # so `framegate ls` shows a wide one
+            self._listen_until_ns = now + _LISTEN_FRESH_NS
         info = ServiceInfo(
             service=self.service,
             host=socket.gethostname(),
             pid=os.getpid(),
             clock_ns=now_ns(),
             buffers=tuple(p.info() for p in self.producers()),
-            listen=tuple(listening_endpoints()),  # so `framegate ls` shows a wide listener
+            listen=self._listen,
             threads=tuple(sorted(t.name for t in threading.enumerate())),  # docs/threads.md
             dropped_queries=self._queries.dropped,
         )
