@@ -17,7 +17,7 @@ from ._errors import FramegateError, NotFoundError, QueryError
 from ._records import DataObject
 from ._service import answer_end
 from ._session import zenoh_errors
-from ._timerange import TimeRange
+from ._timerange import TimeRange, parse_time_range
 from ._wire import ERR_NOT_FOUND, decode_element
 
 # Replies, and their payload bytes, an ``ask_query`` keeps at most (the rest is not read:
@@ -60,7 +60,10 @@ class Queries(Discovery):
         """``query`` without waiting, for handlers: ``answer(elements)`` runs once on the
         node's executor when the query ends, ``answer(error)`` when it failed or was cut
         short. Asked once (``query`` asks again an answer that reached no one; a handler
-        that needs the elements asks again itself, later)."""
+        that needs the elements asks again itself, later). Only elements within the range
+        asked, one per timestamp: any peer may answer, and a handler may act on each (the
+        mediator records each frame it never saw)."""
+        asked = time_range if isinstance(time_range, TimeRange) else parse_time_range(time_range)
         replies: list[zenoh.Reply] = []
         kept_bytes = [0]
 
@@ -76,8 +79,10 @@ class Queries(Discovery):
             except FramegateError as exc:
                 answer(exc)
                 return
-            elements.sort(key=lambda e: e.timestamp_ns)
-            answer(elements)
+            within = {
+                e.timestamp_ns: e for e in reversed(elements) if asked.contains(e.timestamp_ns)
+            }
+            answer([within[t] for t in sorted(within)])
 
         def finished() -> None:  # (Zenoh's thread) the query ended: replied or timed out
             self._executor.schedule(deliver, time.monotonic_ns())

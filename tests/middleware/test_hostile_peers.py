@@ -25,6 +25,7 @@ import zenoh
 from middleware import (
     FLOW_QUEUE_MAX,
     BufferInfo,
+    DataObject,
     FlowControlRefused,
     FramegateError,
     NameTakenError,
@@ -431,6 +432,49 @@ def test_a_live_service_whose_descriptions_do_not_come_keeps_its_name(
             wait_until(lambda: "cam" in second.live_services(), scaled(10), "the first")
             with pytest.raises(NameTakenError, match="busy"):
                 second.offer("images")
+
+
+def test_a_handlers_query_keeps_only_the_range_it_asked_once_per_timestamp(
+    listen_net: NetworkConfig, endpoint: str
+) -> None:
+    """A peer answers a handler's query (the mediator's look-up of frames it never saw)
+    beside the service, with elements outside the range and again within it: each would
+    become a record of its own. Only the range asked comes back, one element per stamp."""
+    from middleware._service import encode_answer_end
+    from middleware._wire import encode_element_attachment
+
+    with _cam_rogue_client(listen_net, endpoint) as (service, rogue, client):
+        images = service.offer("images")
+        for t in range(1, 6):
+            images.put(t, b"x", make_metadata("generic", t))
+
+        def forge(query: zenoh.Query) -> None:
+            with query:
+                for t in (3, 3, 1000, 2**62):
+                    element = DataObject(t, b"rogue", make_metadata("generic", t))
+                    query.reply(
+                        query.key_expr, b"rogue", attachment=encode_element_attachment(element)
+                    )
+                query.reply(query.key_expr, b"", attachment=encode_answer_end(4))
+
+        queryable = rogue.declare_queryable(KEYS.data("cam", "images"), forge)
+        try:
+
+            def rogue_heard() -> bool:
+                selector = f"{KEYS.data('cam', 'images')}?_time=[2..4]"
+                return any(
+                    r.ok is not None and r.ok.payload.to_bytes() == b"rogue"
+                    for r in client._session.get(selector)  # type: ignore[attr-defined]
+                )
+
+            wait_until(rogue_heard, scaled(30), "the rogue's queryable to reach the client")
+            got: list[Any] = []
+            client.ask_query("cam/images", got.append, time_range="[2..4]", timeout_s=scaled(5))
+            wait_until(lambda: got, scaled(10), "the answer")
+            assert isinstance(got[0], list), got
+            assert [e.timestamp_ns for e in got[0]] == [2, 3, 4], got[0]
+        finally:
+            queryable.undeclare()
 
 
 def _forge(rogue: zenoh.Session, sub: Any, *header: object) -> None:
