@@ -38,6 +38,7 @@ if __name__ == "__main__":
     # Ctrl-C stops it even when its parent ignores SIGINT (a job a script put in the
     # background starts that way, and Python then never raises KeyboardInterrupt).
     signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGTERM, signal.default_int_handler)  # `kill`: the same clean stop
     parser = argparse.ArgumentParser(prog="query", description=__doc__.splitlines()[0])
     add_network_arguments(parser)
     parser.add_argument("target", nargs="?", default="example/counter", help="SERVICE/BUFFER")

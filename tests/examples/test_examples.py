@@ -64,6 +64,22 @@ def test_offer_subscribe_and_query_examples_work_together() -> None:
     assert "refused" not in out, out
 
 
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_the_offer_example_stops_with_exit_0_on_ctrl_c_and_on_kill(signum: int) -> None:
+    """As every framegate process: `kill` (SIGTERM) ended it with 143."""
+    offer = _start("offer.py", "--listen", f"tcp/127.0.0.1:{free_port()}", "--period-s", "0.05")
+    try:
+        assert offer.stdout is not None
+        first = offer.stdout.readline()
+        assert first.startswith("put "), first
+        offer.send_signal(signum)
+        _finish(offer)
+    finally:
+        if offer.poll() is None:
+            offer.kill()
+            offer.communicate()
+
+
 def test_custom_service_example_refuses_what_its_schema_forbids() -> None:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     out = _finish(_start("custom_service.py", "--listen", endpoint, "21.5", "nan", "-300", "22"))

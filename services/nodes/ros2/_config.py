@@ -263,6 +263,12 @@ class Ros2Config:
                     f"{', '.join(given)} without --consumer-done: the loop through a ROS 2 "
                     "node's results needs its result topic"
                 )
+        if self.camera_xml is not None and self.camera_info:
+            # What the XML overrides, given as well: said, not silently ignored.
+            raise ConfigError(
+                f"--camera-info {self.camera_info} with --camera-xml: the camera description "
+                "gives the intrinsics (CameraInfo is not read); give one or the other"
+            )
         if self.consumer_done is not None:
             self.consumer_mapping  # noqa: B018 -- raises ConfigError when there is none
             ours = [m.topic for m in self.outputs]

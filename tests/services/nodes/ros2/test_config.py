@@ -48,6 +48,11 @@ def test_mappings_from_flags_and_deploy_lists() -> None:
         (["--image-out", "images=/x"], "SERVICE/BUFFER"),
         (["--image-out", "mediator/images="], "bad mapping"),
         (["--image-in", "/a b"], "bad ROS 2 topic name"),
+        # What --camera-xml overrides, given beside it: it was silently ignored.
+        (
+            ["--image-in", "/cam/image_raw", "--camera-xml", "c.xml", "--camera-info", "/ci"],
+            "--camera-info /ci with --camera-xml",
+        ),
     ],
 )
 def test_bad_flags_are_one_line_errors(argv: list[str], match: str) -> None:
