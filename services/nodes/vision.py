@@ -37,23 +37,22 @@ delayed ack of the frame just taken, so the mediator would read the queue fuller
 while the handler runs, and acks and resends for watchers of the results. ``Runner.handle``
 has an executor handler's shape (a batch of notifications) should that trade be wanted. The
 executor's one duty of this service is a timer that counts the frames an ``--observe``
-runner's queue dropped while the handler runs (``NotObserved``). :class:`VisionStep` is the
-per-frame work with no I/O, called directly by tests.
+runner's queue dropped while the handler runs (``NotObserved``). ``VisionStep``
+(``_vision_step.py``) is the per-frame work with no I/O, called directly by tests.
 """
 
 from __future__ import annotations
 
 import argparse
-import collections
 import logging
 import threading
 import time
-import traceback
 from collections.abc import Callable
 from dataclasses import dataclass
 
 from middleware import (
     PUSH_ALL,
+    BufferInfo,
     ConfigError,
     DataObject,
     FlowControlRefused,
@@ -68,25 +67,21 @@ from middleware import (
     now_ns,
 )
 from services.lib.argtypes import positive_int
-from services.lib.messages import decode_image, read_frame_metadata
 from services.lib.rewind import RewindFollower
 from services.lib.settings import add_flags, from_args, setting
-from services.lib.vision import Encoded, FrameMeta, ResultKind, encode_result
+from services.lib.vision import ResultKind
 from services.nodes._contract import Service, ServiceEntry
 from services.nodes._not_observed import NotObserved
 from services.nodes._runtime import CallThread, setup_logging
 from services.nodes._vision_handler import (
     Handler,
-    Image,
     handler_argument,
     handler_name,
     load_handler,
     result_kind,
 )
+from services.nodes._vision_step import Skipped, VisionStep
 
-# Distinct warning kinds remembered; past this, further kinds share one (a handler raising
-# a new exception type per frame must not grow the log or this set without bound).
-_MAX_WARNING_KINDS = 64
 # How often the frames an --observe runner lost are counted while its handler runs.
 _MISSED_PERIOD_S = 0.5
 # How long reading the input producer's recorded rewinds waits for its answer.
@@ -153,146 +148,8 @@ class RunnerSpec:
     processing_floor_s: float = 0.0
 
 
-# -- the per-frame work (no I/O) -----------------------------------------------------------
-@dataclass(frozen=True, slots=True)
-class Skipped:
-    """A frame that produced no element: why (the skip reason ``info`` counts) and detail."""
-
-    reason: str
-    detail: str
-
-
 class _Stopped(BaseException):
     """The service was stopped while the handler ran (not a handler error)."""
-
-
-def call_directly(work: Callable[[], object]) -> object:
-    return work()
-
-
-class _HandlerExit(Exception):
-    """The handler raised ``SystemExit``, ``KeyboardInterrupt`` or another exception that is
-    not an ``Exception`` (the user's code, not a stop of this service): one skipped frame."""
-
-    def __init__(self, original: BaseException) -> None:
-        super().__init__(_text(original))
-        self.original = original
-
-
-def _guarded(handler: Handler, image: Image, frame: FrameMeta) -> object:
-    """Call the handler; what it raises that is no ``Exception`` comes back as one, so that
-    only a real stop (``_Stopped``, raised by the caller's side, not here) ends the runner."""
-    try:
-        return handler(image, frame)
-    except Exception:
-        raise
-    except BaseException as exc:
-        raise _HandlerExit(exc) from exc
-
-
-def user_traceback(exc: BaseException) -> str:
-    """``exc``'s traceback from the handler's own frame on (below ``_guarded``), the same for
-    every exception type: the runner's frames before it are framegate's, not the user's."""
-    tb, shown = exc.__traceback__, exc.__traceback__
-    while tb is not None:
-        if tb.tb_frame.f_code is _guarded.__code__ and tb.tb_next is not None:
-            shown = tb.tb_next
-        tb = tb.tb_next
-    return "".join(traceback.format_exception(type(exc), exc, shown)).rstrip("\n")
-
-
-def _text(exc: BaseException) -> str:
-    """``str(exc)``, or a placeholder when the handler's exception cannot even say what
-    it is (its ``__str__`` raises)."""
-    try:
-        return str(exc)
-    except Exception:
-        return f"<{type(exc).__name__} whose message cannot be printed>"
-
-
-class VisionStep:
-    """One frame in, one element (or a counted skip) out; no network, no threads.
-
-    ``call`` runs the handler's invocation (the service wraps it to honour a stop); the time
-    it takes is the element's ``processing_ns``.
-    """
-
-    def __init__(
-        self,
-        handler: Handler,
-        kind: ResultKind,
-        source: str,
-        log: logging.Logger,
-        call: Callable[[Callable[[], object]], object] = call_directly,
-    ) -> None:
-        self.handler = handler
-        self.kind = kind
-        self.source = source
-        self.log = log
-        self._call = call
-        self.skipped = collections.Counter[str]()
-        self.processed = 0
-        self._warned: set[str] = set()
-
-    def process(
-        self, timestamp_ns: int, payload: bytes, metadata: bytes, taken_ns: int | None = None
-    ) -> Encoded | Skipped:
-        """Decode the frame, run the handler, encode its result (``taken_ns``: when the
-        frame was taken up, written into a detections result)."""
-        try:
-            frame = read_frame_metadata(metadata)
-            image = decode_image(payload, frame)
-            if frame.timestamp_ns != timestamp_ns:
-                raise FramegateError(
-                    f"metadata says timestamp {frame.timestamp_ns}, element is {timestamp_ns}"
-                )
-        except (FramegateError, KeyError, ValueError) as exc:
-            return self.skip("bad-frame", f"frame {timestamp_ns}: {exc}")
-        started = time.monotonic_ns()
-        try:
-            result = self._call(lambda: _guarded(self.handler, image, frame))
-        except Exception as exc:  # the user's code: any exception is one skipped frame
-            raised = exc.original if isinstance(exc, _HandlerExit) else exc
-            name = type(raised).__name__
-            return self.skip(
-                f"handler-error:{name}",
-                f"frame {frame.frame_id}: handler raised {name}: {_text(raised)}",
-                exc_info=raised,
-            )
-        processing_ns = time.monotonic_ns() - started
-        self.processed += 1
-        try:
-            encoded = encode_result(result, self.kind, frame, self.source, processing_ns, taken_ns)
-        except FramegateError as exc:
-            return self.skip("bad-result", f"frame {frame.frame_id}: {exc}")
-        if encoded is None:
-            return self.skip("no-result", "", warn=False)
-        return encoded
-
-    def skip(
-        self, reason: str, detail: str, *, warn: bool = True, exc_info: BaseException | None = None
-    ) -> Skipped:
-        """Count ``reason``; the first time it is seen, log ``detail`` as a warning."""
-        # A kind already counted keeps its own count; only new ones past the bound share one.
-        if (
-            reason.startswith("handler-error:")
-            and reason not in self.skipped
-            and len(self._warned) >= _MAX_WARNING_KINDS
-        ):
-            reason = "handler-error:other"
-        self.skipped[reason] += 1
-        if warn:
-            text = f"{detail} (skipped; further '{reason}' skips are counted, not logged)"
-            if exc_info is not None:
-                text += "\n" + user_traceback(exc_info)
-            self.warn_once(reason, text)
-        return Skipped(reason, detail)
-
-    def warn_once(self, kind: str, text: str) -> None:
-        """Log ``text`` as a warning the first time ``kind`` is seen."""
-        if kind not in self._warned:
-            self._warned.add(kind)
-            self.log.warning("%s", text)
 
 
 # -- the service ---------------------------------------------------------------------------
@@ -465,7 +322,17 @@ def _serve(
                         _say_why_unregistered(node, spec.input, log)
         except (KeyboardInterrupt, _Stopped):
             pass
+        log.info("%s", _summary(spec, output.info()))
     return 0
+
+
+def _summary(spec: RunnerSpec, results: BufferInfo) -> str:
+    """The stop line, as the other services give one: what was stored, what skipped."""
+    skipped = ", ".join(f"{reason} {n}" for reason, n in sorted(results.skipped.items()))
+    return (
+        f"{spec.name}: {results.puts} results stored in {spec.name}/{spec.output}, "
+        f"skipped: {skipped or 'none'}"
+    )
 
 
 # A runner whose input has not registered it this long says why, once.

@@ -24,7 +24,7 @@ from services.nodes._vision_handler import (
     load_handler,
     result_kind,
 )
-from services.nodes.vision import _MAX_WARNING_KINDS, Encoded, Skipped, VisionStep
+from services.nodes._vision_step import _MAX_WARNING_KINDS, Encoded, Skipped, VisionStep
 from tests.conftest import REPO, child_env, run_framegate
 from tests.helpers.timing import scaled
 from tests.services.nodes import vision_handlers
