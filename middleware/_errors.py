@@ -20,6 +20,7 @@ tool defines its own errors next to its code, always below ``FramegateError``::
     ├── CalibrationError           (services.lib.quality) data cannot determine b0 or an offset
     ├── QualityInputError          (services.lib.quality) an invalid frame, gyro batch or option
     ├── DatasetError               (services.lib.sim) a dataset directory is missing or damaged
+    ├── RenderStopped              (services.lib.sim) a stop came while an approach rendered
     ├── OutputError                (services.lib.files) an output file cannot be written
     ├── BagError                   (services.tools.bag) an MCAP recording cannot be read/written
     ├── ExperimentError            (services.evidence.experiment) an experiment cannot run as asked

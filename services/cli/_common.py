@@ -55,19 +55,31 @@ def stop_on_signals() -> threading.Event:
     session cleanly. Call from the main thread.
     """
     stop = threading.Event()
-    signalled = False
+    signalled = setting = again = False
 
     def handler(_signum: int, _frame: FrameType | None) -> None:
         # Python runs this in the main thread between bytecodes, possibly inside
         # ``stop.set()`` itself when a second signal arrives (a supervisor's SIGTERM right
         # after a parent-death signal): calling ``stop.set()`` again there would wait for
-        # the lock its own frame holds, for ever (seen: a mediator orphaned this way). So a
-        # plain flag, set first, decides; only the first signal touches the event.
-        nonlocal signalled
+        # the lock its own frame holds, for ever (seen: a mediator orphaned this way), and
+        # raising there may leave between the acquisition of the event's lock and the
+        # ``with`` that releases it, the lock then held for ever (seen: a router that two
+        # SIGTERMs left running, once in a few thousand). So plain flags decide: only the
+        # first signal touches the event, and a second one that comes meanwhile raises
+        # once ``set`` has returned.
+        nonlocal signalled, setting, again
+        if setting:
+            again = True
+            return
         if signalled:
             raise KeyboardInterrupt
-        signalled = True
-        stop.set()
+        signalled = setting = True
+        try:
+            stop.set()
+        finally:
+            setting = False
+        if again:
+            raise KeyboardInterrupt
 
     signal.signal(signal.SIGINT, handler)
     signal.signal(signal.SIGTERM, handler)

@@ -104,7 +104,7 @@ def _do(
             # so that a test can show what the router (not framegate) stops.
             import middleware._service as service_module
 
-            service_module._instances = lambda *_args: []
+            service_module._instances = lambda *_args, **_kwargs: []
         producers[cmd["buffer"]] = node.offer(
             cmd["buffer"], kind=cmd.get("kind", "generic"), retention=retention
         )

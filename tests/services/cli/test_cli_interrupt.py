@@ -123,6 +123,35 @@ def test_two_signals_at_once_still_stop_the_command() -> None:
             raise AssertionError("two SIGTERMs left the router running") from None
 
 
+def test_a_second_signal_inside_the_first_ones_set_raises_once_set_has_returned(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Raised inside ``Event.set``, the interrupt could leave between the acquisition of the
+    event's lock and the ``with`` that releases it: the lock held for ever, and the router
+    that two SIGTERMs left running (once in a few thousand). The second signal is played
+    here exactly there, by calling the handler from inside ``set``."""
+    from services.cli._common import stop_on_signals
+
+    handlers: dict[int, object] = {}
+    monkeypatch.setattr(signal, "signal", lambda signum, fn: handlers.setdefault(signum, fn))
+    stop = stop_on_signals()
+    handler = handlers[signal.SIGTERM]
+    real_set = stop.set
+    inside: list[bool] = []
+
+    def set_with_a_second_signal() -> None:
+        handler(signal.SIGTERM, None)  # type: ignore[operator]  # returns: noted for later
+        inside.append(True)
+        real_set()
+
+    monkeypatch.setattr(stop, "set", set_with_a_second_signal)
+    with pytest.raises(KeyboardInterrupt):
+        handler(signal.SIGTERM, None)  # type: ignore[operator]
+    assert inside == [True] and stop.is_set()
+    with pytest.raises(KeyboardInterrupt):  # any later one interrupts at once
+        handler(signal.SIGINT, None)  # type: ignore[operator]
+
+
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
 def test_pub_stops_on_one_signal_with_exit_0(signum: int, port: int) -> None:
     proc = start_framegate(
