@@ -20,6 +20,9 @@ subscription (or one that met a forged refusal) declares its token again every
 leave, and a real answer lost among forgeries is asked for again. A refusal from another
 session than the one that greeted us is judged the same way: trusted, it voids the
 greeting, so a peer's forged greeting cannot keep a refused subscription waiting unheard.
+The session that greeted us (``greeted_by``) is the one whose answers in the service's name
+count (a mediator's clock samples); a greeting of the same epoch from another session is
+forged (an epoch is one instance's, in one session) and counted as garbage.
 
 Lapses are counted: every notification carries its registration's ``base`` (the elements
 the producer had stored when it registered us), so seq s is the producer's element number
@@ -254,6 +257,16 @@ class SubscriberProtocol:
         if control.descriptor != self.descriptor:
             return  # meant for another registration of this key: not ours to judge
         if control.kind == "hello":
+            if (
+                control.text == self.registered_epoch
+                and self.greeted_by is not None
+                and sender != self.greeted_by
+            ):
+                # An epoch is one producer instance's, greeting from its one session: the
+                # same epoch in another session's name is forged (it would make that session
+                # the one whose answers speak for the service: a mediator's clock).
+                self.garbage += 1
+                return
             if self.registered_epoch is not None and self.registered_epoch != control.text:
                 self.registrations += 1  # a producer restart, or our token had lapsed
                 self._registered_again = True

@@ -212,6 +212,9 @@ class ClockOffsets:
         # Per service that did not answer its last ask: (failures in a row, when to ask
         # again regardless of data, monotonic ns). Absent: it answered.
         self._unanswered: dict[str, tuple[int, int]] = {}
+        # The camera's latest clock sample, whoever asked (a step of its clock shows here
+        # first; a stream's start keeps the one sampled when it began, for rewinds).
+        self.camera_clock: SourceClock | None = None
         self.measuring = False  # a measurement's questions are out
         self.began_ns = 0  # when the last measurement began (monotonic ns)
 
@@ -242,7 +245,10 @@ class ClockOffsets:
 
         def answered(info: ServiceInfo | None) -> None:
             self._answered(service, info is not None)
-            then(SourceClock.of(info) if info is not None else None)
+            clock = SourceClock.of(info) if info is not None else None
+            if clock is not None and service == self._camera:
+                self.camera_clock = clock
+            then(clock)
 
         session = self._session_of(service)
         if session is None:  # not registered yet: nothing of it to pair, nobody to believe

@@ -36,23 +36,23 @@ frames are the decider's (``out-of-order``).
 
 Time and stalls: a frame stamped more than ``horizon_s`` ahead of our clock is skipped
 (``future-stamp``) before it can become the time-order reference, and so is one stamped more
-than 1 s ahead of the camera's own clock (sampled when its stream began, within that
-sample's error). A new epoch of the camera stream (a restarted camera, our subscription
-registered again: the epoch the camera greeted us with; a notification of another epoch, a
-peer's made-up one, is decided as a frame but starts nothing over) restarts the time order,
-and
-the frames the camera stored in the gap get ``mediator-lapsed`` records. A new stream that
-starts before frames already forwarded removes those from ``images`` only when the camera
-itself is known to have started over with a clock that explains the step back (the old
-clock's sample ran ahead of the new one's by at least the step, the new one is nearer ours,
-within the producer's horizon: ``services.lib.rewind``); the removed frames are counted
-(skipped ``rewound``) and recorded (``info``'s rewinds), and the detector follows that
-record. Anything else (a rogue's single put, a stale stamp) removes nothing: the frames
-before the newest forwarded one are dropped ``out-of-order``. Camera and gyro clocks are
-compared every 2 s and at once after either started over (``ClockOffsets``); until
-measured, frames are not paired (``clock-unmeasured``), beyond ``max_clock_offset`` of the
-exposure neither (``clock-offset``). Once a flow-controlled consumer has been seen, its
-lapsed subscription counts as a full queue (``consumer-lapsed``), never as load 0.
+than 1 s ahead of the camera's own clock (as last measured, within that sample's error; a
+camera whose clock stepped forward is measured again at once, and decided from then on). A
+new epoch of the camera stream (a restarted camera, our subscription registered again: the
+epoch the camera greeted us with; a notification of another epoch, a peer's made-up one, is
+decided as a frame but starts nothing over) restarts the time order, and the frames the
+camera stored in the gap get ``mediator-lapsed`` records. A new stream that starts before
+frames already forwarded removes those from ``images`` only when the camera itself is known
+to have started over with a clock that explains the step back (the old clock's sample ran
+ahead of the new one's by at least the step, the new one is nearer ours, within the
+producer's horizon: ``services.lib.rewind``); the removed frames are counted (skipped
+``rewound``) and recorded (``info``'s rewinds), and the detector follows that record.
+Anything else (a rogue's single put, a stale stamp) removes nothing: the frames before the
+newest forwarded one are dropped ``out-of-order``. Camera and gyro clocks are compared every
+2 s and at once after either started over (``ClockOffsets``); until measured, frames are not
+paired (``clock-unmeasured``), beyond ``max_clock_offset`` of the exposure neither
+(``clock-offset``). Once a flow-controlled consumer has been seen, its lapsed subscription
+counts as a full queue (``consumer-lapsed``), never as load 0.
 
 Gyro missing or late (no coverage ``gyro_wait_ms`` after the frame arrived): by default a
 frame is forwarded only when the detector is idle (``--gyro-missing idle``); ``accept`` and
@@ -243,20 +243,25 @@ class Mediator:
 
     def _too_far_ahead(self, timestamp_ns: int) -> str | None:
         """Why a frame stamped ``timestamp_ns`` is too far ahead to be decided (None: it is
-        not): beyond the horizon of our clock, or well ahead of the camera's own clock,
-        measured when its stream began (inside the horizon such a stamp would hold every
-        later frame out of the time order for that long)."""
+        not): beyond the horizon of our clock, or well ahead of the camera's own clock as
+        last measured (inside the horizon such a stamp would hold every later frame out of
+        the time order for that long). The camera's clock may have stepped forward since:
+        then it is measured again at once, and its frames are decided once it has been."""
         now = now_ns()
         if timestamp_ns > now + self._horizon_ns:
             ahead_s = (timestamp_ns - now) / 1e9
             return (
                 f"stamped {ahead_s:.1f} s ahead of our clock (horizon {self.config.horizon_s:g} s)"
             )
-        clock = self.starts.clock()
+        clock = self._offsets.camera_clock or self.starts.clock()
         if clock is not None:
             ahead_ns = timestamp_ns - (now + clock.offset_ns)
             if ahead_ns > _MAX_AHEAD_NS + clock.error_ns:
-                return f"stamped {ahead_ns / 1e9:.1f} s ahead of the camera's own clock"
+                self._measure_soon(time.monotonic_ns())
+                return (
+                    f"stamped {ahead_ns / 1e9:.1f} s ahead of the camera's clock as last "
+                    "measured (measured again now)"
+                )
         return None
 
     def on_gyro(self, notes: list[Notification]) -> None:

@@ -79,3 +79,19 @@ def test_a_greeting_under_a_new_epoch_is_news_once_and_a_refusal_waits_to_be_jud
     assert not sub.refusal_to_judge
     sub.receive(encode_control("refused", sub.descriptor, "full"), b"", sender=ROGUE)
     assert sub.refusal_to_judge and sub.next_deadline_ns() == 0
+
+
+def test_a_greeting_of_the_same_epoch_from_another_session_is_forged() -> None:
+    """The greeting's session is the one whose answers speak for the service (a mediator's
+    clock samples). A peer that sends the same epoch's greeting in its own name made itself
+    that session, and fed the mediator a clock 3 s off; an epoch is one instance's, in one
+    session. A new epoch from another session is a restarted producer, as before."""
+    sub = SubscriberProtocol(SubscriptionMode.FLOW, 4, -1)
+    sub.receive(encode_control("hello", sub.descriptor, "p1.1", base=0), b"", sender=PRODUCER)
+    assert sub.greeted_by == PRODUCER
+    sub.receive(encode_control("hello", sub.descriptor, "p1.1", base=0), b"", sender=ROGUE)
+    assert (sub.greeted_by, sub.registered_epoch, sub.garbage) == (PRODUCER, "p1.1", 1)
+    sub.receive(encode_control("hello", sub.descriptor, "p1.1", base=0), b"", sender=PRODUCER)
+    assert (sub.greeted_by, sub.garbage) == (PRODUCER, 1), "the producer's own re-greeting"
+    sub.receive(encode_control("hello", sub.descriptor, "p2.1", base=0), b"", sender=ROGUE)
+    assert (sub.greeted_by, sub.registered_epoch) == (ROGUE, "p2.1")

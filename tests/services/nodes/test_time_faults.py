@@ -362,6 +362,38 @@ def test_camera_and_gyro_clocks_5_s_apart_are_not_paired(tmp_path: Path, shim: P
         recorded.close()
 
 
+def test_a_camera_whose_clock_steps_forward_alone_is_decided_again(
+    tmp_path: Path, shim: Path
+) -> None:
+    """chrony steps the camera host's clock 2 s forward, the gyro's stays: its frames are
+    now 2 s ahead of the camera's clock as measured when its stream began, and every one
+    was skipped future-stamp for good. Now the camera's clock is measured again at once,
+    and its frames are decided (clock-offset: 2 s off the gyro, not paired)."""
+    port = free_port()
+    offset = tmp_path / "offset"
+    step_clock(offset, 0)
+    recorded = Recorded(port, MediatorConfig())
+    camera = _start(CAMERA, port, shifted_clock_env(child_env(), shim, offset))
+    gyro = _start(GYRO, port)
+    try:
+        recorded.step_until(
+            lambda: any(r.quality is not None for r in recorded.records), 90, "a paired frame"
+        )
+        step_clock(offset, 2 * S)
+        stepped = len(recorded.records)
+        recorded.step_until(
+            lambda: "clock-offset" in recorded.reasons(stepped), 90, "a clock-offset decision"
+        )
+        first = stepped + recorded.reasons(stepped).index("clock-offset")
+        recorded.step_until(lambda: len(recorded.records) >= first + 3, 60, "more frames")
+        assert {r.reason for r in recorded.records[first:]} == {"clock-offset"}, recorded.reasons(
+            stepped
+        )
+    finally:
+        _stop(camera, gyro)
+        recorded.close()
+
+
 @pytest.fixture
 def pipe(tmp_path: Path) -> Iterator[Pipeline]:
     pipeline = Pipeline(
