@@ -56,18 +56,24 @@ class Queries(Discovery):
         *,
         time_range: TimeRange | str,
         timeout_s: float = 5.0,
+        session: str | None = None,
     ) -> None:
         """``query`` without waiting, for handlers: ``answer(elements)`` runs once on the
         node's executor when the query ends, ``answer(error)`` when it failed or was cut
         short. Asked once (``query`` asks again an answer that reached no one; a handler
         that needs the elements asks again itself, later). Only elements within the range
         asked, one per timestamp: any peer may answer, and a handler may act on each (the
-        mediator records each frame it never saw)."""
+        mediator records each frame it never saw). ``session``: only that Zenoh session's
+        replies count (a subscription's ``producer_session``)."""
         asked = time_range if isinstance(time_range, TimeRange) else parse_time_range(time_range)
         replies: list[zenoh.Reply] = []
         kept_bytes = [0]
 
         def on_reply(reply: zenoh.Reply) -> None:  # (Zenoh's thread) kept, decoded later
+            if session is not None and (
+                reply.replier_id is None or str(reply.replier_id.zid) != session
+            ):
+                return
             size = len(reply.ok.payload) if reply.ok is not None else 0
             if len(replies) < _ASK_REPLIES_MAX and kept_bytes[0] + size <= _ASK_BYTES_MAX:
                 kept_bytes[0] += size

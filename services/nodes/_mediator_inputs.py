@@ -218,6 +218,10 @@ class ClockOffsets:
         self.measuring = False  # a measurement's questions are out
         self.began_ns = 0  # when the last measurement began (monotonic ns)
 
+    def session_of(self, service: str) -> str | None:
+        """The Zenoh session that speaks for ``service`` (None: not registered yet)."""
+        return self._session_of(service)
+
     def due(self, service: str, now_ns: int) -> bool:
         """Whether to ask ``service`` although no data of it came: it answered last time
         (asking costs no timeout), or it did not and its back-off (one period, doubling up
@@ -250,7 +254,7 @@ class ClockOffsets:
                 self.camera_clock = clock
             then(clock)
 
-        session = self._session_of(service)
+        session = self.session_of(service)
         if session is None:  # not registered yet: nothing of it to pair, nobody to believe
             answered(None)
             return

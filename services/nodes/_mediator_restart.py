@@ -170,6 +170,9 @@ class StreamStarts:
                 answered,
                 time_range=f"[{since_ns + 1}..{until_ns - 1}]",
                 timeout_s=5.0,
+                # The camera's own answer only: a peer answering beside it would invent
+                # a record per element it made up.
+                session=self._offsets.session_of(self._camera_name),
             )
         except FramegateError as exc:
             answered(exc)

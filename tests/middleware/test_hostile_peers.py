@@ -473,6 +473,19 @@ def test_a_handlers_query_keeps_only_the_range_it_asked_once_per_timestamp(
             wait_until(lambda: got, scaled(10), "the answer")
             assert isinstance(got[0], list), got
             assert [e.timestamp_ns for e in got[0]] == [2, 3, 4], got[0]
+            # Asked of the producer's session alone, the rogue's element 3 is not taken
+            # for the service's (whichever reply came first).
+            real = str(service._session.zid())  # type: ignore[attr-defined]
+            mine: list[Any] = []
+            client.ask_query(
+                "cam/images", mine.append, time_range="[2..4]", timeout_s=scaled(5), session=real
+            )
+            wait_until(lambda: mine, scaled(10), "the answer")
+            assert [(e.timestamp_ns, e.payload) for e in mine[0]] == [
+                (2, b"x"),
+                (3, b"x"),
+                (4, b"x"),
+            ], mine[0]
         finally:
             queryable.undeclare()
 

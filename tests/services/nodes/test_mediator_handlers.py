@@ -176,7 +176,9 @@ def test_frames_stored_while_lapsed_are_looked_up_again_when_the_camera_does_not
     asked: list[str] = []
     later: list[Callable[[int], object]] = []
 
-    def ask_query(target: str, answer: Answer, time_range: str, timeout_s: float) -> None:
+    def ask_query(
+        target: str, answer: Answer, time_range: str, timeout_s: float, session: object
+    ) -> None:
         asked.append(time_range)  # answered at once here; the executor runs it later
         answer(TransportError("the camera did not answer") if len(asked) == 1 else [stored])
 
@@ -194,7 +196,9 @@ def test_the_look_up_of_lapsed_frames_is_asked_a_bounded_number_of_times(fed: Fe
     asked: list[str] = []
     later: list[Callable[[int], object]] = []
 
-    def ask_query(target: str, answer: Answer, time_range: str, timeout_s: float) -> None:
+    def ask_query(
+        target: str, answer: Answer, time_range: str, timeout_s: float, session: object
+    ) -> None:
         asked.append(time_range)
         answer(TransportError("the camera did not answer"))
 
