@@ -68,7 +68,7 @@ must ack every element or the producer stays refused), every ``N // 2`` takes ab
 Coalescing never holds the producer back for long: an ack is also due once the queue runs
 empty or the caller waits idle and ``delay_ns`` has passed since the first take it covers
 (``for_queue``: 1 ms above N = 3, so that a consumer that keeps up does not ack every
-element; 100 ms from N = 16, a deep queue: see ``DEEP_QUEUE``), or at once when its takes
+element; 20 ms from N = 16, a deep queue: see ``DEEP_QUEUE``), or at once when its takes
 came ``delay_ns`` or more after the takes before them (a slow stream: no later take would
 join the ack within the delay, and waiting would cost a timer per element); ``flush_at_ns``
 says when, for the Zenoh layer to send it even if the caller does not come back
@@ -109,15 +109,12 @@ REACK_NS = 500_000_000
 ACK_DELAY_NS = 1_000_000
 # A queue this deep is a buffer against stalls (the mediator's 256 gyro samples), not the
 # load signal the paper's rule reads from a queue of a few frames: its emptied queue acks
-# within ``DEEP_ACK_DELAY_NS``, so a stream of up to 10 takes/s shares one ack among
-# several takes. An ack is a wake-up of a Zenoh thread and of the waiting caller on each
-# side (100-200 us of CPU per ack at 100 Hz on a 2-core machine), more than the
-# notification costs: the gyro's 100 batches/s cost about 1 % of a core less on each side
-# with 100 ms than with 20 ms. What it holds back: at most 100 ms of the producer's credit,
-# and never more than half the queue (the ``every`` rule acks first), far from such a
-# queue's depth at any rate it keeps up with.
+# within ``DEEP_ACK_DELAY_NS``, so a stream of up to 50 takes/s shares one ack among
+# several takes. An ack is a wake-up of a Zenoh thread on each side (~100 us of CPU per
+# ack at 100 Hz here), more than the notification costs. What it holds back: at most 20 ms
+# of the producer's credit, far from such a queue's depth at any rate it keeps up with.
 DEEP_QUEUE = 16
-DEEP_ACK_DELAY_NS = 100_000_000
+DEEP_ACK_DELAY_NS = 20_000_000
 
 T = TypeVar("T")
 

@@ -102,30 +102,27 @@ def test_a_slow_stream_acks_each_take_at_once_without_a_timer() -> None:
 def test_a_deep_queue_shares_one_ack_among_the_takes_of_its_delay() -> None:
     """The mediator's gyro: batches 10 ms apart into a queue of 256. Acking each at once
     would cost a Zenoh wake-up per batch on both sides; the deep queue's delay lets the
-    takes of 100 ms share one ack, and the producer's credit is never held longer."""
+    takes of 20 ms share one ack, and the producer's credit is never held longer."""
     producer, subscriber, _ = _pair(256)
     step = 10_000_000
     acks: list[int] = []
-    for t in range(30):
+    for t in range(10):
         _fill(producer, subscriber, 10)
         for _ in range(10):
             assert subscriber.take_many(1)
-        sent = [seq for _, seq in subscriber.acks_due(t * step, idle=False)]
-        for seq in sent:
-            producer.ack("s", producer.registrations()[0].epoch, seq, 0)
-        acks += sent
+        acks += [seq for _, seq in subscriber.acks_due(t * step, idle=False)]
         due = subscriber.flush_at_ns()
         assert due is None or due - t * step <= DEEP_ACK_DELAY_NS
     assert acks[0] == 10, "the first take of a stream is acked at once"
-    assert 1 < len(acks) <= 4, acks
+    assert 1 < len(acks) <= 5, acks
     assert acks == sorted(acks)
     _fill(producer, subscriber, 10)  # one more batch, and then nothing
     assert len(subscriber.take_many(10)) == 10
-    assert subscriber.acks_due(30 * step, idle=False) == []
+    assert subscriber.acks_due(10 * step, idle=False) == []
     flush = subscriber.flush_at_ns()
-    assert flush is not None and flush - 30 * step <= DEEP_ACK_DELAY_NS
+    assert flush is not None and flush - 10 * step <= DEEP_ACK_DELAY_NS
     acks += [seq for _, seq in subscriber.acks_due(flush, idle=False)]
-    assert acks[-1] == 310, "the last takes leave within the delay"
+    assert acks[-1] == 110, "the last takes leave within the delay"
     producer.ack("s", producer.registrations()[0].epoch, acks[-1], 0)
     assert producer.registrations()[0].queued == 0
 
