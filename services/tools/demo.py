@@ -266,20 +266,22 @@ class MarkerTally:
         return sum(self.seen.values())
 
 
-def refuse_if_running(node: Node, names: list[str]) -> None:
+def refuse_if_running(node: Node, names: list[str], local_port: int) -> None:
     """ConfigError if a service of the demo is live already (another demo or a launch on
     this rendezvous): ours would fail to offer their names and be restarted again and again,
-    while the status and the summary read the other pipeline's buffers."""
+    while the status and the summary read the other pipeline's buffers. The advice names a
+    rendezvous port other than ``local_port``, the one in use."""
     live = set(node.live_services())
     taken = [name for name in names if name in live]
     if not taken:
         return
     where = {i.service: f"pid {i.pid} on host {i.host}" for i in node.services(timeout_s=1.0)}
     first = taken[0]
+    other_port = local_port + 1 if local_port < 65535 else local_port - 1
     raise ConfigError(
         f"service {first!r} is live already ({where.get(first, 'another process')}): another "
         "demo or launch runs on this rendezvous; stop it, or give this demo its own "
-        "(FRAMEGATE_LOCAL_PORT=7448 framegate demo)"
+        f"(FRAMEGATE_LOCAL_PORT={other_port} framegate demo)"
     )
 
 
@@ -297,7 +299,7 @@ def run_demo(
     out = status_out or sys.stdout
     deployment = demo_deployment(config)
     with Node(network=network) as node:  # before minutes of rendering, not after
-        refuse_if_running(node, [svc.name for svc in deployment.services])
+        refuse_if_running(node, [svc.name for svc in deployment.services], network.local_port)
     if not prerender(config, stop):
         return {}
     # After the rendering: the specs carry the shared start instant, and a start taken
@@ -336,7 +338,8 @@ def run_demo(
             if now - started >= config.duration_s:
                 stop.set()
 
-        refuse_if_running(node, [spec.name for spec in specs])  # one started while we rendered
+        # One may have started while we rendered.
+        refuse_if_running(node, [spec.name for spec in specs], network.local_port)
         print(STATUS_LEGEND, file=out, flush=True)
         supervisor.start()
         try:
