@@ -104,7 +104,9 @@ def register(subparsers: Any) -> None:
         type=non_negative_int,
         default=0,
         metavar="N",
-        help="first wait (up to --timeout) until N subscribers are registered",
+        help="first wait (up to --timeout) until N subscribers are registered; an echo or "
+        "watch started before pub registers only once the buffer is offered, so without "
+        "this it misses the first element (ros2 topic pub --times waits for one)",
     )
     parser.add_argument(
         "--timeout",
