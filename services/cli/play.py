@@ -101,8 +101,10 @@ def register(subparsers: Any) -> None:
         help="exit after the last element instead of serving queries until Ctrl-C",
     )
     parser.epilog = (
-        "--json prints JSON Lines: an 'offered' event, then a 'done' event. Looping shifts "
-        "each pass by the recording's span plus one mean interval, so timestamps keep rising."
+        "--json prints JSON Lines: an 'offered' event, then a 'done' event. Pacing starts at "
+        "the recording's start: each buffer's newest element at the start (a camera "
+        "description put long before) is put at once. Looping shifts each pass by the span "
+        "played plus one mean interval, so timestamps keep rising."
     )
     parser.set_defaults(func=run)
 
@@ -198,8 +200,12 @@ def _play(
     bag: Bag, played: list[_Played], rate: float, args: argparse.Namespace, skips: _Skips
 ) -> int:
     """Put every element (forever with --loop); return how many were put."""
-    from services.tools.bag import shift_element
+    from services.tools.bag import recording_started_ns, shift_element
 
+    # Pace from the recording's start: what is stamped before it (each buffer's newest
+    # element at the start, e.g. a camera description put once an hour earlier) is put at
+    # once, not after the hour between its stamp and the recording.
+    started_ns = recording_started_ns(bag.metadata)
     by_channel = {p.recorded.channel_id: p for p in played}
     count = 0
     t0: int | None = None
@@ -214,16 +220,22 @@ def _play(
     while True:
         first = last = None
         n = 0
+        spans: dict[int, tuple[int, int]] = {}  # per buffer: first and last stamp of the pass
         for recorded, element in bag.elements([p.recorded for p in played], undecodable):
             if t0 is None:
                 t0, wall0 = element.timestamp_ns, time.monotonic()
+                if started_ns is not None:
+                    t0 = max(t0, started_ns)
                 rebase_ns = time.time_ns() - t0 if args.rebase else 0
-            first = element.timestamp_ns if first is None else first
+            first = max(element.timestamp_ns, t0) if first is None else first
             last, n = element.timestamp_ns, n + 1
+            b_first = spans.get(recorded.channel_id, (element.timestamp_ns, 0))[0]
+            spans[recorded.channel_id] = (b_first, element.timestamp_ns)
             loop_ns = passes * period_ns
             due = 0.0
             if rate > 0:
-                due = wall0 + (element.timestamp_ns + loop_ns - t0) / 1e9 / rate
+                paced_ns = max(element.timestamp_ns, t0)
+                due = wall0 + (paced_ns + loop_ns - t0) / 1e9 / rate
                 _sleep_until(due)
             p = by_channel[recorded.channel_id]
             assert p.producer is not None
@@ -239,9 +251,12 @@ def _play(
         if not args.loop or first is None or last is None:
             return count
         if passes == 1:
-            # Each pass is shifted by the span plus one mean interval, so timestamps rise.
-            gap = (last - first) // (n - 1) if n > 1 else 1_000_000
-            period_ns = (last - first) + max(gap, 1)
+            # Each pass is shifted by the span played plus one mean interval, so each
+            # buffer's timestamps rise (at least by its own span: a newest element at the
+            # start is stamped before the recording's start).
+            gap = max((last - first) // (n - 1) if n > 1 else 1_000_000, 1)
+            longest = max(b_last - b_first for b_first, b_last in spans.values())
+            period_ns = max(last - first, longest) + gap
 
 
 def _sleep_until(due: float) -> None:

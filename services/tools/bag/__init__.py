@@ -38,7 +38,7 @@ from ._format import (
     encode_element,
     image_topic,
 )
-from ._info import BufferRecord, ChannelInfo, RecordingInfo, recording_info
+from ._info import BufferRecord, ChannelInfo, RecordingInfo, recording_info, recording_started_ns
 from ._reader import Bag, RecordedBuffer, open_bag
 from ._recorder import STOP_SLACK_S, TAIL_FLOOR_S, Progress, Recorder, WriteQueue, at_start
 from ._retime import shift_element, timestamp_fields
@@ -86,6 +86,7 @@ __all__ = [
     "rates_topic",
     "read_markers",
     "recording_info",
+    "recording_started_ns",
     "shift_element",
     "timestamp_fields",
     "verdict_annotations",

@@ -70,6 +70,19 @@ def recorder_account(metadata: list[Any]) -> tuple[BufferRecord, ...]:
     return ()
 
 
+def recording_started_ns(metadata: list[Any]) -> int | None:
+    """The instant ``framegate record`` started (its ``started_ns``), or None (another
+    writer's file, or no account). Elements stamped before it are the buffers' newest at
+    the start (a camera description put once, long before)."""
+    for record in metadata:
+        if getattr(record, "name", None) != "framegate.recording":
+            continue
+        text = record.metadata.get("started_ns", "")
+        if isinstance(text, str) and text.isdigit() and len(text) < 25:
+            return int(text)
+    return None
+
+
 @dataclass(frozen=True, slots=True)
 class RecordingInfo:
     path: str

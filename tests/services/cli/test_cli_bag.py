@@ -171,6 +171,49 @@ def test_play_paces_and_rebases_onto_the_wall_clock(cli: Cli, tmp_path: Path) ->
     assert player.wait(timeout=scaled(20)) == 0
 
 
+def test_play_puts_a_newest_element_of_long_before_the_recording_at_once(
+    cli: Cli, tmp_path: Path
+) -> None:
+    """record keeps each buffer's newest element at its start (a camera description put
+    once, maybe an hour earlier). play paced from that stamp and idled the hour before the
+    first frame (a 5 s `record --all` of a 25 min old pipeline took 25 min to play)."""
+    bag = tmp_path / "latched.mcap"
+    started = 10**13
+    info_t = started - 3600 * 10**9  # an hour before the recording started
+    frames = [started + i * 100 * MS for i in range(5)]
+    with BagWriter(bag) as writer:
+        writer.add_buffer("cam", "info", kind="generic", retention=Retention())
+        writer.add_buffer("cam", "images", kind="frame", retention=Retention())
+        writer.write(
+            "cam/info", DataObject(info_t, b"description", make_metadata("generic", info_t))
+        )
+        for i, t in enumerate(frames):
+            writer.write("cam/images", DataObject(t, frame_payload(i), frame_metadata(t, i)))
+        writer.add_metadata("framegate.recording", {"started_ns": str(started)})
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    player = cli.start("play", str(bag), "--loop", "--json", "--listen", endpoint)
+    events = LineReader(player)
+    events.json_until(lambda e: e["event"] == "offered", TIMEOUT_S)
+    with Node(network=NetworkConfig(connect=(endpoint,))) as client:
+        wait_until(lambda: "cam" in client.live_services(), 10, "the played service")
+        # Two passes of 0.5 s each, not an hour: both buffers get their elements again.
+        wait_until(
+            lambda: (
+                len(client.query("cam/images")) >= 2 * len(frames)
+                and len(client.query("cam/info")) >= 2
+            ),
+            scaled(30),
+            "two passes of the recording",
+        )
+        played = client.query("cam/images")
+    stamps = [e.timestamp_ns for e in played]
+    assert stamps == sorted(stamps) and stamps[: len(frames)] == frames, stamps
+    period = stamps[len(frames)] - frames[0]
+    assert period < 10**9, period  # shifted by the frames' span, not by the hour
+    player.send_signal(signal.SIGTERM)
+    assert player.wait(timeout=scaled(20)) == 0
+
+
 def test_play_skips_and_counts_an_element_its_buffer_refuses(cli: Cli, tmp_path: Path) -> None:
     """A damaged or hand-made file: one element's metadata is no XML, another's names
     another stamp. Each is skipped, counted and warned of once; every other one is played."""
