@@ -62,8 +62,11 @@ class BenchOptions:
         known = SCENARIO_NAMES + OPT_IN_SCENARIOS
         unknown = [s for s in self.scenarios if s not in known]
         if unknown:
+            from services.lib.argtypes import did_you_mean
+
+            hint = did_you_mean(unknown[0], known)
             raise BenchError(
-                f"unknown scenario(s) {', '.join(unknown)}; choose from {', '.join(known)}"
+                f"unknown scenario(s) {', '.join(unknown)}{hint}; choose from {', '.join(known)}"
             )
         for value in (self.duration_s, self.hostile_s):
             if not value > 0 or value == float("inf"):  # NaN fails both comparisons

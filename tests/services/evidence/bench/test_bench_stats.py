@@ -146,6 +146,9 @@ def test_options_default_to_all_scenarios_and_three_pairs() -> None:
 def test_options_refuse_unknown_scenarios_and_too_few_pairs() -> None:
     with pytest.raises(BenchError, match=r"unknown scenario\(s\) framez"):
         BenchOptions.create(("framez",))
+    # A misspelt one gets a did-you-mean, as every other name the command line takes.
+    with pytest.raises(BenchError, match=r"unknown scenario\(s\) fram \(did you mean frames\?\);"):
+        BenchOptions.create(("fram",))
     with pytest.raises(BenchError, match="2 pair"):
         BenchOptions.create(pairs=2)
 
