@@ -62,6 +62,18 @@ class Discovery:
             return  # the constructor waited for every peer (_await_peers)
         time.sleep(max(0.0, self._opened + _SETTLE_S - time.monotonic()))
 
+    def live_subscriptions(self, target: str, *, timeout_s: float = 1.0) -> int:
+        """How many subscriptions of ``service/buffer`` are live now (their liveliness
+        tokens), registered by its producer or not yet: what a publisher that must not
+        start before its listeners (``framegate pub``, as ``ros2 topic pub``) waits for."""
+        self._settle()
+        service, buffer = split_target(target)
+        with zenoh_errors(f"listing the subscriptions of {target}"):
+            replies = self._session.liveliness().get(
+                self.keys.subscription_tokens(service, buffer), timeout=timeout_s
+            )
+            return sum(r.ok is not None for r in replies)
+
     def live_services(self, *, timeout_s: float = 1.0) -> list[str]:
         """Names of services whose liveliness token is visible now."""
         self._settle()

@@ -104,9 +104,9 @@ def register(subparsers: Any) -> None:
         type=non_negative_int,
         default=0,
         metavar="N",
-        help="first wait (up to --timeout) until N subscribers are registered; an echo or "
-        "watch started before pub registers only once the buffer is offered, so without "
-        "this it misses the first element (ros2 topic pub --times waits for one)",
+        help="first wait (up to --timeout) until N subscribers are registered, and fail if "
+        "they are not (default: wait up to 1.5 s for those listening, as ros2 topic pub "
+        "does, and publish in any case)",
     )
     parser.add_argument(
         "--timeout",
@@ -125,12 +125,23 @@ def register(subparsers: Any) -> None:
     parser.set_defaults(func=run)
 
 
+# How long pub waits, by default, for listeners to register before its first element.
+_LISTENERS_S = 1.5
+
+
 def run(args: argparse.Namespace) -> int:
     service, buffer = split_target(args.target)
     make = KINDS[args.kind]
     stop = stop_on_signals()
     with Node(service, network(args)) as node:
         producer = node.offer(buffer, kind=args.kind)
+        if not args.wait_subscribers:
+            # Those already listening get the first element too, as with ``ros2 topic pub``:
+            # an echo or watch started first subscribes only once the buffer is offered, and
+            # missed it. So wait a moment for them (for the subscriptions already live, or
+            # for one), then publish in any case.
+            listening = max(1, node.live_subscriptions(producer.name))
+            producer.wait_for_subscribers(listening, timeout_s=min(args.timeout, _LISTENERS_S))
         if args.wait_subscribers and not producer.wait_for_subscribers(
             args.wait_subscribers, timeout_s=args.timeout
         ):

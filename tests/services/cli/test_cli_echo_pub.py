@@ -55,6 +55,22 @@ def test_echo_prints_typed_fields_of_what_pub_publishes(cli: Cli, endpoint: str)
 
 
 @pytest.mark.integration
+def test_an_echo_started_before_pub_gets_its_first_element(cli: Cli, endpoint: str) -> None:
+    """As with ``ros2 topic pub``: the echo subscribes only once the buffer is offered, and
+    missed element 0 (then waited for ever for its last) unless pub was told to wait."""
+    echo = cli.start("echo", "t/first", "--json", "--count", "3")
+    reader = LineReader(echo)
+    pub = cli.start(
+        "pub", "t/first", "--kind", "frame", "--count", "3", "--rate", "20",
+        "--listen", endpoint, connect=False,
+    )  # fmt: skip
+    rows = [reader.json_until(lambda r: True, DISCOVERY_TIMEOUT_S * 3) for _ in range(3)]
+    assert echo.wait(timeout=scaled(60)) == 0
+    assert pub.wait(timeout=scaled(60)) == 0, pub.stderr.read()
+    assert [r["fields"]["frame_id"] for r in rows] == [0, 1, 2], rows
+
+
+@pytest.mark.integration
 def test_pub_json_prints_one_object_per_element_then_done(cli: Cli, endpoint: str) -> None:
     pub = cli.start(
         "pub", "t/j", "--kind", "generic", "--count", "2", "--rate", "50", "--linger", "0",
