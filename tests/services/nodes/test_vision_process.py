@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import signal
@@ -289,58 +290,55 @@ def test_a_rewind_a_second_session_reports_in_the_inputs_name_removes_nothing() 
         assert rig.output.info().rewinds == ()
 
 
-def test_a_handler_returning_output_fills_a_generic_results_buffer() -> None:
+@contextlib.contextmanager
+def _camera_and_vision(handler: str) -> Iterator[Node]:
+    """A simulated camera and ``run vision --handler HANDLERS:handler`` on it, in processes
+    of their own; a node on their rendezvous port. Both are stopped by SIGTERM after."""
     port = free_port()
     camera = start_framegate(["run", "camera", "--seed", "3", "--loop"], local_port=port)
     vision = start_framegate(
-        ["run", "vision", "--handler", f"{HANDLERS}:histogram", "--input", "camera/images"],
+        ["run", "vision", "--handler", f"{HANDLERS}:{handler}", "--input", "camera/images"],
         local_port=port,
     )
     try:
         with Node(network=NetworkConfig(local_port=port)) as node:
-            elements = wait_until(
-                lambda: _elements(node, "vision/results"), 90, "the handler's results"
-            )
-            results = answered(lambda: node.buffer_info("vision/results"), "vision/results")
-            assert results.kind == "generic"
-            element = elements[-1]
-            assert len(element.payload) == 16 * 4  # the histogram
-            assert b"<mean>" in element.metadata and b"<frame_id>" in element.metadata
-            frame = answered(lambda: node.get("camera/images", element.timestamp_ns), "the frame")
-            assert frame.timestamp_ns == element.timestamp_ns
+            yield node
     finally:
         for proc in (vision, camera):
             proc.send_signal(signal.SIGTERM)
             proc.communicate(timeout=scaled(30))
+
+
+def test_a_handler_returning_output_fills_a_generic_results_buffer() -> None:
+    with _camera_and_vision("histogram") as node:
+        elements = wait_until(
+            lambda: _elements(node, "vision/results"), 90, "the handler's results"
+        )
+        results = answered(lambda: node.buffer_info("vision/results"), "vision/results")
+        assert results.kind == "generic"
+        element = elements[-1]
+        assert len(element.payload) == 16 * 4  # the histogram
+        assert b"<mean>" in element.metadata and b"<frame_id>" in element.metadata
+        frame = answered(lambda: node.get("camera/images", element.timestamp_ns), "the frame")
+        assert frame.timestamp_ns == element.timestamp_ns
 
 
 def test_a_handler_class_is_created_and_called_on_one_thread() -> None:
     """Every call on the thread the class was created on: per-thread state (a model or
     connection bound to its thread, a thread-local cache) carries from frame to frame. Each
     call used to run on a new thread, the class made on the main thread."""
-    port = free_port()
-    camera = start_framegate(["run", "camera", "--seed", "3", "--loop"], local_port=port)
-    vision = start_framegate(
-        ["run", "vision", "--handler", f"{HANDLERS}:ThreadBound", "--input", "camera/images"],
-        local_port=port,
-    )
-    try:
-        with Node(network=NetworkConfig(local_port=port)) as node:
-            elements = wait_until(
-                lambda: _elements(node, "vision/results")[2:],
-                90,
-                "three of the handler's results",
-            )
-            fields = [
-                (field_text(root, "created_here"), int(field_text(root, "calls_here") or 0))
-                for root in (validate_metadata(e.metadata, "generic") for e in elements)
-            ]
-            assert all(created == "true" for created, _calls in fields), fields
-            assert fields[-1][1] >= 3, fields
-    finally:
-        for proc in (vision, camera):
-            proc.send_signal(signal.SIGTERM)
-            proc.communicate(timeout=scaled(30))
+    with _camera_and_vision("ThreadBound") as node:
+        elements = wait_until(
+            lambda: _elements(node, "vision/results")[2:],
+            90,
+            "three of the handler's results",
+        )
+        fields = [
+            (field_text(root, "created_here"), int(field_text(root, "calls_here") or 0))
+            for root in (validate_metadata(e.metadata, "generic") for e in elements)
+        ]
+        assert all(created == "true" for created, _calls in fields), fields
+        assert fields[-1][1] >= 3, fields
 
 
 def _elements(node: Node, target: str) -> list[DataObject]:
