@@ -109,14 +109,18 @@ class Output:
             self._consumer = tightest
             self._consumer_capacity = tightest.queue_size
             self.last_load = load
+            # The newest ``queued`` frames forwarded are those not acked yet; older ones
+            # were taken. Frames forwarded after this look join them (``_put``), so a lapse
+            # seen later records every frame it may have cost, not only those counted here.
+            while len(self._queued_frames) > load.queued:
+                self._queued_frames.popleft()
             return load
         if self._consumer_capacity is None:
             return load
         full = Load(self._consumer_capacity, self._consumer_capacity)
         if not self.lapsed:
             self.lapsed = True
-            queued = self.last_load.queued
-            waiting = list(self._queued_frames)[-queued:] if queued else []
+            waiting = list(self._queued_frames)
             self.log.warning(
                 "%s no longer subscribes (it stopped, exited or became unreachable); frames "
                 "are recorded consumer-lapsed, not forwarded, until a consumer subscribes "

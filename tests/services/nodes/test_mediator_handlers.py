@@ -6,6 +6,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Iterator
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -25,7 +26,7 @@ from services.lib.decisions import GyroMissing, Load
 from services.lib.messages import DecisionRecord, frame_metadata
 from services.lib.quality import Exposure, GyroSamples
 from services.lib.rewind import SourceClock
-from services.nodes import _mediator_pairing
+from services.nodes import _mediator_output, _mediator_pairing
 from services.nodes._mediator_restart import MISSED_TRIES
 from services.nodes.mediator import Mediator, MediatorConfig
 from tests.conftest import free_port
@@ -362,3 +363,28 @@ def test_clock_measurements_never_pile_up(fed: Fed) -> None:
     assert not mediator._offsets.measuring
     mediator._measure(now)
     assert len(asked) == 4
+
+
+def test_a_lapse_records_a_frame_forwarded_after_the_last_look_at_the_load(
+    fed: Fed, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The mediator looks at the load (nothing queued), forwards a frame, and the next look
+    # finds the consumer's subscription gone (a mediator resumed after SIGSTOP forwards
+    # before it has read the consumer's token withdrawn). That frame was never taken: it
+    # gets a consumer-lapsed record, as the frames counted queued at the last look do.
+    consumer = SimpleNamespace(node="detector", host="h", subscription_id="d1", queue_size=2)
+    live = [True]
+
+    def tightest(_subscriptions: object) -> tuple[Load, object]:
+        return (Load(0, 2), consumer) if live[0] else (Load(0, 0), None)
+
+    monkeypatch.setattr(_mediator_output, "tightest_load", tightest)
+    monkeypatch.setattr(fed.mediator.out.images, "put", lambda *_args, **_kw: 1)
+    fed.gyro(0, 40)
+    fed.frame(10)
+    assert [r.accepted for r in fed.records] == [True], fed.reasons()
+    live[0] = False
+    fed.gyro(41, 80)
+    fed.frame(50)
+    lapsed = [r.frame_timestamp_ns for r in fed.records if r.reason == "consumer-lapsed"]
+    assert lapsed == [10 * MS, 50 * MS], fed.reasons()
