@@ -15,6 +15,7 @@ import importlib
 import importlib.util
 import inspect
 import os
+import pkgutil
 import re
 import subprocess
 import sys
@@ -28,7 +29,7 @@ import numpy as np
 import numpy.typing as npt
 
 from middleware import ConfigError
-from services.lib.argtypes import did_you_mean
+from services.lib.argtypes import closest, did_you_mean
 from services.lib.vision import FrameMeta, Output, ResultKind
 
 Image = npt.NDArray[np.uint8]
@@ -69,17 +70,22 @@ def load_handler(spec: str, *, bind: bool = True) -> Handler:
             ) from None
         raise ConfigError(
             f"handler {spec!r}: cannot import {module_name!r}: {type(exc).__name__}: {exc}"
+            + _module_hint(module_name, attr_path, exc)
         ) from exc
+    found: list[str] = []
     for part in attr_path.split("."):
         owner = target
         try:
             target = getattr(target, part)
         except AttributeError as exc:
-            names = [n for n in dir(target) if not n.startswith("_")]
+            # The whole name to write, not only its misspelt part (``Det.metod``: did you
+            # mean 'Det.method'?).
+            names = [".".join([*found, n]) for n in dir(target) if not n.startswith("_")]
             raise ConfigError(
                 f"handler {spec!r}: {module_name!r} has no {attr_path!r}"
-                + did_you_mean(part, names, quote=True)
+                + did_you_mean(".".join([*found, part]), names, quote=True)
             ) from exc
+        found.append(part)
     if inspect.isclass(target):
         # ``module:Class``: built once, as for ``Class.method``, and its instances called.
         if not any("__call__" in vars(k) for k in target.__mro__):
@@ -109,7 +115,20 @@ def load_handler(spec: str, *, bind: bool = True) -> Handler:
 
 def _check_signature(spec: str, target: object, *, self_too: bool) -> None:
     """ConfigError unless ``target`` takes (image, frame) positionally (plus ``self`` for a
-    method not yet bound): a wrong arity failed on every frame, counted, not at start."""
+    method not yet bound), and returns its result rather than a coroutine or a generator:
+    a wrong arity or an ``async def`` failed on every frame, counted, not at start."""
+    function = inspect.unwrap(target)  # type: ignore[arg-type]
+    if inspect.iscoroutinefunction(function) or inspect.isasyncgenfunction(function):
+        raise ConfigError(
+            f"handler {spec!r} is an async function: it is called once per frame and its "
+            "result is needed, not a coroutine; define it with 'def' (asyncio.run() inside "
+            "it runs async code)"
+        )
+    if inspect.isgeneratorfunction(function):
+        raise ConfigError(
+            f"handler {spec!r} is a generator function (it yields): return the list of "
+            "boxes, or an Output, instead"
+        )
     try:
         signature = inspect.signature(target)  # type: ignore[arg-type]
     except (TypeError, ValueError):
@@ -173,7 +192,7 @@ def _import_file(path: Path) -> ModuleType:
     if path in _FILES:
         return _FILES[path]
     if not path.is_file():
-        raise ConfigError(f"handler file {str(path)!r} does not exist")
+        raise ConfigError(f"handler file {str(path)!r} does not exist" + _file_hint(path))
     if str(path.parent) not in sys.path:
         sys.path.insert(0, str(path.parent))
     name = f"{_FILE_MODULE_PREFIX}{len(_FILES)}_{path.stem}"
@@ -188,6 +207,51 @@ def _import_file(path: Path) -> ModuleType:
         raise
     _FILES[path] = module
     return module
+
+
+def _module_hint(module_name: str, attr_path: str, exc: BaseException) -> str:
+    """A did-you-mean for a misspelt module of the handler's own name (not for a module
+    that the handler's module imports and that is missing: that is the user's to install),
+    or for a path written where a module name goes."""
+    if "/" in module_name:  # a path without its .py: say how to name the file
+        named = module_name.rstrip("/")
+        if Path(named + ".py").is_file():
+            return f" (did you mean '{named}.py:{attr_path}'?)"
+        return f" (a handler file is named with its .py: 'path/to/file.py:{attr_path}')"
+    missing = getattr(exc, "name", None)
+    if not isinstance(exc, ModuleNotFoundError) or not isinstance(missing, str):
+        return ""
+    if module_name != missing and not module_name.startswith(missing + "."):
+        return ""
+    parent, _, leaf = missing.rpartition(".")
+    try:
+        where = importlib.import_module(parent).__path__ if parent else sys.path
+        siblings = [m.name for m in pkgutil.iter_modules(where)]
+        # A directory without __init__.py imports too (a namespace package, as examples/),
+        # but iter_modules lists none.
+        siblings += [d.name for e in where if os.path.isdir(e) for d in os.scandir(e)
+                     if d.is_dir() and d.name.isidentifier()]  # fmt: skip
+    except Exception:  # the parent imported before; a search path that cannot be listed
+        return ""
+    hint = closest(leaf, siblings)
+    if hint is None:
+        return ""
+    fixed = ".".join(filter(None, [parent, hint])) + module_name[len(missing) :]
+    return f" (did you mean {fixed!r}?)"
+
+
+def _file_hint(path: Path) -> str:
+    """A did-you-mean for a handler file that does not exist: a sibling ``.py`` file of a
+    like name, or the module path written with dots (``pkg.mod.py`` for ``pkg/mod.py``)."""
+    dotted = path.parent / (path.stem.replace(".", "/") + ".py")
+    if "." in path.stem and dotted.is_file():
+        return f" (did you mean '{os.path.relpath(dotted)}'?)"
+    try:
+        siblings = [p.name for p in path.parent.glob("*.py")]
+    except OSError:
+        return ""
+    hint = closest(path.name, siblings)
+    return "" if hint is None else f" (did you mean '{os.path.relpath(path.parent / hint)}'?)"
 
 
 def handler_argument(spec: str) -> str:

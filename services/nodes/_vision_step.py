@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import re
 import time
 import traceback
 from collections.abc import Callable
@@ -19,6 +20,8 @@ from services.nodes._vision_handler import Handler, Image
 # Distinct warning kinds remembered; past this, further kinds share one (a handler raising
 # a new exception type per frame must not grow the log or this set without bound).
 _MAX_WARNING_KINDS = 64
+# The longest exception type name a skip reason keeps (``handler-error:NAME``).
+_MAX_TYPE_NAME = 64
 
 __all__ = ["Encoded", "Skipped", "VisionStep", "call_directly", "user_traceback"]
 
@@ -64,6 +67,14 @@ def user_traceback(exc: BaseException) -> str:
             shown = tb.tb_next
         tb = tb.tb_next
     return "".join(traceback.format_exception(type(exc), exc, shown)).rstrip("\n")
+
+
+def _type_name(exc: BaseException) -> str:
+    """The name of ``exc``'s type as a skip reason can carry it: a type made at run time
+    may be named anything, and a reason with a newline or past 1,024 characters made the
+    output buffer's description unreadable (``framegate info`` refused it)."""
+    name = re.sub(r"[^\w.]", "?", type(exc).__name__)
+    return name[:_MAX_TYPE_NAME] or "?"
 
 
 def _text(exc: BaseException) -> str:
@@ -118,7 +129,7 @@ class VisionStep:
             result = self._call(lambda: _guarded(self.handler, image, frame))
         except Exception as exc:  # the user's code: any exception is one skipped frame
             raised = exc.original if isinstance(exc, _HandlerExit) else exc
-            name = type(raised).__name__
+            name = _type_name(raised)
             return self.skip(
                 f"handler-error:{name}",
                 f"frame {frame.frame_id}: handler raised {name}: {_text(raised)}",

@@ -117,9 +117,13 @@ class VisionConfig(RunnerConfig):
 
     handler: str | None = setting(
         None,
-        "your function handler(image, frame) -> list[Box] | Output | None "
-        "(services/lib/vision.py), as package.module:function or file.py:function; "
-        "the current directory is importable",
+        "your vision code, called once per frame as handler(image, frame) with the image "
+        "as a NumPy array; it returns a list of Box (services.lib.vision; stored in "
+        "NAME/detections), an "
+        "Output or bytes (NAME/results; annotate it '-> Output'), or None (no result). "
+        "Named package.module:function, module:Class.method or module:Class (created "
+        "once with no arguments), or path/to/file.py:function; the current directory is "
+        "importable (docs/vision.md)",
         parse=handler_argument,
         metavar="MODULE:FUNCTION",
         required=True,
