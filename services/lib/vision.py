@@ -96,8 +96,9 @@ class Output:
     """A result that is not boxes: a payload and fields for a ``generic`` buffer.
 
     ``fields`` become child elements of the metadata, as ``make_metadata`` writes them
-    (names must be XML names; dicts nest; lists are space-separated text; a NumPy array is
-    written as the list of its values, flattened, and a NumPy scalar as its value).
+    (names must be XML names; dicts nest; lists are space-separated text, nested lists and
+    NumPy arrays flattened; a NumPy scalar is its value; a field that is None is left
+    out). Bytes, sets and objects with no text of their own are refused (``bad-result``).
     """
 
     payload: bytes = b""
@@ -191,20 +192,46 @@ def _fields(fields: object) -> dict[str, Any]:
     for name in fields:
         if not isinstance(name, str) or not name or name.startswith("@"):
             raise SchemaError(f"Output field names are XML element names, not {name!r:.40}")
-    return {name: _plain(value) for name, value in fields.items()}
+    return _plain_fields(fields, "")
 
 
-def _plain(value: object) -> object:
-    """``value`` with NumPy arrays and scalars as Python values: ``str`` of an array is its
-    summary (``[0 1 2 ... 1999]`` past 1,000 values), not its values."""
+def _plain_fields(fields: Mapping[str, Any], path: str) -> dict[str, Any]:
+    """A mapping's fields as :func:`_plain` values; a field that is None has no element."""
+    return {
+        name: _plain(value, f"{path}{name}") for name, value in fields.items() if value is not None
+    }
+
+
+def _plain(value: object, name: str) -> object:
+    """``value`` as the metadata writes it: NumPy arrays and scalars as Python values (``str``
+    of an array is its summary, ``[0 1 2 ... 1999]`` past 1,000 values), nested lists flat as
+    an array's values are (``str`` of an inner list is ``[1, 2]``, not its values).
+    SchemaError for what has no text of its own: bytes (their repr, ``b'\\x00'``), a set (in
+    no fixed order), None inside a list ("None"), an object without ``__str__`` (``<Foo
+    object at 0x7f...>``)."""
     if isinstance(value, np.ndarray):
         return value.ravel().tolist()
     if isinstance(value, np.generic):
         return value.item()
     if isinstance(value, Mapping):
-        return {key: _plain(item) for key, item in value.items()}
+        return _plain_fields(value, f"{name}/")
     if isinstance(value, list | tuple):
-        return [_plain(item) for item in value]
+        flat: list[object] = []
+        for item in value:
+            plain = _plain(item, name)
+            flat.extend(plain if isinstance(plain, list) else [plain])
+        return flat
+    if value is None or isinstance(value, bytes | bytearray | memoryview | set | frozenset):
+        what = "None in a list" if value is None else f"a value of type {type(value).__name__}"
+        raise SchemaError(
+            f"Output field {name!r} holds {what}: fields hold text, numbers and booleans, "
+            "lists and dicts of them (bytes go in the payload; a field left out is None)"
+        )
+    if type(value).__str__ is object.__str__ and type(value).__repr__ is object.__repr__:
+        raise SchemaError(
+            f"Output field {name!r} holds a value of type {type(value).__name__}, which has no "
+            "text of its own (give it a __str__, or store its values)"
+        )
     return value
 
 

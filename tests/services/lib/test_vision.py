@@ -16,6 +16,10 @@ class _Unprintable:
         raise RuntimeError("no text")
 
 
+class _Plain:
+    """An object with neither __str__ nor __repr__: its text is "<_Plain object at 0x...>"."""
+
+
 FRAME = read_frame_metadata(
     frame_metadata(7, Exposure(1_000_000, 30_000_000), np.zeros((4, 6), np.uint8), None)
 )
@@ -67,6 +71,18 @@ def test_numpy_values_in_output_fields_are_written_as_their_values() -> None:
     assert (text["count"], text["pair"]) == ("3", "1 2.5")
 
 
+def test_nested_lists_are_flat_as_arrays_are_and_a_none_field_is_left_out() -> None:
+    """A polygon as a list of pairs was written "[1, 2] [3, 4]" (each inner list's repr),
+    the same as a NumPy array "1 2 3 4"; a None field was written "None"."""
+    fields = {"poly": [[1, 2], (3, 4)], "pose": {"ok": None, "x": 1.5}, "track": None}
+    encoded = encode_result(Output(b"", fields), ResultKind.GENERIC, FRAME, "a/b", 5)
+    assert encoded is not None
+    root = validate_metadata(encoded.metadata, "generic")
+    text = {e.tag.split("}")[1]: e.text for e in root.iter()}
+    assert text["poly"] == "1 2 3 4" and text["x"] == "1.5"
+    assert "track" not in text and "ok" not in text
+
+
 @pytest.mark.parametrize(
     ("result", "kind", "match"),
     [
@@ -83,6 +99,15 @@ def test_numpy_values_in_output_fields_are_written_as_their_values() -> None:
         (Output(b"x", {1: 2}), ResultKind.GENERIC, "XML element names, not 1"),  # type: ignore[dict-item]
         (Output(b"x", {"@kind": "evil"}), ResultKind.GENERIC, "not '@kind'"),
         (Output(b"x", {"v": _Unprintable()}), ResultKind.GENERIC, "RuntimeError converting"),
+        # Values with no text of their own were stored as their repr: refused, named.
+        (
+            Output(b"x", {"raw": b"\x00\x01"}),
+            ResultKind.GENERIC,
+            "'raw' holds a value of type bytes",
+        ),
+        (Output(b"x", {"ids": {1, 2}}), ResultKind.GENERIC, "'ids' holds a value of type set"),
+        (Output(b"x", {"d": {"v": [1, None]}}), ResultKind.GENERIC, "'d/v' holds None in a list"),
+        (Output(b"x", {"o": _Plain()}), ResultKind.GENERIC, "type _Plain, which has no text"),
     ],
 )
 def test_a_result_that_does_not_fit_is_a_schema_error(
