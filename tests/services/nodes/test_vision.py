@@ -403,6 +403,11 @@ def _framegate(*argv: str, cwd: Path = REPO) -> subprocess.CompletedProcess[str]
         (["--handler", "nosuch.module:fn"], "cannot import 'nosuch.module'"),
         (["--handler", "tests.services.nodes.vision_handlers:NOT_A_FUNCTION"], "not a function"),
         ([], "the following arguments are required: --handler"),
+        (
+            ["--handler", "examples.vision_templat:find_marker"],
+            "(did you mean 'examples.vision_template'?)",
+        ),
+        (["--handler", "tests.services.nodes.vision_handlers:coroutine"], "is an async function"),
     ],
 )
 def test_run_vision_refuses_a_bad_handler_in_one_line(argv: list[str], says: str) -> None:

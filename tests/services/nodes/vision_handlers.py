@@ -51,6 +51,11 @@ def one_argument(image: npt.NDArray[np.uint8]) -> list[Box]:
     return []
 
 
+async def coroutine(image: npt.NDArray[np.uint8], frame: FrameMeta) -> list[Box]:
+    """An ``async def`` handler: it would give a coroutine per frame, never a result."""
+    return []
+
+
 class TakesNothing:
     """A class named as the handler, whose instances take no (image, frame)."""
 
