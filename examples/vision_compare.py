@@ -172,9 +172,13 @@ if __name__ == "__main__":
     # background starts that way, and Python then never raises KeyboardInterrupt).
     signal.signal(signal.SIGINT, signal.default_int_handler)
     parser = argparse.ArgumentParser(prog="vision_compare", description=__doc__.splitlines()[0])
-    parser.add_argument("--seconds", type=window, default=60.0, help="measuring window")
-    parser.add_argument("--warmup-s", type=duration, default=10.0, help="before the window")
-    parser.add_argument("--seed", type=int, default=1, help="the simulated approach")
+    parser.add_argument(
+        "--seconds", type=window, default=60.0, help="measuring window, s (default 60)"
+    )
+    parser.add_argument(
+        "--warmup-s", type=duration, default=10.0, help="run before the window, s (default 10)"
+    )
+    parser.add_argument("--seed", type=int, default=1, help="the simulated approach (default 1)")
     args = parser.parse_args()
     try:
         code = main(seconds=args.seconds, warmup_s=args.warmup_s, seed=args.seed)

@@ -241,6 +241,33 @@ class Ros2Config:
         if not self.ros_namespace.startswith("/"):
             raise ConfigError(f"--ros-namespace must start with '/', got {self.ros_namespace!r}")
         self._check_consumer()
+        self._check_topics()
+
+    def _check_topics(self) -> None:
+        """ConfigError for an output on a topic the bridge reads, or two outputs on one
+        topic: the bridge's own images came back in as new frames (counted
+        ``duplicate-stamp``), and every node on the topic got two streams mixed."""
+        inputs = {
+            self.camera_info_topic: "the CameraInfo, --camera-info",
+            "/tf_static": "the static transforms",
+            self.image_in: "--image-in",
+            self.imu_in: "--imu-in",
+        }
+        seen: dict[str, str] = {}
+        for mapping in self.outputs:
+            said = f"{mapping.buffer}={mapping.topic}"
+            if mapping.topic in inputs:
+                raise ConfigError(
+                    f"output {said}: the bridge reads {mapping.topic} "
+                    f"({inputs[mapping.topic]}) and would read its own messages back; "
+                    "publish to a topic of its own (e.g. /camera/image_sharp)"
+                )
+            if mapping.topic in seen:
+                raise ConfigError(
+                    f"outputs {seen[mapping.topic]} and {said} publish on one topic; give each "
+                    "its own"
+                )
+            seen[mapping.topic] = said
 
     def _check_consumer(self) -> None:
         if not 1 <= self.consumer_queue <= FLOW_QUEUE_MAX:

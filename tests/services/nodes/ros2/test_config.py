@@ -53,6 +53,21 @@ def test_mappings_from_flags_and_deploy_lists() -> None:
             ["--image-in", "/cam/image_raw", "--camera-xml", "c.xml", "--camera-info", "/ci"],
             "--camera-info /ci with --camera-xml",
         ),
+        # An output on a topic the bridge reads: its own images came back in as frames.
+        (
+            ["--image-in", "/cam/image_raw", "--image-out", "mediator/images=/cam/image_raw"],
+            r"reads /cam/image_raw \(--image-in\) and would read its own messages back",
+        ),
+        (
+            ["--image-in", "/cam/image_raw", "--image-out", "mediator/images=/cam/camera_info"],
+            r"reads /cam/camera_info \(the CameraInfo",
+        ),
+        (["--imu-in", "/imu", "--verdicts-out", "m/decisions=/imu"], r"reads /imu \(--imu-in\)"),
+        (["--image-out", "m/images=/tf_static"], "the static transforms"),
+        (
+            ["--image-out", "m/images=/out", "--image-out", "camera/images=/out"],
+            "outputs m/images=/out and camera/images=/out publish on one topic",
+        ),
     ],
 )
 def test_bad_flags_are_one_line_errors(argv: list[str], match: str) -> None:
