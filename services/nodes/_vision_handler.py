@@ -224,8 +224,10 @@ def _module_hint(module_name: str, attr_path: str, exc: BaseException) -> str:
     if module_name != missing and not module_name.startswith(missing + "."):
         return ""
     parent, _, leaf = missing.rpartition(".")
+    if not parent:  # a top-level name: one of the user's, or not importable from here
+        return _top_level_hint(leaf, module_name[len(missing) :], attr_path)
     try:
-        where = importlib.import_module(parent).__path__ if parent else sys.path
+        where = importlib.import_module(parent).__path__
         siblings = [m.name for m in pkgutil.iter_modules(where)]
         # A directory without __init__.py imports too (a namespace package, as examples/),
         # but iter_modules lists none.
@@ -238,6 +240,28 @@ def _module_hint(module_name: str, attr_path: str, exc: BaseException) -> str:
         return ""
     fixed = ".".join(filter(None, [parent, hint])) + module_name[len(missing) :]
     return f" (did you mean {fixed!r}?)"
+
+
+def _top_level_hint(leaf: str, rest: str, attr_path: str) -> str:
+    """A misspelt top-level module is looked for among the user's own (the current directory
+    and ``PYTHONPATH``), never among the standard library's and installed packages' hundreds
+    of names, which make nonsense guesses (``examples`` read as ``tempfile``). Without a
+    guess, say how a module of one's own becomes importable."""
+    roots = [os.getcwd(), *filter(None, os.environ.get("PYTHONPATH", "").split(os.pathsep))]
+    names: list[str] = []
+    for root in roots:
+        with contextlib.suppress(OSError):
+            for entry in os.scandir(root):
+                name = entry.name[:-3] if entry.name.endswith(".py") else entry.name
+                if name.isidentifier() and (entry.is_dir() or entry.name.endswith(".py")):
+                    names.append(name)
+    hint = closest(leaf, names)
+    if hint is not None:
+        return f" (did you mean {hint + rest!r}?)"
+    return (
+        f" (a module of your own imports from the directory that holds it: run from there, "
+        f"add it to PYTHONPATH, or name the file: 'path/to/file.py:{attr_path}')"
+    )
 
 
 def _file_hint(path: Path) -> str:

@@ -48,6 +48,21 @@ def test_a_misspelt_handler_name_gets_the_name_to_write(spec: str, match: str) -
         load_handler(spec)
 
 
+def test_a_top_level_module_is_guessed_only_among_the_users_own(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """From another directory, a module of one's own is not importable: the error says how
+    to make it so, and never guesses among the standard library's names (``examples`` was
+    read as ``tempfile``); a misspelt module of the current directory is guessed."""
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(ConfigError, match="run from there, add it to PYTHONPATH") as raised:
+        load_handler("mypkg_not_here.detect:find")
+    assert "did you mean" not in str(raised.value)
+    (tmp_path / "my_detector.py").write_text("def find(image, frame):\n    return []\n")
+    with pytest.raises(ConfigError, match=r"\(did you mean 'my_detector'\?\)"):
+        load_handler("my_detectr:find")
+
+
 def test_a_module_the_handlers_module_imports_is_not_guessed_at(tmp_path: Path) -> None:
     """A missing dependency is the user's to install: no did-you-mean for it."""
     module = tmp_path / "needs_a_framework.py"
