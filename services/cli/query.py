@@ -6,11 +6,13 @@ import argparse
 import base64
 import os
 import re
+import sys
 import time
 from pathlib import Path
 from typing import Any
 
 from middleware import (
+    BufferInfo,
     DataObject,
     FramegateError,
     Node,
@@ -117,7 +119,7 @@ def run(args: argparse.Namespace) -> int:
     if args.force and args.save is None:
         raise QueryError("--force only applies to --save")
     with Node(network=network(args)) as node:
-        service, _buffer = resolve(node, args.target, args.timeout)
+        service, buffer = resolve(node, args.target, args.timeout)
         now_ns = time.time_ns() + (service.clock_offset_ns or 0)
         timeout_s = max(5.0, args.timeout)
         if at is not None:
@@ -125,6 +127,8 @@ def run(args: argparse.Namespace) -> int:
             assert at_ns is not None
             TimeRange(at_ns, None)  # refuses a time outside 0..2^63-1 with a QueryError
             elements = [node.nearest(args.target, at_ns, timeout_s=timeout_s)]
+            if note := retention_note(buffer, at_ns):  # the nearest is then the oldest
+                print(f"note: {note.replace('range starts', 'time --at is', 1)}", file=sys.stderr)
         else:
             rng = None
             if start is not None or end is not None:
@@ -137,6 +141,8 @@ def run(args: argparse.Namespace) -> int:
                     raise QueryError(f"--from {args.start} is after --to {args.end}")
             last = args.last if args.last is not None or rng is not None else DEFAULT_LAST
             elements = node.query(args.target, time_range=rng, last=last, timeout_s=timeout_s)
+            if rng is not None and (note := retention_note(buffer, rng.start_ns)):
+                print(f"note: {note}", file=sys.stderr, flush=True)
     saved = _save_all(args.save, elements, args.force) if args.save is not None else {}
     if args.json:
         rows = [_element_json(e, saved.get(e.timestamp_ns), args.with_payload) for e in elements]
@@ -146,6 +152,39 @@ def run(args: argparse.Namespace) -> int:
     if args.save is not None:
         print(f"saved {counted(len(elements), 'element')} to {args.save}")
     return 0
+
+
+def retention_note(buffer: BufferInfo, start_ns: int | None) -> str | None:
+    """What a range that starts before the buffer's oldest element cannot get, or None.
+
+    A buffer keeps only its retention's worth: the table alone would not say that the
+    first minute of `--from -60s` is gone (or was never put), as `ros2 bag` cannot either.
+    """
+    if start_ns is None or buffer.oldest_ns is None or start_ns >= buffer.oldest_ns:
+        return None
+    r = buffer.retention
+    limits = [
+        f"max {r.max_count} elements" if r.max_count is not None else "",
+        f"max {format_bytes(r.max_bytes)}" if r.max_bytes is not None else "",
+        f"max age {r.max_age_ns / 1e9:g} s" if r.max_age_ns is not None else "",
+    ]
+    kept = ", ".join(x for x in limits if x) or "no limit"
+    return (
+        f"the range starts {format_seconds((buffer.oldest_ns - start_ns) / 1e9)} before "
+        f"{buffer.name}'s oldest element ({format_ns(buffer.oldest_ns)}); it keeps {kept}, "
+        "so what is older is gone or was never put (framegate info "
+        f"{buffer.name})"
+    )
+
+
+def format_seconds(seconds: float) -> str:
+    """``4.2 s``, ``13 min 14 s``, ``2 h 5 min``: a gap a reader takes in at once."""
+    if seconds < 60:
+        return f"{seconds:.1f} s"
+    minutes, secs = divmod(round(seconds), 60)
+    if minutes < 60:
+        return f"{minutes} min {secs} s"
+    return f"{minutes // 60} h {minutes % 60} min"
 
 
 def summarize(metadata: bytes) -> tuple[str, dict[str, str]]:

@@ -91,6 +91,11 @@ def test_info_and_query_report_what_the_buffer_holds(
         base + 200 * MS,
         base + 300 * MS,
     ]
+    # A range reaching past what the buffer holds says so (on stderr: the JSON stays clean).
+    assert re.search(
+        r"note: the range starts 5\d min \d+ s before cam/images's oldest element", recent.stderr
+    ), recent.describe()
+    assert "note:" not in in_range.stderr, in_range.describe()
 
 
 @contextmanager

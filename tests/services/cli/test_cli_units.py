@@ -8,7 +8,14 @@ from pathlib import Path
 import pytest
 from mcap.reader import make_reader
 
-from middleware import DataObject, QueryError, Retention, make_metadata, validate_metadata
+from middleware import (
+    BufferInfo,
+    DataObject,
+    QueryError,
+    Retention,
+    make_metadata,
+    validate_metadata,
+)
 from services.cli import query
 from services.cli.hz import Sample, window_stats
 from services.tools.bag import BagError, BagWriter, frame_layout, open_bag, shift_element
@@ -30,6 +37,21 @@ SECOND = 1_000_000_000
 )
 def test_cli_times_are_absolute_or_relative(text: str, expected: tuple[int, bool]) -> None:
     assert query.parse_cli_time(text, "--from") == expected
+
+
+def test_a_range_older_than_the_buffer_is_named_with_its_retention() -> None:
+    buffer = BufferInfo(
+        service="cam", buffer="images", kind="frame", retention=Retention(max_count=64),
+        count=64, payload_bytes=64, oldest_ns=100 * SECOND, newest_ns=104 * SECOND,
+        rate_hz=15.0, puts=900, refused=0, rejected=0,
+    )  # fmt: skip
+    note = query.retention_note(buffer, 40 * SECOND)
+    assert note is not None
+    assert note.startswith("the range starts 1 min 0 s before cam/images's oldest element")
+    assert "it keeps max 64 elements, max 512.0 MiB" in note
+    # A range within what the buffer holds, or with no start, needs no note.
+    assert query.retention_note(buffer, 100 * SECOND) is None
+    assert query.retention_note(buffer, None) is None
 
 
 def test_a_bad_time_names_the_flag_and_the_accepted_forms() -> None:
