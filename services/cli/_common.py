@@ -10,6 +10,7 @@ import threading
 import time
 from collections.abc import Iterator
 from datetime import UTC, datetime
+from pathlib import Path
 from types import FrameType
 from typing import Any
 
@@ -138,3 +139,26 @@ def report_failures(failures: list[str]) -> int:
 def counted(count: int, noun: str) -> str:
     """``1 element``, ``2 elements``: a count with its noun (regular plurals only)."""
     return f"{count} {noun}" if count == 1 else f"{count} {noun}s"
+
+
+MCAP_SUFFIX = ".mcap"
+
+
+def recording_output(path: Path) -> Path:
+    """The file ``record -o PATH`` writes: ``PATH`` with ``.mcap`` added when it has not
+    that suffix (``ros2 bag record -o run`` makes ``run/run_0.mcap``; Foxglove and
+    ``info``/``play`` know a recording by its suffix). A directory stays as given, to be
+    refused by name."""
+    if path.suffix.lower() == MCAP_SUFFIX or path.is_dir():
+        return path
+    return path.with_name(path.name + MCAP_SUFFIX)
+
+
+def recording_input(path: Path) -> Path:
+    """The recording ``info``/``play`` PATH means: ``PATH.mcap`` when only that exists (the
+    file ``record -o PATH`` wrote), else ``PATH``."""
+    if not path.exists() and path.suffix.lower() != MCAP_SUFFIX:
+        with_suffix = path.with_name(path.name + MCAP_SUFFIX)
+        if with_suffix.is_file():
+            return with_suffix
+    return path

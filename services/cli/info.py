@@ -9,7 +9,15 @@ from typing import TYPE_CHECKING, Any
 
 from middleware import BufferInfo, Node, ServiceInfo, check_name
 
-from ._common import command_parser, counted, format_bytes, format_ns, network, print_json
+from ._common import (
+    command_parser,
+    counted,
+    format_bytes,
+    format_ns,
+    network,
+    print_json,
+    recording_input,
+)
 from ._target import add_timeout_argument, resolve, wait_for_service
 from .ls import clock_steps_text, holder, listen_text
 
@@ -54,8 +62,9 @@ def service_json(info: ServiceInfo) -> dict[str, Any]:
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.target.endswith(".mcap") or Path(args.target).is_file():
-        return _recording(args, Path(args.target))
+    recording = recording_input(Path(args.target))  # `info run`: run.mcap, as record wrote it
+    if args.target.endswith(".mcap") or recording.is_file():
+        return _recording(args, recording)
     whole_service = "/" not in args.target.strip("/")
     with Node(network=network(args)) as node:
         if whole_service:

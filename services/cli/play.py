@@ -29,7 +29,7 @@ from middleware import (
 )
 from services.lib.argtypes import non_negative_float
 
-from ._common import command_parser, exit_on_sigterm, format_ns, network
+from ._common import command_parser, exit_on_sigterm, format_ns, network, recording_input
 from ._target import print_json_line
 
 if TYPE_CHECKING:
@@ -267,6 +267,7 @@ def _sleep_until(due: float) -> None:
 def run(args: argparse.Namespace) -> int:
     from services.tools.bag import open_bag  # imported here: only record and play need MCAP
 
+    args.file = recording_input(args.file)  # `play run`: the run.mcap `record -o run` wrote
     rate = 0.0 if args.fast else args.rate
     if rate < 0:
         raise ConfigError(

@@ -38,7 +38,15 @@ from middleware import (
 from services.lib.argtypes import positive_float, positive_int
 from services.tools.bag import STOP_SLACK_S, TAIL_FLOOR_S
 
-from ._common import command_parser, counted, exit_on_sigterm, format_bytes, network, print_json
+from ._common import (
+    command_parser,
+    counted,
+    exit_on_sigterm,
+    format_bytes,
+    network,
+    print_json,
+    recording_output,
+)
 from ._target import add_timeout_argument, nothing_answered, observer, resolve, where
 
 if TYPE_CHECKING:
@@ -66,7 +74,12 @@ def register(subparsers: Any) -> None:
         help="record every buffer of every live service, and those that appear later",
     )
     parser.add_argument(
-        "-o", "--output", required=True, type=Path, metavar="FILE.mcap", help="the MCAP file"
+        "-o",
+        "--output",
+        required=True,
+        type=Path,
+        metavar="FILE.mcap",
+        help="the MCAP file (.mcap is added to a name without it)",
     )
     parser.add_argument(
         "--duration",
@@ -104,6 +117,7 @@ def register(subparsers: Any) -> None:
 
 
 def _check(args: argparse.Namespace) -> None:
+    args.output = recording_output(args.output)  # `-o run` writes run.mcap
     if not args.targets and not args.all:
         raise ConfigError("name the buffers to record (SERVICE/BUFFER ...), or pass --all")
     if args.targets and args.all:

@@ -47,7 +47,8 @@ def test_record_then_play_gives_back_identical_buffers(
         images = service.offer("images", kind="frame", retention=retention, inline_max_bytes=0)
         log = service.offer("log")
         recorder = cli.start(
-            "record", "cam/images", "cam/log", "-o", str(bag), "--count", str(COUNT),
+            # `-o run`, as with `ros2 bag record -o run`: the file is run.mcap.
+            "record", "cam/images", "cam/log", "-o", str(tmp_path / "run"), "--count", str(COUNT),
             "--queue", "1", "--json",
         )  # fmt: skip
         assert images.wait_for_subscribers(1, timeout_s=scaled(30))
@@ -71,12 +72,14 @@ def test_record_then_play_gives_back_identical_buffers(
     # It could not keep up with the burst, and fetched what it missed from the buffer.
     assert by_name["cam/images"]["missed"] > 0 and by_name["cam/images"]["backfilled"] > 0
     assert summary["messages"] == 3 * COUNT
+    assert summary["file"] == str(bag) and not (tmp_path / "run").exists()
 
     _check_mcap(bag, base)
 
     # The original service is gone; play offers the same names again.
     play_endpoint = f"tcp/127.0.0.1:{free_port()}"
-    player = cli.start("play", str(bag), "--fast", "--json", "--listen", play_endpoint)
+    # `play run` plays the run.mcap that `record -o run` wrote.
+    player = cli.start("play", str(tmp_path / "run"), "--fast", "--json", "--listen", play_endpoint)
     events = LineReader(player)
     offered = events.json_until(lambda e: e["event"] == "offered", TIMEOUT_S)
     assert {(b["name"], b["kind"], b["elements"]) for b in offered["buffers"]} == {

@@ -17,6 +17,7 @@ from middleware import (
     validate_metadata,
 )
 from services.cli import query
+from services.cli._common import recording_input, recording_output
 from services.cli.hz import Sample, window_stats
 from services.tools.bag import BagError, BagWriter, frame_layout, open_bag, shift_element
 from tests.services.cli.conftest import HEIGHT, MS, WIDTH, frame_metadata, frame_payload
@@ -187,3 +188,14 @@ def test_frame_layout_needs_a_raw_encoding_and_a_matching_payload() -> None:
     assert layout is not None and (layout.step_bytes, layout.size_bytes) == (WIDTH, WIDTH * HEIGHT)
     assert frame_layout(frame_metadata(1, 1), 3) is None
     assert frame_layout(make_metadata("generic", 1)) is None
+
+
+def test_a_recording_named_without_its_suffix_is_the_mcap_file(tmp_path: Path) -> None:
+    assert recording_output(tmp_path / "run") == tmp_path / "run.mcap"
+    assert recording_output(tmp_path / "run.mcap") == tmp_path / "run.mcap"
+    assert recording_output(tmp_path) == tmp_path  # a directory is refused by name later
+    assert recording_input(tmp_path / "run") == tmp_path / "run"  # neither exists
+    (tmp_path / "run.mcap").write_bytes(b"")
+    assert recording_input(tmp_path / "run") == tmp_path / "run.mcap"
+    (tmp_path / "run").write_bytes(b"")  # a file of the very name given wins
+    assert recording_input(tmp_path / "run") == tmp_path / "run"
