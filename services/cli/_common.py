@@ -141,6 +141,16 @@ def counted(count: int, noun: str) -> str:
     return f"{count} {noun}" if count == 1 else f"{count} {noun}s"
 
 
+def format_seconds(seconds: float) -> str:
+    """``4.2 s``, ``13 min 14 s``, ``2 h 5 min``: a gap a reader takes in at once."""
+    if seconds < 60:
+        return f"{seconds:.1f} s"
+    minutes, secs = divmod(round(seconds), 60)
+    if minutes < 60:
+        return f"{minutes} min {secs} s"
+    return f"{minutes // 60} h {minutes % 60} min"
+
+
 MCAP_SUFFIX = ".mcap"
 
 

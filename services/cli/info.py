@@ -14,6 +14,7 @@ from ._common import (
     counted,
     format_bytes,
     format_ns,
+    format_seconds,
     network,
     print_json,
     recording_input,
@@ -23,6 +24,9 @@ from .ls import clock_steps_text, holder, listen_text
 
 if TYPE_CHECKING:  # the bag code loads MCAP: only `info FILE.mcap` pays for it
     from services.tools.bag import ChannelInfo
+
+
+SECOND_NS = 1_000_000_000
 
 
 def register(subparsers: Any) -> None:
@@ -172,8 +176,21 @@ def _recording(args: argparse.Namespace, path: Path) -> int:
     print(f"Files:         {info.path}")
     print(f"Size:          {format_bytes(info.size_bytes)}")
     print(f"Status:        {info.integrity}")
+    if info.recorded is not None:  # as `ros2 bag info`'s start and duration: the recorder's
+        start_ns, stop_ns, host = info.recorded
+        where = f", on host {host}" if host else ""
+        print(
+            f"Recorded:      {format_ns(start_ns)} .. {format_ns(stop_ns)} "
+            f"({(stop_ns - start_ns) / 1e9:.1f} s{where})"
+        )
+        if info.start_ns is not None and info.start_ns < start_ns - SECOND_NS:
+            early = format_seconds((start_ns - info.start_ns) / 1e9)
+            span = span[:-1] + (
+                f"; it begins {early} before the recording: each buffer's newest element at "
+                "the start is kept, however old)"
+            )
     print(f"Span:          {span}")
-    print(f"Messages:      {info.messages} in {info.chunks} chunks")
+    print(f"Messages:      {counted(info.messages, 'message')} in {counted(info.chunks, 'chunk')}")
     print(f"Compression:   {', '.join(info.compressions) or 'none'}")
     print("Channels:")
     width = max((len(c.topic) for c in info.channels), default=0)

@@ -29,7 +29,7 @@ from middleware import (
 )
 from services.lib.argtypes import non_negative_float
 
-from ._common import command_parser, exit_on_sigterm, format_ns, network, recording_input
+from ._common import command_parser, counted, exit_on_sigterm, format_ns, network, recording_input
 from ._target import print_json_line
 
 if TYPE_CHECKING:
@@ -326,7 +326,8 @@ def _event(args: argparse.Namespace, event: dict[str, Any]) -> None:
     if event["event"] == "offered":
         for b in event["buffers"]:
             print(
-                f"offering {b['name']} ({b['kind']}, {b['elements']} elements) from {args.file}",
+                f"offering {b['name']} ({b['kind']}, {counted(b['elements'], 'element')}) from "
+                f"{args.file}",
                 flush=True,
             )
     elif event["event"] == "done":
@@ -334,6 +335,7 @@ def _event(args: argparse.Namespace, event: dict[str, Any]) -> None:
         skipped = sum(event["skipped"].values())
         also = f" ({skipped} skipped: see the warnings above)" if skipped else ""
         print(
-            f"played {event['played']} elements in {event['elapsed_s']:.1f} s{also}; {then}",
+            f"played {counted(event['played'], 'element')} in {event['elapsed_s']:.1f} s"
+            f"{also}; {then}",
             flush=True,
         )

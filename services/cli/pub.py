@@ -20,7 +20,7 @@ from typing import Any
 from middleware import ConfigError, Node, make_metadata, now_ns, split_target
 from services.lib.argtypes import non_negative_float, non_negative_int, positive_float, positive_int
 
-from ._common import command_parser, network, stop_on_signals
+from ._common import command_parser, counted, network, stop_on_signals
 from ._target import print_json_line
 
 WIDTH_PX, HEIGHT_PX = 64, 48
@@ -177,7 +177,9 @@ def run(args: argparse.Namespace) -> int:
         print_json_line(
             {"event": "done", "target": args.target, "kind": args.kind, "published": put}
         )
-    print(f"published {put} {args.kind} elements to {service}/{buffer}", file=sys.stderr)
+    print(
+        f"published {counted(put, args.kind + ' element')} to {service}/{buffer}", file=sys.stderr
+    )
     return 0
 
 

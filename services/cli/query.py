@@ -25,7 +25,15 @@ from middleware import (
 from services.lib.argtypes import positive_int
 from services.lib.files import OutputError, create_file, open_directory
 
-from ._common import command_parser, counted, format_bytes, format_ns, network, print_json
+from ._common import (
+    command_parser,
+    counted,
+    format_bytes,
+    format_ns,
+    format_seconds,
+    network,
+    print_json,
+)
 from ._fields import decode_metadata
 from ._target import add_timeout_argument, resolve
 
@@ -175,16 +183,6 @@ def retention_note(buffer: BufferInfo, start_ns: int | None) -> str | None:
         "so what is older is gone or was never put (framegate info "
         f"{buffer.name})"
     )
-
-
-def format_seconds(seconds: float) -> str:
-    """``4.2 s``, ``13 min 14 s``, ``2 h 5 min``: a gap a reader takes in at once."""
-    if seconds < 60:
-        return f"{seconds:.1f} s"
-    minutes, secs = divmod(round(seconds), 60)
-    if minutes < 60:
-        return f"{minutes} min {secs} s"
-    return f"{minutes // 60} h {minutes % 60} min"
 
 
 def summarize(metadata: bytes) -> tuple[str, dict[str, str]]:

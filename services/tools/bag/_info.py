@@ -83,6 +83,19 @@ def recording_started_ns(metadata: list[Any]) -> int | None:
     return None
 
 
+def recording_window(metadata: list[Any]) -> tuple[int, int, str] | None:
+    """When ``framegate record`` ran (``started_ns``, ``stopped_ns``) and on which host, or
+    None (another writer's file, or a recorder killed before it wrote its account)."""
+    for record in metadata:
+        if getattr(record, "name", None) != "framegate.recording":
+            continue
+        start, stop = (record.metadata.get(k, "") for k in ("started_ns", "stopped_ns"))
+        host = record.metadata.get("host", "")
+        if all(isinstance(t, str) and t.isdigit() and len(t) < 25 for t in (start, stop)):
+            return int(start), int(stop), host if isinstance(host, str) else ""
+    return None
+
+
 @dataclass(frozen=True, slots=True)
 class RecordingInfo:
     path: str
@@ -96,6 +109,9 @@ class RecordingInfo:
     compressions: tuple[str, ...]
     channels: tuple[ChannelInfo, ...]
     buffers: tuple[BufferRecord, ...] = ()
+    # When the recorder ran (its own clock) and where: the messages' span may start long
+    # before, as a buffer's newest element at the start is recorded however old it is.
+    recorded: tuple[int, int, str] | None = None
 
     @property
     def duration_s(self) -> float:
@@ -120,6 +136,9 @@ class RecordingInfo:
                 for c in self.channels
             ],
             "recorder": [b.json() for b in self.buffers],
+            "recorded_start_ns": self.recorded[0] if self.recorded else None,
+            "recorded_stop_ns": self.recorded[1] if self.recorded else None,
+            "recorded_host": self.recorded[2] if self.recorded else None,
         }
 
 
@@ -162,6 +181,7 @@ def recording_info(path: Path) -> RecordingInfo:
         compressions=tuple(sorted(found.compressions)),
         channels=channels,
         buffers=recorder_account(found.metadata),
+        recorded=recording_window(found.metadata),
     )
 
 

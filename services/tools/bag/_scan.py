@@ -101,7 +101,8 @@ class Integrity:
     def describe(self, end_text: str) -> str:
         """One line: ``recovered N messages up to <end_text>; the file was cut short ...``."""
         if self.complete:
-            return f"complete: {self.messages} messages, checksums verified"
+            plural = "" if self.messages == 1 else "s"
+            return f"complete: {self.messages} message{plural}, checksums verified"
         head = f"recovered {self.messages} messages up to {end_text}"
         at = self.lost_from_byte or 0
         if self.cut_short:

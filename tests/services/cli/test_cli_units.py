@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
 
 import pytest
@@ -199,3 +200,34 @@ def test_a_recording_named_without_its_suffix_is_the_mcap_file(tmp_path: Path) -
     assert recording_input(tmp_path / "run") == tmp_path / "run.mcap"
     (tmp_path / "run").write_bytes(b"")  # a file of the very name given wins
     assert recording_input(tmp_path / "run") == tmp_path / "run"
+
+
+def test_info_of_a_recording_gives_its_window_beside_the_span(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A buffer's newest element at the start is recorded however old: the span of a 5 s
+    recording began 13 min earlier, and info gave only that span."""
+    from services.cli import main
+
+    started = 10**18
+    info_t = started - 600 * SECOND  # a camera description put 10 min before
+    bag = tmp_path / "run.mcap"
+    with BagWriter(bag) as writer:
+        writer.add_buffer("cam", "info", kind="generic", retention=Retention())
+        writer.write("cam/info", DataObject(info_t, b"d", make_metadata("generic", info_t)))
+        writer.write("cam/info", DataObject(started + SECOND, b"d", make_metadata("generic", 1)))
+        writer.add_metadata(
+            "framegate.recording",
+            {"host": "robot", "started_ns": str(started), "stopped_ns": str(started + 5 * SECOND)},
+        )
+    assert main(["info", str(bag)]) == 0
+    out = capsys.readouterr().out
+    assert (
+        "Recorded:      2001-09-09T01:46:40.000000Z .. 2001-09-09T01:46:45.000000Z "
+        "(5.0 s, on host robot)" in out
+    )
+    assert "(601.0 s; it begins 10 min 0 s before the recording: each buffer's newest" in out
+    assert "Messages:      2 messages in 1 chunk\n" in out
+    assert main(["info", str(tmp_path / "run"), "--json"]) == 0  # the suffix may be left out
+    data = json.loads(capsys.readouterr().out)
+    assert (data["recorded_start_ns"], data["recorded_stop_ns"]) == (started, started + 5 * SECOND)
