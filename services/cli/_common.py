@@ -172,3 +172,14 @@ def recording_input(path: Path) -> Path:
         if with_suffix.is_file():
             return with_suffix
     return path
+
+
+def write_report(path: Path, report: Any) -> None:
+    """``--json FILE`` of ``bench``, ``soak`` and ``faults``: the report, indented, a value
+    JSON has no form for as its text. A failure is one line (the run's table is printed)."""
+    from services.lib.files import OutputError
+
+    try:
+        path.write_text(json.dumps(report, indent=2, default=str) + "\n")
+    except OSError as exc:
+        raise OutputError(f"cannot write --json {path}: {exc.strerror or exc}") from exc

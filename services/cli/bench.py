@@ -12,7 +12,6 @@ Ctrl-C or SIGTERM stops the workers and exits 0 without a report.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -21,14 +20,13 @@ from typing import Any
 from services.evidence.bench import (
     OPT_IN_SCENARIOS,
     SCENARIO_NAMES,
-    BenchError,
     BenchOptions,
     format_table,
     run_bench,
 )
-from services.lib.argtypes import positive_float, positive_int
+from services.lib.argtypes import positive_float, positive_int, report_file
 
-from ._common import command_parser, exit_on_sigterm
+from ._common import command_parser, exit_on_sigterm, write_report
 
 GOAL_MISSED = 3
 
@@ -57,7 +55,9 @@ def register(subparsers: Any) -> None:
         metavar="N",
         help="raw/framegate run pairs per row (3, quick 1)",
     )
-    parser.add_argument("--json", metavar="FILE", help="also write the full report as JSON")
+    parser.add_argument(
+        "--json", type=report_file, metavar="FILE", help="also write the full report as JSON"
+    )
     parser.add_argument(
         "--quick", action="store_true", help="short smoke test: small sizes, one pair (~2 min)"
     )
@@ -98,9 +98,7 @@ def run(args: argparse.Namespace) -> int:
         quick=args.quick,
         progress=progress_printer(args.verbose),
     )
-    target = Path(args.json) if args.json else None
-    if target is not None and not target.parent.is_dir():
-        raise BenchError(f"cannot write --json {target}: directory {target.parent} does not exist")
+    target: Path | None = args.json  # checked as it was parsed (``report_file``)
     exit_on_sigterm()  # SIGTERM stops the workers as Ctrl-C does
     try:
         report = run_bench(options)
@@ -109,5 +107,5 @@ def run(args: argparse.Namespace) -> int:
         return 0
     print(format_table(report, notes=args.verbose), flush=True)
     if target is not None:
-        target.write_text(json.dumps(report, indent=2) + "\n")
+        write_report(target, report)
     return exit_code(report, args.check)

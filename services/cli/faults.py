@@ -8,14 +8,12 @@ Exit code 0 when every p95 meets the goal (3 s), 3 when one misses it.
 from __future__ import annotations
 
 import argparse
-import json
-from pathlib import Path
 from typing import Any
 
 from services.evidence.faultbench import FaultConfig, format_faults, run_faults
-from services.lib.argtypes import port_number, positive_int
+from services.lib.argtypes import port_number, positive_int, report_file
 
-from ._common import command_parser, stop_on_signals
+from ._common import command_parser, stop_on_signals, write_report
 
 GOAL_MISSED = 3
 
@@ -32,7 +30,9 @@ def register(subparsers: Any) -> None:
     parser.add_argument(
         "--port", type=port_number, help="private rendezvous port (default: a free one)"
     )
-    parser.add_argument("--json", metavar="FILE", help="also write the report as JSON")
+    parser.add_argument(
+        "--json", type=report_file, metavar="FILE", help="also write the report as JSON"
+    )
     parser.add_argument("--show-logs", action="store_true", help="print the services' logs")
     parser.set_defaults(func=run)
 
@@ -44,7 +44,7 @@ def run(args: argparse.Namespace) -> int:
     report = run_faults(config, stop)
     print(format_faults(report), flush=True)
     if args.json:
-        Path(args.json).write_text(json.dumps(report, indent=2) + "\n")
+        write_report(args.json, report)
     if stop.is_set():  # stopped early: a stop is a clean exit, never a verdict
         print("faults: stopped early; no verdict on the goal", flush=True)
         return 0

@@ -9,9 +9,7 @@ restarts, no stalled stage), 3 when one is missed.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
-from pathlib import Path
 from typing import Any
 
 from services.evidence.soak import SoakConfig, format_report, run_soak
@@ -20,9 +18,10 @@ from services.lib.argtypes import (
     non_negative_int,
     port_number,
     positive_float,
+    report_file,
 )
 
-from ._common import command_parser, stop_on_signals
+from ._common import command_parser, stop_on_signals, write_report
 
 GOAL_MISSED = 3
 
@@ -46,7 +45,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=d.duration_s,
         help="seconds (default %(default)s)",
     )
-    parser.add_argument("--json", metavar="FILE", help="also write the report as JSON")
+    parser.add_argument(
+        "--json", type=report_file, metavar="FILE", help="also write the report as JSON"
+    )
     parser.add_argument(
         "--warmup",
         type=non_negative_float,
@@ -101,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
     report = run_soak(config, stop)
     print(format_report(report), flush=True)
     if args.json:
-        Path(args.json).write_text(json.dumps(report, indent=2, default=str) + "\n")
+        write_report(args.json, report)
     if stop.is_set():  # stopped early: a stop is a clean exit, never a verdict
         print("soak: stopped early; no verdict on the goals", flush=True)
         return 0

@@ -16,8 +16,10 @@ from __future__ import annotations
 import argparse
 import difflib
 import math
+import os
 import sys
 from collections.abc import Callable, Iterable, Sequence
+from pathlib import Path
 from typing import Any, NoReturn
 
 # Exit code of every command-line mistake (argparse's own is 2).
@@ -135,3 +137,21 @@ port_number = _number(int, 1, strict=False, high=65535)
 def print_error(message: str) -> None:
     """The one-line form of every error."""
     print(f"error: {message}", file=sys.stderr)
+
+
+def report_file(text: str) -> Path:
+    """A file a long run writes its JSON report to at its end (``bench``, ``soak``,
+    ``faults`` ``--json FILE``): a directory, or a file in a directory that does not exist,
+    is refused now, not after the run (soak's 10 minutes ended in "No such file")."""
+    path = Path(text)
+    if path.is_dir():
+        raise argparse.ArgumentTypeError(
+            f"{text} is a directory; give a file, e.g. {path / 'report.json'}"
+        )
+    if not path.parent.is_dir():
+        raise argparse.ArgumentTypeError(
+            f"cannot write {text}: directory {path.parent} does not exist"
+        )
+    if not os.access(path.parent, os.W_OK) or (path.exists() and not os.access(path, os.W_OK)):
+        raise argparse.ArgumentTypeError(f"cannot write {text}: permission denied")
+    return path

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 from pathlib import Path
 
 import pytest
@@ -231,3 +232,28 @@ def test_info_of_a_recording_gives_its_window_beside_the_span(
     assert main(["info", str(tmp_path / "run"), "--json"]) == 0  # the suffix may be left out
     data = json.loads(capsys.readouterr().out)
     assert (data["recorded_start_ns"], data["recorded_stop_ns"]) == (started, started + 5 * SECOND)
+
+
+@pytest.mark.parametrize("command", [["bench", "--quick", "small"], ["soak"], ["faults"]])
+@pytest.mark.parametrize(
+    ("where", "expected"),
+    [
+        ("no/report.json", r"argument --json: cannot write .*/no/report\.json: directory .*/no "
+         r"does not exist"),
+        (".", r"argument --json: .* is a directory; give a file, e.g. .*/report\.json"),
+    ],
+)  # fmt: skip
+def test_json_report_file_of_a_long_run_is_checked_before_it_runs(
+    command: list[str],
+    where: str,
+    expected: str,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """bench, soak and faults write --json FILE at their end: soak and faults ran for their
+    whole duration, then failed ("No such file or directory"); bench checked first."""
+    from services.cli import main
+
+    assert main([*command, "--json", str(tmp_path / where)]) == 1
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1 and re.search(expected, err), err
