@@ -21,7 +21,7 @@ from middleware import ConfigError, Node, make_metadata, now_ns, split_target
 from services.lib.argtypes import non_negative_float, non_negative_int, positive_float, positive_int
 
 from ._common import command_parser, counted, network, stop_on_signals
-from ._target import print_json_line
+from ._target import print_json_line, unreachable
 
 WIDTH_PX, HEIGHT_PX = 64, 48
 EXPOSURE_NS = 10_000_000
@@ -133,7 +133,12 @@ def run(args: argparse.Namespace) -> int:
     service, buffer = split_target(args.target)
     make = KINDS[args.kind]
     stop = stop_on_signals()
-    with Node(service, network(args)) as node:
+    net = network(args)
+    if bad := unreachable(net):
+        # Not an error (a publisher may start before its listeners, as with `ros2 topic
+        # pub`), but not silence either: "published" would say nothing of where it went.
+        print(f"warning: cannot reach {bad}; nobody there gets these", file=sys.stderr, flush=True)
+    with Node(service, net) as node:
         producer = node.offer(buffer, kind=args.kind)
         if not args.wait_subscribers:
             # Those already listening get the first element too, as with ``ros2 topic pub``:

@@ -188,3 +188,16 @@ def test_view_of_a_refused_endpoint_warns_and_keeps_waiting_for_it() -> None:
     result = _framegate("view", "--connect", endpoint, "--duration", "1", env=env)
     assert result.returncode == 0, result  # a viewer may start before the robot
     assert f"warning: cannot reach {endpoint} (" in result.stderr, result
+
+
+def test_pub_to_a_refused_endpoint_warns_and_publishes_anyway() -> None:
+    """As `ros2 topic pub`, it publishes with nobody listening; but "published" alone hid
+    that the --connect endpoint refused every connection."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"  # nothing listens there
+    result = _framegate(
+        "pub", "t/x", "--kind", "generic", "--connect", endpoint, "--linger", "0",
+        "--listen", f"tcp/127.0.0.1:{free_port()}",
+    )  # fmt: skip
+    assert result.returncode == 0, result
+    assert f"warning: cannot reach {endpoint} (" in result.stderr, result
+    assert "nobody there gets these" in result.stderr, result
