@@ -27,7 +27,7 @@ from middleware import (
     Retention,
     check_name,
 )
-from services.lib.argtypes import non_negative_float
+from services.lib.argtypes import did_you_mean, non_negative_float
 
 from ._common import command_parser, counted, exit_on_sigterm, format_ns, network, recording_input
 from ._target import print_json_line
@@ -128,7 +128,9 @@ def _select(bag: Bag, args: argparse.Namespace) -> list[_Played]:
         missing = [n for n in args.only if n.strip("/") not in names]
         if missing:
             raise ConfigError(
-                f"{args.file} has no buffer {missing[0]!r}; it holds: {', '.join(names)}"
+                f"{args.file} has no buffer {missing[0]!r}"
+                f"{did_you_mean(missing[0].strip('/'), names, quote=True)}; "
+                f"it holds: {', '.join(names)}"
             )
         chosen = [names[n.strip("/")] for n in dict.fromkeys(args.only)]
     service = check_name(args.as_service, "service") if args.as_service else None

@@ -257,3 +257,17 @@ def test_json_report_file_of_a_long_run_is_checked_before_it_runs(
     assert main([*command, "--json", str(tmp_path / where)]) == 1
     err = capsys.readouterr().err
     assert len(err.splitlines()) == 1 and re.search(expected, err), err
+
+
+def test_play_only_a_misspelt_buffer_gets_a_did_you_mean(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from services.cli import main
+
+    bag = tmp_path / "run.mcap"
+    with BagWriter(bag) as writer:
+        writer.add_buffer("cam", "images", kind="generic", retention=Retention())
+        writer.write("cam/images", DataObject(1, b"x", make_metadata("generic", 1)))
+    assert main(["play", str(bag), "--only", "cam/imgaes"]) == 1
+    err = capsys.readouterr().err
+    assert "has no buffer 'cam/imgaes' (did you mean 'cam/images'?); it holds: cam/images" in err
