@@ -9,7 +9,7 @@ from typing import Any
 
 from services.lib.argtypes import non_negative_float, non_negative_int, positive_float, positive_int
 from services.lib.decisions import POLICIES
-from services.lib.sim import ScenarioConfig
+from services.lib.sim import ScenarioConfig, approach_cache_dir
 from services.tools.demo import SOURCES, DemoConfig, print_summary, run_demo
 
 from ._common import (
@@ -36,33 +36,45 @@ def register(subparsers: Any) -> None:
         default=d.duration_s,
         help="seconds to run, after the approach is rendered (default %(default)g)",
     )
-    parser.add_argument("--seed", type=non_negative_int, default=d.seed, help="simulator seed")
     parser.add_argument(
-        "--policy", choices=sorted(POLICIES), default=d.policy, help="the mediator's policy"
+        "--seed", type=non_negative_int, default=d.seed, help="simulator seed (default %(default)s)"
+    )
+    parser.add_argument(
+        "--policy",
+        choices=sorted(POLICIES),
+        default=d.policy,
+        help="the mediator's policy (default %(default)s)",
     )
     parser.add_argument(
         "--source",
         choices=SOURCES,
         default=d.source,
         help="prerendered: the approach rendered once and cached (keeps 15 frames/s); "
-        "sim: rendered live (too slow for small machines)",
+        "sim: rendered live (too slow for small machines); default %(default)s",
     )
     parser.add_argument(
         "--floor",
         choices=ScenarioConfig.floor_names(),
         default=d.floor,
-        help="floor of the approach (rough: bumpy enough for blur to matter)",
+        help="floor of the approach (rough: bumpy enough for blur to matter; default %(default)s)",
     )
     parser.add_argument(
-        "--cache", type=Path, help="where prerendered approaches are kept (default: user cache)"
+        "--cache",
+        type=Path,
+        help=f"where prerendered approaches are kept (default {approach_cache_dir()})",
     )
-    parser.add_argument("--b0", type=positive_float, default=d.b0_px, help="blur scale b0 (px)")
-    parser.add_argument("--queue", type=positive_int, default=d.queue, help="detector queue N")
+    parser.add_argument(
+        "--b0", type=positive_float, default=d.b0_px, help="blur scale b0 (px; default %(default)g)"
+    )
+    parser.add_argument(
+        "--queue", type=positive_int, default=d.queue, help="detector queue N (default %(default)s)"
+    )
     parser.add_argument(
         "--service-factor",
         type=non_negative_float,
         default=d.service_factor,
-        help="detector processing time as a multiple of the frame period (both detectors)",
+        help="detector processing time as a multiple of the frame period (both detectors; "
+        "default %(default)g)",
     )
     parser.add_argument("--logs", action="store_true", help="show the services' own logs")
     parser.set_defaults(func=run)

@@ -59,12 +59,29 @@ def register(subparsers: Any) -> None:
         help="no processes: replay every --floors x --queues x --factors working point "
         "(discrete-event, with the oracle and every policy) and print one summary table",
     )  # fmt: skip
-    parser.add_argument("--floors", nargs="+", default=["smooth", "default", "rough"])
-    parser.add_argument("--queues", type=positive_int, nargs="+", default=[1, 2, 3])
-    parser.add_argument("--factors", type=positive_float, nargs="+", default=[1.3, 1.6, 2.0])
+    parser.add_argument(
+        "--floors",
+        nargs="+",
+        default=["smooth", "default", "rough"],
+        help="sweep: floors (default smooth default rough)",
+    )
+    parser.add_argument(
+        "--queues",
+        type=positive_int,
+        nargs="+",
+        default=[1, 2, 3],
+        help="sweep: detector queue sizes N (default 1 2 3)",
+    )
+    parser.add_argument(
+        "--factors",
+        type=positive_float,
+        nargs="+",
+        default=[1.3, 1.6, 2.0],
+        help="sweep: detector service factors (default 1.3 1.6 2.0)",
+    )
     parser.add_argument(
         "--policies", nargs="+", default=["paper", "replace", "deadline", "adaptive"],
-        help="mediator policies the sweep replays",
+        help="mediator policies the sweep replays (default paper replace deadline adaptive)",
     )  # fmt: skip
     parser.add_argument(
         "--latency", choices=("measured", "none"), default="measured",

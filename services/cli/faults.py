@@ -26,7 +26,12 @@ def register(subparsers: Any) -> None:
         network=False,
     )
     d = FaultConfig()
-    parser.add_argument("--kills", type=positive_int, default=d.kills, help="kills per service")
+    parser.add_argument(
+        "--kills",
+        type=positive_int,
+        default=d.kills,
+        help="kills per service (default %(default)s)",
+    )
     parser.add_argument(
         "--port", type=port_number, help="private rendezvous port (default: a free one)"
     )

@@ -54,18 +54,26 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="seconds before memory counts (default: 1/4, at most 60)",
     )
     parser.add_argument(
-        "--sample", type=positive_float, default=d.sample_s, help="seconds between memory samples"
+        "--sample",
+        type=positive_float,
+        default=d.sample_s,
+        help="seconds between memory samples (default %(default)g)",
     )
     parser.add_argument(
         "--check",
         type=positive_float,
         default=d.check_s,
-        help="seconds between lost-element audits",
+        help="seconds between lost-element audits (default %(default)g)",
     )
     parser.add_argument(
-        "--rate", type=positive_float, default=d.rate, help="scenario speed of camera and gyro"
+        "--rate",
+        type=positive_float,
+        default=d.rate,
+        help="scenario speed of camera and gyro (default %(default)g)",
     )
-    parser.add_argument("--seed", type=non_negative_int, default=d.seed, help="simulator seed")
+    parser.add_argument(
+        "--seed", type=non_negative_int, default=d.seed, help="simulator seed (default %(default)s)"
+    )
     parser.add_argument(
         "--service-factor",
         type=non_negative_float,

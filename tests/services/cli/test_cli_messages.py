@@ -222,3 +222,25 @@ def test_a_router_on_port_0_says_which_port_it_took() -> None:
     assert line.startswith("router listening on tcp/127.0.0.1:"), line
     port = int(line.strip().rsplit(":", 1)[1])
     assert 0 < port < 65536, line
+
+
+# Defaults a help line cannot usefully print: an empty list of overrides.
+NO_DEFAULT_SHOWN = {("simulate", "--set")}
+
+
+@pytest.mark.parametrize("name", sorted(COMMANDS))
+def test_every_flag_with_a_default_says_it_in_its_help(name: str) -> None:
+    """`demo --help` gave no default for --policy, --floor, --b0, --queue, --seed...: the
+    README said "rough by default" and the help nothing (soak, faults, experiment too)."""
+    parser = build_parser(name)
+    [commands] = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    silent = [
+        action.option_strings[-1]
+        for action in commands.choices[name]._actions
+        if action.option_strings
+        and action.default not in (None, False, argparse.SUPPRESS)
+        and not isinstance(action, argparse._StoreTrueAction | argparse._HelpAction)
+        and (name, action.option_strings[-1]) not in NO_DEFAULT_SHOWN
+        and "default" not in (action.help or "")
+    ]
+    assert silent == [], f"framegate {name}: no default in the help of {silent}"
