@@ -62,17 +62,39 @@ def register(subparsers: Any) -> None:
     parser.set_defaults(func=run)
 
 
-def _plan(args: argparse.Namespace) -> tuple[Deployment, list[ProcessSpec]]:
+def _plan(
+    args: argparse.Namespace, host: str | None = None
+) -> tuple[Deployment, list[ProcessSpec]]:
     deployment = load_deployment(args.file)
     text = Path(args.file).read_text()
     # defaults -> deploy file -> environment -> flags, for every process.
     specs = process_specs(
-        deployment, args.host, NetworkConfig(), text=text, override=lambda net: network(args, net)
+        deployment,
+        host or args.host,
+        NetworkConfig(),
+        text=text,
+        override=lambda net: network(args, net),
     )
     return deployment, specs
 
 
-def print_plan(deployment: Deployment, host: str | None, specs: list[ProcessSpec]) -> None:
+def _check_every_host(args: argparse.Namespace, deployment: Deployment) -> int:
+    """``--check`` of a file of several hosts with no ``--host``: every host's share in
+    turn, as each machine would run it (a launch must still pick one)."""
+    plans = [(host, _plan(args, host)[1]) for host in sorted(deployment.hosts)]
+    if args.json:
+        data = plan_json(deployment, None, [spec for _, specs in plans for spec in specs])
+        print_json(data)
+        return 0
+    for host, specs in plans:
+        print_plan(deployment, host, specs, ok=False)
+    print(f"ok: nothing started (--check of every host: {', '.join(h for h, _ in plans)})")
+    return 0
+
+
+def print_plan(
+    deployment: Deployment, host: str | None, specs: list[ProcessSpec], *, ok: bool = True
+) -> None:
     """What ``launch`` would start, one block per process."""
     where = f" on host {host}" if host else ""
     print(f"{deployment.path}: {len(specs)} process{'' if len(specs) == 1 else 'es'}{where}")
@@ -84,7 +106,8 @@ def print_plan(deployment: Deployment, host: str | None, specs: list[ProcessSpec
         # The command line without the interpreter: what `framegate ...` would run.
         command = " ".join(shlex.quote(a) for a in spec.argv[3:])
         print(f"    framegate {command}")
-    print("ok: nothing started (--check)")
+    if ok:
+        print("ok: nothing started (--check)")
 
 
 def plan_json(deployment: Deployment, host: str | None, specs: list[ProcessSpec]) -> Any:
@@ -196,6 +219,10 @@ def _refuse_if_running(net: NetworkConfig, names: list[str]) -> None:
 def run(args: argparse.Namespace) -> int:
     if args.json and not args.check:
         raise ConfigError("--json prints the plan of --check; a running launch prints its logs")
+    if args.check and args.host is None:
+        deployment = load_deployment(args.file)
+        if len(deployment.hosts) > 1:
+            return _check_every_host(args, deployment)
     deployment, specs = _plan(args)
     if args.check:
         if args.json:

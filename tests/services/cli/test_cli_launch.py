@@ -36,6 +36,22 @@ def test_check_json_gives_each_process_with_its_command_and_starts_nothing() -> 
     assert by_name["detector"]["type"] == "detector" and by_name["detector"]["restart"] is True
 
 
+def test_check_of_a_file_of_several_hosts_checks_every_host_but_a_launch_picks_one() -> None:
+    """`launch deploy/two-hosts.yaml --check` said "pick one with --host": the README's
+    "--check validates the file" checked nothing of a two-host file without it."""
+    text = _launch("deploy/two-hosts.yaml", "--check")
+    assert text.returncode == 0, text
+    assert "3 processes on host base" in text.stdout and "3 processes on host robot" in text.stdout
+    assert text.stdout.endswith("ok: nothing started (--check of every host: base, robot)\n")
+    plan = json.loads(_launch("deploy/two-hosts.yaml", "--check", "--json").stdout)
+    assert {(p["name"], p["host"]) for p in plan["processes"]} == {
+        ("base-router", "base"), ("mediator", "base"), ("detector", "base"),
+        ("router", "robot"), ("camera", "robot"), ("gyro", "robot"),
+    }  # fmt: skip
+    started = _launch("deploy/two-hosts.yaml", "--duration", "1")  # a start must pick one
+    assert started.returncode == 1 and "pick one with --host" in started.stderr, started
+
+
 def test_json_without_check_is_one_line_and_exit_1() -> None:
     result = _launch("deploy/local.yaml", "--json")
     assert result.returncode == 1, result
