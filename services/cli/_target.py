@@ -106,6 +106,18 @@ def nothing_answered(node: Node, waited_s: float) -> NotFoundError | None:
     )
 
 
+def _where_else(net: NetworkConfig) -> str:
+    """Where else the service may be, when nothing was live where this process looked."""
+    if net.connect or net.listen or net.config_file:
+        return "is the service running and is --connect right?"
+    # Alone on the loopback rendezvous: the services may meet on another port (a variable
+    # set in one shell and not in the other), or run on another host.
+    return (
+        f"is the service running on this host with the same rendezvous port ({net.local_port}; "
+        "FRAMEGATE_LOCAL_PORT sets it), or on another host (then --connect to it)?"
+    )
+
+
 def other_namespaces(node: Node, timeout_s: float = 1.0) -> str | None:
     """Where services are live when none is in the node's namespace, and how to go there
     (a FRAMEGATE_NAMESPACE left set in a shell hid every service), or None."""
@@ -147,7 +159,7 @@ def wait_for_service(node: Node, service: str, timeout_s: float) -> None:
         raise NotFoundError(
             f"no live services reachable {where(node.network)} in namespace "
             f"{node.network.namespace!r} (waited {timeout_s:g} s); "
-            + (other_namespaces(node) or "is the service running and is --connect right?")
+            + (other_namespaces(node) or _where_else(node.network))
         )
     raise NotFoundError(
         f"no live service named {service!r}{did_you_mean(service, live, quote=True)}; "

@@ -201,3 +201,18 @@ def test_pub_to_a_refused_endpoint_warns_and_publishes_anyway() -> None:
     assert result.returncode == 0, result
     assert f"warning: cannot reach {endpoint} (" in result.stderr, result
     assert "nobody there gets these" in result.stderr, result
+
+
+def test_nothing_live_on_the_rendezvous_names_its_port_and_the_variable() -> None:
+    """With no --connect given, "is --connect right?" pointed away from the usual cause: a
+    FRAMEGATE_LOCAL_PORT set in one shell and not in the other."""
+    env = child_env()
+    port = free_port()
+    env["FRAMEGATE_LOCAL_PORT"] = str(port)
+    result = _framegate("info", "camera/images", "--timeout", "1", env=env)
+    assert result.returncode == 1, result
+    assert result.stderr.count("\n") == 1, result
+    assert (
+        f"on this host with the same rendezvous port ({port}; FRAMEGATE_LOCAL_PORT sets it), "
+        "or on another host (then --connect to it)?"
+    ) in result.stderr, result
