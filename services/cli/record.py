@@ -15,6 +15,14 @@ stop instant is fixed (nothing stamped later is recorded), every fetch ends with
 for; only the tail up to the stop is still asked for once by a recorder that a busy machine
 starved past that, with ``TAIL_FLOOR_S``) and what was fetched is written uncompressed, so
 the command ends about a second after the duration, two on a starved machine.
+
+The start and the stop are instants of this process's clock (``now_ns``: a step of this
+host's clock during the recording moves neither), turned into each producer's clock by the
+offset measured when its service was found (``producer_offset_ns``): elements are stamped by
+their producers, and a producer whose clock runs ahead of ours (another host not yet
+synchronised, or this host's services slewing back after a backward step) stamps everything
+it stores after our stop instant. Without the offset, ``--duration 5`` against a producer
+30 s ahead recorded nothing, with no word.
 """
 
 from __future__ import annotations
@@ -34,6 +42,8 @@ from middleware import (
     ConfigError,
     FramegateError,
     Node,
+    ServiceInfo,
+    now_ns,
 )
 from services.lib.argtypes import positive_float, positive_int
 from services.tools.bag import STOP_SLACK_S, TAIL_FLOOR_S
@@ -55,6 +65,19 @@ if TYPE_CHECKING:
 DEFAULT_QUEUE = 64
 # At the stop, a write backlog this large (about a second of raw frames) is worth a line.
 SAY_BACKLOG_BYTES = 16 * 2**20
+# Clocks closer than this are taken to agree: a start or stop within it of an element's
+# stamp is inside the stop's slack anyway, and on one host the measured offset is noise.
+CLOCKS_AGREE_NS = 50_000_000
+
+
+def producer_offset_ns(service: ServiceInfo) -> int:
+    """How far ``service``'s clock runs ahead of ours (negative: behind), when that is more
+    than the measurement's error and ``CLOCKS_AGREE_NS``; else 0."""
+    offset = service.clock_offset_ns
+    if offset is None:
+        return 0
+    error = (service.round_trip_ns or 0) // 2
+    return offset if abs(offset) > max(error, CLOCKS_AGREE_NS) else 0
 
 
 def register(subparsers: Any) -> None:
@@ -142,11 +165,13 @@ def run(args: argparse.Namespace) -> int:
     exit_on_sigterm()
     targets = list(dict.fromkeys(t.strip("/") for t in args.targets))
     with Node(network=network(args)) as node:
-        buffers: list[BufferInfo] = (
+        found = (
             _live_buffers(node, args.timeout)
             if args.all
-            else [resolve(node, t, args.timeout)[1] for t in targets]
+            else [resolve(node, t, args.timeout) for t in targets]
         )
+        buffers: list[BufferInfo] = [b for _s, b in found]
+        args.offsets = {s.service: producer_offset_ns(s) for s, _b in found}
         writer = BagWriter(
             args.output,
             images=not args.no_images,
@@ -158,7 +183,7 @@ def run(args: argparse.Namespace) -> int:
                 writer.add_buffer(b.service, b.buffer, kind=b.kind, retention=b.retention)
             queue = WriteQueue(writer)
             # The recording starts now: --duration counts from here (see the module).
-            started_ns, started = time.time_ns(), time.monotonic()
+            started_ns, started = now_ns(), time.monotonic()
             args.started_ns = started_ns
             # Known from the start with --duration, so that nothing stamped after the
             # duration's end is recorded even before the stop is noticed.
@@ -195,12 +220,14 @@ def run(args: argparse.Namespace) -> int:
                 recorder.progress.missed = recorder.sub.missed_total
                 recorder.sub.close()
             queue.close()  # what was fetched is written before the summary
+            earliest = min(args.offsets.values(), default=0)
             writer.add_metadata(
                 "framegate.recording",
                 {
                     "host": socket.gethostname(),
-                    "started_ns": str(started_ns),
-                    "stopped_ns": str(stopped_ns),
+                    # In the clock of the producer furthest behind: where play starts.
+                    "started_ns": str(started_ns + earliest),
+                    "stopped_ns": str(stopped_ns + earliest),
                     "buffers": json.dumps([r.progress.json() for r in recorders]),
                 },
             )
@@ -229,22 +256,28 @@ def _start(
     stop = stop or threading.Event()
     recorders = []
     for b in buffers:
-        initial = at_start(node, b.name, args.started_ns, args.stop_ns)
+        # The start and the stop in this producer's clock: its elements' stamps are.
+        offset = args.offsets.get(b.service, 0)
+        stop_ns = None if args.stop_ns is None else args.stop_ns + offset
+        initial = at_start(node, b.name, args.started_ns + offset, stop_ns)
         sub = observer(node, b.name, args.queue, args.timeout)
         progress = Progress(b.name, b.kind)
         recorder = Recorder(node, sub, queue, progress, stop, args.count, initial)
-        recorder.stop_ns, recorder.deadline = args.stop_ns, args.fetch_deadline
+        recorder.stop_ns, recorder.deadline = stop_ns, args.fetch_deadline
+        recorder.offset_ns = offset
         recorders.append(recorder)
     for recorder in recorders:
         recorder.thread.start()
     return recorders
 
 
-def _live_buffers(node: Node, timeout_s: float) -> list[BufferInfo]:
-    """Every buffer of every live service (``--all``); ConfigError if there is none."""
+def _live_buffers(node: Node, timeout_s: float) -> list[tuple[ServiceInfo, BufferInfo]]:
+    """Every buffer of every live service (``--all``), with its service; ConfigError if
+    there is none."""
     deadline = time.monotonic() + timeout_s
     while True:
-        buffers = [b for s in node.services(timeout_s=min(2.0, timeout_s)) for b in s.buffers]
+        services = node.services(timeout_s=min(2.0, timeout_s))
+        buffers = [(s, b) for s in services for b in s.buffers]
         if buffers:
             return buffers
         if time.monotonic() >= deadline:
@@ -286,6 +319,8 @@ def _discover(
         except FramegateError:
             return
         new = [b for s in services for b in s.buffers if b.name not in known]
+        for s in services:
+            args.offsets.setdefault(s.service, producer_offset_ns(s))
         for b in new:
             writer.add_buffer(b.service, b.buffer, kind=b.kind, retention=b.retention)
         if new:
@@ -324,11 +359,12 @@ def _wait(
         pass
     finally:
         if stopped_ns is None:
-            stopped_ns = time.time_ns()
+            stopped_ns = now_ns()
         deadline = time.monotonic() + STOP_SLACK_S
         for recorder in recorders:
-            if recorder.stop_ns is None or recorder.stop_ns > stopped_ns:
-                recorder.stop_ns = stopped_ns
+            stop_ns = stopped_ns + recorder.offset_ns  # in its producer's clock
+            if recorder.stop_ns is None or recorder.stop_ns > stop_ns:
+                recorder.stop_ns = stop_ns
             if recorder.deadline is None or recorder.deadline > deadline:
                 recorder.deadline = deadline
         stop.set()

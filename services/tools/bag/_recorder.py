@@ -232,6 +232,9 @@ class Recorder:
         # The stop instant: nothing stamped later is recorded (None: not known yet; known
         # from the start with a duration).
         self.stop_ns: int | None = None
+        # How far the producer's clock runs ahead of the recording's (``stop_ns`` is in
+        # the producer's clock: its elements' stamps are).
+        self.offset_ns = 0
         # The monotonic instant by which every fetch ends (None: not known yet); set before
         # the thread starts when the duration is known, else at the stop.
         self.deadline: float | None = None
