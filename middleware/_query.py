@@ -41,13 +41,21 @@ class Queries(Discovery):
         timeout_s: float = 5.0,
     ) -> list[DataObject]:
         """Elements of ``service/buffer`` in a time range (``TimeRange`` or a ``_time`` string
-        such as ``[now(-2s)..]``) and/or the newest ``last``, in timestamp order."""
+        such as ``[now(-2s)..]``) and/or the newest ``last``, in timestamp order.
+
+        Any peer may answer: with a ``TimeRange``, an element outside it is no answer to the
+        question and is left out (a peer's one element stamped an hour ahead became a
+        recorder's newest, and every later one looked recorded already). A string's
+        ``now()`` is the answering service's clock, unknown here: it is not checked."""
         params: dict[str, str] = {}
         if time_range is not None:
             params["_time"] = _time_value(time_range)
         if last is not None:
             params["last"] = str(last)
-        return self._get(target, params, timeout_s, most=last)
+        elements = self._get(target, params, timeout_s, most=last)
+        if isinstance(time_range, TimeRange):
+            elements = [e for e in elements if time_range.contains(e.timestamp_ns)]
+        return elements
 
     def ask_query(
         self,

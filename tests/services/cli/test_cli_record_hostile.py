@@ -1,0 +1,83 @@
+"""``record`` and ``query`` beside a peer that answers the buffer's data queries with an element
+outside the range asked (any session may answer a query in the default profile)."""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import pytest
+import zenoh
+
+from middleware import DataObject, NetworkConfig, Node, make_metadata
+from middleware._service import encode_answer_end
+from middleware._wire import encode_element_attachment
+from tests.conftest import wait_until
+from tests.helpers.raw_zenoh import open_session
+from tests.helpers.timing import scaled
+from tests.services.cli.conftest import Cli
+
+pytestmark = pytest.mark.integration
+
+HOUR_NS = 3600 * 1_000_000_000
+
+
+@contextmanager
+def _rogue_answering(endpoint: str, stamp_ns: int) -> Iterator[list[int]]:
+    """A peer answering every data query of cam/a with one element stamped ``stamp_ns`` and
+    a proper end mark; yields the count of queries it answered."""
+    asked: list[int] = []
+    element = DataObject(stamp_ns, b"rogue", make_metadata("generic", stamp_ns))
+
+    def reply(query: zenoh.Query) -> None:
+        with query:
+            asked.append(1)
+            query.reply(query.key_expr, b"rogue", attachment=encode_element_attachment(element))
+            query.reply(query.key_expr, b"", attachment=encode_answer_end(1))
+
+    with open_session(endpoint) as rogue:
+        queryable = rogue.declare_queryable("framegate/cam/a", zenoh.handlers.Callback(reply))
+        try:
+            yield asked
+        finally:
+            queryable.undeclare()
+
+
+def test_record_beside_a_peer_answering_an_hour_ahead_records_the_real_elements(
+    listen_net: NetworkConfig, endpoint: str, cli: Cli, tmp_path: Path
+) -> None:
+    """The peer's element, stamped an hour ahead, came back from the recorder's first query
+    (it asks what lies before the start) although outside the range asked: it was recorded
+    as the newest, and every real element after it looked recorded already (2 of ~100 in
+    6.7 s, 0 evicted, 0 dropped)."""
+    bag = tmp_path / "hostile.mcap"
+    with Node("cam", listen_net) as node:
+        producer = node.offer("a")  # before the peer answers in its name
+        with _rogue_answering(endpoint, time.time_ns() + HOUR_NS):
+            recorder = cli.start("record", "cam/a", "-o", str(bag), "--count", "5", "--json")
+            subscribed = producer.wait_for_subscribers(1, timeout_s=scaled(60))
+            assert subscribed, "record never subscribed"
+            for _ in range(5):
+                t = time.time_ns()
+                producer.put(t, b"real", make_metadata("generic", t))
+            out, err = recorder.communicate(timeout=scaled(60))
+    assert recorder.returncode == 0, err
+    summary = json.loads(out)
+    assert [b["recorded"] for b in summary["buffers"]] == [5], summary
+
+
+def test_query_shows_only_the_range_asked_beside_a_peer(
+    listen_net: NetworkConfig, endpoint: str, cli: Cli
+) -> None:
+    with Node("cam", listen_net) as node:
+        producer = node.offer("a")
+        for t in (1000, 2000, 3000):
+            producer.put(t, b"real", make_metadata("generic", t))
+        with _rogue_answering(endpoint, 2**62) as asked:
+            result = cli.run("query", "cam/a", "--from", "1500", "--to", "2500", "--json")
+            wait_until(lambda: asked, scaled(10), "the peer to be asked")
+    stamps = [e["timestamp_ns"] for e in result.json()["elements"]]
+    assert stamps == [2000], stamps
