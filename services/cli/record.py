@@ -70,13 +70,19 @@ SAY_BACKLOG_BYTES = 16 * 2**20
 CLOCKS_AGREE_NS = 50_000_000
 
 
-def producer_offset_ns(service: ServiceInfo) -> int:
+def producer_offset_ns(node: Node, service: str, timeout_s: float) -> int:
     """How far ``service``'s clock runs ahead of ours (negative: behind), when that is more
-    than the measurement's error and ``CLOCKS_AGREE_NS``; else 0."""
-    offset = service.clock_offset_ns
+    than the measurement's error and ``CLOCKS_AGREE_NS``; else 0. Not on a peer's word: a
+    peer answering ``@info`` in the service's name with a clock an hour behind would move
+    the stop an hour early, so when more than one session answers (or none) it is 0."""
+    try:
+        info = node.service_info(service, timeout_s=timeout_s, unambiguous=True)
+    except FramegateError:
+        return 0
+    offset = info.clock_offset_ns
     if offset is None:
         return 0
-    error = (service.round_trip_ns or 0) // 2
+    error = (info.round_trip_ns or 0) // 2
     return offset if abs(offset) > max(error, CLOCKS_AGREE_NS) else 0
 
 
@@ -171,7 +177,10 @@ def run(args: argparse.Namespace) -> int:
             else [resolve(node, t, args.timeout) for t in targets]
         )
         buffers: list[BufferInfo] = [b for _s, b in found]
-        args.offsets = {s.service: producer_offset_ns(s) for s, _b in found}
+        args.offsets = {
+            name: producer_offset_ns(node, name, min(2.0, args.timeout))
+            for name in dict.fromkeys(s.service for s, _b in found)
+        }
         writer = BagWriter(
             args.output,
             images=not args.no_images,
@@ -319,8 +328,9 @@ def _discover(
         except FramegateError:
             return
         new = [b for s in services for b in s.buffers if b.name not in known]
-        for s in services:
-            args.offsets.setdefault(s.service, producer_offset_ns(s))
+        for b in new:
+            if b.service not in args.offsets:
+                args.offsets[b.service] = producer_offset_ns(node, b.service, 1.0)
         for b in new:
             writer.add_buffer(b.service, b.buffer, kind=b.kind, retention=b.retention)
         if new:

@@ -14,10 +14,12 @@ import time
 from pathlib import Path
 
 import pytest
+import zenoh
 
 from middleware import NetworkConfig, Node, Producer, make_metadata
 from tests.conftest import REPO, child_env
 from tests.helpers.clock_shim import build_clock_shim, shifted_clock_env, step_clock
+from tests.helpers.raw_zenoh import open_session
 from tests.helpers.timing import scaled
 from tests.services.cli.conftest import DISCOVERY_TIMEOUT_S, TIMEOUT_S
 
@@ -104,3 +106,41 @@ def test_record_whose_clock_steps_back_keeps_a_positive_duration_and_its_element
     summary = json.loads(out)
     assert [b["recorded"] for b in summary["buffers"]] == [6], summary
     assert summary["duration_s"] >= 0, summary
+
+
+def test_record_does_not_take_a_peers_word_for_its_producers_clock(
+    listen_net: NetworkConfig, endpoint: str, tmp_path: Path
+) -> None:
+    """A peer answers ``@info`` in the producer's name with its real description but a clock
+    an hour behind: two sessions answer, so the recording's stop is not moved an hour early
+    (it would have recorded nothing)."""
+    with Node("cam", listen_net) as node, open_session(endpoint) as rogue:
+        producer = node.offer("a")
+        copy = json.loads(
+            next(r.ok.payload.to_bytes() for r in rogue.get("framegate/@info/cam") if r.ok)
+        )
+
+        def answer(query: zenoh.Query) -> None:
+            with query:
+                forged = dict(copy, clock_ns=time.time_ns() - 3600 * S)
+                query.reply(query.key_expr, json.dumps(forged).encode())
+
+        queryable = rogue.declare_queryable("framegate/@info/cam", zenoh.handlers.Callback(answer))
+        bag = tmp_path / "peer.mcap"
+        duration = str(scaled(30))
+        recorder = _record(
+            endpoint, child_env(), "cam/a", "-o", str(bag), "--count", "5", "--duration", duration
+        )
+        try:
+            subscribed = producer.wait_for_subscribers(1, timeout_s=scaled(60))
+            assert subscribed, "record never subscribed"
+            _put_now(producer, 5)
+            out, err = recorder.communicate(timeout=scaled(TIMEOUT_S))
+        finally:
+            queryable.undeclare()
+            if recorder.poll() is None:
+                recorder.kill()
+                recorder.wait()
+    assert recorder.returncode == 0, err
+    summary = json.loads(out)
+    assert [b["recorded"] for b in summary["buffers"]] == [5], summary
