@@ -120,7 +120,7 @@ class SubscriberProtocol:
         self._refusal_reported = False
         self._retry_at_ns: int | None = None
         self.registrations = 0  # greetings under distinct epochs
-        self._registered_again = False  # since ``registration_news``
+        self._registered_again = 0  # since ``registration_news``
         # Lapses: the epoch of the last notification queued and its base; per producer
         # instance the highest element number queued; elements counted as never notified.
         self._epoch: str | None = None
@@ -221,10 +221,10 @@ class SubscriberProtocol:
         """A refusal arrived that is not judged yet (the executor judges it at once)."""
         return self._unjudged
 
-    def registration_news(self) -> bool:
-        """Whether the subscription was registered again (the producer restarted, or the
-        subscription had lapsed) since the last call (to log once each)."""
-        again, self._registered_again = self._registered_again, False
+    def registration_news(self) -> int:
+        """How often the subscription was registered again (the producer restarted, or the
+        subscription had lapsed) since the last call (to log)."""
+        again, self._registered_again = self._registered_again, 0
         return again
 
     def lapse_news(self) -> int:
@@ -269,7 +269,7 @@ class SubscriberProtocol:
                 return
             if self.registered_epoch is not None and self.registered_epoch != control.text:
                 self.registrations += 1  # a producer restart, or our token had lapsed
-                self._registered_again = True
+                self._registered_again += 1
             elif self.registered_epoch is None:
                 self.registrations = 1
             self.registered_epoch = control.text

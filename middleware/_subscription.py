@@ -27,6 +27,7 @@ from ._errors import FramegateError, RegistrationRefused
 from ._executor import BUDGET, Executor, Wake, remaining_s
 from ._inbox import Inbox
 from ._ledger_subscriber import REACK_NS, Entry, SubscriberCounters
+from ._news import News
 from ._protocol_subscriber import RETRY_NS, Item, SubscriberProtocol
 from ._records import DataObject, Notification, SubscriptionMode, data_object, notification
 from ._wire import Keys, holder_chunk
@@ -106,6 +107,7 @@ class Subscription:
         # The Zenoh sessions answering as a service: asked when a refusal must be judged.
         self._producer_ids = producer_ids
         self._lock = threading.Lock()
+        self._news = News(f"{service}/{buffer}", log)  # under _lock
         self._cond = threading.Condition(self._lock)
         self._ack_lock = threading.Lock()  # ack puts against the publisher's undeclare
         self._closed = False
@@ -175,20 +177,9 @@ class Subscription:
             raw = attachment.to_bytes() if attachment is not None else None
             payload = sample.payload
             protocol.receive(raw, payload, _sender(sample) if needs_sender(payload) else None)
-        if protocol.registration_news():
-            log.info(
-                "subscription to %s registered again (the producer restarted, or this "
-                "subscription had lapsed)",
-                self.name,
-            )
-        lapsed = protocol.lapse_news()
-        if lapsed:
-            log.warning(
-                "subscription to %s had lapsed: %d elements stored meanwhile were never "
-                "notified (counted in missed)",
-                self.name,
-                lapsed,
-            )
+        again, lapsed = protocol.registration_news(), protocol.lapse_news()
+        if again or lapsed:  # said at a bounded rate: a peer can forge greetings
+            self._news.report(again, lapsed, time.monotonic_ns())
 
     def run_ready(self, budget: int) -> bool:
         """(the executor) Feed a bounded batch; then run the handler on a bounded batch of
