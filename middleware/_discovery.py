@@ -250,6 +250,12 @@ class Discovery:
                 consolidation=zenoh.ConsolidationMode.NONE,
             )
 
+    def service_session(self, service: str) -> str | None:
+        """The one Zenoh session that answers as ``service`` (None: none does, or more than
+        one: any peer can answer in a service's name), for ``query(session=)``."""
+        ids = self._producer_ids(service)
+        return next(iter(ids)) if len(ids) == 1 else None
+
     def _producer_ids(self, service: str) -> frozenset[str]:
         """The Zenoh sessions that answer as ``service`` (empty if none does): whose
         refusals a subscription trusts."""

@@ -39,9 +39,13 @@ class Queries(Discovery):
         time_range: TimeRange | str | None = None,
         last: int | None = None,
         timeout_s: float = 5.0,
+        session: str | None = None,
     ) -> list[DataObject]:
         """Elements of ``service/buffer`` in a time range (``TimeRange`` or a ``_time`` string
         such as ``[now(-2s)..]``) and/or the newest ``last``, in timestamp order.
+        ``session``: only that Zenoh session's replies count (a subscription's
+        ``producer_session``): a peer answering inside the range asked is not taken for the
+        service.
 
         Any peer may answer: with a ``TimeRange``, an element outside it is no answer to the
         question and is left out (a peer's one element stamped an hour ahead became a
@@ -52,7 +56,7 @@ class Queries(Discovery):
             params["_time"] = _time_value(time_range)
         if last is not None:
             params["last"] = str(last)
-        elements = self._get(target, params, timeout_s, most=last)
+        elements = self._get(target, params, timeout_s, most=last, session=session)
         if isinstance(time_range, TimeRange):
             elements = [e for e in elements if time_range.contains(e.timestamp_ns)]
         return elements
@@ -151,7 +155,7 @@ class Queries(Discovery):
             )
 
     def _answer(
-        self, target: str, replies: Any, *, most: int | None = None
+        self, target: str, replies: Any, *, most: int | None = None, session: str | None = None
     ) -> tuple[list[DataObject], bool]:
         """The elements of an answer, and whether any service answered (its end mark came).
 
@@ -176,6 +180,10 @@ class Queries(Discovery):
         short: set[str | None] = set()
         with zenoh_errors(f"querying {target}"):
             for reply in replies:
+                if session is not None and (
+                    reply.replier_id is None or str(reply.replier_id.zid) != session
+                ):
+                    continue  # not the session asked for: read nothing of it
                 if reply.ok is not None:
                     who = reply.replier_id
                     replier = None if who is None else str(who)
@@ -210,11 +218,17 @@ class Queries(Discovery):
         return elements, answered
 
     def _get(
-        self, target: str, params: dict[str, str], timeout_s: float, *, most: int | None = None
+        self,
+        target: str,
+        params: dict[str, str],
+        timeout_s: float,
+        *,
+        most: int | None = None,
+        session: str | None = None,
     ) -> list[DataObject]:
         deadline = time.monotonic() + timeout_s
         replies = self._start_get(target, params, timeout_s)
-        elements, answered = self._answer(target, replies, most=most)
+        elements, answered = self._answer(target, replies, most=most, session=session)
         if not elements:
             # NotFoundError, with a did-you-mean, if there is none; asked with the caller's
             # patience (a loaded machine's service answers late, and is not "gone" for it).
@@ -224,7 +238,7 @@ class Queries(Discovery):
             left_s = deadline - time.monotonic()
             if not answered and left_s > 0:
                 replies = self._start_get(target, params, left_s)
-                elements = self._answer(target, replies, most=most)[0]
+                elements = self._answer(target, replies, most=most, session=session)[0]
         elements.sort(key=lambda e: e.timestamp_ns)
         return elements
 

@@ -268,7 +268,8 @@ def _start(
         # The start and the stop in this producer's clock: its elements' stamps are.
         offset = args.offsets.get(b.service, 0)
         stop_ns = None if args.stop_ns is None else args.stop_ns + offset
-        initial = at_start(node, b.name, args.started_ns + offset, stop_ns)
+        session = node.service_session(b.service)  # its replies alone, if it is one
+        initial = at_start(node, b.name, args.started_ns + offset, stop_ns, session)
         sub = observer(node, b.name, args.queue, args.timeout)
         progress = Progress(b.name, b.kind)
         recorder = Recorder(node, sub, queue, progress, stop, args.count, initial)

@@ -177,7 +177,11 @@ class WriteQueue:
 
 
 def at_start(
-    node: Node, target: str, started_ns: int, stop_ns: int | None = None
+    node: Node,
+    target: str,
+    started_ns: int,
+    stop_ns: int | None = None,
+    session: str | None = None,
 ) -> list[DataObject]:
     """What ``target`` holds of the recording already: its newest element stamped at or
     before the start, and every one stamped after it (up to ``stop_ns``). Asked before
@@ -188,10 +192,18 @@ def at_start(
 
     The second query starts right after the element the first one found, not at the start:
     a batch stored between the two (a gyro's ten samples, some stamped before the start)
-    would otherwise leave a gap behind that element that no later backfill reaches."""
+    would otherwise leave a gap behind that element that no later backfill reaches.
+
+    ``session``: the producer's Zenoh session, when one alone answers as its service: a
+    peer's element stamped inside the window (5 s ahead) became the newest recorded, and
+    the real ones before it were skipped as recorded already."""
     try:
         before = node.query(
-            target, time_range=TimeRange(None, started_ns), last=1, timeout_s=STOP_QUERY_S
+            target,
+            time_range=TimeRange(None, started_ns),
+            last=1,
+            timeout_s=STOP_QUERY_S,
+            session=session,
         )
         end_ns = started_ns + AT_START_WINDOW_NS
         after = node.query(
@@ -201,6 +213,7 @@ def at_start(
                 end_ns if stop_ns is None else min(stop_ns, end_ns),
             ),
             timeout_s=STOP_QUERY_S,
+            session=session,
         )
     except FramegateError:
         return []
@@ -316,7 +329,9 @@ class Recorder:
         if timeout_s <= 0:
             return False
         try:
-            newest = self.node.buffer_info(self.sub.name, timeout_s=timeout_s).newest_ns
+            newest = self.node.buffer_info(
+                self.sub.name, timeout_s=timeout_s, session=self.sub.producer_session
+            ).newest_ns
         except FramegateError:
             return False
         return newest is not None and newest > self._last_ns
@@ -424,6 +439,9 @@ class Recorder:
                     time_range=TimeRange(start, end_ns),
                     last=newest if start is None else None,
                     timeout_s=timeout_s,
+                    # The producer's replies alone: a peer's element inside an open range
+                    # would become the newest recorded, and real ones look recorded.
+                    session=self.sub.producer_session,
                 )
             except FramegateError:
                 continue

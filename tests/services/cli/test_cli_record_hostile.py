@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -26,15 +26,16 @@ HOUR_NS = 3600 * 1_000_000_000
 
 
 @contextmanager
-def _rogue_answering(endpoint: str, stamp_ns: int) -> Iterator[list[int]]:
-    """A peer answering every data query of cam/a with one element stamped ``stamp_ns`` and
+def _rogue_answering(endpoint: str, stamp: Callable[[], int]) -> Iterator[list[int]]:
+    """A peer answering every data query of cam/a with one element stamped ``stamp()`` and
     a proper end mark; yields the count of queries it answered."""
     asked: list[int] = []
-    element = DataObject(stamp_ns, b"rogue", make_metadata("generic", stamp_ns))
 
     def reply(query: zenoh.Query) -> None:
         with query:
             asked.append(1)
+            stamp_ns = stamp()
+            element = DataObject(stamp_ns, b"rogue", make_metadata("generic", stamp_ns))
             query.reply(query.key_expr, b"rogue", attachment=encode_element_attachment(element))
             query.reply(query.key_expr, b"", attachment=encode_answer_end(1))
 
@@ -56,7 +57,7 @@ def test_record_beside_a_peer_answering_an_hour_ahead_records_the_real_elements(
     bag = tmp_path / "hostile.mcap"
     with Node("cam", listen_net) as node:
         producer = node.offer("a")  # before the peer answers in its name
-        with _rogue_answering(endpoint, time.time_ns() + HOUR_NS):
+        with _rogue_answering(endpoint, lambda: time.time_ns() + HOUR_NS):
             recorder = cli.start("record", "cam/a", "-o", str(bag), "--count", "5", "--json")
             subscribed = producer.wait_for_subscribers(1, timeout_s=scaled(60))
             assert subscribed, "record never subscribed"
@@ -76,8 +77,33 @@ def test_query_shows_only_the_range_asked_beside_a_peer(
         producer = node.offer("a")
         for t in (1000, 2000, 3000):
             producer.put(t, b"real", make_metadata("generic", t))
-        with _rogue_answering(endpoint, 2**62) as asked:
+        with _rogue_answering(endpoint, lambda: 2**62) as asked:
             result = cli.run("query", "cam/a", "--from", "1500", "--to", "2500", "--json")
             wait_until(lambda: asked, scaled(10), "the peer to be asked")
     stamps = [e["timestamp_ns"] for e in result.json()["elements"]]
     assert stamps == [2000], stamps
+
+
+def test_record_takes_only_its_producers_replies(
+    listen_net: NetworkConfig, endpoint: str, cli: Cli, tmp_path: Path
+) -> None:
+    """The peer answers each query with an element stamped 5 s after it was asked: inside the
+    window the recorder asks at its start, so the range alone does not tell it from the
+    producer's. It became the newest recorded, and the real elements of the next 5 s were
+    skipped as recorded already (102 of 200 in 10 s at 20 Hz, 0 evicted, 0 dropped)."""
+    bag = tmp_path / "ahead.mcap"
+    with Node("cam", listen_net) as node:
+        producer = node.offer("a")
+        with _rogue_answering(endpoint, lambda: time.time_ns() + 5 * 10**9):
+            duration = str(scaled(30))
+            argv = ("cam/a", "-o", str(bag), "--count", "5", "--duration", duration, "--json")
+            recorder = cli.start("record", *argv)
+            subscribed = producer.wait_for_subscribers(1, timeout_s=scaled(60))
+            assert subscribed, "record never subscribed"
+            for _ in range(5):
+                t = time.time_ns()
+                producer.put(t, b"real", make_metadata("generic", t))
+            out, err = recorder.communicate(timeout=scaled(120))
+    assert recorder.returncode == 0, err
+    summary = json.loads(out)
+    assert [b["recorded"] for b in summary["buffers"]] == [5], summary

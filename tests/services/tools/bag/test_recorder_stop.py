@@ -23,6 +23,7 @@ class _Queue:
 
     name = "cam/log"
     missed_total = 0
+    producer_session = None
 
     def __init__(self, *seq_and_t: tuple[int, int]) -> None:
         self.notes = [Notification("cam", "log", t, seq) for seq, t in seq_and_t]
@@ -168,6 +169,7 @@ class _Holding:
 
     name = "cam/log"
     missed_total = 0
+    producer_session = None
 
     def __init__(self, held: list[int]) -> None:
         self.held = held
