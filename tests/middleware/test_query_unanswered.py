@@ -35,7 +35,7 @@ class _Lapsing(Queries):
         return [t for t in self.held if parse_time_range(params["_time"]).contains(t)]
 
     def _answer(
-        self, target: str, replies: Any, *, most: int | None = None
+        self, target: str, replies: Any, *, most: int | None = None, session: str | None = None
     ) -> tuple[list[DataObject], bool]:
         if replies is None:
             return [], False
