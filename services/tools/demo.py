@@ -32,7 +32,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO
 
-from middleware import BufferInfo, ConfigError, FramegateError, NetworkConfig, Node, tightest_flow
+from middleware import (
+    BufferInfo,
+    ConfigError,
+    FramegateError,
+    NetworkConfig,
+    Node,
+    TimeRange,
+    now_ns,
+    tightest_flow,
+)
 from services.launch import (
     LOCAL_HOST,
     Deployment,
@@ -252,7 +261,10 @@ class MarkerTally:
 
     def update(self, node: Node) -> None:
         try:
-            elements = node.query(self.buffer, time_range=f"[{self._after_ns + 1}..]")
+            # Up to now, not open-ended: any peer may answer the query, and one element
+            # stamped far ahead became ``_after_ns``, so no later detection was counted.
+            asked = TimeRange(self._after_ns + 1, max(self._after_ns + 1, now_ns()))
+            elements = node.query(self.buffer, time_range=asked)
         except FramegateError:
             return
         for element in elements:
