@@ -16,7 +16,9 @@ Reading order, for whoever must change something:
    decision a producer makes, as ``_protocol_events``) over the pure credit rules of
    ``_ledger_producer``; then
    ``_producer``, which only moves bytes and time between Zenoh and that object. The same
-   for the subscriber: ``_protocol_subscriber``, ``_ledger_subscriber``, ``_subscription``.
+   for the subscriber: ``_protocol_subscriber``, ``_ledger_subscriber``, ``_subscription``
+   (whose log lines about registrations and lapses, which a peer can provoke, are rate-bounded
+   by ``_news``).
 4. ``_wire`` (the bytes on the wire), ``_service`` (queryables answering reads and
    ``@info``), ``_info_codec`` (the ``@info`` reply both ways, through the bounded gate of
    ``_decode``), ``_buffer`` (the time series), ``_records`` (the typed records and their one
