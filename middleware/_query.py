@@ -116,9 +116,12 @@ class Queries(Discovery):
             raise NotFoundError(f"{target} has no element with timestamp {timestamp_ns}")
         return found
 
-    def nearest(self, target: str, timestamp_ns: int, *, timeout_s: float = 5.0) -> DataObject:
-        """The element closest in time; NotFoundError if the buffer is empty."""
-        found = self._get(target, {"at": str(timestamp_ns)}, timeout_s, most=1)
+    def nearest(
+        self, target: str, timestamp_ns: int, *, timeout_s: float = 5.0, session: str | None = None
+    ) -> DataObject:
+        """The element closest in time; NotFoundError if the buffer is empty. ``session``
+        as for ``query``."""
+        found = self._get(target, {"at": str(timestamp_ns)}, timeout_s, most=1, session=session)
         if not found:
             raise NotFoundError(f"{target} is empty")
         return found[0]

@@ -200,3 +200,24 @@ def print_json_line(data: Any) -> None:
     """One JSON object per line (JSON Lines): what streaming commands print with --json."""
     sys.stdout.write(json.dumps(data, default=str) + "\n")
     sys.stdout.flush()
+
+
+# Clocks closer than this are taken to agree: a start or stop within it of an element's
+# stamp is inside the stop's slack anyway, and on one host the measured offset is noise.
+CLOCKS_AGREE_NS = 50_000_000
+
+
+def producer_offset_ns(node: Node, service: str, timeout_s: float) -> int:
+    """How far ``service``'s clock runs ahead of ours (negative: behind), when that is more
+    than the measurement's error and ``CLOCKS_AGREE_NS``; else 0. Not on a peer's word: a
+    peer answering ``@info`` in the service's name with a clock an hour behind would move
+    the stop an hour early, so when more than one session answers (or none) it is 0."""
+    try:
+        info = node.service_info(service, timeout_s=timeout_s, unambiguous=True)
+    except FramegateError:
+        return 0
+    offset = info.clock_offset_ns
+    if offset is None:
+        return 0
+    error = (info.round_trip_ns or 0) // 2
+    return offset if abs(offset) > max(error, CLOCKS_AGREE_NS) else 0

@@ -7,7 +7,6 @@ import base64
 import os
 import re
 import sys
-import time
 from pathlib import Path
 from typing import Any
 
@@ -18,6 +17,7 @@ from middleware import (
     Node,
     QueryError,
     TimeRange,
+    now_ns,
     parse_duration_ns,
     parse_time_ns,
     parse_untrusted,
@@ -35,7 +35,7 @@ from ._common import (
     print_json,
 )
 from ._fields import decode_metadata
-from ._target import add_timeout_argument, resolve
+from ._target import add_timeout_argument, producer_offset_ns, resolve
 
 # With no selection at all, a query returns this many of the newest elements: a camera
 # buffer can hold gigabytes, and nobody wants them all by accident.
@@ -128,19 +128,22 @@ def run(args: argparse.Namespace) -> int:
         raise QueryError("--force only applies to --save")
     with Node(network=network(args)) as node:
         service, buffer = resolve(node, args.target, args.timeout)
-        now_ns = time.time_ns() + (service.clock_offset_ns or 0)
+        # Relative times in the service's clock (its stamps are), and its replies alone
+        # when one session answers as it: a peer's clock or elements are not its.
+        now = now_ns() + producer_offset_ns(node, service.service, args.timeout)
+        session = node.service_session(service.service)
         timeout_s = max(5.0, args.timeout)
         if at is not None:
-            at_ns = _resolve_time(at, now_ns)
+            at_ns = _resolve_time(at, now)
             assert at_ns is not None
             TimeRange(at_ns, None)  # refuses a time outside 0..2^63-1 with a QueryError
-            elements = [node.nearest(args.target, at_ns, timeout_s=timeout_s)]
+            elements = [node.nearest(args.target, at_ns, timeout_s=timeout_s, session=session)]
             if note := retention_note(buffer, at_ns):  # the nearest is then the oldest
                 print(f"note: {note.replace('range starts', 'time --at is', 1)}", file=sys.stderr)
         else:
             rng = None
             if start is not None or end is not None:
-                rng = TimeRange(_resolve_time(start, now_ns), _resolve_time(end, now_ns))
+                rng = TimeRange(_resolve_time(start, now), _resolve_time(end, now))
                 if (
                     rng.start_ns is not None
                     and rng.end_ns is not None
@@ -148,7 +151,9 @@ def run(args: argparse.Namespace) -> int:
                 ):
                     raise QueryError(f"--from {args.start} is after --to {args.end}")
             last = args.last if args.last is not None or rng is not None else DEFAULT_LAST
-            elements = node.query(args.target, time_range=rng, last=last, timeout_s=timeout_s)
+            elements = node.query(
+                args.target, time_range=rng, last=last, timeout_s=timeout_s, session=session
+            )
             if rng is not None and (note := retention_note(buffer, rng.start_ns)):
                 print(f"note: {note}", file=sys.stderr, flush=True)
     saved = _save_all(args.save, elements, args.force) if args.save is not None else {}

@@ -107,3 +107,21 @@ def test_record_takes_only_its_producers_replies(
     assert recorder.returncode == 0, err
     summary = json.loads(out)
     assert [b["recorded"] for b in summary["buffers"]] == [5], summary
+
+
+def test_query_shows_only_the_services_elements_beside_a_peer_answering_inside_the_range(
+    listen_net: NetworkConfig, endpoint: str, cli: Cli
+) -> None:
+    """The peer's element lies inside the range asked, so the range alone cannot tell it from
+    the service's: ``query`` reads the replies of the one session answering as the service
+    (the peer's element was listed beside the real ones)."""
+    with Node("cam", listen_net) as node:
+        producer = node.offer("a")
+        for t in (1000, 2000, 3000):
+            producer.put(t, b"real", make_metadata("generic", t))
+        with _rogue_answering(endpoint, lambda: 2500) as asked:
+            ranged = cli.run("query", "cam/a", "--from", "1500", "--to", "3500", "--json")
+            nearest = cli.run("query", "cam/a", "--at", "2600", "--json")
+            wait_until(lambda: len(asked) >= 2, scaled(10), "the peer to be asked")
+    assert [e["timestamp_ns"] for e in ranged.json()["elements"]] == [2000, 3000]
+    assert [e["timestamp_ns"] for e in nearest.json()["elements"]] == [3000]
