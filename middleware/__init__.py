@@ -13,17 +13,18 @@ Reading order, for whoever must change something:
 2. ``_executor`` — the node's one thread: what waits, what runs per turn, and how a handler
    that blocks avoids waiting for itself. ``_inbox``: what runs on Zenoh's threads.
 3. One side of the protocol at a time, each as one object: ``_protocol_producer`` (every
-   decision a producer makes, as ``_protocol_events``) over the pure credit rules of
-   ``_ledger_producer``; then
-   ``_producer``, which only moves bytes and time between Zenoh and that object. The same
+   decision a producer makes, as ``_protocol_events``; its fair shares per holder in
+   ``_protocol_shares``) over the pure credit rules of ``_ledger_producer``; then
+   ``_producer``, which only moves bytes and time between Zenoh and that object (what
+   ``put`` checks of an element first: ``_element_check``; its put rate: ``_rate``). The same
    for the subscriber: ``_protocol_subscriber``, ``_ledger_subscriber``, ``_subscription``
    (whose log lines about registrations and lapses, which a peer can provoke, are rate-bounded
    by ``_news``).
 4. ``_wire`` (the bytes on the wire), ``_service`` (queryables answering reads and
    ``@info``), ``_info_codec`` (the ``@info`` reply both ways, through the bounded gate of
    ``_decode``), ``_buffer`` (the time series), ``_records`` (the typed records and their one
-   JSON form), then the rest (``_xml``, ``_shapes``, ``_timerange``, ``_clock``, ``_config``,
-   ``_rendezvous``).
+   JSON form), then the rest (``_errors``, ``_xml``, ``_shapes``, ``_kinds``, ``_timerange``,
+   ``_clock``, ``_config``, ``_rendezvous``).
 
 docs/threads.md says which thread runs what and what each lock guards.
 """

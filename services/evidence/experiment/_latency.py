@@ -7,8 +7,7 @@ that decides every frame the moment it arrives hides what that wait costs a poli
 holds frames (while it waits, no held frame goes out). So the replay takes latencies:
 
 - recorded: a real run's decision records (frame id -> ``latency_ns``): the first record of
-  each frame (``decision_latencies``; a held frame's first record is its hold), or the final
-  records of a policy that never holds a frame (``recorded_latencies``);
+  each frame (``decision_latencies``; a held frame's first record is its hold);
 - measured: drawn independently per frame from ``MEASURED_LATENCY_MS``, the 20-quantiles
   of those records (``paper`` runs, seeds 1-2, N = 2, factor 1.6), seeded, so a sweep is
   repeatable and every seed and policy sees its own fixed draw.
@@ -34,8 +33,6 @@ MEASURED_LATENCY_MS: tuple[tuple[float, float], ...] = (
 
 LATENCY_MODES = ("measured", "none")
 
-_NO_HOLD_REASONS = frozenset({"quality>load", "quality<=load"})
-
 
 def measured_latencies(frames: Sequence[FrameOutcome], seed: int) -> dict[int, int]:
     """A latency per frame id drawn from ``MEASURED_LATENCY_MS`` (the quantile function,
@@ -50,16 +47,6 @@ def measured_latencies(frames: Sequence[FrameOutcome], seed: int) -> dict[int, i
         value_ms = v0 + (u - p0) / (p1 - p0) * (v1 - v0)
         out[frame.frame_id] = round(value_ms * 1e6)
     return out
-
-
-def recorded_latencies(decisions: Iterable[DecisionRecord]) -> dict[int, int]:
-    """Frame id -> decision latency from a run's records, only where the record was written
-    at the decision (the paper's rule never holds; other reasons may include a hold)."""
-    return {
-        d.frame_id: d.latency_ns
-        for d in decisions
-        if d.reason in _NO_HOLD_REASONS and d.latency_ns > 0
-    }
 
 
 def decision_latencies(first_decisions: Iterable[DecisionRecord]) -> dict[int, int]:

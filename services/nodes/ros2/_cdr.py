@@ -191,13 +191,8 @@ class Codec:
         return _owner(self.store.serialize_cdr(message, IMAGE))
 
     # -- IMU ---------------------------------------------------------------------------------
-    def decode_imu(self, raw: bytes) -> tuple[int, tuple[float, float, float]]:
-        """(stamp, angular velocity in rad/s); CdrError for a malformed message."""
-        t_ns, rates, _ = self.decode_imu_frame(raw)
-        return t_ns, rates
-
     def decode_imu_frame(self, raw: bytes) -> tuple[int, tuple[float, float, float], str]:
-        """(stamp, angular velocity in rad/s, header.frame_id); CdrError as decode_imu."""
+        """(stamp, angular velocity in rad/s, header.frame_id); CdrError for a malformed message."""
         try:
             msg: Any = self.store.deserialize_cdr(memoryview(raw), IMU)
         except Exception as exc:

@@ -19,7 +19,6 @@ import threading
 import time
 from collections.abc import Callable
 from types import TracebackType
-from typing import Any
 
 import zenoh
 import zenoh.ext
@@ -64,12 +63,6 @@ class RosPublisher:
             self._publisher.put(cdr, attachment=attachment)
         except zenoh.ZError as exc:
             raise TransportError(f"cannot publish on {self._publisher.key_expr}: {exc}") from exc
-
-    @property
-    def matched(self) -> bool:
-        """True while some subscriber matches the data key."""
-        status: Any = self._publisher.matching_status
-        return bool(status.matching)
 
     def close(self) -> None:
         self._token.undeclare()

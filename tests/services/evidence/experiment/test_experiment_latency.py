@@ -7,8 +7,8 @@ from collections.abc import Sequence
 from services.evidence.experiment._frames import FrameOutcome
 from services.evidence.experiment._latency import (
     MEASURED_LATENCY_MS,
+    decision_latencies,
     measured_latencies,
-    recorded_latencies,
 )
 from services.evidence.experiment._replay import QueueModel, replay_policy
 from services.lib.decisions import Action, Verdict, View
@@ -88,11 +88,11 @@ def _record(frame_id: int, reason: str, latency_ns: int) -> DecisionRecord:
     )  # fmt: skip
 
 
-def test_recorded_latencies_keep_only_records_written_at_the_decision() -> None:
+def test_decision_latencies_leave_out_frames_skipped_undecided() -> None:
     records = [
         _record(1, "quality>load", 12 * MS),
         _record(2, "quality<=load", 9 * MS),
-        _record(3, "deadline", 150 * MS),  # a held frame: its record waited with it
+        _record(3, "deadline", 150 * MS),  # a held frame's first record: its hold
         _record(4, "bad-metadata", 0),
     ]
-    assert recorded_latencies(records) == {1: 12 * MS, 2: 9 * MS}
+    assert decision_latencies(records) == {1: 12 * MS, 2: 9 * MS, 3: 150 * MS}

@@ -71,7 +71,7 @@ def test_truncated_messages_are_cdr_errors(codec: Codec) -> None:
     with pytest.raises(CdrError, match="not a CDR sensor_msgs/msg/Image"):
         codec.decode_image(raw[:30])
     with pytest.raises(CdrError, match="not a CDR sensor_msgs/msg/Imu"):
-        codec.decode_imu(raw[:10])
+        codec.decode_imu_frame(raw[:10])
 
 
 def test_detections_and_verdicts_round_trip(codec: Codec) -> None:
