@@ -463,7 +463,7 @@ class SubscriberLedger(Generic[T]):
 
     def flush_at_ns(self) -> int | None:
         """When a delayed ack falls due for a subscriber that does not come back to take:
-        the earliest ``unacked_since + delay`` of an epoch with nothing queued (None if no
+        the earliest ``unacked_since_ns + delay`` of an epoch with nothing queued (None if no
         ack waits on the delay). The Zenoh layer calls ``acks_due`` then (see the module
         doc for who does, and when)."""
         if not self.policy.delay_ns:

@@ -25,8 +25,6 @@ import logging
 import time
 from dataclasses import dataclass
 
-import numpy as np
-
 from middleware import FramegateError
 from services.lib.frame_layout import FrameError
 from services.lib.messages import FrameMeta
@@ -34,8 +32,7 @@ from services.lib.quality import (
     BlurOptions,
     CoverageError,
     GyroSamples,
-    estimate_blur,
-    quality,
+    frame_quality,
 )
 from services.nodes._mediator_inputs import ClockOffsets, GyroCache
 
@@ -58,15 +55,11 @@ def blur_quality(
     """
     assert meta.camera is not None
     try:
-        with np.errstate(all="ignore"):  # a NaN result is checked below, not warned about
-            blur = float(estimate_blur(samples, meta.exposure, meta.camera, options).blur_px)
+        return frame_quality(samples, meta.exposure, meta.camera, b0_px, options)
     except CoverageError:
         raise
     except (FramegateError, ValueError, ArithmeticError) as exc:
         raise BadFrame("bad-blur", str(exc)) from exc
-    if not blur >= 0.0:  # NaN (INF or NaN in the camera model) is not a quality
-        raise BadFrame("bad-blur", f"blur of {blur} px")
-    return blur, quality(blur, b0_px)
 
 
 @dataclass(frozen=True, slots=True)

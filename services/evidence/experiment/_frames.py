@@ -1,7 +1,7 @@
 """What the replay needs of each frame, computed offline from a rendered dataset.
 
 For every frame: when it reaches the mediator (its exposure end, camera clock), the quality
-the mediator would give it (the same ``estimate_blur`` on the same gyro samples, q =
+the mediator would give it (the same ``frame_quality`` on the same gyro samples, q =
 exp(-blur/b0)), and which markers the detector would recognize in it if it processed it (the
 ``all`` run's answer: ``detect_markers`` on the frame, scored against the truth as
 ``recognized_frames`` does). Detection costs tens of ms a frame, so its result is cached
@@ -12,7 +12,6 @@ recomputed.
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -21,8 +20,8 @@ from services.lib.quality import (
     CoverageError,
     Exposure,
     GyroSamples,
-    estimate_blur,
-    quality,
+    QualityInputError,
+    frame_quality,
 )
 from services.lib.sim import Dataset
 
@@ -109,11 +108,12 @@ def frame_outcomes(dataset: Dataset, b0_px: float) -> tuple[FrameOutcome, ...]:
     out = []
     for frame in dataset.frames:
         exposure = Exposure(frame.exposure_start_ns, frame.exposure_ns)
-        try:
-            blur: float | None = estimate_blur(gyro, exposure, dataset.camera).blur_px
-        except CoverageError:
-            blur = None
-        q = quality(blur, b0_px) if blur is not None and not math.isnan(blur) else None
+        blur: float | None
+        q: float | None
+        try:  # as the mediator scores it; one it cannot score has no quality
+            blur, q = frame_quality(gyro, exposure, dataset.camera, b0_px)
+        except (CoverageError, QualityInputError):
+            blur, q = None, None
         out.append(
             FrameOutcome(
                 frame_id=frame.frame_id,

@@ -1,10 +1,11 @@
 """Motion-blur quality of frames from gyro rates (paper §4.2-4.3), and what goes beyond it.
 
-The mediator calls ``estimate_blur`` for every frame and maps the blur to a quality with
-``quality``; its policies (``services.lib.decisions``) apply the acceptance test ``accept``.
+The mediator calls ``frame_quality`` for every frame (``estimate_blur``, then the blur
+mapped to a quality by ``quality``); its policies (``services.lib.decisions``) apply the
+acceptance test ``accept``.
 """
 
-from ._accept import DEFAULT_B0_PX, accept, quality
+from ._accept import DEFAULT_B0_PX, accept, frame_quality, quality
 from ._blur import BlurEstimate, BlurMode, BlurOptions, Roi, estimate_blur
 from ._errors import CalibrationError, CoverageError, QualityInputError
 from ._exposure import Exposure
@@ -27,6 +28,7 @@ __all__ = [
     "accept",
     "estimate_blur",
     "estimate_time_offset",
+    "frame_quality",
     "laplacian_variance",
     "quality",
     "rank_correlation",

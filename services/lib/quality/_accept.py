@@ -9,7 +9,14 @@ from __future__ import annotations
 import math
 import sys
 
+import numpy as np
+
+from services.lib.camera_model import CameraModel
+
+from ._blur import DEFAULT_OPTIONS, BlurOptions, estimate_blur
 from ._errors import QualityInputError
+from ._exposure import Exposure
+from ._gyro import GyroSamples
 
 DEFAULT_B0_PX = 5.0
 """Blur scale b0 of q = exp(-blur_px / b0_px), in pixels.
@@ -38,6 +45,26 @@ def quality(blur_px: float, b0_px: float = DEFAULT_B0_PX) -> float:
     if not (b0_px > 0.0 and math.isfinite(b0_px)):
         raise QualityInputError(f"b0_px must be a positive finite number of pixels, got {b0_px!r}")
     return max(math.exp(-blur_px / b0_px), _MIN_Q)
+
+
+def frame_quality(
+    gyro: GyroSamples,
+    exposure: Exposure,
+    camera: CameraModel,
+    b0_px: float = DEFAULT_B0_PX,
+    options: BlurOptions = DEFAULT_OPTIONS,
+) -> tuple[float, float]:
+    """(blur_px, quality) of one frame: the one way from a frame to its quality, used by the
+    mediator and by the experiment's replay.
+
+    CoverageError when ``gyro`` does not cover ``exposure``; QualityInputError when the blur
+    is not a number (INF or NaN in the camera model) or an input is invalid.
+    """
+    with np.errstate(all="ignore"):  # a NaN result is checked below, not warned about
+        blur = float(estimate_blur(gyro, exposure, camera, options).blur_px)
+    if not blur >= 0.0:
+        raise QualityInputError(f"blur of {blur} px")
+    return blur, quality(blur, b0_px)
 
 
 def accept(q: float, load: float, q_min: float = 0.0) -> bool:

@@ -95,7 +95,7 @@ class _InQueue:
         self._bytes = 0
         self._cond = threading.Condition()
         self._on_overflow = on_overflow
-        # Set by ``drain_to``'s owner: called (Zenoh's thread) when the queue gets work while
+        # Set by ``_Input.attach``: called (Zenoh's thread) when the queue gets work while
         # no drain is due, so one executor deadline is scheduled per burst, not per sample.
         self.on_ready: Callable[[], object] | None = None
         self._due = False
