@@ -14,7 +14,9 @@ from typing import Any
 
 import pytest
 
-from middleware import NetworkConfig, Node, Producer, make_metadata
+from middleware import NetworkConfig, Node, Producer
+from services.lib.messages import frame_metadata_of
+from services.lib.quality import Exposure
 from tests.conftest import REPO, child_env
 from tests.helpers.timing import scaled
 
@@ -27,18 +29,9 @@ DISCOVERY_TIMEOUT_S = 20.0
 
 
 def frame_metadata(t: int, frame_id: int) -> bytes:
-    return make_metadata(
-        "frame",
-        t,
-        {
-            "frame_id": frame_id,
-            "exposure_start_ns": t,
-            "exposure_ns": 2 * MS,
-            "encoding": "mono8",
-            "width_px": WIDTH,
-            "height_px": HEIGHT,
-        },
-    )
+    """A mono8 frame exposed 2 ms from ``t``, with no camera model (the product's
+    ``frame_metadata_of``, the one place that writes frame metadata)."""
+    return frame_metadata_of(frame_id, Exposure(t, 2 * MS), "mono8", WIDTH, HEIGHT, None)
 
 
 def frame_payload(frame_id: int) -> bytes:
