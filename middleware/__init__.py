@@ -40,6 +40,7 @@ from ._config import (
     listening_endpoints,
     network_from_args,
 )
+from ._decode import printable
 from ._discovery import split_target
 from ._errors import (
     EXIT_NAME_TAKEN,
@@ -126,6 +127,7 @@ __all__ = [
     "parse_time_ns",
     "parse_time_range",
     "parse_untrusted",
+    "printable",
     "register_kind",
     "split_target",
     "tightest_flow",

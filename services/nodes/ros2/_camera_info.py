@@ -40,7 +40,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from middleware import FramegateError
+from middleware import FramegateError, printable
 from services.lib.camera_model import CameraModel
 
 from ._cdr import CdrError, Codec
@@ -62,6 +62,9 @@ MAX_PIXELS = 1e6
 TF_MAX_BYTES = 256 * 1024
 # How many times a changed camera description is logged (a peer may change it forever).
 _LOG_CHANGES = 8
+# A waiting line names frames and topics as peers spell them: at most this many characters
+# of each line, unprintable ones escaped (a frame id may be megabytes, newlines included).
+_LINE_CHARS = 600
 
 # (reason, detail, how many): count skipped messages under ``reason``.
 CountSkip = Callable[[str, str, int], None]
@@ -352,6 +355,7 @@ class CameraSource:
         return model
 
     def _say(self, line: str) -> None:
+        line = printable(line, _LINE_CHARS)
         if line not in self._said and len(self._said) < 16:
             self._said.add(line)
             self._log.warning("%s", line)

@@ -20,7 +20,9 @@ import struct
 from collections import OrderedDict
 from dataclasses import dataclass, fields
 
-from ._rmw import EntityKind, parse_endpoint
+from middleware import printable
+
+from ._rmw import MAX_REMARKS, REMARK_CHARS, EntityKind, parse_endpoint
 
 # CDR encapsulation identifiers (first two bytes): plain CDR, big- and little-endian.
 _CDR_BE, _CDR_LE = b"\x00\x00", b"\x00\x01"
@@ -141,10 +143,12 @@ class DoneTopic:
         return None
 
     def _once(self, dds_type: str, type_hash: str, text: str) -> str | None:
-        if (dds_type, type_hash) in self._said:
+        if (dds_type, type_hash) in self._said or len(self._said) > MAX_REMARKS:
             return None
         self._said.add((dds_type, type_hash))
-        return f"{self.topic}: {text}"
+        if len(self._said) > MAX_REMARKS:  # a peer's made-up types: bounded lines and memory
+            return f"{self.topic}: {MAX_REMARKS} ignored types said; further ones are not logged"
+        return printable(f"{self.topic}: {text}", REMARK_CHARS)
 
 
 @dataclass(frozen=True, slots=True)

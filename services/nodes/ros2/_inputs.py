@@ -34,6 +34,7 @@ from middleware import (
     Producer,
     Retention,
     now_ns,
+    printable,
 )
 from services.lib.camera_model import CameraModel
 from services.lib.messages import frame_metadata_of
@@ -65,6 +66,9 @@ _IMU_QUEUE = 2048
 # messages are ~0.7 MB; five 1280x1024 images ~6.5 MB (a 4K RGB image is 25 MB).
 _IMU_QUEUE_BYTES = 8 << 20
 _IMAGE_QUEUE_BYTES = 256 << 20
+# A skip's detail in the log at most this long: it quotes a peer's message (a frame id, an
+# encoding), which may be megabytes of text with newlines and terminal escapes in it.
+DETAIL_CHARS = 300
 
 
 class _Skips:
@@ -82,7 +86,9 @@ class _Skips:
         if producer is not None:
             producer.count_skip(reason, n)
         if first:
-            self._log.warning("skipping (%s; counted, warned once): %s", reason, detail)
+            self._log.warning(
+                "skipping (%s; counted, warned once): %s", reason, printable(detail, DETAIL_CHARS)
+            )
 
 
 class _InQueue:

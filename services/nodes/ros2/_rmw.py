@@ -39,7 +39,7 @@ from dataclasses import dataclass
 
 import xxhash
 
-from middleware import ConfigError
+from middleware import ConfigError, printable
 
 ADMIN_SPACE = "@ros2_lv"
 GID_BYTES = 16
@@ -224,6 +224,12 @@ def parse_endpoint(token: str) -> Endpoint | None:
     )
 
 
+# Distinct remarks a graph check logs at most, and their length (a peer declares tokens of
+# any number of made-up types, named as long as a key expression may be).
+MAX_REMARKS = 16
+REMARK_CHARS = 400
+
+
 class TopicCheck:
     """Says, once per kind of mismatch, when another node's endpoint on one of the bridge's
     topics uses another type or type hash than the bridge: their samples travel on another
@@ -236,6 +242,7 @@ class TopicCheck:
         self._own = own_session_id
         self._expected = expected  # topic -> (DDS type name, type-hash chunk)
         self._said: set[tuple[str, str, str]] = set()
+        self._quiet = False  # MAX_REMARKS said: the rest is not logged
 
     def check(self, token: str) -> str | None:
         """A one-line warning for a newly seen mismatch, else None."""
@@ -246,8 +253,12 @@ class TopicCheck:
         if expected is None or expected == (endpoint.dds_type, endpoint.type_hash):
             return None
         key = (endpoint.topic, endpoint.dds_type, endpoint.type_hash)
-        if key in self._said:
+        if key in self._said or self._quiet:
             return None
+        if len(self._said) >= MAX_REMARKS:
+            # A token costs a peer nothing: one per made-up hash must not be a line each.
+            self._quiet = True
+            return f"{MAX_REMARKS} mismatched types said; further ones are not logged"
         self._said.add(key)
         dds_type, hash_chunk = expected
         role = "published" if endpoint.kind is EntityKind.PUBLISHER else "subscribed"
@@ -259,9 +270,10 @@ class TopicCheck:
             hint = "that is a Jazzy or later system: give the bridge its --ros-distro"
         else:
             hint = "another definition of the type: check --ros-distro"
-        return (
+        return printable(
             f"ROS 2 topic {endpoint.topic} is {role} as {endpoint.dds_type} with type hash "
-            f"{endpoint.type_hash}, the bridge uses {hash_chunk}, so they never meet; {hint}"
+            f"{endpoint.type_hash}, the bridge uses {hash_chunk}, so they never meet; {hint}",
+            REMARK_CHARS,
         )
 
 

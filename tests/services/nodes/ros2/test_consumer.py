@@ -23,7 +23,7 @@ from services.nodes.ros2._consumer import (
     decode_header,
     ros_type_of,
 )
-from services.nodes.ros2._rmw import EntityKind, NodeIdentity, Qos, dds_type_name
+from services.nodes.ros2._rmw import MAX_REMARKS, EntityKind, NodeIdentity, Qos, dds_type_name
 
 STAMP = 1_700_000_000_123_456_789
 
@@ -216,3 +216,14 @@ def test_no_surplus_is_freed_while_a_debt_is_paid() -> None:
     book.owe(1, 0)
     assert book.surplus(2, 0, 0) == 0
     assert book.surplus(2, 0, 500) == 0
+
+
+def test_made_up_types_past_the_bound_cost_one_line_and_no_memory() -> None:
+    done = DoneTopic("/yolo/detections")
+    said = [
+        done.feed(_token("/yolo/detections", "ba-d/msg/T", f"RIHS01_{i}", EntityKind.PUBLISHER))
+        for i in range(1000)
+    ]
+    lines = [s for s in said if s is not None]
+    assert len(lines) == MAX_REMARKS + 1 and "not logged" in lines[-1]
+    assert len(done._said) <= MAX_REMARKS + 1

@@ -11,6 +11,8 @@ from services.nodes.ros2._cdr import Codec
 from services.nodes.ros2._rmw import (
     ATTACHMENT_BYTES,
     HUMBLE_TYPE_HASH,
+    MAX_REMARKS,
+    REMARK_CHARS,
     Attachment,
     Endpoint,
     EntityKind,
@@ -241,3 +243,27 @@ def test_a_humble_bridge_is_told_of_a_jazzy_subscriber_and_of_other_types() -> N
     other = _token("ab", EntityKind.SUBSCRIPTION, "/out", "std_msgs/msg/Int32", "h")
     said = check.check(other)
     assert said is not None and "another message type" in said
+
+
+def test_tokens_of_made_up_types_cost_a_bounded_number_of_one_line_remarks() -> None:
+    check = TopicCheck("own", {"/camera/image_raw": ("sensor_msgs::msg::dds_::Image_", "h")})
+    said = [
+        check.check(
+            _token("ab", EntityKind.PUBLISHER, "/camera/image_raw", "x/msg/Y", f"RIHS01_{i}")
+        )
+        for i in range(1000)
+    ]
+    lines = [s for s in said if s is not None]
+    assert len(lines) == MAX_REMARKS + 1
+    assert "not logged" in lines[-1]
+    assert len(check._said) <= MAX_REMARKS  # memory too
+
+
+def test_a_remark_quotes_a_peers_type_name_on_one_bounded_line() -> None:
+    check = TopicCheck("own", {"/out": ("std_msgs::msg::dds_::String_", "h")})
+    long_hash = "RIHS01_\n\x1b[31m" + "x" * 100_000
+    said = check.check(
+        _token("ab", EntityKind.SUBSCRIPTION, "/out", "std_msgs/msg/String", long_hash)
+    )
+    assert said is not None and "\n" not in said and "\x1b" not in said
+    assert len(said) < 2 * REMARK_CHARS

@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+import logging
 import math
 
 import numpy as np
 import pytest
 
+from services.nodes.ros2._camera_info import CameraSource
+from services.nodes.ros2._cdr import Codec
 from services.nodes.ros2._tf import StaticTransforms, Transform, rotation_from_quaternion
+from tests.services.nodes.ros2.ros_graph import Lines
 
 
 def _about(axis: str, angle: float) -> tuple[float, ...]:
@@ -79,3 +83,22 @@ def test_a_quaternion_that_is_not_of_unit_length_is_no_rotation(
         rotation_from_quaternion(*q)
     # Rounding in a message is normalized away, as tf2 does.
     assert _matrix(rotation_from_quaternion(0.0, 0.0, 0.0, 1.004)) == pytest.approx(np.eye(3))
+
+
+def test_a_frame_named_with_megabytes_and_control_characters_is_one_short_log_line() -> None:
+    log = logging.getLogger("test.camera_source")
+    lines = Lines()
+    log.addHandler(lines)
+    try:
+        cameras = CameraSource(
+            Codec("jazzy"), log, image_topic="/camera/image_raw", info_topic=None, imu_topic="/imu"
+        )
+        cameras.set_imu_frame("imu\nWARNING forged line")
+        skipped: list[str] = []
+        name = "camera\n\x1b[31m" + "x" * 1_000_000
+        assert cameras.for_image(name, 8, 4, lambda r, d, n: skipped.append(r)) is None
+    finally:
+        log.removeHandler(lines)
+    assert len(lines.lines) == 1
+    assert "\n" not in lines.lines[0] and "\x1b" not in lines.lines[0]
+    assert len(lines.lines[0]) < 2_000
