@@ -17,7 +17,8 @@ description ``--camera-xml`` reads). Without ``--camera-xml`` the bridge builds 
 
 Both change rarely; the latest CameraInfo waits in a one-message slot and /tf_static
 messages in a short queue (oldest dropped, counted) until the image worker, the one caller
-of :meth:`CameraSource.for_image`, reads them before its next image. A CameraInfo whose
+of :meth:`CameraSource.for_image`, reads them before its next image, at most
+``TF_BYTES_PER_IMAGE`` of them per image (a flood must not hold the images). A CameraInfo whose
 size is not the images' is a counted skip (``camera-info-mismatch``), an undecodable one
 ``bad-camera-info``, an undecodable /tf_static message ``bad-tf``. While something is
 missing the bridge says once, in one line, what it waits for and which topic or flag
@@ -60,6 +61,10 @@ MAX_PIXELS = 1e6
 # transforms are a few hundred bytes each, and TF_QUEUE messages of Zenoh's largest size
 # (a peer's garbage) would hold gigabytes.
 TF_MAX_BYTES = 256 * 1024
+# /tf_static bytes decoded before one image at most (at least one message): the rest wait
+# for the next images. Decoding is ~0.1 ms per KB here; a peer's flood of 64 messages of
+# TF_MAX_BYTES decoded at once held every image 3 s on the executor.
+TF_BYTES_PER_IMAGE = TF_MAX_BYTES
 # How many times a changed camera description is logged (a peer may change it forever).
 _LOG_CHANGES = 8
 # A waiting line names frames and topics as peers spell them: at most this many characters
@@ -216,8 +221,11 @@ class CameraSource:
         missing (said once); CameraInfo and /tf_static messages are read here."""
         with self._lock:
             info_raw, self._info_raw = self._info_raw, None
-            tf_raw = list(self._tf_raw)
-            self._tf_raw.clear()
+            tf_raw: list[tuple[bytes, bytes]] = []
+            budget = TF_BYTES_PER_IMAGE
+            while self._tf_raw and (not tf_raw or len(self._tf_raw[0][1]) <= budget):
+                budget -= len(self._tf_raw[0][1])
+                tf_raw.append(self._tf_raw.popleft())
             dropped, self._tf_dropped = self._tf_dropped, 0
             oversize, self._tf_oversize = self._tf_oversize, 0
             imu_frame = self._imu_frame

@@ -8,8 +8,15 @@ import math
 import numpy as np
 import pytest
 
-from services.nodes.ros2._camera_info import CameraSource
+from services.nodes.ros2._camera_info import (
+    TF_BYTES_PER_IMAGE,
+    TF_MAX_BYTES,
+    TF_MESSAGE,
+    TF_QUEUE,
+    CameraSource,
+)
 from services.nodes.ros2._cdr import Codec
+from services.nodes.ros2._rmw import Attachment
 from services.nodes.ros2._tf import StaticTransforms, Transform, rotation_from_quaternion
 from tests.services.nodes.ros2.ros_graph import Lines
 
@@ -102,3 +109,34 @@ def test_a_frame_named_with_megabytes_and_control_characters_is_one_short_log_li
     assert len(lines.lines) == 1
     assert "\n" not in lines.lines[0] and "\x1b" not in lines.lines[0]
     assert len(lines.lines[0]) < 2_000
+
+
+def test_a_tf_static_flood_costs_each_image_a_bounded_decode() -> None:
+    codec = Codec("jazzy")
+    t = codec.store.types
+
+    def stamped(parent: str, child: str) -> object:
+        return t["geometry_msgs/msg/TransformStamped"](
+            header=t["std_msgs/msg/Header"](t["builtin_interfaces/msg/Time"](0, 0), parent),
+            child_frame_id=child,
+            transform=t["geometry_msgs/msg/Transform"](
+                translation=t["geometry_msgs/msg/Vector3"](0.0, 0.0, 0.0),
+                rotation=t["geometry_msgs/msg/Quaternion"](0.0, 0.0, 0.0, 1.0),
+            ),
+        )
+
+    chain = [stamped(f"f{i}", f"f{i + 1}") for i in range(2000)]
+    raw = bytes(codec.store.serialize_cdr(t[TF_MESSAGE](transforms=chain), TF_MESSAGE))
+    assert TF_BYTES_PER_IMAGE < 2 * len(raw) <= 2 * TF_MAX_BYTES
+    cameras = CameraSource(
+        codec, logging.getLogger("test.tf_flood"), image_topic="/i", info_topic=None, imu_topic="/m"
+    )
+    for broadcaster in range(TF_QUEUE):
+        cameras.on_tf(raw, Attachment(1, 1, bytes([broadcaster]) * 16).encode())
+    images = 0
+    while cameras._tf_raw:
+        before = len(cameras._tf_raw)
+        cameras.for_image("camera", 8, 4, lambda r, d, n: None)
+        images += 1
+        assert before - len(cameras._tf_raw) == 1  # one such message per image, not all
+    assert images == TF_QUEUE
