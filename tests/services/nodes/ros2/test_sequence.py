@@ -2,8 +2,16 @@
 
 from __future__ import annotations
 
+import itertools
+
 from services.nodes.ros2._rmw import Attachment, EntityKind, NodeIdentity, Qos, gid
-from services.nodes.ros2._sequence import CONFIRM_GAP, MAX_GAP, SequenceTracker, SequenceWatch
+from services.nodes.ros2._sequence import (
+    CONFIRM_GAP,
+    MAX_GAP,
+    MAX_RATE_HZ,
+    SequenceTracker,
+    SequenceWatch,
+)
 
 A, B = b"a" * 16, b"b" * 16
 
@@ -82,7 +90,8 @@ def test_the_watch_reads_attachments_and_the_graphs_tokens() -> None:
     other = node.endpoint_token(
         2, EntityKind.PUBLISHER, "/other", "sensor_msgs/msg/Image", "h", Qos()
     )
-    watch = SequenceWatch("/camera/image_raw")
+    ticks = itertools.count(0, 1_000_000_000)  # a sample a second: any gap is possible
+    watch = SequenceWatch("/camera/image_raw", clock=lambda: next(ticks))
     watch.settle()
     watch.announce(token)
     watch.announce(other)
@@ -94,3 +103,25 @@ def test_the_watch_reads_attachments_and_the_graphs_tokens() -> None:
     watch.observe(b"short")
     assert watch.take_lost().lost == 2 + 2
     assert watch.take_lost().lost == 0  # each loss is taken once
+
+
+def test_numbers_far_ahead_of_what_a_publisher_could_send_are_jumps_not_losses() -> None:
+    # A peer floods a publisher's gid with samples 1,000 numbers apart, 10,000 a second.
+    tracker = SequenceTracker()
+    t_ns = 0
+    tracker.sample(A, 1, t_ns)
+    for n in range(1, 10_001):
+        t_ns += 100_000
+        tracker.sample(A, 1 + 1_000 * n, t_ns)
+    # At most what MAX_RATE_HZ allows in the second it took, not 10 million.
+    assert tracker.lost <= MAX_RATE_HZ
+    assert tracker.jumps > 9_000
+
+
+def test_a_link_down_for_seconds_is_counted_in_full() -> None:
+    tracker = SequenceTracker()
+    tracker.sample(A, 1, 0)
+    tracker.sample(A, 2, 1_000_000)
+    tracker.sample(A, 3_003, 3_001_000_000)  # 1 kHz, 3 s without a sample
+    tracker.sample(A, 3_004, 3_002_000_000)
+    assert (tracker.lost, tracker.jumps) == (3_000, 0)
