@@ -53,6 +53,11 @@ CONFIRM_GAP = 1024
 # counted 46 million samples lost in transport, and the real publisher's later gaps none.
 MAX_RATE_HZ = 20_000
 MAX_CREDIT = 1 << 16
+# A newly started publisher's first number n says n - 1 lost (sent before it learnt of the
+# bridge) only up to this many, plus ``MAX_RATE_HZ`` over the time between its token and
+# its first sample: each token a peer declares, with one sample numbered 2**20, counted
+# a million samples lost.
+START_ALLOWANCE = 16
 
 
 @dataclass(slots=True)
@@ -64,6 +69,8 @@ class _Publisher:
     pending: int | None = None  # a number past a large jump, until the next one confirms it
     heard_ns: int | None = None  # when credit was last earned (the bridge's monotonic clock)
     credit: int = 0  # samples this publisher may yet be found to have lost
+    announced_ns: int | None = None  # when its token was seen (monotonic)
+    first_ns: int | None = None  # when its first sample arrived (monotonic)
 
 
 @dataclass(frozen=True, slots=True)
@@ -94,11 +101,13 @@ class SequenceTracker:
             self._publishers.move_to_end(source_gid)
         return publisher
 
-    def announce(self, source_gid: bytes) -> None:
-        """The publisher's liveliness token was seen: it is fresh if the graph was known."""
+    def announce(self, source_gid: bytes, received_ns: int | None = None) -> None:
+        """The publisher's liveliness token was seen (at monotonic ``received_ns``): it is
+        fresh if the graph was known."""
         publisher = self._get(source_gid)
         if publisher.fresh is None:
             publisher.fresh = self.settled
+            publisher.announced_ns = received_ns
             self._count_start(publisher)
 
     def settle(self) -> None:
@@ -113,7 +122,7 @@ class SequenceTracker:
         publisher = self._get(source_gid)
         if publisher.last is None:
             publisher.first = publisher.last = sequence
-            publisher.heard_ns = received_ns
+            publisher.heard_ns = publisher.first_ns = received_ns
             publisher.credit = 0
             self._count_start(publisher)
             return
@@ -167,7 +176,11 @@ class SequenceTracker:
     def _count_start(self, publisher: _Publisher) -> None:
         if publisher.fresh and publisher.first is not None and not publisher.start_counted:
             publisher.start_counted = True
-            if publisher.first - 1 > MAX_GAP:
+            allowed = MAX_GAP
+            if publisher.first_ns is not None and publisher.announced_ns is not None:
+                elapsed_ns = abs(publisher.first_ns - publisher.announced_ns)
+                allowed = START_ALLOWANCE + elapsed_ns * MAX_RATE_HZ // 1_000_000_000
+            if publisher.first - 1 > min(allowed, MAX_GAP):
                 self.jumps += 1
             else:
                 self.lost += publisher.first - 1
@@ -202,7 +215,7 @@ class SequenceWatch:
         if endpoint.topic != self.topic:
             return
         with self._lock:
-            self._tracker.announce(gid(token))
+            self._tracker.announce(gid(token), self._clock())
 
     def settle(self) -> None:
         with self._lock:

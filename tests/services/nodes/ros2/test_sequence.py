@@ -125,3 +125,17 @@ def test_a_link_down_for_seconds_is_counted_in_full() -> None:
     tracker.sample(A, 3_003, 3_001_000_000)  # 1 kHz, 3 s without a sample
     tracker.sample(A, 3_004, 3_002_000_000)
     assert (tracker.lost, tracker.jumps) == (3_000, 0)
+
+
+def test_a_fresh_token_with_a_first_number_far_ahead_is_a_jump_not_a_million_lost() -> None:
+    tracker = SequenceTracker()
+    tracker.settle()
+    for i in range(100):  # a peer declares tokens, each with one sample numbered 2**20
+        source = i.to_bytes(16, "little")
+        tracker.announce(source, 1_000 * i)
+        tracker.sample(source, 1 << 20, 1_000 * i + 1_000)
+    assert (tracker.lost, tracker.jumps) == (0, 100)
+    # A real publisher started after the bridge: its first two samples never came.
+    tracker.announce(B, 10_000_000)
+    tracker.sample(B, 3, 11_000_000)
+    assert (tracker.lost, tracker.jumps) == (2, 100)
