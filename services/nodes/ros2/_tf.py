@@ -14,7 +14,10 @@ The rotation between two frames composes the chain up to their common root.
 
 Frame names are compared without a leading ``/`` (tf2 strips it too). Bounded: at most
 ``MAX_BROADCASTERS`` broadcasters and ``MAX_FRAMES`` transforms each are kept, and a walk
-up the tree stops at a cycle.
+up the tree stops at a cycle and after ``MAX_CHAIN`` links. Each step looks its frame up in
+the broadcasters' own tables, newest first: merging them all (up to 262,144 transforms) for
+every composition took 0.7 s along a peer's 262,144-link chain, and a composition follows
+every /tf_static message, so a trickle of them held every image that long.
 """
 
 from __future__ import annotations
@@ -29,6 +32,8 @@ import numpy.typing as npt
 
 MAX_BROADCASTERS = 256
 MAX_FRAMES = 1024
+# Links from a frame up to its root at most: a robot's IMU and camera are a few links apart.
+MAX_CHAIN = 64
 
 Matrix = npt.NDArray[np.float64]
 
@@ -102,11 +107,20 @@ class StaticTransforms:
             merged.update(transforms)
         return merged
 
-    def _to_root(self, name: str, parents: dict[str, Transform]) -> tuple[str, Matrix]:
-        """The root of ``name``'s tree and R with v_root = R @ v_name."""
+    def _parent(self, name: str) -> Transform | None:
+        for transforms in reversed(self._latest.values()):  # heard last: it wins
+            if (step := transforms.get(name)) is not None:
+                return step
+        return None
+
+    def _to_root(self, name: str) -> tuple[str, Matrix] | None:
+        """The root of ``name``'s tree and R with v_root = R @ v_name; None for a chain
+        longer than ``MAX_CHAIN`` links."""
         rotation = np.eye(3)
         seen = {name}
-        while (step := parents.get(name)) is not None and step.parent not in seen:
+        while (step := self._parent(name)) is not None and step.parent not in seen:
+            if len(seen) > MAX_CHAIN:
+                return None
             rotation = np.asarray(step.rotation, dtype=float).reshape(3, 3) @ rotation
             name = step.parent
             seen.add(name)
@@ -114,13 +128,14 @@ class StaticTransforms:
 
     def rotation(self, target: str, source: str) -> tuple[float, ...] | None:
         """R with v_target = R @ v_source (row-major), or None while the two frames are not
-        connected by the transforms heard so far."""
+        connected by the transforms heard so far (or only by more than ``MAX_CHAIN``)."""
         target, source = frame(target), frame(source)
         if target == source:
             return (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
-        parents = self._parents()
-        root_t, r_t = self._to_root(target, parents)
-        root_s, r_s = self._to_root(source, parents)
+        found_t, found_s = self._to_root(target), self._to_root(source)
+        if found_t is None or found_s is None:
+            return None
+        (root_t, r_t), (root_s, r_s) = found_t, found_s
         if root_t != root_s:
             return None
         return tuple(float(v) for v in (r_t.T @ r_s).reshape(-1))

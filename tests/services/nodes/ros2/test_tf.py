@@ -17,7 +17,14 @@ from services.nodes.ros2._camera_info import (
 )
 from services.nodes.ros2._cdr import Codec
 from services.nodes.ros2._rmw import Attachment
-from services.nodes.ros2._tf import StaticTransforms, Transform, rotation_from_quaternion
+from services.nodes.ros2._tf import (
+    MAX_BROADCASTERS,
+    MAX_CHAIN,
+    MAX_FRAMES,
+    StaticTransforms,
+    Transform,
+    rotation_from_quaternion,
+)
 from tests.services.nodes.ros2.ros_graph import Lines
 
 
@@ -140,3 +147,16 @@ def test_a_tf_static_flood_costs_each_image_a_bounded_decode() -> None:
         images += 1
         assert before - len(cameras._tf_raw) == 1  # one such message per image, not all
     assert images == TF_QUEUE
+
+
+def test_a_chain_longer_than_any_robots_connects_nothing() -> None:
+    identity = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
+    tree = StaticTransforms()
+    # A peer's 262,144-link chain, spread over every broadcaster slot.
+    for b in range(MAX_BROADCASTERS):
+        links = range(b * MAX_FRAMES, (b + 1) * MAX_FRAMES)
+        tree.update(
+            b.to_bytes(16, "little"), [Transform(f"n{i}", f"n{i + 1}", identity) for i in links]
+        )
+    assert tree.rotation(f"n{MAX_BROADCASTERS * MAX_FRAMES}", "n0") is None
+    assert tree.rotation(f"n{MAX_CHAIN}", "n0") == identity  # a chain within the bound
