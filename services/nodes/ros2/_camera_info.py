@@ -120,6 +120,8 @@ def intrinsics(codec: Codec, raw: bytes, rectified: bool) -> Intrinsics:
     # A region of interest (width 0: the full image) is cut out first, then binned.
     if roi_w and roi_h:
         width, height, cx, cy = roi_w, roi_h, cx - x0, cy - y0
+        if abs(cx) > MAX_PIXELS or abs(cy) > MAX_PIXELS:  # an offset of 2**32 - 1, say
+            raise CdrError(f"{CAMERA_INFO} centre {cx}, {cy} after its region of interest")
     return Intrinsics(width // bx, height // by, fx / bx, fy / by, cx / bx, cy / by)
 
 

@@ -371,3 +371,20 @@ def test_an_in_queue_is_bounded_in_bytes_as_well_as_in_messages() -> None:
     assert queue.get(0) is None
     queue.put(bytes(9_000), None)  # the bytes taken out were given back
     assert len(overflows) == 20
+
+
+def test_a_region_of_interest_far_off_the_sensor_is_refused(codec: Codec) -> None:
+    from services.nodes.ros2._cdr import CdrError
+
+    camera = CameraModel(320, 240, 300.0, 300.0, 160.0, 120.0)
+    message = codec.store.deserialize_cdr(
+        camera_info(codec, camera, 1), "sensor_msgs/msg/CameraInfo"
+    )
+    roi = codec.store.types["sensor_msgs/msg/RegionOfInterest"](2**32 - 1, 0, 240, 320, False)
+    raw = bytes(
+        codec.store.serialize_cdr(
+            dataclasses.replace(message, roi=roi), "sensor_msgs/msg/CameraInfo"
+        )
+    )
+    with pytest.raises(CdrError, match="region of interest"):
+        intrinsics(codec, raw, rectified=False)
