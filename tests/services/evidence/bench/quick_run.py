@@ -49,11 +49,12 @@ def bench_command() -> list[str]:
     return [exe, "bench"] if exe else [sys.executable, "-m", "services.cli", "bench"]
 
 
-def quick_run(tmp_path: Path, scenarios: list[str]) -> None:
-    """``framegate bench --quick SCENARIO...``: exit 0, and a report with numbers for each."""
+def quick_run(tmp_path: Path, scenarios: list[str], *flags: str) -> None:
+    """``framegate bench --quick FLAGS SCENARIO...``: exit 0, and a report with numbers for
+    each scenario."""
     out = tmp_path / "bench.json"
     done = subprocess.run(
-        [*bench_command(), "--quick", "--json", str(out), *scenarios],
+        [*bench_command(), "--quick", "--json", str(out), *flags, *scenarios],
         cwd=REPO,
         env=child_env(),
         capture_output=True,
