@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from middleware import SchemaError, make_metadata
+from middleware import SchemaError, XmlLimits, make_metadata
 from services.lib.messages import FrameMeta, detections_metadata
 
 __all__ = ["Box", "FrameMeta", "Output", "ResultKind", "encode_result"]
@@ -129,7 +129,7 @@ def encode_result(
     if result is None:
         return None
     try:
-        return _encode(result, kind, frame, source, processing_ns, taken_ns)
+        encoded = _encode(result, kind, frame, source, processing_ns, taken_ns)
     except SchemaError:
         raise
     except Exception as exc:  # the handler's own objects: any float() or str() of them may raise
@@ -137,6 +137,34 @@ def encode_result(
             f"the result cannot be written as metadata: {type(exc).__name__} "
             "converting one of its values"
         ) from exc
+    if len(encoded.metadata) > METADATA_MAX_BYTES:
+        raise SchemaError(_too_long(f"{len(encoded.metadata)} bytes"))
+    return encoded
+
+
+# What a result's metadata may hold: what every reader of it accepts (``validate_metadata``).
+METADATA_MAX_BYTES = XmlLimits().max_bytes
+
+
+def _too_long(what: str) -> str:
+    return (
+        f"the result's metadata would be {what}, over the limit of {METADATA_MAX_BYTES} "
+        "bytes (large data goes in the payload: return Output(payload, fields))"
+    )
+
+
+class _Budget:
+    """The least text a result's fields take, counted while they are read, so that a
+    handler's field of 10^7 values is refused before it is turned into text (it cost the
+    runner's thread half a gigabyte and a minute per frame, then failed the size limit)."""
+
+    def __init__(self) -> None:
+        self.left = METADATA_MAX_BYTES
+
+    def spend(self, n: int) -> None:
+        self.left -= n
+        if self.left < 0:
+            raise SchemaError(_too_long(f"more than {METADATA_MAX_BYTES} bytes"))
 
 
 def _encode(
@@ -192,17 +220,20 @@ def _fields(fields: object) -> dict[str, Any]:
     for name in fields:
         if not isinstance(name, str) or not name or name.startswith("@"):
             raise SchemaError(f"Output field names are XML element names, not {name!r:.40}")
-    return _plain_fields(fields, "")
+    return _plain_fields(fields, "", _Budget())
 
 
-def _plain_fields(fields: Mapping[str, Any], path: str) -> dict[str, Any]:
+def _plain_fields(fields: Mapping[str, Any], path: str, budget: _Budget) -> dict[str, Any]:
     """A mapping's fields as :func:`_plain` values; a field that is None has no element."""
-    return {
-        name: _plain(value, f"{path}{name}") for name, value in fields.items() if value is not None
-    }
+    plain: dict[str, Any] = {}
+    for name, value in fields.items():
+        if value is not None:
+            budget.spend(2 * len(str(name)) + 5)  # <name></name>
+            plain[name] = _plain(value, f"{path}{name}", budget)
+    return plain
 
 
-def _plain(value: object, name: str) -> object:
+def _plain(value: object, name: str, budget: _Budget) -> object:
     """``value`` as the metadata writes it: NumPy arrays and scalars as Python values (``str``
     of an array is its summary, ``[0 1 2 ... 1999]`` past 1,000 values), nested lists flat as
     an array's values are (``str`` of an inner list is ``[1, 2]``, not its values).
@@ -210,15 +241,17 @@ def _plain(value: object, name: str) -> object:
     no fixed order), None inside a list ("None"), an object without ``__str__`` (``<Foo
     object at 0x7f...>``)."""
     if isinstance(value, np.ndarray):
+        budget.spend(2 * value.size)  # a digit and a space each, at least
         return value.ravel().tolist()
     if isinstance(value, np.generic):
+        budget.spend(1)
         return value.item()
     if isinstance(value, Mapping):
-        return _plain_fields(value, f"{name}/")
+        return _plain_fields(value, f"{name}/", budget)
     if isinstance(value, list | tuple):
         flat: list[object] = []
         for item in value:
-            plain = _plain(item, name)
+            plain = _plain(item, name, budget)
             flat.extend(plain if isinstance(plain, list) else [plain])
         return flat
     if value is None or isinstance(value, bytes | bytearray | memoryview | set | frozenset):
@@ -232,6 +265,7 @@ def _plain(value: object, name: str) -> object:
             f"Output field {name!r} holds a value of type {type(value).__name__}, which has no "
             "text of its own (give it a __str__, or store its values)"
         )
+    budget.spend(len(value) if isinstance(value, str) else 2)
     return value
 
 

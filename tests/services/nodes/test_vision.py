@@ -7,6 +7,7 @@ import logging
 import subprocess
 import sys
 import threading
+import tracemalloc
 from collections.abc import Callable
 from pathlib import Path
 
@@ -489,3 +490,27 @@ def test_a_handler_is_loaded_from_a_file_with_its_siblings_importable(
     assert sys.modules[handler.__module__].LOADS == [1]  # loaded once for both
     with pytest.raises(ConfigError, match="does not exist"):
         load_handler(f"{tmp_path / 'missing.py'}:find")
+
+
+@pytest.mark.parametrize(
+    "fields",
+    [{"x": np.zeros(10**6)}, {"x": list(range(10**6))}, {"x": "a" * 10**6}, {"y" * 10**6: 1}],
+    ids=["array", "list", "text", "name"],
+)
+def test_a_result_whose_fields_cannot_fit_the_metadata_is_refused_before_it_is_written(
+    fields: dict[str, object],
+) -> None:
+    """Fields of a million values were turned into megabytes of XML (half a gigabyte and a
+    minute of the runner's thread at 10^7) before the metadata's size limit refused them."""
+    output = Output(b"", fields)
+    step = VisionStep(lambda image, frame: output, ResultKind.GENERIC, "a/b", LOG)
+    tracemalloc.start()
+    try:
+        outcome = step.process(*_frame(1))
+        peak_bytes = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert isinstance(outcome, Skipped) and outcome.reason == "bad-result"
+    assert "over the limit of 65536 bytes" in outcome.detail
+    assert peak_bytes < 4 * 2**20
+    assert step.skipped == {"bad-result": 1}
