@@ -108,9 +108,12 @@ class Queries(Discovery):
         handler = zenoh.handlers.Callback(on_reply, finished, indirect=False)
         self._start_get(target, {"_time": _time_value(time_range)}, timeout_s, handler)
 
-    def get(self, target: str, timestamp_ns: int, *, timeout_s: float = 5.0) -> DataObject:
-        """The element with exactly this timestamp; NotFoundError if there is none."""
-        answer = self._get(target, {"ts": str(timestamp_ns)}, timeout_s, most=1)
+    def get(
+        self, target: str, timestamp_ns: int, *, timeout_s: float = 5.0, session: str | None = None
+    ) -> DataObject:
+        """The element with exactly this timestamp; NotFoundError if there is none.
+        ``session`` as for ``query``."""
+        answer = self._get(target, {"ts": str(timestamp_ns)}, timeout_s, most=1, session=session)
         found = _exactly(answer, timestamp_ns)
         if found is None:
             raise NotFoundError(f"{target} has no element with timestamp {timestamp_ns}")
@@ -130,21 +133,25 @@ class Queries(Discovery):
         """The newest ``n`` elements, oldest first."""
         return self._get(target, {"last": str(n)}, timeout_s, most=n)
 
-    def _fetch_exact(self, target: str, timestamp_ns: int, timeout_s: float) -> DataObject:
-        return self.get(target, timestamp_ns, timeout_s=timeout_s)
+    def _fetch_exact(
+        self, target: str, timestamp_ns: int, timeout_s: float, session: str | None
+    ) -> DataObject:
+        return self.get(target, timestamp_ns, timeout_s=timeout_s, session=session)
 
     def _start_exact(self, target: str, timestamp_ns: int, timeout_s: float) -> Any:
         """Start fetching one element (returns at once; ``_finish_exact`` collects it)."""
         return self._start_get(target, {"ts": str(timestamp_ns)}, timeout_s)
 
-    def _finish_exact(self, target: str, timestamp_ns: int, pending: Any) -> DataObject:
-        elements, answered = self._answer(target, pending, most=1)
+    def _finish_exact(
+        self, target: str, timestamp_ns: int, pending: Any, session: str | None = None
+    ) -> DataObject:
+        elements, answered = self._answer(target, pending, most=1, session=session)
         found = _exactly(elements, timestamp_ns)
         if found is None:
             if answered:
                 raise NotFoundError(f"{target} has no element with timestamp {timestamp_ns}")
             # Started ahead, it reached no one (see ``_get``): asked again as ``get`` asks.
-            return self.get(target, timestamp_ns, timeout_s=_ASK_AGAIN_S)
+            return self.get(target, timestamp_ns, timeout_s=_ASK_AGAIN_S, session=session)
         return found
 
     def _start_get(

@@ -76,9 +76,11 @@ class Subscription:
         *,
         queue_size: int,
         mode: SubscriptionMode,
-        fetch: Callable[[str, int, float], DataObject],
+        fetch: Callable[[str, int, float, str | None], DataObject],
         executor: Executor,
-        prefetch: tuple[Callable[[str, int, float], Any], Callable[[str, int, Any], DataObject]]
+        prefetch: tuple[
+            Callable[[str, int, float], Any], Callable[[str, int, Any, str | None], DataObject]
+        ]
         | None = None,
         push_max_bytes: int = -1,
         holder: str | None = None,
@@ -440,9 +442,12 @@ class Subscription:
                 self.fetched_ahead += 1
             elif self._prefetch is not None:
                 self._protocol.fetching = True  # from now on, fetch ahead
+        # Only the producer's answer counts: any session may answer a query, and a peer's
+        # reply stamped alike was taken for the element, its garbage voided the answer.
+        session = self.producer_session
         if pending is None or self._prefetch is None:
-            return self._fetch(self.name, notification.timestamp_ns, timeout_s)
-        return self._prefetch[1](self.name, notification.timestamp_ns, pending)
+            return self._fetch(self.name, notification.timestamp_ns, timeout_s, session)
+        return self._prefetch[1](self.name, notification.timestamp_ns, pending, session)
 
     def _fetch_ahead(self, taken: list[Notification]) -> None:
         """Start the queries the protocol says to start ahead (see ``fetch``)."""
