@@ -138,7 +138,10 @@ def encode_result(
             "converting one of its values"
         ) from exc
     if len(encoded.metadata) > METADATA_MAX_BYTES:
-        raise SchemaError(_too_long(f"{len(encoded.metadata)} bytes"))
+        what = f"{len(encoded.metadata)} bytes"
+        if kind is ResultKind.DETECTIONS:  # boxes have no payload to move to
+            what += f" for {encoded.boxes} boxes (about 200 bytes each: return fewer)"
+        raise SchemaError(_too_long(what))
     return encoded
 
 
@@ -149,7 +152,7 @@ METADATA_MAX_BYTES = XmlLimits().max_bytes
 def _too_long(what: str) -> str:
     return (
         f"the result's metadata would be {what}, over the limit of {METADATA_MAX_BYTES} "
-        "bytes (large data goes in the payload: return Output(payload, fields))"
+        "bytes (large data goes in an Output's payload, not its fields)"
     )
 
 

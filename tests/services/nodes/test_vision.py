@@ -514,3 +514,13 @@ def test_a_result_whose_fields_cannot_fit_the_metadata_is_refused_before_it_is_w
     assert "over the limit of 65536 bytes" in outcome.detail
     assert peak_bytes < 4 * 2**20
     assert step.skipped == {"bad-result": 1}
+
+
+def test_boxes_whose_metadata_cannot_fit_are_a_bad_result_naming_them() -> None:
+    """Fewer than 1,000 boxes may still be more than the metadata's 64 KiB hold: counted
+    ``bad-result`` saying so, not an element every buffer refuses at ``put``."""
+    boxes = [Box.from_xywh(123_456, 1234.5678901, 2345.678901, 10.1234567, 20.9876543)] * 500
+    step = VisionStep(lambda image, frame: boxes, ResultKind.DETECTIONS, "a/b", LOG)
+    outcome = step.process(*_frame(1))
+    assert isinstance(outcome, Skipped) and outcome.reason == "bad-result"
+    assert "for 500 boxes" in outcome.detail
