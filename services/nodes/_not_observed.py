@@ -17,6 +17,7 @@ Threads: ``carried`` runs on the runner's loop thread, ``total_is`` on the node'
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 
 from middleware import Producer
 
@@ -47,3 +48,34 @@ class NotObserved:
         if total > self._counted:
             self._output.count_skip(SKIP_REASON, total - self._counted)
             self._counted = total
+
+
+BAD_NOTIFICATION = "bad-notification"
+
+
+class BadNotifications:
+    """Messages on the runner's notification key that were no notification of its input
+    (garbage, larger than any the subscription can be sent, or pushed out of its inbox by a
+    flood of them), counted on ``output`` as ``bad-notification`` with one warning: the
+    subscription counted them, but nothing showed them, so a peer flooding the key left
+    ``framegate info`` and the log silent while the runner's results slowed.
+
+    Threads: ``total_is`` runs on the node's executor (a timer) only.
+    """
+
+    def __init__(self, output: Producer, warn: Callable[[str, str], None]) -> None:
+        self._output = output
+        self._warn = warn
+        self._counted = 0
+
+    def total_is(self, total: int) -> None:
+        """The subscription's garbage and dropped messages, summed, now."""
+        if total > self._counted:
+            self._output.count_skip(BAD_NOTIFICATION, total - self._counted)
+            self._counted = total
+            self._warn(
+                BAD_NOTIFICATION,
+                f"{total} messages on this runner's notification key were no notification "
+                f"of its input (garbage, oversize, or a flood); counted as {BAD_NOTIFICATION} "
+                f"in 'framegate info {self._output.name}', not logged again",
+            )

@@ -17,7 +17,9 @@ Failures, each a counted skip of the output buffer (``framegate info NAME/detect
 with one warning per kind, never a crash or a stalled queue: a frame whose metadata or
 payload cannot be read (``bad-frame``), a handler that raises (``handler-error:TYPE``), a
 result that does not fit the buffer (``bad-result``), no result (``no-result``), an input
-element not after the last result (``out-of-order``). A handler that cannot be imported,
+element not after the last result (``out-of-order``); messages on the input subscription's
+key that were no notification (``bad-notification``: garbage, oversize, pushed out by a
+flood; no frame, but counted here so that a flood shows). A handler that cannot be imported,
 or a name that is not callable, is refused before anything starts (one ``error:`` line,
 exit 1; ``framegate launch --check`` reports it for a deploy file).
 
@@ -37,7 +39,9 @@ delayed ack of the frame just taken, so the mediator would read the queue fuller
 while the handler runs, and acks and resends for watchers of the results. ``Runner.handle``
 has an executor handler's shape (a batch of notifications) should that trade be wanted. The
 executor's one duty of this service is a timer that counts the frames an ``--observe``
-runner's queue dropped while the handler runs (``NotObserved``). ``VisionStep``
+runner's queue dropped while the handler runs (``NotObserved``), and the messages on its
+key that were no notification (``BadNotifications``; its one warning shares the step's set of
+kinds warned, which the loop's thread also adds to). ``VisionStep``
 (``_vision_step.py``) is the per-frame work with no I/O, called directly by tests.
 """
 
@@ -71,7 +75,7 @@ from services.lib.rewind import RewindFollower
 from services.lib.settings import add_flags, from_args, setting
 from services.lib.vision import ResultKind
 from services.nodes._contract import Service, ServiceEntry
-from services.nodes._not_observed import NotObserved
+from services.nodes._not_observed import BadNotifications, NotObserved
 from services.nodes._runtime import CallThread, setup_logging
 from services.nodes._vision_handler import (
     Handler,
@@ -300,9 +304,13 @@ def _serve(
         runner = Runner(spec, step, node, output, stop)
         # While the handler runs (for minutes, if it hangs), frames its full queue drops are
         # counted from the subscription, not only when the next frame is taken.
-        node.every(
-            _MISSED_PERIOD_S, lambda _now_ns: runner.not_observed.total_is(frames.missed_total)
-        )
+        bad = BadNotifications(output, step.warn_once)
+
+        def count_losses(_now_ns: int) -> None:
+            runner.not_observed.total_is(frames.missed_total)
+            bad.total_is(frames.garbage + frames.dropped)
+
+        node.every(_MISSED_PERIOD_S, count_losses)
         log.info(
             "%s: %s -> %s/%s (%s, queue %d%s)",
             spec.name,

@@ -409,3 +409,30 @@ def test_frames_an_observer_loses_while_its_handler_is_stuck_are_counted_meanwhi
             if proc.poll() is None:
                 proc.kill()
                 proc.communicate()
+
+
+def test_garbage_on_the_runner_s_notification_key_is_counted_and_results_go_on() -> None:
+    """A peer publishing garbage on the key the runner's notifications come on: each is
+    counted ``bad-notification`` in the output's info (it was counted nowhere visible), and
+    the runner keeps storing results."""
+    with _camera_and_vision("brightest") as node:
+        wait_until(lambda: _elements(node, "vision/detections"), 90, "the first results")
+        images = answered(lambda: node.buffer_info("camera/images"), "camera/images")
+        (sub,) = [s for s in images.subscriptions if s.node == "vision"]
+        key = Keys("framegate").notify("camera", "images", sub.subscription_id)
+        port = node.network.local_port
+        with open_session(f"tcp/127.0.0.1:{port}") as rogue:
+
+            def counted() -> bool:
+                # Sent until counted: a new session's first puts may go before it has
+                # learnt of the runner's subscriber, and reach no one.
+                for _ in range(20):
+                    rogue.put(key, b"\xff" * 32, attachment=b"not a notification")
+                info = node.buffer_info("vision/detections", timeout_s=scaled(5))
+                return info.skipped.get("bad-notification", 0) >= 20
+
+            wait_until(counted, scaled(30), "the garbage counted in vision/detections")
+        before = len(_elements(node, "vision/detections"))
+        wait_until(
+            lambda: len(_elements(node, "vision/detections")) > before, 60, "results after it"
+        )
