@@ -244,8 +244,9 @@ class Supervisor:
 
     def failures(self, *, recovered: bool = True) -> list[str]:
         """One line per process a launcher must report (and then exit non-zero): each that
-        died by a signal (``recovered=False``: unless restarted and running at the stop), and
-        each that could not start because its name is taken."""
+        died by a signal (``recovered=False``: unless restarted and running at the stop), each
+        that could not start because its name is taken, and (``recovered=False``) each that
+        its own non-zero exit left down at the stop."""
         deaths = [
             f"{name} {', '.join(how)}"
             for name, how in self.signal_deaths(recovered=recovered).items()
@@ -254,7 +255,18 @@ class Supervisor:
             f"{name} did not start: another live instance offers its name"
             for name in self.name_taken()
         ]
-        return deaths + taken
+        down = [] if recovered else self._down_after_an_exit()
+        return deaths + taken + down
+
+    def _down_after_an_exit(self) -> list[str]:
+        """Each process that its own non-zero exit (not a signal, not a taken name) left
+        down at the stop: not restarted, or still waiting to restart."""
+        out: list[str] = []
+        for running in self._running:
+            code = running.exit_codes[-1] if running.exit_codes else 0
+            if not running.up_at_stop and code > 0 and code != EXIT_NAME_TAKEN:
+                out.append(f"{running.spec.name} {exit_text(code)} and was not running at the stop")
+        return out
 
     def stop(self, timeout_s: float = 1.5) -> None:
         """SIGTERM every process, wait up to ``timeout_s``, then SIGKILL what is left.

@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import queue
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -288,3 +289,53 @@ def test_status_prints_one_short_line_per_service(tmp_path: Path) -> None:
         assert launch.finish() == 0, launch.lines
     finally:
         launch.close()
+
+
+def test_supervisor_reports_a_process_its_own_exit_left_down_at_the_stop() -> None:
+    supervisor = Supervisor(
+        [
+            ProcessSpec("fails", (sys.executable, "-c", "raise SystemExit(3)"), restart=False),
+            ProcessSpec("done", (sys.executable, "-c", "pass"), restart=False),
+            ProcessSpec("runs", (sys.executable, "-c", "import time; time.sleep(600)")),
+        ],
+        colour=False,
+        out=lambda line: None,
+    )
+    supervisor.start()
+    try:
+        wait_until(
+            lambda: (supervisor.poll(), supervisor.uptimes()["fails"] is None)[1],
+            30,
+            "the failed exit noticed",
+        )
+    finally:
+        supervisor.stop()
+    assert supervisor.failures(recovered=False) == [
+        "fails exited with 3 and was not running at the stop"
+    ]
+
+
+@pytest.mark.integration
+def test_launch_exits_1_when_a_service_that_failed_to_start_is_down_at_the_stop(
+    tmp_path: Path,
+) -> None:
+    """A router whose port is taken exits 1 (not by a signal) and is not restarted: the
+    launch must not end as a success, as docs/pipeline.md says."""
+    with socket.socket() as holder:
+        holder.bind(("127.0.0.1", 0))
+        holder.listen()
+        port = holder.getsockname()[1]
+        deploy = tmp_path / "taken.yaml"
+        deploy.write_text(
+            "version: 1\nservices:\n  hub: {type: router, restart: false, "
+            f"network: {{listen: [tcp/127.0.0.1:{port}]}}}}\n"
+        )
+        launch = Launch([str(deploy)], tmp_path, free_port())
+        try:
+            launch.wait_line(lambda line: "exited with 1; not restarting" in line)
+            launch.proc.send_signal(signal.SIGINT)
+            code = launch.finish()
+        finally:
+            launch.close()
+    assert code == 1, launch.lines
+    assert "error: hub exited with 1 and was not running at the stop" in launch.lines
