@@ -210,6 +210,28 @@ def test_every_link_in_the_docs_leads_somewhere(where: str, doc: Path, target: s
         assert anchor in _anchors(page), f"{where} links to {target}: no such heading"
 
 
+def _headless_tables() -> list[str]:
+    """Where a block of table rows (outside code blocks) has no header and separator row:
+    Markdown then shows the rows as plain text, pipes and all."""
+    bad: list[str] = []
+    for doc in MARKDOWN:
+        block: list[tuple[int, str]] = []
+        fenced = False
+        for number, line in enumerate([*doc.read_text().splitlines(), ""], 1):
+            fenced ^= line.startswith("```")
+            if line.startswith("|") and not fenced:
+                block.append((number, line))
+                continue
+            if block and not re.fullmatch(r"\|[\s:|-]+\|", block[1][1] if len(block) > 1 else ""):
+                bad.append(_where(doc, block[0][0]))
+            block = []
+    return bad
+
+
+def test_every_table_in_the_docs_has_its_header() -> None:
+    assert not _headless_tables(), f"table rows without a header row: {_headless_tables()}"
+
+
 def test_the_readme_links_every_reference_page() -> None:
     linked = {
         (README.parent / t.partition("#")[0]).resolve() for _, d, t in _links() if d == README
