@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import re
 from dataclasses import replace
 from typing import Any
 
@@ -35,6 +36,14 @@ def run(args: argparse.Namespace) -> int:
     try:
         node = Node(network=config)
     except TransportError as exc:
+        if "Cannot assign requested address" in str(exc):  # EADDRNOTAVAIL
+            found = re.search(r"bound to (\S+):\s", str(exc))
+            where = found.group(1) if found else endpoints
+            raise ConfigError(
+                f"cannot listen on {where}: that address is not one of this machine's "
+                "(a deploy file's --host for another machine, or a changed address?); run it "
+                "on that machine or listen on an address of this one"
+            ) from exc
         if "in use" not in str(exc):
             raise
         raise ConfigError(

@@ -216,3 +216,15 @@ def test_nothing_live_on_the_rendezvous_names_its_port_and_the_variable() -> Non
         f"on this host with the same rendezvous port ({port}; FRAMEGATE_LOCAL_PORT sets it), "
         "or on another host (then --connect to it)?"
     ) in result.stderr, result
+
+
+def test_a_router_on_an_address_this_machine_lacks_is_one_line_naming_it() -> None:
+    # 192.0.2.1 (TEST-NET-1) is no machine's address: as deploy/two-hosts.yaml's robot
+    # router started with --host robot on the base station.
+    endpoint = f"tcp/192.0.2.1:{free_port()}"
+    result = _framegate("router", "--listen", endpoint, "--listen", "tcp/127.0.0.1:0")
+    assert result.returncode == 1, result
+    assert result.stderr.count("\n") == 1, result
+    assert f"cannot listen on {endpoint}: that address is not one of this machine's" in (
+        result.stderr
+    ), result
