@@ -191,6 +191,13 @@ class NetworkConfig:
             return configs
         return [self._build(listen=list(self.listen), connect=list(self.connect))]
 
+    def listen_endpoints(self) -> tuple[str, ...]:
+        """The endpoints this configuration asks to listen on (its flags, else its file's)."""
+        endpoints = _get(self.zenoh_configs()[0], "listen/endpoints")
+        return (
+            tuple(e for e in endpoints if isinstance(e, str)) if isinstance(endpoints, list) else ()
+        )
+
     def check_files(self) -> None:
         """ConfigError naming the first file this configuration needs and cannot read: the
         Zenoh config file (which must also parse) and every TLS certificate and key it
@@ -286,12 +293,32 @@ def _get(conf: zenoh.Config, key: str) -> Any:
         return None
 
 
-def listening_endpoints() -> list[str]:
+# Zenoh protocols carried on each OS transport: a `tls/[::]:7447` listener is, to the
+# operating system, a TCP socket on port 7447.
+_OVER = {"tcp": ("tls", "ws"), "udp": ("quic",)}
+
+
+def _relabelled(endpoint: str, configured: Iterable[str]) -> str:
+    """``tcp/[::]:7447`` as ``tls/[::]:7447`` when a configured endpoint names TLS on that
+    port (the OS cannot tell; a user who asked for TLS must not read plain TCP)."""
+    transport, _, address = endpoint.partition("/")
+    port = address.rpartition(":")[2]
+    for wanted in configured:
+        protocol, _, rest = wanted.partition("/")
+        if protocol in _OVER.get(transport, ()) and rest.split("#")[0].rpartition(":")[2] == port:
+            return f"{protocol}/{address}"
+    return endpoint
+
+
+def listening_endpoints(configured: Iterable[str] = ()) -> list[str]:
     """What this process listens on, as Zenoh endpoints (``tcp/127.0.0.1:7447``), sorted.
 
     Read from the operating system (every listening TCP socket and unconnected UDP socket of
     the process), not from the configuration, so a listener nobody meant to open shows too.
+    A socket on the port of a ``configured`` TLS, WebSocket or QUIC endpoint is named with
+    that protocol (``NetworkConfig.listen_endpoints()``).
     """
+    configured = tuple(configured)
     process = psutil.Process()
     connections = getattr(process, "net_connections", process.connections)
     found: set[str] = set()
@@ -309,7 +336,7 @@ def listening_endpoints() -> list[str]:
         else:
             continue
         host = f"[{conn.laddr.ip}]" if ":" in conn.laddr.ip else conn.laddr.ip
-        found.add(f"{protocol}/{host}:{conn.laddr.port}")
+        found.add(_relabelled(f"{protocol}/{host}:{conn.laddr.port}", configured))
     return sorted(found)
 
 

@@ -53,6 +53,7 @@ def run(args: argparse.Namespace) -> int:
         ) from exc
     with node:
         # What the process really listens on: a port 0 in --listen is any free port.
-        print(f"router listening on {', '.join(listening_endpoints()) or endpoints}", flush=True)
+        listening = listening_endpoints(config.listen_endpoints())
+        print(f"router listening on {', '.join(listening) or endpoints}", flush=True)
         stop.wait()
     return 0

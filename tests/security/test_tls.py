@@ -12,7 +12,13 @@ import pytest
 from middleware import NetworkConfig, Node, TransportError
 from tests.conftest import REPO, child_env, free_port
 from tests.helpers.timing import scaled
-from tests.security.conftest import Certs, SecureRouter, derived_config
+from tests.security.conftest import (
+    Certs,
+    SecureRouter,
+    derived_config,
+    start_router,
+    stop_router,
+)
 
 pytestmark = pytest.mark.integration
 
@@ -114,3 +120,15 @@ def test_router_does_not_open_a_plain_tcp_listener(certs: Certs) -> None:
     )
     assert done.returncode == 1
     assert "Unsupported protocol: tcp" in done.stderr
+
+
+@pytest.mark.integration
+def test_a_tls_router_says_it_listens_on_tls_not_tcp(certs: Certs) -> None:
+    # The OS sees a TCP socket; the user asked for TLS and must read TLS.
+    router = start_router(certs)
+    try:
+        assert router.proc.stdout is not None
+        first = router.proc.stdout.readline().strip()
+    finally:
+        stop_router(router)
+    assert first == f"router listening on tls/127.0.0.1:{router.port}", first
