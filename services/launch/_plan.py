@@ -146,7 +146,31 @@ def _check_files(
             raise ConfigError(f"video device {device} does not exist on this host")
     except ConfigError as exc:
         line = f":{lines[flag]}" if flag in lines else ""
-        raise ConfigError(f"{where}{line}: service {spec.name!r}: {exc}") from exc
+        named = (net.config_file, *(getattr(parsed, k, None) for k in _PATH_ARGS))
+        hint = _relative_hint([str(p) for p in named if p], str(exc), Path(where))
+        raise ConfigError(f"{where}{line}: service {spec.name!r}: {exc}{hint}") from exc
+
+
+_PATH_ARGS = ("ros_config", "camera_xml", "path")
+
+
+def _relative_hint(paths: list[str], message: str, deploy_file: Path) -> str:
+    """For a relative path a deploy file names that is missing from the current directory
+    but found from the deploy file's directory or one above it: that relative paths are
+    taken from the current directory, and where to run ``launch`` from instead."""
+    for path in paths:
+        if Path(path).is_absolute() or path not in message or Path(path).exists():
+            continue
+        found = next(
+            (d for d in deploy_file.resolve().parents if (d / path).exists()),
+            None,
+        )
+        if found is not None and found != Path.cwd().resolve():
+            return (
+                f" (relative paths are taken from the current directory, {Path.cwd()}; "
+                f"it is in {found}: run launch from there)"
+            )
+    return ""
 
 
 def process_specs(

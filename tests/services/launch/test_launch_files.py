@@ -38,6 +38,30 @@ def test_a_missing_zenoh_config_is_named(tmp_path: Path) -> None:
         _specs(text)
 
 
+def test_a_relative_path_missing_here_says_where_to_run_launch_from(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # As deploy/two-hosts.yaml launched from outside the repository: its router config
+    # path is relative to the repository root.
+    project = tmp_path / "project"
+    (project / "deploy").mkdir(parents=True)
+    (project / "deploy" / "router.json5").write_text("{}\n")
+    deploy = project / "deploy" / "hosts.yaml"
+    text = "services:\n  hub:\n    type: router\n    network: {config: deploy/router.json5}\n"
+    deploy.write_text(text)
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    with pytest.raises(ConfigError) as caught:
+        process_specs(load_deployment(deploy), None, NetworkConfig(), text=text)
+    assert str(caught.value).endswith(
+        f"(relative paths are taken from the current directory, {elsewhere}; "
+        f"it is in {project.resolve()}: run launch from there)"
+    ), caught.value
+    monkeypatch.chdir(project)
+    process_specs(load_deployment(deploy), None, NetworkConfig(), text=text)
+
+
 @pytest.mark.parametrize("absent", ["ca.pem", "camera.pem", "camera.key"])
 def test_a_certificate_a_zenoh_config_names_must_exist(tmp_path: Path, absent: str) -> None:
     for name in ("ca.pem", "camera.pem", "camera.key"):
