@@ -132,7 +132,11 @@ def parse_deployment(text: str, name: str = "<deploy>") -> Deployment:
         raise ConfigError(f"{name}: the deploy file is empty; it needs a 'services' mapping")
     top = _mapping(root, name, "the top level", _TOP_KEYS)
     if "version" in top and _scalar(top["version"][1]) not in (1, "1"):
-        raise ConfigError(f"{name}:{_line(top['version'][1])}: unsupported version; use 1")
+        version = _scalar(top["version"][1])
+        raise ConfigError(
+            f"{name}:{_line(top['version'][1])}: unsupported version {version!r}; "
+            "this framegate reads version 1"
+        )
     network = _network(top["network"][1], name) if "network" in top else {}
     hosts: dict[str, HostSpec] = {}
     if "hosts" in top:

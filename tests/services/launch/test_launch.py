@@ -55,7 +55,7 @@ def test_local_deploy_matches_the_paper_pipeline() -> None:
         ),
         ("hosts: {a: {}, b: {}}\nservices:\n  camera: {}\n", r"x\.yaml:3: .*needs a 'host'"),
         ("services:\n  camera: {host: nowhere}\n", r"x\.yaml:2: .*host 'nowhere'"),
-        ("version: 2\nservices: {}\n", r"x\.yaml:1: unsupported version"),
+        ("version: 2\nservices: {}\n", r"x\.yaml:1: unsupported version 2; this framegate reads"),
         ("services: [1, 2]\n", r"x\.yaml:1: services must be a mapping"),
         # One line, where the parser gave up (PyYAML's own message spans five).
         ("services:\n  camera: {args: {source: sim}\n", r"^x\.yaml:3:1: not valid YAML: [^\n]*$"),
