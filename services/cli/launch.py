@@ -190,6 +190,8 @@ def _status_loop(
                     ]
             except FramegateError:
                 pass  # the pids and restarts are still worth a line
+            if stop.is_set() or supervisor.stopping:
+                break  # a tick during the stop would show the services half gone
             for line in status_lines(supervisor, rates):
                 emit(line)
     finally:

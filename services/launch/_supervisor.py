@@ -210,6 +210,11 @@ class Supervisor:
         finally:
             self.stop()
 
+    @property
+    def stopping(self) -> bool:
+        """True once ``stop`` began: what is said of the processes then is their end."""
+        return self._stopping
+
     def pids(self) -> dict[str, int | None]:
         """Current pid of every process (None while waiting to restart)."""
         return {r.spec.name: (r.proc.pid if r.proc else None) for r in self._running}

@@ -339,3 +339,33 @@ def test_launch_exits_1_when_a_service_that_failed_to_start_is_down_at_the_stop(
             launch.close()
     assert code == 1, launch.lines
     assert "error: hub exited with 1 and was not running at the stop" in launch.lines
+
+
+@pytest.mark.integration
+def test_status_says_nothing_once_the_stop_began() -> None:
+    """A tick that falls in the stop (`--duration 20 --status 5`) printed each service
+    without its buffers, as if they had gone: the end is said by the services' totals."""
+    from services.cli.launch import _status_loop
+
+    supervisor = Supervisor(
+        [ProcessSpec("runs", (sys.executable, "-c", "import time; time.sleep(600)"))],
+        colour=False,
+        out=lambda line: None,
+    )
+    supervisor.start()
+    supervisor.stop()
+    lines: list[str] = []
+    loop = threading.Thread(
+        target=_status_loop,
+        args=(
+            supervisor,
+            NetworkConfig(local_port=free_port()),
+            0.01,
+            threading.Event(),
+            lines.append,
+        ),
+        daemon=True,
+    )
+    loop.start()
+    loop.join(timeout=scaled(30))
+    assert not loop.is_alive() and lines == [], lines
