@@ -231,7 +231,9 @@ def _mapping(
 def _scalar(node: yaml.Node) -> Any:
     if not isinstance(node, yaml.ScalarNode):
         raise ConfigError(f"line {_line(node)}: expected a single value")
-    return yaml.safe_load(yaml.serialize(node))
+    # Constructed from the node itself: an empty value (`seed:`) serialises to a document
+    # that YAML cannot read back.
+    return yaml.constructor.SafeConstructor().construct_object(node)
 
 
 def _bool(node: yaml.Node, name: str, key: str) -> bool:

@@ -65,11 +65,17 @@ def _check_args(
         where = f":{lines[flag]}" if flag in lines else ""
         known = [o.lstrip("-").replace("-", "_") for a in parser._actions for o in a.option_strings]
         key = flag.lstrip("-").replace("-", "_")
-        what = (
-            f"has no option {key!r}{did_you_mean(key, known)}"
-            if flag.startswith("-")
-            else f"does not take the value {flag!r}"
-        )
+        argv = list(spec.args)
+        before = argv[argv.index(flag) - 1] if flag in argv[1:] else ""
+        if not flag.startswith("-") and before.startswith("--") and before in lines:
+            # A switch given a value (`loop: yes please`): name the switch and its line.
+            where = f":{lines[before]}"
+            switch = before[2:].replace("-", "_")
+            what = f"takes true or false for {switch!r}, got {flag!r}"
+        elif flag.startswith("-"):
+            what = f"has no option {key!r}{did_you_mean(key, known)}"
+        else:
+            what = f"does not take the value {flag!r}"
         raise ConfigError(
             f"{deployment.path}{where}: service {spec.name!r} {what} "
             f"(see 'framegate run {spec.type} --help'; network settings go under 'network')"

@@ -255,6 +255,10 @@ def test_yaml_booleans_set_restart() -> None:
         ("{source: [sim, tcp/10.0.0.1:7447]}", "does not take the value 'tcp/10.0.0.1:7447'"),
         ("{se: 3}", "has no option 'se'"),  # no abbreviations of --seed
         ("{connect: tcp/10.0.0.1:7447}", "network settings go under 'network'"),
+        (
+            "{source: prerendered, loop: yes please}",
+            r"x\.yaml:3: service 'camera' takes true or false for 'loop', got 'yes please'",
+        ),
     ],
 )
 def test_deploy_args_are_checked_short_long_and_exact(args: str, message: str) -> None:
@@ -311,3 +315,10 @@ def test_no_shipped_deploy_file_renders_its_camera_live(path: Path) -> None:
             service_type(service.type).add_arguments(parser)
             source = parser.parse_known_args(list(service.args))[0].source
             assert source != "sim", f"{path.name}: {service.name} renders live"
+
+
+def test_an_empty_arg_value_is_left_unset_not_a_traceback() -> None:
+    # `seed:` with nothing after it is YAML null: as if the key were not there.
+    text = "services:\n  camera:\n    args: {source: prerendered, seed: }\n"
+    (camera,) = parse_deployment(text, "x.yaml").services
+    assert camera.args == ("--source", "prerendered")
