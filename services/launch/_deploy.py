@@ -122,8 +122,19 @@ def load_deployment(path: str | Path) -> Deployment:
     return parse_deployment(text, str(path))
 
 
+class _NotScalar(ConfigError):
+    """A list or mapping where one value belongs; its file is named by parse_deployment."""
+
+
 def parse_deployment(text: str, name: str = "<deploy>") -> Deployment:
     """Parse deploy-file text (see the module docstring)."""
+    try:
+        return _parse(text, name)
+    except _NotScalar as exc:
+        raise ConfigError(f"{name}:{exc}") from exc
+
+
+def _parse(text: str, name: str) -> Deployment:
     try:
         root = yaml.compose(text, Loader=yaml.SafeLoader)
     except yaml.YAMLError as exc:
@@ -230,7 +241,10 @@ def _mapping(
 
 def _scalar(node: yaml.Node) -> Any:
     if not isinstance(node, yaml.ScalarNode):
-        raise ConfigError(f"line {_line(node)}: expected a single value")
+        shape = "a list" if isinstance(node, yaml.SequenceNode) else "a mapping"
+        raise _NotScalar(
+            f"{_line(node)}: expected a single value (a word or a number), got {shape}"
+        )
     # Constructed from the node itself: an empty value (`seed:`) serialises to a document
     # that YAML cannot read back.
     return yaml.constructor.SafeConstructor().construct_object(node)
