@@ -170,7 +170,7 @@ def _parse(text: str, name: str) -> Deployment:
         fields = (
             _mapping(node, name, f"service {svc_name!r}", _SERVICE_KEYS) if _is_map(node) else {}
         )
-        kind = str(_scalar(fields["type"][1])) if "type" in fields else svc_name
+        kind = _text(fields["type"][1], name, "type") if "type" in fields else svc_name
         if kind not in SERVICE_TYPES:
             where = _line(fields["type"][1]) if "type" in fields else _line(key_node)
             raise ConfigError(
@@ -179,7 +179,7 @@ def _parse(text: str, name: str) -> Deployment:
                 f"use one of: {', '.join(SERVICE_TYPES)}"
             )
         if "host" in fields:
-            host = str(_scalar(fields["host"][1]))
+            host = _text(fields["host"][1], name, "host")
             if host not in hosts:
                 raise ConfigError(
                     f"{name}:{_line(fields['host'][1])}: service {svc_name!r} names host "
@@ -250,6 +250,14 @@ def _scalar(node: yaml.Node) -> Any:
     return yaml.constructor.SafeConstructor().construct_object(node)
 
 
+def _text(node: yaml.Node, name: str, key: str) -> str:
+    """A value that must be given: an empty one (`host:`) is not the word 'None'."""
+    value = _scalar(node)
+    if value is None:
+        raise ConfigError(f"{name}:{_line(node)}: {key} is empty; give it a value")
+    return str(value)
+
+
 def _bool(node: yaml.Node, name: str, key: str) -> bool:
     """A YAML boolean; a quoted "false" would otherwise read as true."""
     value = _scalar(node)
@@ -282,14 +290,14 @@ def _network(node: yaml.Node, name: str) -> dict[str, Any]:
     for key, (_key_node, value) in fields.items():
         if key in ("connect", "listen"):
             items = value.value if isinstance(value, yaml.SequenceNode) else [value]
-            out[key] = [str(_scalar(v)) for v in items]
+            out[key] = [_text(v, name, key) for v in items]
             # Checked here, not by each service at start (a restart loop): 0 only to listen.
             for item, endpoint in zip(items, out[key], strict=True):
                 checked_endpoints(
                     [endpoint], f"{name}:{_line(item)}: {key}", lowest=int(key == "connect")
                 )
         else:
-            out[key] = str(_scalar(value))
+            out[key] = _text(value, name, key)
     return out
 
 

@@ -57,6 +57,11 @@ def test_local_deploy_matches_the_paper_pipeline() -> None:
         ("services:\n  camera: {host: nowhere}\n", r"x\.yaml:2: .*host 'nowhere'"),
         ("version: 2\nservices: {}\n", r"x\.yaml:1: unsupported version 2; this framegate reads"),
         ("services: [1, 2]\n", r"x\.yaml:1: services must be a mapping"),
+        ("services:\n  camera:\n    host:\n", r"^x\.yaml:3: host is empty; give it a value$"),
+        (
+            "services:\n  camera:\n    network: {config: }\n",
+            r"^x\.yaml:3: config is empty; give it a value$",
+        ),
         (
             "services:\n  camera:\n    args: {seed: {a: 1}}\n",
             r"^x\.yaml:3: expected a single value \(a word or a number\), got a mapping$",
