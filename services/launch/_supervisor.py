@@ -249,9 +249,9 @@ class Supervisor:
 
     def failures(self, *, recovered: bool = True) -> list[str]:
         """One line per process a launcher must report (and then exit non-zero): each that
-        died by a signal (``recovered=False``: unless restarted and running at the stop), each
-        that could not start because its name is taken, and (``recovered=False``) each that
-        its own non-zero exit left down at the stop."""
+        died by a signal or by its own non-zero exit (``recovered=False``: only those left
+        down at the stop, not a process restarted and running again), and each that could
+        not start because its name is taken."""
         deaths = [
             f"{name} {', '.join(how)}"
             for name, how in self.signal_deaths(recovered=recovered).items()
@@ -260,14 +260,19 @@ class Supervisor:
             f"{name} did not start: another live instance offers its name"
             for name in self.name_taken()
         ]
-        down = [] if recovered else self._down_after_an_exit()
-        return deaths + taken + down
+        return deaths + taken + self._exits(recovered=recovered)
 
-    def _down_after_an_exit(self) -> list[str]:
-        """Each process that its own non-zero exit (not a signal, not a taken name) left
-        down at the stop: not restarted, or still waiting to restart."""
+    def _exits(self, *, recovered: bool) -> list[str]:
+        """Each process that ended by its own non-zero exit (not a signal, not a taken
+        name): every one (``recovered``: a demo's figures are incomplete after any), or only
+        those it left down at the stop (not restarted, or still waiting to restart)."""
         out: list[str] = []
         for running in self._running:
+            codes = [c for c in running.exit_codes if c > 0 and c != EXIT_NAME_TAKEN]
+            if recovered:
+                if codes:
+                    out.append(f"{running.spec.name} {', '.join(exit_text(c) for c in codes)}")
+                continue
             code = running.exit_codes[-1] if running.exit_codes else 0
             if not running.up_at_stop and code > 0 and code != EXIT_NAME_TAKEN:
                 out.append(f"{running.spec.name} {exit_text(code)} and was not running at the stop")
