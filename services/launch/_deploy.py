@@ -122,8 +122,10 @@ def load_deployment(path: str | Path) -> Deployment:
     return parse_deployment(text, str(path))
 
 
-class _NotScalar(ConfigError):
-    """A list or mapping where one value belongs; its file is named by parse_deployment."""
+class _NotScalar(ValueError):
+    """A list or mapping where one value belongs: a signal inside ``_parse``, which knows the
+    line but not the file; ``parse_deployment`` turns it into the ConfigError naming both
+    (so it is no FramegateError of its own, and never leaves this module)."""
 
 
 def parse_deployment(text: str, name: str = "<deploy>") -> Deployment:
