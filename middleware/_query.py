@@ -82,9 +82,7 @@ class Queries(Discovery):
         kept_bytes = [0]
 
         def on_reply(reply: zenoh.Reply) -> None:  # (Zenoh's thread) kept, decoded later
-            if session is not None and (
-                reply.replier_id is None or str(reply.replier_id.zid) != session
-            ):
+            if not _from(reply, session):
                 return
             size = len(reply.ok.payload) if reply.ok is not None else 0
             if len(replies) < _ASK_REPLIES_MAX and kept_bytes[0] + size <= _ASK_BYTES_MAX:
@@ -190,9 +188,7 @@ class Queries(Discovery):
         short: set[str | None] = set()
         with zenoh_errors(f"querying {target}"):
             for reply in replies:
-                if session is not None and (
-                    reply.replier_id is None or str(reply.replier_id.zid) != session
-                ):
+                if not _from(reply, session):
                     continue  # not the session asked for: read nothing of it
                 if reply.ok is not None:
                     who = reply.replier_id
@@ -270,3 +266,10 @@ def _error_from_reply(target: str, raw: str) -> QueryError:
     if text == "Timeout":
         return QueryError(f"query of {target} timed out; is the service overloaded or unreachable?")
     return QueryError(f"{target}: {text.split(':', 1)[1].strip() if ':' in text else text}")
+
+
+def _from(reply: zenoh.Reply, session: str | None) -> bool:
+    """Whether ``reply`` counts when only ``session``'s replies do (None: every one does)."""
+    return session is None or (
+        reply.replier_id is not None and str(reply.replier_id.zid) == session
+    )

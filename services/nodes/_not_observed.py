@@ -24,30 +24,42 @@ from middleware import Producer
 SKIP_REASON = "not-observed"
 
 
+class _Total:
+    """A monotonic total counted on ``output`` as skips of ``reason``: told the total now,
+    the output is told what it adds (a total read twice is never counted twice)."""
+
+    def __init__(self, output: Producer, reason: str) -> None:
+        self._output = output
+        self._reason = reason
+        self._counted = 0  # what the output has been told
+
+    def raise_to(self, total: int) -> bool:
+        """Count what ``total`` adds; whether it added anything."""
+        if total <= self._counted:
+            return False
+        self._output.count_skip(self._reason, total - self._counted)
+        self._counted = total
+        return True
+
+
 class NotObserved:
     """Frames lost before the runner saw them, counted on ``output`` as ``not-observed``."""
 
     def __init__(self, output: Producer) -> None:
-        self._output = output
         self._lock = threading.Lock()
         self._carried = 0  # the sum of the ``missed`` of the notifications taken
-        self._counted = 0  # what the output has been told
+        self._total = _Total(output, SKIP_REASON)
 
     def carried(self, missed: int) -> None:
         """A notification taken carried ``missed`` frames lost before it."""
         with self._lock:
             self._carried += missed
-            self._raise(self._carried)
+            self._total.raise_to(self._carried)
 
     def total_is(self, missed_total: int) -> None:
         """The subscription's ``missed_total`` now (it includes what notes carry later)."""
         with self._lock:
-            self._raise(missed_total)
-
-    def _raise(self, total: int) -> None:
-        if total > self._counted:
-            self._output.count_skip(SKIP_REASON, total - self._counted)
-            self._counted = total
+            self._total.raise_to(missed_total)
 
 
 BAD_NOTIFICATION = "bad-notification"
@@ -64,18 +76,16 @@ class BadNotifications:
     """
 
     def __init__(self, output: Producer, warn: Callable[[str, str], None]) -> None:
-        self._output = output
+        self._name = output.name
         self._warn = warn
-        self._counted = 0
+        self._total = _Total(output, BAD_NOTIFICATION)
 
     def total_is(self, total: int) -> None:
         """The subscription's garbage and dropped messages, summed, now."""
-        if total > self._counted:
-            self._output.count_skip(BAD_NOTIFICATION, total - self._counted)
-            self._counted = total
+        if self._total.raise_to(total):
             self._warn(
                 BAD_NOTIFICATION,
                 f"{total} messages on this runner's notification key were no notification "
                 f"of its input (garbage, oversize, or a flood); counted as {BAD_NOTIFICATION} "
-                f"in 'framegate info {self._output.name}', not logged again",
+                f"in 'framegate info {self._name}', not logged again",
             )
