@@ -101,12 +101,6 @@ class StaticTransforms:
             self._latest.popitem(last=False)
         return len(kept)
 
-    def _parents(self) -> dict[str, Transform]:
-        merged: dict[str, Transform] = {}
-        for transforms in self._latest.values():  # heard last, written last: it wins
-            merged.update(transforms)
-        return merged
-
     def _parent(self, name: str) -> Transform | None:
         for transforms in reversed(self._latest.values()):  # heard last: it wins
             if (step := transforms.get(name)) is not None:
@@ -139,8 +133,3 @@ class StaticTransforms:
         if root_t != root_s:
             return None
         return tuple(float(v) for v in (r_t.T @ r_s).reshape(-1))
-
-    def frames(self) -> set[str]:
-        """Every frame named so far (for messages that say what is missing)."""
-        parents = self._parents()
-        return set(parents) | {t.parent for t in parents.values()}
