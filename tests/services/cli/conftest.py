@@ -139,6 +139,7 @@ class LineReader:
     def __init__(self, proc: subprocess.Popen[str]) -> None:
         self._lines: queue.Queue[str | None] = queue.Queue()
         self.seen: list[str] = []
+        self._proc = proc
         assert proc.stdout is not None
         stream = proc.stdout
 
@@ -160,12 +161,21 @@ class LineReader:
             except queue.Empty:
                 continue
             if line is None:
-                raise AssertionError(f"process ended; output: {self.seen}")
+                raise AssertionError(f"process ended; {self._ending()}; output: {self.seen}")
             self.seen.append(line)
             if line.strip():
                 event = json.loads(line)
                 if predicate(event):
                     return event
+
+    def _ending(self) -> str:
+        """How the process ended: exit code and what it said on stderr (why it ended)."""
+        try:
+            code = self._proc.wait(timeout=scaled(10))
+        except subprocess.TimeoutExpired:
+            return "stdout closed, process still running"
+        err = self._proc.stderr.read() if self._proc.stderr is not None else ""
+        return f"exit {code}, stderr: {err.strip()!r}"
 
 
 @pytest.fixture

@@ -37,7 +37,8 @@ def test_typed_gives_numbers_their_json_type() -> None:
 
 @pytest.mark.integration
 def test_echo_prints_typed_fields_of_what_pub_publishes(cli: Cli, endpoint: str) -> None:
-    echo = cli.start("echo", "t/x", "--json", "--count", "3")
+    # echo starts first and waits for pub's whole start-up (seconds on a loaded machine).
+    echo = cli.start("echo", "t/x", "--json", "--count", "3", "--timeout", str(scaled(60)))
     reader = LineReader(echo)
     pub = cli.start(
         "pub", "t/x", "--kind", "frame", "--count", "3", "--rate", "20",
@@ -58,7 +59,7 @@ def test_echo_prints_typed_fields_of_what_pub_publishes(cli: Cli, endpoint: str)
 def test_an_echo_started_before_pub_gets_its_first_element(cli: Cli, endpoint: str) -> None:
     """As with ``ros2 topic pub``: the echo subscribes only once the buffer is offered, and
     missed element 0 (then waited for ever for its last) unless pub was told to wait."""
-    echo = cli.start("echo", "t/first", "--json", "--count", "3")
+    echo = cli.start("echo", "t/first", "--json", "--count", "3", "--timeout", str(scaled(60)))
     reader = LineReader(echo)
     pub = cli.start(
         "pub", "t/first", "--kind", "frame", "--count", "3", "--rate", "20",
