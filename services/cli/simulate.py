@@ -20,6 +20,9 @@ from services.lib.sim import (
     write_report,
 )
 
+# What a flag left out means: the scenario's own defaults, shown in the help.
+_DEFAULTS = ScenarioConfig()
+
 
 def register(subparsers: Any) -> None:
     """Add the ``simulate`` command."""
@@ -31,9 +34,17 @@ def register(subparsers: Any) -> None:
         "Parameters: defaults, then --config, then --set, then the named flags.",
     )
     parser.add_argument("--out", type=Path, required=True, help="dataset directory to write")
-    parser.add_argument("--seed", type=non_negative_int, help="random seed (default 0)")
-    parser.add_argument("--frames", type=positive_int, help="number of frames (default 319)")
-    parser.add_argument("--exposure-ms", type=positive_float, help="exposure time (default 60)")
+    parser.add_argument(
+        "--seed", type=non_negative_int, help=f"random seed (default {_DEFAULTS.seed})"
+    )
+    parser.add_argument(
+        "--frames", type=positive_int, help=f"number of frames (default {_DEFAULTS.frame_count})"
+    )
+    parser.add_argument(
+        "--exposure-ms",
+        type=positive_float,
+        help=f"exposure time (default {_DEFAULTS.exposure_ns / 1e6:g})",
+    )
     parser.add_argument(
         "--floor", choices=ScenarioConfig.floor_names(),
         help="bump preset: smooth, default or rough (applied before --config and --set)",

@@ -121,3 +121,38 @@ def test_sweep_latency_flag_reaches_the_sweep(
         code = main(["experiment", "--sweep", "--out", str(tmp_path), "--no-progress", *flag])
         assert code == 0
         assert seen[-1].latency == expected
+
+
+def test_a_command_without_flags_runs_the_configs_own_defaults(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The parser writes its defaults apart from ExperimentConfig and SweepConfig (it must not
+    import the experiment package); what `--help` says they are is what they are."""
+    import dataclasses
+
+    import services.evidence.experiment as experiment
+    from services.cli import experiment as command
+    from services.cli import main
+    from services.evidence.experiment._config import QUICK_FRAMES
+
+    seen: list[Any] = []
+
+    def fake(config: Any, *, log: Any = None) -> dict[str, Any]:
+        seen.append(config)
+        for name in (*experiment.OUTPUT_FILES, experiment.SWEEP_TABLE):
+            (config.out / name).write_text("x\n", encoding="utf-8")
+        return {}
+
+    monkeypatch.setattr(experiment, "run_experiment", fake)
+    monkeypatch.setattr(experiment, "run_sweep", fake)
+    monkeypatch.setattr(signal, "signal", lambda *_args: None)
+    assert main(["experiment", "--out", str(tmp_path), "--no-progress"]) == 0
+    assert main(["experiment", "--sweep", "--out", str(tmp_path), "--no-progress"]) == 0
+    assert main(["experiment", "--quick", "--out", str(tmp_path), "--no-progress"]) == 0
+    run, sweep, quick = seen
+    for got, expected in ((run, experiment.ExperimentConfig), (sweep, experiment.SweepConfig)):
+        for field in dataclasses.fields(expected):
+            if field.name not in ("out", "progress"):
+                assert getattr(got, field.name) == field.default, field.name
+    assert quick.frame_count == QUICK_FRAMES == command.QUICK_FRAMES
+    assert quick.seeds == (1,) and quick.startup_s == command.QUICK_STARTUP_S
