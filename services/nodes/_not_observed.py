@@ -66,11 +66,12 @@ BAD_NOTIFICATION = "bad-notification"
 
 
 class BadNotifications:
-    """Messages on the runner's notification key that were no notification of its input
+    """Messages on a service's notification keys that were no notification of its inputs
     (garbage, larger than any the subscription can be sent, or pushed out of its inbox by a
     flood of them), counted on ``output`` as ``bad-notification`` with one warning: the
-    subscription counted them, but nothing showed them, so a peer flooding the key left
-    ``framegate info`` and the log silent while the runner's results slowed.
+    subscriptions counted them, but nothing showed them, so a peer flooding a key left
+    ``framegate info`` and the log silent while the service slowed (the vision runner's
+    results, the mediator's decisions).
 
     Threads: ``total_is`` runs on the node's executor (a timer) only.
     """
@@ -78,14 +79,16 @@ class BadNotifications:
     def __init__(self, output: Producer, warn: Callable[[str, str], None]) -> None:
         self._name = output.name
         self._warn = warn
+        self._warned = False
         self._total = _Total(output, BAD_NOTIFICATION)
 
     def total_is(self, total: int) -> None:
-        """The subscription's garbage and dropped messages, summed, now."""
-        if self._total.raise_to(total):
+        """The subscriptions' garbage and dropped messages, summed, now."""
+        if self._total.raise_to(total) and not self._warned:
+            self._warned = True
             self._warn(
                 BAD_NOTIFICATION,
-                f"{total} messages on this runner's notification key were no notification "
-                f"of its input (garbage, oversize, or a flood); counted as {BAD_NOTIFICATION} "
+                f"{total} messages on this service's notification keys were no notification "
+                f"of its inputs (garbage, oversize, or a flood); counted as {BAD_NOTIFICATION} "
                 f"in 'framegate info {self._name}', not logged again",
             )

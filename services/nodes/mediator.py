@@ -32,7 +32,9 @@ its traceback and recorded as ``internal-error``; the mediator goes on with the 
 Gyro batches that cannot be decoded or hold NaN/INF are dropped; samples not newer than the
 newest one kept (late, re-delivered or overlapping batches) are dropped; a batch far older
 than everything kept is a restarted gyro and starts the cache over. Late or out-of-order
-frames are the decider's (``out-of-order``).
+frames are the decider's (``out-of-order``). Messages on the camera's or gyro's
+notification key that were no notification (a peer's garbage, oversize, a flood that pushed
+them out of the inbox) are counted on ``images`` as ``bad-notification``, with one warning.
 
 Time and stalls: a frame stamped more than ``horizon_s`` ahead of our clock is skipped
 (``future-stamp``) before it can become the time-order reference, and so is one stamped more
@@ -111,6 +113,7 @@ from services.nodes._mediator_pairing import (
     blur_quality,
 )
 from services.nodes._mediator_restart import StreamStarts
+from services.nodes._not_observed import BadNotifications
 from services.nodes._runtime import setup_logging
 
 
@@ -390,6 +393,11 @@ class Mediator:
         self.images.on_change(taken)
         self._node.every(OFFSET_PERIOD_S, self._measure)
         self._node.at(time.monotonic_ns(), self._measure)
+        bad = BadNotifications(self.images, lambda _kind, text: self.log.warning("%s", text))
+        inputs = (self._camera, self._gyro_sub)
+        self._node.every(
+            OFFSET_PERIOD_S, lambda _now: bad.total_is(sum(s.garbage + s.dropped for s in inputs))
+        )
 
     def _measure(self, now: int) -> None:
         if self._offsets.measuring:

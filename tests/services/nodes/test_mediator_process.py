@@ -10,8 +10,10 @@ from pathlib import Path
 
 import pytest
 
+from middleware._wire import Keys
 from services.launch import pipeline_yaml
 from tests.conftest import REPO, child_env, wait_until
+from tests.helpers.raw_zenoh import open_session
 from tests.helpers.timing import scaled
 from tests.services.nodes.pipeline import Pipeline
 
@@ -77,3 +79,39 @@ def test_regression_slow_flow_controlled_decisions_watcher_leaves_the_mediator_f
         except subprocess.TimeoutExpired:
             watcher.kill()
             watcher.wait()
+
+
+def test_garbage_on_the_mediator_s_notification_keys_is_counted_and_it_goes_on(
+    pipe: Pipeline,
+) -> None:
+    """A peer publishing garbage on the keys the mediator's camera and gyro notifications come
+    on: counted ``bad-notification`` in ``framegate info mediator/images`` (the subscriptions
+    counted it, but nothing showed it), and the mediator keeps forwarding."""
+    wait_until(
+        lambda: pipe.counter("mediator/images") >= 5, 60, lambda: "forwarding\n" + pipe.log()
+    )
+    keys = Keys("framegate")
+    notify = [
+        keys.notify(service, buffer, sub.subscription_id)
+        for service, buffer in (("camera", "images"), ("gyro", "rates"))
+        for sub in pipe.info(f"{service}/{buffer}").subscriptions
+        if sub.node == "mediator"
+    ]
+    assert len(notify) == 2, notify
+    with open_session(f"tcp/127.0.0.1:{pipe.port}") as rogue:
+
+        def counted() -> bool:
+            # Sent until counted: a new session's first puts may reach no one yet.
+            for key in notify:
+                for _ in range(10):
+                    rogue.put(key, b"\xff" * 32, attachment=b"not a notification")
+            return pipe.info("mediator/images").skipped.get("bad-notification", 0) >= 20
+
+        wait_until(counted, 60, lambda: "the garbage counted\n" + pipe.log())
+    forwarded = pipe.count("mediator/images")
+    wait_until(
+        lambda: pipe.counter("mediator/images") >= forwarded + 5,
+        60,
+        lambda: "the mediator to keep forwarding\n" + pipe.log(),
+    )
+    assert pipe.log().count("no notification of its inputs") == 1, pipe.log()
