@@ -23,8 +23,9 @@ stamp that is not newer than the last one (``out-of-order``, ``duplicate-stamp``
 zero (``bad-stamp``), an element the producer rejects (``rejected``), a full in-queue
 (``in-queue-full``): each is a counted skip (``Producer.count_skip``, ``skipped`` in
 ``framegate info``) with one warning per reason. Out, an element that cannot be read
-(``bad-element``), a publish Zenoh refuses (``publish-failed``) or elements the observer was
-never notified of (``not-observed``: its queue was full, or its subscription had lapsed) are
+(``bad-element``), a publish Zenoh refuses (``publish-failed``), elements the observer was
+never notified of (``not-observed``: its queue was full, or its subscription had lapsed) or
+messages on its notify key that were no notification (``bad-notification``) are
 skipped the same way, and anything unforeseen with one message is logged with its traceback
 (``internal-error``) while the bridge goes on.
 
@@ -56,6 +57,7 @@ from middleware import (
 )
 from services.lib.frame_layout import read_frame_layout
 from services.lib.messages import DecisionRecord
+from services.nodes._not_observed import BAD_NOTIFICATION
 from services.nodes._runtime import setup_logging
 
 from ._camera_info import CAMERA_INFO, TF_MESSAGE, TF_STATIC, CameraSource
@@ -78,6 +80,8 @@ __all__ = ["Encoders", "ImagesIn", "ImuIn", "Output", "run"]
 
 _NS = "{urn:framegate:1}"
 _log = logging.getLogger("framegate.ros2")
+# How often an output counts the garbage on its notify key (a count, not a hot path).
+BAD_NOTIFICATION_PERIOD_S = 2.0
 
 
 class Output:
@@ -113,10 +117,28 @@ class Output:
             await_service=True,  # the services it carries may start after it
         )
         self.published = 0
+        self._bad = 0  # messages on the notify key that were no notification, counted
 
     def attach(self) -> None:
-        """Run ``on_notes`` on the node's executor for what the subscription queues."""
+        """Run ``on_notes`` on the node's executor for what the subscription queues, and
+        count what came on its key that was no notification (``_count_bad``)."""
         self._node.on(self._sub, self.on_notes)
+        self._node.every(BAD_NOTIFICATION_PERIOD_S, self._count_bad)
+
+    def _count_bad(self, _now_ns: int) -> None:
+        """(the executor) A peer's garbage on the subscription's notify key, oversize
+        messages, or those a flood pushed out of its inbox: counted ``bad-notification``
+        (the subscription counted them, nothing showed them)."""
+        total = self._sub.garbage + self._sub.dropped
+        if total > self._bad:
+            self._skips.count(
+                None,
+                BAD_NOTIFICATION,
+                f"{total - self._bad} messages on the notification key of "
+                f"{self.mapping.buffer} were no notification (garbage, oversize, or a flood)",
+                total - self._bad,
+            )
+            self._bad = total
 
     def on_notes(self, notes: list[Notification]) -> None:
         """(the executor) Carry each notification to ROS 2; every failure is a counted skip."""

@@ -10,9 +10,12 @@ from collections.abc import Iterator
 import pytest
 
 from middleware import NetworkConfig, Node, make_metadata
+from middleware._wire import Keys
+from services.nodes._not_observed import BAD_NOTIFICATION
 from services.nodes.ros2._bridge import Output, _Skips
 from services.nodes.ros2._config import Mapping, Ros2Config
 from tests.conftest import wait_until
+from tests.helpers.raw_zenoh import open_session
 
 pytestmark = pytest.mark.integration
 
@@ -62,3 +65,36 @@ def test_elements_an_output_was_never_notified_of_are_counted_not_observed(
     assert missed > 0, publisher.published
     # Every element either reached the ROS 2 topic or was counted as never observed.
     assert len(publisher.published) + missed == COUNT, (publisher.published, missed)
+
+
+def test_garbage_on_an_output_s_notify_key_is_counted_and_publishing_goes_on(
+    nodes: tuple[Node, Node], endpoint: str
+) -> None:
+    """A peer's garbage on the key an output's notifications come on is a counted
+    ``bad-notification`` (it was counted inside the subscription only, shown nowhere), and the
+    output keeps publishing."""
+    producer, bridge = nodes
+    decisions = producer.offer("decisions")
+    publisher = _Publisher()
+    skips = _Skips(logging.getLogger("test.bridge.output"))
+    output = Output(
+        bridge,
+        publisher,  # type: ignore[arg-type]
+        Mapping("mediator/decisions", "/framegate/verdicts"),
+        lambda element: element.payload,
+        Ros2Config(),
+        skips,
+    )
+    output.attach()
+    (sub,) = wait_until(lambda: decisions.subscriptions(), 30, "the output's subscription")
+    key = Keys("framegate").notify("mediator", "decisions", sub.subscription_id)
+    with open_session(endpoint) as rogue:
+
+        def counted() -> bool:
+            for _ in range(10):  # sent until counted: the first may reach no one yet
+                rogue.put(key, b"\xff" * 32, attachment=b"not a notification")
+            return skips.counts[BAD_NOTIFICATION] >= 10
+
+        wait_until(counted, 30, "the garbage counted bad-notification")
+    decisions.put(1, b"1", make_metadata("generic", 1))
+    wait_until(lambda: publisher.published == [b"1"], 30, "the element published after it")
