@@ -215,6 +215,7 @@ def run(args: argparse.Namespace) -> int:
             # writer its share of the interpreter (measured: a backlog written 5x slower).
             for recorder in recorders:
                 recorder.progress.missed = recorder.sub.missed_total
+                recorder.progress.bad_notifications = recorder.sub.garbage + recorder.sub.dropped
                 recorder.sub.close()
             queue.close()  # what was fetched is written before the summary
             earliest = min(args.offsets.values(), default=0)
@@ -423,5 +424,12 @@ def _summary(
             print(
                 f"  warning: the recorder dropped {p.dropped} elements of {p.name}: its write "
                 "queue was full (the disk too slow); try --no-images",
+                file=sys.stderr,
+            )
+        if p.bad_notifications:
+            print(
+                f"  warning: {p.bad_notifications} messages on the notification key of "
+                f"{p.name} were no notification (a peer's garbage, oversize, or a flood); "
+                "what they pushed out was fetched again (counted evicted if it could not be)",
                 file=sys.stderr,
             )

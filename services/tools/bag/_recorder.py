@@ -85,6 +85,10 @@ class Progress:
     missed: int = 0
     evicted: int = 0
     dropped: int = 0
+    # Messages on the notify key that were no notification (a peer's garbage, oversize, a
+    # flood): nothing recorded is lost to them (what they push out is backfilled), but a
+    # user sees that someone sent them.
+    bad_notifications: int = 0
     first_ns: int | None = None
     last_ns: int | None = None
 
@@ -102,6 +106,7 @@ class Progress:
             "evicted": self.evicted,
             "dropped": self.dropped,
             "lost": self.lost,
+            "bad_notifications": self.bad_notifications,
             "first_ns": self.first_ns,
             "last_ns": self.last_ns,
         }

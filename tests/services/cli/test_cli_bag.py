@@ -332,3 +332,32 @@ def _protobuf_class(file_descriptor_set: bytes, name: str) -> Any:
     for proto in descriptor_pb2.FileDescriptorSet.FromString(file_descriptor_set).file:
         pool.Add(proto)
     return message_factory.GetMessageClass(pool.FindMessageTypeByName(name))
+
+
+def test_record_counts_garbage_on_its_notify_key_and_loses_nothing(
+    listen_net: NetworkConfig, cli: Cli, tmp_path: Path, endpoint: str
+) -> None:
+    """A peer's garbage on the key the recorder's notifications come on: said in the summary
+    (it was counted inside the subscription only), and every element is still recorded."""
+    from middleware._wire import Keys
+    from tests.helpers.raw_zenoh import open_session
+
+    with Node("cam", listen_net) as service, open_session(endpoint) as rogue:
+        log = service.offer("log", retention=Retention(max_count=500))
+        recorder = cli.start(
+            "record", "cam/log", "-o", str(tmp_path / "run.mcap"), "--count", str(COUNT),
+            "--json",
+        )  # fmt: skip
+        assert log.wait_for_subscribers(1, timeout_s=scaled(30))
+        (sub,) = log.subscriptions()
+        key = Keys("framegate").notify("cam", "log", sub.subscription_id)
+        base = time.time_ns()
+        for i in range(COUNT):
+            rogue.put(key, b"\xff" * 32, attachment=b"not a notification")
+            t = base + i * MS
+            log.put(t, b"line %d" % i, make_metadata("generic", t, {"n": i}))
+        out, err = recorder.communicate(timeout=TIMEOUT_S)
+        assert recorder.returncode == 0, err
+    (row,) = json.loads(out)["buffers"]
+    assert row["recorded"] == COUNT and row["lost"] == 0, row
+    assert row["bad_notifications"] > 0, row
