@@ -32,6 +32,21 @@ class _Publisher:
         self.published.append(bytes(cdr))
 
 
+def _output(bridge: Node, config: Ros2Config) -> tuple[_Publisher, _Skips, Output]:
+    """An output of mediator/decisions on ``bridge``, publishing to a stand-in."""
+    publisher = _Publisher()
+    skips = _Skips(logging.getLogger("test.bridge.output"))
+    output = Output(
+        bridge,
+        publisher,  # type: ignore[arg-type]
+        Mapping("mediator/decisions", "/framegate/verdicts"),
+        lambda element: element.payload,
+        config,
+        skips,
+    )
+    return publisher, skips, output
+
+
 @pytest.fixture
 def nodes(listen_net: NetworkConfig, connect_net: NetworkConfig) -> Iterator[tuple[Node, Node]]:
     with Node("mediator", listen_net) as producer, Node("ros2", connect_net) as bridge:
@@ -43,16 +58,7 @@ def test_elements_an_output_was_never_notified_of_are_counted_not_observed(
 ) -> None:
     producer, bridge = nodes
     decisions = producer.offer("decisions")
-    publisher = _Publisher()
-    skips = _Skips(logging.getLogger("test.bridge.output"))
-    output = Output(
-        bridge,
-        publisher,  # type: ignore[arg-type]
-        Mapping("mediator/decisions", "/framegate/verdicts"),
-        lambda element: element.payload,
-        Ros2Config(out_queue=1),
-        skips,
-    )
+    publisher, skips, output = _output(bridge, Ros2Config(out_queue=1))
     wait_until(lambda: decisions.subscriptions(), 30, "the output's subscription")
     # Nobody takes yet: a queue of one holds the first, the observer misses the rest.
     for t in range(1, COUNT):
@@ -75,16 +81,7 @@ def test_garbage_on_an_output_s_notify_key_is_counted_and_publishing_goes_on(
     output keeps publishing."""
     producer, bridge = nodes
     decisions = producer.offer("decisions")
-    publisher = _Publisher()
-    skips = _Skips(logging.getLogger("test.bridge.output"))
-    output = Output(
-        bridge,
-        publisher,  # type: ignore[arg-type]
-        Mapping("mediator/decisions", "/framegate/verdicts"),
-        lambda element: element.payload,
-        Ros2Config(),
-        skips,
-    )
+    publisher, skips, output = _output(bridge, Ros2Config())
     output.attach()
     (sub,) = wait_until(lambda: decisions.subscriptions(), 30, "the output's subscription")
     key = Keys("framegate").notify("mediator", "decisions", sub.subscription_id)
