@@ -175,21 +175,6 @@ class Codec:
         cdr = self.store.serialize_cdr(head, IMAGE)
         return b"".join((cdr[:-4], _LENGTH.pack(memoryview(pixels).nbytes), pixels))
 
-    def encode_image_rosbags(
-        self, t_ns: int, frame_id: str, width: int, height: int, encoding: str, pixels: bytes
-    ) -> bytearray:
-        """The same message serialized by rosbags as a whole (the reference for tests)."""
-        message = self._image(
-            header=self._header_type(t_ns, frame_id),
-            height=height,
-            width=width,
-            encoding=encoding,
-            is_bigendian=0,
-            step=width * CHANNELS[encoding],
-            data=np.frombuffer(pixels, dtype=np.uint8),
-        )
-        return _owner(self.store.serialize_cdr(message, IMAGE))
-
     # -- IMU ---------------------------------------------------------------------------------
     def decode_imu_frame(self, raw: bytes) -> tuple[int, tuple[float, float, float], str]:
         """(stamp, angular velocity in rad/s, header.frame_id); CdrError for a malformed message."""
