@@ -119,10 +119,14 @@ def _number(
     return parse
 
 
-#: Finite, > 0: rates, periods, scales.
-positive_float = _number(float, 0, strict=True)
-#: Finite, >= 0: delays, waits, minimums.
-non_negative_float = _number(float, 0, strict=False)
+# The largest rate, period or scale a flag takes. Times inside are int nanoseconds:
+# 10^9 s still fits an int64, and a larger duration crashed its service with a traceback
+# (``--consumer-timeout-ms 1e303``: OverflowError turning it into nanoseconds).
+MAX_FLOAT = 1e9
+#: Finite, > 0, at most ``MAX_FLOAT``: rates, periods, scales.
+positive_float = _number(float, 0, strict=True, high=MAX_FLOAT)
+#: Finite, >= 0, at most ``MAX_FLOAT``: delays, waits, minimums.
+non_negative_float = _number(float, 0, strict=False, high=MAX_FLOAT)
 #: Finite, any sign.
 #: In [0, 1]: qualities, fractions.
 unit_float = _number(float, 0, strict=False, high=1)

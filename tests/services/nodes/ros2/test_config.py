@@ -87,6 +87,9 @@ def test_bad_flags_are_one_line_errors(argv: list[str], match: str) -> None:
         ["--out-depth", "-1"],
         ["--gyro-wait-ms", "inf"],
         ["--domain-id", "-1"],
+        # Finite, but no time in int nanoseconds: the bridge died of an OverflowError.
+        ["--consumer-timeout-ms", "1e303"],
+        ["--max-ahead-ms", "1e303"],
     ],
 )
 def test_bad_numbers_are_refused_as_parsed(argv: list[str]) -> None:
