@@ -312,6 +312,12 @@ class CameraSource:
                     if self._imu_topic
                     else "--imu-to-camera (no --imu-in names the IMU frame)"
                 )
+            elif not imu_frame or not image_frame:  # tf2 names no frame "": TF cannot say
+                topic = self._imu_topic if not imu_frame else self._image_topic
+                missing.append(
+                    f"--imu-to-camera (the messages on {topic} name no frame: their "
+                    "header.frame_id is empty, so /tf_static cannot give the rotation)"
+                )
             else:
                 tf_key = (self._tf_version, image_frame, imu_frame)
                 if self._rotation_found[0] != tf_key:  # composed again only when it may change

@@ -410,7 +410,7 @@ class ImuIn(_Input):
         )
         self._codec, self._config = codec, config
         self._cameras = cameras  # told the IMU's frame, for the rotation to the camera
-        self._frame = ""
+        self._frame: str | None = None  # the IMU frame told to the cameras ("" is one too)
         self._pending: list[tuple[int, tuple[float, float, float]]] = []
         self._period_ns = 0
 

@@ -147,6 +147,34 @@ def test_a_wrong_size_camera_info_is_a_counted_skip_and_what_is_missing_is_said_
     assert "K[0] is 0: the camera is uncalibrated" in waits[1]
 
 
+@pytest.mark.parametrize("empty", ["imu", "image"])
+def test_an_empty_frame_id_is_said_to_need_the_rotation_flag_not_an_imu_message(
+    empty: str, node: Node, codec: Codec, caplog: pytest.LogCaptureFixture
+) -> None:
+    # tf2 has no frame "": an IMU or images without a header.frame_id never get a rotation
+    # from /tf_static. The line said it waited for "an IMU message on /imu/data to name the
+    # IMU frame" while they arrived.
+    camera = CameraModel(64, 48, 50.0, 50.0, 32.0, 24.0)
+    skips = _Skips(logging.getLogger("test"))
+    config = Ros2Config(image_in="/cam/image_raw", imu_in="/imu/data")
+    images = ImagesIn(node, codec, config, skips)
+    imu = ImuIn(node, codec, config, skips, images.cameras)
+    now = time.time_ns()
+    images.cameras.on_camera_info(camera_info(codec, camera, now), None)
+    _broadcast(images.cameras, tf_static(codec, _IDENTITY))
+    imu.add(_imu(codec, now // 10**9 - 1, 0, "" if empty == "imu" else IMU_FRAME))
+    image = codec.encode_image(
+        now, "" if empty == "image" else IMAGE_FRAME, 64, 48, "mono8", bytes(64 * 48)
+    )
+    with caplog.at_level(logging.WARNING):
+        images.handle(bytes(image), 1)
+    waits = [r.getMessage() for r in caplog.records if "waiting for" in r.getMessage()]
+    topic = "/imu/data" if empty == "imu" else "/cam/image_raw"
+    assert len(waits) == 1, waits
+    assert f"--imu-to-camera (the messages on {topic} name no frame" in waits[0], waits
+    assert "an IMU message" not in waits[0] and "the transform from" not in waits[0]
+
+
 def test_with_camera_info_off_the_wait_names_the_flag_that_gives_it(
     node: Node, codec: Codec, caplog: pytest.LogCaptureFixture
 ) -> None:
