@@ -272,6 +272,11 @@ class GateBook:
 
     - a debt no gate notification comes for (the feed saw a put the gate did not): kept, it
       would free the next image's slot the moment it arrives; it is cancelled.
+    - a *deficit*, fewer gate notifications than images the node holds (the feed saw a put
+      the gate did not, and its debt was paid with the notification of another image, one
+      the node still holds, before the timeout could cancel it): kept, the mediator would
+      see the node one image less busy for good. Once it has lasted the whole timeout, as
+      many resolutions to come take nothing (``spare``).
     - a *surplus*, gate notifications no image accounts for (the gate saw a put the feed did
       not): kept, it would hold a slot for ever; it is freed once it has lasted the whole
       timeout (an image on its way between the feed and the ledger is one only briefly).
@@ -280,14 +285,21 @@ class GateBook:
     def __init__(self, timeout_ns: int) -> None:
         self.timeout_ns = timeout_ns
         self.debt = 0
+        self.spare = 0  # resolutions still to take nothing for: a deficit found
         self._debt_since_ns: int | None = None
         self._surplus_since_ns: int | None = None
+        self._deficit_since_ns: int | None = None
 
-    def owe(self, count: int, now_ns: int) -> None:
-        """``count`` images were resolved: as many gate takes are due."""
+    def owe(self, count: int, now_ns: int) -> int:
+        """``count`` images were resolved: as many gate takes are due, but for those a
+        deficit spares; how many it spared (images the gate never counted)."""
+        spared = min(self.spare, max(0, count))
+        self.spare -= spared
+        count -= spared
         if count > 0 and not self.debt:
             self._debt_since_ns = now_ns
         self.debt += max(0, count)
+        return spared
 
     def taken(self, count: int, now_ns: int) -> int:
         """``count`` gate notifications were taken for the debt; the debt cancelled (> 0
@@ -304,8 +316,17 @@ class GateBook:
     def surplus(self, gate_queued: int, accounted: int, now_ns: int) -> int:
         """Gate notifications to free now: ``gate_queued`` minus the ``accounted`` images
         (open in the ledger or waiting in the feed), once that surplus has lasted the
-        timeout; 0 while a debt is being paid or the surplus is young."""
+        timeout; 0 while a debt is being paid or the surplus is young. A deficit (fewer
+        than accounted) that lasted the timeout sets ``spare``; a debt being paid leaves
+        its clock running (the deficit goes on through each take)."""
         extra = gate_queued - accounted if not self.debt else 0
+        if not self.debt:
+            if extra >= 0:
+                self._deficit_since_ns = None
+            elif self._deficit_since_ns is None:
+                self._deficit_since_ns = now_ns
+            elif now_ns - self._deficit_since_ns > self.timeout_ns:
+                self.spare, self._deficit_since_ns = max(self.spare, -extra), None
         if extra <= 0:
             self._surplus_since_ns = None
             return 0

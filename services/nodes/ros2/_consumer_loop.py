@@ -200,7 +200,16 @@ class ConsumerLoop:
 
     def _resolved_without_image(self, count: int) -> None:
         with self._lock:
-            self._book.owe(count, time.monotonic_ns())
+            spared = self._book.owe(count, time.monotonic_ns())
+        self._count_ungated(spared)
+
+    def _count_ungated(self, count: int) -> None:
+        for _ in range(count):
+            self._skips.count(
+                self.results,
+                "ungated-image",
+                f"an image of {self.mapping.buffer} the gate never counted (registration)",
+            )
 
     # -- resolver: results in, slots freed ---------------------------------------------------
     def run_resolver(self, stop: threading.Event) -> None:
@@ -264,7 +273,8 @@ class ConsumerLoop:
         now = time.monotonic_ns()
         with self._lock:
             expired = self._ledger.expire(now)
-            self._book.owe(len(answered) + len(expired), now)
+            spared = self._book.owe(len(answered) + len(expired), now)
+        self._count_ungated(spared)
         for gone in expired:
             self._skips.count(
                 self.results,
@@ -311,12 +321,7 @@ class ConsumerLoop:
             cancelled = self._book.taken(len(taken), now_ns)
             accounted = len(self._ledger) + self._feed.pending
             extra = self._book.surplus(self._gate.pending, accounted, now_ns)
-        for _ in range(cancelled):
-            self._skips.count(
-                self.results,
-                "ungated-image",
-                f"an image of {self.mapping.buffer} the gate never counted (registration)",
-            )
+        self._count_ungated(cancelled)
         for note in self._gate.take_many(extra, timeout_s=0) if extra else []:
             self._skips.count(
                 self.results,

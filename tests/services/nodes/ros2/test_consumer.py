@@ -218,6 +218,29 @@ def test_no_surplus_is_freed_while_a_debt_is_paid() -> None:
     assert book.surplus(2, 0, 500) == 0
 
 
+def test_a_deficit_that_lasts_the_timeout_spares_as_many_resolutions() -> None:
+    # The gate registered after image 1 was put; image 1's answer took image 2's gate entry
+    # (a notification there at once): the node holds 2 and 3, the gate counts 3 alone.
+    # Before, that lasted for good: the mediator saw the node one image less busy.
+    book = GateBook(100)
+    assert book.owe(1, 0) == 0 and book.taken(1, 0) == 0  # image 1 answered, 2's entry taken
+    assert book.surplus(1, 2, 10) == 0  # gate 1, ledger 2: a young deficit
+    assert book.owe(1, 20) == 0 and book.taken(1, 20) == 0  # an answer during it: paid
+    assert book.surplus(0, 1, 30) == 0 and book.spare == 0
+    assert book.surplus(0, 1, 111) == 0 and book.spare == 1  # it lasted the timeout
+    assert book.surplus(0, 1, 300) == 0 and book.spare == 1  # not counted twice
+    assert book.owe(1, 310) == 1 and book.debt == 0  # the next resolution takes nothing
+    assert book.surplus(0, 0, 320) == 0 and book.spare == 0
+
+
+def test_a_gate_note_later_than_its_image_is_no_deficit() -> None:
+    book = GateBook(100)
+    for now in range(0, 1000, 50):  # a note a few ms behind its image, again and again
+        assert book.surplus(0, 1, now) == 0
+        assert book.surplus(1, 1, now + 5) == 0
+    assert book.spare == 0
+
+
 def test_made_up_types_past_the_bound_cost_one_line_and_no_memory() -> None:
     done = DoneTopic("/yolo/detections")
     said = [

@@ -1,0 +1,96 @@
+"""The loop's gate against the node's images, with no Zenoh: ``ConsumerLoop`` driven with
+stand-in subscriptions and a clock of the test's, so that the registration race of its two
+subscriptions is played exactly."""
+
+from __future__ import annotations
+
+import types
+from typing import Any
+
+import pytest
+
+from services.evidence.bench._ros2_node import _header_cdr
+from services.nodes.ros2 import _consumer_loop
+from services.nodes.ros2._config import Mapping, Ros2Config
+from services.nodes.ros2._consumer_loop import ConsumerLoop
+
+
+class _Sub:
+    """A subscription's local queue of notifications (keys only)."""
+
+    def __init__(self, keys: list[int]) -> None:
+        self.notes = [self.note(k) for k in keys]
+
+    @staticmethod
+    def note(key: int) -> Any:
+        return types.SimpleNamespace(timestamp_ns=key, missed=0, service="m", buffer="images")
+
+    @property
+    def pending(self) -> int:
+        return len(self.notes)
+
+    def take(self, timeout_s: float = 0) -> Any:
+        return self.notes.pop(0) if self.notes else None
+
+    def take_many(self, count: int, timeout_s: float = 0) -> list[Any]:
+        taken, self.notes = self.notes[:count], self.notes[count:]
+        return taken
+
+    def fetch(self, note: Any) -> Any:
+        return types.SimpleNamespace(timestamp_ns=note.timestamp_ns)
+
+    def close(self) -> None:
+        pass
+
+
+def test_an_image_the_gate_never_counted_leaves_no_lasting_deficit(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    clock = types.SimpleNamespace(now_ns=0)
+    fake_time = types.SimpleNamespace(monotonic_ns=lambda: clock.now_ns, time_ns=lambda: 0)
+    monkeypatch.setattr(_consumer_loop, "time", fake_time)
+    # The gate registered after image 1000 was put: the feed has it, the gate does not.
+    feed, gate = _Sub([1000, 2000]), _Sub([2000])
+    subscriptions = iter([feed, gate])
+    node = types.SimpleNamespace(
+        offer=lambda *a, **k: types.SimpleNamespace(put=lambda *a: None),
+        subscribe=lambda *a, **k: next(subscriptions),
+    )
+    skipped: list[str] = []
+    config = Ros2Config(
+        image_out=(Mapping("m/images", "/in"),),
+        consumer_done="/out",
+        consumer_queue=2,
+        consumer_timeout_ms=1000,
+    )
+    loop = ConsumerLoop(
+        node,  # type: ignore[arg-type]
+        None,  # type: ignore[arg-type]
+        types.SimpleNamespace(publish=lambda cdr: None),  # type: ignore[arg-type]
+        config.image_out[0],
+        lambda element: b"image",
+        config,
+        types.SimpleNamespace(count=lambda producer, reason, detail: skipped.append(reason)),
+    )
+
+    def image(key: int) -> None:  # the mediator puts it: both subscriptions are notified
+        if key not in (n.timestamp_ns for n in feed.notes):
+            feed.notes.append(_Sub.note(key))
+            gate.notes.append(_Sub.note(key))
+        loop._publish(feed.take())
+
+    def answer(key: int, at_ms: int) -> None:  # the node's result for image ``key``
+        clock.now_ns = at_ms * 1_000_000
+        loop._answers.put((_header_cdr(key, "camera", 0), None))
+        loop._turn()
+
+    image(1000)
+    image(2000)
+    # The node answers every image 400 ms after the one before, and gets the next at once:
+    # it always holds two, and the gate must count two.
+    for i, key in enumerate(range(1000, 8000, 1000)):
+        answer(key, 400 * i)
+        image(key + 2000)
+    assert len(loop._ledger) == 2
+    assert gate.pending == 2, "the mediator sees the node one image less busy than it is"
+    assert skipped == ["ungated-image"]
