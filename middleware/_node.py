@@ -141,6 +141,7 @@ class Node(Queries):
         wait_s: float = 2.0,
         push_max_bytes: int | None = None,
         await_service: bool = False,
+        ack_each_take: bool = False,
     ) -> Subscription:
         """Subscribe to ``service/buffer`` notifications with a queue of ``queue_size``.
 
@@ -153,7 +154,8 @@ class Node(Queries):
         A service that is not live within ``wait_s`` is a NotFoundError naming the live
         ones (a misspelt name fails here, not silently later); with ``await_service=True``
         the subscription is returned anyway and registers when the service appears (a
-        consumer started before its producer, as ``launch`` does).
+        consumer started before its producer, as ``launch`` does). ``ack_each_take``: each
+        take is acked at once, never coalesced (a take that means "done", not "started").
         """
         service, buffer = split_target(target)
         if not await_service:
@@ -173,6 +175,7 @@ class Node(Queries):
                 holder=self.name,
                 on_close=self._forget,
                 producer_ids=self._producer_ids,
+                ack_each_take=ack_each_take,
             )
         with self._lock:
             self._subscriptions.append(sub)

@@ -26,7 +26,7 @@ from ._decode import printable
 from ._errors import FramegateError, RegistrationRefused
 from ._executor import BUDGET, Executor, Wake, remaining_s
 from ._inbox import Inbox
-from ._ledger_subscriber import REACK_NS, Entry, SubscriberCounters
+from ._ledger_subscriber import REACK_NS, AckPolicy, Entry, SubscriberCounters
 from ._news import News
 from ._protocol_subscriber import RETRY_NS, Item, SubscriberProtocol
 from ._records import DataObject, Notification, SubscriptionMode, data_object, notification
@@ -86,8 +86,10 @@ class Subscription:
         holder: str | None = None,
         on_close: Callable[[Subscription], None] | None = None,
         producer_ids: Callable[[str], frozenset[str]] | None = None,
+        ack_each_take: bool = False,
     ) -> None:
-        self._protocol = SubscriberProtocol(mode, queue_size, push_max_bytes)
+        policy = AckPolicy() if ack_each_take else None  # None: coalesced (docs/protocol.md)
+        self._protocol = SubscriberProtocol(mode, queue_size, push_max_bytes, policy=policy)
         self.service = service
         self.buffer = buffer
         self.queue_size = queue_size

@@ -132,6 +132,9 @@ class ConsumerLoop:
             wait_s=0,
             push_max_bytes=0,  # the feed brings the payloads
             await_service=True,
+            # A take is the node done with an image: its slot is free now. Coalesced (N >= 4)
+            # the mediator saw the node one image fuller until the next answer.
+            ack_each_take=True,
         )
         self._lock = threading.Lock()
         self._ledger = Outstanding(depth, int(config.consumer_timeout_ms * 1e6))

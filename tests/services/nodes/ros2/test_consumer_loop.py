@@ -129,12 +129,12 @@ def ros_router() -> Iterator[tuple[str, zenoh.Session]]:
         yield at, router
 
 
-def _bridge(endpoint: str, ros_at: str, timeout_ms: int) -> Proc:
+def _bridge(endpoint: str, ros_at: str, timeout_ms: int, queue: int = 2) -> Proc:
     return Proc(
         [
             *(sys.executable, "-m", "services.cli", "run", "ros2", "--connect", endpoint),
             *("--ros-connect", ros_at, "--image-out", "cam/images=/vision/in"),
-            *("--consumer-done", "/vision/out", "--consumer-queue", "2"),
+            *("--consumer-done", "/vision/out", "--consumer-queue", str(queue)),
             *("--consumer-timeout-ms", str(timeout_ms)),
         ]
     )
@@ -227,6 +227,37 @@ def test_the_load_follows_the_nodes_outstanding_images_and_its_type_is_learnt(
                 lambda: node.buffer_info("ros2/results", timeout_s=scaled(10.0)), "ros2/results"
             )
             assert not info.skipped, info.skipped
+        finally:
+            vision.close()
+            bridge.close()
+        assert bridge.proc.returncode == 0, bridge.log()
+
+
+@pytest.mark.slow
+def test_each_answer_frees_its_slot_at_once_in_a_queue_of_four(
+    listen_net: NetworkConfig, endpoint: str, ros_router: tuple[str, zenoh.Session]
+) -> None:
+    # A queue of 4 coalesced its acks (one per 2 takes): after an answer the mediator saw
+    # the node holding 4 images, not 3, until the next answer a whole service time later.
+    ros_at, _router = ros_router
+    with Node("cam", listen_net) as node:
+        images = node.offer("images", kind="frame")
+        bridge = _bridge(endpoint, ros_at, 60_000, queue=4)
+        vision = VisionNode(ros_at, service_time_s=scaled(5.0))
+        try:
+            _ready(images, bridge, vision)
+            now = time.time_ns()
+            for i in range(4):
+                _put(images, now + i * 1_000_000)
+
+            def matches(outstanding: int) -> bool:
+                gate = _gate(images)
+                pair = (vision.outstanding, gate.queued if gate is not None else None)
+                return pair == (outstanding, outstanding) and len(vision.received) == 4
+
+            wait_until(lambda: matches(4), 60, "four images at the node, unanswered")
+            wait_until(lambda: matches(3), 60, "one answered, its slot free at the producer")
+            wait_until(lambda: matches(2), 60, "two answered")
         finally:
             vision.close()
             bridge.close()
