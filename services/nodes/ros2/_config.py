@@ -275,8 +275,11 @@ class Ros2Config:
                 f"--consumer-queue must be 1..{FLOW_QUEUE_MAX} (the largest flow-controlled "
                 f"queue a producer grants), got {self.consumer_queue}"
             )
-        if not self.consumer_timeout_ms > 0:
-            raise ConfigError(f"--consumer-timeout-ms must be > 0, got {self.consumer_timeout_ms}")
+        if not int(self.consumer_timeout_ms * 1e6) >= 1:  # in int ns, as the loop keeps it
+            raise ConfigError(
+                f"--consumer-timeout-ms must be at least 1e-06 (1 ns), got "
+                f"{self.consumer_timeout_ms}"
+            )
         if self.consumer_done is None:
             # Flags of the loop without the loop: said, not silently ignored.
             defaults = {f.name: f.default for f in dataclasses.fields(self)}

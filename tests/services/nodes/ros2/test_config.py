@@ -98,6 +98,15 @@ def test_bad_numbers_are_refused_as_parsed(argv: list[str]) -> None:
         _config(*argv)
 
 
+def test_a_consumer_timeout_under_a_nanosecond_is_refused() -> None:
+    # It became 0 ns: the bridge died of a ValueError traceback as the loop started.
+    with pytest.raises(ConfigError, match="--consumer-timeout-ms must be at least 1e-06"):
+        _config(
+            *("--image-out", "mediator/images=/x", "--consumer-done", "/yolo"),
+            *("--consumer-timeout-ms", "1e-7"),
+        )
+
+
 def test_a_bridge_with_nothing_to_carry_says_so() -> None:
     with pytest.raises(ConfigError, match="nothing to carry"):
         _config().check_has_work()
