@@ -299,6 +299,9 @@ def _serve(
             wait_s=0,
             push_max_bytes=PUSH_ALL,
             await_service=True,  # a pipeline starts every service at once
+            # The mediator's load is the frames waiting: each take acked at once, or with a
+            # queue of 4 and more the frame in the handler counted as waiting until the next.
+            ack_each_take=True,
         )
         step = VisionStep(handler, spec.kind, spec.input, log, call)
         runner = Runner(spec, step, node, output, stop)
