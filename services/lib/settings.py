@@ -17,10 +17,12 @@ times, or with several values: a deploy file's YAML list), ``count`` one that ta
 that many values; either becomes a tuple. ``env`` names an environment variable that
 outranks the default (defaults -> deploy file -> environment -> flags); ``shown`` is the
 default as help prints it, where the value itself would not read well; ``group`` puts the
-flag under a heading in ``--help``. A field without ``setting`` metadata (a nested config,
-e.g. the camera's source) is the service's own to fill, as is a value that depends on
-another flag (``from_args(..., field=value)``). A deploy file's service args are these
-flags' names, and ``framegate launch`` checks them with the same parser.
+flag under a heading in ``--help``; ``unset`` leaves the parsed value None when the flag is
+not given, so a command can tell a flag given with its default's value from one left out.
+A field without ``setting`` metadata (a nested config, e.g. the camera's source) is the
+service's own to fill, as is a value that depends on another flag
+(``from_args(..., field=value)``). A deploy file's service args are these flags' names, and
+``framegate launch`` checks them with the same parser.
 """
 
 from __future__ import annotations
@@ -53,6 +55,9 @@ class Setting:
     shown: str | None = None  # the default as --help shows it (None: the value)
     group: str | None = None  # the --help heading the flag is listed under
     required: bool = False  # the command cannot run without it (the default is no value)
+    # The parsed args hold None when the flag is not given (``from_args`` puts the default
+    # in), so a command can tell a flag given with the default's value from one left out.
+    unset: bool = False
 
 
 def setting(
@@ -71,6 +76,7 @@ def setting(
     shown: str | None = None,
     group: str | None = None,
     required: bool = False,
+    unset: bool = False,
 ) -> Any:
     """A config field with its default and how it is set from the command line."""
     meta = Setting(
@@ -87,6 +93,7 @@ def setting(
         shown=shown,
         group=group,
         required=required,
+        unset=unset,
     )
     return dataclasses.field(default=default, metadata={_KEY: meta})
 
@@ -158,10 +165,12 @@ def _flag_kwargs(f: dataclasses.Field[Any], meta: Setting) -> dict[str, Any]:
         # No default list: argparse would extend it instead of replacing it.
         kwargs.update(action="extend", nargs="+", default=None)
     else:
-        kwargs["default"] = default
+        kwargs["default"] = None if meta.unset else default
         if meta.count is not None:
             kwargs["nargs"] = meta.count
     shown = meta.shown
+    if shown is None and meta.unset:
+        shown = str(default)
     if shown is None and meta.env is not None:
         shown = f"${meta.env} or {f.default}"
     if shown is None and meta.repeat and isinstance(f.default, tuple) and f.default:
@@ -189,7 +198,7 @@ def from_args(config_type: type[Any], args: argparse.Namespace, **given: Any) ->
         value = getattr(args, meta.dest or f.name, f.default)
         if isinstance(f.default, enum.Enum) and not isinstance(value, enum.Enum):
             value = next(m for m in type(f.default) if _spelling(m) == value)
-        elif meta.repeat and value is None:
+        elif (meta.repeat or meta.unset) and value is None:
             value = f.default  # not given
         if isinstance(value, list):
             value = tuple(value)  # configs are frozen: no lists inside

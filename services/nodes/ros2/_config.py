@@ -209,14 +209,20 @@ class Ros2Config:
         metavar="BUFFER",
         group=_LOOP,
     )
+    # ``unset``: given with the default's value but without --consumer-done is refused too.
     consumer_queue: int = setting(
-        2, "images the node may hold without a result", parse=positive_int, group=_LOOP
+        2,
+        "images the node may hold without a result",
+        parse=positive_int,
+        group=_LOOP,
+        unset=True,
     )
     consumer_timeout_ms: float = setting(
         1000.0,
         "an image without a result frees its slot after this long, counted",
         parse=positive_float,
         group=_LOOP,
+        unset=True,
     )
 
     def __post_init__(self) -> None:
@@ -283,16 +289,9 @@ class Ros2Config:
         if self.consumer_done is None:
             # Flags of the loop without the loop: said, not silently ignored.
             defaults = {f.name: f.default for f in dataclasses.fields(self)}
-            given = [
-                "--" + name.replace("_", "-")
-                for name in ("consumer_input", "consumer_queue", "consumer_timeout_ms")
-                if getattr(self, name) != defaults[name]
-            ]
-            if given:
-                raise ConfigError(
-                    f"{', '.join(given)} without --consumer-done: the loop through a ROS 2 "
-                    "node's results needs its result topic"
-                )
+            _loop_without_done(
+                [name for name in LOOP_FIELDS if getattr(self, name) != defaults[name]]
+            )
         if self.camera_xml is not None and self.camera_info:
             # What the XML overrides, given as well: said, not silently ignored.
             raise ConfigError(
@@ -398,6 +397,20 @@ class Ros2Config:
         )
 
 
+# The loop's flags besides --consumer-done: meaningless without it.
+LOOP_FIELDS = ("consumer_input", "consumer_queue", "consumer_timeout_ms")
+
+
+def _loop_without_done(given: list[str]) -> None:
+    """ConfigError naming the loop's flags ``given`` (field names) without --consumer-done."""
+    if given:
+        flags = ", ".join("--" + name.replace("_", "-") for name in given)
+        raise ConfigError(
+            f"{flags} without --consumer-done: the loop through a ROS 2 node's results needs "
+            "its result topic"
+        )
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The bridge's flags (``framegate run ros2 --help``): one per config field."""
     add_flags(parser, Ros2Config)
@@ -413,6 +426,8 @@ def config_from_args(args: argparse.Namespace) -> Ros2Config:
     def maps(values: list[str] | None) -> tuple[Mapping, ...]:
         return tuple(Mapping.parse(v, ns) for v in values or ())
 
+    if not args.consumer_done:  # a loop flag given, even with the default's value
+        _loop_without_done([name for name in LOOP_FIELDS if getattr(args, name) is not None])
     config: Ros2Config = from_args(
         Ros2Config,
         args,

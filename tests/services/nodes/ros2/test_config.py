@@ -145,3 +145,22 @@ def test_a_deploy_list_of_routers_is_taken_whole() -> None:
     # `ros_connect: [tcp/a:7447, tcp/b:7447]` in a deploy file is one flag with two values.
     config = _config("--ros-connect", "tcp/a:7447", "tcp/b:7447", "--ros-connect", "tcp/c:7447")
     assert config.ros_connect == ("tcp/a:7447", "tcp/b:7447", "tcp/c:7447")
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["--consumer-queue", "3"],
+        ["--consumer-queue", "2"],  # the default's value: given all the same
+        ["--consumer-timeout-ms", "1000"],
+        ["--consumer-input", "mediator/images"],
+    ],
+)
+def test_a_loop_flag_without_consumer_done_is_refused_whatever_its_value(argv: list[str]) -> None:
+    with pytest.raises(ConfigError, match=f"{argv[0]} without --consumer-done"):
+        _config("--image-out", "mediator/images=/x", *argv)
+
+
+def test_the_loop_flags_left_out_take_their_defaults() -> None:
+    config = _config("--image-out", "mediator/images=/x", "--consumer-done", "/yolo")
+    assert (config.consumer_queue, config.consumer_timeout_ms) == (2, 1000.0)
