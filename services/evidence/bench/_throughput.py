@@ -67,6 +67,9 @@ class Mode:
     cpu_us: float | None = None
     # Raw subscriber handler designs (keys of HANDLER_DESIGNS) measured in the same pairs.
     designs: tuple[str, ...] = ()
+    # Also run raw paced at the rate framegate reached in the same pair: CPU per element at
+    # equal rates (an isolated Zenoh put costs far more than one of a back-to-back stream).
+    same_rate: bool = False
 
     def as_json(self) -> dict[str, Any]:
         return {
@@ -111,6 +114,7 @@ SMALL_MODES = (
         SMALL_GOAL,
         cpu_us=SMALL_CPU_US,
         designs=tuple(HANDLER_DESIGNS),
+        same_rate=True,
     ),
 )
 # Short labels of the handler designs, for row names.
@@ -154,12 +158,22 @@ def wakeup_rows(name: str) -> tuple[Row, Row]:
     )
 
 
-def cpu_rows(name: str) -> tuple[Row, Row]:
+def cpu_rows(name: str, note: str = "") -> tuple[Row, Row]:
     """Producer and consumer CPU per element of one throughput row."""
     return (
-        Row(f"{name}: producer CPU", "CPU per element", "us", higher_is_better=False),
-        Row(f"{name}: consumer CPU", "CPU per element", "us", higher_is_better=False),
+        Row(f"{name}: producer CPU", "CPU per element", "us", higher_is_better=False, note=note),
+        Row(f"{name}: consumer CPU", "CPU per element", "us", higher_is_better=False, note=note),
     )
+
+
+def same_rate_rows(name: str) -> tuple[Row, Row]:
+    """CPU per element with raw paced at framegate's rate of the same pair."""
+    note = (
+        "raw side: raw Zenoh's publisher paced at the rate framegate reached in the same "
+        "pair (one put every 1/rate s); framegate side: framegate's figure. Per element at "
+        "equal rates, where the as-fast-as-possible raw rows compare a back-to-back stream"
+    )
+    return cpu_rows(f"{name} at framegate's rate", note)
 
 
 def _run(scenario: str, modes: tuple[Mode, ...], options: BenchOptions) -> ScenarioResult:
@@ -180,7 +194,10 @@ def _run(scenario: str, modes: tuple[Mode, ...], options: BenchOptions) -> Scena
         producer_cpu, consumer_cpu = cpu_rows(mode.name)
         woken = wakeup_rows(mode.name)
         designs = {design: design_rows(mode.name, design) for design in mode.designs}
-        _run_mode(scenario, mode, (row, producer_cpu, consumer_cpu), woken, designs, options)
+        same_rate = same_rate_rows(mode.name) if mode.same_rate else None
+        _run_mode(
+            scenario, mode, (row, producer_cpu, consumer_cpu), woken, designs, same_rate, options
+        )
         row.goal = ratio_goal(row, mode.goal, at_least=True, what="throughput")
         if mode.extra_cpu_us is not None:
             for cpu_row in (producer_cpu, consumer_cpu):
@@ -188,7 +205,7 @@ def _run(scenario: str, modes: tuple[Mode, ...], options: BenchOptions) -> Scena
         if mode.cpu_us is not None:
             for cpu_row in (producer_cpu, consumer_cpu):
                 cpu_row.goal = cpu_goal(cpu_row, mode.cpu_us)
-        result.rows += [row, producer_cpu, consumer_cpu, *woken]
+        result.rows += [row, producer_cpu, consumer_cpu, *woken, *(same_rate or ())]
         for design_row, design_cpu in designs.values():
             result.rows += [design_row, design_cpu]
     if any(mode.designs for mode in modes):
@@ -226,6 +243,7 @@ def _run_mode(
     rows: tuple[Row, Row, Row],
     woken: tuple[Row, Row],
     designs: dict[str, tuple[Row, Row]],
+    same_rate: tuple[Row, Row] | None,
     options: BenchOptions,
 ) -> None:
     row, producer_cpu, consumer_cpu = rows
@@ -300,6 +318,33 @@ def _run_mode(
             for design_row, design_cpu in designs.values():
                 design_row.framegate.append(row.framegate[-1])
                 design_cpu.framegate.append(consumer_cpu.framegate[-1])
+            if same_rate is not None:
+                _measure_same_rate(sides["raw"], row, (producer_cpu, consumer_cpu), same_rate)
+                producer_us, consumer_us = (r.samples("raw")[-1]["value"] for r in same_rate)
+                options.progress(
+                    f"{scenario} {mode.name} pair {pair + 1}/{options.pairs} raw at "
+                    f"framegate's rate: CPU producer {producer_us:.1f} us/el, consumer "
+                    f"{consumer_us:.1f} us/el"
+                )
+
+
+def _measure_same_rate(
+    raw: tuple[Worker, Worker],
+    row: Row,
+    cpu: tuple[Row, Row],
+    same_rate: tuple[Row, Row],
+) -> None:
+    """One raw run paced at the rate framegate's last sample of ``row`` reached, into the
+    raw side of ``same_rate``; framegate's CPU of that sample into its framegate side."""
+    fg = row.framegate[-1]
+    pair = fg["pair"]
+    window_s = fg["window_s"]
+    sample = measure(*raw, min(1.0, window_s), window_s, interval_s=1.0 / fg["value"])
+    for paced_row, fg_row, role in zip(same_rate, cpu, ("producer", "consumer"), strict=True):
+        paced_row.samples("raw").append(
+            {"pair": pair, "value": sample[f"cpu_{role}_us"], "rate": sample["value"]}
+        )
+        paced_row.samples("framegate").append(fg_row.framegate[-1])
 
 
 def _progress(

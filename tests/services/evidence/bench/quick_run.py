@@ -103,6 +103,10 @@ def quick_run(tmp_path: Path, scenarios: list[str], *flags: str) -> None:
         assert set(goal) >= GOAL_KEYS
         assert number(goal["measured"]), goal
         assert isinstance(goal["passed"], bool), goal
+    if "small" in report["scenarios"]:  # CPU per element at equal rates, both sides
+        names = [row["name"] for row in report["scenarios"]["small"]["rows"]]
+        assert "64 B at framegate's rate: producer CPU" in names, names
+        assert "64 B at framegate's rate: consumer CPU" in names, names
     goal_scenarios = {g["scenario"] for g in report["goals"]}
     assert goal_scenarios == set(scenarios)
     for name in scenarios:
