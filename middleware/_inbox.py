@@ -78,6 +78,9 @@ ACK_MAX_BYTES = 256
 TOKEN_INBOX = 4096
 # A key longer than this is no key of ours (names are short): dropped and counted.
 KEY_MAX_BYTES = 1024
+# What a subscription's notification inbox holds at most, in payload and attachment bytes
+# (``Inbox``): its count bound alone let garbage of any size pile up.
+NOTIFY_INBOX_BYTES = 64 * 1024 * 1024
 # What one held ``Control`` costs beyond its payload and key: the object and the two
 # Python objects it refers to (generous).
 CONTROL_OVERHEAD_BYTES = 256
@@ -152,9 +155,7 @@ class _Bounded(Generic[T]):
                 with self._count_lock:
                     self.overflow += 1
                 return
-            with self._count_lock, contextlib.suppress(IndexError):
-                items.popleft()
-                self.overflow += 1
+            self._push_out()
         kept = self._keep(sample, payload)
         if kept is None:  # not ours to keep (``ControlInbox``: a key too long)
             with self._count_lock:
@@ -164,6 +165,12 @@ class _Bounded(Generic[T]):
             return
         items.append(kept)  # type: ignore[arg-type]
         self._signal()
+
+    def _push_out(self) -> None:
+        """(Zenoh's thread) Drop the oldest item to make room, counted in ``overflow``."""
+        with self._count_lock, contextlib.suppress(IndexError):
+            self._items.popleft()
+            self.overflow += 1
 
     def __len__(self) -> int:
         return len(self._items)
@@ -200,10 +207,57 @@ class _Bounded(Generic[T]):
 
 
 class Inbox(_Bounded[zenoh.Sample]):
-    """A bounded inbox of Zenoh samples (each keeps the batch it arrived in alive)."""
+    """A bounded inbox of Zenoh samples (each keeps the batch it arrived in alive), bounded
+    in bytes as well: a subscription's notifications may be of any size (a pushed frame),
+    so a count alone let a peer's 4 MiB garbage on one notify key hold 96 of them (a
+    mediator grew 42 -> 362 MB). Past ``max_held_bytes`` (payloads and attachments) the
+    oldest are pushed out, counted in ``overflow``; the newest sample is always kept, so an
+    element of any size still passes. What honest traffic loses so is resent (flow control)
+    or counted in ``missed`` (an observer), as for the count."""
+
+    def __init__(
+        self,
+        *,
+        capacity: int,
+        max_bytes: int,
+        signal: Callable[[], None],
+        max_held_bytes: int = NOTIFY_INBOX_BYTES,
+    ) -> None:
+        super().__init__(capacity=capacity, max_bytes=max_bytes, signal=signal)
+        self.max_held_bytes = max_held_bytes
+        self.held_bytes = 0  # under _count_lock
+        self._sizes: deque[int] = deque()  # one per held sample, in the same order
 
     def _keep(self, sample: zenoh.Sample, payload: zenoh.ZBytes) -> zenoh.Sample:
+        attachment = sample.attachment
+        size = len(payload) + (len(attachment) if attachment is not None else 0)
+        while self.held_bytes + size > self.max_held_bytes and self._items:
+            self._push_out()
+        with self._count_lock:
+            self._sizes.append(size)
+            self.held_bytes += size
         return sample
+
+    def _push_out(self) -> None:
+        with self._count_lock, contextlib.suppress(IndexError):
+            self._items.popleft()
+            self.held_bytes -= self._sizes.popleft()
+            self.overflow += 1
+
+    def take(self, budget: int) -> list[zenoh.Sample]:
+        if not self._items:  # the common case on a hot path: nothing came
+            return []
+        with self._count_lock:  # items and their sizes leave together
+            out = super().take(budget)
+            for _ in out:
+                self.held_bytes -= self._sizes.popleft()
+        return out
+
+    def close(self) -> None:
+        super().close()
+        with self._count_lock:
+            self._sizes.clear()
+            self.held_bytes = 0
 
 
 class _Drop:

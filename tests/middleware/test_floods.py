@@ -13,7 +13,8 @@ from contextlib import contextmanager
 import pytest
 import zenoh
 
-from middleware import FlowControlRefused, Node, make_metadata
+from middleware import PUSH_ALL, FlowControlRefused, Node, Subscription, make_metadata
+from middleware._inbox import NOTIFY_INBOX_BYTES
 from middleware._producer import ACK_MAX_BYTES
 from middleware._wire import encode_ack
 from tests.conftest import REPO, child_env, wait_until
@@ -204,3 +205,38 @@ def test_distinct_forged_acks_are_dropped_before_they_are_buffered(
             note = sub.take(timeout_s=scaled(10))
             assert note is not None and note.timestamp_ns == t
             assert other.take(timeout_s=scaled(10)) is not None
+
+
+def _held_bytes(sub: Subscription) -> int:
+    items = list(sub._inbox._items)  # a copy: Zenoh's thread appends meanwhile
+    return sum(len(s.payload) + len(s.attachment or b"") for s in items)
+
+
+def test_a_flood_of_large_garbage_on_a_notify_key_holds_bounded_bytes(
+    listen_net, connect_net, endpoint
+) -> None:
+    """2 MiB garbage on the notify key of a subscription that takes every payload pushed
+    (``PUSH_ALL``, as the mediator's), while it takes nothing: its inbox holds at most
+    ``NOTIFY_INBOX_BYTES``, not its count of samples of any size (4 MiB garbage from one
+    process grew a mediator-like consumer from 42 to 362 MB), and an element put after the
+    flood is still taken."""
+    with Node("cam", listen_net) as service, Node(network=connect_net) as client:
+        images = service.offer("images")
+        sub = client.subscribe("cam/images", queue_size=8, push_max_bytes=PUSH_ALL)
+        key = f"framegate/@notify/cam/images/{sub.subscription_id}"
+        most = 0
+        with flooding(endpoint, key, 2 << 20, processes=1):
+
+            def filled() -> bool:
+                nonlocal most
+                most = max(most, _held_bytes(sub))
+                return sub._inbox.overflow > 100 or most > NOTIFY_INBOX_BYTES
+
+            wait_until(filled, 60, "the inbox filled and pushing out")
+        most = max(most, _held_bytes(sub))
+        assert most <= NOTIFY_INBOX_BYTES, f"held {most / 2**20:.0f} MiB"
+        images.put(1, b"y" * 100, _meta(1), wait_s=scaled(10))
+        note = sub.take(timeout_s=scaled(10))
+        while note is not None and note.timestamp_ns != 1:  # garbage is no notification
+            note = sub.take(timeout_s=scaled(10))
+        assert note is not None and sub.fetch(note).payload == b"y" * 100
