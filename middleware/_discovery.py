@@ -18,7 +18,7 @@ from ._errors import ConfigError, NotFoundError, QueryError
 from ._executor import Executor
 from ._info_codec import decode_service_info
 from ._records import BufferInfo, ServiceInfo
-from ._service import answering_sessions
+from ._service import answering_sessions, offered
 from ._session import zenoh_errors
 from ._wire import Keys
 
@@ -84,6 +84,17 @@ class Discovery:
             )
             names = [str(r.ok.key_expr)[len(prefix) :] for r in replies if r.ok is not None]
         return sorted(set(names))
+
+    def offered_services(self, names: list[str], *, timeout_s: float = 1.0) -> list[str]:
+        """Those of ``names`` offered now by a live service, as a service's own start judges
+        it: a holder of the name's token that answers as that service. A bare liveliness token
+        (any peer can declare one) gets a one-line warning and does not count, so that a
+        launch or a demo refuses to start only where its service itself would."""
+        live = set(self.live_services(timeout_s=timeout_s))
+        with zenoh_errors("asking who offers the services"):
+            return [
+                name for name in names if name in live and offered(self._session, self.keys, name)
+            ]
 
     def live_namespaces(self, *, timeout_s: float = 1.0) -> dict[str, list[str]]:
         """The live services of every namespace this node can see, its own included

@@ -165,6 +165,12 @@ def _answers_data(session: zenoh.Session, keys: Keys, service: str) -> str | Non
     return None
 
 
+def offered(session: zenoh.Session, keys: Keys, service: str) -> bool:
+    """Whether ``service`` is offered now as its own start judges it (``_instances``): a
+    session answers as it, or is a busy one; a bare liveliness token is not (a warning)."""
+    return bool(_instances(session, keys, service, busy=True))
+
+
 def answering_sessions(session: zenoh.Session, keys: Keys, service: str) -> frozenset[str]:
     """The Zenoh session ids that answer as ``service`` (a valid description naming it):
     whose control messages a subscriber of its buffers trusts."""

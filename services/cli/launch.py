@@ -207,8 +207,7 @@ def _refuse_if_running(net: NetworkConfig, names: list[str]) -> None:
     from middleware import Node
 
     with Node(network=net) as node:
-        live = set(node.live_services())
-        taken = [name for name in names if name in live]
+        taken = node.offered_services(names)
         if not taken:
             return
         where = {i.service: f"pid {i.pid} on host {i.host}" for i in node.services(timeout_s=1.0)}

@@ -283,8 +283,7 @@ def refuse_if_running(node: Node, names: list[str], local_port: int) -> None:
     this rendezvous): ours would fail to offer their names and be restarted again and again,
     while the status and the summary read the other pipeline's buffers. The advice names a
     rendezvous port other than ``local_port``, the one in use."""
-    live = set(node.live_services())
-    taken = [name for name in names if name in live]
+    taken = node.offered_services(names)
     if not taken:
         return
     where = {i.service: f"pid {i.pid} on host {i.host}" for i in node.services(timeout_s=1.0)}

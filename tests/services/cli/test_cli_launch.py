@@ -5,11 +5,13 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
 from middleware import NetworkConfig, Node
 from tests.conftest import REPO, child_env, free_port
+from tests.helpers.raw_zenoh import open_session
 from tests.helpers.timing import scaled
 
 
@@ -70,3 +72,23 @@ def test_a_launch_beside_a_live_service_of_the_same_name_refuses_in_one_line() -
     assert result.returncode == 1, result
     assert result.stderr.startswith("error: service 'camera' is live already (pid "), result
     assert len(result.stderr.splitlines()) == 1 and "launching" not in result.stdout, result
+
+
+@pytest.mark.integration
+def test_a_bare_service_token_does_not_stop_a_launch(tmp_path: Path) -> None:
+    """A peer holds the liveliness token ``framegate/@svc/camera`` and does not answer as
+    ``camera``: the camera itself would start (with a warning), so the launch does too. It
+    refused, "service 'camera' is live already (another process)", exit 1: any local
+    process could keep every pipeline from launching."""
+    port = free_port()
+    env = child_env()
+    env["FRAMEGATE_LOCAL_PORT"] = str(port)
+    deploy = tmp_path / "gyro.yaml"
+    deploy.write_text("version: 1\nservices:\n  camera:\n    type: gyro\n    args: {source: sim}\n")
+    with open_session(f"tcp/127.0.0.1:{port}", listen=True) as rogue:
+        token = rogue.liveliness().declare_token("framegate/@svc/camera")
+        result = _launch(str(deploy), "--duration", "3", env=env)
+        token.undeclare()
+    assert result.returncode == 0, result
+    assert "live already" not in result.stderr, result
+    assert "does not answer as 'camera'" in result.stderr + result.stdout, result
