@@ -1,0 +1,82 @@
+"""A peer that answers one ``@info`` query with many large replies: whoever asked reads them
+one at a time and keeps a bounded few, never all of them (real processes, real Zenoh)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+import pytest
+import zenoh
+
+from middleware._decode import MAX_REPLY_BYTES
+from middleware._wire import Keys
+from tests.conftest import REPO, child_env
+from tests.helpers.raw_zenoh import open_session
+from tests.helpers.timing import scaled
+
+pytestmark = pytest.mark.integration
+
+KEYS = Keys("framegate")
+REPLIES = 250  # of MAX_REPLY_BYTES each: ~1 GB, were it all held
+
+# A framegate command, then its peak RSS (kB) on its own last line of stderr.
+_MEASURED = """
+import resource, sys
+from services.cli import _main
+code = _main(sys.argv[1:])
+print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, file=sys.stderr)
+sys.exit(code)
+"""
+
+
+@contextmanager
+def _reply_bomb(endpoint: str) -> Iterator[None]:
+    """A peer offering ``evil`` that answers every ``@info`` query with ``REPLIES`` replies
+    of the largest size a description may have (none of them a valid description)."""
+    blob = zenoh.ZBytes(b"{" + b" " * (MAX_REPLY_BYTES - 2) + b"}")
+    with open_session(endpoint, listen=True) as rogue:
+        token = rogue.liveliness().declare_token(KEYS.service_token("evil"))
+        queryable = rogue.declare_queryable(KEYS.info("*"), zenoh.handlers.FifoChannel(16))
+
+        def serve() -> None:
+            for query in queryable.handler:
+                with query:
+                    key = str(query.key_expr)
+                    for i in range(REPLIES):
+                        query.reply(key.replace("*", f"evil{i}"), blob)
+
+        thread = threading.Thread(target=serve, daemon=True)
+        thread.start()
+        try:
+            yield
+        finally:
+            queryable.undeclare()
+            token.undeclare()
+            thread.join(timeout=scaled(30))
+
+
+@pytest.mark.parametrize("command", [["info", "evil"], ["ls"]], ids=["info", "ls"])
+def test_a_flood_of_large_replies_to_info_is_not_held(endpoint: str, command: list[str]) -> None:
+    """250 replies of 4 MiB to one ``@info`` query: ``info`` and ``ls`` grew to 1.3 GB
+    holding every reply before looking at any; now each is read as it comes, so the
+    process holds a short channel of them, and says what was wrong in one line."""
+    with _reply_bomb(endpoint):
+        done = subprocess.run(
+            [sys.executable, "-c", _MEASURED, *command, "--connect", endpoint],
+            cwd=REPO,
+            env=child_env(),
+            capture_output=True,
+            text=True,
+            timeout=scaled(120),
+            check=False,
+        )
+    *said, peak = done.stderr.strip().splitlines()
+    assert "Traceback" not in done.stderr, done.stderr
+    peak_mb = int(peak) / 1024
+    # 16 waiting replies of 4 MiB, one decoded, and the interpreter: far below all of them.
+    assert peak_mb < REPLIES * MAX_REPLY_BYTES / 2**20 / 3, f"peak RSS {peak_mb:.0f} MB"
+    assert said and all(line.startswith(("error:", "warning: left out")) for line in said), said
