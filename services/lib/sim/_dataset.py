@@ -283,7 +283,10 @@ def _write_json(path: Path, data: Any) -> None:
 def _prepare(root: Path, overwrite: bool) -> None:
     if root.exists() and not root.is_dir():
         raise DatasetError(f"{root} exists and is not a directory")
-    root.mkdir(parents=True, exist_ok=True)
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:  # a parent that is a file, a read-only or missing mount
+        raise DatasetError(f"cannot create dataset directory {root}: {exc.strerror}") from exc
     present = {p.name for p in root.iterdir()}
     ours = present & {*_OUR_FILES, FRAMES_DIR}
     others = present - ours

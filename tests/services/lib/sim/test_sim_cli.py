@@ -52,3 +52,14 @@ def test_simulate_prints_a_one_line_error_for_a_bad_parameter(tmp_path: Path) ->
     assert result.returncode == 1
     assert result.stderr.strip().splitlines()[-1].startswith("error: unknown scenario parameter")
     assert not (tmp_path / "ds").exists()
+
+
+def test_simulate_names_an_output_directory_it_cannot_create(tmp_path: Path) -> None:
+    """It said `error: Not a directory /tmp/file/ds`, the reason before the path."""
+    (tmp_path / "file").write_text("")
+    out = tmp_path / "file" / "ds"
+    result = _simulate("--out", str(out), "--frames", "1")
+    assert result.returncode == 1
+    assert result.stderr.strip().splitlines() == [
+        f"error: cannot create dataset directory {out}: Not a directory"
+    ]
