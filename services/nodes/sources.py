@@ -225,7 +225,14 @@ class DeviceSource:
         import cv2
 
         target: int | str = int(str(spec.path)) if str(spec.path).isdigit() else str(spec.path)
-        self._capture = cv2.VideoCapture(target)
+        # OpenCV logs a WARN line per backend it tries on a missing device: the error below
+        # is the one line a user needs.
+        level = cv2.utils.logging.getLogLevel()
+        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+        try:
+            self._capture = cv2.VideoCapture(target)
+        finally:
+            cv2.utils.logging.setLogLevel(level)
         if not self._capture.isOpened():
             raise ConfigError(f"cannot open video device {spec.path!r}")
         self.spec = spec

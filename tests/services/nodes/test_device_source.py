@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import middleware._clock as clock_module
-from middleware import SteadyClock
+from middleware import ConfigError, SteadyClock
 from services.nodes.sources import DeviceSource, SourceSpec
 
 S = 1_000_000_000
@@ -49,3 +49,17 @@ def test_a_backward_clock_step_does_not_stamp_device_frames_backward(
     assert len(stamps) == 6
     assert all(b > a for a, b in itertools.pairwise(stamps)), stamps
     assert process_clock.status().steps == 1
+
+
+def test_a_missing_device_is_one_line_without_opencvs_warnings(
+    capfd: pytest.CaptureFixture[str],
+) -> None:
+    """`framegate run camera --source device --path 0` on a machine with no camera printed
+    two OpenCV `[ WARN:0@0.012] global cap_v4l.cpp ...` lines before its own error."""
+    cv2 = pytest.importorskip("cv2")
+    if Path("/dev/video97").exists():
+        pytest.skip("this machine has a camera at index 97")
+    with pytest.raises(ConfigError, match="cannot open video device '97'"):
+        DeviceSource(SourceSpec(kind="device", path="97"))
+    assert "WARN" not in capfd.readouterr().err
+    assert cv2.utils.logging.getLogLevel() != cv2.utils.logging.LOG_LEVEL_ERROR  # restored
