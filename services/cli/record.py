@@ -201,23 +201,41 @@ def run(args: argparse.Namespace) -> int:
                 if discover is not None:
                     discover()
 
-            stopped_ns = _wait(recorders, started_ns, started, args.duration, step)
+            stopped_ns, cut = _wait(recorders, started_ns, started, args.duration, step)
             waiting, waiting_bytes = queue.backlog()
-            if waiting_bytes >= SAY_BACKLOG_BYTES and not args.json:
+            if waiting_bytes >= SAY_BACKLOG_BYTES and not args.json and not cut:
                 # A disk or compressor slower than the buffers: say why the end takes a while.
                 print(
                     f"stopped; writing the {waiting} elements ({format_bytes(waiting_bytes)}) "
-                    "fetched but not yet written",
+                    "fetched but not yet written (Ctrl-C again: stop at once)",
                     file=sys.stderr,
                     flush=True,
                 )
-            # The subscriptions first: the notifications they would go on receiving cost the
-            # writer its share of the interpreter (measured: a backlog written 5x slower).
-            for recorder in recorders:
-                recorder.progress.missed = recorder.sub.missed_total
-                recorder.progress.bad_notifications = recorder.sub.garbage + recorder.sub.dropped
-                recorder.sub.close()
-            queue.close()  # what was fetched is written before the summary
+            try:
+                # The subscriptions first: the notifications they would go on receiving cost
+                # the writer its share of the interpreter (measured: a backlog written 5x
+                # slower).
+                for recorder in recorders:
+                    recorder.progress.missed = recorder.sub.missed_total
+                    recorder.progress.bad_notifications = (
+                        recorder.sub.garbage + recorder.sub.dropped
+                    )
+                    recorder.sub.close()
+                if not cut:
+                    queue.close()  # what was fetched is written before the summary
+            except KeyboardInterrupt:
+                cut = True
+            args.cut = cut
+            if cut:
+                # A second Ctrl-C: the file still gets its counts, and the user the summary.
+                queue.abandon()
+                if not args.json:
+                    print(
+                        "stopped at once (a second Ctrl-C): what was still being fetched or "
+                        "written is not in the file; fetched but unwritten is counted dropped",
+                        file=sys.stderr,
+                        flush=True,
+                    )
             earliest = min(args.offsets.values(), default=0)
             writer.add_metadata(
                 "framegate.recording",
@@ -337,10 +355,12 @@ def _wait(
     started: float,
     duration: float | None,
     step: Callable[[], None] | None = None,
-) -> int:
+) -> tuple[int, bool]:
     """Until every recorder has its count, the duration is over, an error, or Ctrl-C; the
     stop instant (wall-clock ns): nothing stamped later is recorded, everything before is
-    fetched until the recorders' deadline (``STOP_SLACK_S`` after the stop)."""
+    fetched until the recorders' deadline (``STOP_SLACK_S`` after the stop). And whether a
+    second Ctrl-C cut that wait short (the recorders still fetching are left behind)."""
+    cut = False
     stop = recorders[0].stop
     end = None if duration is None else started + duration
     stopped_ns = None
@@ -373,8 +393,12 @@ def _wait(
             # call that overran its timeout) is left behind: what it fetches later is
             # counted dropped, as the writer is closed by then.
             left_s = (recorder.deadline or deadline) - time.monotonic()
-            recorder.thread.join(timeout=max(0.0, left_s) + _JOIN_GRACE_S)
-    return stopped_ns
+            try:
+                recorder.thread.join(timeout=max(0.0, left_s) + _JOIN_GRACE_S)
+            except KeyboardInterrupt:
+                cut = True
+                break
+    return stopped_ns, cut
 
 
 def _summary(
@@ -420,7 +444,7 @@ def _summary(
                 f"{STOP_SLACK_S:g} s of the stop; raise its retention or record fewer buffers",
                 file=sys.stderr,
             )
-        if p.dropped:
+        if p.dropped and not args.cut:  # after a second Ctrl-C, its line said why
             print(
                 f"  warning: the recorder dropped {p.dropped} elements of {p.name}: its write "
                 "queue was full (the disk too slow); try --no-images",

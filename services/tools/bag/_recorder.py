@@ -180,6 +180,18 @@ class WriteQueue:
             self._cond.notify()
         self._thread.join()
 
+    def abandon(self) -> None:
+        """Write nothing more (a second Ctrl-C): what is queued is counted ``dropped``, but
+        the element the writer thread holds (the first), which it finishes; then end it."""
+        with self._cond:
+            self._closing = True
+            while len(self._items) > 1:
+                progress, element, _ = self._items.pop()
+                progress.dropped += 1
+                self._bytes -= len(element.payload) + len(element.metadata)
+            self._cond.notify()
+        self._thread.join()
+
 
 def at_start(
     node: Node,

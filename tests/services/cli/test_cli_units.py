@@ -5,7 +5,9 @@ from __future__ import annotations
 import argparse
 import json
 import re
+import threading
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 from mcap.reader import make_reader
@@ -271,3 +273,42 @@ def test_play_only_a_misspelt_buffer_gets_a_did_you_mean(
     assert main(["play", str(bag), "--only", "cam/imgaes"]) == 1
     err = capsys.readouterr().err
     assert "has no buffer 'cam/imgaes' (did you mean 'cam/images'?); it holds: cam/images" in err
+
+
+class _StillFetching:
+    """A recorder thread still fetching the tail when a second Ctrl-C comes."""
+
+    def is_alive(self) -> bool:
+        return True
+
+    def join(self, timeout: float | None = None) -> None:
+        raise KeyboardInterrupt  # the second Ctrl-C, while record waits for it
+
+
+class _CtrlC(threading.Event):
+    def wait(self, timeout: float | None = None) -> bool:
+        raise KeyboardInterrupt  # the first Ctrl-C
+
+
+def test_a_second_ctrl_c_cuts_records_wait_short_and_says_so() -> None:
+    """It escaped ``record``: the file closed without its counts (`info FILE.mcap` had no
+    Recorded or Recorder lines) and no summary was printed, not a word."""
+    from services.cli.record import _wait
+
+    recorders = [
+        SimpleNamespace(
+            thread=_StillFetching(),
+            stop=_CtrlC(),
+            queue=SimpleNamespace(error=None),
+            stop_ns=None,
+            deadline=None,
+            offset_ns=0,
+        )
+        for _ in range(2)
+    ]
+    try:
+        stopped_ns, cut = _wait(recorders, 1_000, 0.0, None)  # type: ignore[arg-type]
+    except KeyboardInterrupt:
+        pytest.fail("the second Ctrl-C escaped record's wait: no counts, no summary")
+    assert cut and stopped_ns > 1_000
+    assert recorders[0].stop.is_set()

@@ -5,11 +5,14 @@ queued is written, not dropped."""
 from __future__ import annotations
 
 import random
+import threading
 from pathlib import Path
 
 from middleware import DataObject, Retention, make_metadata
 from services.tools.bag import BagWriter, Progress, WriteQueue, open_bag, recording_info
+from tests.conftest import wait_until
 from tests.helpers.imports import modules_after
+from tests.helpers.timing import scaled
 
 HEAVY = ("numpy", "foxglove", "cv2", "services.lib.quality", "services.lib.messages")
 # Kinds whose channels need no Foxglove schema (decisions and detections are drawn with
@@ -54,6 +57,45 @@ def test_closing_the_write_queue_writes_what_is_queued_and_counts_later_puts_dro
         assert not queue.put(progress, _element(31))
     assert (progress.recorded, progress.dropped) == (30, 1)
     assert recording_info(path).messages == 30
+
+
+class _HeldWriter:
+    """A BagWriter stand-in whose first write waits until released (a slow disk)."""
+
+    def __init__(self) -> None:
+        self.writing, self.release = threading.Event(), threading.Event()
+        self.written: list[int] = []
+
+    def catch_up(self, _behind: bool) -> None:
+        pass
+
+    def write(self, _name: str, element: DataObject) -> None:
+        self.writing.set()
+        self.release.wait(scaled(30))
+        self.written.append(element.timestamp_ns)
+
+
+def test_abandoning_the_write_queue_finishes_the_element_in_hand_and_counts_the_rest_dropped() -> (
+    None
+):
+    """A second Ctrl-C: what is queued is not written but counted, so the file's counts and
+    the summary still add up."""
+    writer = _HeldWriter()
+    progress = Progress("cam/log", "generic")
+    queue = WriteQueue(writer)  # type: ignore[arg-type]
+    for t in range(1, 6):
+        assert queue.put(progress, _element(t))
+    assert writer.writing.wait(scaled(30))
+    ender = threading.Thread(target=queue.abandon)
+    ender.start()
+    wait_until(lambda: queue.backlog() == (1, len(_element(1).payload) + len(_element(1).metadata)),
+               30, "the queue to be emptied but for the element being written")  # fmt: skip
+    writer.release.set()
+    ender.join(scaled(30))
+    assert not ender.is_alive()
+    assert writer.written == [1]
+    assert (progress.recorded, progress.dropped) == (1, 4)
+    assert queue.backlog() == (0, 0)
 
 
 def test_record_starts_recording_without_numpy_or_foxglove(tmp_path: Path) -> None:
