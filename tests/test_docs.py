@@ -285,3 +285,22 @@ def test_a_directory_that_is_no_dataset_is_told_where_the_layout_is(tmp_path: Pa
     named = re.search(r"layout is in (\S+DATASET\.md)", str(caught.value))
     assert named is not None, str(caught.value)
     assert Path(named.group(1)).is_file()
+
+
+def test_the_commands_said_to_work_without_connection_flags_are_those_that_have_none() -> None:
+    """The README listed `simulate`, `calibrate`, `bench` and `experiment`; `soak` and
+    `faults` have no `--connect` either (each runs its own pipeline on a private port)."""
+    without = set()
+    for name in COMMANDS:
+        if name == "run":  # each service type has its own parser, with the flags
+            continue
+        sub = next(a for a in build_parser(name)._actions if a.dest == "command")
+        command = sub.choices[name]  # type: ignore[index]
+        if "--connect" not in {f for a in command._actions for f in a.option_strings}:
+            without.add(name)
+    for doc in (README, REPO / "docs" / "cli.md"):
+        text = " ".join(doc.read_text().split())
+        match = re.search(r"`--no-shm`; ((?:`\w+`,? )+)and `(\w+)` work offline", text)
+        assert match, doc
+        said = {*re.findall(r"`(\w+)`", match.group(1)), match.group(2)}
+        assert said == without, (doc.name, sorted(said), sorted(without))
