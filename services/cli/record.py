@@ -107,7 +107,11 @@ def register(subparsers: Any) -> None:
         "--duration), then stop; the command ends about 1 s later",
     )
     parser.add_argument(
-        "--count", type=positive_int, metavar="K", help="stop after K elements of each buffer"
+        "--count",
+        type=positive_int,
+        metavar="K",
+        help="stop once each buffer has K elements (one put once, as camera/info, never has "
+        "more than 1: with it, bound the recording with --duration)",
     )
     parser.add_argument(
         "--queue",
