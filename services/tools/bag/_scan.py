@@ -107,11 +107,13 @@ class Integrity:
         at = self.lost_from_byte or 0
         if self.cut_short:
             tail = self.size_bytes - at
-            torn = f"the {tail} bytes after its last complete chunk and " if tail else ""
-            return (
-                f"{head}; the file was cut short at byte {self.size_bytes} (no summary): "
-                f"{torn}anything not yet written are lost"
+            lost = (
+                f"the {tail} bytes after its last complete chunk and anything not yet written "
+                "are lost"
+                if tail
+                else "anything not yet written is lost"
             )
+            return f"{head}; the file was cut short at byte {self.size_bytes} (no summary): {lost}"
         if self.data_end_byte is not None and at > self.data_end_byte:
             return (
                 f"{head}; the summary after the data is damaged at byte {at} ({self.problem}); "

@@ -138,3 +138,25 @@ def test_a_recorded_retention_that_is_no_whole_number_is_a_bag_error(text: str) 
 
     with pytest.raises(BagError, match=r"bad framegate\.retention"):
         retention_from_json(text, "x.mcap")
+
+
+@pytest.mark.parametrize(
+    ("lost_from_byte", "ending"),
+    [
+        (
+            1_000,
+            "the 500 bytes after its last complete chunk and anything not yet written are lost",
+        ),
+        (1_500, "anything not yet written is lost"),  # it said "... written are lost"
+    ],
+)
+def test_a_cut_recording_says_what_is_lost_in_a_sentence(lost_from_byte: int, ending: str) -> None:
+    from services.tools.bag._scan import Integrity
+
+    integrity = Integrity(
+        complete=False, size_bytes=1_500, messages=3, start_ns=1, end_ns=3,
+        lost_from_byte=lost_from_byte, cut_short=True,
+    )  # fmt: skip
+    text = integrity.describe("the end")
+    head = "recovered 3 messages up to the end; the file was cut short at byte 1500"
+    assert text == f"{head} (no summary): {ending}"
