@@ -13,6 +13,7 @@ flags (``seed: 1`` → ``--seed 1``, ``true`` → ``--flag``), checked against i
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -322,9 +323,23 @@ def _args(node: yaml.Node, name: str, service: str) -> tuple[str, ...]:
 
 
 def arg_lines(text: str, service: str) -> dict[str, int]:
-    """Line of each ``args`` key of one service, for error messages after parsing."""
+    """Line of each ``args`` key of one service, for error messages after parsing, and as
+    ``--config`` the line of the ``network: {config: ...}`` that applies to it (the file's,
+    its host's or its own, the last one that names one)."""
     root: Any = yaml.compose(text, Loader=yaml.SafeLoader)
     lines: dict[str, int] = {}
+    with contextlib.suppress(KeyError, AttributeError, TypeError, ValueError):
+        top = {k.value: v for k, v in root.value}
+        entry = {k.value: v for k, v in top["services"].value}[service]
+        fields = {k.value: v for k, v in entry.value}
+        named = fields["host"].value if "host" in fields else LOCAL_HOST
+        host = {k.value: v for k, v in top["hosts"].value}.get(named) if "hosts" in top else None
+        layers = (top, {k.value: v for k, v in host.value} if host is not None else {}, fields)
+        for layer in layers:
+            if "network" in layer:
+                for key_node, _value in layer["network"].value:
+                    if key_node.value == "config":
+                        lines["--config"] = _line(key_node)
     try:
         services = {k.value: v for k, v in root.value if k.value == "services"}["services"]
         entry = {k.value: v for k, v in services.value}[service]

@@ -201,6 +201,8 @@ def process_specs(
         if override is not None:
             net = override(net)
         lines = arg_lines(text, spec.name) if text else {}
+        if deployment.network_for(spec).config_file != net.config_file:
+            lines.pop("--config", None)  # not the file's: a flag or a variable named it
         _check_files(spec, parsed, net, deployment.path, lines)
         if spec.type == "router":
             if not net.listen:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import signal
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -33,9 +34,43 @@ def test_a_missing_zenoh_config_is_named(tmp_path: Path) -> None:
     missing = tmp_path / "nowhere.json5"
     text = f"services:\n  gyro:\n    network: {{config: {missing}}}\n"
     with pytest.raises(
-        ConfigError, match=rf"d\.yaml: service 'gyro': cannot read Zenoh config {missing}"
+        ConfigError, match=rf"d\.yaml:3: service 'gyro': cannot read Zenoh config {missing}"
     ):
         _specs(text)
+
+
+@pytest.mark.parametrize(
+    ("text", "line"),
+    [
+        ("services:\n  gyro:\n    network: {config: %s}\n", 3),
+        ("network:\n  config: %s\nservices:\n  gyro: {}\n", 2),
+        (
+            "network: {config: /elsewhere.json5}\nhosts:\n  local:\n    address: 127.0.0.1\n"
+            "    network: {config: %s}\nservices:\n  gyro: {}\n",
+            5,
+        ),
+    ],
+)
+def test_a_missing_zenoh_config_names_the_line_that_gives_it(
+    tmp_path: Path, text: str, line: int
+) -> None:
+    """As every other mistake in a deploy file: it said `d.yaml: service 'gyro': cannot read
+    Zenoh config ...` with no line (deploy/secure.yaml before its certificates are made)."""
+    missing = tmp_path / "nowhere.json5"
+    with pytest.raises(ConfigError, match=rf"^d\.yaml:{line}: service 'gyro': cannot read Zenoh"):
+        _specs(text % missing)
+
+
+def test_a_missing_zenoh_config_named_by_a_variable_gets_no_line_of_the_file(
+    tmp_path: Path,
+) -> None:
+    text = "services:\n  gyro:\n    network: {config: /in-the-file.json5}\n"
+    missing = tmp_path / "nowhere.json5"
+    with pytest.raises(ConfigError, match=rf"^d\.yaml: service 'gyro': cannot read .*{missing}"):
+        process_specs(
+            parse_deployment(text, "d.yaml"), None, NetworkConfig(), text=text,
+            override=lambda net: replace(net, config_file=missing),
+        )  # fmt: skip
 
 
 def test_a_relative_path_missing_here_says_where_to_run_launch_from(
@@ -136,9 +171,9 @@ def test_check_of_the_secure_deploy_file_without_its_certificates_fails_in_one_l
     )
     assert result.returncode == 1, result
     assert result.stdout == "", result
-    assert result.stderr.startswith("error: deploy/secure.yaml: service 'router': cannot read"), (
-        result
-    )
+    assert result.stderr.startswith(
+        "error: deploy/secure.yaml:16: service 'router': cannot read"
+    ), result
     assert result.stderr.count("\n") == 1, result
     assert "make the certificates first: deploy/tls/make-certs.sh deploy/tls/certs" in (
         result.stderr
