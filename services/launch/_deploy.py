@@ -168,7 +168,11 @@ def _parse(text: str, name: str) -> Deployment:
     if "services" not in top:
         raise ConfigError(f"{name}: no 'services' mapping; list the services to start")
     services = []
-    for svc_name, (key_node, node) in _mapping(top["services"][1], name, "services").items():
+    listed = _mapping(top["services"][1], name, "services")
+    if not listed:  # `launch` would start nothing and wait for a Ctrl-C
+        where = _line(top["services"][1])
+        raise ConfigError(f"{name}:{where}: services is empty; list the services to start")
+    for svc_name, (key_node, node) in listed.items():
         _check_name(svc_name, "service", name, key_node)
         fields = (
             _mapping(node, name, f"service {svc_name!r}", _SERVICE_KEYS) if _is_map(node) else {}

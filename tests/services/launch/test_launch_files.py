@@ -222,3 +222,10 @@ def test_a_deploy_file_that_is_no_text_is_one_error(tmp_path: Path) -> None:
     binary.write_bytes(b"\x89MCAP0\r\n" + bytes(range(256)))
     with pytest.raises(ConfigError, match=r"run\.mcap is no deploy file: not text"):
         load_deployment(binary)
+
+
+def test_a_deploy_file_with_no_services_is_refused_in_one_line(tmp_path: Path) -> None:
+    """`services: {}` passed `--check` ("0 processes ... ok"), and `launch` printed
+    `launching  (Ctrl-C stops everything)` and then waited, running nothing."""
+    with pytest.raises(ConfigError, match=r"^d\.yaml:2: services is empty; list the services"):
+        parse_deployment("version: 1\nservices: {}\n", "d.yaml")
