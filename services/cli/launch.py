@@ -231,6 +231,10 @@ def run(args: argparse.Namespace) -> int:
         else:
             print_plan(deployment, args.host, specs)
         return 0
+    if not specs:  # another host's share only: this one would wait for a Ctrl-C, running nothing
+        raise ConfigError(
+            f"{args.file}: no service runs on host {args.host!r}; nothing to launch here"
+        )
     chosen = [s for s in deployment.for_host(args.host) if s.type != "router"]
     net = network(args, deployment.network_for(chosen[0]) if chosen else None)
     with LaunchLock(args.file, args.host, net):

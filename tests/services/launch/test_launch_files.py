@@ -229,3 +229,21 @@ def test_a_deploy_file_with_no_services_is_refused_in_one_line(tmp_path: Path) -
     `launching  (Ctrl-C stops everything)` and then waited, running nothing."""
     with pytest.raises(ConfigError, match=r"^d\.yaml:2: services is empty; list the services"):
         parse_deployment("version: 1\nservices: {}\n", "d.yaml")
+
+
+def test_launching_a_host_with_no_services_is_refused_in_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`launch FILE --host b` where every service is on host a printed `launching  (Ctrl-C
+    stops everything)` and waited, running nothing."""
+    from services.cli import main
+
+    deploy = tmp_path / "d.yaml"
+    deploy.write_text(
+        "version: 1\nhosts:\n  a: {address: 10.0.0.1}\n  b: {address: 10.0.0.2}\n"
+        "services:\n  camera: {host: a}\n"
+    )
+    assert main(["launch", str(deploy), "--host", "b", "--duration", "1"]) == 1
+    out, err = capsys.readouterr()
+    assert out == ""
+    assert err == f"error: {deploy}: no service runs on host 'b'; nothing to launch here\n"
