@@ -127,4 +127,12 @@ def run(args: argparse.Namespace) -> int:
                     break
         except KeyboardInterrupt:
             pass
+    if shown == 0:
+        # A buffer put once (camera/info) or quiet: echo shows only what is put from now on.
+        print(
+            f"note: no new element of {args.target} came; echo shows what is put from now on "
+            f"(framegate query {args.target} --last 1 shows its newest)",
+            file=sys.stderr,
+            flush=True,
+        )
     return 0

@@ -155,3 +155,18 @@ def test_pub_keeps_a_fixed_schedule_that_a_put_s_own_time_does_not_slow() -> Non
     # More than a period behind (the process did not run): afresh from now, no burst.
     due, wait_s = next_due(10.0, 0.005, now=10.5)
     assert due == 10.5 and wait_s == 0.0
+
+
+@pytest.mark.integration
+def test_echo_of_a_buffer_put_once_says_why_it_printed_nothing(service: Node, cli: Cli) -> None:
+    """`framegate echo camera/info` (put once, at the camera's start) printed nothing, with
+    no word, as if the buffer were empty; `ros2 topic echo` of a camera_info shows it."""
+    info = service.offer("info", kind="frame")
+    put_frame(info, time.time_ns(), 1)
+    result = cli.run("echo", "cam/info", "--duration", "1")
+    assert result.returncode == 0, result.describe()
+    assert result.stdout == ""
+    assert result.stderr.splitlines()[-1] == (
+        "note: no new element of cam/info came; echo shows what is put from now on "
+        "(framegate query cam/info --last 1 shows its newest)"
+    ), result.describe()
