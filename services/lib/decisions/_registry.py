@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+from services.lib.argtypes import did_you_mean
 from services.lib.quality import QualityInputError
 
 from ._adaptive import AdaptivePolicy
@@ -29,5 +30,6 @@ def make_policy(name: str) -> Policy:
         factory = POLICIES[name]
     except KeyError:
         known = ", ".join(sorted(POLICIES))
-        raise QualityInputError(f"unknown policy {name!r}: use one of {known}") from None
+        hint = did_you_mean(name, POLICIES, quote=True)
+        raise QualityInputError(f"unknown policy {name!r}{hint}: use one of {known}") from None
     return factory()

@@ -239,6 +239,9 @@ def test_policies_are_made_by_name() -> None:
     assert make_policy(decisions.DEFAULT_POLICY).name == "paper"
     with pytest.raises(QualityInputError, match=r"unknown policy 'best': use one of .*paper"):
         make_policy("best")
+    # A misspelt one, as `framegate experiment --sweep --policies papr` gives it.
+    with pytest.raises(QualityInputError, match=r"'papr' \(did you mean 'paper'\?\): use one"):
+        make_policy("papr")
 
 
 def test_all_is_complete_and_sorted_like_ruff_sorts_it() -> None:
