@@ -286,12 +286,31 @@ class ScenarioConfig:
         known = {f.name: f for f in fields(cls)}
         _check_known(data, set(known))
         values = dict(data)
+        for name, value in values.items():
+            _check_type(name, value, known[name].default)
         if values.get("bumps") is not None:
             try:
                 values["bumps"] = tuple(Bump(**b) for b in values["bumps"])
             except TypeError as exc:
                 raise ConfigError(f"bad bump in scenario: {exc}") from exc
         return cls(**values)
+
+
+def _check_type(name: str, value: Any, default: Any) -> None:
+    """ConfigError for a number or switch given as something else (``--set seed=abc`` met
+    a comparison inside the checks, ``--set frame_count=true`` rendered 1 frame)."""
+    if type(default) is bool:
+        ok, wanted = type(value) is bool, "true or false"
+    elif type(default) is int:
+        ok, wanted = type(value) is int, "an integer"
+    elif type(default) is float:
+        ok, wanted = type(value) in (int, float), "a number"
+    else:
+        return
+    if not ok:
+        words = {"None": "null", "True": "true", "False": "false"}  # as written in JSON
+        shown = words[repr(value)] if value is None or type(value) is bool else repr(value)
+        raise ConfigError(f"scenario parameter {name} must be {wanted}, got {shown}")
 
 
 def _check_known(names: dict[str, Any], known: set[str]) -> None:

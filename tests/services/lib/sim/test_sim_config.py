@@ -54,3 +54,19 @@ def test_dict_round_trip_keeps_explicit_bumps() -> None:
     assert ScenarioConfig.from_dict(config.to_dict()) == config
     with pytest.raises(ConfigError, match="track 'middle'"):
         Bump(1.0, track="middle")  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize(
+    ("name", "value", "message"),
+    [
+        ("seed", "abc", "seed must be an integer, got 'abc'"),  # a comparison's TypeError
+        ("frame_count", True, "frame_count must be an integer, got true"),  # 1 frame rendered
+        ("exposure_ns", 1.5, "exposure_ns must be an integer, got 1.5"),
+        ("wall_texel_m", None, "wall_texel_m must be a number, got null"),
+    ],
+)
+def test_a_parameter_of_the_wrong_type_is_named(name: str, value: object, message: str) -> None:
+    """`framegate simulate --set seed=abc` said `bad scenario parameter: '<' not supported
+    between instances of 'str' and 'int'`; `--set frame_count=true` rendered 1 frame."""
+    with pytest.raises(ConfigError, match=f"^scenario parameter {message}$"):
+        ScenarioConfig.from_dict({name: value})
