@@ -76,9 +76,17 @@ def build_config(args: argparse.Namespace) -> ScenarioConfig:
         values.pop("seed")
     if args.config is not None:
         try:
-            values.update(json.loads(args.config.read_text(encoding="utf-8")))
+            data = json.loads(args.config.read_text(encoding="utf-8"))
         except (OSError, ValueError) as exc:
             raise ConfigError(f"cannot read scenario file {args.config}: {exc}") from exc
+        if not isinstance(data, dict):
+            names = {"list": "an array", "str": "a string", "bool": "true or false"}
+            found = names.get(type(data).__name__, "null" if data is None else "a number")
+            raise ConfigError(
+                f"scenario file {args.config} holds {found}; it needs an object of "
+                'parameters, e.g. {"seed": 3, "frame_count": 120}'
+            )
+        values.update(data)
     for item in args.set:
         name, sep, text = item.partition("=")
         if not sep:

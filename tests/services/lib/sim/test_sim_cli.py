@@ -7,6 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from services.lib.sim import read_dataset
 from tests.conftest import REPO
 from tests.helpers.timing import scaled
@@ -62,4 +64,19 @@ def test_simulate_names_an_output_directory_it_cannot_create(tmp_path: Path) -> 
     assert result.returncode == 1
     assert result.stderr.strip().splitlines() == [
         f"error: cannot create dataset directory {out}: Not a directory"
+    ]
+
+
+@pytest.mark.parametrize(("text", "found"), [("[1, 2]", "an array"), ('"seed"', "a string")])
+def test_a_scenario_file_that_is_no_object_is_one_line(
+    tmp_path: Path, text: str, found: str
+) -> None:
+    """A JSON array ended `simulate --config` in a TypeError's traceback."""
+    scenario = tmp_path / "s.json"
+    scenario.write_text(text)
+    result = _simulate("--out", str(tmp_path / "ds"), "--config", str(scenario))
+    assert result.returncode == 1
+    assert result.stderr.strip().splitlines() == [
+        f"error: scenario file {scenario} holds {found}; it needs an object of parameters, "
+        'e.g. {"seed": 3, "frame_count": 120}'
     ]
