@@ -213,6 +213,8 @@ def _module_hint(module_name: str, attr_path: str, exc: BaseException) -> str:
     """A did-you-mean for a misspelt module of the handler's own name (not for a module
     that the handler's module imports and that is missing: that is the user's to install),
     or for a path written where a module name goes."""
+    if module_name.endswith(".py"):  # a file, found and named right: its own error says why
+        return ""
     if "/" in module_name:  # a path without its .py: say how to name the file
         named = module_name.rstrip("/")
         if Path(named + ".py").is_file():

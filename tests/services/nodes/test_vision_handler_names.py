@@ -72,6 +72,15 @@ def test_a_module_the_handlers_module_imports_is_not_guessed_at(tmp_path: Path) 
     assert "did you mean" not in str(raised.value)
 
 
+def test_a_handler_file_that_fails_to_import_is_not_told_to_add_its_py(tmp_path: Path) -> None:
+    """A file named with its .py that raised (a SyntaxError) got the hint for a path written
+    without it: `(a handler file is named with its .py: 'path/to/file.py:find')`."""
+    module = tmp_path / "broken.py"
+    module.write_text("def find(image, frame:\n    return []\n")
+    with pytest.raises(ConfigError, match=r"SyntaxError: .*\(broken\.py, line 1\)$"):
+        load_handler(f"{module}:find")
+
+
 @pytest.mark.parametrize(
     ("name", "match"),
     [
