@@ -82,21 +82,30 @@ def _missing(target: str, services: list[ServiceInfo]) -> str | None:
     )
 
 
-def check_targets(node: Node, targets: tuple[str, ...], timeout_s: float) -> None:
-    """Return once every named target is live; ``NotFoundError`` with a did-you-mean for
-    the first that is not within ``timeout_s`` (a pipeline starting meanwhile is waited for)."""
+def check_targets(
+    node: Node, targets: tuple[str, ...], timeout_s: float, stop: threading.Event | None = None
+) -> bool:
+    """True once every named target is live; ``NotFoundError`` with a did-you-mean for
+    the first that is not within ``timeout_s`` (a pipeline starting meanwhile is waited for);
+    False as soon as ``stop`` is set (a Ctrl-C while waiting is a stop, not that error)."""
     deadline = time.monotonic() + timeout_s
     while targets:
+        if stop is not None and stop.is_set():
+            return False
         try:
             services = node.services(timeout_s=max(0.2, min(1.0, timeout_s)))
         except FramegateError:
             services = []
         problems = [p for t in targets if (p := _missing(t, services)) is not None]
         if not problems:
-            return
+            return True
         if time.monotonic() >= deadline:
             raise NotFoundError(f"{problems[0]} (waited {timeout_s:g} s; --timeout waits longer)")
-        time.sleep(0.1)
+        if stop is not None:
+            stop.wait(0.1)
+        else:
+            time.sleep(0.1)
+    return True
 
 
 def _start_stream(
@@ -144,7 +153,8 @@ def run_view(
     server = FoxgloveServer(config, counters)
     try:
         with Node(network=network) as node:
-            check_targets(node, config.targets, config.discovery_timeout_s)
+            if not check_targets(node, config.targets, config.discovery_timeout_s, stop):
+                return counters  # stopped while waiting for them: nothing was served
             started(server.url)
             deadline = None if config.duration_s is None else time.monotonic() + config.duration_s
             next_find = next_status = time.monotonic()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+import threading
 
 import pytest
 
@@ -204,3 +205,18 @@ def test_a_stream_that_died_is_said_and_started_again(caplog: pytest.LogCaptureF
     _drop_dead(streams)  # type: ignore[arg-type]
     assert list(streams) == ["gyro/rates"] and dead.closed and not live.closed
     assert "streaming camera/images stopped" in caplog.text and "fetch failed" in caplog.text
+
+
+class _NothingLive:
+    def services(self, timeout_s: float = 0.0) -> list[object]:
+        return []
+
+
+def test_a_stop_while_waiting_for_named_buffers_is_a_stop_not_an_error() -> None:
+    """`framegate view camera/images` before the camera is up ignored Ctrl-C and SIGTERM for
+    the whole --timeout, then exited 1 with `error: no live service named 'camera'`."""
+    from services.tools.view import check_targets
+
+    stop = threading.Event()
+    stop.set()  # Ctrl-C, while the view waits for camera/images
+    assert not check_targets(_NothingLive(), ("camera/images",), 3600.0, stop)  # type: ignore[arg-type]
