@@ -17,7 +17,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from middleware import ConfigError, Node, make_metadata, now_ns, split_target
+from middleware import ConfigError, Node, Producer, make_metadata, now_ns, split_target
 from services.lib.argtypes import non_negative_float, non_negative_int, positive_float, positive_int
 
 from ._common import command_parser, counted, network, stop_on_signals
@@ -146,9 +146,10 @@ def run(args: argparse.Namespace) -> int:
             # missed it. So wait a moment for them (for the subscriptions already live, or
             # for one), then publish in any case.
             listening = max(1, node.live_subscriptions(producer.name))
-            producer.wait_for_subscribers(listening, timeout_s=min(args.timeout, _LISTENERS_S))
-        if args.wait_subscribers and not producer.wait_for_subscribers(
-            args.wait_subscribers, timeout_s=args.timeout
+            _wait_for(producer, listening, min(args.timeout, _LISTENERS_S), stop)
+        if (
+            args.wait_subscribers
+            and _wait_for(producer, args.wait_subscribers, args.timeout, stop) is False
         ):
             raise ConfigError(
                 f"{len(producer.subscriptions())} of {args.wait_subscribers} subscribers "
@@ -195,6 +196,22 @@ def next_due(due: float, period_s: float, now: float) -> tuple[float, float]:
     if now - due > period_s:
         return now, 0.0
     return due, max(0.0, due - now)
+
+
+def _wait_for(
+    producer: Producer, count: int, timeout_s: float, stop: threading.Event
+) -> bool | None:
+    """True once ``count`` subscriptions are registered, False after ``timeout_s``, None as
+    soon as ``stop`` is set: a Ctrl-C while waiting is a stop (exit 0, nothing published),
+    not "0 of 1 subscribers registered" at the end of the timeout."""
+    deadline = time.monotonic() + timeout_s
+    while not stop.is_set():
+        left_s = deadline - time.monotonic()
+        if producer.wait_for_subscribers(count, timeout_s=max(0.0, min(0.1, left_s))):
+            return True
+        if left_s <= 0.1:
+            return False
+    return None
 
 
 def _linger(stop: threading.Event, seconds: float) -> None:

@@ -162,3 +162,17 @@ def test_pub_stops_on_one_signal_with_exit_0(signum: int, port: int) -> None:
     assert first.startswith("published tmp/x #1"), first + proc.communicate()[0]
     _stops(proc, signum)
     assert proc.returncode == 0
+
+
+def test_pub_waiting_for_subscribers_stops_on_one_signal(port: int) -> None:
+    """A Ctrl-C while `pub --wait-subscribers 1` waited (up to --timeout) was noted and
+    ignored: it waited the timeout out and exited 1 with `0 of 1 subscribers registered`, as
+    if the stop were that mistake. (view waiting for its buffers: test_view_units.)"""
+    timeout = str(scaled(600))  # far beyond STOP_WITHIN_S: only the signal can end it in time
+    argv = ["pub", "tmp/x", "--kind", "generic", "--wait-subscribers", "1", "--timeout", timeout]
+    proc = start_framegate(argv, local_port=port)
+    with Node(network=NetworkConfig(local_port=port)) as looker:
+        # Offered, so waiting: nobody subscribes.
+        wait_until(lambda: bool(looker.services(timeout_s=0.5)), 60, "pub to offer tmp/x")
+    _stops(proc, signal.SIGINT)
+    assert proc.returncode == 0
