@@ -61,6 +61,7 @@ from ._kinds import register_kind
 from ._node import Node
 from ._producer import Producer
 from ._protocol_producer import FLOW_QUEUE_MAX, INLINE_METADATA_MAX, QUEUE_BUDGET
+from ._protocol_subscriber import OBSERVE_QUEUE_MAX
 from ._records import (
     BufferInfo,
     BufferLimits,
@@ -81,6 +82,7 @@ __all__ = [
     "EXIT_NAME_TAKEN",
     "FLOW_QUEUE_MAX",
     "INLINE_METADATA_MAX",
+    "OBSERVE_QUEUE_MAX",
     "PUSH_ALL",
     "QUEUE_BUDGET",
     "RENDEZVOUS_DELAY_MS",

@@ -72,16 +72,24 @@ RETRY_NS = 2_000_000_000
 _INSTANCES = 8
 
 
+# The largest queue an observer may ask for (a flow-controlled one: ``FLOW_QUEUE_MAX``).
+OBSERVE_QUEUE_MAX = MAX_QUEUE_SIZE
+_WHY_LIMIT = {
+    SubscriptionMode.FLOW: "a producer keeps every un-acked notification of a flow-controlled "
+    "subscriber, and one subscriber may hold at most half of its budget",
+    SubscriptionMode.OBSERVE: "the largest queue a producer registers",
+}
+
+
 def check_request(mode: SubscriptionMode, queue_size: int, push_max_bytes: int) -> None:
     """Refuse what no producer would register, with the limit named."""
     if type(queue_size) is not int or queue_size < 1:
         raise ConfigError(f"queue_size must be an integer >= 1, got {queue_size!r}")
-    limit = FLOW_QUEUE_MAX if mode is SubscriptionMode.FLOW else MAX_QUEUE_SIZE
+    limit = FLOW_QUEUE_MAX if mode is SubscriptionMode.FLOW else OBSERVE_QUEUE_MAX
     if queue_size > limit:
         raise ConfigError(
-            f"queue_size {queue_size} exceeds the {mode.value} limit of {limit} (a producer "
-            "keeps every un-acked notification of a flow-controlled subscriber, and one "
-            "subscriber may hold at most half of its budget); choose a smaller queue"
+            f"queue_size {queue_size} exceeds the {mode.value} limit of {limit} "
+            f"({_WHY_LIMIT[mode]}); choose a smaller queue"
         )
     if push_max_bytes < -1:
         raise ConfigError(f"push_max_bytes must be >= 0, got {push_max_bytes}")

@@ -12,8 +12,8 @@ import json
 import sys
 from typing import Any
 
-from middleware import FramegateError, Node, Notification
-from services.lib.argtypes import did_you_mean, positive_float, positive_int
+from middleware import OBSERVE_QUEUE_MAX, FramegateError, Node, Notification
+from services.lib.argtypes import did_you_mean, positive_float, positive_int, queue_size
 
 from ._common import command_parser, exit_on_sigterm, format_ns, network, notifications
 from ._fields import decode_metadata, field_value, flat_names, payload_summary
@@ -42,7 +42,7 @@ def register(subparsers: Any) -> None:
     parser.add_argument("--duration", type=positive_float, metavar="S", help="stop after S s")
     parser.add_argument(
         "--queue",
-        type=positive_int,
+        type=queue_size(OBSERVE_QUEUE_MAX),
         default=DEFAULT_QUEUE,
         metavar="N",
         help=f"notification queue size (default {DEFAULT_QUEUE}); a full one skips elements",

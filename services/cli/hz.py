@@ -30,13 +30,14 @@ from itertools import pairwise
 from typing import Any
 
 from middleware import (
+    OBSERVE_QUEUE_MAX,
     ConfigError,
     FramegateError,
     Node,
     Notification,
     Subscription,
 )
-from services.lib.argtypes import positive_float, positive_int
+from services.lib.argtypes import positive_float, positive_int, queue_size
 
 from ._common import command_parser, exit_on_sigterm, format_bytes, network
 from ._target import add_timeout_argument, observer, print_json_line, resolve
@@ -81,7 +82,7 @@ def register(subparsers: Any) -> None:
     )
     parser.add_argument(
         "--queue",
-        type=positive_int,
+        type=queue_size(OBSERVE_QUEUE_MAX),
         default=100,
         metavar="N",
         help="observer queue size (default 100)",
@@ -196,8 +197,6 @@ def _print_report(stats: dict[str, Any], missed: int) -> None:
 def run(args: argparse.Namespace) -> int:
     if args.window < 2:
         raise ConfigError(f"--window {args.window}: needs at least 2 elements")
-    if args.queue < 1:
-        raise ConfigError(f"--queue {args.queue}: must be >= 1")
     if args.interval <= 0 or (args.duration is not None and args.duration <= 0):
         raise ConfigError("--interval and --duration must be > 0 seconds")
     exit_on_sigterm()

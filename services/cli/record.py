@@ -38,6 +38,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from middleware import (
+    OBSERVE_QUEUE_MAX,
     BufferInfo,
     ConfigError,
     FramegateError,
@@ -45,7 +46,7 @@ from middleware import (
     ServiceInfo,
     now_ns,
 )
-from services.lib.argtypes import positive_float, positive_int
+from services.lib.argtypes import positive_float, positive_int, queue_size
 from services.tools.bag import STOP_SLACK_S, TAIL_FLOOR_S
 
 from ._common import (
@@ -115,7 +116,7 @@ def register(subparsers: Any) -> None:
     )
     parser.add_argument(
         "--queue",
-        type=positive_int,
+        type=queue_size(OBSERVE_QUEUE_MAX),
         default=DEFAULT_QUEUE,
         metavar="N",
         help=f"observer queue size (default {DEFAULT_QUEUE}); misses are backfilled anyway",
@@ -143,8 +144,6 @@ def _check(args: argparse.Namespace) -> None:
         raise ConfigError("name the buffers to record (SERVICE/BUFFER ...), or pass --all")
     if args.targets and args.all:
         raise ConfigError("--all records every buffer: give it without SERVICE/BUFFER names")
-    if args.queue < 1:
-        raise ConfigError(f"--queue {args.queue}: must be >= 1")
     if args.count is not None and args.count < 1:
         raise ConfigError(f"--count {args.count}: must be >= 1")
     if args.duration is not None and args.duration <= 0:

@@ -20,6 +20,8 @@ from services.lib.sim import (
     write_report,
 )
 
+from ._common import counted
+
 # What a flag left out means: the scenario's own defaults, shown in the help.
 _DEFAULTS = ScenarioConfig()
 
@@ -145,7 +147,7 @@ def run(args: argparse.Namespace) -> int:
         print()
         return 0
     print(
-        f"rendered {result.frame_count} frames in {result.render_s:.1f} s "
+        f"rendered {counted(result.frame_count, 'frame')} in {result.render_s:.1f} s "
         f"({result.frames_per_s:.2f} frames/s) into {result.root}"
     )
     if report is not None:

@@ -7,7 +7,8 @@ import shutil
 import sys
 from typing import Any
 
-from services.lib.argtypes import positive_float, positive_int
+from middleware import OBSERVE_QUEUE_MAX
+from services.lib.argtypes import positive_float, positive_int, queue_size
 from services.tools.view import (
     DEFAULT_BACKLOG,
     DEFAULT_HOST,
@@ -58,7 +59,7 @@ def register(subparsers: Any) -> None:
     )
     parser.add_argument(
         "--queue",
-        type=positive_int,
+        type=queue_size(OBSERVE_QUEUE_MAX),
         default=DEFAULT_QUEUE,
         metavar="N",
         help=f"observer queue per frame buffer (default {DEFAULT_QUEUE}; others hold at least 32)",

@@ -13,8 +13,15 @@ import argparse
 import time
 from typing import Any
 
-from middleware import ConfigError, Node, Notification, SubscriptionMode
-from services.lib.argtypes import non_negative_float, positive_float, positive_int
+from middleware import (
+    FLOW_QUEUE_MAX,
+    OBSERVE_QUEUE_MAX,
+    ConfigError,
+    Node,
+    Notification,
+    SubscriptionMode,
+)
+from services.lib.argtypes import non_negative_float, positive_float, positive_int, queue_size
 
 from ._common import (
     command_parser,
@@ -39,7 +46,7 @@ def register(subparsers: Any) -> None:
     parser.add_argument("target", metavar="SERVICE/BUFFER", help="the buffer, e.g. camera/images")
     parser.add_argument(
         "--queue",
-        type=positive_int,
+        type=queue_size(OBSERVE_QUEUE_MAX),
         default=DEFAULT_QUEUE,
         metavar="N",
         help=f"notification queue size (default {DEFAULT_QUEUE})",
@@ -66,8 +73,12 @@ def register(subparsers: Any) -> None:
 
 
 def _check(args: argparse.Namespace) -> None:
-    if args.queue < 1:
-        raise ConfigError(f"--queue {args.queue}: the queue must hold at least 1 notification")
+    if args.flow_control and args.queue > FLOW_QUEUE_MAX:
+        raise ConfigError(
+            f"--queue {args.queue}: at most {FLOW_QUEUE_MAX} with --flow-control (a producer "
+            "keeps every un-acked notification of a flow-controlled subscriber, and one "
+            "subscriber may hold at most half of its budget)"
+        )
     if args.delay < 0:
         raise ConfigError(f"--delay {args.delay}: must be >= 0 seconds")
     if args.count is not None and args.count < 1:

@@ -101,7 +101,7 @@ def _number(
     else:
         allowed = f"{'an integer' if kind is int else 'a number'} {'>' if strict else '>='} {low:g}"
     if high is not None:
-        allowed += f" and <= {high:g}"
+        allowed += f" and <= {int(high) if kind is int else format(high, 'g')}"
 
     def parse(text: str) -> int | float:
         try:
@@ -134,6 +134,14 @@ unit_float = _number(float, 0, strict=False, high=1)
 positive_int = _number(int, 0, strict=True)
 #: >= 0.
 non_negative_int = _number(int, 0, strict=False)
+
+
+def queue_size(limit: int) -> Callable[[str], int]:
+    """A queue size flag's type: an integer >= 1 and at most ``limit`` (the middleware's
+    ``OBSERVE_QUEUE_MAX`` or ``FLOW_QUEUE_MAX``), refused by the flag's name while parsing."""
+    return _number(int, 0, strict=True, high=limit)
+
+
 #: A TCP port to listen on or connect to: 1..65535.
 port_number = _number(int, 1, strict=False, high=65535)
 

@@ -117,7 +117,7 @@ class GyroPump:
         """Nothing to stop: the gyro makes its samples on the executor."""
 
     def summary(self) -> str:
-        return f"gyro: {self.stored} samples stored, {self.dropped} dropped"
+        return f"gyro: {self.stored} samples stored, {self.dropped} samples dropped"
 
     def on_time(self, now: int) -> None:
         """Put every batch that is due; then a deadline for the next one."""

@@ -66,6 +66,11 @@ def _framegate(*args: str) -> subprocess.CompletedProcess[str]:
         (("soak", "--seed", "-2"), "argument --seed: must be an integer >= 0"),
         (("simulate", "--seed", "-1", "--out", "x"), "argument --seed: must be an integer >= 0"),
         (("experiment", "--out", "x", "--seeds", "-1"), "argument --seeds: must be an integer >= 0"),  # noqa: E501
+        # An observer's queue above the limit: named by its flag, not as queue_size, and
+        # without the flow-control reason (echo only observes).
+        (("echo", "t/x", "--queue", "100000000"), "argument --queue: must be an integer > 0 and <= 1048576, got '100000000'"),  # noqa: E501
+        (("hz", "t/x", "--queue", "2000000"), "argument --queue: must be an integer > 0 and <= 1048576"),  # noqa: E501
+        (("watch", "t/x", "--flow-control", "--queue", "40000"), "--queue 40000: at most 32768 with --flow-control"),  # noqa: E501
         ((), "name a command"),
     ],
 )  # fmt: skip
