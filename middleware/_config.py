@@ -238,6 +238,10 @@ class NetworkConfig:
                 ("mode", self.mode),
                 ("scouting/multicast/enabled", self.multicast),
                 ("transport/link/tx/lease", self.lease_ms),
+                # A link whose peer takes nothing for the lease is closed as a silent one is:
+                # Zenoh's 5 s let a peer that stops reading (keeping its lease alive) hold a
+                # flow-controlled put(wait_s=0) 5.0 s in the send of its notification.
+                (_BLOCK_CLOSE_KEY, self.lease_ms * 1000),
                 ("transport/shared_memory/enabled", self.shared_memory),
                 (
                     "connect/retry",
@@ -349,6 +353,11 @@ def _check_endpoints(endpoints: list[str], verb: str) -> None:
             raise ConfigError(
                 f"bad endpoint {endpoint!r} to {verb}: write {ENDPOINT_FORM}"
             ) from exc
+
+
+# How long a send that cannot progress (``CongestionControl.BLOCK``) waits before Zenoh
+# closes the link, in microseconds.
+_BLOCK_CLOSE_KEY = "transport/link/tx/queue/congestion_control/block/wait_before_close"
 
 
 def _insert(conf: zenoh.Config, key: str, value: Any) -> None:

@@ -183,3 +183,12 @@ def test_a_config_file_set_by_the_environment_names_the_variable(tmp_path: Path)
     with pytest.raises(ConfigError, match=rf"cannot read Zenoh config {missing}: ") as bad:
         net.with_args(flag).check_files()
     assert "FRAMEGATE_CONFIG" not in str(bad.value)
+
+
+def test_a_link_whose_peer_takes_nothing_closes_after_the_lease() -> None:
+    """A send that cannot progress waits at most the lease before Zenoh closes the link, as
+    a silent peer's is (Zenoh's own 5 s held a flow-controlled put that long)."""
+    key = "transport/link/tx/queue/congestion_control/block/wait_before_close"
+    for lease_ms in (1000, 3000):
+        [conf] = NetworkConfig(connect=("tcp/10.0.0.2:7447",), lease_ms=lease_ms).zenoh_configs()
+        assert json.loads(conf.get_json(key)) == lease_ms * 1000

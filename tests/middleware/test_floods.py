@@ -4,6 +4,7 @@ plus a small slack however fast the flood comes (real processes, real Zenoh)."""
 
 from __future__ import annotations
 
+import contextlib
 import subprocess
 import sys
 import time
@@ -34,6 +35,23 @@ with open_session(endpoint) as session:
     while time.monotonic() < end:
         for _ in range(64):
             pub.put(payload)
+"""
+
+
+# A flow-controlled subscriber that never reads what it is sent: its Zenoh receive thread
+# blocks in a full channel while its session stays alive (the lease holds).
+_STUCK = """
+import sys, time, zenoh
+from tests.helpers.raw_zenoh import open_session
+endpoint, sub_id = sys.argv[1], sys.argv[2]
+with open_session(endpoint) as session:
+    notify = session.declare_subscriber(
+        f"framegate/@notify/cam/images/{sub_id}", zenoh.handlers.FifoChannel(1)
+    )
+    token = session.liveliness().declare_token(
+        f"framegate/@sub/cam/images/{sub_id}/flow/16384/-1/stuck~rogue"
+    )
+    time.sleep(float(sys.argv[3]))
 """
 
 
@@ -240,3 +258,34 @@ def test_a_flood_of_large_garbage_on_a_notify_key_holds_bounded_bytes(
         while note is not None and note.timestamp_ns != 1:  # garbage is no notification
             note = sub.take(timeout_s=scaled(10))
         assert note is not None and sub.fetch(note).payload == b"y" * 100
+
+
+def test_a_subscriber_that_stops_reading_holds_a_put_no_longer_than_the_lease(
+    listen_net, endpoint
+) -> None:
+    """A flow-controlled subscriber (queue 16,384) whose process stops reading its link while
+    its session lives: the notifications fill the link, and the put that sends the next one
+    waits in Zenoh until the link is closed, the lease (1 s), not Zenoh's 5 s (a
+    ``put(wait_s=0)`` took 5.0 s, again each time the peer came back)."""
+    with Node("cam", listen_net) as service:
+        images = service.offer("images")
+        stuck = subprocess.Popen(
+            [sys.executable, "-c", _STUCK, endpoint, "stuck1", str(scaled(60))],
+            cwd=REPO,
+            env=child_env(),
+        )
+        try:
+            wait_until(lambda: images.info().subscriptions, 30, "the stuck subscriber")
+            worst, t, blob = 0.0, 0, bytes(2048)
+            while images.info().subscriptions:  # until its link is closed
+                t += 1
+                started = time.monotonic()
+                with contextlib.suppress(FlowControlRefused):
+                    images.put(t, blob, _meta(t), wait_s=0)
+                worst = max(worst, time.monotonic() - started)
+                assert t < 10_000_000, "the stuck subscriber's link never closed"
+        finally:
+            stuck.kill()
+            stuck.wait()
+    # The lease, plus slack a slower machine meets; Zenoh's own wait was 5 s.
+    assert worst < 1.0 + scaled(3.5), f"put(wait_s=0) took {worst:.1f} s"
