@@ -12,7 +12,7 @@ import json
 import sys
 from typing import Any
 
-from middleware import OBSERVE_QUEUE_MAX, FramegateError, Node, Notification
+from middleware import OBSERVE_QUEUE_MAX, FramegateError, Node, Notification, printable
 from services.lib.argtypes import did_you_mean, positive_float, positive_int, queue_size
 
 from ._common import command_parser, exit_on_sigterm, format_ns, network, notifications
@@ -67,8 +67,11 @@ def element_json(note: Notification, payload: bytes, metadata: bytes) -> dict[st
 
 
 def _text(value: Any) -> str:
+    """A field's value for one line of a terminal: a producer's text may hold a newline (a
+    forged ``error:`` line), an escape sequence or a bidi override; each is written as its
+    escape (``--json`` escapes them as JSON does)."""
     if isinstance(value, str):
-        return value
+        return printable(value, len(value))
     return json.dumps(value)
 
 
@@ -77,7 +80,7 @@ def _print_element(row: dict[str, Any]) -> None:
     lines = [
         "---",
         f"time: {row['time']}  timestamp_ns: {row['timestamp_ns']}  seq: {row['seq']}{missed}",
-        f"kind: {row['kind']}",
+        f"kind: {_text(row['kind'])}",
     ]
     lines += [f"{name}: {_text(value)}" for name, value in row["fields"].items()]
     lines.append(f"payload: {row['payload']}")

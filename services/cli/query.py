@@ -21,6 +21,7 @@ from middleware import (
     parse_duration_ns,
     parse_time_ns,
     parse_untrusted,
+    printable,
 )
 from services.lib.argtypes import positive_int
 from services.lib.files import OutputError, create_file, open_directory
@@ -230,8 +231,9 @@ def _print_table(elements: list[DataObject]) -> None:
     print(f"{'TIME':<28} {'TIMESTAMP_NS':>20}  {'KIND':<10} {'SIZE':>10}  FIELDS")
     for e in elements:
         kind, fields = summarize(e.metadata)
+        kind = printable(kind, 24)  # a producer's text: one line, no escape sequences
         shown = " ".join(
-            f"{k}={v if len(v) <= 24 else v[:21] + '...'}"
+            f"{k}={printable(v, 21) if len(v) > 24 else printable(v, 24)}"
             for k, v in list(fields.items())[:TABLE_FIELDS]
         )
         if len(fields) > TABLE_FIELDS:  # the rest: --json, or echo --field
