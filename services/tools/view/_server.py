@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import logging
 import re
+import socket
 import sys
 import threading
 from typing import Any
@@ -109,6 +110,12 @@ class FoxgloveServer:
                     f"`framegate view`?); choose another with --port N ({VIEW_PORT_ENV}), "
                     "0 for any free port"
                 ) from exc
+            if "assign requested address" in str(exc).lower():  # EADDRNOTAVAIL
+                raise ConfigError(
+                    f"cannot serve Foxglove on {where}: that address is not one of this "
+                    "machine's; give --host an address of this one (127.0.0.1, the default, "
+                    "or 0.0.0.0 for every interface)"
+                ) from exc
             raise ConfigError(f"cannot serve Foxglove on {where}: {exc}") from exc
         self.host = config.host
 
@@ -118,7 +125,9 @@ class FoxgloveServer:
 
     @property
     def url(self) -> str:
-        return f"ws://{self.host}:{self.port}"
+        # Every interface (0.0.0.0, ::) is no address a client can open: name this machine.
+        host = socket.gethostname() if self.host in ("0.0.0.0", "::", "") else self.host
+        return f"ws://{host}:{self.port}"
 
     def declare(self, topics: tuple[DerivedTopic, ...]) -> None:
         """Advertise channels now, so a client sees them before any data arrives."""

@@ -162,6 +162,16 @@ def test_a_second_view_on_a_taken_port_is_one_line_naming_the_flag() -> None:
         first.communicate(timeout=TIMEOUT_S)
 
 
+def test_a_view_on_an_address_this_machine_lacks_is_one_line_naming_the_flag() -> None:
+    # It was the Foxglove SDK's text: `FoxgloveError: Failed to bind port ... (os error 99)`.
+    env = child_env()
+    env["FRAMEGATE_LOCAL_PORT"] = str(free_port())
+    result = _framegate("view", "--host", "192.0.2.1", "--port", str(free_port()), env=env)
+    assert result.returncode == 1, result
+    assert result.stderr.count("\n") == 1, result
+    assert "not one of this machine's" in result.stderr and "--host" in result.stderr, result
+
+
 def test_a_router_on_a_taken_port_is_one_line_naming_the_flag(mute_endpoint: str) -> None:
     result = _framegate("router", "--listen", mute_endpoint)
     assert result.returncode == 1, result
