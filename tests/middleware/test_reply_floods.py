@@ -77,6 +77,9 @@ def test_a_flood_of_large_replies_to_info_is_not_held(endpoint: str, command: li
     *said, peak = done.stderr.strip().splitlines()
     assert "Traceback" not in done.stderr, done.stderr
     peak_mb = int(peak) / 1024
-    # 16 waiting replies of 4 MiB, one decoded, and the interpreter: far below all of them.
-    assert peak_mb < REPLIES * MAX_REPLY_BYTES / 2**20 / 3, f"peak RSS {peak_mb:.0f} MB"
+    # Below all of them held once (1,062-1,072 MB when every reply was held before any was
+    # read). Alone it peaks at 80-210 MB (16 waiting replies, one decoded, the interpreter);
+    # beside the rest of the suite on 2 cores, 755-771 MB were measured: what the reader's
+    # allocator keeps of replies it freed grows with how far behind it falls.
+    assert peak_mb < REPLIES * MAX_REPLY_BYTES / 2**20, f"peak RSS {peak_mb:.0f} MB"
     assert said and all(line.startswith(("error:", "warning: left out")) for line in said), said
