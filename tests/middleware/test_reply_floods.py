@@ -79,7 +79,7 @@ def test_a_flood_of_large_replies_to_info_is_not_held(endpoint: str, command: li
     peak_mb = int(peak) / 1024
     # Below all of them held once (1,062-1,072 MB when every reply was held before any was
     # read). Alone it peaks at 80-210 MB (16 waiting replies, one decoded, the interpreter);
-    # beside the rest of the suite on 2 cores, 755-771 MB were measured: what the reader's
-    # allocator keeps of replies it freed grows with how far behind it falls.
+    # beside the rest of the suite on 2 cores, 755-771 MB were measured (where that memory
+    # sits, in Zenoh or the allocator, is not established; docs/limits.md).
     assert peak_mb < REPLIES * MAX_REPLY_BYTES / 2**20, f"peak RSS {peak_mb:.0f} MB"
     assert said and all(line.startswith(("error:", "warning: left out")) for line in said), said
