@@ -18,7 +18,13 @@ from collections.abc import Callable
 from typing import Any
 
 from middleware import ConfigError, Node, Producer, make_metadata, now_ns, split_target
-from services.lib.argtypes import non_negative_float, non_negative_int, positive_float, positive_int
+from services.lib.argtypes import (
+    non_negative_float,
+    non_negative_int,
+    positive_float,
+    positive_int,
+    positive_rate,
+)
 
 from ._common import command_parser, counted, network, stop_on_signals
 from ._target import print_json_line, unreachable
@@ -97,7 +103,7 @@ def register(subparsers: Any) -> None:
         "--count", type=positive_int, default=1, metavar="N", help="elements (default 1)"
     )
     parser.add_argument(
-        "--rate", type=positive_float, default=1.0, metavar="HZ", help="elements/s (default 1)"
+        "--rate", type=positive_rate, default=1.0, metavar="HZ", help="elements/s (default 1)"
     )
     parser.add_argument(
         "--wait-subscribers",

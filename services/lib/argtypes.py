@@ -125,6 +125,9 @@ def _number(
 MAX_FLOAT = 1e9
 #: Finite, > 0, at most ``MAX_FLOAT``: rates, periods, scales.
 positive_float = _number(float, 0, strict=True, high=MAX_FLOAT)
+#: From ``1 / MAX_FLOAT`` to ``MAX_FLOAT``: a rate or speed factor whose reciprocal is a
+#: period (``pub --rate 1e-12`` waited 10^12 s, past what a thread can wait: OverflowError).
+positive_rate = _number(float, 1 / MAX_FLOAT, strict=False, high=MAX_FLOAT)
 #: Finite, >= 0, at most ``MAX_FLOAT``: delays, waits, minimums.
 non_negative_float = _number(float, 0, strict=False, high=MAX_FLOAT)
 #: Finite, any sign.

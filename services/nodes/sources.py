@@ -24,7 +24,7 @@ import numpy as np
 import numpy.typing as npt
 
 from middleware import ConfigError, NetworkConfig, now_ns
-from services.lib.argtypes import non_negative_int, positive_float, positive_int
+from services.lib.argtypes import non_negative_int, positive_float, positive_int, positive_rate
 from services.lib.camera_model import CameraModel
 from services.lib.settings import add_flags, from_args, setting
 from services.nodes._contract import ConfigT, Service, ServiceEntry
@@ -44,7 +44,7 @@ class SourceSpec:
         None, "dataset directory (replay), cache directory (prerendered) or device index/URL"
     )
     seed: int = setting(1, "simulator seed (sim, prerendered)", parse=non_negative_int)
-    rate: float = setting(1.0, "replay speed factor", parse=positive_float)
+    rate: float = setting(1.0, "replay speed factor", parse=positive_rate)
     loop: bool = setting(False, "start over at the end")
     frames: int | None = setting(None, "play only the first N frames", parse=positive_int)
     start_at_ns: int | None = setting(

@@ -44,9 +44,12 @@ def _framegate(*args: str) -> subprocess.CompletedProcess[str]:
         (("sl",), "(did you mean ls?)"),  # two letters swapped
         (("query", "camera/images", "--lats", "3"), "unknown option '--lats' (did you mean --last?)"),  # noqa: E501
         (("query", "camera/images", "--from", "-5x"), "bad time '-5x' for --from"),
-        (("run", "camera", "--source", "sim", "--rate", "nan"), "argument --rate: must be a number > 0 and <= 1e+09, got 'nan'"),  # noqa: E501
+        (("run", "camera", "--source", "sim", "--rate", "nan"), "argument --rate: must be a number >= 1e-09 and <= 1e+09, got 'nan'"),  # noqa: E501
+        # A rate whose period no thread can wait (OverflowError tracebacks before).
+        (("run", "camera", "--source", "sim", "--rate", "1e-300"), "argument --rate: must be a number >= 1e-09 and <= 1e+09, got '1e-300'"),  # noqa: E501
+        (("pub", "t/x", "--kind", "generic", "--rate", "1e-12"), "argument --rate: must be a number >= 1e-09 and <= 1e+09, got '1e-12'"),  # noqa: E501
         (("run", "camera", "--retention-frames", "0"), "argument --retention-frames: must be an integer > 0"),  # noqa: E501
-        (("run", "gyro", "--rate", "inf"), "argument --rate: must be a number > 0 and <= 1e+09, got 'inf'"),  # noqa: E501
+        (("run", "gyro", "--rate", "inf"), "argument --rate: must be a number >= 1e-09 and <= 1e+09, got 'inf'"),  # noqa: E501
         (("run", "ros2", "--consumer-timeout-ms", "1e303"), "argument --consumer-timeout-ms: must be a number > 0 and <= 1e+09, got '1e303'"),  # noqa: E501
         (("run", "gyro", "--frames", "-5"), "argument --frames: must be an integer > 0, got '-5'"),
         (("run", "mediator", "--q-min", "2"), "argument --q-min: must be a number >= 0 and <= 1"),
