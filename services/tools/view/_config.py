@@ -7,7 +7,7 @@ import os
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-from middleware import ConfigError
+from middleware import OBSERVE_QUEUE_MAX, ConfigError
 
 DEFAULT_PORT = 8765
 # The variable that moves the WebSocket port (a flag still wins): two pipelines on one
@@ -55,8 +55,12 @@ class ViewConfig:
             raise ConfigError(f"--port {self.port}: must be 0..65535 (0: any free port)")
         if self.jpeg_quality is not None and not 1 <= self.jpeg_quality <= 100:
             raise ConfigError(f"--jpeg {self.jpeg_quality}: JPEG quality must be 1..100")
-        if self.queue < 1:
-            raise ConfigError(f"--queue {self.queue}: must be >= 1")
+        # Checked here, not by each subscription: a queue no producer registers made the
+        # view warn "cannot stream ... trying again" every 2 s for good, streaming nothing.
+        if not 1 <= self.queue <= OBSERVE_QUEUE_MAX:
+            raise ConfigError(
+                f"--queue {self.queue}: must be 1..{OBSERVE_QUEUE_MAX} (the observe limit)"
+            )
         if self.backlog < 1:
             raise ConfigError(f"--backlog {self.backlog}: must be >= 1")
         if self.duration_s is not None and self.duration_s <= 0:

@@ -33,6 +33,8 @@ def test_loopback_is_private_and_anything_else_is_exposed() -> None:
         ({"port": 70000}, "--port 70000"),
         ({"jpeg_quality": 0}, "--jpeg 0: JPEG quality must be 1..100"),
         ({"queue": 0}, "--queue 0"),
+        # Above the observe limit no producer registers it: refused at once, not retried.
+        ({"queue": 99_999_999}, r"--queue 99999999: must be 1\.\.1048576 \(the observe limit\)"),
         ({"backlog": 0}, "--backlog 0"),
         ({"duration_s": -1.0}, "--duration -1.0"),
     ],
