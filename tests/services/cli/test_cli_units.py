@@ -6,6 +6,7 @@ import argparse
 import json
 import re
 import threading
+from dataclasses import replace
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -23,7 +24,15 @@ from middleware import (
 from services.cli import query
 from services.cli._common import recording_input, recording_output
 from services.cli.hz import Sample, window_stats
-from services.tools.bag import BagError, BagWriter, frame_layout, open_bag, shift_element
+from services.cli.play import _retention
+from services.tools.bag import (
+    BagError,
+    BagWriter,
+    RecordedBuffer,
+    frame_layout,
+    open_bag,
+    shift_element,
+)
 from tests.services.cli.conftest import HEIGHT, MS, WIDTH, frame_metadata, frame_payload
 
 SECOND = 1_000_000_000
@@ -312,3 +321,16 @@ def test_a_second_ctrl_c_cuts_records_wait_short_and_says_so() -> None:
         pytest.fail("the second Ctrl-C escaped record's wait: no counts, no summary")
     assert cut and stopped_ns > 1_000
     assert recorders[0].stop.is_set()
+
+
+def test_play_loop_keep_all_keeps_one_pass_not_every_pass() -> None:
+    recorded = RecordedBuffer(
+        "camera", "images", "frame", Retention(max_count=64), "camera/images", 1, count=77
+    )
+    kept = _retention(recorded, keep_all=True, loop=False)
+    assert (kept.max_count, kept.max_bytes, kept.max_age_ns) == (None, None, None)
+    # A loop never ends: every pass kept is memory without bound.
+    looped = _retention(recorded, keep_all=True, loop=True)
+    assert (looped.max_count, looped.max_bytes, looped.max_age_ns) == (77, None, None)
+    unknown = replace(recorded, count=0)  # a damaged file without its statistics
+    assert _retention(unknown, keep_all=True, loop=True) == recorded.retention
