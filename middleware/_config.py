@@ -254,6 +254,11 @@ class NetworkConfig:
                 settings.append(("mode", self.mode))
             if not self.shared_memory:
                 settings.append(("transport/shared_memory/enabled", False))
+            # A file that leaves the lease alone gets ours, not Zenoh's 10 s: peers believe a
+            # process alive for the lease it announces, so a stopped `watch --flow-control
+            # --config peer.json5` held the camera 10 s instead of 1 s.
+            if _get(conf, "transport/link/tx/lease") == _get(_DEFAULTS, "transport/link/tx/lease"):
+                settings.append(("transport/link/tx/lease", self.lease_ms))
         if listen:
             _check_endpoints(listen, "listen on")
             settings.append(("listen/endpoints", listen))

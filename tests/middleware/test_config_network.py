@@ -52,6 +52,22 @@ def test_a_config_file_without_listen_endpoints_listens_on_loopback(tmp_path: Pa
     assert _listen(NetworkConfig(config_file=path)) == ["tcp/127.0.0.1:7447"]
 
 
+def _lease_ms(config: NetworkConfig) -> object:
+    return json.loads(config.zenoh_configs()[0].get_json("transport/link/tx/lease"))
+
+
+def test_a_config_file_without_a_lease_gets_ours_and_one_with_a_lease_decides(
+    tmp_path: Path,
+) -> None:
+    # Peers believe a process alive for the lease it announces: Zenoh's default (10 s) let a
+    # stopped flow-controlled subscriber hold its producer 10 s instead of 1 s.
+    path = tmp_path / "peer.json5"
+    path.write_text('{mode: "peer", connect: {endpoints: ["tcp/10.0.0.2:7447"]}}')
+    assert _lease_ms(NetworkConfig(config_file=path)) == NetworkConfig().lease_ms == 1000
+    path.write_text('{mode: "peer", transport: {link: {tx: {lease: 3000}}}}')
+    assert _lease_ms(NetworkConfig(config_file=path)) == 3000
+
+
 def test_a_config_file_that_names_listen_endpoints_decides(tmp_path: Path) -> None:
     path = tmp_path / "wide.json5"
     path.write_text('{mode: "peer", listen: {endpoints: ["tcp/0.0.0.0:0"]}}')
