@@ -76,7 +76,6 @@ from ._records import (
 )
 from ._subscription import PUSH_ALL, Subscription
 from ._timerange import TimeRange, parse_duration_ns, parse_time_ns, parse_time_range
-from ._wire import MAX_QUEUE_SIZE as OBSERVE_QUEUE_MAX
 from ._xml import XmlLimits, field_text, make_metadata, parse_untrusted, validate_metadata
 
 __all__ = [
