@@ -211,9 +211,10 @@ class Inbox(_Bounded[zenoh.Sample]):
     in bytes as well: a subscription's notifications may be of any size (a pushed frame),
     so a count alone let a peer's 4 MiB garbage on one notify key hold 96 of them (a
     mediator grew 42 -> 362 MB). Past ``max_held_bytes`` (payloads and attachments) the
-    oldest are pushed out, counted in ``overflow``; the newest sample is always kept, so an
-    element of any size still passes. What honest traffic loses so is resent (flow control)
-    or counted in ``missed`` (an observer), as for the count."""
+    oldest are pushed out, counted in ``squeezed``, not ``overflow``: honest pushed frames
+    fill it too (32 of 3 MiB), so they are no sign of a flood (``dropped``). The newest sample
+    is always kept, so an element of any size still passes. What honest traffic loses so is
+    resent (flow control) or counted in ``missed`` (an observer)."""
 
     def __init__(
         self,
@@ -226,23 +227,27 @@ class Inbox(_Bounded[zenoh.Sample]):
         super().__init__(capacity=capacity, max_bytes=max_bytes, signal=signal)
         self.max_held_bytes = max_held_bytes
         self.held_bytes = 0  # under _count_lock
+        self.squeezed = 0  # samples pushed out for the byte bound (under _count_lock)
         self._sizes: deque[int] = deque()  # one per held sample, in the same order
 
     def _keep(self, sample: zenoh.Sample, payload: zenoh.ZBytes) -> zenoh.Sample:
         attachment = sample.attachment
         size = len(payload) + (len(attachment) if attachment is not None else 0)
         while self.held_bytes + size > self.max_held_bytes and self._items:
-            self._push_out()
+            self._push_out(squeeze=True)
         with self._count_lock:
             self._sizes.append(size)
             self.held_bytes += size
         return sample
 
-    def _push_out(self) -> None:
+    def _push_out(self, *, squeeze: bool = False) -> None:
         with self._count_lock, contextlib.suppress(IndexError):
             self._items.popleft()
             self.held_bytes -= self._sizes.popleft()
-            self.overflow += 1
+            if squeeze:
+                self.squeezed += 1
+            else:
+                self.overflow += 1
 
     def take(self, budget: int) -> list[zenoh.Sample]:
         if not self._items:  # the common case on a hot path: nothing came

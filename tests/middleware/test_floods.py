@@ -248,7 +248,7 @@ def test_a_flood_of_large_garbage_on_a_notify_key_holds_bounded_bytes(
             def filled() -> bool:
                 nonlocal most
                 most = max(most, _held_bytes(sub))
-                return sub._inbox.overflow > 100 or most > NOTIFY_INBOX_BYTES
+                return sub._inbox.squeezed > 100 or most > NOTIFY_INBOX_BYTES
 
             wait_until(filled, 60, "the inbox filled and pushing out")
         most = max(most, _held_bytes(sub))
