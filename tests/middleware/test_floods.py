@@ -260,13 +260,15 @@ def test_a_flood_of_large_garbage_on_a_notify_key_holds_bounded_bytes(
         assert note is not None and sub.fetch(note).payload == b"y" * 100
 
 
-def test_a_subscriber_that_stops_reading_holds_a_put_no_longer_than_the_lease(
+def test_a_subscriber_that_stops_reading_has_its_link_closed_and_puts_go_on(
     listen_net, endpoint
 ) -> None:
     """A flow-controlled subscriber (queue 16,384) whose process stops reading its link while
-    its session lives: the notifications fill the link, and the put that sends the next one
-    waits in Zenoh until the link is closed, the lease (1 s), not Zenoh's 5 s (a
-    ``put(wait_s=0)`` took 5.0 s, again each time the peer came back)."""
+    its session lives: the notifications fill the link, the put that sends the next one
+    waits in Zenoh until the link is closed, and then the subscription is dropped and puts
+    go on. How long that wait is (the lease, 1 s, not Zenoh's 5 s: a ``put(wait_s=0)``
+    took 5.0 s, again each time the peer came back) is the session's configuration,
+    checked in test_config_network.py; a time measured here would be the machine's."""
     with Node("cam", listen_net) as service:
         images = service.offer("images")
         stuck = subprocess.Popen(
@@ -276,16 +278,13 @@ def test_a_subscriber_that_stops_reading_holds_a_put_no_longer_than_the_lease(
         )
         try:
             wait_until(lambda: images.info().subscriptions, 30, "the stuck subscriber")
-            worst, t, blob = 0.0, 0, bytes(2048)
+            t, blob = 0, bytes(2048)
             while images.info().subscriptions:  # until its link is closed
                 t += 1
-                started = time.monotonic()
                 with contextlib.suppress(FlowControlRefused):
                     images.put(t, blob, _meta(t), wait_s=0)
-                worst = max(worst, time.monotonic() - started)
                 assert t < 10_000_000, "the stuck subscriber's link never closed"
+            images.put(t + 1, blob, _meta(t + 1), wait_s=0)  # nobody left to refuse it
         finally:
             stuck.kill()
             stuck.wait()
-    # The lease, plus slack a slower machine meets; Zenoh's own wait was 5 s.
-    assert worst < 1.0 + scaled(3.5), f"put(wait_s=0) took {worst:.1f} s"
