@@ -101,7 +101,7 @@ def _field(row: dict[str, Any], name: str) -> Any:
 
 def run(args: argparse.Namespace) -> int:
     exit_on_sigterm()
-    shown = 0
+    shown = came = 0
     with Node(network=network(args)) as node:
         resolve(node, args.target, args.timeout)
         sub = observer(node, args.target, args.queue, args.timeout)
@@ -109,6 +109,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"echoing {sub.name}; Ctrl-C to stop", file=sys.stderr, flush=True)
         try:
             for note in notifications(sub, args.duration):
+                came += 1
                 try:
                     element = sub.fetch(note, timeout_s=max(2.0, args.timeout))
                 except FramegateError as exc:  # evicted before we asked: say so, go on
@@ -130,7 +131,7 @@ def run(args: argparse.Namespace) -> int:
                     break
         except KeyboardInterrupt:
             pass
-    if shown == 0:
+    if came == 0:
         # A buffer put once (camera/info) or quiet: echo shows only what is put from now on.
         print(
             f"note: no new element of {args.target} came; echo shows what is put from now on "
