@@ -37,7 +37,7 @@ import numpy as np
 from middleware import SchemaError, XmlLimits, make_metadata
 from services.lib.messages import FrameMeta, detections_metadata
 
-__all__ = ["Box", "FrameMeta", "Output", "ResultKind", "encode_result"]
+__all__ = ["Box", "FrameMeta", "Output", "ResultKind", "encode_result", "plain_result"]
 
 # The most boxes one frame's element holds (detections.xsd says the same).
 MAX_BOXES = 1000
@@ -143,6 +143,38 @@ def encode_result(
             what += f" for {encoded.boxes} boxes (about 200 bytes each: return fewer)"
         raise SchemaError(_too_long(what))
     return encoded
+
+
+def plain_result(result: object, kind: ResultKind) -> object:
+    """``result`` with every value of the handler's own converted to a plain one (a float,
+    an int, text), so that :func:`encode_result` runs none of the handler's code: called on
+    the handler's thread, where a stop reaches it (a ``__float__`` or ``__str__`` that
+    blocks or raises ``SystemExit`` ran on the runner's loop). SchemaError as there."""
+    if result is None:
+        return None
+    try:
+        if kind is ResultKind.DETECTIONS:
+            return [
+                Box(
+                    box.label,
+                    tuple((float(x), float(y)) for x, y in box.corners_px),
+                    None if box.score is None else float(box.score),
+                )
+                for box in _boxes(result)
+            ]
+        if isinstance(result, Output):
+            payload = result.payload
+            if isinstance(payload, bytes | bytearray | memoryview):
+                payload = bytes(payload)
+            return Output(payload, _fields(result.fields))
+        return bytes(result) if isinstance(result, bytearray | memoryview) else result
+    except SchemaError:
+        raise
+    except BaseException as exc:  # the handler's own objects: any float() or str() may raise
+        raise SchemaError(
+            f"the result cannot be written as metadata: {type(exc).__name__} "
+            "converting one of its values"
+        ) from exc
 
 
 # What a result's metadata may hold: what every reader of it accepts (``validate_metadata``).
@@ -269,7 +301,10 @@ def _plain(value: object, name: str, budget: _Budget) -> object:
             "text of its own (give it a __str__, or store its values)"
         )
     budget.spend(len(value) if isinstance(value, str) else 2)
-    return value
+    if type(value) in (str, int, float, bool):
+        return value
+    # As the metadata writes it (``make_metadata``), now: its writing calls no code of ours.
+    return repr(value) if isinstance(value, float) else str(value)
 
 
 def _boxes(result: object) -> Sequence[Box]:

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 from middleware import FramegateError
 from services.lib.messages import decode_image, read_frame_metadata
-from services.lib.vision import Encoded, FrameMeta, ResultKind, encode_result
+from services.lib.vision import Encoded, FrameMeta, ResultKind, encode_result, plain_result
 from services.nodes._vision_handler import Handler, Image
 
 # Distinct warning kinds remembered; past this, further kinds share one (a handler raising
@@ -56,6 +56,23 @@ def _guarded(handler: Handler, image: Image, frame: FrameMeta) -> object:
         raise
     except BaseException as exc:
         raise _HandlerExit(exc) from exc
+
+
+@dataclass(frozen=True, slots=True)
+class _BadResult:
+    """The handler returned, but its result cannot be converted (returned, not raised, so
+    that it is not counted as the handler's error)."""
+
+    error: FramegateError
+
+
+def _plain(result: object, kind: ResultKind) -> object:
+    """``plain_result`` on the handler's thread: the result's own code (a ``__float__``, a
+    ``__str__``) runs where a stop reaches it and where what it raises is one skip."""
+    try:
+        return plain_result(result, kind)
+    except FramegateError as exc:
+        return _BadResult(exc)
 
 
 def user_traceback(exc: BaseException) -> str:
@@ -126,7 +143,7 @@ class VisionStep:
             return self.skip("bad-frame", f"frame {timestamp_ns}: {exc}")
         started = time.monotonic_ns()
         try:
-            result = self._call(lambda: _guarded(self.handler, image, frame))
+            result = self._call(lambda: _plain(_guarded(self.handler, image, frame), self.kind))
         except Exception as exc:  # the user's code: any exception is one skipped frame
             raised = exc.original if isinstance(exc, _HandlerExit) else exc
             name = _type_name(raised)
@@ -137,6 +154,8 @@ class VisionStep:
             )
         processing_ns = time.monotonic_ns() - started
         self.processed += 1
+        if isinstance(result, _BadResult):
+            return self.skip("bad-result", f"frame {frame.frame_id}: {result.error}")
         try:
             encoded = encode_result(result, self.kind, frame, self.source, processing_ns, taken_ns)
         except FramegateError as exc:

@@ -524,3 +524,70 @@ def test_boxes_whose_metadata_cannot_fit_are_a_bad_result_naming_them() -> None:
     outcome = step.process(*_frame(1))
     assert isinstance(outcome, Skipped) and outcome.reason == "bad-result"
     assert "for 500 boxes" in outcome.detail
+
+
+class _ExitsWhenPrinted:
+    def __str__(self) -> str:
+        raise SystemExit(3)
+
+
+def test_a_result_whose_conversion_exits_is_a_bad_result_never_the_runner_s_end() -> None:
+    # The result was written as metadata on the runner's own thread, outside the guard
+    # around the handler: a field's __str__ raising SystemExit ended the runner.
+    results: list[object] = [Output(fields={"x": _ExitsWhenPrinted()}), Output(b"ok")]
+    step = VisionStep(lambda image, frame: results.pop(0), ResultKind.GENERIC, "a/b", LOG)
+    outcomes = [step.process(*_frame(i)) for i in range(2)]
+    assert [type(o).__name__ for o in outcomes] == ["Skipped", "Encoded"]
+    assert step.skipped == {"bad-result": 1}
+
+
+class _StopInTest(BaseException):
+    pass
+
+
+def test_a_stop_reaches_a_result_whose_conversion_never_returns() -> None:
+    # A box corner's __float__ (or a field's __str__) that blocks ran on the loop's thread,
+    # where a stop cannot reach it: SIGTERM left the runner hanging for good.
+    entered, release = threading.Event(), threading.Event()
+
+    class Stuck(float):
+        def __float__(self) -> float:
+            entered.set()
+            release.wait()
+            return 0.0
+
+    def handler(image: np.ndarray, frame: FrameMeta) -> list[Box]:
+        return [Box(1, ((Stuck(0.0), 0.0), (1.0, 0.0), (1.0, 1.0), (0.0, 1.0)))]
+
+    thread, stop = CallThread("test-handler"), threading.Event()
+
+    def guarded(work: Callable[[], object]) -> object:  # as the service calls it
+        result = thread.call(work, stop)
+        if result is None:
+            raise _StopInTest
+        return result
+
+    step = VisionStep(handler, ResultKind.DETECTIONS, "in/put", LOG, call=guarded)
+    ended: list[BaseException] = []
+
+    def process() -> None:
+        try:
+            step.process(*_frame(1))
+        except _StopInTest as exc:
+            ended.append(exc)
+
+    worker = threading.Thread(target=process, daemon=True)
+    try:
+        # Box's own check converts the corners once, the result's writing again.
+        worker.start()
+        assert entered.wait(scaled(10))
+        entered.clear()
+        release.set()
+        release.clear()
+        assert entered.wait(scaled(10))
+        stop.set()
+        worker.join(scaled(10))
+        assert not worker.is_alive() and ended
+    finally:
+        release.set()
+        thread.close()
