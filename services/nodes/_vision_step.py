@@ -38,24 +38,29 @@ def call_directly(work: Callable[[], object]) -> object:
     return work()
 
 
-class _HandlerExit(Exception):
-    """The handler raised ``SystemExit``, ``KeyboardInterrupt`` or another exception that is
-    not an ``Exception`` (the user's code, not a stop of this service): one skipped frame."""
+class _HandlerFailed(Exception):
+    """The handler raised (any ``BaseException``: ``SystemExit``, ``KeyboardInterrupt`` from
+    the user's code is not a stop of this service): one skipped frame. Its type name, text
+    and traceback are made on the handler's thread, where a stop reaches them (an
+    exception's ``__str__`` that blocks, or raises ``SystemExit``, ran on the runner's loop)."""
 
     def __init__(self, original: BaseException) -> None:
-        super().__init__(_text(original))
-        self.original = original
+        self.name = _type_name(original)
+        self.text = _text(original)
+        try:
+            self.trace = user_traceback(original)
+        except BaseException:
+            self.trace = f"(the traceback of {self.name} cannot be printed)"
+        super().__init__(self.text)
 
 
 def _guarded(handler: Handler, image: Image, frame: FrameMeta) -> object:
-    """Call the handler; what it raises that is no ``Exception`` comes back as one, so that
-    only a real stop (``_Stopped``, raised by the caller's side, not here) ends the runner."""
+    """Call the handler; whatever it raises comes back as ``_HandlerFailed``, so that only a
+    real stop (``_Stopped``, raised by the caller's side, not here) ends the runner."""
     try:
         return handler(image, frame)
-    except Exception:
-        raise
     except BaseException as exc:
-        raise _HandlerExit(exc) from exc
+        raise _HandlerFailed(exc) from None
 
 
 @dataclass(frozen=True, slots=True)
@@ -99,8 +104,8 @@ def _text(exc: BaseException) -> str:
     it is (its ``__str__`` raises)."""
     try:
         return str(exc)
-    except Exception:
-        return f"<{type(exc).__name__} whose message cannot be printed>"
+    except BaseException:
+        return f"<{_type_name(exc)} whose message cannot be printed>"
 
 
 class VisionStep:
@@ -144,13 +149,11 @@ class VisionStep:
         started = time.monotonic_ns()
         try:
             result = self._call(lambda: _plain(_guarded(self.handler, image, frame), self.kind))
-        except Exception as exc:  # the user's code: any exception is one skipped frame
-            raised = exc.original if isinstance(exc, _HandlerExit) else exc
-            name = _type_name(raised)
+        except _HandlerFailed as failed:  # the user's code: anything it raises is one skip
             return self.skip(
-                f"handler-error:{name}",
-                f"frame {frame.frame_id}: handler raised {name}: {_text(raised)}",
-                exc_info=raised,
+                f"handler-error:{failed.name}",
+                f"frame {frame.frame_id}: handler raised {failed.name}: {failed.text}",
+                trace=failed.trace,
             )
         processing_ns = time.monotonic_ns() - started
         self.processed += 1
@@ -165,7 +168,7 @@ class VisionStep:
         return encoded
 
     def skip(
-        self, reason: str, detail: str, *, warn: bool = True, exc_info: BaseException | None = None
+        self, reason: str, detail: str, *, warn: bool = True, trace: str | None = None
     ) -> Skipped:
         """Count ``reason``; the first time it is seen, log ``detail`` as a warning."""
         # A kind already counted keeps its own count; only new ones past the bound share one.
@@ -178,8 +181,8 @@ class VisionStep:
         self.skipped[reason] += 1
         if warn:
             text = f"{detail} (skipped; further '{reason}' skips are counted, not logged)"
-            if exc_info is not None:
-                text += "\n" + user_traceback(exc_info)
+            if trace is not None:
+                text += "\n" + trace
             self.warn_once(reason, text)
         return Skipped(reason, detail)
 

@@ -591,3 +591,62 @@ def test_a_stop_reaches_a_result_whose_conversion_never_returns() -> None:
     finally:
         release.set()
         thread.close()
+
+
+class _ExitsWhenSaid(Exception):
+    def __str__(self) -> str:
+        raise SystemExit(3)
+
+
+def test_an_exception_whose_message_exits_is_one_skipped_frame() -> None:
+    # Its message was read on the runner's loop, to be logged: SystemExit ended the runner.
+    def handler(image: np.ndarray, frame: FrameMeta) -> list[Box]:
+        if frame.frame_id == 1:
+            raise _ExitsWhenSaid
+        return []
+
+    step = VisionStep(handler, ResultKind.DETECTIONS, "in/put", LOG)
+    outcomes = [step.process(*_frame(i)) for i in range(3)]
+    assert [type(o).__name__ for o in outcomes] == ["Encoded", "Skipped", "Encoded"]
+    assert step.skipped == {"handler-error:_ExitsWhenSaid": 1}
+
+
+def test_a_stop_reaches_an_exception_whose_message_never_returns() -> None:
+    entered, release = threading.Event(), threading.Event()
+
+    class Stuck(Exception):
+        def __str__(self) -> str:
+            entered.set()
+            release.wait()
+            return "stuck"
+
+    def handler(image: np.ndarray, frame: FrameMeta) -> list[Box]:
+        raise Stuck
+
+    thread, stop = CallThread("test-handler"), threading.Event()
+
+    def guarded(work: Callable[[], object]) -> object:  # as the service calls it
+        result = thread.call(work, stop)
+        if result is None:
+            raise _StopInTest
+        return result
+
+    step = VisionStep(handler, ResultKind.DETECTIONS, "in/put", LOG, call=guarded)
+    ended: list[BaseException] = []
+
+    def process() -> None:
+        try:
+            step.process(*_frame(1))
+        except _StopInTest as exc:
+            ended.append(exc)
+
+    worker = threading.Thread(target=process, daemon=True)
+    try:
+        worker.start()
+        assert entered.wait(scaled(10))
+        stop.set()
+        worker.join(scaled(10))
+        assert not worker.is_alive() and ended
+    finally:
+        release.set()
+        thread.close()
