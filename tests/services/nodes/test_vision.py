@@ -545,6 +545,33 @@ class _StopInTest(BaseException):
     pass
 
 
+def _processing_in_a_thread(
+    handler: Callable[[np.ndarray, FrameMeta], list[Box]],
+    thread: CallThread,
+    stop: threading.Event,
+) -> tuple[threading.Thread, list[BaseException]]:
+    """A step calling ``handler`` through ``thread`` as the service does (a stop ends the
+    call), and a thread (not started) that processes one frame with it; the list gets the
+    stop's exception when the step ends by the stop."""
+
+    def guarded(work: Callable[[], object]) -> object:
+        result = thread.call(work, stop)
+        if result is None:
+            raise _StopInTest
+        return result
+
+    step = VisionStep(handler, ResultKind.DETECTIONS, "in/put", LOG, call=guarded)
+    ended: list[BaseException] = []
+
+    def process() -> None:
+        try:
+            step.process(*_frame(1))
+        except _StopInTest as exc:
+            ended.append(exc)
+
+    return threading.Thread(target=process, daemon=True), ended
+
+
 def test_a_stop_reaches_a_result_whose_conversion_never_returns() -> None:
     # A box corner's __float__ (or a field's __str__) that blocks ran on the loop's thread,
     # where a stop cannot reach it: SIGTERM left the runner hanging for good.
@@ -560,23 +587,7 @@ def test_a_stop_reaches_a_result_whose_conversion_never_returns() -> None:
         return [Box(1, ((Stuck(0.0), 0.0), (1.0, 0.0), (1.0, 1.0), (0.0, 1.0)))]
 
     thread, stop = CallThread("test-handler"), threading.Event()
-
-    def guarded(work: Callable[[], object]) -> object:  # as the service calls it
-        result = thread.call(work, stop)
-        if result is None:
-            raise _StopInTest
-        return result
-
-    step = VisionStep(handler, ResultKind.DETECTIONS, "in/put", LOG, call=guarded)
-    ended: list[BaseException] = []
-
-    def process() -> None:
-        try:
-            step.process(*_frame(1))
-        except _StopInTest as exc:
-            ended.append(exc)
-
-    worker = threading.Thread(target=process, daemon=True)
+    worker, ended = _processing_in_a_thread(handler, thread, stop)
     try:
         # Box's own check converts the corners once, the result's writing again.
         worker.start()
@@ -624,23 +635,7 @@ def test_a_stop_reaches_an_exception_whose_message_never_returns() -> None:
         raise Stuck
 
     thread, stop = CallThread("test-handler"), threading.Event()
-
-    def guarded(work: Callable[[], object]) -> object:  # as the service calls it
-        result = thread.call(work, stop)
-        if result is None:
-            raise _StopInTest
-        return result
-
-    step = VisionStep(handler, ResultKind.DETECTIONS, "in/put", LOG, call=guarded)
-    ended: list[BaseException] = []
-
-    def process() -> None:
-        try:
-            step.process(*_frame(1))
-        except _StopInTest as exc:
-            ended.append(exc)
-
-    worker = threading.Thread(target=process, daemon=True)
+    worker, ended = _processing_in_a_thread(handler, thread, stop)
     try:
         worker.start()
         assert entered.wait(scaled(10))
