@@ -269,10 +269,14 @@ class ConsumerLoop:
             wait_s = min(wait_s, max(0.0, (deadline - time.monotonic_ns()) / 1e9))
         item = self._next_result(wait_s)
         answered: list[tuple[Resolved, int]] = []
+        # A bounded batch: a peer that refills the queue as fast as it drains must not keep
+        # the turn from expiring slots and paying the gate.
+        taken = 0
         while item is not None:
             if (done := self._answer(*item)) is not None:
                 answered.append(done)
-            item = self._next_result(0)
+            taken += 1
+            item = self._next_result(0) if taken < _RESULTS_DEPTH else None
         now = time.monotonic_ns()
         with self._lock:
             expired = self._ledger.expire(now)

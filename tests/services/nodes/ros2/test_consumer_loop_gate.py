@@ -94,3 +94,57 @@ def test_an_image_the_gate_never_counted_leaves_no_lasting_deficit(
     assert len(loop._ledger) == 2
     assert gate.pending == 2, "the mediator sees the node one image less busy than it is"
     assert skipped == ["ungated-image"]
+
+
+class _Flood:
+    """A result queue a hostile peer never lets run dry (forged stamps, no image of ours)."""
+
+    def __init__(self) -> None:
+        self.given = 0
+
+    def get(self, timeout: float = 0) -> Any:
+        return self.get_nowait()
+
+    def get_nowait(self) -> Any:
+        self.given += 1
+        if self.given > 100_000:
+            raise RuntimeError("the resolver's turn never ended under a flood of results")
+        return _header_cdr(1, "forged", 0), None
+
+
+def test_a_flood_of_results_does_not_keep_the_resolver_from_expiring_slots(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    clock = types.SimpleNamespace(now_ns=0)
+    fake_time = types.SimpleNamespace(monotonic_ns=lambda: clock.now_ns, time_ns=lambda: 0)
+    monkeypatch.setattr(_consumer_loop, "time", fake_time)
+    feed, gate = _Sub([1000]), _Sub([1000])
+    subscriptions = iter([feed, gate])
+    node = types.SimpleNamespace(
+        offer=lambda *a, **k: types.SimpleNamespace(put=lambda *a: None),
+        subscribe=lambda *a, **k: next(subscriptions),
+    )
+    skipped: list[str] = []
+    config = Ros2Config(
+        image_out=(Mapping("m/images", "/in"),),
+        consumer_done="/out",
+        consumer_queue=1,
+        consumer_timeout_ms=1000,
+    )
+    loop = ConsumerLoop(
+        node,  # type: ignore[arg-type]
+        None,  # type: ignore[arg-type]
+        types.SimpleNamespace(publish=lambda cdr: None),  # type: ignore[arg-type]
+        config.image_out[0],
+        lambda element: b"image",
+        config,
+        types.SimpleNamespace(count=lambda producer, reason, detail: skipped.append(reason)),
+    )
+    loop._publish(feed.take())
+    flood = _Flood()
+    loop._answers = flood  # type: ignore[assignment]
+    clock.now_ns = 2_000_000_000  # the node never answered: its slot is due to be freed
+    loop._turn()
+    assert len(loop._ledger) == 0 and gate.pending == 0, "the slot was not freed"
+    assert "consumer-timeout" in skipped
+    assert flood.given < 1000, "one turn took the whole flood"
