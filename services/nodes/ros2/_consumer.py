@@ -107,9 +107,10 @@ class DoneTopic:
     """Learns the result topic's types from the ROS graph's publisher tokens.
 
     Feed it every liveliness token (one caller at a time). Each type (and hash) a publisher
-    of the topic announces is listened to, up to ``MAX_RESULT_TYPES``: a token anyone can
-    declare must not choose for the node which of its results are heard (a first publisher
-    of another type would otherwise shut the loop for good). Results are matched by their
+    of the topic announces is kept, up to ``MAX_RESULT_TYPES``; the loop's one subscription
+    names the first in its token and takes every type on the topic, so a token anyone can
+    declare never chooses which of the node's results are heard (tokens of made-up types
+    declared first would otherwise shut the loop for good). Results are matched by their
     leading header alone, so a type that has none costs counted ``bad-result`` skips.
     """
 
@@ -137,7 +138,7 @@ class DoneTopic:
                 endpoint.dds_type,
                 endpoint.type_hash,
                 f"a publisher announces {ros_type} ({endpoint.type_hash}); the bridge already "
-                f"listens to {MAX_RESULT_TYPES} types on this topic and ignores it",
+                f"knows {MAX_RESULT_TYPES} types on this topic (it hears every type)",
             )
         self.found.append(seen)
         return None

@@ -14,8 +14,9 @@ of the node's input (``mediator/images=/camera/image_sharp``) from an observer i
   element, which is published to ROS 2 as a ``sensor_msgs/msg/Image`` and recorded in
   :class:`Outstanding`. Every element the feed gets is resolved exactly once (answered,
   timed out, or not publishable), and each resolution takes one notification off the gate.
-- the result topic's type and type hash come from its publishers' liveliness tokens; its
-  messages are read only as far as their leading ``std_msgs/Header``.
+- the result topic is subscribed once a publisher's liveliness token names its type (the
+  subscription's own token names that one), and takes messages of every type on it, read
+  only as far as their leading ``std_msgs/Header``.
 
 Counted, never silent (``framegate info NAME/results``, ``skipped``): ``consumer-timeout``
 (an image never answered; its slot freed), ``late-result``, ``unmatched-result``,
@@ -218,10 +219,11 @@ class ConsumerLoop:
     def run_resolver(self, stop: threading.Event) -> None:
         waiting_said = False
         while not stop.is_set():
-            with self._lock:
-                new = [t for t in self._done.found if t not in self._subscribed]
-            for found in new:
-                self._subscribe(found)
+            if not self._subscribed:
+                with self._lock:
+                    first = self._done.found[:1]
+                for found in first:
+                    self._subscribe(found)
             if not self._subscribed and not waiting_said:
                 waiting_said = True
                 log.info(
@@ -240,9 +242,18 @@ class ConsumerLoop:
 
     def _subscribe(self, found: ResultType) -> None:
         topic = self._done.topic
-        self._link.subscribe(topic, found.ros_type, found.type_hash, Qos(), self._on_result)
+        # Every type on the topic, whichever tokens were declared first: a peer's tokens of
+        # made-up types must not crowd out the node's own (``DoneTopic``).
+        self._link.subscribe(
+            topic, found.ros_type, found.type_hash, Qos(), self._on_result, any_type=True
+        )
         self._subscribed.add(found)
-        log.info("ros2: consumer results on %s as %s (%s)", topic, found.ros_type, found.type_hash)
+        log.info(
+            "ros2: consumer results on %s, of every type (first announced: %s, %s)",
+            topic,
+            found.ros_type,
+            found.type_hash,
+        )
 
     def _on_result(self, raw: bytes, attachment: bytes | None) -> None:
         """(Zenoh's thread) Only enqueue."""

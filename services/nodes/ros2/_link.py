@@ -177,14 +177,25 @@ class RosLink:
         return entity
 
     def subscribe(
-        self, topic_fqn: str, ros_type: str, hash_chunk: str, qos: Qos, on_sample: OnSample
+        self,
+        topic_fqn: str,
+        ros_type: str,
+        hash_chunk: str,
+        qos: Qos,
+        on_sample: OnSample,
+        *,
+        any_type: bool = False,
     ) -> None:
         """Declare a subscription (data key + MS liveliness token); ``on_sample(payload,
-        attachment)`` runs on Zenoh's callback thread and must only enqueue."""
+        attachment)`` runs on Zenoh's callback thread and must only enqueue. ``any_type``:
+        the data key takes samples of every type and hash on the topic (the token still
+        names ``ros_type``)."""
         token_key = self.identity.endpoint_token(
             self._entity_id(), EntityKind.SUBSCRIPTION, topic_fqn, ros_type, hash_chunk, qos
         )
         key = data_key(self.identity.domain_id, topic_fqn, ros_type, hash_chunk)
+        if any_type:
+            key = f"{self.identity.domain_id}/{topic_fqn.strip('/')}/*/*"
 
         def deliver(sample: zenoh.Sample) -> None:
             attachment = sample.attachment

@@ -180,7 +180,7 @@ def test_the_load_follows_the_nodes_outstanding_images_and_its_type_is_learnt(
         try:
             _ready(images, bridge, vision)
             line = next(t for t in bridge.text if "consumer results on /vision/out" in t)
-            assert f"as {RESULT_TYPE} ({RESULT_HASH})" in line
+            assert f"first announced: {RESULT_TYPE}, {RESULT_HASH}" in line
             # The bridge's subscription to the results carries the type it learnt. Its token
             # reaches the router some time after the bridge declared it (and logged the line
             # above): looked at until it shows.

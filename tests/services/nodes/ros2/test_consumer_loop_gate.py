@@ -4,6 +4,7 @@ subscriptions is played exactly."""
 
 from __future__ import annotations
 
+import threading
 import types
 from typing import Any
 
@@ -12,7 +13,9 @@ import pytest
 from services.evidence.bench._ros2_node import _header_cdr
 from services.nodes.ros2 import _consumer_loop
 from services.nodes.ros2._config import Mapping, Ros2Config
+from services.nodes.ros2._consumer import MAX_RESULT_TYPES
 from services.nodes.ros2._consumer_loop import ConsumerLoop
+from services.nodes.ros2._rmw import EntityKind, NodeIdentity, Qos
 
 
 class _Sub:
@@ -148,3 +151,47 @@ def test_a_flood_of_results_does_not_keep_the_resolver_from_expiring_slots(
     assert len(loop._ledger) == 0 and gate.pending == 0, "the slot was not freed"
     assert "consumer-timeout" in skipped
     assert flood.given < 1000, "one turn took the whole flood"
+
+
+def test_tokens_of_made_up_types_declared_first_do_not_shut_out_the_nodes_results() -> None:
+    feed, gate = _Sub([]), _Sub([])
+    subscriptions = iter([feed, gate])
+    node = types.SimpleNamespace(
+        offer=lambda *a, **k: types.SimpleNamespace(put=lambda *a: None),
+        subscribe=lambda *a, **k: next(subscriptions),
+    )
+    real = "vision_msgs/msg/Detection2DArray"
+    heard: list[bool] = []  # per subscription: does it take the node's results?
+
+    def subscribe(topic: str, ros_type: str, *a: Any, any_type: bool = False) -> None:
+        heard.append(any_type or ros_type == real)
+
+    config = Ros2Config(
+        image_out=(Mapping("m/images", "/in"),),
+        consumer_done="/out",
+        consumer_queue=1,
+        consumer_timeout_ms=1000,
+    )
+    loop = ConsumerLoop(
+        node,  # type: ignore[arg-type]
+        types.SimpleNamespace(subscribe=subscribe),  # type: ignore[arg-type]
+        types.SimpleNamespace(publish=lambda cdr: None),  # type: ignore[arg-type]
+        config.image_out[0],
+        lambda element: b"image",
+        config,
+        types.SimpleNamespace(count=lambda producer, reason, detail: None),
+    )
+    identity = NodeIdentity(0, "a1b2", "peer")
+    # A hostile peer declares (and may withdraw at once) publishers of made-up types.
+    for i in range(2 * MAX_RESULT_TYPES):
+        kind = EntityKind.PUBLISHER
+        loop.on_token(
+            identity.endpoint_token(i, kind, "/out", f"x_msgs/msg/T{i}", "RIHS01_00", Qos())
+        )
+    loop.on_token(
+        identity.endpoint_token(99, EntityKind.PUBLISHER, "/out", real, "RIHS01_11", Qos())
+    )
+    stop = threading.Event()
+    loop._turn = stop.set  # type: ignore[method-assign]
+    loop.run_resolver(stop)
+    assert any(heard), "the node's results are not heard"
