@@ -29,6 +29,8 @@ _CDR_BE, _CDR_LE = b"\x00\x00", b"\x00\x01"
 _ENCAPSULATION_BYTES = 4
 # A frame_id longer than this is no frame name (tf2 frame ids are short): a bad message.
 MAX_FRAME_ID_BYTES = 4096
+# The most of a result decode_header reads: a queued result keeps no more.
+HEADER_MAX_BYTES = _ENCAPSULATION_BYTES + 12 + MAX_FRAME_ID_BYTES
 # Expired stamps remembered, so that a result arriving after its timeout is told apart
 # from one that matches no image of ours at all.
 EXPIRED_MEMORY = 256

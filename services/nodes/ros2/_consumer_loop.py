@@ -67,6 +67,7 @@ from middleware import (
 
 from ._config import Mapping, Ros2Config
 from ._consumer import (
+    HEADER_MAX_BYTES,
     ConsumerCounts,
     DoneTopic,
     GateBook,
@@ -77,7 +78,7 @@ from ._consumer import (
     decode_header,
 )
 from ._link import RosLink, RosPublisher
-from ._rmw import Attachment, Qos
+from ._rmw import ATTACHMENT_BYTES, Attachment, Qos
 
 log = logging.getLogger("framegate.ros2")
 
@@ -256,9 +257,12 @@ class ConsumerLoop:
         )
 
     def _on_result(self, raw: bytes, attachment: bytes | None) -> None:
-        """(Zenoh's thread) Only enqueue."""
+        """(Zenoh's thread) Only enqueue, and only what is read: a full queue of a peer's
+        large messages would hold ``_RESULTS_DEPTH`` times their size."""
+        if attachment is not None and len(attachment) != ATTACHMENT_BYTES:
+            attachment = None  # not rmw_zenoh's: read as none (see _answer)
         try:
-            self._answers.put_nowait((raw, attachment))
+            self._answers.put_nowait((raw[:HEADER_MAX_BYTES], attachment))
         except queue.Full:
             self._skips.count(self.results, "result-queue-full", "the result queue was full")
 

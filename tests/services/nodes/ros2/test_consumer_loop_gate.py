@@ -195,3 +195,35 @@ def test_tokens_of_made_up_types_declared_first_do_not_shut_out_the_nodes_result
     loop._turn = stop.set  # type: ignore[method-assign]
     loop.run_resolver(stop)
     assert any(heard), "the node's results are not heard"
+
+
+def test_a_queued_result_keeps_only_its_header_however_large_it_came() -> None:
+    feed, gate = _Sub([1000]), _Sub([1000])
+    subscriptions = iter([feed, gate])
+    node = types.SimpleNamespace(
+        offer=lambda *a, **k: types.SimpleNamespace(put=lambda *a: None),
+        subscribe=lambda *a, **k: next(subscriptions),
+    )
+    config = Ros2Config(
+        image_out=(Mapping("m/images", "/in"),),
+        consumer_done="/out",
+        consumer_queue=1,
+        consumer_timeout_ms=1000,
+    )
+    loop = ConsumerLoop(
+        node,  # type: ignore[arg-type]
+        None,  # type: ignore[arg-type]
+        types.SimpleNamespace(publish=lambda cdr: None),  # type: ignore[arg-type]
+        config.image_out[0],
+        lambda element: b"image",
+        config,
+        types.SimpleNamespace(count=lambda producer, reason, detail: None),
+    )
+    loop._publish(feed.take())
+    # A peer's results of 64 MiB each: a full queue of them held 4 GiB.
+    bulk = bytes(64 << 20)
+    loop._on_result(bytes(_header_cdr(1000, "camera", 0)) + bulk, bulk)
+    raw, attachment = loop._answers.queue[0]
+    assert len(raw) <= 8192 and (attachment is None or len(attachment) <= 8192)
+    loop._turn()  # what was kept still answers the image
+    assert len(loop._ledger) == 0 and gate.pending == 0
