@@ -46,14 +46,9 @@ class _Sub:
         pass
 
 
-def test_an_image_the_gate_never_counted_leaves_no_lasting_deficit(
-    monkeypatch: pytest.MonkeyPatch,
-) -> None:
-    clock = types.SimpleNamespace(now_ns=0)
-    fake_time = types.SimpleNamespace(monotonic_ns=lambda: clock.now_ns, time_ns=lambda: 0)
-    monkeypatch.setattr(_consumer_loop, "time", fake_time)
-    # The gate registered after image 1000 was put: the feed has it, the gate does not.
-    feed, gate = _Sub([1000, 2000]), _Sub([2000])
+def _loop(feed: _Sub, gate: _Sub, queue: int, link: Any = None) -> tuple[ConsumerLoop, list[str]]:
+    """A loop of ``--consumer-queue queue`` on the stand-in subscriptions (the feed first, as
+    the loop subscribes), and the skip reasons it counts."""
     subscriptions = iter([feed, gate])
     node = types.SimpleNamespace(
         offer=lambda *a, **k: types.SimpleNamespace(put=lambda *a: None),
@@ -63,18 +58,36 @@ def test_an_image_the_gate_never_counted_leaves_no_lasting_deficit(
     config = Ros2Config(
         image_out=(Mapping("m/images", "/in"),),
         consumer_done="/out",
-        consumer_queue=2,
+        consumer_queue=queue,
         consumer_timeout_ms=1000,
     )
     loop = ConsumerLoop(
         node,  # type: ignore[arg-type]
-        None,  # type: ignore[arg-type]
+        link,
         types.SimpleNamespace(publish=lambda cdr: None),  # type: ignore[arg-type]
         config.image_out[0],
         lambda element: b"image",
         config,
         types.SimpleNamespace(count=lambda producer, reason, detail: skipped.append(reason)),
     )
+    return loop, skipped
+
+
+def _test_clock(monkeypatch: pytest.MonkeyPatch) -> Any:
+    """The loop's clock, set by the test (``clock.now_ns``)."""
+    clock = types.SimpleNamespace(now_ns=0)
+    fake_time = types.SimpleNamespace(monotonic_ns=lambda: clock.now_ns, time_ns=lambda: 0)
+    monkeypatch.setattr(_consumer_loop, "time", fake_time)
+    return clock
+
+
+def test_an_image_the_gate_never_counted_leaves_no_lasting_deficit(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    clock = _test_clock(monkeypatch)
+    # The gate registered after image 1000 was put: the feed has it, the gate does not.
+    feed, gate = _Sub([1000, 2000]), _Sub([2000])
+    loop, skipped = _loop(feed, gate, 2)
 
     def image(key: int) -> None:  # the mediator puts it: both subscriptions are notified
         if key not in (n.timestamp_ns for n in feed.notes):
@@ -118,31 +131,9 @@ class _Flood:
 def test_a_flood_of_results_does_not_keep_the_resolver_from_expiring_slots(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    clock = types.SimpleNamespace(now_ns=0)
-    fake_time = types.SimpleNamespace(monotonic_ns=lambda: clock.now_ns, time_ns=lambda: 0)
-    monkeypatch.setattr(_consumer_loop, "time", fake_time)
+    clock = _test_clock(monkeypatch)
     feed, gate = _Sub([1000]), _Sub([1000])
-    subscriptions = iter([feed, gate])
-    node = types.SimpleNamespace(
-        offer=lambda *a, **k: types.SimpleNamespace(put=lambda *a: None),
-        subscribe=lambda *a, **k: next(subscriptions),
-    )
-    skipped: list[str] = []
-    config = Ros2Config(
-        image_out=(Mapping("m/images", "/in"),),
-        consumer_done="/out",
-        consumer_queue=1,
-        consumer_timeout_ms=1000,
-    )
-    loop = ConsumerLoop(
-        node,  # type: ignore[arg-type]
-        None,  # type: ignore[arg-type]
-        types.SimpleNamespace(publish=lambda cdr: None),  # type: ignore[arg-type]
-        config.image_out[0],
-        lambda element: b"image",
-        config,
-        types.SimpleNamespace(count=lambda producer, reason, detail: skipped.append(reason)),
-    )
+    loop, skipped = _loop(feed, gate, 1)
     loop._publish(feed.take())
     flood = _Flood()
     loop._answers = flood  # type: ignore[assignment]
@@ -155,32 +146,13 @@ def test_a_flood_of_results_does_not_keep_the_resolver_from_expiring_slots(
 
 def test_tokens_of_made_up_types_declared_first_do_not_shut_out_the_nodes_results() -> None:
     feed, gate = _Sub([]), _Sub([])
-    subscriptions = iter([feed, gate])
-    node = types.SimpleNamespace(
-        offer=lambda *a, **k: types.SimpleNamespace(put=lambda *a: None),
-        subscribe=lambda *a, **k: next(subscriptions),
-    )
     real = "vision_msgs/msg/Detection2DArray"
     heard: list[bool] = []  # per subscription: does it take the node's results?
 
     def subscribe(topic: str, ros_type: str, *a: Any, any_type: bool = False) -> None:
         heard.append(any_type or ros_type == real)
 
-    config = Ros2Config(
-        image_out=(Mapping("m/images", "/in"),),
-        consumer_done="/out",
-        consumer_queue=1,
-        consumer_timeout_ms=1000,
-    )
-    loop = ConsumerLoop(
-        node,  # type: ignore[arg-type]
-        types.SimpleNamespace(subscribe=subscribe),  # type: ignore[arg-type]
-        types.SimpleNamespace(publish=lambda cdr: None),  # type: ignore[arg-type]
-        config.image_out[0],
-        lambda element: b"image",
-        config,
-        types.SimpleNamespace(count=lambda producer, reason, detail: None),
-    )
+    loop, _ = _loop(feed, gate, 1, types.SimpleNamespace(subscribe=subscribe))
     identity = NodeIdentity(0, "a1b2", "peer")
     # A hostile peer declares (and may withdraw at once) publishers of made-up types.
     for i in range(2 * MAX_RESULT_TYPES):
@@ -199,26 +171,7 @@ def test_tokens_of_made_up_types_declared_first_do_not_shut_out_the_nodes_result
 
 def test_a_queued_result_keeps_only_its_header_however_large_it_came() -> None:
     feed, gate = _Sub([1000]), _Sub([1000])
-    subscriptions = iter([feed, gate])
-    node = types.SimpleNamespace(
-        offer=lambda *a, **k: types.SimpleNamespace(put=lambda *a: None),
-        subscribe=lambda *a, **k: next(subscriptions),
-    )
-    config = Ros2Config(
-        image_out=(Mapping("m/images", "/in"),),
-        consumer_done="/out",
-        consumer_queue=1,
-        consumer_timeout_ms=1000,
-    )
-    loop = ConsumerLoop(
-        node,  # type: ignore[arg-type]
-        None,  # type: ignore[arg-type]
-        types.SimpleNamespace(publish=lambda cdr: None),  # type: ignore[arg-type]
-        config.image_out[0],
-        lambda element: b"image",
-        config,
-        types.SimpleNamespace(count=lambda producer, reason, detail: None),
-    )
+    loop, _ = _loop(feed, gate, 1)
     loop._publish(feed.take())
     # A peer's results of 64 MiB each: a full queue of them held 4 GiB.
     bulk = bytes(64 << 20)
