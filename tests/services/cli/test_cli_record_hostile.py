@@ -8,11 +8,12 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 import pytest
 import zenoh
 
-from middleware import DataObject, NetworkConfig, Node, make_metadata
+from middleware import DataObject, NetworkConfig, Node, Producer, make_metadata
 from middleware._service import encode_answer_end
 from middleware._wire import encode_element_attachment
 from tests.conftest import wait_until
@@ -47,6 +48,19 @@ def _rogue_answering(endpoint: str, stamp: Callable[[], int]) -> Iterator[list[i
             queryable.undeclare()
 
 
+def _record_five(cli: Cli, producer: Producer, *argv: str) -> Any:
+    """``record cam/a --count 5 --json ARGV`` while ``producer`` puts 5 elements stamped now,
+    once it has subscribed; its JSON summary."""
+    recorder = cli.start("record", "cam/a", "--count", "5", "--json", *argv)
+    assert producer.wait_for_subscribers(1, timeout_s=scaled(60)), "record never subscribed"
+    for _ in range(5):
+        t = time.time_ns()
+        producer.put(t, b"real", make_metadata("generic", t))
+    out, err = recorder.communicate(timeout=scaled(120))
+    assert recorder.returncode == 0, err
+    return json.loads(out)
+
+
 def test_record_beside_a_peer_answering_an_hour_ahead_records_the_real_elements(
     listen_net: NetworkConfig, endpoint: str, cli: Cli, tmp_path: Path
 ) -> None:
@@ -58,15 +72,7 @@ def test_record_beside_a_peer_answering_an_hour_ahead_records_the_real_elements(
     with Node("cam", listen_net) as node:
         producer = node.offer("a")  # before the peer answers in its name
         with _rogue_answering(endpoint, lambda: time.time_ns() + HOUR_NS):
-            recorder = cli.start("record", "cam/a", "-o", str(bag), "--count", "5", "--json")
-            subscribed = producer.wait_for_subscribers(1, timeout_s=scaled(60))
-            assert subscribed, "record never subscribed"
-            for _ in range(5):
-                t = time.time_ns()
-                producer.put(t, b"real", make_metadata("generic", t))
-            out, err = recorder.communicate(timeout=scaled(60))
-    assert recorder.returncode == 0, err
-    summary = json.loads(out)
+            summary = _record_five(cli, producer, "-o", str(bag))
     assert [b["recorded"] for b in summary["buffers"]] == [5], summary
 
 
@@ -95,17 +101,7 @@ def test_record_takes_only_its_producers_replies(
     with Node("cam", listen_net) as node:
         producer = node.offer("a")
         with _rogue_answering(endpoint, lambda: time.time_ns() + 5 * 10**9):
-            duration = str(scaled(30))
-            argv = ("cam/a", "-o", str(bag), "--count", "5", "--duration", duration, "--json")
-            recorder = cli.start("record", *argv)
-            subscribed = producer.wait_for_subscribers(1, timeout_s=scaled(60))
-            assert subscribed, "record never subscribed"
-            for _ in range(5):
-                t = time.time_ns()
-                producer.put(t, b"real", make_metadata("generic", t))
-            out, err = recorder.communicate(timeout=scaled(120))
-    assert recorder.returncode == 0, err
-    summary = json.loads(out)
+            summary = _record_five(cli, producer, "-o", str(bag), "--duration", str(scaled(30)))
     assert [b["recorded"] for b in summary["buffers"]] == [5], summary
 
 
