@@ -12,6 +12,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 import zenoh
@@ -46,6 +47,24 @@ def _put_now(producer: Producer, count: int) -> None:
         producer.put(t, b"x", make_metadata("generic", t))
 
 
+def _record_five(endpoint: str, env: dict[str, str], producer: Producer, bag: Path) -> Any:
+    """``record cam/a --count 5`` into ``bag`` while ``producer`` puts 5 elements stamped now,
+    once it has subscribed; its JSON summary."""
+    recorder = _record(
+        endpoint, env, "cam/a", "-o", str(bag), "--count", "5", "--duration", str(scaled(30))
+    )
+    try:
+        assert producer.wait_for_subscribers(1, timeout_s=scaled(60)), "record never subscribed"
+        _put_now(producer, 5)
+        out, err = recorder.communicate(timeout=scaled(TIMEOUT_S))
+    finally:
+        if recorder.poll() is None:
+            recorder.kill()
+            recorder.wait()
+    assert recorder.returncode == 0, err
+    return json.loads(out)
+
+
 def test_record_behind_its_producers_clock_records_what_they_stamp(
     listen_net: NetworkConfig, endpoint: str, tmp_path: Path
 ) -> None:
@@ -57,21 +76,7 @@ def test_record_behind_its_producers_clock_records_what_they_stamp(
     env = shifted_clock_env(child_env(), build_clock_shim(tmp_path), offset)
     with Node("cam", listen_net) as node:
         producer = node.offer("a")
-        bag = tmp_path / "behind.mcap"
-        duration = str(scaled(30))
-        recorder = _record(
-            endpoint, env, "cam/a", "-o", str(bag), "--count", "5", "--duration", duration
-        )
-        try:
-            assert producer.wait_for_subscribers(1, timeout_s=scaled(60)), "record never subscribed"
-            _put_now(producer, 5)
-            out, err = recorder.communicate(timeout=scaled(TIMEOUT_S))
-        finally:
-            if recorder.poll() is None:
-                recorder.kill()
-                recorder.wait()
-    assert recorder.returncode == 0, err
-    summary = json.loads(out)
+        summary = _record_five(endpoint, env, producer, tmp_path / "behind.mcap")
     assert [b["recorded"] for b in summary["buffers"]] == [5], summary
 
 
@@ -126,21 +131,8 @@ def test_record_does_not_take_a_peers_word_for_its_producers_clock(
                 query.reply(query.key_expr, json.dumps(forged).encode())
 
         queryable = rogue.declare_queryable("framegate/@info/cam", zenoh.handlers.Callback(answer))
-        bag = tmp_path / "peer.mcap"
-        duration = str(scaled(30))
-        recorder = _record(
-            endpoint, child_env(), "cam/a", "-o", str(bag), "--count", "5", "--duration", duration
-        )
         try:
-            subscribed = producer.wait_for_subscribers(1, timeout_s=scaled(60))
-            assert subscribed, "record never subscribed"
-            _put_now(producer, 5)
-            out, err = recorder.communicate(timeout=scaled(TIMEOUT_S))
+            summary = _record_five(endpoint, child_env(), producer, tmp_path / "peer.mcap")
         finally:
             queryable.undeclare()
-            if recorder.poll() is None:
-                recorder.kill()
-                recorder.wait()
-    assert recorder.returncode == 0, err
-    summary = json.loads(out)
     assert [b["recorded"] for b in summary["buffers"]] == [5], summary
