@@ -88,10 +88,14 @@ def main(params: dict[str, Any]) -> None:
                 entity_id, EntityKind.PUBLISHER, topic, ros_type, hash_chunk, qos
             )
             tokens.append(session.liveliness().declare_token(token))
-            publishers[ros_type] = (
-                session.declare_publisher(data_key(0, topic, ros_type, hash_chunk)),
-                gid(token),
+            # Blocking, not dropping as a best-effort rmw_zenoh publisher does: the tests check
+            # the pipeline, and a last image Zenoh drops under load leaves no gap in sequence
+            # numbers for any subscriber to see (a CI run lost one of 8 images so, uncounted).
+            publisher = session.declare_publisher(
+                data_key(0, topic, ros_type, hash_chunk),
+                congestion_control=zenoh.CongestionControl.BLOCK,
             )
+            publishers[ros_type] = (publisher, gid(token))
         described = bool(params.get("camera_info"))
         camera = dataclasses.replace(scenario.camera, gyro_time_offset_ns=0)
         image_frame, imu_frame = (IMAGE_FRAME, IMU_FRAME) if described else ("camera", "imu")
