@@ -9,7 +9,8 @@ description ``--camera-xml`` reads). Without ``--camera-xml`` the bridge builds 
   (``/ns/image_raw`` → ``/ns/camera_info``). K (the raw image's camera matrix) for a raw
   image topic, P (the rectified image's projection) for an ``image_rect*`` topic; divided by
   ``binning_x``/``binning_y`` and moved by the region of interest, as image_geometry does.
-  ``K[0] == 0`` (or ``P[0] == 0``) is an uncalibrated camera: no intrinsics yet.
+  ``K[0] == 0`` (or, for a rectified topic, ``P[0] == 0``) is an uncalibrated camera: no
+  intrinsics yet.
 - rotation: v_camera = R v_imu where the camera frame is the image's ``header.frame_id``
   (normally the optical frame, REP 103: x right, y down, z forward, framegate's camera
   axes) and the IMU frame the IMU message's ``header.frame_id``, from the static transform
@@ -112,8 +113,11 @@ def intrinsics(codec: Codec, raw: bytes, rectified: bool) -> Intrinsics:
     if len(k) != 9 or len(p) != 12:
         raise CdrError(f"{CAMERA_INFO} with {len(k)} K and {len(p)} P numbers")
     fx, fy, cx, cy = (p[0], p[5], p[2], p[6]) if rectified else (k[0], k[4], k[2], k[5])
-    if fx == 0.0:
-        raise Uncalibrated(f"{'P' if rectified else 'K'}[0] is 0: the camera is uncalibrated")
+    # K[0] == 0 says uncalibrated for the rectified images too (image_proc then rectifies
+    # nothing), whatever P holds.
+    for name, first in (("K", k[0]), ("P", p[0]))[: 2 if rectified else 1]:
+        if first == 0.0:
+            raise Uncalibrated(f"{name}[0] is 0: the camera is uncalibrated")
     sane = all(math.isfinite(v) and abs(v) <= MAX_PIXELS for v in (fx, fy, cx, cy))
     if not sane or fx < 1.0 or fy < 1.0:
         raise CdrError(f"{CAMERA_INFO} focal lengths {fx}, {fy} or centre {cx}, {cy}")

@@ -416,3 +416,20 @@ def test_a_region_of_interest_far_off_the_sensor_is_refused(codec: Codec) -> Non
     )
     with pytest.raises(CdrError, match="region of interest"):
         intrinsics(codec, raw, rectified=False)
+
+
+def test_k0_zero_is_uncalibrated_for_a_rectified_topic_too(codec: Codec) -> None:
+    from services.nodes.ros2._camera_info import Uncalibrated
+
+    camera = CameraModel(320, 240, 300.0, 300.0, 160.0, 120.0)
+    message = codec.store.deserialize_cdr(
+        camera_info(codec, camera, 1), "sensor_msgs/msg/CameraInfo"
+    )
+    # K zero (uncalibrated, as image_proc reads it), a P left over from elsewhere.
+    raw = bytes(
+        codec.store.serialize_cdr(
+            dataclasses.replace(message, k=np.zeros(9)), "sensor_msgs/msg/CameraInfo"
+        )
+    )
+    with pytest.raises(Uncalibrated, match=r"K\[0\] is 0"):
+        intrinsics(codec, raw, rectified=True)
