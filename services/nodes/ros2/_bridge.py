@@ -209,13 +209,16 @@ class Encoders:
     def detections(self, element: Any) -> bytearray:
         root = validate_metadata(element.metadata, "detections")
         markers = []
+        scores: list[float | None] = []  # a vision handler's confidences, carried across
         for marker in root.iter(_NS + "marker"):
             corners = [float(v) for v in (marker.findtext(_NS + "corners_px") or "").split()]
             if len(corners) != 8:
                 raise ValueError(f"marker with {len(corners)} corner numbers, expected 8")
             markers.append((int(marker.findtext(_NS + "id") or 0), corners))
+            score = marker.findtext(_NS + "score")
+            scores.append(None if score is None else float(score))
         return self._codec.encode_detections(
-            self._config.stamp_ns(element.timestamp_ns), self.frame_id(), markers
+            self._config.stamp_ns(element.timestamp_ns), self.frame_id(), markers, scores
         )
 
     def verdict(self, element: Any) -> bytearray:

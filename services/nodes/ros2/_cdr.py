@@ -190,10 +190,15 @@ class Codec:
 
     # -- detections and verdicts -------------------------------------------------------------
     def encode_detections(
-        self, t_ns: int, frame_id: str, markers: list[tuple[int, list[float]]]
+        self,
+        t_ns: int,
+        frame_id: str,
+        markers: list[tuple[int, list[float]]],
+        scores: list[float | None] | None = None,
     ) -> bytearray:
         """A ``vision_msgs/msg/Detection2DArray``: one axis-aligned box per marker (its
-        corners' extent), class id = the marker id, score 1."""
+        corners' extent), class id = the marker id, score = its ``scores`` entry (in the
+        same order), 1 where it has none (a marker detector's find is certain)."""
         t = self.store.types
         header = self._header_type(t_ns, frame_id)
         pose = t["geometry_msgs/msg/PoseWithCovariance"](
@@ -204,7 +209,8 @@ class Codec:
             covariance=np.zeros(36, dtype=np.float64),
         )
         detections = []
-        for marker_id, corners in markers:
+        for n, (marker_id, corners) in enumerate(markers):
+            score = scores[n] if scores is not None and n < len(scores) else None
             xs, ys = corners[0::2], corners[1::2]
             x0, x1, y0, y1 = min(xs), max(xs), min(ys), max(ys)
             box = t["vision_msgs/msg/BoundingBox2D"](
@@ -216,7 +222,10 @@ class Codec:
                 size_y=y1 - y0,
             )
             hypothesis = t["vision_msgs/msg/ObjectHypothesisWithPose"](
-                hypothesis=t["vision_msgs/msg/ObjectHypothesis"](str(marker_id), 1.0), pose=pose
+                hypothesis=t["vision_msgs/msg/ObjectHypothesis"](
+                    str(marker_id), 1.0 if score is None else float(score)
+                ),
+                pose=pose,
             )
             detections.append(
                 t["vision_msgs/msg/Detection2D"](

@@ -356,3 +356,21 @@ def test_the_stop_line_counts_the_consumer_loops_images_beside_the_outputs() -> 
     alone = stop_summary("ros2", loop_published=None, **common)  # type: ignore[arg-type]
     assert "by the outputs (whether" in alone and "consumer loop" not in alone, alone
     assert alone.startswith("ros2: 120 frames stored, 3 dropped") and alone.endswith("none")
+
+
+def test_detections_out_carry_a_vision_handlers_scores(codec: Codec) -> None:
+    from services.lib.messages import detections_metadata
+    from services.nodes.ros2._bridge import Encoders
+    from services.nodes.ros2._cdr import DETECTIONS
+
+    now = time.time_ns()
+    corners = [10.0, 20.0, 30.0, 20.0, 30.0, 40.0, 10.0, 40.0]
+    # A handler's boxes: one with its confidence, one without (a marker: certain).
+    metadata = detections_metadata(
+        now, 1, "in/put", 5, [(3, corners), (7, corners)], scores=[0.25, None]
+    )
+    raw = Encoders(codec, Ros2Config(frame_id="cam")).detections(DataObject(now, b"", metadata))
+    message = codec.decode(bytes(raw), DETECTIONS)
+    scores = [d.results[0].hypothesis.score for d in message.detections]
+    assert [d.results[0].hypothesis.class_id for d in message.detections] == ["3", "7"]
+    assert scores == [0.25, 1.0]
