@@ -34,6 +34,7 @@ Nothing here touches Zenoh; tests check every string against rmw_zenoh's own exa
 from __future__ import annotations
 
 import enum
+import re
 import struct
 from dataclasses import dataclass
 
@@ -122,13 +123,28 @@ def mangle(name: str) -> str:
     return name.replace("/", "%") if name else "%"
 
 
+# One token of a ROS 2 name (rmw's full topic name rules): letters, digits and '_', not
+# starting with a digit.
+_NAME_TOKEN = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+
+
 def fully_qualified(topic: str, namespace: str = "/") -> str:
-    """``/ns/topic`` for a relative ``topic`` in ``namespace``; absolute topics unchanged."""
-    if not topic or topic.endswith("/") or "//" in topic or any(c in topic for c in "*$?#@ "):
-        raise ConfigError(f"bad ROS 2 topic name {topic!r}: use e.g. /camera/image_raw")
-    if topic.startswith("/"):
-        return topic
-    return namespace.rstrip("/") + "/" + topic
+    """``/ns/topic`` for a relative ``topic`` in ``namespace``; absolute topics unchanged.
+    ConfigError for a name no ROS 2 node can use (as rcl refuses it): a node could never
+    meet the bridge on it, which would wait for it silently."""
+    if topic.startswith("~") or "{" in topic:
+        raise ConfigError(
+            f"bad ROS 2 topic name {topic!r}: '~' and '{{}}' substitutions name the bridge's "
+            "own node; write the topic in full, e.g. /my_detector/detections"
+        )
+    full = topic if topic.startswith("/") else namespace.rstrip("/") + "/" + topic
+    tokens = full[1:].split("/")
+    if not topic or not all(_NAME_TOKEN.fullmatch(t) for t in tokens):
+        raise ConfigError(
+            f"bad ROS 2 topic name {topic!r}: use e.g. /camera/image_raw (letters, digits and "
+            "'_' between single '/', no token starting with a digit)"
+        )
+    return full
 
 
 def dds_type_name(ros_type: str) -> str:
