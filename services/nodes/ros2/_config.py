@@ -62,7 +62,15 @@ class Mapping:
             split_target(buffer)
         except FramegateError as exc:
             raise ConfigError(f"bad mapping {text!r}: {exc}") from exc
-        return cls(buffer, fully_qualified(topic if sep else "/" + buffer, namespace))
+        try:
+            return cls(buffer, fully_qualified(topic if sep else "/" + buffer, namespace))
+        except ConfigError as exc:
+            if sep:
+                raise
+            # The topic was made from the buffer's name, which may hold '-' and '.'.
+            raise ConfigError(
+                f"bad mapping {text!r}: {exc}; name the topic: {buffer}=/ros/topic"
+            ) from exc
 
 
 _NETWORK = "ROS 2 network"

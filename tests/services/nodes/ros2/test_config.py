@@ -48,6 +48,8 @@ def test_mappings_from_flags_and_deploy_lists() -> None:
         (["--image-out", "images=/x"], "SERVICE/BUFFER"),
         (["--image-out", "mediator/images="], "bad mapping"),
         (["--image-in", "/a b"], "bad ROS 2 topic name"),
+        # A bare buffer is carried to /SERVICE/BUFFER, which may be no ROS 2 name.
+        (["--image-out", "my-cam/images"], r"name the topic: my-cam/images=/ros/topic"),
         # What --camera-xml overrides, given beside it: it was silently ignored.
         (
             ["--image-in", "/cam/image_raw", "--camera-xml", "c.xml", "--camera-info", "/ci"],
