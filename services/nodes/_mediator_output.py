@@ -185,9 +185,11 @@ class Output:
         """The service's last log line: what became of the frames it decided on."""
         reasons = ", ".join(f"{r} {n}" for r, n in self.reasons.most_common())
         skipped = ", ".join(f"{r} {n}" for r, n in self.skipped.most_common())
+        # The reasons break down the frames decided, not those forwarded: beside the
+        # forwarded count they read as its parts, and summed to more than it.
         return (
-            f"{sum(self.reasons.values())} frames decided, {self.forwarded} forwarded "
-            f"({reasons or 'none'}); skipped: {skipped or 'none'}"
+            f"{sum(self.reasons.values())} frames decided ({reasons or 'none'}), "
+            f"{self.forwarded} forwarded; skipped: {skipped or 'none'}"
         )
 
     def record(

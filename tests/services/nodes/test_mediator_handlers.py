@@ -388,3 +388,13 @@ def test_a_lapse_records_a_frame_forwarded_after_the_last_look_at_the_load(
     fed.frame(50)
     lapsed = [r.frame_timestamp_ns for r in fed.records if r.reason == "consumer-lapsed"]
     assert lapsed == [10 * MS, 50 * MS], fed.reasons()
+
+
+def test_the_summary_breaks_down_the_frames_decided_not_those_forwarded(fed: Fed) -> None:
+    fed.gyro(0, 5)
+    fed.frame(10)
+    fed.frame(80)
+    fed.mediator.on_time(time.monotonic_ns() + int(WAIT_MS * MS))  # gyro-missing-reject
+    assert fed.mediator.out.summary().startswith(
+        "2 frames decided (gyro-missing-reject 2), 0 forwarded; skipped: "
+    )
