@@ -72,6 +72,23 @@ def load_handler(spec: str, *, bind: bool = True) -> Handler:
             f"handler {spec!r}: cannot import {module_name!r}: {type(exc).__name__}: {exc}"
             + _module_hint(module_name, attr_path, exc)
         ) from exc
+    try:
+        return _resolve(spec, module_name, attr_path, target, bind=bind)
+    except ConfigError:
+        raise
+    except (Exception, SystemExit) as exc:
+        # A user's object runs code of its own when it is looked at (a ``__getattr__``, a
+        # ``__class__`` or ``__signature__`` property) and may raise anything there: a
+        # traceback in place of the one ``error:`` line.
+        raise ConfigError(
+            f"handler {spec!r}: looking up {attr_path!r} in {module_name!r} raised "
+            f"{type(exc).__name__}: {exc}"
+        ) from None
+
+
+def _resolve(spec: str, module_name: str, attr_path: str, target: object, *, bind: bool) -> Handler:
+    """``load_handler`` once the module is imported: the callable ``attr_path`` names in
+    ``target``, checked (ConfigError naming what is wrong)."""
     found: list[str] = []
     for part in attr_path.split("."):
         owner = target
@@ -178,8 +195,11 @@ _FILE_MODULE_PREFIX = "_framegate_handler_"
 def handler_name(handler: Handler) -> str:
     """How a log line names ``handler``: ``module:function``, or ``path/file.py:function``
     for a handler loaded from a file (not the private module name it is loaded under)."""
-    module = getattr(handler, "__module__", None) or type(handler).__module__
-    name = getattr(handler, "__qualname__", type(handler).__qualname__)
+    try:
+        module = getattr(handler, "__module__", None) or type(handler).__module__
+        name = getattr(handler, "__qualname__", type(handler).__qualname__)
+    except Exception:  # a handler object's own __getattr__ may raise anything
+        module, name = type(handler).__module__, type(handler).__qualname__
     if module.startswith(_FILE_MODULE_PREFIX):
         module = getattr(sys.modules.get(module), "__file__", None) or module
     return f"{module}:{name}"

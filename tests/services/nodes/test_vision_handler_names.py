@@ -133,3 +133,68 @@ def test_an_exception_type_of_any_name_is_a_skip_reason_info_can_show() -> None:
         assert isinstance(outcome, Skipped)
         reasons.append(outcome.reason)
     assert reasons == ["handler-error:Bad?Name", "handler-error:" + "E" * 64]
+
+
+_LOOKED_AT = """
+class Attributes:
+    def __getattr__(self, name):
+        raise RuntimeError("no attributes here")
+
+    def __call__(self, image, frame):
+        return []
+
+
+class Lies:
+    @property
+    def __class__(self):
+        raise RuntimeError("class lookup")
+
+    def __call__(self, image, frame):
+        return []
+
+
+class Signature:
+    @property
+    def __signature__(self):
+        raise RuntimeError("signature")
+
+    def __call__(self, image, frame):
+        return []
+
+
+attributes, lies, signature = Attributes(), Lies(), Signature()
+"""
+
+
+@pytest.mark.parametrize(
+    ("name", "says"),
+    [
+        ("attributes.find", "RuntimeError: no attributes here"),
+        ("attributes", "RuntimeError: no attributes here"),
+        ("lies", "RuntimeError: class lookup"),
+        ("signature", "RuntimeError: signature"),
+    ],
+)
+def test_a_handler_object_that_raises_as_it_is_looked_at_is_a_config_error(
+    tmp_path: Path, name: str, says: str
+) -> None:
+    # Its own code runs as it is looked up and checked: a traceback, not one error line.
+    module = tmp_path / "looked_at.py"
+    module.write_text(_LOOKED_AT)
+    with pytest.raises(ConfigError, match=f"handler '.*:{name}': looking up .* raised {says}"):
+        load_handler(f"{module}:{name}", bind=False)
+
+
+def test_a_handler_object_is_named_in_the_log_whatever_its_getattr_raises() -> None:
+    from services.nodes._vision_handler import handler_name
+
+    class Model:  # delegates to a model that raises for names it lacks
+        def __getattr__(self, name: str) -> object:
+            if name == "__wrapped__":
+                raise AttributeError(name)
+            raise RuntimeError(f"model has no {name}")
+
+        def __call__(self, image: object, frame: object) -> list[object]:
+            return []
+
+    assert handler_name(Model()).endswith(".<locals>.Model")
