@@ -384,5 +384,8 @@ def result_kind(handler: Handler, requested: str) -> ResultKind:
         raw = getattr(function, "__annotations__", {}).get("return")
         names = set(re.findall(r"\w+", raw)) if isinstance(raw, str) else set()
         return ResultKind.GENERIC if names & {"Output", "bytes"} else ResultKind.DETECTIONS
-    options = set(typing.get_args(returns)) | {returns}
-    return ResultKind.GENERIC if options & {Output, bytes} else ResultKind.DETECTIONS
+    # Compared by identity: an annotation may be any object (``-> [Box]`` is a list, which
+    # a set cannot hold; another's ``__eq__`` may raise), and the runner failed to start.
+    options = [*typing.get_args(returns), returns]
+    generic = any(option is Output or option is bytes for option in options)
+    return ResultKind.GENERIC if generic else ResultKind.DETECTIONS

@@ -197,6 +197,25 @@ def test_the_result_kind_comes_from_the_return_annotation_or_the_flag() -> None:
     assert result_kind(vision_handlers.brightest, "generic") is ResultKind.GENERIC
 
 
+class _Unhashable:
+    __hash__ = None  # type: ignore[assignment]
+
+    def __eq__(self, other: object) -> bool:
+        raise RuntimeError("compared")
+
+
+def test_a_return_annotation_of_any_object_leaves_the_kind_to_the_results() -> None:
+    # ``-> [Box]`` (a list, not ``list[Box]``) failed the runner's start with a traceback.
+    def listed(image: object, frame: object) -> [Box]:  # type: ignore[valid-type]
+        return []
+
+    def odd(image: object, frame: object) -> _Unhashable():  # type: ignore[valid-type]
+        return []
+
+    assert result_kind(listed, "auto") is ResultKind.DETECTIONS
+    assert result_kind(odd, "auto") is ResultKind.DETECTIONS
+
+
 def test_a_handler_is_loaded_by_name() -> None:
     handler = load_handler("tests.services.nodes.vision_handlers:brightest")
     assert handler is vision_handlers.brightest
