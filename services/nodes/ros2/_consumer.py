@@ -22,7 +22,7 @@ from dataclasses import dataclass, fields
 
 from middleware import printable
 
-from ._rmw import MAX_REMARKS, REMARK_CHARS, EntityKind, parse_endpoint
+from ._rmw import DEFAULT_DEPTH, MAX_REMARKS, REMARK_CHARS, EntityKind, History, parse_endpoint
 
 # CDR encapsulation identifiers (first two bytes): plain CDR, big- and little-endian.
 _CDR_BE, _CDR_LE = b"\x00\x00", b"\x00\x01"
@@ -152,6 +152,54 @@ class DoneTopic:
         if len(self._said) > MAX_REMARKS:  # a peer's made-up types: bounded lines and memory
             return f"{self.topic}: {MAX_REMARKS} ignored types said; further ones are not logged"
         return printable(f"{self.topic}: {text}", REMARK_CHARS)
+
+
+class InputDepthCheck:
+    """Says once per node when a subscription of the node's input topic keeps fewer images
+    than the node may hold (``--consumer-queue``): its middleware then drops images the
+    bridge counts as outstanding, each holding a slot until the timeout (a "latest image
+    only" detector subscribes with KEEP_LAST 1). Read from the subscription's liveliness
+    token, whose QoS chunk carries its history and depth. Feed it every token (one caller
+    at a time); pure, no Zenoh."""
+
+    def __init__(self, topic: str, capacity: int) -> None:
+        self.topic = topic
+        self.capacity = capacity
+        self._said: set[str] = set()
+
+    def feed(self, token: str) -> str | None:
+        endpoint = parse_endpoint(token)
+        if endpoint is None or endpoint.kind is not EntityKind.SUBSCRIPTION:
+            return None
+        if endpoint.topic != self.topic or endpoint.session_id in self._said:
+            return None
+        depth = keep_last_depth(token)
+        if depth is None or depth >= self.capacity or len(self._said) >= MAX_REMARKS:
+            return None
+        self._said.add(endpoint.session_id)
+        return (
+            f"a subscription of {self.topic} keeps {depth} image(s) (KEEP_LAST {depth}), "
+            f"fewer than --consumer-queue {self.capacity}: images its node drops unread hold "
+            f"their slot until --consumer-timeout-ms; subscribe with a depth of at least "
+            f"{self.capacity}, or give --consumer-queue {max(1, depth)}"
+        )
+
+
+def keep_last_depth(token: str) -> int | None:
+    """The KEEP_LAST depth in a liveliness token's QoS chunk (``rel:dur:history,depth:...``,
+    an empty field rmw_zenoh's default); None for KEEP_ALL or a chunk that is not one."""
+    parts = token.split("/")
+    if len(parts) < 13:
+        return None
+    fields = parts[12].split(":")
+    if len(fields) < 3:
+        return None
+    history, _, depth = fields[2].partition(",")
+    if history not in ("", str(History.KEEP_LAST.value)):
+        return None  # KEEP_ALL (or unknown): keeps what comes
+    if not depth:
+        return DEFAULT_DEPTH
+    return int(depth) if depth.isdigit() and len(depth) < 10 else None
 
 
 @dataclass(frozen=True, slots=True)

@@ -72,6 +72,7 @@ from ._consumer import (
     DoneTopic,
     GateBook,
     HeaderError,
+    InputDepthCheck,
     Outstanding,
     Resolved,
     ResultType,
@@ -142,6 +143,7 @@ class ConsumerLoop:
         self._ledger = Outstanding(depth, int(config.consumer_timeout_ms * 1e6))
         self._book = GateBook(self._ledger.timeout_ns)
         self._done = DoneTopic(config.consumer_done)
+        self._depth = InputDepthCheck(mapping.topic, depth)
         self._subscribed: set[ResultType] = set()  # the result types listened to
         # A full queue refuses the newest result, counted (see _on_result).
         self._answers: queue.Queue[tuple[bytes, bytes | None]] = queue.Queue(_RESULTS_DEPTH)
@@ -151,8 +153,11 @@ class ConsumerLoop:
     def on_token(self, token: str) -> None:
         with self._lock:
             remark = self._done.feed(token)
+            shallow = self._depth.feed(token)
         if remark:
             log.warning("ros2: consumer result topic %s", remark)
+        if shallow:
+            log.warning("ros2: consumer input: %s", shallow)
 
     # -- feed: images out --------------------------------------------------------------------
     def run_feed(self, stop: threading.Event) -> None:

@@ -81,7 +81,7 @@ class History(enum.IntEnum):
 
 
 # rmw_zenoh's own default profile: a field equal to it is written as an empty string.
-_DEFAULT_DEPTH = 42
+DEFAULT_DEPTH = 42
 
 
 @dataclass(frozen=True, slots=True)
@@ -109,11 +109,11 @@ class Qos:
             return "" if value == default else str(int(value))
 
         # rmw_zenoh first replaces a depth of 0 (rclcpp's keep-all) by its default depth.
-        depth = self.depth or _DEFAULT_DEPTH
+        depth = self.depth or DEFAULT_DEPTH
         return (
             f"{field(self.reliability, Reliability.RELIABLE)}:"
             f"{field(self.durability, Durability.VOLATILE)}:"
-            f"{field(self.history, History.KEEP_LAST)},{field(depth, _DEFAULT_DEPTH)}:"
+            f"{field(self.history, History.KEEP_LAST)},{field(depth, DEFAULT_DEPTH)}:"
             ",:,:,,"
         )
 

@@ -250,3 +250,24 @@ def test_made_up_types_past_the_bound_cost_one_line_and_no_memory() -> None:
     lines = [s for s in said if s is not None]
     assert len(lines) == MAX_REMARKS + 1 and "not logged" in lines[-1]
     assert len(done._said) <= MAX_REMARKS + 1
+
+
+def test_a_node_subscribing_with_a_queue_shorter_than_the_loops_is_said_once() -> None:
+    from services.nodes.ros2._consumer import InputDepthCheck
+    from services.nodes.ros2._rmw import History, Reliability
+
+    check = InputDepthCheck("/camera/image_sharp", 3)
+
+    def subscription(session: str, qos: Qos, topic: str = "/camera/image_sharp") -> str:
+        node = NodeIdentity(0, session, "yolo")
+        return node.endpoint_token(1, EntityKind.SUBSCRIPTION, topic, IMAGE, "h", qos)
+
+    # Deep enough, keep-all, rmw_zenoh's default (an empty depth), another topic: nothing.
+    assert check.feed(subscription("a1", Qos(Reliability.BEST_EFFORT, 5))) is None
+    assert check.feed(subscription("a2", Qos(depth=1, history=History.KEEP_ALL))) is None
+    assert check.feed(subscription("a3", Qos(depth=42))) is None
+    assert check.feed(subscription("a4", Qos(depth=1), "/other")) is None
+    # A "latest image only" detector: its middleware drops what the loop counts as held.
+    said = check.feed(subscription("b1", Qos(Reliability.BEST_EFFORT, 1)))
+    assert said is not None and "keeps 1 image(s)" in said and "--consumer-queue 1" in said
+    assert check.feed(subscription("b1", Qos(depth=2))) is None  # once per node's session
