@@ -234,7 +234,7 @@ def _module_hint(module_name: str, attr_path: str, exc: BaseException) -> str:
     that the handler's module imports and that is missing: that is the user's to install),
     or for a path written where a module name goes."""
     if module_name.endswith(".py"):  # a file, found and named right: its own error says why
-        return ""
+        return _package_hint(Path(module_name), attr_path, exc)
     if "/" in module_name:  # a path without its .py: say how to name the file
         named = module_name.rstrip("/")
         if Path(named + ".py").is_file():
@@ -262,6 +262,21 @@ def _module_hint(module_name: str, attr_path: str, exc: BaseException) -> str:
         return ""
     fixed = ".".join(filter(None, [parent, hint])) + module_name[len(missing) :]
     return f" (did you mean {fixed!r}?)"
+
+
+def _package_hint(path: Path, attr_path: str, exc: BaseException) -> str:
+    """For a file of a package that imports its siblings relatively (``from .util import
+    g``): loaded by path it has no package, so name it as the package's module."""
+    if not isinstance(exc, ImportError) or "relative import" not in str(exc):
+        return ""
+    root = path.resolve().parent
+    while (root / "__init__.py").is_file():
+        root = root.parent
+    dotted = ".".join(path.resolve().relative_to(root).with_suffix("").parts)
+    if "." not in dotted:  # not in a package: nothing to name it by
+        return ""
+    where = "" if root == Path.cwd() else f" and run from {str(root)!r} (or add it to PYTHONPATH)"
+    return f" (it is a module of a package: name it '{dotted}:{attr_path}'{where})"
 
 
 def _top_level_hint(leaf: str, rest: str, attr_path: str) -> str:

@@ -4,6 +4,7 @@ never give a result (``async def``, a generator) is refused at start, not counte
 from __future__ import annotations
 
 import logging
+import re
 from pathlib import Path
 
 import numpy as np
@@ -198,3 +199,19 @@ def test_a_handler_object_is_named_in_the_log_whatever_its_getattr_raises() -> N
             return []
 
     assert handler_name(Model()).endswith(".<locals>.Model")
+
+
+def test_a_package_file_named_by_path_is_told_its_module_name(tmp_path: Path) -> None:
+    # Loaded by path, a file has no package: its relative imports fail.
+    package = tmp_path / "mypkg"
+    package.mkdir()
+    (package / "__init__.py").write_text("")
+    (package / "util.py").write_text("def g():\n    return []\n")
+    (package / "handler.py").write_text(
+        "from .util import g\n\ndef f(image, frame):\n    return g()\n"
+    )
+    with pytest.raises(
+        ConfigError,
+        match=rf"name it 'mypkg.handler:f' and run from '{re.escape(str(tmp_path))}' ",
+    ):
+        load_handler(f"{package / 'handler.py'}:f", bind=False)
