@@ -5,8 +5,9 @@ who may refuse a subscription), whose records ``_info_codec`` reads field by fie
 
 A peer can answer anything, so every reply passes the same gate before a field is used:
 
-1. size: at most ``MAX_REPLY_BYTES`` (an ``@info`` of 256 + 256 subscriptions per buffer
-   fits many times over);
+1. size: at most ``MAX_REPLY_BYTES`` (a service's own description repeats at most
+   ``_info_codec.SHOWN_TEXT`` characters of each name a peer's token gives, so one buffer's
+   256 + 256 subscriptions take at most ``BUFFER_DESCRIPTION_BYTES``, 512 KiB);
 2. UTF-8;
 3. nesting: at most ``MAX_DEPTH`` levels of brackets, counted before parsing (Python's
    parser recurses per level: 100,000 nested brackets would raise ``RecursionError``);

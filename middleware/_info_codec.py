@@ -36,6 +36,16 @@ from ._records import (
 MAX_THREADS = 256
 # Rewinds read from one buffer's description at most (a producer lists its last 16).
 _REWINDS_READ = 64
+# Characters of a subscription's id, node and host that a description repeats, at most (the
+# rest cut, marked with an ellipsis). A token may carry names of up to 1,024 characters,
+# and 512 such tokens on each of two buffers, named in four-byte characters that JSON
+# escaped as twelve bytes each, made a camera's description 5.9 MB: beyond what any client
+# reads (``MAX_REPLY_BYTES``), so ``ls`` and ``info`` left the camera out and a mediator
+# never learnt its clock (every frame ``clock-unmeasured``). Honest ids are 12 characters,
+# node and host names a few dozen; clipped, and written as UTF-8, one buffer's description
+# stays within ``BUFFER_DESCRIPTION_BYTES`` whatever peers declare.
+SHOWN_TEXT = 64
+BUFFER_DESCRIPTION_BYTES = 512 * 1024
 
 
 # -- encoding ------------------------------------------------------------------------------
@@ -44,8 +54,17 @@ def _wire_buffer(info: BufferInfo) -> dict[str, Any]:
     subs = data["subscriptions"]
     for i, sub in enumerate(subs):
         del sub["taken_ns"]
-        subs[i] = {"id": sub.pop("subscription_id"), **sub}
+        for name in ("node", "host"):
+            sub[name] = _shown(sub[name])
+        subs[i] = {"id": _shown(sub.pop("subscription_id")), **sub}
     return data
+
+
+def _shown(text: str | None) -> str | None:
+    """A peer's name as a description repeats it: at most ``SHOWN_TEXT`` characters."""
+    if text is None or len(text) <= SHOWN_TEXT:
+        return text
+    return text[:SHOWN_TEXT] + "\u2026"
 
 
 def encode_service_info(
@@ -67,7 +86,8 @@ def encode_service_info(
         "threads": json_form(info.threads),
         "dropped_queries": info.dropped_queries,
     }
-    return json.dumps(body).encode("utf-8")
+    # UTF-8 as it is: JSON's \u escapes made a four-byte character of a peer's name twelve.
+    return json.dumps(body, ensure_ascii=False).encode("utf-8")
 
 
 # -- decoding ------------------------------------------------------------------------------

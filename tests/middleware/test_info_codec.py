@@ -16,7 +16,12 @@ from middleware import (
     SubscriptionInfo,
     SubscriptionMode,
 )
-from middleware._info_codec import decode_service_info, encode_service_info
+from middleware._info_codec import (
+    BUFFER_DESCRIPTION_BYTES,
+    SHOWN_TEXT,
+    decode_service_info,
+    encode_service_info,
+)
 from services.cli import info as info_cli
 from services.cli import ls as ls_cli
 
@@ -132,3 +137,27 @@ def test_info_shows_the_producers_control_counts_only_when_not_zero(capsys) -> N
     ]
     info_cli._print_buffer(sent, quiet)  # the clock's last step, on the service's line
     assert "clock stepped 2x, last -20.0 s (lead +19.0 s)" in capsys.readouterr().out
+
+
+def test_a_description_stays_readable_whatever_names_peers_declare() -> None:
+    """Every slot of two buffers taken by tokens whose id, node and host are as long as a
+    token allows, in four-byte characters: the description still fits what clients read
+    (it was 5.9 MB, and ``ls``, ``info`` and a mediator's clock measurement lost the camera).
+    """
+    wide = "\U0001f600" * 330  # three of them fill a token's 1,024 characters
+    subs = tuple(
+        SubscriptionInfo(f"{i}{wide}", mode, 1, 0, None, f"n{i}{wide}", wide)
+        for mode in SubscriptionMode
+        for i in range(256)
+    )
+    buffer = dataclasses.replace(_service().buffers[0], subscriptions=subs)
+    sent = dataclasses.replace(
+        _service(), buffers=(buffer, dataclasses.replace(buffer, buffer="other"))
+    )
+    raw = encode_service_info(sent, CLOCK, instance="i", started_ns=1)
+    assert len(raw) <= 2 * BUFFER_DESCRIPTION_BYTES + 64 * 1024
+    got = decode_service_info(raw, 990, 1_010, service="cam")
+    shown = got.buffers[1].subscriptions[-1]
+    assert shown.subscription_id == "255" + wide[: SHOWN_TEXT - 3] + "\u2026"
+    assert (shown.node, shown.host) == ("n255" + wide[: SHOWN_TEXT - 4] + "\u2026", shown.host)
+    assert len(got.buffers[0].subscriptions) == 512
