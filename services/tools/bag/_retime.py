@@ -12,6 +12,7 @@ no whole number of records (nothing in it can be read as a time; consumers refus
 
 from __future__ import annotations
 
+import re
 from functools import cache
 
 from lxml import etree
@@ -21,6 +22,11 @@ from middleware import DataObject, SchemaError, parse_untrusted
 
 _XS = "{http://www.w3.org/2001/XMLSchema}"
 _INT64_MAX = 2**63 - 1
+# A time a field may hold: ASCII digits, at most int64's 19 (``str.isdigit`` also takes
+# superscripts, on which ``int`` raises, and a 5,000-digit run, past ``int``'s limit: a
+# recording holding either ended ``play --rebase`` with a ValueError traceback). Anything
+# else is left as it is, for the buffer to refuse as a counted skip.
+_TIME_TEXT = re.compile(r"[0-9]{1,19}")
 
 
 @cache
@@ -49,7 +55,9 @@ def shift_element(element: DataObject, kind: str, shift_ns: int) -> DataObject:
     for node in root.iter():
         if not isinstance(node.tag, str) or node is root:
             continue
-        if etree.QName(node).localname in fields and node.text and node.text.strip().isdigit():
+        if etree.QName(node).localname not in fields or node.text is None:
+            continue
+        if _TIME_TEXT.fullmatch(node.text.strip()):
             node.text = str(int(node.text) + shift_ns)
     metadata = bytes(etree.tostring(root, encoding="utf-8", xml_declaration=False))
     payload = shift_gyro_payload(element.payload, shift_ns) if kind == "gyro" else element.payload

@@ -18,6 +18,7 @@ from middleware import (
     DataObject,
     QueryError,
     Retention,
+    SchemaError,
     make_metadata,
     validate_metadata,
 )
@@ -170,6 +171,27 @@ def test_shifting_moves_timestamps_but_not_durations() -> None:
     assert shifted.metadata == frame_metadata(8 * SECOND, 1)  # exposure_ns stays 2 ms
     validate_metadata(shifted.metadata, "frame")
     assert shift_element(element, "frame", 0) is element
+
+
+@pytest.mark.parametrize(
+    "text", ["\u00b2", "9" * 5000, "\u0663"], ids=["superscript", "5000 digits", "Arabic-Indic"]
+)
+def test_shifting_leaves_a_time_field_that_is_no_number_for_the_buffer_to_refuse(
+    text: str,
+) -> None:
+    """A recording's field typed as a time holding a superscript two, 5,000 digits or an
+    Arabic-Indic digit (each ``isdigit``): ``play --rebase`` ended in a ValueError
+    traceback; now the field stays as recorded and the buffer refuses it (a counted skip)."""
+    metadata = (
+        '<metadata xmlns="urn:framegate:1" kind="decision" timestamp_ns="5">'
+        f"<frame_timestamp_ns>{text}</frame_timestamp_ns></metadata>"
+    )
+    element = DataObject(5, b"", metadata.encode())
+    shifted = shift_element(element, "decision", 3)
+    assert shifted.timestamp_ns == 8
+    assert f"<frame_timestamp_ns>{text}</frame_timestamp_ns>" in shifted.metadata.decode()
+    with pytest.raises(SchemaError):
+        validate_metadata(shifted.metadata, "decision")
 
 
 def test_shifting_a_gyro_batch_moves_its_sample_times_with_its_key() -> None:
