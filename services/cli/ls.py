@@ -114,7 +114,9 @@ def run(args: argparse.Namespace) -> int:
             invalid.clear()
             infos = node.services(timeout_s=args.timeout, invalid=invalid)
         # One query for every service shares one long round trip: ask each one again, but
-        # only those on other hosts; the processes of this host read our own clock.
+        # only those on other hosts; the processes of this host read our own clock. Within
+        # twice the timeout in all (any peer can add services that never answer): one not
+        # asked by then shows the listing's own sample.
         clocks = {
             c.service: c
             for c in estimate_clocks(
@@ -122,6 +124,7 @@ def run(args: argparse.Namespace) -> int:
                 [i.service for i in infos if i.host != socket.gethostname()],
                 samples=args.clock_samples,
                 timeout_s=args.timeout,
+                budget_s=2 * args.timeout,
             )
         }
         # Like `info`: an endpoint where nothing answered is an error, not an empty list.

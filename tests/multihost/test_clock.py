@@ -101,6 +101,44 @@ def test_named_services_are_asked_without_listing() -> None:
     assert [e.service for e in estimate_clocks(net, ["b"], samples=1)] == ["b"]
 
 
+class SilentCrowd:
+    """``count`` made-up services that never answer (each question waits its whole timeout
+    on a fake monotonic clock), and one real service named last."""
+
+    def __init__(self, count: int) -> None:
+        self.now_s = 0.0
+        self.asked = 0
+        self.names = [f"fake{i:04d}" for i in range(count)] + ["real"]
+
+    def live_services(self, *, timeout_s: float = 1.0) -> list[str]:
+        return self.names
+
+    def service_info(self, service: str, *, timeout_s: float = 2.0) -> ServiceInfo:
+        assert timeout_s > 0
+        self.asked += 1
+        if service != "real":
+            self.now_s += timeout_s
+            raise NotFoundError(f"service {service!r} did not answer within {timeout_s} s")
+        self.now_s += 0.001
+        return ServiceInfo(service, "far", 1, 0, (), 3 * MS, MS)
+
+
+def test_asking_a_crowd_that_never_answers_ends_within_the_budget() -> None:
+    """A peer that names 1,000 services (tokens and wildcard answers) that never answer
+    their own questions: the asking ends by its budget, not after 1,000 x 5 timeouts."""
+    crowd = SilentCrowd(1000)
+    estimate_clocks(crowd, samples=5, timeout_s=2.0, budget_s=4.0, monotonic=lambda: crowd.now_s)
+    assert crowd.now_s <= 4.0 and crowd.asked <= 3
+
+
+def test_every_service_is_asked_once_before_any_is_asked_again() -> None:
+    crowd = SilentCrowd(3)
+    (estimate,) = estimate_clocks(
+        crowd, samples=5, timeout_s=1.0, budget_s=3.5, monotonic=lambda: crowd.now_s
+    )
+    assert (estimate.service, estimate.samples, estimate.offset_ns) == ("real", 1, 3 * MS)
+
+
 def test_bad_sample_counts_are_refused() -> None:
     with pytest.raises(ConfigError, match="samples must be >= 1, got 0"):
         estimate_clocks(FakeNetwork({}), samples=0)
