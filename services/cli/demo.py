@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from middleware import NotFoundError
 from services.lib.argtypes import non_negative_float, non_negative_int, positive_float, positive_int
 from services.lib.decisions import POLICIES
 from services.lib.sim import ScenarioConfig, approach_cache_dir
@@ -19,6 +20,7 @@ from ._common import (
     report_failures,
     stop_on_signals,
 )
+from ._target import unreachable
 
 
 def register(subparsers: Any) -> None:
@@ -94,8 +96,16 @@ def run(args: argparse.Namespace) -> int:
         cache=args.cache,
         show_logs=args.logs,
     )
+    net = network(args)
+    if bad := unreachable(net):
+        # A --connect (or FRAMEGATE_CONNECT) replaces the rendezvous: the demo's services
+        # would meet nowhere and it would show zeros for its whole duration.
+        raise NotFoundError(
+            f"cannot reach {bad}; the demo's services meet there: start the router first, "
+            "or run the demo without --connect (and FRAMEGATE_CONNECT unset)"
+        )
     # With --json, stdout is the summary alone; the status lines go to stderr.
-    summary = run_demo(config, network(args), stop, status_out=sys.stderr if args.json else None)
+    summary = run_demo(config, net, stop, status_out=sys.stderr if args.json else None)
     if args.json:
         print_json(summary)
     else:

@@ -268,3 +268,20 @@ def test_demo_names_a_child_that_died_by_a_signal_and_exits_1() -> None:
     assert demo.returncode == 1, (demo.returncode, err)
     errors = [line for line in err.splitlines() if line.startswith("error: ")]
     assert errors == ["error: detector died by signal SIGABRT (6)"], err
+
+
+@pytest.mark.integration
+def test_a_demo_told_to_connect_where_nothing_listens_says_so_in_one_line() -> None:
+    # FRAMEGATE_CONNECT left set for a robot (or a --connect) replaces the rendezvous: the
+    # demo's services could never meet, and it ran its whole duration showing zeros, exit 0.
+    env = child_env()
+    env["FRAMEGATE_LOCAL_PORT"] = str(free_port())
+    env["FRAMEGATE_CONNECT"] = f"tcp/127.0.0.1:{free_port()}"
+    result = subprocess.run(
+        [*DEMO, "--source", "sim", "--duration", "5"],
+        cwd=REPO, env=env, capture_output=True, text=True, timeout=scaled(60), check=False,
+    )  # fmt: skip
+    assert result.returncode == 1, result
+    assert result.stderr.startswith(f"error: cannot reach {env['FRAMEGATE_CONNECT']} ("), result
+    assert len(result.stderr.splitlines()) == 1, result.stderr
+    assert " late | med " not in result.stdout  # nothing was started
