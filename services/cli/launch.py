@@ -63,7 +63,7 @@ def register(subparsers: Any) -> None:
 
 
 def _plan(
-    args: argparse.Namespace, host: str | None = None
+    args: argparse.Namespace, host: str | None = None, *, here: bool = True
 ) -> tuple[Deployment, list[ProcessSpec]]:
     deployment = load_deployment(args.file)
     text = Path(args.file).read_text()
@@ -74,6 +74,7 @@ def _plan(
         NetworkConfig(),
         text=text,
         override=lambda net: network(args, net),
+        here=here,
     )
     return deployment, specs
 
@@ -81,7 +82,7 @@ def _plan(
 def _check_every_host(args: argparse.Namespace, deployment: Deployment) -> int:
     """``--check`` of a file of several hosts with no ``--host``: every host's share in
     turn, as each machine would run it (a launch must still pick one)."""
-    plans = [(host, _plan(args, host)[1]) for host in sorted(deployment.hosts)]
+    plans = [(host, _plan(args, host, here=False)[1]) for host in sorted(deployment.hosts)]
     if args.json:
         data = plan_json(deployment, None, [spec for _, specs in plans for spec in specs])
         print_json(data)

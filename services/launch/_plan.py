@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import errno
+import ipaddress
 import re
+import socket
 import sys
 import time
 from collections.abc import Callable
@@ -11,7 +14,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import NoReturn
 
-from middleware import ConfigError, FramegateError, NetworkConfig
+from middleware import ConfigError, FramegateError, NetworkConfig, endpoint_parts
 from services.lib.argtypes import did_you_mean
 from services.nodes import service
 from services.nodes._vision_handler import checked_apart
@@ -160,6 +163,39 @@ def _check_files(
 _PATH_ARGS = ("ros_config", "camera_xml", "path")
 
 
+def _foreign_address(endpoint: str) -> bool:
+    """Whether ``endpoint`` names an IP address this machine does not have (a router of
+    another host's share); host names, wildcards and other protocols are not judged."""
+    proto, host, _port = endpoint_parts(endpoint)
+    if proto not in ("tcp", "tls", "udp", "quic"):
+        return False
+    try:
+        address = ipaddress.ip_address(host.strip("[]"))
+    except ValueError:
+        return False
+    if address.is_unspecified or address.is_loopback:
+        return False
+    family = socket.AF_INET6 if address.version == 6 else socket.AF_INET
+    with socket.socket(family, socket.SOCK_DGRAM) as probe:
+        try:
+            probe.bind((str(address), 0))
+        except OSError as exc:
+            return exc.errno == errno.EADDRNOTAVAIL
+    return False
+
+
+def _check_listens_here(spec: ServiceSpec, net: NetworkConfig, where: str) -> None:
+    """ConfigError for a router of this machine's share that would listen on an address
+    this machine lacks: it could never start, and would be restarted with backoff for ever."""
+    for endpoint in net.listen:
+        if _foreign_address(endpoint):
+            raise ConfigError(
+                f"{where}: service {spec.name!r}: cannot listen on {endpoint}: that address is "
+                f"not one of this machine's (is this machine host {spec.host!r}? run each "
+                "host's share on its own machine, or put this machine's address into the file)"
+            )
+
+
 def _relative_hint(paths: list[str], message: str, deploy_file: Path) -> str:
     """For a relative path a deploy file names that is missing from the current directory
     but found from the deploy file's directory or one above it: that relative paths are
@@ -187,10 +223,13 @@ def process_specs(
     text: str | None = None,
     start_at_ns: int | None = None,
     override: Callable[[NetworkConfig], NetworkConfig] | None = None,
+    here: bool = False,
 ) -> list[ProcessSpec]:
     """The processes of ``host``'s share, each with its network flags and a shared start.
 
-    ``override`` applies what outranks the deploy file (environment, then flags).
+    ``override`` applies what outranks the deploy file (environment, then flags). ``here``:
+    the share is this machine's (a launch, or its ``--check``), so a router's listen
+    addresses must be this machine's.
     """
     start = start_at_ns if start_at_ns is not None else time.time_ns() + int(START_DELAY_S * 1e9)
     out = []
@@ -212,6 +251,8 @@ def process_specs(
             # A file-wide ``connect`` names the router every process reaches: the router
             # itself does not connect to where it listens (it did, a link to itself).
             net = replace(net, connect=tuple(e for e in net.connect if e not in net.listen))
+            if here:
+                _check_listens_here(spec, net, deployment.path)
             argv = [sys.executable, "-m", "services.cli", "router", *net.to_args()]
         else:
             argv = [

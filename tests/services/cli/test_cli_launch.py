@@ -92,3 +92,33 @@ def test_a_bare_service_token_does_not_stop_a_launch(tmp_path: Path) -> None:
     assert result.returncode == 0, result
     assert "live already" not in result.stderr, result
     assert "does not answer as 'camera'" in result.stderr + result.stdout, result
+
+
+def test_a_host_share_whose_router_cannot_listen_here_fails_check_and_starts_nothing(
+    tmp_path: Path,
+) -> None:
+    # deploy/two-hosts.yaml's robot share on a machine that lacks the robot's address (the
+    # base station, or a file whose hosts.robot.address was changed and the router's listen
+    # was not): --check said "ok" and a launch restarted the router with backoff for ever.
+    # 192.0.2.1 (TEST-NET-1) is no machine's address.
+    deploy = tmp_path / "two.yaml"
+    deploy.write_text(
+        "version: 1\n"
+        "hosts:\n"
+        "  robot: {address: 192.0.2.1}\n"
+        "  base: {address: 192.0.2.2}\n"
+        "services:\n"
+        "  router: {type: router, host: robot, network: {listen: [tcp/192.0.2.1:7447]}}\n"
+        "  mediator: {host: base}\n"
+    )
+    message = (
+        "cannot listen on tcp/192.0.2.1:7447: that address is not one of this machine's "
+        "(is this machine host 'robot'?"
+    )
+    for extra in (("--check",), ("--duration", "5")):
+        result = _launch(str(deploy), "--host", "robot", *extra)
+        assert result.returncode == 1, result
+        assert result.stderr.startswith(f"error: {deploy}: service 'router': {message}"), result
+        assert len(result.stderr.splitlines()) == 1 and "launching" not in result.stdout, result
+    # Each host's share checked in turn (no --host) is not this machine's: the file is valid.
+    assert _launch(str(deploy), "--check").returncode == 0
