@@ -4,7 +4,9 @@ As ``ros2 topic hz``, the headline is the *arrival* rate: how often elements rea
 process, and min/max/std dev are of the intervals between arrivals. Beside it, named, is the
 rate of the elements' *stamps* (the source's clock): the two differ while a recording is
 played at another speed (``play --rate 0.5``: 15 Hz of stamps arrive at 7.5 Hz) or when a
-source falls behind and catches up.
+source falls behind and catches up. A report after an interval in which nothing arrived
+says so (``no new elements``, as ``ros2 topic hz`` says "no new messages") rather than
+repeating the window's rate: a producer that stopped does not read as still producing.
 
 A batch (``put_many``) arrives as one: its elements are taken together and share one
 arrival instant. As ``ros2 topic hz`` counts messages, the arrival rate counts the elements
@@ -92,7 +94,8 @@ def register(subparsers: Any) -> None:
         "As ros2 topic hz, the average rate and min/max/std dev are of arrivals here; "
         "'stamps' is the rate of the elements' timestamps (the source's clock), which "
         "differs during play --rate or when a source catches up. --json prints JSON "
-        "Lines (rate_hz: arrivals, stamp_rate_hz: stamps): one report per interval, the "
+        "Lines (rate_hz: arrivals, stamp_rate_hz: stamps): one report per interval "
+        "(new_elements: how many arrived in it; 0 prints 'no new elements' as text), the "
         "last one with event=summary."
     )
     parser.set_defaults(func=run)
@@ -174,7 +177,12 @@ def _std(values: list[float], mean: float) -> float:
     return math.sqrt(sum((x - mean) ** 2 for x in values) / len(values))
 
 
-def _print_report(stats: dict[str, Any], missed: int) -> None:
+def _print_report(stats: dict[str, Any], missed: int, idle_s: float | None = None) -> None:
+    """One report; ``idle_s``: nothing arrived during the interval, the last that many
+    seconds ago (the window's numbers would describe a stream that has stopped)."""
+    if idle_s is not None:
+        print(f"no new elements (the last arrived {idle_s:.1f} s ago)", flush=True)
+        return
     if stats["rate_hz"] is None:
         print(f"not enough elements yet (window {stats['window']}, missed {missed})", flush=True)
         return
@@ -207,12 +215,21 @@ def run(args: argparse.Namespace) -> int:
         sub = observer(node, args.target, args.queue, args.timeout)
         deadline = None if args.duration is None else time.monotonic() + args.duration
         next_report = time.monotonic() + args.interval
+        new_elements = 0  # arrived since the last report
         try:
             while deadline is None or time.monotonic() < deadline:
                 now = time.monotonic()
                 if now >= next_report:
                     next_report = now + args.interval
-                    _report(args, "report", list(samples), list(arrivals), sub.missed_total)
+                    _report(
+                        args,
+                        "report",
+                        list(samples),
+                        list(arrivals),
+                        sub.missed_total,
+                        new_elements=new_elements,
+                    )
+                    new_elements = 0
                 wait_s = max(0.0, next_report - now)
                 if deadline is not None:
                     wait_s = min(wait_s, max(0.0, deadline - now))
@@ -228,6 +245,7 @@ def run(args: argparse.Namespace) -> int:
                     )
                 if notes:
                     arrivals.append((arrival_ns, samples[-1].seq))
+                    new_elements += len(notes)
         except KeyboardInterrupt:
             pass
         missed = sub.missed_total
@@ -250,9 +268,17 @@ def _report(
     samples: list[Sample],
     arrivals: list[tuple[int, int]],
     missed: int,
+    *,
+    new_elements: int | None = None,
 ) -> None:
+    """Print one report (``new_elements``: arrived during the interval) or the summary."""
     stats = window_stats(samples, arrivals)
+    idle_s = None
+    if new_elements == 0 and arrivals:
+        idle_s = (time.monotonic_ns() - arrivals[-1][0]) / 1e9
     if args.json:
-        print_json_line({"event": event, "target": args.target, "missed": missed, **stats})
+        extra = {} if new_elements is None else {"new_elements": new_elements}
+        line = {"event": event, "target": args.target, "missed": missed, **stats, **extra}
+        print_json_line(line)
     else:
-        _print_report(stats, missed)
+        _print_report(stats, missed, idle_s)
