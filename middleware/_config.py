@@ -80,6 +80,14 @@ def check_name(value: str, what: str) -> str:
     return value
 
 
+def _namespace(value: str, origin: str) -> str:
+    """A namespace from a variable or flag; its error names where it came from."""
+    try:
+        return check_name(value, "namespace")
+    except ConfigError as exc:
+        raise ConfigError(f"{origin}: {exc}") from exc
+
+
 @dataclass(frozen=True, slots=True)
 class NetworkConfig:
     """How a process meets the others.
@@ -130,7 +138,7 @@ class NetworkConfig:
             changes["config_file"] = Path(env["FRAMEGATE_CONFIG"])
             changes["config_origin"] = "FRAMEGATE_CONFIG"
         if env.get("FRAMEGATE_NAMESPACE"):
-            changes["namespace"] = env["FRAMEGATE_NAMESPACE"]
+            changes["namespace"] = _namespace(env["FRAMEGATE_NAMESPACE"], "FRAMEGATE_NAMESPACE")
         if env.get("FRAMEGATE_LOCAL_PORT"):
             changes["local_port"] = _port(env["FRAMEGATE_LOCAL_PORT"], "FRAMEGATE_LOCAL_PORT")
         return replace(self, **changes) if changes else self
@@ -146,7 +154,7 @@ class NetworkConfig:
             changes["config_file"] = Path(args.config)
             changes["config_origin"] = ""
         if getattr(args, "namespace", None):
-            changes["namespace"] = args.namespace
+            changes["namespace"] = _namespace(args.namespace, "--namespace")
         if getattr(args, "no_shm", False):
             changes["shared_memory"] = False
         return replace(self, **changes) if changes else self

@@ -208,3 +208,11 @@ def test_a_link_whose_peer_takes_nothing_closes_after_the_lease() -> None:
     for lease_ms in (1000, 3000):
         [conf] = NetworkConfig(connect=("tcp/10.0.0.2:7447",), lease_ms=lease_ms).zenoh_configs()
         assert json.loads(conf.get_json(key)) == lease_ms * 1000
+
+
+def test_a_bad_namespace_names_the_variable_or_flag_that_set_it() -> None:
+    # FRAMEGATE_NAMESPACE="bad ns" left in a shell said only "bad namespace name 'bad ns'".
+    with pytest.raises(ConfigError, match=r"^FRAMEGATE_NAMESPACE: bad namespace name 'bad ns'"):
+        NetworkConfig().with_env({"FRAMEGATE_NAMESPACE": "bad ns"})
+    with pytest.raises(ConfigError, match=r"^--namespace: bad namespace name 'a/b'"):
+        NetworkConfig().with_args(argparse.Namespace(namespace="a/b"))
