@@ -117,8 +117,8 @@ def duration(text: str) -> float:
 
 def window(text: str) -> float:
     """The measuring window: a finite number of seconds > 0 (every rate is divided by it)."""
-    value = duration(text)
-    if value == 0:
+    value = float(text)
+    if not math.isfinite(value) or value <= 0:  # -5 too: told ">= 0", then 0 was refused
         raise argparse.ArgumentTypeError(f"must be a number of seconds > 0, got {text!r}")
     return value
 

@@ -82,7 +82,7 @@ def test_a_vision_example_stops_on_ctrl_c_with_exit_0_and_no_traceback(
     [
         (["examples/vision_template.py", "--frames", "0"], "argument --frames: must be an integer >= 1"),  # noqa: E501
         (["examples/vision_compare.py", "--seconds", "0"], "argument --seconds: must be a number of seconds > 0"),  # noqa: E501
-        (["examples/vision_compare.py", "--seconds", "-5"], "argument --seconds: must be a number of seconds >= 0"),  # noqa: E501
+        (["examples/vision_compare.py", "--seconds", "-5"], "argument --seconds: must be a number of seconds > 0"),  # noqa: E501
         (["examples/vision_compare.py", "--warmup-s", "nan"], "argument --warmup-s: must be a number of seconds >= 0"),  # noqa: E501
     ],
 )  # fmt: skip
