@@ -17,6 +17,7 @@ from ._decode import MAX_REPLY_BYTES
 from ._errors import ConfigError, NotFoundError, QueryError
 from ._executor import Executor
 from ._info_codec import decode_service_info
+from ._liveliness import live_keys
 from ._records import BufferInfo, ServiceInfo
 from ._service import answering_sessions, offered
 from ._session import zenoh_errors
@@ -69,20 +70,16 @@ class Discovery:
         self._settle()
         service, buffer = split_target(target)
         with zenoh_errors(f"listing the subscriptions of {target}"):
-            replies = self._session.liveliness().get(
-                self.keys.subscription_tokens(service, buffer), timeout=timeout_s
-            )
-            return sum(r.ok is not None for r in replies)
+            keyexpr = self.keys.subscription_tokens(service, buffer)
+            return len(live_keys(self._session, keyexpr, timeout_s=timeout_s))
 
     def live_services(self, *, timeout_s: float = 1.0) -> list[str]:
         """Names of services whose liveliness token is visible now."""
         self._settle()
         prefix = self.keys.service_token("")
         with zenoh_errors("listing live services"):
-            replies = self._session.liveliness().get(
-                self.keys.service_token("*"), timeout=timeout_s
-            )
-            names = [str(r.ok.key_expr)[len(prefix) :] for r in replies if r.ok is not None]
+            keys = live_keys(self._session, self.keys.service_token("*"), timeout_s=timeout_s)
+            names = [key[len(prefix) :] for key in keys]
         return sorted(set(names))
 
     def offered_services(self, names: list[str], *, timeout_s: float = 1.0) -> list[str]:
@@ -102,13 +99,9 @@ class Discovery:
         self._settle()
         found: dict[str, set[str]] = {}
         with zenoh_errors("listing live namespaces"):
-            replies = self._session.liveliness().get(
-                Keys("*").service_token("*"), timeout=timeout_s
-            )
-            for reply in replies:
-                if reply.ok is not None:
-                    namespace, _svc, service = str(reply.ok.key_expr).split("/", 2)
-                    found.setdefault(namespace, set()).add(service)
+            for key in live_keys(self._session, Keys("*").service_token("*"), timeout_s=timeout_s):
+                namespace, _svc, service = key.split("/", 2)
+                found.setdefault(namespace, set()).add(service)
         return {ns: sorted(names) for ns, names in sorted(found.items())}
 
     def connected(self) -> int:

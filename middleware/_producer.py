@@ -35,16 +35,11 @@ from ._executor import BUDGET as _BUDGET
 from ._executor import Executor, Wake, remaining_s
 from ._inbox import ACK_MAX_BYTES, TOKEN_INBOX, AckInbox, TokenInbox, control_inbox_bytes
 from ._ledger_producer import RegistrationKey
+from ._liveliness import live_keys
 from ._protocol_events import Event, Publish, Retire
-from ._protocol_producer import ProducerProtocol
+from ._protocol_producer import RESYNC_TOKENS, ProducerProtocol
 from ._rate import put_rate_hz
-from ._records import (
-    BufferInfo,
-    DataObject,
-    Retention,
-    Rewind,
-    SubscriptionInfo,
-)
+from ._records import BufferInfo, DataObject, Retention, Rewind, SubscriptionInfo
 from ._wire import Keys
 from ._xml import XmlLimits
 
@@ -204,8 +199,8 @@ class Producer:
         if resync:
             live: list[str] = []
             with contextlib.suppress(zenoh.ZError):
-                replies = self._session.liveliness().get(self._token_keys, timeout=1.0)
-                live = [str(r.ok.key_expr) for r in replies if r.ok is not None]
+                keyexpr, limit = self._token_keys, RESYNC_TOKENS  # a peer may declare more
+                live = live_keys(self._session, keyexpr, timeout_s=1.0, limit=limit)
             with self._lock:
                 self._protocol.resync(live, time.monotonic_ns())
         with self._send_lock:

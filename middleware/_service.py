@@ -40,6 +40,7 @@ from ._config import listening_endpoints
 from ._errors import FramegateError, NameTakenError, NotFoundError, QueryError
 from ._inbox import pin_thread_state
 from ._info_codec import decode_instance, encode_service_info
+from ._liveliness import live_keys
 from ._producer import Producer
 from ._records import DataObject, ServiceInfo
 from ._timerange import parse_time_range
@@ -124,7 +125,7 @@ def _instances(
     the tokens came back empty at once in 2 of 20 tries (7 under a flood) while the live
     instance answered, and a second instance started beside it."""
     token = keys.service_token(service)
-    held = any(r.ok is not None for r in session.liveliness().get(token, timeout=_CLAIM_TIMEOUT_S))
+    held = bool(live_keys(session, token, timeout_s=_CLAIM_TIMEOUT_S, limit=1))
     found: list[dict[str, Any]] = []
     for reply in session.get(
         keys.info(service), consolidation=zenoh.ConsolidationMode.NONE, timeout=_CLAIM_TIMEOUT_S
