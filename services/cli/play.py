@@ -30,7 +30,7 @@ from middleware import (
 from services.lib.argtypes import did_you_mean, non_negative_float
 
 from ._common import command_parser, counted, exit_on_sigterm, format_ns, network, recording_input
-from ._target import print_json_line
+from ._target import print_json_line, unreachable
 
 if TYPE_CHECKING:
     from services.tools.bag import Bag, RecordedBuffer
@@ -296,7 +296,13 @@ def run(args: argparse.Namespace) -> int:
             end = format_ns(integrity.end_ns) if integrity.end_ns is not None else "its start"
             print(f"warning: {args.file}: {integrity.describe(end)}", file=sys.stderr, flush=True)
         played = _select(bag, args)
-        _offer(stack, network(args), played, args.keep_all, args.loop)
+        net = network(args)
+        if bad := unreachable(net):
+            # Played anyway (a player may start before its listeners, as `pub` does), but
+            # "offering" alone would say nothing of where it went.
+            message = f"warning: cannot reach {bad}; nobody there gets what is played"
+            print(message, file=sys.stderr, flush=True)
+        _offer(stack, net, played, args.keep_all, args.loop)
         _event(
             args,
             {

@@ -12,7 +12,8 @@ from pathlib import Path
 
 import pytest
 
-from middleware import Node
+from middleware import DataObject, Node, Retention, make_metadata
+from services.tools.bag import BagWriter
 from tests.conftest import REPO, child_env, free_port, run_framegate, start_framegate
 from tests.services.cli.conftest import Cli
 
@@ -238,3 +239,20 @@ def test_a_router_on_an_address_this_machine_lacks_is_one_line_naming_it() -> No
     assert f"cannot listen on {endpoint}: that address is not one of this machine's" in (
         result.stderr
     ), result
+
+
+def test_play_to_a_refused_endpoint_warns_and_plays_anyway(tmp_path: Path) -> None:
+    """As `pub`: "offering ... from FILE" alone hid that the --connect endpoint refused every
+    connection, so nobody there could get what was played."""
+    bag = tmp_path / "one.mcap"
+    with BagWriter(bag) as writer:
+        writer.add_buffer("t", "x", kind="generic", retention=Retention())
+        writer.write("t/x", DataObject(10**9, b"x", make_metadata("generic", 10**9)))
+    endpoint = f"tcp/127.0.0.1:{free_port()}"  # nothing listens there
+    result = _framegate(
+        "play", str(bag), "--exit-when-done", "--connect", endpoint,
+        "--listen", f"tcp/127.0.0.1:{free_port()}",
+    )  # fmt: skip
+    assert result.returncode == 0, result
+    assert f"warning: cannot reach {endpoint} (" in result.stderr, result
+    assert "nobody there gets what is played" in result.stderr, result
