@@ -215,6 +215,27 @@ def _relative_hint(paths: list[str], message: str, deploy_file: Path) -> str:
     return ""
 
 
+def _claim_ports(
+    spec: ServiceSpec, net: NetworkConfig, taken: dict[str, str], deployment: Deployment
+) -> None:
+    """ConfigError when ``spec`` would listen on a fixed port another process of the same
+    share listens on already (``taken``: endpoint -> service): one port takes one process,
+    the rest could never start and would be restarted for ever."""
+    for endpoint in net.listen:
+        if endpoint_parts(endpoint)[2] == "0":  # any free port: one each
+            continue
+        if (first := taken.setdefault(endpoint, spec.name)) == spec.name:
+            continue
+        own = deployment.network_for(spec).listen
+        origin = "" if endpoint in own else " (set by --listen or FRAMEGATE_LISTEN)"
+        raise ConfigError(
+            f"{deployment.path}: services {first!r} and {spec.name!r} would both listen on "
+            f"{endpoint}{origin}: one port takes one process, the others could never start; "
+            "give each its own port, port 0 for any free one, or leave listen out (the "
+            "loopback rendezvous)"
+        )
+
+
 def process_specs(
     deployment: Deployment,
     host: str | None,
@@ -233,6 +254,7 @@ def process_specs(
     """
     start = start_at_ns if start_at_ns is not None else time.time_ns() + int(START_DELAY_S * 1e9)
     out = []
+    listening: dict[str, str] = {}  # fixed endpoint -> the service that listens there
     for spec in deployment.for_host(host):
         with checked_apart():  # the launcher runs no handler: it imports none
             parsed = _check_args(spec, deployment, text)
@@ -266,6 +288,7 @@ def process_specs(
                 *spec.args,
                 *net.to_args(),
             ]
+        _claim_ports(spec, net, listening, deployment)
         out.append(
             ProcessSpec(
                 spec.name,

@@ -122,3 +122,29 @@ def test_a_host_share_whose_router_cannot_listen_here_fails_check_and_starts_not
         assert len(result.stderr.splitlines()) == 1 and "launching" not in result.stdout, result
     # Each host's share checked in turn (no --host) is not this machine's: the file is valid.
     assert _launch(str(deploy), "--check").returncode == 0
+
+
+def test_one_fixed_listen_port_for_several_processes_fails_check(tmp_path: Path) -> None:
+    # `launch deploy/local.yaml --listen tcp/127.0.0.1:P` (or FRAMEGATE_LISTEN, or a
+    # file-wide `network: {listen: ...}`) gave all four services the one port: --check said
+    # "ok", and at the start three of them failed "Address already in use" and were
+    # restarted for ever (a demo showed zeros).
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    message = f"would both listen on {endpoint}"
+    flag = _launch("deploy/local.yaml", "--check", "--listen", endpoint)
+    assert flag.returncode == 1, flag
+    assert flag.stderr.startswith("error: deploy/local.yaml: services 'camera' and 'gyro' "), flag
+    assert message in flag.stderr and "--listen or FRAMEGATE_LISTEN" in flag.stderr, flag
+    assert len(flag.stderr.splitlines()) == 1, flag
+    env = child_env()
+    env["FRAMEGATE_LISTEN"] = endpoint
+    assert message in _launch("deploy/local.yaml", "--check", env=env).stderr
+    deploy = tmp_path / "wide.yaml"
+    deploy.write_text(
+        f"network: {{listen: [{endpoint}]}}\nservices:\n  camera: {{}}\n  gyro: {{}}\n"
+    )
+    in_file = _launch(str(deploy), "--check")
+    assert in_file.returncode == 1 and message in in_file.stderr, in_file
+    assert "--listen or FRAMEGATE_LISTEN" not in in_file.stderr, in_file
+    # Port 0 is any free port, one per process: that is fine.
+    assert _launch("deploy/local.yaml", "--check", "--listen", "tcp/127.0.0.1:0").returncode == 0
