@@ -74,6 +74,37 @@ COMMANDS: dict[str, str] = {
 }
 
 
+# What a ROS 2 user types first, and framegate's command that answers the same question.
+_ROS2_WORDS: dict[str, dict[str, str]] = {
+    "topic": {"list": "ls", "info": "info", "echo": "echo", "hz": "hz", "bw": "hz", "pub": "pub"},
+    "bag": {"record": "record", "play": "play", "info": "info"},
+    "node": {"list": "ls", "info": "ls"},
+}
+
+
+def _ros2_word(words: list[str]) -> str | None:
+    """The one-line hint for ``framegate topic echo ...`` and the like, or None."""
+    if not words:
+        return None
+    first, rest = words[0], words[1:]
+    if first == "help":
+        return "framegate has no 'help' command: framegate --help lists the commands"
+    if first not in _ROS2_WORDS:
+        return None
+    ours = _ROS2_WORDS[first]
+    if rest and rest[0] in ours:
+        return (
+            f"framegate has no {first!r} command: 'ros2 {first} {rest[0]}' is "
+            f"'framegate {ours[rest[0]]}' here (framegate --help lists the commands)"
+        )
+    names = list(dict.fromkeys(ours.values()))
+    listed = ", ".join(names[:-1]) + f" and {names[-1]}" if len(names) > 1 else names[0]
+    return (
+        f"framegate has no {first!r} command: its {listed} answer what "
+        f"'ros2 {first} ...' does (framegate --help lists the commands)"
+    )
+
+
 def _version() -> str:
     """The installed distribution's version, looked up only when asked."""
     from importlib.metadata import PackageNotFoundError, version
@@ -222,6 +253,11 @@ def _main(argv: Sequence[str] | None) -> int:
         print(f"framegate {_version()}")
         return 0
     chosen = next((w for w in words if not w.startswith("-")), None)
+    if chosen is not None and chosen not in COMMANDS:
+        hint = _ros2_word(words[words.index(chosen) :])
+        if hint:
+            print_error(hint)
+            return 1
     parser = build_parser(chosen if chosen in COMMANDS else None)
     try:
         args = parser.parse_args(words)

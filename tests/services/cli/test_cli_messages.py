@@ -86,6 +86,27 @@ def test_mistakes_are_one_line_with_exit_1(args: tuple[str, ...], expected: str)
     assert "Traceback" not in result.stderr
 
 
+@pytest.mark.parametrize(
+    ("args", "expected"),
+    [
+        (("topic", "echo", "camera/images"), "'ros2 topic echo' is 'framegate echo' here"),
+        (("topic", "list"), "'ros2 topic list' is 'framegate ls' here"),
+        (("topic", "bw", "camera/images"), "'ros2 topic bw' is 'framegate hz' here"),
+        (("bag", "record", "-a"), "'ros2 bag record' is 'framegate record' here"),
+        (("node", "list"), "'ros2 node list' is 'framegate ls' here"),
+        (("topic",), "framegate has no 'topic' command: its ls, info, echo, hz and pub"),
+        (("help",), "framegate has no 'help' command: framegate --help lists the commands"),
+    ],
+)  # fmt: skip
+def test_a_ros2_command_gets_framegates_own_name(args: tuple[str, ...], expected: str) -> None:
+    # A ROS 2 user's first try (`framegate topic echo ...`) listed twenty commands and left
+    # them to guess which one answers `ros2 topic echo`.
+    result = _framegate(*args)
+    assert result.returncode == 1, result
+    assert result.stderr.count("\n") == 1 and result.stderr.startswith("error: "), result
+    assert expected in result.stderr, result.stderr
+
+
 def test_an_endpoint_without_a_port_is_named_with_exit_1() -> None:
     result = _framegate("ls", "--connect", "tcp/abc")
     assert result.returncode == 1, result
