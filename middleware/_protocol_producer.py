@@ -203,9 +203,11 @@ class ProducerProtocol:
     def resync(self, live_tokens: list[str], now_ns: int) -> None:
         """The tokens live now (a liveliness query's answer, at most ``RESYNC_TOKENS`` of
         them read): registrations without a live token go, live tokens not registered are
-        judged as if they had just appeared."""
+        judged as if they had just appeared. An answer of ``RESYNC_TOKENS`` or more may
+        have left a live token out (a peer can declare any number): then nothing goes."""
         self._resync_at_ns = None
         self._resynced_ns = now_ns
+        complete = len(live_tokens) < RESYNC_TOKENS
         live: dict[RegistrationKey, str] = {}
         for keyexpr in live_tokens[:RESYNC_TOKENS]:
             try:
@@ -214,7 +216,7 @@ class ProducerProtocol:
                 continue
             live[RegistrationKey(*parsed[:4])] = keyexpr
         for reg in self._ledger.registrations():
-            if reg.key not in live:
+            if complete and reg.key not in live:
                 self._ledger.token_delete(reg.key)
                 self._forget(reg.key)
                 self._events.append(Retire(reg.key))

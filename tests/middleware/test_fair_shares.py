@@ -14,6 +14,7 @@ from middleware._protocol_producer import (
     LARGE_PUSH_TOTAL,
     MAX_OBSERVE_REGISTRATIONS,
     QUEUE_BUDGET,
+    RESYNC_TOKENS,
     ProducerProtocol,
 )
 from middleware._records import DataObject, SubscriptionMode
@@ -132,6 +133,23 @@ def test_a_resync_after_lost_token_events_repairs_the_table() -> None:
     producer.resync([_token(live, "mediator~x")], 0)
     assert [r.key for r in producer.registrations()] == [live]
     assert producer.full() is None and not producer.resync_due(0)
+
+
+def test_a_resync_answer_cut_short_by_a_crowd_of_tokens_removes_no_registration() -> None:
+    """A peer can declare more subscription tokens than a resync reads: a live subscriber
+    left out of the answer lost its registration (and the elements it was owed)."""
+    producer = _producer()
+    real = RegistrationKey("real", FLOW, 2, -1)
+    producer.token(_token(real, "mediator~x"), True, 0)
+    crowd = [
+        _token(RegistrationKey(f"c{i}", OBSERVE, 2, -1), "crowd~x") for i in range(RESYNC_TOKENS)
+    ]
+    producer.tokens_lost(0)
+    producer.resync(crowd, 0)
+    assert producer.get(real) is not None
+    producer.tokens_lost(0)
+    producer.resync(crowd[:-1], 0)  # a whole answer without it: it is gone
+    assert producer.get(real) is None
 
 
 def test_a_token_whose_id_or_holder_no_client_could_read_is_ignored_and_counted() -> None:
