@@ -40,7 +40,7 @@ from ._config import (
     listening_endpoints,
     network_from_args,
 )
-from ._decode import printable
+from ._decode import listing, printable
 from ._discovery import split_target
 from ._errors import (
     EXIT_NAME_TAKEN,
@@ -122,6 +122,7 @@ __all__ = [
     "endpoint_parts",
     "field_text",
     "listening_endpoints",
+    "listing",
     "make_metadata",
     "network_from_args",
     "now_ns",

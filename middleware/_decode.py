@@ -120,6 +120,21 @@ def printable(text: str, limit: int = MAX_TEXT) -> str:
     return _UNPRINTABLE.sub(lambda m: repr(m.group())[1:-1], clipped)
 
 
+# Names a message lists at most (any peer can add live services: 300 tokens made one
+# "live services: ..." line of 300 names; 65,536 of 1,024 characters would be 64 MiB).
+LISTED_NAMES = 20
+
+
+def listing(names: list[str], most: int = LISTED_NAMES) -> str:
+    """``names`` for one line of a message: at most ``most`` of them, each printable and
+    cut short, then how many more; ``none`` if there are none."""
+    if not names:
+        return "none"
+    shown = ", ".join(printable(name, 64) for name in names[:most])
+    rest = len(names) - most
+    return shown + (f" and {rest} more" if rest > 0 else "")
+
+
 def _short(value: int) -> str:
     text = str(value)
     return text if len(text) <= 24 else f"{text[:12]}...({len(text)} digits)"

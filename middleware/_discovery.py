@@ -13,7 +13,7 @@ import zenoh
 
 from ._clock import now_ns
 from ._config import NetworkConfig, check_name
-from ._decode import MAX_REPLY_BYTES
+from ._decode import MAX_REPLY_BYTES, listing
 from ._errors import ConfigError, NotFoundError, QueryError
 from ._executor import Executor
 from ._info_codec import decode_service_info
@@ -128,10 +128,9 @@ class Discovery:
         if service not in live:
             hint = difflib.get_close_matches(service, live, n=1)
             did_you_mean = f" (did you mean {hint[0]!r}?)" if hint else ""
-            listing = ", ".join(live) if live else "none"
             raise NotFoundError(
-                f"no live service named {service!r}{did_you_mean}; live services: {listing}"
-                + advice
+                f"no live service named {service!r}{did_you_mean}; "
+                f"live services: {listing(live)}" + advice
             )
 
     def services(

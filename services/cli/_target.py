@@ -26,6 +26,7 @@ from middleware import (
     Subscription,
     SubscriptionMode,
     endpoint_parts,
+    listing,
     split_target,
 )
 from services.lib.argtypes import did_you_mean, positive_float
@@ -163,7 +164,7 @@ def wait_for_service(node: Node, service: str, timeout_s: float) -> None:
         )
     raise NotFoundError(
         f"no live service named {service!r}{did_you_mean(service, live, quote=True)}; "
-        f"live services: {', '.join(live)}"
+        f"live services: {listing(live)}"
     )
 
 

@@ -13,7 +13,7 @@ from typing import TypeVar
 import pytest
 import zenoh
 
-from middleware import NetworkConfig, Node, make_metadata
+from middleware import NetworkConfig, Node, NotFoundError, make_metadata
 from tests.conftest import wait_until
 from tests.helpers.raw_zenoh import open_session
 from tests.helpers.timing import scaled
@@ -102,3 +102,15 @@ def test_live_keys_keeps_at_most_its_limit(endpoint: str) -> None:
         )
         assert len(live_keys(session, "x/*", timeout_s=scaled(2), limit=7)) == 7
         assert isinstance(session, zenoh.Session)
+
+
+def test_a_crowd_of_service_tokens_makes_no_endless_error_line(
+    listen_net: NetworkConfig, endpoint: str
+) -> None:
+    """A misspelt name beside 300 services a peer made up: the error names 20 of them and
+    how many more (it listed all 300; 65,536 of 1,024 characters would be 64 MiB)."""
+    with Node("real", listen_net) as service, _crowd(endpoint, "framegate/@svc/crowd"):
+        wait_until(lambda: _seen(service, f"crowd{CROWD - 1:04d}"), 30, "the crowd")
+        with pytest.raises(NotFoundError, match=r"crowd0019 and \d+ more") as caught:
+            service.subscribe("nosuch/b", wait_s=0.1)
+        assert len(str(caught.value)) < 1_000

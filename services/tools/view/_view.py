@@ -23,6 +23,7 @@ from middleware import (
     NotFoundError,
     ServiceInfo,
     check_name,
+    listing,
     split_target,
 )
 from services.lib.argtypes import did_you_mean
@@ -71,7 +72,7 @@ def _missing(target: str, services: list[ServiceInfo]) -> str | None:
         live = sorted(by_name)
         return (
             f"no live service named {service!r}{did_you_mean(service, live, quote=True)}; "
-            f"live services: {', '.join(live) or 'none'}"
+            f"live services: {listing(live)}"
         )
     offered = [b.buffer for b in by_name[service].buffers]
     if buffer is None or buffer in offered:
