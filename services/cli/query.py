@@ -277,17 +277,12 @@ def _save_all(directory: Path, elements: list[DataObject], force: bool) -> dict[
 
 
 def _png(payload: bytes, layout: Any) -> bytes:
+    """The frame as a lossless PNG: gray, colour or colour with alpha as it came."""
     import cv2  # imported here: OpenCV is slow to load and only PNGs need it
-    import numpy as np
 
-    pixels = np.frombuffer(payload, dtype=np.uint8)
-    image: Any
-    if layout.channels == 1:
-        image = pixels.reshape(layout.height_px, layout.width_px)
-    else:
-        image = pixels.reshape(layout.height_px, layout.width_px, layout.channels)
-        if layout.encoding == "rgb8":
-            image = image[:, :, ::-1]  # OpenCV writes BGR
+    from services.lib.frame_pixels import frame_array, opencv_order
+
+    image = opencv_order(frame_array(payload, layout), layout.encoding)  # OpenCV writes BGR(A)
     ok, encoded = cv2.imencode(".png", image)
     if not ok:
         raise OutputError("cannot encode a frame as PNG: OpenCV refused the image")

@@ -11,8 +11,9 @@ from dataclasses import dataclass
 
 from middleware import FramegateError, SchemaError, field_text, parse_untrusted
 
-# Bytes per pixel of the raw encodings frame.xsd allows.
-FRAME_CHANNELS = {"mono8": 1, "bgr8": 3, "rgb8": 3}
+# Channels per pixel of the raw encodings frame.xsd allows (the ROS 2 sensor_msgs names):
+# bgra8/rgba8 are colour with alpha (a ZED camera publishes bgra8), row-major, no padding.
+FRAME_CHANNELS = {"mono8": 1, "bgr8": 3, "rgb8": 3, "bgra8": 4, "rgba8": 4}
 
 
 class FrameError(SchemaError):

@@ -13,6 +13,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from services.lib.frame_pixels import gray8
+
 __all__ = [
     "BOARD_HEIGHT_M",
     "BOARD_MARKERS",
@@ -106,13 +108,17 @@ def _detector() -> cv2.aruco.ArucoDetector:
     return detector
 
 
-def detect_markers(image: np.ndarray) -> list[MarkerDetection]:
-    """Decode the ArUco markers in a mono8 (or bgr8) image, sorted by id.
+def detect_markers(image: np.ndarray, encoding: str | None = None) -> list[MarkerDetection]:
+    """Decode the ArUco markers in an image of a frame, sorted by id.
+
+    ``encoding`` is the frame's (any of ``FRAME_CHANNELS``): the detector reads one 8-bit
+    channel, made from the colours by ``gray8`` with the channel order the encoding names
+    (alpha is ignored). None reads a 2-D array as mono8, 3 channels as bgr8, 4 as bgra8.
 
     Default OpenCV detector parameters: the point is to measure how blur affects an
     ordinary detector, not to tune one.
     """
-    gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    gray = gray8(image, encoding)
     corners, ids, _rejected = _detector().detectMarkers(gray)
     if ids is None:
         return []

@@ -15,7 +15,8 @@ import numpy.typing as npt
 
 from middleware import field_text, make_metadata, validate_metadata
 from services.lib.camera_model import CameraModel
-from services.lib.frame_layout import FRAME_CHANNELS, FrameError, FrameLayout
+from services.lib.frame_layout import FrameError, FrameLayout
+from services.lib.frame_pixels import frame_array
 from services.lib.quality import Exposure, GyroSamples
 
 
@@ -38,8 +39,9 @@ def frame_metadata(
     image: npt.NDArray[np.uint8],
     camera: CameraModel | None,
 ) -> bytes:
-    """``frame`` metadata for an image exposed over ``exposure`` (key = exposure start)."""
-    encoding = "mono8" if image.ndim == 2 else "bgr8"
+    """``frame`` metadata for an image exposed over ``exposure`` (key = exposure start); an
+    OpenCV image, so its channels are gray, BGR or BGRA."""
+    encoding = "mono8" if image.ndim == 2 else "bgra8" if image.shape[2] == 4 else "bgr8"
     height, width = int(image.shape[0]), int(image.shape[1])
     return frame_metadata_of(frame_id, exposure, encoding, width, height, camera)
 
@@ -114,9 +116,8 @@ def decode_image(payload: bytes, meta: FrameMeta) -> npt.NDArray[np.uint8]:
     """The image as a read-only array view of the payload (no copy); FrameError if the
     payload does not hold the frame its metadata describes."""
     check_frame(meta, len(payload))
-    channels = FRAME_CHANNELS[meta.encoding]
-    shape = (meta.height_px, meta.width_px) if channels == 1 else (meta.height_px, meta.width_px, 3)
-    return np.frombuffer(payload, dtype=np.uint8).reshape(shape)
+    layout = FrameLayout(meta.encoding, meta.width_px, meta.height_px)
+    return frame_array(payload, layout)  # (h, w) for one channel, else (h, w, channels)
 
 
 def gyro_metadata(samples: GyroSamples) -> bytes:

@@ -60,7 +60,7 @@ class DetectorConfig(RunnerConfig):
 def detect_aruco(image: Image, frame: FrameMeta) -> list[Box]:
     """The marker detector as a vision handler: each ArUco marker found is a Box labelled
     with its id (``framegate run vision --handler services.nodes.detector:detect_aruco``)."""
-    return [Box(d.marker_id, d.corners_px) for d in detect_markers(image)]
+    return [Box(d.marker_id, d.corners_px) for d in detect_markers(image, frame.encoding)]
 
 
 def run(config: DetectorConfig, network: NetworkConfig, stop: threading.Event | None = None) -> int:

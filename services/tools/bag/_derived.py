@@ -364,14 +364,13 @@ def jpeg_image(
     element: DataObject, layout: FrameLayout, frame_id: str, quality: int
 ) -> CompressedImage:
     import cv2  # only --jpeg needs OpenCV
-    import numpy as np
     from foxglove.messages import CompressedImage
 
-    channels = layout.channels
-    shape = (layout.height_px, layout.width_px) + ((channels,) if channels > 1 else ())
-    image = np.frombuffer(element.payload, dtype=np.uint8).reshape(shape)
-    # OpenCV writes BGR; an rgb8 frame is swapped first.
-    bgr = cv2.cvtColor(image, cv2.COLOR_RGB2BGR) if layout.encoding == "rgb8" else image
+    from services.lib.frame_pixels import bgr8, frame_array
+
+    # OpenCV writes gray or BGR, and a JPEG has no alpha: an rgb8 frame is swapped first,
+    # a bgra8 or rgba8 frame loses its alpha.
+    bgr = bgr8(frame_array(element.payload, layout), layout.encoding)
     ok, encoded = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, quality])
     if not ok:
         raise BagError(f"frame {element.timestamp_ns}: OpenCV could not encode it as JPEG")

@@ -356,3 +356,29 @@ def test_play_loop_keep_all_keeps_one_pass_not_every_pass() -> None:
     assert (looped.max_count, looped.max_bytes, looped.max_age_ns) == (77, None, None)
     unknown = replace(recorded, count=0)  # a damaged file without its statistics
     assert _retention(unknown, keep_all=True, loop=True) == recorded.retention
+
+
+@pytest.mark.parametrize("encoding", ["bgr8", "rgb8", "bgra8", "rgba8"])
+def test_query_save_writes_colour_frames_as_png_with_their_alpha(
+    tmp_path: Path, encoding: str
+) -> None:
+    import cv2
+    import numpy as np
+
+    from services.lib.messages import frame_metadata_of
+    from services.lib.quality import Exposure
+
+    bgra = np.zeros((3, 4, 4), np.uint8)
+    bgra[..., 0], bgra[..., 2], bgra[..., 3] = 200, 30, np.arange(12).reshape(3, 4)
+    image = {
+        "bgr8": bgra[..., :3],
+        "rgb8": bgra[..., 2::-1],
+        "bgra8": bgra,
+        "rgba8": bgra[..., [2, 1, 0, 3]],
+    }[encoding]
+    metadata = frame_metadata_of(1, Exposure(5, 2), encoding, 4, 3, None)
+    element = DataObject(5, np.ascontiguousarray(image).tobytes(), metadata)
+    saved = query._save_all(tmp_path, [element], force=False)
+    assert saved == {5: [str(tmp_path / "5.png"), str(tmp_path / "5.xml")]}
+    read = cv2.imread(str(tmp_path / "5.png"), cv2.IMREAD_UNCHANGED)
+    assert read.tolist() == (bgra if "a8" in encoding else bgra[..., :3]).tolist()

@@ -17,9 +17,9 @@ import pytest
 import zenoh
 
 from middleware import DataObject, NetworkConfig, Node, Producer
-from services.lib.frame_layout import FrameError
+from services.lib.frame_layout import FrameError, read_frame_layout
 from services.nodes.ros2._bridge import ImagesIn, ImuIn, _Skips, stop_summary
-from services.nodes.ros2._cdr import IMAGE, IMU, Codec
+from services.nodes.ros2._cdr import CHANNELS, IMAGE, IMU, Codec
 from services.nodes.ros2._config import Ros2Config
 from services.nodes.ros2._rmw import HUMBLE_TYPE_HASH, EntityKind, NodeIdentity, Qos
 from tests.conftest import REPO, child_env, free_port, wait_until
@@ -46,7 +46,7 @@ def consumer(connect_net: NetworkConfig) -> Iterator[Node]:
 
 
 def _image(codec: Codec, stamp_ns: int, encoding: str = "mono8") -> bytes:
-    channels = 3 if encoding != "mono8" else 1
+    channels = CHANNELS[encoding]
     pixels = (np.arange(W * H * channels) % 251).astype(np.uint8).tobytes()
     return bytes(codec.encode_image(stamp_ns, "cam", W, H, encoding, pixels))
 
@@ -145,6 +145,21 @@ def test_padded_rows_are_stored_without_padding(node: Node, consumer: Node, code
     [element] = _query(consumer, "ros2/images")
     assert element.timestamp_ns == now
     assert element.payload == rows[:, :W].tobytes()
+
+
+@pytest.mark.parametrize("encoding", ["bgra8", "rgba8"])
+def test_a_four_channel_image_is_stored_as_a_frame_of_its_encoding(
+    node: Node, consumer: Node, codec: Codec, encoding: str
+) -> None:
+    skips = _Skips(logging.getLogger())
+    images = ImagesIn(node, codec, Ros2Config(image_in="/zed/left"), skips)
+    now = time.time_ns()
+    raw = _image(codec, now, encoding)
+    images.handle(raw, 1)
+    assert skips.counts == {}
+    [element] = _query(consumer, "ros2/images")
+    assert element.payload == codec.decode_image(raw).pixels() and len(element.payload) == W * H * 4
+    assert read_frame_layout(element.metadata, len(element.payload)).encoding == encoding
 
 
 def test_stamp_at_exposure_end_keys_by_exposure_start(

@@ -13,7 +13,7 @@ from middleware import ConfigError, DataObject
 from services.lib.messages import frame_metadata_of
 from services.lib.quality import Exposure
 from services.nodes.ros2._bridge import Encoders
-from services.nodes.ros2._cdr import DETECTIONS, IMAGE, STRING, CdrError, Codec
+from services.nodes.ros2._cdr import CHANNELS, DETECTIONS, IMAGE, STRING, CdrError, Codec
 from services.nodes.ros2._config import Ros2Config
 
 
@@ -38,6 +38,44 @@ def test_image_round_trip_keeps_pixels_and_stamp(codec: Codec) -> None:
     assert message.data.tobytes() == pixels
 
 
+@pytest.mark.parametrize(("encoding", "bytes_per_pixel"), [("bgra8", 4), ("rgba8", 4)])
+def test_a_four_channel_image_round_trips_through_the_bridge_and_back(
+    codec: Codec, encoding: str, bytes_per_pixel: int
+) -> None:
+    """In: a ROS 2 image with padded rows becomes the frame's unpadded pixels; out: the
+    frame becomes an image of the same encoding whose step is width x bytes per pixel."""
+    width, height, step = 5, 3, 5 * bytes_per_pixel + 4
+    rows = (np.arange(height * step) % 251).astype(np.uint8).reshape(height, step)
+    types = codec.store.types
+    padded = types[IMAGE](
+        header=types["std_msgs/msg/Header"](
+            stamp=types["builtin_interfaces/msg/Time"](sec=1_700_000_000, nanosec=5),
+            frame_id="zed_left",
+        ),
+        height=height,
+        width=width,
+        encoding=encoding,
+        is_bigendian=0,
+        step=step,
+        data=rows.reshape(-1),
+    )
+    image = codec.decode_image(bytes(codec.store.serialize_cdr(padded, IMAGE)))
+    pixels = image.pixels()
+    assert pixels == rows[:, : width * bytes_per_pixel].tobytes()
+    now = 1_700_000_000_000_000_005
+    element = DataObject(
+        now, pixels, frame_metadata_of(1, Exposure(now, 5), encoding, width, height, None)
+    )
+    out = codec.decode(bytes(Encoders(codec, Ros2Config()).image(element)), IMAGE)
+    assert (out.encoding, out.width, out.height, out.step) == (
+        encoding,
+        width,
+        height,
+        width * bytes_per_pixel,
+    )
+    assert out.is_bigendian == 0 and out.data.tobytes() == pixels
+
+
 def _rosbags_image(
     codec: Codec, t_ns: int, frame_id: str, width: int, height: int, encoding: str, pixels: bytes
 ) -> bytes:
@@ -50,17 +88,19 @@ def _rosbags_image(
         width=width,
         encoding=encoding,
         is_bigendian=0,
-        step=width * (1 if encoding == "mono8" else 3),
+        step=width * CHANNELS[encoding],
         data=np.frombuffer(pixels, dtype=np.uint8),
     )
     return bytes(codec.store.serialize_cdr(message, IMAGE))
 
 
-@pytest.mark.parametrize(("width", "encoding"), [(64, "mono8"), (5, "rgb8"), (3, "bgr8")])
+@pytest.mark.parametrize(
+    ("width", "encoding"), [(64, "mono8"), (5, "rgb8"), (3, "bgr8"), (5, "bgra8"), (3, "rgba8")]
+)
 def test_image_encoding_is_byte_for_byte_rosbags_own(
     codec: Codec, width: int, encoding: str
 ) -> None:
-    channels = 1 if encoding == "mono8" else 3
+    channels = CHANNELS[encoding]
     pixels = (np.arange(width * 7 * channels) % 253).astype(np.uint8).tobytes()
     for frame_id in ("", "cam", "camera_optical_frame"):  # every alignment of the tail
         ours = codec.encode_image(1_234_567_890_123, frame_id, width, 7, encoding, pixels)
