@@ -30,7 +30,7 @@ import numpy as np
 import numpy.typing as npt
 
 from services.lib.quality import Exposure
-from services.lib.vision import Box, FrameMeta
+from services.lib.vision import Box, FrameMeta, gray8
 
 MARKER_ID = 0
 # Marker sides tried, in pixels (with its white margin): from far away to close up.
@@ -58,7 +58,7 @@ TEMPLATES = _templates()
 
 def find_marker(image: npt.NDArray[np.uint8], frame: FrameMeta) -> list[Box]:
     """The best match of the marker over all sizes, as one box (or none below MIN_SCORE)."""
-    gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    gray = gray8(image, frame.encoding)  # whatever the camera sends: mono, BGR, RGBA...
     best: tuple[float, int, int, int] | None = None
     for side, template in TEMPLATES:
         if side > min(gray.shape):

@@ -5,6 +5,8 @@ A handler is any callable ``handler(image, frame) -> result``:
 - ``image``: the frame as a read-only NumPy ``uint8`` array, ``(height, width)`` for mono8,
   ``(height, width, 3)`` for bgr8/rgb8, ``(height, width, 4)`` for bgra8/rgba8, channels in
   the order the encoding names (``frame.encoding``; copy it before changing it);
+  :func:`gray8` ``(image, frame.encoding)`` makes one 8-bit channel of any of them, as the
+  marker detector reads it;
 - ``frame``: a :class:`FrameMeta`, everything the frame's metadata carries (``timestamp_ns``
   = exposure start, ``frame_id``, ``exposure``, ``encoding``, ``width_px``, ``height_px``,
   ``camera``: the intrinsics and IMU rotation when the camera sent them).
@@ -36,9 +38,10 @@ from typing import Any
 import numpy as np
 
 from middleware import SchemaError, XmlLimits, make_metadata
+from services.lib.frame_pixels import gray8
 from services.lib.messages import FrameMeta, detections_metadata
 
-__all__ = ["Box", "FrameMeta", "Output", "ResultKind", "encode_result", "plain_result"]
+__all__ = ["Box", "FrameMeta", "Output", "ResultKind", "encode_result", "gray8", "plain_result"]
 
 # The most boxes one frame's element holds (detections.xsd says the same).
 MAX_BOXES = 1000

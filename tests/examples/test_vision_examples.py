@@ -7,6 +7,7 @@ import signal
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from tests.conftest import REPO, child_env, start_python
@@ -95,3 +96,16 @@ def test_a_vision_example_refuses_a_flag_value_it_cannot_use_as_parsed(
     assert result.returncode == 2, result  # argparse's own usage error
     assert "Traceback" not in result.stderr and expected in result.stderr, result
     assert "started the pipeline" not in result.stdout, result
+
+
+def test_the_template_example_finds_its_marker_in_a_bgra8_frame() -> None:
+    from examples.vision_template import TEMPLATES, find_marker
+    from services.lib.quality import Exposure
+    from services.lib.vision import FrameMeta
+
+    side, template = TEMPLATES[2]
+    gray = np.full((240, 320), 170, np.uint8)
+    gray[50 : 50 + side, 80 : 80 + side] = template
+    bgra = np.dstack([gray, gray, gray, np.zeros_like(gray)])
+    [box] = find_marker(bgra, FrameMeta(0, 0, Exposure(0, 1), "bgra8", 320, 240, None))
+    assert box.label == 0 and box.corners_px[0][0] == pytest.approx(80 + side / 8, abs=1)

@@ -8,7 +8,7 @@ import pytest
 from middleware import SchemaError, validate_metadata
 from services.lib.messages import frame_metadata, read_detections, read_frame_metadata
 from services.lib.quality import Exposure
-from services.lib.vision import Box, Output, ResultKind, encode_result
+from services.lib.vision import Box, Output, ResultKind, encode_result, gray8
 
 
 class _Unprintable:
@@ -132,3 +132,9 @@ def test_a_bad_box_is_refused_where_it_is_made(
 ) -> None:
     with pytest.raises(SchemaError, match=match):
         Box(label, corners, score)
+
+
+def test_a_handler_gets_gray_from_any_encoding_through_the_vision_module() -> None:
+    rgba = np.array([[[255, 0, 0, 0]]], np.uint8)  # red, transparent
+    assert gray8(rgba, "rgba8").tolist() == [[76]]
+    assert gray8(rgba[..., :3], "rgb8").tolist() == [[76]]
