@@ -56,9 +56,9 @@ def _templates() -> list[tuple[int, npt.NDArray[np.uint8]]]:
 TEMPLATES = _templates()
 
 
-def find_marker(image: npt.NDArray[np.uint8], frame: FrameMeta) -> list[Box]:
+def find_marker(image: np.ndarray, frame: FrameMeta) -> list[Box]:
     """The best match of the marker over all sizes, as one box (or none below MIN_SCORE)."""
-    gray = gray8(image, frame.encoding)  # whatever the camera sends: mono, BGR, RGBA...
+    gray = gray8(image, frame.encoding)  # whatever the camera sends: mono8/16, BGR, RGBA...
     best: tuple[float, int, int, int] | None = None
     for side, template in TEMPLATES:
         if side > min(gray.shape):

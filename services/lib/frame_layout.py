@@ -1,5 +1,5 @@
-"""A raw frame's layout: its encoding's channels and the payload size it makes, the one
-place that says how many bytes a ``frame`` element's payload must hold.
+"""A raw frame's layout: its encoding's channels, their bytes and the payload size they
+make, the one place that says how many bytes a ``frame`` element's payload must hold.
 
 Light on purpose (no NumPy): ``record`` and ``query --save`` read layouts before anything
 else is imported, and the ROS 2 bridge checks every frame it publishes with it.
@@ -13,7 +13,12 @@ from middleware import FramegateError, SchemaError, field_text, parse_untrusted
 
 # Channels per pixel of the raw encodings frame.xsd allows (the ROS 2 sensor_msgs names):
 # bgra8/rgba8 are colour with alpha (a ZED camera publishes bgra8), row-major, no padding.
-FRAME_CHANNELS = {"mono8": 1, "bgr8": 3, "rgb8": 3, "bgra8": 4, "rgba8": 4}
+FRAME_CHANNELS = {"mono8": 1, "mono16": 1, "bgr8": 3, "rgb8": 3, "bgra8": 4, "rgba8": 4}
+# Bytes per channel: mono16 (16-bit mono or IR cameras) has 2, little-endian always, as a
+# ROS 2 image with is_bigendian=0 has them (the bridge swaps a big-endian one's bytes).
+FRAME_SAMPLE_BYTES = {"mono8": 1, "mono16": 2, "bgr8": 1, "rgb8": 1, "bgra8": 1, "rgba8": 1}
+# Bytes per pixel, what a row and a payload are counted in.
+FRAME_BYTES_PER_PIXEL = {e: n * FRAME_SAMPLE_BYTES[e] for e, n in FRAME_CHANNELS.items()}
 
 
 class FrameError(SchemaError):
@@ -40,9 +45,14 @@ class FrameLayout:
         return FRAME_CHANNELS[self.encoding]
 
     @property
+    def bytes_per_pixel(self) -> int:
+        """Channels times the bytes of one (2 for mono16, else 1)."""
+        return FRAME_BYTES_PER_PIXEL[self.encoding]
+
+    @property
     def step_bytes(self) -> int:
         """Bytes per row."""
-        return self.width_px * self.channels
+        return self.width_px * self.bytes_per_pixel
 
     @property
     def size_bytes(self) -> int:

@@ -112,8 +112,10 @@ def detect_markers(image: np.ndarray, encoding: str | None = None) -> list[Marke
     """Decode the ArUco markers in an image of a frame, sorted by id.
 
     ``encoding`` is the frame's (any of ``FRAME_CHANNELS``): the detector reads one 8-bit
-    channel, made from the colours by ``gray8`` with the channel order the encoding names
-    (alpha is ignored). None reads a 2-D array as mono8, 3 channels as bgr8, 4 as bgra8.
+    channel, made by ``gray8`` from the colours in the order the encoding names (alpha is
+    ignored) or from mono16 scaled by the frame's brightest pixel (``frame_pixels`` says
+    why not ``>> 8``). None reads a 2-D array as mono8 (mono16 if it is uint16), 3
+    channels as bgr8, 4 as bgra8.
 
     Default OpenCV detector parameters: the point is to measure how blur affects an
     ordinary detector, not to tune one.

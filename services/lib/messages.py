@@ -36,12 +36,15 @@ class FrameMeta:
 def frame_metadata(
     frame_id: int,
     exposure: Exposure,
-    image: npt.NDArray[np.uint8],
+    image: npt.NDArray[np.uint8] | npt.NDArray[np.uint16],
     camera: CameraModel | None,
 ) -> bytes:
     """``frame`` metadata for an image exposed over ``exposure`` (key = exposure start); an
-    OpenCV image, so its channels are gray, BGR or BGRA."""
-    encoding = "mono8" if image.ndim == 2 else "bgra8" if image.shape[2] == 4 else "bgr8"
+    OpenCV image, so its channels are gray (8 or 16 bits), BGR or BGRA."""
+    if image.ndim == 2:
+        encoding = "mono16" if image.dtype == np.uint16 else "mono8"
+    else:
+        encoding = "bgra8" if image.shape[2] == 4 else "bgr8"
     height, width = int(image.shape[0]), int(image.shape[1])
     return frame_metadata_of(frame_id, exposure, encoding, width, height, camera)
 
@@ -112,7 +115,7 @@ def check_frame(meta: FrameMeta, payload_bytes: int) -> None:
     layout.check_payload(payload_bytes, f"frame {meta.frame_id}")
 
 
-def decode_image(payload: bytes, meta: FrameMeta) -> npt.NDArray[np.uint8]:
+def decode_image(payload: bytes, meta: FrameMeta) -> npt.NDArray[np.uint8] | npt.NDArray[np.uint16]:
     """The image as a read-only array view of the payload (no copy); FrameError if the
     payload does not hold the frame its metadata describes."""
     check_frame(meta, len(payload))

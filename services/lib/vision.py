@@ -4,9 +4,10 @@ A handler is any callable ``handler(image, frame) -> result``:
 
 - ``image``: the frame as a read-only NumPy ``uint8`` array, ``(height, width)`` for mono8,
   ``(height, width, 3)`` for bgr8/rgb8, ``(height, width, 4)`` for bgra8/rgba8, channels in
-  the order the encoding names (``frame.encoding``; copy it before changing it);
-  :func:`gray8` ``(image, frame.encoding)`` makes one 8-bit channel of any of them, as the
-  marker detector reads it;
+  the order the encoding names (``frame.encoding``); a ``uint16`` array ``(height, width)``
+  for mono16 (copy it before changing it). :func:`gray8` ``(image, frame.encoding)`` makes
+  one 8-bit channel of any of them, as the marker detector reads it (mono16 scaled so that
+  the frame's brightest pixel is 255);
 - ``frame``: a :class:`FrameMeta`, everything the frame's metadata carries (``timestamp_ns``
   = exposure start, ``frame_id``, ``exposure``, ``encoding``, ``width_px``, ``height_px``,
   ``camera``: the intrinsics and IMU rotation when the camera sent them).

@@ -32,7 +32,8 @@ from middleware import ConfigError
 from services.lib.argtypes import closest, did_you_mean
 from services.lib.vision import FrameMeta, Output, ResultKind
 
-Image = npt.NDArray[np.uint8]
+# What a handler gets (``services.lib.vision`` says which shape for which encoding).
+Image = npt.NDArray[np.uint8] | npt.NDArray[np.uint16]
 Handler = Callable[[Image, FrameMeta], object]
 
 

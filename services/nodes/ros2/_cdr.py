@@ -21,7 +21,7 @@ import numpy.typing as npt
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from middleware import ConfigError
-from services.lib.frame_layout import FRAME_CHANNELS
+from services.lib.frame_layout import FRAME_BYTES_PER_PIXEL, FRAME_SAMPLE_BYTES
 
 IMAGE = "sensor_msgs/msg/Image"
 IMU = "sensor_msgs/msg/Imu"
@@ -52,7 +52,7 @@ _STORES = {
 _EMPTY = np.empty(0, dtype=np.uint8)
 _LENGTH = struct.Struct("<I")  # a CDR sequence length, little-endian like the head
 # Bytes per pixel of the encodings a framegate frame can hold (one table: a frame's).
-CHANNELS = FRAME_CHANNELS
+BYTES_PER_PIXEL = FRAME_BYTES_PER_PIXEL
 
 
 class CdrError(ValueError):
@@ -65,7 +65,8 @@ class StampError(CdrError):
 
 @dataclass(frozen=True, slots=True)
 class Image:
-    """A decoded ``sensor_msgs/msg/Image``: stamp, size and a view of its pixel rows."""
+    """A decoded ``sensor_msgs/msg/Image``: stamp, size and a view of its pixel rows;
+    ``swap``: its samples are big-endian and wider than a byte (``is_bigendian`` mono16)."""
 
     stamp_ns: int
     frame_id: str
@@ -74,14 +75,20 @@ class Image:
     encoding: str
     step: int
     data: npt.NDArray[np.uint8]
+    swap: bool = False
 
     def pixels(self) -> bytes:
-        """The image without row padding, as framegate stores it (one copy)."""
-        row = self.width * CHANNELS[self.encoding]
+        """The image without row padding, as framegate stores it (one copy), its samples
+        little-endian."""
+        row = self.width * BYTES_PER_PIXEL[self.encoding]
+        rows = self.data[: self.step * self.height].reshape(self.height, self.step)[:, :row]
+        if self.swap:
+            # Swapped, not refused: the values are the camera's all the same, and frames
+            # are little-endian (frame.xsd). This rare path copies twice.
+            return rows.view(">u2").astype("<u2").tobytes()
         if self.step == row:
             return self.data.tobytes()
-        rows = self.data[: self.step * self.height].reshape(self.height, self.step)
-        return rows[:, :row].tobytes()
+        return rows.tobytes()
 
 
 def stamp_ns(stamp: Any) -> int:
@@ -124,7 +131,8 @@ class Codec:
 
     # -- images ------------------------------------------------------------------------------
     def decode_image(self, raw: bytes) -> Image:
-        """CdrError for a message that is not a consistent 8-bit image."""
+        """CdrError for a message that is not a consistent image of an encoding a frame
+        can have (``FRAME_CHANNELS``; the text names them)."""
         try:
             # A memoryview: rosbags slices it (a bytes slice would copy the whole message)
             # and the pixels stay a view into ``raw``.
@@ -133,9 +141,9 @@ class Codec:
             raise CdrError(f"not a CDR {IMAGE}: {exc}") from exc
         width, height, step = int(msg.width), int(msg.height), int(msg.step)
         encoding = str(msg.encoding)
-        if encoding not in CHANNELS:
-            raise CdrError(f"encoding {encoding!r} (framegate takes {', '.join(CHANNELS)})")
-        row = width * CHANNELS[encoding]
+        if encoding not in BYTES_PER_PIXEL:
+            raise CdrError(f"encoding {encoding!r} (framegate takes {', '.join(BYTES_PER_PIXEL)})")
+        row = width * BYTES_PER_PIXEL[encoding]
         if width <= 0 or height <= 0 or step < row or len(msg.data) != step * height:
             raise CdrError(
                 f"{width}x{height} {encoding} with step {step} needs {step * height} bytes "
@@ -149,6 +157,7 @@ class Codec:
             encoding,
             step,
             msg.data,
+            swap=bool(msg.is_bigendian) and FRAME_SAMPLE_BYTES[encoding] > 1,
         )
 
     def encode_image(
@@ -162,7 +171,7 @@ class Codec:
         zero a buffer of the frame's size and then copy into it (test_cdr checks that both
         give the same bytes).
         """
-        step = width * CHANNELS[encoding]
+        step = width * BYTES_PER_PIXEL[encoding]  # frames are little-endian: is_bigendian=0
         head = self._image(
             header=self._header_type(t_ns, frame_id),
             height=height,

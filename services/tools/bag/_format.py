@@ -9,10 +9,11 @@ For each recorded buffer ``service/buffer``:
   ``framegate.format`` ("1"), ``framegate.service``, ``framegate.buffer``,
   ``framegate.kind`` and ``framegate.retention`` (JSON of ``middleware.Retention``), which
   is what ``play`` needs to offer the buffer again.
-* for kind ``frame`` with a raw encoding (mono8, bgr8, rgb8, bgra8, rgba8): channel
+* for kind ``frame`` with a raw encoding (mono8, mono16, bgr8, rgb8, bgra8, rgba8): channel
   ``/service/buffer/image``, message encoding ``json``, schema ``foxglove.RawImage``
   (``jsonschema``), so Foxglove's Image panel shows the frames (RawImage takes these
-  encoding names as they are, and ``step`` = width x bytes per pixel). It is derived data
+  encoding names as they are, mono16 little-endian as framegate stores it, and ``step`` =
+  width x bytes per pixel). It is derived data
   (``framegate.role`` = ``image``); ``play`` ignores it.
 * for kinds ``decision``, ``detections`` and ``gyro``: the derived Foxglove channels of
   ``_derived`` (``/service/buffer/annotations``, ``/verdict``, ``/rates``), with

@@ -382,3 +382,18 @@ def test_query_save_writes_colour_frames_as_png_with_their_alpha(
     assert saved == {5: [str(tmp_path / "5.png"), str(tmp_path / "5.xml")]}
     read = cv2.imread(str(tmp_path / "5.png"), cv2.IMREAD_UNCHANGED)
     assert read.tolist() == (bgra if "a8" in encoding else bgra[..., :3]).tolist()
+
+
+def test_query_save_writes_a_mono16_frame_as_a_16_bit_png(tmp_path: Path) -> None:
+    import cv2
+    import numpy as np
+
+    from services.lib.messages import frame_metadata_of
+    from services.lib.quality import Exposure
+
+    samples = (np.arange(12, dtype=np.uint16) * 5000).reshape(3, 4)
+    metadata = frame_metadata_of(1, Exposure(5, 2), "mono16", 4, 3, None)
+    element = DataObject(5, samples.astype("<u2").tobytes(), metadata)
+    query._save_all(tmp_path, [element], force=False)
+    read = cv2.imread(str(tmp_path / "5.png"), cv2.IMREAD_UNCHANGED)
+    assert read.dtype == np.uint16 and read.tolist() == samples.tolist()

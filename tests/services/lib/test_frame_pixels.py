@@ -35,6 +35,28 @@ def test_a_payload_is_a_read_only_view_of_its_encodings_shape(
         frame_array(payload[:29], FrameLayout(encoding, 6, 5))
 
 
+def test_a_mono16_payload_is_little_endian_uint16() -> None:
+    image = frame_array(bytes([0x34, 0x12, 0xFF, 0x0F]), FrameLayout("mono16", 2, 1))
+    assert image.dtype == np.dtype("<u2") and image.shape == (1, 2)
+    assert image.tolist() == [[0x1234, 0x0FFF]]
+
+
+def test_mono16_becomes_8_bit_scaled_by_its_brightest_pixel() -> None:
+    twelve_bit = np.array([[0, 1024, 2048, 4095]], np.uint16)  # a 12-bit sensor's range
+    assert gray8(twelve_bit, "mono16").tolist() == [[0, 64, 128, 255]]
+    assert gray8(twelve_bit).tolist() == [[0, 64, 128, 255]]  # uint16 reads as mono16
+    assert gray8(np.zeros((2, 2), np.uint16), "mono16").tolist() == [[0, 0], [0, 0]]
+    assert bgr8(twelve_bit, "mono16").tolist() == [[0, 64, 128, 255]]  # a JPEG's
+    assert opencv_order(twelve_bit, "mono16") is twelve_bit  # a PNG keeps all 16 bits
+
+
+def test_an_array_of_another_type_than_its_encoding_is_refused() -> None:
+    with pytest.raises(FrameError, match="a mono16 image is uint16, not uint8"):
+        gray8(np.zeros((2, 2), np.uint8), "mono16")
+    with pytest.raises(FrameError, match="a mono8 image is uint8, not uint16"):
+        gray8(np.zeros((2, 2), np.uint16), "mono8")
+
+
 @pytest.mark.parametrize("encoding", sorted(BLUE_RED))
 def test_gray_weighs_each_colour_by_the_order_the_encoding_names(encoding: str) -> None:
     image = np.array(BLUE_RED[encoding], dtype=np.uint8)
@@ -74,3 +96,12 @@ def test_a_bgra8_opencv_image_becomes_a_bgra8_frame_a_handler_reads_as_h_w_4() -
     assert meta.encoding == "bgra8"
     decoded = decode_image(image.tobytes(), meta)
     assert decoded.shape == (5, 6, 4) and np.array_equal(decoded, image)
+
+
+def test_a_uint16_opencv_image_becomes_a_mono16_frame_a_handler_reads_as_uint16() -> None:
+    image = (np.arange(30, dtype=np.uint16) * 2000).reshape(5, 6)
+    meta = read_frame_metadata(frame_metadata(1, Exposure(10, 5), image, None))
+    assert meta.encoding == "mono16"
+    decoded = decode_image(image.astype("<u2").tobytes(), meta)
+    assert decoded.dtype == np.uint16 and decoded.shape == (5, 6)
+    assert np.array_equal(decoded, image)

@@ -41,6 +41,23 @@ def test_a_four_channel_image_without_an_encoding_is_read_as_bgra() -> None:
     assert found.marker_id == 2
 
 
+@pytest.mark.parametrize("bits", [10, 12, 16])
+def test_a_marker_is_found_in_a_mono16_frame_whatever_bits_its_sensor_fills(bits: int) -> None:
+    """A 10- or 12-bit sensor published as mono16 fills only the low bits: ``>> 8`` would
+    leave its image 4 or 16 gray levels (the 10-bit marker is then lost); scaled by the
+    brightest pixel it reads as 8 bits."""
+    gray = marker_gray(1).astype(np.uint16)
+    top = 2**bits - 1
+    image = np.where(gray > 127, top * 9 // 10, top // 20).astype(np.uint16)
+    image[0, 0] = top  # one pixel at full scale
+    if bits == 10:
+        assert detect_markers((image >> 8).astype(np.uint8), "mono8") == []  # why not >> 8
+    [found] = detect_markers(image, "mono16")
+    assert found.marker_id == 1
+    [found] = detect_markers(image)  # a uint16 array is mono16
+    assert found.marker_id == 1
+
+
 def test_a_mono8_frame_is_read_as_it_is() -> None:
     [found] = detect_markers(marker_gray(0), "mono8")
     assert (found.marker_id, found.name) == (0, "large")

@@ -57,6 +57,25 @@ def test_a_handler_gets_the_image_and_the_frame_and_its_boxes_are_the_element() 
     assert frame.encoding == "mono8" and frame.exposure.duration_ns == 30_000_000
 
 
+@pytest.mark.parametrize(
+    ("image", "dtype"),
+    [(np.zeros((12, 16, 4), np.uint8), np.uint8), (np.full((12, 16), 4095, np.uint16), np.uint16)],
+)
+def test_a_handler_gets_four_channel_and_mono16_frames_as_arrays_of_their_shape(
+    image: np.ndarray, dtype: type
+) -> None:
+    seen: list[np.ndarray] = []
+
+    def handler(got: np.ndarray, frame: FrameMeta) -> list[Box]:
+        seen.append(got)
+        return []
+
+    step = VisionStep(handler, ResultKind.DETECTIONS, "mediator/images", LOG)
+    assert isinstance(step.process(*_frame(5, image)), Encoded)
+    [got] = seen
+    assert got.shape == image.shape and got.dtype == dtype and np.array_equal(got, image)
+
+
 def test_a_raising_handler_is_a_counted_skip_with_one_warning_per_exception_type(
     caplog: pytest.LogCaptureFixture,
 ) -> None:

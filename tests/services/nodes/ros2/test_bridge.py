@@ -19,7 +19,7 @@ import zenoh
 from middleware import DataObject, NetworkConfig, Node, Producer
 from services.lib.frame_layout import FrameError, read_frame_layout
 from services.nodes.ros2._bridge import ImagesIn, ImuIn, _Skips, stop_summary
-from services.nodes.ros2._cdr import CHANNELS, IMAGE, IMU, Codec
+from services.nodes.ros2._cdr import BYTES_PER_PIXEL, IMAGE, IMU, Codec
 from services.nodes.ros2._config import Ros2Config
 from services.nodes.ros2._rmw import HUMBLE_TYPE_HASH, EntityKind, NodeIdentity, Qos
 from tests.conftest import REPO, child_env, free_port, wait_until
@@ -46,7 +46,7 @@ def consumer(connect_net: NetworkConfig) -> Iterator[Node]:
 
 
 def _image(codec: Codec, stamp_ns: int, encoding: str = "mono8") -> bytes:
-    channels = CHANNELS[encoding]
+    channels = BYTES_PER_PIXEL[encoding]
     pixels = (np.arange(W * H * channels) % 251).astype(np.uint8).tobytes()
     return bytes(codec.encode_image(stamp_ns, "cam", W, H, encoding, pixels))
 
@@ -115,7 +115,7 @@ def test_inconsistent_sizes_unknown_encodings_and_stamps_are_counted_skips(
         images.handle(message(W, H, W, "mono8", W * H - 1), 1)  # data too short
         images.handle(message(W, H, W - 1, "mono8", (W - 1) * H), 2)  # step < width
         images.handle(message(2**20, 2**20, 2**20, "mono8", 16), 3)  # absurd size
-        images.handle(message(W, H, 2 * W, "mono16", 2 * W * H), 4)  # unknown encoding
+        images.handle(message(W, H, 2 * W, "yuv422", 2 * W * H), 4)  # unknown encoding
         images.handle(message(W, H, W, "mono8", W * H), 5)  # fine
         images.handle(message(W, H, W, "mono8", W * H), 6)  # same stamp again
         images.handle(_image(codec, now - 10**9), 7)  # older
@@ -130,6 +130,31 @@ def test_inconsistent_sizes_unknown_encodings_and_stamps_are_counted_skips(
     # One warning per reason, however many skips.
     warned = [r for r in caplog.records if "skipping (bad-image" in r.getMessage()]
     assert len(warned) == 1
+
+
+@pytest.mark.parametrize("encoding", ["yuv422", "bayer_rggb8", "16UC1", "rgb16"])
+def test_an_encoding_a_frame_cannot_hold_is_a_bad_image_naming_the_accepted_ones(
+    node: Node, codec: Codec, caplog: pytest.LogCaptureFixture, encoding: str
+) -> None:
+    skips = _Skips(logging.getLogger("test"))
+    images = ImagesIn(node, codec, Ros2Config(image_in="/cam"), skips)
+    pixels = bytes(W * H * 2)
+    raw = bytes(codec.store.serialize_cdr(
+        codec.store.types[IMAGE](
+            codec.store.types["std_msgs/msg/Header"](
+                codec.store.types["builtin_interfaces/msg/Time"](time.time_ns() // 10**9, 0), "c"
+            ),
+            H, W, encoding, 0, 2 * W, np.frombuffer(pixels, np.uint8),
+        ),
+        IMAGE,
+    ))  # fmt: skip
+    with caplog.at_level(logging.WARNING):
+        images.handle(raw, 1)
+    assert skips.counts == {"bad-image": 1} and images.producer.info().puts == 0
+    [warning] = [r.getMessage() for r in caplog.records if "bad-image" in r.getMessage()]
+    assert f"encoding '{encoding}' (framegate takes mono8, mono16, bgr8, rgb8, bgra8, rgba8)" in (
+        warning
+    )
 
 
 def test_padded_rows_are_stored_without_padding(node: Node, consumer: Node, codec: Codec) -> None:
@@ -147,8 +172,8 @@ def test_padded_rows_are_stored_without_padding(node: Node, consumer: Node, code
     assert element.payload == rows[:, :W].tobytes()
 
 
-@pytest.mark.parametrize("encoding", ["bgra8", "rgba8"])
-def test_a_four_channel_image_is_stored_as_a_frame_of_its_encoding(
+@pytest.mark.parametrize("encoding", ["bgra8", "rgba8", "mono16"])
+def test_a_new_encodings_image_is_stored_as_a_frame_of_its_encoding(
     node: Node, consumer: Node, codec: Codec, encoding: str
 ) -> None:
     skips = _Skips(logging.getLogger())
@@ -158,7 +183,8 @@ def test_a_four_channel_image_is_stored_as_a_frame_of_its_encoding(
     images.handle(raw, 1)
     assert skips.counts == {}
     [element] = _query(consumer, "ros2/images")
-    assert element.payload == codec.decode_image(raw).pixels() and len(element.payload) == W * H * 4
+    assert element.payload == codec.decode_image(raw).pixels()
+    assert len(element.payload) == W * H * BYTES_PER_PIXEL[encoding]
     assert read_frame_layout(element.metadata, len(element.payload)).encoding == encoding
 
 

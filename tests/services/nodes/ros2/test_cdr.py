@@ -13,7 +13,7 @@ from middleware import ConfigError, DataObject
 from services.lib.messages import frame_metadata_of
 from services.lib.quality import Exposure
 from services.nodes.ros2._bridge import Encoders
-from services.nodes.ros2._cdr import CHANNELS, DETECTIONS, IMAGE, STRING, CdrError, Codec
+from services.nodes.ros2._cdr import BYTES_PER_PIXEL, DETECTIONS, IMAGE, STRING, CdrError, Codec
 from services.nodes.ros2._config import Ros2Config
 
 
@@ -38,8 +38,10 @@ def test_image_round_trip_keeps_pixels_and_stamp(codec: Codec) -> None:
     assert message.data.tobytes() == pixels
 
 
-@pytest.mark.parametrize(("encoding", "bytes_per_pixel"), [("bgra8", 4), ("rgba8", 4)])
-def test_a_four_channel_image_round_trips_through_the_bridge_and_back(
+@pytest.mark.parametrize(
+    ("encoding", "bytes_per_pixel"), [("bgra8", 4), ("rgba8", 4), ("mono16", 2)]
+)
+def test_a_new_encodings_image_round_trips_through_the_bridge_and_back(
     codec: Codec, encoding: str, bytes_per_pixel: int
 ) -> None:
     """In: a ROS 2 image with padded rows becomes the frame's unpadded pixels; out: the
@@ -76,6 +78,47 @@ def test_a_four_channel_image_round_trips_through_the_bridge_and_back(
     assert out.is_bigendian == 0 and out.data.tobytes() == pixels
 
 
+def _mono16_message(codec: Codec, samples: np.ndarray, *, big_endian: bool) -> bytes:
+    types = codec.store.types
+    height, width = samples.shape
+    message = types[IMAGE](
+        header=types["std_msgs/msg/Header"](
+            stamp=types["builtin_interfaces/msg/Time"](sec=1_700_000_000, nanosec=0),
+            frame_id="ir",
+        ),
+        height=height,
+        width=width,
+        encoding="mono16",
+        is_bigendian=int(big_endian),
+        step=2 * width + 2,  # padded rows too
+        data=np.pad(
+            samples.astype(">u2" if big_endian else "<u2").view(np.uint8), ((0, 0), (0, 2))
+        ).reshape(-1),
+    )
+    return bytes(codec.store.serialize_cdr(message, IMAGE))
+
+
+@pytest.mark.parametrize("big_endian", [False, True])
+def test_a_mono16_image_is_stored_little_endian_whichever_order_it_came_in(
+    codec: Codec, big_endian: bool
+) -> None:
+    samples = np.array([[0x0102, 0x0FFF, 0], [0xFFFF, 0x1234, 7]], np.uint16)
+    image = codec.decode_image(_mono16_message(codec, samples, big_endian=big_endian))
+    assert image.swap is big_endian
+    assert image.pixels() == samples.astype("<u2").tobytes()
+
+
+def test_is_bigendian_is_ignored_for_eight_bit_samples(codec: Codec) -> None:
+    types = codec.store.types
+    header = types["std_msgs/msg/Header"](
+        stamp=types["builtin_interfaces/msg/Time"](sec=1, nanosec=0), frame_id="c"
+    )
+    data = np.arange(2 * 2 * 4, dtype=np.uint8)
+    message = types[IMAGE](header, 2, 2, "bgra8", 1, 8, data)
+    image = codec.decode_image(bytes(codec.store.serialize_cdr(message, IMAGE)))
+    assert not image.swap and image.pixels() == data.tobytes()
+
+
 def _rosbags_image(
     codec: Codec, t_ns: int, frame_id: str, width: int, height: int, encoding: str, pixels: bytes
 ) -> bytes:
@@ -88,19 +131,20 @@ def _rosbags_image(
         width=width,
         encoding=encoding,
         is_bigendian=0,
-        step=width * CHANNELS[encoding],
+        step=width * BYTES_PER_PIXEL[encoding],
         data=np.frombuffer(pixels, dtype=np.uint8),
     )
     return bytes(codec.store.serialize_cdr(message, IMAGE))
 
 
 @pytest.mark.parametrize(
-    ("width", "encoding"), [(64, "mono8"), (5, "rgb8"), (3, "bgr8"), (5, "bgra8"), (3, "rgba8")]
+    ("width", "encoding"),
+    [(64, "mono8"), (5, "rgb8"), (3, "bgr8"), (5, "bgra8"), (3, "rgba8"), (5, "mono16")],
 )
 def test_image_encoding_is_byte_for_byte_rosbags_own(
     codec: Codec, width: int, encoding: str
 ) -> None:
-    channels = CHANNELS[encoding]
+    channels = BYTES_PER_PIXEL[encoding]
     pixels = (np.arange(width * 7 * channels) % 253).astype(np.uint8).tobytes()
     for frame_id in ("", "cam", "camera_optical_frame"):  # every alignment of the tail
         ours = codec.encode_image(1_234_567_890_123, frame_id, width, 7, encoding, pixels)

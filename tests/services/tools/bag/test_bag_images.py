@@ -13,7 +13,7 @@ import pytest
 from mcap.reader import make_reader
 
 from middleware import DataObject, Retention
-from services.lib.frame_layout import FRAME_CHANNELS, FrameLayout
+from services.lib.frame_layout import FRAME_BYTES_PER_PIXEL, FRAME_CHANNELS, FrameLayout
 from services.lib.messages import frame_metadata_of
 from services.lib.quality import Exposure
 from services.tools.bag import BagWriter
@@ -25,7 +25,7 @@ W, H = 8, 6
 
 
 def _frame(encoding: str) -> DataObject:
-    size = W * H * FRAME_CHANNELS[encoding]
+    size = W * H * FRAME_BYTES_PER_PIXEL[encoding]
     payload = (np.arange(size) % 251).astype(np.uint8).tobytes()
     return DataObject(T, payload, frame_metadata_of(1, Exposure(T, 5), encoding, W, H, None))
 
@@ -45,22 +45,24 @@ def test_a_recording_shows_each_frame_with_its_foxglove_encoding_and_step(
         )
     assert schema is not None and schema.name == "foxglove.RawImage"
     body = json.loads(message.data)
-    # Foxglove's RawImage takes the ROS 2 names: mono8, bgr8, rgb8, bgra8, rgba8 (its docs).
+    # Foxglove's RawImage takes the ROS 2 names: mono8, mono16 (little-endian), bgr8, rgb8,
+    # bgra8, rgba8 (its docs).
     assert (body["encoding"], body["width"], body["height"], body["step"]) == (
         encoding,
         W,
         H,
-        W * FRAME_CHANNELS[encoding],
+        W * FRAME_BYTES_PER_PIXEL[encoding],
     )
     assert base64.b64decode(body["data"]) == frame.payload
 
 
-@pytest.mark.parametrize("encoding", ["bgra8", "rgba8"])
-def test_the_viewer_sends_four_channel_frames_as_raw_images_of_their_encoding(
+@pytest.mark.parametrize("encoding", ["bgra8", "rgba8", "mono16"])
+def test_the_viewer_sends_new_encodings_frames_as_raw_images_of_their_encoding(
     encoding: str,
 ) -> None:
     image = _decoded(raw_image(_frame(encoding), FrameLayout(encoding, W, H), "zed"))
-    assert (image.encoding, image.width, image.step) == (encoding, W, W * 4)
+    step = W * FRAME_BYTES_PER_PIXEL[encoding]
+    assert (image.encoding, image.width, image.step) == (encoding, W, step)
 
 
 @pytest.mark.parametrize("encoding", ["bgra8", "rgba8"])
@@ -74,3 +76,14 @@ def test_a_four_channel_frame_becomes_a_colour_jpeg_without_its_alpha(encoding: 
     assert decoded is not None and decoded.shape == (H, W, 3)
     blue, green, red = decoded[H // 2, W // 2].tolist()
     assert red > 240 and blue < 15 and green < 15
+
+
+def test_a_mono16_frame_becomes_a_gray_jpeg_scaled_to_its_brightest_pixel() -> None:
+    samples = np.tile(np.array([0, 4095], "<u2"), (H, W // 2))  # a 12-bit sensor's extremes
+    metadata = frame_metadata_of(1, Exposure(T, 5), "mono16", W, H, None)
+    frame = DataObject(T, samples.tobytes(), metadata)
+    jpeg = jpeg_image(frame, FrameLayout("mono16", W, H), "ir", 95).encode()
+    start = jpeg.index(b"\xff\xd8")
+    decoded = cv2.imdecode(np.frombuffer(jpeg[start:], np.uint8), cv2.IMREAD_UNCHANGED)
+    assert decoded is not None and decoded.shape == (H, W) and decoded.dtype == np.uint8
+    assert decoded.max() > 200  # 4095 is white, not 4095 >> 8 = 15
