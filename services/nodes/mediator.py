@@ -25,7 +25,7 @@ Failure behaviour (every input a peer can produce): metadata that passes its XSD
 trusted. A frame is skipped, counted and recorded with a reason when its metadata cannot be
 read (``bad-metadata``), its size or exposure is zero or negative (``bad-size``,
 ``bad-exposure``), its encoding is unknown (``bad-encoding``), its payload does not hold
-width x height x channels bytes (``bad-payload-size``), or its blur is not a number
+width x height x bytes per pixel (``bad-payload-size``), or its blur is not a number
 (``bad-blur``: NaN or INF in fx_px or gyro_to_camera are refused by the camera model; what
 still slips through ends here). Anything else that goes wrong with one frame is logged with
 its traceback and recorded as ``internal-error``; the mediator goes on with the next frame.

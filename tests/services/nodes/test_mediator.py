@@ -65,6 +65,8 @@ def _samples(rates: tuple[float, float, float] = (0.1, 0.2, 0.3)) -> GyroSamples
         (_meta(encoding="yuv422"), 8, "bad-encoding"),
         (_meta(), 7, "bad-payload-size"),
         (_meta(encoding="bgr8"), 8, "bad-payload-size"),
+        (_meta(encoding="bgra8"), 24, "bad-payload-size"),
+        (_meta(encoding="mono16"), 8, "bad-payload-size"),
     ],
 )
 def test_a_frame_no_detector_could_use_is_a_bad_frame(
@@ -93,6 +95,9 @@ def test_a_camera_description_with_absurd_timing_is_refused(absurd: dict[str, in
 def test_a_sound_frame_passes_the_checks() -> None:
     check_frame(_meta(), 8)
     check_frame(_meta(encoding="bgr8"), 24)
+    check_frame(_meta(encoding="bgra8"), 32)
+    check_frame(_meta(encoding="rgba8"), 32)
+    check_frame(_meta(encoding="mono16"), 16)
 
 
 def test_regression_inf_fx_px_is_a_bad_frame_not_a_crash() -> None:
