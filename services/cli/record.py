@@ -168,10 +168,7 @@ def run(args: argparse.Namespace) -> int:
             else [resolve(node, t, args.timeout) for t in targets]
         )
         buffers: list[BufferInfo] = [b for _s, b in found]
-        args.offsets = {
-            name: producer_offset_ns(node, name, min(2.0, args.timeout))
-            for name in dict.fromkeys(s.service for s, _b in found)
-        }
+        args.offsets = _offsets(node, [s.service for s, _b in found], args.timeout)
         writer = BagWriter(
             args.output,
             images=not args.no_images,
@@ -179,8 +176,6 @@ def run(args: argparse.Namespace) -> int:
             overwrite=args.overwrite,
         )
         with writer:
-            for b in buffers:
-                writer.add_buffer(b.service, b.buffer, kind=b.kind, retention=b.retention)
             queue = WriteQueue(writer)
             # The recording starts now: --duration counts from here (see the module).
             started_ns, started = now_ns(), time.monotonic()
@@ -191,9 +186,11 @@ def run(args: argparse.Namespace) -> int:
             if args.duration is not None:
                 args.stop_ns = started_ns + round(args.duration * 1e9)
                 args.fetch_deadline = started + args.duration + STOP_SLACK_S
-            recorders = _start(node, queue, buffers, args)
+            recorders = _start(node, writer, queue, buffers, args)
+            if not recorders:
+                raise ConfigError(f"none of the {len(buffers)} live buffers could be recorded")
             if not args.json:
-                names = ", ".join(f"{b.name} ({b.kind})" for b in buffers)
+                names = ", ".join(f"{r.sub.name} ({r.progress.kind})" for r in recorders)
                 print(f"recording {names} to {args.output}; Ctrl-C to stop", flush=True)
             discover = _discover(node, writer, queue, recorders, args)
 
@@ -265,6 +262,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _start(
     node: Node,
+    writer: BagWriter,
     queue: WriteQueue,
     buffers: list[BufferInfo],
     args: argparse.Namespace,
@@ -278,9 +276,18 @@ def _start(
         # The start and the stop in this producer's clock: its elements' stamps are.
         offset = args.offsets.get(b.service, 0)
         stop_ns = None if args.stop_ns is None else args.stop_ns + offset
-        session = node.service_session(b.service)  # its replies alone, if it is one
-        initial = at_start(node, b.name, args.started_ns + offset, stop_ns, session)
-        sub = observer(node, b.name, args.queue, args.timeout)
+        try:
+            session = node.service_session(b.service)  # its replies alone, if it is one
+            initial = at_start(node, b.name, args.started_ns + offset, stop_ns, session)
+            sub = observer(node, b.name, args.queue, args.timeout)
+        except FramegateError as exc:
+            if not args.all:
+                raise
+            # With --all the buffers are whatever answered: one that cannot be recorded
+            # (gone since, or a peer's invention) must not cost the others their recording.
+            print(f"warning: not recording {b.name}: {exc}", file=sys.stderr, flush=True)
+            continue
+        writer.add_buffer(b.service, b.buffer, kind=b.kind, retention=b.retention)
         progress = Progress(b.name, b.kind)
         recorder = Recorder(node, sub, queue, progress, stop, args.count, initial)
         recorder.stop_ns, recorder.deadline = stop_ns, args.fetch_deadline
@@ -296,7 +303,7 @@ def _live_buffers(node: Node, timeout_s: float) -> list[tuple[ServiceInfo, Buffe
     there is none."""
     deadline = time.monotonic() + timeout_s
     while True:
-        services = node.services(timeout_s=min(2.0, timeout_s))
+        services = _with_token(node, node.services(timeout_s=min(2.0, timeout_s)))
         buffers = [(s, b) for s in services for b in s.buffers]
         if buffers:
             return buffers
@@ -307,6 +314,27 @@ def _live_buffers(node: Node, timeout_s: float) -> list[tuple[ServiceInfo, Buffe
                 f"no live service offers a buffer {where(node.network)} (waited {timeout_s:g} s)"
             )
         time.sleep(0.2)
+
+
+def _with_token(node: Node, services: list[ServiceInfo]) -> list[ServiceInfo]:
+    """Those of ``services`` that hold their liveliness token: an ``@info`` answer alone is
+    any peer's to give (20 made-up services answering it, holding no token, kept
+    ``record --all`` starting for 126 s and then failed it)."""
+    if not services:
+        return []
+    live = set(node.live_services(timeout_s=1.0))
+    return [s for s in services if s.service in live]
+
+
+def _offsets(node: Node, services: list[str], timeout_s: float) -> dict[str, int]:
+    """Each service's clock offset (``producer_offset_ns``), all of them within twice the
+    timeout: a service not asked by then is taken to share our clock."""
+    deadline = time.monotonic() + 2 * timeout_s
+    offsets = {}
+    for name in dict.fromkeys(services):
+        wait_s = min(2.0, timeout_s, deadline - time.monotonic())
+        offsets[name] = producer_offset_ns(node, name, wait_s) if wait_s > 0 else 0
+    return offsets
 
 
 # A recorder thread gets this long after its fetch deadline to hand over what it fetched
@@ -335,19 +363,16 @@ def _discover(
         due[0] = time.monotonic() + _DISCOVER_S
         known = {r.sub.name for r in recorders}
         try:
-            services = node.services(timeout_s=1.0)
+            services = _with_token(node, node.services(timeout_s=1.0))
         except FramegateError:
             return
         new = [b for s in services for b in s.buffers if b.name not in known]
-        for b in new:
-            if b.service not in args.offsets:
-                args.offsets[b.service] = producer_offset_ns(node, b.service, 1.0)
-        for b in new:
-            writer.add_buffer(b.service, b.buffer, kind=b.kind, retention=b.retention)
-        if new:
-            recorders.extend(_start(node, queue, new, args, recorders[0].stop))
-            if not args.json:
-                print(f"recording {', '.join(b.name for b in new)} too", flush=True)
+        unmeasured = [b.service for b in new if b.service not in args.offsets]
+        args.offsets.update(_offsets(node, unmeasured, 1.0))
+        started = _start(node, writer, queue, new, args, recorders[0].stop)
+        recorders.extend(started)
+        if started and not args.json:
+            print(f"recording {', '.join(r.sub.name for r in started)} too", flush=True)
 
     return step
 

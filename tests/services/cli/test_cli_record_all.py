@@ -69,3 +69,42 @@ def test_record_needs_buffers_or_all(cli: Cli, tmp_path: Path) -> None:
     result = cli.run("record", "-o", str(tmp_path / "x.mcap"))
     assert result.returncode == 1
     assert "--all" in result.stderr
+
+
+def test_record_all_leaves_out_a_service_that_only_answers_info(
+    listen_net: NetworkConfig, endpoint: str, cli: Cli, tmp_path: Path
+) -> None:
+    """A peer answering ``@info`` for a service that holds no liveliness token (any peer
+    can): ``record --all`` tried to record its buffer and failed the whole recording, after
+    a clock question and a data query per made-up service (20 of them: 126 s)."""
+    import zenoh
+
+    bag = tmp_path / "all.mcap"
+    with Node("cam", listen_net) as service:
+        real = service.offer("a")
+        conf = zenoh.Config()
+        for key, value in {
+            "mode": "peer",
+            "connect/endpoints": [endpoint],
+            "scouting/multicast/enabled": False,
+        }.items():
+            conf.insert_json5(key, json.dumps(value))
+        with zenoh.open(conf) as peer:
+            replies = list(peer.get("framegate/@info/cam", timeout=scaled(10)))
+            described = next(r.ok for r in replies if r.ok is not None).payload.to_bytes()
+            ghost = described.replace(b'"cam"', b'"ghost"')
+            queryable = peer.declare_queryable(
+                "framegate/@info/ghost",
+                lambda query: query.reply("framegate/@info/ghost", ghost),
+            )
+            argv = ("--all", "-o", str(bag), "--count", "3", "--duration", "300", "--json")
+            recorder = cli.start("record", *argv)
+            assert real.wait_for_subscribers(1, timeout_s=scaled(60)), recorder
+            base = time.time_ns()
+            for i in range(3):
+                _put(real, base + i)
+            out, err = recorder.communicate(timeout=scaled(60))
+            queryable.undeclare()
+    assert recorder.returncode == 0, err
+    recorded = {b["name"]: b["recorded"] for b in json.loads(out)["buffers"]}
+    assert recorded == {"cam/a": 3}, err
