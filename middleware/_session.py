@@ -61,6 +61,9 @@ def open_session(network: NetworkConfig) -> zenoh.Session:
 
 
 def _open(network: NetworkConfig) -> zenoh.Session:
+    # Zenoh reads a config's certificates and keys only when it connects, and a missing one
+    # then looks like an unreachable router after the connect timeout (10 s): name it now.
+    network.check_files()
     configs = network.zenoh_configs()
     last: Exception | None = None
     for conf in configs:
@@ -68,7 +71,9 @@ def _open(network: NetworkConfig) -> zenoh.Session:
             return zenoh.open(conf)
         except zenoh.ZError as exc:
             last = exc
-    where = ", ".join(network.connect or network.listen) or f"local port {network.local_port}"
+    where = ", ".join(network.connect or network.listen) or (
+        network.config_name if network.config_file else f"local port {network.local_port}"
+    )
     raise TransportError(
         f"cannot open a Zenoh session ({where}): {zenoh_message(last) if last else 'no config'}; "
         f"check the endpoints ({ENDPOINT_FORM}) and that each to listen on is free on this host"

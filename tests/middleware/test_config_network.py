@@ -216,3 +216,19 @@ def test_a_bad_namespace_names_the_variable_or_flag_that_set_it() -> None:
         NetworkConfig().with_env({"FRAMEGATE_NAMESPACE": "bad ns"})
     with pytest.raises(ConfigError, match=r"^--namespace: bad namespace name 'a/b'"):
         NetworkConfig().with_args(argparse.Namespace(namespace="a/b"))
+
+
+def test_a_node_whose_config_names_a_missing_key_says_which_file_at_once(
+    tmp_path: Path,
+) -> None:
+    # `ls --config cli.json5` with cli.key gone waited Zenoh's connect timeout (10 s) and
+    # said "cannot open a Zenoh session (local port 7447): ... Timeout!", naming no file.
+    config = tmp_path / "cli.json5"
+    missing = tmp_path / "cli.key"
+    config.write_text(
+        '{mode: "client", connect: {endpoints: ["tls/localhost:1"], timeout_ms: 20000},'
+        ' transport: {link: {protocols: ["tls"], tls: {'
+        f' connect_private_key: "{missing}", enable_mtls: true}}}}}}}}\n'
+    )
+    with pytest.raises(ConfigError, match=rf"cannot read {missing}, the connect_private_key of "):
+        Node(network=NetworkConfig(config_file=config))
