@@ -49,7 +49,9 @@ def main(network: NetworkConfig, *, readings: list[float]) -> int:
 
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(prog="custom_service", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog="custom_service", description=__doc__.splitlines()[0].replace("``", "")
+    )
     add_network_arguments(parser)
     parser.add_argument(
         "readings", nargs="*", type=float, default=[21.5, math.nan, -300.0, 22.0], help="C"

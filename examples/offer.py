@@ -70,7 +70,9 @@ if __name__ == "__main__":
     # background starts that way, and Python then never raises KeyboardInterrupt).
     signal.signal(signal.SIGINT, signal.default_int_handler)
     signal.signal(signal.SIGTERM, signal.default_int_handler)  # `kill`: the same clean stop
-    parser = argparse.ArgumentParser(prog="offer", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog="offer", description=__doc__.splitlines()[0].replace("``", "")
+    )
     add_network_arguments(parser)
     parser.add_argument("--count", type=count, default=0, help="elements to put (0: until Ctrl-C)")
     parser.add_argument("--period-s", type=seconds, default=0.5, help="between puts (0.5 s)")

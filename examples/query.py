@@ -39,7 +39,9 @@ if __name__ == "__main__":
     # background starts that way, and Python then never raises KeyboardInterrupt).
     signal.signal(signal.SIGINT, signal.default_int_handler)
     signal.signal(signal.SIGTERM, signal.default_int_handler)  # `kill`: the same clean stop
-    parser = argparse.ArgumentParser(prog="query", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog="query", description=__doc__.splitlines()[0].replace("``", "")
+    )
     add_network_arguments(parser)
     parser.add_argument("target", nargs="?", default="example/counter", help="SERVICE/BUFFER")
     parser.add_argument("--range", default="[now(-60s)..]", help="time range ([now(-60s)..])")

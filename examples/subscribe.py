@@ -85,7 +85,9 @@ if __name__ == "__main__":
     # background starts that way, and Python then never raises KeyboardInterrupt).
     signal.signal(signal.SIGINT, signal.default_int_handler)
     signal.signal(signal.SIGTERM, signal.default_int_handler)  # `kill`: the same clean stop
-    parser = argparse.ArgumentParser(prog="subscribe", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog="subscribe", description=__doc__.splitlines()[0].replace("``", "")
+    )
     add_network_arguments(parser)
     parser.add_argument("target", nargs="?", default="example/counter", help="SERVICE/BUFFER")
     parser.add_argument("--count", type=positive, default=10, help="notifications to take (10)")

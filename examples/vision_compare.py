@@ -171,7 +171,9 @@ if __name__ == "__main__":
     # Ctrl-C stops it even when its parent ignores SIGINT (a job a script put in the
     # background starts that way, and Python then never raises KeyboardInterrupt).
     signal.signal(signal.SIGINT, signal.default_int_handler)
-    parser = argparse.ArgumentParser(prog="vision_compare", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog="vision_compare", description=__doc__.splitlines()[0].replace("``", "")
+    )
     parser.add_argument(
         "--seconds", type=window, default=60.0, help="measuring window, s (default 60)"
     )

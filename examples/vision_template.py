@@ -110,7 +110,9 @@ if __name__ == "__main__":
     # Ctrl-C stops it even when its parent ignores SIGINT (a job a script put in the
     # background starts that way, and Python then never raises KeyboardInterrupt).
     signal.signal(signal.SIGINT, signal.default_int_handler)
-    parser = argparse.ArgumentParser(prog="vision_template", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog="vision_template", description=__doc__.splitlines()[0].replace("``", "")
+    )
     parser.add_argument("--frames", type=positive, default=10, help="frames to time (default 10)")
     frames = parser.parse_args().frames
     try:

@@ -143,3 +143,13 @@ def test_subscribe_and_query_show_a_binary_payload_by_its_size() -> None:
     finally:
         pub.kill()
         pub.wait()
+
+
+@pytest.mark.parametrize("script", sorted(p.name for p in (REPO / "examples").glob("*.py")))
+def test_an_examples_help_shows_no_markup(script: str) -> None:
+    # The description is the docstring's first line: `--help` printed its reST literals
+    # (``python examples/offer.py``), as `framegate run camera --help` once did.
+    proc = _start(script, "--help")
+    out, err = proc.communicate(timeout=scaled(60))
+    assert proc.returncode == 0, err
+    assert "``" not in out, out
