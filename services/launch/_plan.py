@@ -221,13 +221,18 @@ def _claim_ports(
     """ConfigError when ``spec`` would listen on a fixed port another process of the same
     share listens on already (``taken``: endpoint -> service): one port takes one process,
     the rest could never start and would be restarted for ever."""
-    for endpoint in net.listen:
+    from_config = not net.listen and net.config_file is not None
+    for endpoint in net.listen_endpoints() if from_config else net.listen:
         if endpoint_parts(endpoint)[2] == "0":  # any free port: one each
             continue
         if (first := taken.setdefault(endpoint, spec.name)) == spec.name:
             continue
-        own = deployment.network_for(spec).listen
-        origin = "" if endpoint in own else " (set by --listen or FRAMEGATE_LISTEN)"
+        if from_config:
+            origin = f" (the listen endpoints of {net.config_name})"
+        elif endpoint in deployment.network_for(spec).listen:
+            origin = ""
+        else:
+            origin = " (set by --listen or FRAMEGATE_LISTEN)"
         raise ConfigError(
             f"{deployment.path}: services {first!r} and {spec.name!r} would both listen on "
             f"{endpoint}{origin}: one port takes one process, the others could never start; "

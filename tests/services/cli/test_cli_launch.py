@@ -148,3 +148,13 @@ def test_one_fixed_listen_port_for_several_processes_fails_check(tmp_path: Path)
     assert "--listen or FRAMEGATE_LISTEN" not in in_file.stderr, in_file
     # Port 0 is any free port, one per process: that is fine.
     assert _launch("deploy/local.yaml", "--check", "--listen", "tcp/127.0.0.1:0").returncode == 0
+
+
+def test_a_zenoh_config_that_gives_every_process_one_port_fails_check(tmp_path: Path) -> None:
+    # As --listen: FRAMEGATE_CONFIG (or --config) naming a fixed listen endpoint.
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    config = tmp_path / "peer.json5"
+    config.write_text(f'{{mode: "peer", listen: {{endpoints: ["{endpoint}"]}}}}\n')
+    result = _launch("deploy/local.yaml", "--check", "--config", str(config))
+    assert result.returncode == 1, result
+    assert f"would both listen on {endpoint} (the listen endpoints of" in result.stderr, result
