@@ -13,11 +13,13 @@ from __future__ import annotations
 import argparse
 import shlex
 import threading
+import time
 from pathlib import Path
 from typing import Any
 
 from middleware import ConfigError, NetworkConfig
 from services.launch import (
+    START_DELAY_S,
     Deployment,
     LaunchLock,
     ProcessSpec,
@@ -43,7 +45,11 @@ def register(subparsers: Any) -> None:
     parser.add_argument("file", help="deploy file (YAML), e.g. deploy/local.yaml")
     parser.add_argument("--host", help="which host of the file this machine is")
     parser.add_argument(
-        "--duration", type=positive_float, metavar="S", help="stop after this many seconds"
+        "--duration",
+        type=positive_float,
+        metavar="S",
+        help=f"run the services S seconds, counted from their shared start (about"
+        f" {START_DELAY_S:g} s after the launch; rendering not counted), then stop them",
     )
     parser.add_argument("--no-colour", action="store_true", help="plain log prefixes")
     parser.add_argument(
@@ -265,6 +271,17 @@ def _prerender(deployment: Deployment, host: str | None, stop: threading.Event) 
     return True
 
 
+def run_seconds(duration_s: float | None, specs: list[ProcessSpec], now_ns: int) -> float | None:
+    """How long the supervisor runs for ``--duration``: the services wait for their shared
+    start instant (``FRAMEGATE_START_AT_NS``), and ``--duration`` counts from there, so
+    ``--duration 2`` gives 2 s of frames (it gave none: the 2 s went by in the start delay)."""
+    if duration_s is None:
+        return None
+    starts = [int(v) for spec in specs for k, v in spec.env if k == "FRAMEGATE_START_AT_NS"]
+    wait_s = max(0, max(starts, default=now_ns) - now_ns) / 1e9
+    return wait_s + duration_s
+
+
 def _launch(args: argparse.Namespace, deployment: Deployment, net: NetworkConfig) -> int:
     stop = stop_on_signals()
     ours = deployment.for_host(args.host)
@@ -291,7 +308,7 @@ def _launch(args: argparse.Namespace, deployment: Deployment, net: NetworkConfig
         supervisor.start()
         if status is not None:
             status.start()
-        supervisor.run(args.duration, stop=stop)
+        supervisor.run(run_seconds(args.duration, specs, time.time_ns()), stop=stop)
     except KeyboardInterrupt:  # a second Ctrl-C while stopping
         supervisor.stop(timeout_s=0.0)
     finally:

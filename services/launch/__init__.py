@@ -20,13 +20,14 @@ from ._pipeline import (
     pipeline_yaml,
     private_specs,
 )
-from ._plan import process_specs
+from ._plan import START_DELAY_S, process_specs
 from ._supervisor import ProcessSpec, Supervisor, exit_text
 
 __all__ = [
     "LOCAL_HOST",
     "PIPELINE",
     "SERVICE_TYPES",
+    "START_DELAY_S",
     "ArgValue",
     "Deployment",
     "HostSpec",

@@ -158,3 +158,30 @@ def test_a_zenoh_config_that_gives_every_process_one_port_fails_check(tmp_path: 
     result = _launch("deploy/local.yaml", "--check", "--config", str(config))
     assert result.returncode == 1, result
     assert f"would both listen on {endpoint} (the listen endpoints of" in result.stderr, result
+
+
+def test_duration_counts_from_the_services_shared_start_not_the_launch() -> None:
+    from services.cli.launch import run_seconds
+    from services.launch import START_DELAY_S, load_deployment, process_specs
+
+    now_ns = 1_000_000_000_000
+    start_ns = now_ns + int(START_DELAY_S * 1e9)
+    specs = process_specs(
+        load_deployment(REPO / "deploy/local.yaml"), None, NetworkConfig(), start_at_ns=start_ns
+    )
+    assert run_seconds(2.0, specs, now_ns) == pytest.approx(START_DELAY_S + 2.0)
+    assert run_seconds(2.0, specs, start_ns + 10**9) == pytest.approx(2.0)  # start has passed
+    assert run_seconds(None, specs, now_ns) is None
+
+
+def test_duration_help_says_it_counts_from_the_services_start() -> None:
+    result = subprocess.run(
+        [sys.executable, "-m", "services.cli", "launch", "--help"],
+        cwd=REPO,
+        env=child_env(),
+        capture_output=True,
+        text=True,
+        timeout=scaled(60),
+        check=True,
+    )
+    assert "counted from their shared start" in " ".join(result.stdout.split())
