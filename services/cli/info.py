@@ -179,10 +179,13 @@ def _recording(args: argparse.Namespace, path: Path) -> int:
     if info.recorded is not None:  # as `ros2 bag info`'s start and duration: the recorder's
         start_ns, stop_ns, host = info.recorded
         where = f", on host {host}" if host else ""
-        print(
-            f"Recorded:      {format_ns(start_ns)} .. {format_ns(stop_ns)} "
-            f"({(stop_ns - start_ns) / 1e9:.1f} s{where})"
-        )
+        if stop_ns is None:  # killed before its end record
+            print(f"Recorded:      from {format_ns(start_ns)} (the recorder never stopped{where})")
+        else:
+            print(
+                f"Recorded:      {format_ns(start_ns)} .. {format_ns(stop_ns)} "
+                f"({(stop_ns - start_ns) / 1e9:.1f} s{where})"
+            )
         if info.start_ns is not None and info.start_ns < start_ns - SECOND_NS:
             early = format_seconds((start_ns - info.start_ns) / 1e9)
             span = span[:-1] + (

@@ -186,6 +186,15 @@ def run(args: argparse.Namespace) -> int:
             if args.duration is not None:
                 args.stop_ns = started_ns + round(args.duration * 1e9)
                 args.fetch_deadline = started + args.duration + STOP_SLACK_S
+            # Written now, not only at the end: a recorder killed (SIGKILL, power) keeps
+            # where and when it ran. The end record repeats these and adds the stop.
+            writer.add_metadata(
+                "framegate.recording.start",
+                {
+                    "host": socket.gethostname(),
+                    "started_ns": str(started_ns + min(args.offsets.values(), default=0)),
+                },
+            )
             recorders = _start(node, writer, queue, buffers, args)
             if not recorders:
                 raise ConfigError(f"none of the {len(buffers)} live buffers could be recorded")

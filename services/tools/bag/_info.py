@@ -46,53 +46,67 @@ _MAX_ACCOUNT_BYTES = 1 << 20
 def recorder_account(metadata: list[Any]) -> tuple[BufferRecord, ...]:
     """The per-buffer account ``framegate record`` left in the file's metadata (empty if
     none, or if it cannot be read: the data itself is what counts)."""
-    for record in metadata:
-        if getattr(record, "name", None) != "framegate.recording":
-            continue
-        text = record.metadata.get("buffers", "")
-        if not isinstance(text, str) or len(text) > _MAX_ACCOUNT_BYTES:
-            return ()
-        try:
-            rows = json.loads(text)
-            return tuple(
-                BufferRecord(
-                    name=str(row["name"]),
-                    recorded=int(row["recorded"]),
-                    backfilled=int(row.get("backfilled", 0)),
-                    # Files of before the split counted both losses as "lost".
-                    evicted=int(row.get("evicted", row.get("lost", 0))),
-                    dropped=int(row.get("dropped", 0)),
-                )
-                for row in rows
+    text = _recording_fields(metadata).get("buffers")
+    if text is None or len(text) > _MAX_ACCOUNT_BYTES:
+        return ()
+    try:
+        rows = json.loads(text)
+        return tuple(
+            BufferRecord(
+                name=str(row["name"]),
+                recorded=int(row["recorded"]),
+                backfilled=int(row.get("backfilled", 0)),
+                # Files of before the split counted both losses as "lost".
+                evicted=int(row.get("evicted", row.get("lost", 0))),
+                dropped=int(row.get("dropped", 0)),
             )
-        except (ValueError, TypeError, KeyError, AttributeError, RecursionError):
-            return ()
-    return ()
+            for row in rows
+        )
+    except (ValueError, TypeError, KeyError, AttributeError, RecursionError):
+        return ()
 
 
 def recording_started_ns(metadata: list[Any]) -> int | None:
     """The instant ``framegate record`` started (its ``started_ns``), or None (another
     writer's file, or no account). Elements stamped before it are the buffers' newest at
     the start (a camera description put once, long before)."""
-    for record in metadata:
-        if getattr(record, "name", None) != "framegate.recording":
-            continue
-        text = record.metadata.get("started_ns", "")
-        if isinstance(text, str) and text.isdigit() and len(text) < 25:
-            return int(text)
-    return None
+    return _ns(_recording_fields(metadata).get("started_ns"))
 
 
-def recording_window(metadata: list[Any]) -> tuple[int, int, str] | None:
+def recording_window(metadata: list[Any]) -> tuple[int, int | None, str] | None:
     """When ``framegate record`` ran (``started_ns``, ``stopped_ns``) and on which host, or
-    None (another writer's file, or a recorder killed before it wrote its account)."""
-    for record in metadata:
-        if getattr(record, "name", None) != "framegate.recording":
-            continue
-        start, stop = (record.metadata.get(k, "") for k in ("started_ns", "stopped_ns"))
-        host = record.metadata.get("host", "")
-        if all(isinstance(t, str) and t.isdigit() and len(t) < 25 for t in (start, stop)):
-            return int(start), int(stop), host if isinstance(host, str) else ""
+    None (another writer's file). The stop is None when the recorder was killed before its
+    end record: the start record, written first, still gives the start and the host."""
+    fields = _recording_fields(metadata)
+    start = _ns(fields.get("started_ns"))
+    if start is None:
+        return None
+    return start, _ns(fields.get("stopped_ns")), fields.get("host", "")
+
+
+# ``framegate record`` writes START_RECORD when it starts (host, start) and END_RECORD when
+# it stops (the same again, the stop and the buffers' account); a recorder killed leaves
+# only the first.
+START_RECORD = "framegate.recording.start"
+END_RECORD = "framegate.recording"
+
+
+def _recording_fields(metadata: list[Any]) -> dict[str, str]:
+    """The fields of ``framegate record``'s metadata records, the end record's overriding
+    the start record's. Values that are not text are left out."""
+    fields: dict[str, str] = {}
+    for name in (START_RECORD, END_RECORD):
+        for record in metadata:
+            data = getattr(record, "metadata", None)
+            if getattr(record, "name", None) == name and isinstance(data, dict):
+                fields.update((k, v) for k, v in data.items() if isinstance(v, str))
+    return fields
+
+
+def _ns(text: str | None) -> int | None:
+    """A recorded instant in ns, or None if absent or not a plain number."""
+    if text is not None and text.isdigit() and len(text) < 25:
+        return int(text)
     return None
 
 
@@ -111,7 +125,8 @@ class RecordingInfo:
     buffers: tuple[BufferRecord, ...] = ()
     # When the recorder ran (its own clock) and where: the messages' span may start long
     # before, as a buffer's newest element at the start is recorded however old it is.
-    recorded: tuple[int, int, str] | None = None
+    # The stop is None for a recorder killed before it wrote its end record.
+    recorded: tuple[int, int | None, str] | None = None
 
     @property
     def duration_s(self) -> float:

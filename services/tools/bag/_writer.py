@@ -306,11 +306,14 @@ class BagWriter:
             )
 
     def add_metadata(self, name: str, data: dict[str, str]) -> None:
-        """A named MCAP metadata record (e.g. where and when the recording was made)."""
+        """A named MCAP metadata record (e.g. where and when the recording was made), handed
+        to the OS at once: MCAP allows one anywhere in the data section, so one written at
+        the start survives a recorder killed before its end."""
         with self._lock:
             self._check_writable()
             try:
                 self._writer.add_metadata(name, data)
+                self._stream.flush()
             except OSError as exc:
                 raise self._fail("write", exc) from exc
 

@@ -3,7 +3,10 @@ wrote plays up to its last complete chunk; so does one whose recorder is killed.
 
 from __future__ import annotations
 
+import json
+import socket
 import subprocess
+import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -12,7 +15,7 @@ import pytest
 
 from middleware import NetworkConfig, Node, Retention, make_metadata
 from services.tools.bag import recording_info
-from tests.conftest import wait_until
+from tests.conftest import REPO, child_env, wait_until
 from tests.helpers.timing import scaled
 from tests.services.cli.conftest import TIMEOUT_S, Cli
 
@@ -99,3 +102,42 @@ def test_a_killed_recorder_leaves_every_chunk_it_closed(
     info = recording_info(out)
     assert info.status == "recovered" and "cut short" in info.integrity, info
     assert 0 < info.messages <= put, (info.messages, put)
+
+
+def test_a_killed_recorder_keeps_where_and_when_it_started(
+    listen_net: NetworkConfig, cli: Cli, tmp_path: Path
+) -> None:
+    out = tmp_path / "run.mcap"
+    with Node("cam", listen_net) as service:
+        log = service.offer("log", retention=Retention(max_count=1000))
+        before_ns = time.time_ns()
+        recorder = cli.start("record", "cam/log", "-o", str(out), "--duration", "120")
+        assert log.wait_for_subscribers(1, timeout_s=scaled(30))
+        t = time.time_ns()
+
+        def a_chunk_written() -> bool:
+            nonlocal t
+            t += 1_000_000
+            log.put(t, b"x" * 1000, make_metadata("generic", t), wait_s=1.0)
+            time.sleep(0.01)
+            return out.exists() and out.stat().st_size > 4096  # a chunk is closed each second
+
+        wait_until(a_chunk_written, 60, "a recording with a closed chunk")
+        recorder.kill()  # SIGKILL: no end record
+        recorder.wait(timeout=TIMEOUT_S)
+    shown = subprocess.run(
+        [sys.executable, "-m", "services.cli", "info", str(out), "--json"],
+        cwd=REPO, env=child_env(), capture_output=True, text=True,
+        timeout=TIMEOUT_S, check=False,
+    )  # fmt: skip
+    assert shown.returncode == 0, shown
+    data = json.loads(shown.stdout)
+    assert data["recorded_host"] == socket.gethostname(), data
+    assert before_ns <= data["recorded_start_ns"] <= time.time_ns(), data
+    assert data["recorded_stop_ns"] is None, data
+    text = subprocess.run(
+        [sys.executable, "-m", "services.cli", "info", str(out)],
+        cwd=REPO, env=child_env(), capture_output=True, text=True,
+        timeout=TIMEOUT_S, check=False,
+    )  # fmt: skip
+    assert "the recorder never stopped" in text.stdout, text
