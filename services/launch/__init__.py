@@ -20,7 +20,7 @@ from ._pipeline import (
     pipeline_yaml,
     private_specs,
 )
-from ._plan import START_DELAY_S, process_specs
+from ._plan import START_DELAY_S, process_specs, reaches_own_listener
 from ._supervisor import ProcessSpec, Supervisor, exit_text
 
 __all__ = [
@@ -45,5 +45,6 @@ __all__ = [
     "pipeline_yaml",
     "private_specs",
     "process_specs",
+    "reaches_own_listener",
     "runtime_dir",
 ]

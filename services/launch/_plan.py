@@ -161,13 +161,14 @@ def _check_files(
 
 
 _PATH_ARGS = ("ros_config", "camera_xml", "path")
+_INET = ("tcp", "tls", "udp", "quic")
 
 
 def _foreign_address(endpoint: str) -> bool:
     """Whether ``endpoint`` names an IP address this machine does not have (a router of
     another host's share); host names, wildcards and other protocols are not judged."""
     proto, host, _port = endpoint_parts(endpoint)
-    if proto not in ("tcp", "tls", "udp", "quic"):
+    if proto not in _INET:
         return False
     try:
         address = ipaddress.ip_address(host.strip("[]"))
@@ -182,6 +183,55 @@ def _foreign_address(endpoint: str) -> bool:
         except OSError as exc:
             return exc.errno == errno.EADDRNOTAVAIL
     return False
+
+
+_Address = ipaddress.IPv4Address | ipaddress.IPv6Address
+
+
+def _addresses(host: str) -> set[_Address]:
+    """The IP addresses ``host`` names (an address, or a name resolved); none if unknown."""
+    host = host.strip("[]").split("%", 1)[0]
+    try:
+        return {ipaddress.ip_address(host)}
+    except ValueError:
+        pass
+    try:
+        infos = socket.getaddrinfo(host, None, proto=socket.IPPROTO_TCP)
+    except (OSError, UnicodeError):
+        return set()
+    return {ipaddress.ip_address(str(info[4][0]).split("%", 1)[0]) for info in infos}
+
+
+def _is_here(address: _Address) -> bool:
+    """Whether connecting to ``address`` reaches this machine."""
+    if address.is_loopback or address.is_unspecified:
+        return True
+    family = socket.AF_INET6 if address.version == 6 else socket.AF_INET
+    with socket.socket(family, socket.SOCK_DGRAM) as probe:
+        try:
+            probe.bind((str(address), 0))
+        except OSError:
+            return False
+    return True
+
+
+def reaches_own_listener(connect: str, listen: str) -> bool:
+    """Whether connecting to ``connect`` from this machine reaches its listener ``listen``:
+    compared by protocol, port and address, not as text (``tls/localhost:7447`` reaches
+    ``tls/[::]:7447``, ``tcp/localhost:P`` reaches ``tcp/127.0.0.1:P``). A wildcard listener
+    takes every address of this machine, loopback included."""
+    if connect == listen:
+        return True
+    proto, host, port = endpoint_parts(connect)
+    listen_proto, listen_host, listen_port = endpoint_parts(listen)
+    if proto != listen_proto or port != listen_port or proto not in _INET:
+        return False
+    if not port.isdigit() or int(port) == 0:
+        return False  # port 0 listens on any free port: nothing to connect to
+    targets, listening = _addresses(host), _addresses(listen_host)
+    if any(a.is_unspecified for a in listening):
+        return any(_is_here(a) for a in targets)
+    return bool(targets & listening)
 
 
 def _check_listens_here(spec: ServiceSpec, net: NetworkConfig, where: str) -> None:
@@ -276,8 +326,12 @@ def process_specs(
                 # on the rendezvous port, as `framegate router` itself.
                 net = replace(net, listen=(f"tcp/127.0.0.1:{net.local_port}",))
             # A file-wide ``connect`` names the router every process reaches: the router
-            # itself does not connect to where it listens (it did, a link to itself).
-            net = replace(net, connect=tuple(e for e in net.connect if e not in net.listen))
+            # itself does not connect to where it listens (it did, a link to itself), also
+            # when the two are written differently (FRAMEGATE_CONNECT=tls/localhost:P).
+            own = tuple(
+                e for e in net.connect if not any(reaches_own_listener(e, x) for x in net.listen)
+            )
+            net = replace(net, connect=own)
             if here:
                 _check_listens_here(spec, net, deployment.path)
             argv = [sys.executable, "-m", "services.cli", "router", *net.to_args()]

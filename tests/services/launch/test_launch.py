@@ -17,6 +17,7 @@ from services.launch import (
     load_deployment,
     parse_deployment,
     process_specs,
+    reaches_own_listener,
 )
 from services.nodes import service as service_type
 from tests.conftest import REPO, wait_until
@@ -331,3 +332,39 @@ def test_an_empty_arg_value_is_left_unset_not_a_traceback() -> None:
     text = "services:\n  camera:\n    args: {source: prerendered, seed: }\n"
     (camera,) = parse_deployment(text, "x.yaml").services
     assert camera.args == ("--source", "prerendered")
+
+
+@pytest.mark.parametrize(
+    ("connect", "listen"),
+    [
+        ("tls/localhost:18067", "tls/[::]:18067"),
+        ("tcp/localhost:18067", "tcp/127.0.0.1:18067"),
+        ("tcp/127.0.0.1:18067", "tcp/0.0.0.0:18067"),
+        ("tcp/[::1]:18067", "tcp/[::]:18067"),
+        ("tcp/127.0.0.1:18067#iface=lo", "tcp/127.0.0.1:18067"),
+    ],
+)
+def test_a_router_does_not_connect_to_its_own_listener_written_differently(
+    connect: str, listen: str
+) -> None:
+    assert reaches_own_listener(connect, listen)
+    text = (
+        "version: 1\n"
+        f"network: {{connect: ['{connect}']}}\n"
+        f"services:\n  router: {{type: router, network: {{listen: ['{listen}']}}}}\n"
+    )
+    (router,) = process_specs(parse_deployment(text, "t.yaml"), None, NetworkConfig(), text=text)
+    assert "--connect" not in router.argv, router.argv
+
+
+@pytest.mark.parametrize(
+    ("connect", "listen"),
+    [
+        ("tcp/localhost:18068", "tcp/127.0.0.1:18067"),  # another port
+        ("tls/localhost:18067", "tcp/127.0.0.1:18067"),  # another protocol
+        ("tcp/192.0.2.7:18067", "tcp/0.0.0.0:18067"),  # an address this machine lacks
+        ("tcp/127.0.0.2:18067", "tcp/127.0.0.1:18067"),  # another loopback address
+    ],
+)
+def test_a_router_keeps_a_connect_that_reaches_another_listener(connect: str, listen: str) -> None:
+    assert not reaches_own_listener(connect, listen)
