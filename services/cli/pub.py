@@ -169,17 +169,22 @@ def run(args: argparse.Namespace) -> int:
         due = time.monotonic()
         while put < args.count and not stop.is_set():
             t = max(now_ns(), last_t + 1)
-            payload, metadata = make(put, t, args.rate)
+            # Numbered from 0, as the elements' own `frame_id`/`index` fields are.
+            index = put
+            payload, metadata = make(index, t, args.rate)
             producer.put(t, payload, metadata)
             last_t = t
             put += 1
             if args.json:
                 print_json_line(
-                    {"event": "published", "target": producer.name, "index": put,
+                    {"event": "published", "target": producer.name, "index": index,
                      "timestamp_ns": t, "payload_bytes": len(payload)}
                 )  # fmt: skip
             else:
-                print(f"published {producer.name} #{put} at {t} ({len(payload)} bytes)", flush=True)
+                print(
+                    f"published {producer.name} #{index} at {t} ({len(payload)} bytes)",
+                    flush=True,
+                )
             if put < args.count:
                 due, wait_s = next_due(due, period_s, time.monotonic())
                 if wait_s > 0:

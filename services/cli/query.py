@@ -104,6 +104,9 @@ def parse_cli_time(text: str, flag: str) -> tuple[int, bool]:
             return parse_duration_ns(value.lstrip("+")), True
         return parse_time_ns(value), False
     except QueryError as exc:
+        if re.fullmatch(r"[+-]?\d+", value):
+            # Integer ns, of the right form but out of range: say so, and the range.
+            raise QueryError(f"{flag}: {exc}") from exc
         raise QueryError(f"bad time {text!r} for {flag}: write {_TIME_HELP}") from exc
 
 

@@ -81,7 +81,8 @@ def test_pub_json_prints_one_object_per_element_then_done(cli: Cli, endpoint: st
     assert pub.returncode == 0, err
     rows = [json.loads(line) for line in out.splitlines()]
     assert [r["event"] for r in rows] == ["published", "published", "done"], out
-    assert [r["index"] for r in rows[:2]] == [1, 2] and rows[2]["published"] == 2
+    # Numbered as the elements' own index field, from 0.
+    assert [r["index"] for r in rows[:2]] == [0, 1] and rows[2]["published"] == 2
     assert all(isinstance(r["timestamp_ns"], int) for r in rows[:2])
 
 

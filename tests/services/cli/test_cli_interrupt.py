@@ -159,7 +159,7 @@ def test_pub_stops_on_one_signal_with_exit_0(signum: int, port: int) -> None:
     )
     assert proc.stdout is not None
     first = proc.stdout.readline()  # blocks until it has published (or ended)
-    assert first.startswith("published tmp/x #1"), first + proc.communicate()[0]
+    assert first.startswith("published tmp/x #0"), first + proc.communicate()[0]
     _stops(proc, signum)
     assert proc.returncode == 0
 

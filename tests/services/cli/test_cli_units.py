@@ -54,6 +54,13 @@ def test_cli_times_are_absolute_or_relative(text: str, expected: tuple[int, bool
     assert query.parse_cli_time(text, "--from") == expected
 
 
+def test_an_integer_time_out_of_range_is_named_out_of_range_with_the_range() -> None:
+    with pytest.raises(QueryError, match=r"--from: time .* is out of range: times lie between 0"):
+        query.parse_cli_time("99999999999999999999999", "--from")
+    with pytest.raises(QueryError, match=r"bad time 'soon' for --from"):
+        query.parse_cli_time("soon", "--from")
+
+
 def test_a_range_older_than_the_buffer_is_named_with_its_retention() -> None:
     buffer = BufferInfo(
         service="cam", buffer="images", kind="frame", retention=Retention(max_count=64),
