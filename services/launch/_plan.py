@@ -176,13 +176,19 @@ def _foreign_address(endpoint: str) -> bool:
         return False
     if address.is_unspecified or address.is_loopback:
         return False
+    failed = _bind_fails(address)
+    return failed is not None and failed.errno == errno.EADDRNOTAVAIL
+
+
+def _bind_fails(address: ipaddress.IPv4Address | ipaddress.IPv6Address) -> OSError | None:
+    """Why a socket cannot bind to ``address`` (one of this machine's own, if it can)."""
     family = socket.AF_INET6 if address.version == 6 else socket.AF_INET
     with socket.socket(family, socket.SOCK_DGRAM) as probe:
         try:
             probe.bind((str(address), 0))
         except OSError as exc:
-            return exc.errno == errno.EADDRNOTAVAIL
-    return False
+            return exc
+    return None
 
 
 _Address = ipaddress.IPv4Address | ipaddress.IPv6Address
@@ -204,15 +210,7 @@ def _addresses(host: str) -> set[_Address]:
 
 def _is_here(address: _Address) -> bool:
     """Whether connecting to ``address`` reaches this machine."""
-    if address.is_loopback or address.is_unspecified:
-        return True
-    family = socket.AF_INET6 if address.version == 6 else socket.AF_INET
-    with socket.socket(family, socket.SOCK_DGRAM) as probe:
-        try:
-            probe.bind((str(address), 0))
-        except OSError:
-            return False
-    return True
+    return address.is_loopback or address.is_unspecified or _bind_fails(address) is None
 
 
 def reaches_own_listener(connect: str, listen: str) -> bool:
