@@ -61,12 +61,16 @@ def test_quick_experiment_writes_every_output(tmp_path: Path) -> None:
     # `all` processes every frame; the camera refuses none of them.
     assert runs["all"]["processed"] == frames - runs["all"]["skipped_late"]
     assert runs["all"]["dropped_at_camera"] == 0
-    # Every frame the camera handled was stored or refused; the detector drained its input.
+    # Every frame the camera handled was stored or refused; the detector drained its input,
+    # unless its process was starved past its lease (a loaded machine): then its
+    # subscription lapsed, the frames stored meanwhile never reached it, and its log says so.
     for name in ("uncontrolled", "filtered", "beyond"):
         run = runs[name]
         assert run["stored"] + run["dropped_at_camera"] + run["skipped_late"] == frames
-        assert run["processed"] == (run["forwarded"] if run["forwarded"] is not None
-                                    else run["stored"])  # fmt: skip
+        given = run["forwarded"] if run["forwarded"] is not None else run["stored"]
+        log = (out / "logs" / f"seed1-{name}.log").read_text(errors="replace")
+        if run["processed"] != given:
+            assert not run["drained"] and "had lapsed" in log, (run, log[-3000:])
     # With a mediator in front the camera never has to drop: it discards by quality instead.
     assert runs["filtered"]["dropped_at_camera"] == 0
     assert runs["filtered"]["accepted"] == runs["filtered"]["forwarded"]
