@@ -17,6 +17,7 @@ from ._decode import MAX_REPLY_BYTES, listing
 from ._errors import ConfigError, NotFoundError, QueryError
 from ._executor import Executor
 from ._info_codec import decode_service_info
+from ._info_intake import InfoIntake
 from ._liveliness import live_keys
 from ._records import BufferInfo, ServiceInfo
 from ._service import answering_sessions, offered
@@ -137,26 +138,35 @@ class Discovery:
         self, *, timeout_s: float = 2.0, invalid: list[str] | None = None
     ) -> list[ServiceInfo]:
         """Every live service with its buffers, clock offset and round trip. A service whose
-        description is not valid is left out; ``invalid`` receives the one-line reason."""
+        description is not valid is left out; ``invalid`` receives the one-line reason. At
+        most ``MAX_DESCRIPTIONS`` descriptions are read, none decoded after ``timeout_s``
+        (``_info_intake``); ``invalid`` says how many were left out so."""
         self._settle()
         out: list[ServiceInfo] = []
         start = now_ns()
-        with zenoh_errors("describing services"):
-            for reply in self._replies(self.keys.info("*"), timeout_s):
-                if reply.ok is None:
-                    continue
+        intake = InfoIntake(time.monotonic() + timeout_s)
+
+        def on_reply(reply: zenoh.Reply) -> None:  # (Zenoh's thread, or this one) never waits
+            if reply.ok is not None:
                 name = str(reply.ok.key_expr).rsplit("/", 1)[-1]
-                try:  # a peer that answers garbage is left out, not fatal
-                    if len(reply.ok.payload) > MAX_REPLY_BYTES:  # before it is copied
-                        raise QueryError(
-                            f"the description of {name!r}: reply of {len(reply.ok.payload)} "
-                            f"bytes exceeds {MAX_REPLY_BYTES}"
-                        )
-                    raw = reply.ok.payload.to_bytes()
-                    out.append(decode_service_info(raw, start, now_ns(), service=name))
-                except QueryError as exc:
-                    if invalid is not None:
-                        invalid.append(str(exc))
+                intake.offer(name, reply.ok.payload, now_ns())
+
+        with zenoh_errors("describing services"):
+            self._session.get(
+                self.keys.info("*"),
+                zenoh.handlers.Callback(on_reply, intake.end, indirect=False),
+                consolidation=zenoh.ConsolidationMode.NONE,
+                timeout=timeout_s,
+            )
+        while (kept := intake.take()) is not None:
+            name, raw, end_ns = kept
+            try:  # a peer that answers garbage is left out, not fatal
+                out.append(decode_service_info(raw, start, end_ns, service=name))
+            except QueryError as exc:
+                if invalid is not None:
+                    invalid.append(str(exc))
+        if invalid is not None:
+            invalid.extend(intake.reasons())
         return sorted(out, key=lambda s: s.service)
 
     def _replies(self, keyexpr: str, timeout_s: float) -> zenoh.Handler[zenoh.Reply]:

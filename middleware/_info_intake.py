@@ -1,0 +1,136 @@
+"""The answers to one ``@info/*`` query (``Node.services``), taken within bounds.
+
+Any peer can answer ``@info/*`` with any number of replies under any names, each a valid
+description of up to ``MAX_REPLY_BYTES``: a peer answering with 100 descriptions of 2.4 MB
+(30,000 subscriptions each) kept ``framegate ls`` decoding for 12-20 s, ~265 MB, and
+``launch --status`` printed no status line meanwhile. So per query:
+
+- at most ``MAX_DESCRIPTIONS`` replies, and ``MAX_DESCRIPTION_BYTES`` of them in all, are
+  kept (copied) to be decoded; the rest are counted, never copied;
+- nothing is decoded after the query's deadline (its timeout): what is kept and not yet
+  decoded then is counted, not decoded.
+
+One line per kind of reply left out (``reasons``) says how many, so ``ls`` names them.
+
+Threads: ``offer`` and ``end`` run on Zenoh's threads: a remote peer's reply on the thread
+of the link it came on, but the reply of a queryable of the asking session itself on the
+*asking* thread, inside ``get``, before the asker holds anything to read from (so a bounded
+FIFO channel parks the asker for good once replies outnumber its room, as liveliness
+replies did: ``_liveliness``). ``offer`` never blocks: it keeps or counts, at once. ``take``
+runs on the asking thread and waits, with the deadline, for what ``offer`` kept. ``_cond``
+guards the kept replies and the counts.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from typing import Protocol
+
+from ._decode import MAX_REPLY_BYTES, listing
+
+# Replies of one ``@info/*`` query kept to be decoded at most, and their bytes in all: a
+# deployment's descriptions are a few KiB each (one buffer's is at most 512 KiB), so these
+# leave room for dozens of services and bound the decoding to seconds on a loaded machine.
+MAX_DESCRIPTIONS = 64
+MAX_DESCRIPTION_BYTES = 16 << 20
+# Names of left-out replies a reason line lists at most.
+_NAMED = 5
+
+
+class Payload(Protocol):
+    """What ``offer`` reads of a reply's payload (``zenoh.ZBytes``)."""
+
+    def __len__(self) -> int: ...
+
+    def to_bytes(self) -> bytes: ...
+
+
+class InfoIntake:
+    """The replies of one ``@info/*`` query waiting to be decoded, within the bounds above."""
+
+    def __init__(self, deadline: float, *, monotonic: Callable[[], float] = time.monotonic) -> None:
+        self._deadline = deadline
+        self._monotonic = monotonic
+        self._cond = threading.Condition()
+        self._kept: deque[tuple[str, bytes, int]] = deque()
+        self._count = 0
+        self._bytes = 0
+        self._ended = False
+        self._closed = False
+        self._too_large: list[str] = []
+        self._over_cap: list[str] = []
+        self._late: list[str] = []
+
+    # -- Zenoh's threads -------------------------------------------------------------------
+    def offer(self, name: str, payload: Payload, arrived_ns: int) -> None:
+        """Keep ``name``'s reply (copied) if the bounds allow; else count it. Never blocks."""
+        size = len(payload)
+        with self._cond:
+            if self._closed:
+                return
+            if size > MAX_REPLY_BYTES:
+                self._too_large.append(name)
+                return
+            if self._count >= MAX_DESCRIPTIONS or self._bytes + size > MAX_DESCRIPTION_BYTES:
+                self._over_cap.append(name)
+                return
+            self._count += 1
+            self._bytes += size
+        raw = payload.to_bytes()  # outside the lock: a copy of up to 4 MiB
+        with self._cond:
+            if not self._closed:
+                self._kept.append((name, raw, arrived_ns))
+                self._cond.notify()
+
+    def end(self) -> None:
+        """The query ended (all answered, or its timeout)."""
+        with self._cond:
+            self._ended = True
+            self._cond.notify()
+
+    # -- the asking thread -----------------------------------------------------------------
+    def take(self) -> tuple[str, bytes, int] | None:
+        """The next kept reply (name, payload, when it came); None once the query has ended
+        and all are taken, or at the deadline (then the rest are counted late)."""
+        with self._cond:
+            while True:
+                now = self._monotonic()
+                if now >= self._deadline:
+                    self._close()
+                    return None
+                if self._kept:
+                    return self._kept.popleft()
+                if self._ended:
+                    self._close()
+                    return None
+                self._cond.wait(self._deadline - now)
+
+    def _close(self) -> None:
+        self._closed = True
+        self._late.extend(name for name, _raw, _end in self._kept)
+        self._kept.clear()
+
+    def reasons(self) -> list[str]:
+        """One line per kind of reply left out, naming a few and saying how many."""
+        with self._cond:
+            out = []
+            if self._too_large:
+                out.append(
+                    f"{len(self._too_large)} descriptions of more than {MAX_REPLY_BYTES} bytes "
+                    f"each, not read ({listing(self._too_large, _NAMED)})"
+                )
+            if self._over_cap:
+                out.append(
+                    f"{len(self._over_cap)} descriptions beyond the {MAX_DESCRIPTIONS} (and "
+                    f"{MAX_DESCRIPTION_BYTES >> 20} MiB) read per query, not read "
+                    f"({listing(self._over_cap, _NAMED)})"
+                )
+            if self._late:
+                out.append(
+                    f"{len(self._late)} descriptions not decoded by the query's deadline "
+                    f"({listing(self._late, _NAMED)})"
+                )
+            return out
