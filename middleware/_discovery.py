@@ -144,7 +144,9 @@ class Discovery:
         self._settle()
         out: list[ServiceInfo] = []
         start = now_ns()
-        intake = InfoIntake(time.monotonic() + timeout_s)
+        deadline = time.monotonic() + timeout_s
+        # Who holds a token: answered from what the session knows, at once (see _info_intake).
+        intake = InfoIntake(deadline, self.live_services(timeout_s=timeout_s))
 
         def on_reply(reply: zenoh.Reply) -> None:  # (Zenoh's thread, or this one) never waits
             if reply.ok is not None:

@@ -7,6 +7,11 @@ description of up to ``MAX_REPLY_BYTES``: a peer answering with 100 descriptions
 
 - at most ``MAX_DESCRIPTIONS`` replies, and ``MAX_DESCRIPTION_BYTES`` of them in all, are
   kept (copied) to be decoded; the rest are counted, never copied;
+- replies for services that hold no liveliness token (a real service always holds its
+  token; a made-up one need not) take at most ``TOKENLESS_DESCRIPTIONS`` and
+  ``TOKENLESS_BYTES`` of that, and are decoded after those of token holders: a flood of
+  made-up descriptions cannot push a real service out (a peer that declares a token for
+  each made-up name as well still can: what is left of the caps is then first come);
 - nothing is decoded after the query's deadline (its timeout): what is kept and not yet
   decoded then is counted, not decoded.
 
@@ -26,7 +31,7 @@ from __future__ import annotations
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from typing import Protocol
 
 from ._decode import MAX_REPLY_BYTES, listing
@@ -36,8 +41,16 @@ from ._decode import MAX_REPLY_BYTES, listing
 # leave room for dozens of services and bound the decoding to seconds on a loaded machine.
 MAX_DESCRIPTIONS = 64
 MAX_DESCRIPTION_BYTES = 16 << 20
+# Of those, for services holding no liveliness token at most (a fresh session that has not
+# yet seen a real service's token still lists it).
+TOKENLESS_DESCRIPTIONS = 16
+TOKENLESS_BYTES = 4 << 20
 # Names of left-out replies a reason line lists at most.
 _NAMED = 5
+
+
+# A kept reply: the service it names, its payload, when it came (ns, local clock).
+Kept = tuple[str, bytes, int]
 
 
 class Payload(Protocol):
@@ -51,17 +64,26 @@ class Payload(Protocol):
 class InfoIntake:
     """The replies of one ``@info/*`` query waiting to be decoded, within the bounds above."""
 
-    def __init__(self, deadline: float, *, monotonic: Callable[[], float] = time.monotonic) -> None:
+    def __init__(
+        self,
+        deadline: float,
+        live: Collection[str],
+        *,
+        monotonic: Callable[[], float] = time.monotonic,
+    ) -> None:
         self._deadline = deadline
+        self._live = frozenset(live)
         self._monotonic = monotonic
         self._cond = threading.Condition()
-        self._kept: deque[tuple[str, bytes, int]] = deque()
-        self._count = 0
-        self._bytes = 0
+        # [0]: of services holding their token, [1]: of the others (taken after [0])
+        self._kept: tuple[deque[Kept], deque[Kept]] = (deque(), deque())
+        self._count = [0, 0]
+        self._bytes = [0, 0]
         self._ended = False
         self._closed = False
         self._too_large: list[str] = []
         self._over_cap: list[str] = []
+        self._tokenless: list[str] = []
         self._late: list[str] = []
 
     # -- Zenoh's threads -------------------------------------------------------------------
@@ -74,16 +96,29 @@ class InfoIntake:
             if size > MAX_REPLY_BYTES:
                 self._too_large.append(name)
                 return
-            if self._count >= MAX_DESCRIPTIONS or self._bytes + size > MAX_DESCRIPTION_BYTES:
+            tokenless = int(name not in self._live)
+            count, used = sum(self._count), sum(self._bytes)
+            if count >= MAX_DESCRIPTIONS or used + size > MAX_DESCRIPTION_BYTES:
                 self._over_cap.append(name)
                 return
-            self._count += 1
-            self._bytes += size
+            if tokenless and (
+                self._count[1] >= TOKENLESS_DESCRIPTIONS or self._bytes[1] + size > TOKENLESS_BYTES
+            ):
+                self._tokenless.append(name)
+                return
+            self._count[tokenless] += 1
+            self._bytes[tokenless] += size
         raw = payload.to_bytes()  # outside the lock: a copy of up to 4 MiB
         with self._cond:
             if not self._closed:
-                self._kept.append((name, raw, arrived_ns))
+                self._kept[tokenless].append((name, raw, arrived_ns))
                 self._cond.notify()
+
+    @property
+    def kept(self) -> int:
+        """How many replies were kept to be decoded (at most ``MAX_DESCRIPTIONS``)."""
+        with self._cond:
+            return sum(self._count)
 
     def end(self) -> None:
         """The query ended (all answered, or its timeout)."""
@@ -92,17 +127,18 @@ class InfoIntake:
             self._cond.notify()
 
     # -- the asking thread -----------------------------------------------------------------
-    def take(self) -> tuple[str, bytes, int] | None:
-        """The next kept reply (name, payload, when it came); None once the query has ended
-        and all are taken, or at the deadline (then the rest are counted late)."""
+    def take(self) -> Kept | None:
+        """The next kept reply (name, payload, when it came), token holders' first; None once
+        the query has ended and all are taken, or at the deadline (the rest counted late)."""
         with self._cond:
             while True:
                 now = self._monotonic()
                 if now >= self._deadline:
                     self._close()
                     return None
-                if self._kept:
-                    return self._kept.popleft()
+                for kept in self._kept:
+                    if kept:
+                        return kept.popleft()
                 if self._ended:
                     self._close()
                     return None
@@ -110,8 +146,9 @@ class InfoIntake:
 
     def _close(self) -> None:
         self._closed = True
-        self._late.extend(name for name, _raw, _end in self._kept)
-        self._kept.clear()
+        for kept in self._kept:
+            self._late.extend(name for name, _raw, _end in kept)
+            kept.clear()
 
     def reasons(self) -> list[str]:
         """One line per kind of reply left out, naming a few and saying how many."""
@@ -127,6 +164,12 @@ class InfoIntake:
                     f"{len(self._over_cap)} descriptions beyond the {MAX_DESCRIPTIONS} (and "
                     f"{MAX_DESCRIPTION_BYTES >> 20} MiB) read per query, not read "
                     f"({listing(self._over_cap, _NAMED)})"
+                )
+            if self._tokenless:
+                out.append(
+                    f"{len(self._tokenless)} descriptions of services holding no liveliness "
+                    f"token beyond the {TOKENLESS_DESCRIPTIONS} (and {TOKENLESS_BYTES >> 20} MiB) "
+                    f"read per query, not read ({listing(self._tokenless, _NAMED)})"
                 )
             if self._late:
                 out.append(

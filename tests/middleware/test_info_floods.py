@@ -4,18 +4,27 @@ on loopback; the peers are raw sessions)."""
 
 from __future__ import annotations
 
+import json
 import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import pytest
 import zenoh
 
 from middleware import NetworkConfig, Node, ServiceInfo
+from middleware._info_intake import MAX_DESCRIPTIONS, TOKENLESS_DESCRIPTIONS
 from middleware._wire import Keys
-from tests.helpers.timing import scaled
+from tests.helpers.raw_zenoh import open_session
+from tests.helpers.timing import scaled, wait_until
 
 pytestmark = pytest.mark.integration
 
 KEYS = Keys("framegate")
+
+
+def connect(endpoint: str) -> NetworkConfig:
+    return NetworkConfig(connect=(endpoint,))
 
 
 def _services_ends(node: Node, invalid: list[str]) -> list[ServiceInfo]:
@@ -56,3 +65,90 @@ def test_queryables_of_the_asking_session_cannot_park_services(listen_net: Netwo
                 queryable.undeclare()
     assert [s.service for s in services] == ["real"]
     assert invalid  # each local reply is named as no description
+
+
+FLOOD = 200  # made-up services, each answering with a valid description
+
+
+def _description_of(endpoint: str, service: str) -> bytes:
+    """``service``'s own ``@info`` reply, as a peer reads it."""
+    with open_session(endpoint) as peer:
+
+        def ask() -> bytes | None:
+            for reply in peer.get(KEYS.info(service), timeout=scaled(2)):
+                if reply.ok is not None:
+                    return reply.ok.payload.to_bytes()
+            return None
+
+        return wait_until(ask, 20, f"{service}'s description")
+
+
+def _renamed(raw: bytes, name: str) -> bytes:
+    body = json.loads(raw)
+    body["service"] = name
+    for buffer in body["buffers"]:
+        buffer["service"] = name
+    return json.dumps(body).encode()
+
+
+@contextmanager
+def _made_up(endpoint: str, template: bytes, *, tokens: bool) -> Iterator[None]:
+    """A raw peer answering ``@info/*`` with ``FLOOD`` valid descriptions (``template``
+    renamed ``fake000`` ...); ``tokens``: it holds a liveliness token for each as well."""
+    blobs = [
+        (f"fake{i:03d}", zenoh.ZBytes(_renamed(template, f"fake{i:03d}"))) for i in range(FLOOD)
+    ]
+    with open_session(endpoint) as rogue:
+        held = [rogue.liveliness().declare_token(KEYS.service_token(n)) for n, _ in blobs if tokens]
+        queryable = rogue.declare_queryable(KEYS.info("*"), zenoh.handlers.FifoChannel(16))
+
+        def serve() -> None:
+            for query in queryable.handler:
+                with query:
+                    for name, blob in blobs:
+                        query.reply(KEYS.info(name), blob)
+
+        thread = threading.Thread(target=serve, daemon=True)
+        thread.start()
+        try:
+            yield
+        finally:
+            queryable.undeclare()
+            for token in held:
+                token.undeclare()
+            thread.join(timeout=scaled(30))
+
+
+def test_a_flood_of_made_up_descriptions_cannot_push_out_a_real_service(
+    listen_net: NetworkConfig, endpoint: str
+) -> None:
+    """200 valid descriptions of made-up services (no liveliness token): every one was
+    decoded and kept (100 of 2.4 MB took ``ls`` 12-20 s); now at most
+    ``TOKENLESS_DESCRIPTIONS`` of them are, and the real service is listed."""
+    with Node("real", listen_net) as real:
+        real.offer("b")
+        template = _description_of(endpoint, "real")
+        with _made_up(endpoint, template, tokens=False), Node(network=connect(endpoint)) as client:
+            wait_until(lambda: "real" in client.live_services(), 20, "the real service's token")
+            invalid: list[str] = []
+            services = _services_ends(client, invalid)
+    names = [s.service for s in services]
+    assert "real" in names
+    assert len(names) == 1 + TOKENLESS_DESCRIPTIONS, names
+    assert any("holding no liveliness token" in line for line in invalid), invalid
+
+
+def test_descriptions_kept_stay_at_the_cap_when_made_up_services_hold_tokens(
+    listen_net: NetworkConfig, endpoint: str
+) -> None:
+    """The same flood, each made-up name also holding a token: at most ``MAX_DESCRIPTIONS``
+    descriptions are kept, and the rest named in one line."""
+    with Node("real", listen_net) as real:
+        real.offer("b")
+        template = _description_of(endpoint, "real")
+        with _made_up(endpoint, template, tokens=True), Node(network=connect(endpoint)) as client:
+            wait_until(lambda: len(client.live_services()) > FLOOD, 20, "the made-up tokens")
+            invalid: list[str] = []
+            services = _services_ends(client, invalid)
+    assert len(services) == MAX_DESCRIPTIONS
+    assert any(f"beyond the {MAX_DESCRIPTIONS}" in line for line in invalid), invalid

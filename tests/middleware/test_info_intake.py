@@ -1,0 +1,72 @@
+"""``InfoIntake``: what of one ``@info/*`` query's replies is kept, decoded, or counted."""
+
+from __future__ import annotations
+
+from middleware._info_intake import (
+    MAX_DESCRIPTION_BYTES,
+    MAX_DESCRIPTIONS,
+    TOKENLESS_BYTES,
+    InfoIntake,
+)
+
+
+class _Payload:
+    """A payload of ``size`` bytes that counts its copies."""
+
+    def __init__(self, size: int) -> None:
+        self.size = size
+        self.copies = 0
+
+    def __len__(self) -> int:
+        return self.size
+
+    def to_bytes(self) -> bytes:
+        self.copies += 1
+        return b"x" * self.size
+
+
+def _taken(intake: InfoIntake) -> list[str]:
+    intake.end()
+    names = []
+    while (kept := intake.take()) is not None:
+        names.append(kept[0])
+    return names
+
+
+def test_kept_bytes_stay_within_the_caps_and_the_rest_is_never_copied() -> None:
+    mib = 1 << 20
+    live = [f"live{i}" for i in range(10)]
+    intake = InfoIntake(float("inf"), live)
+    payloads = [_Payload(3 * mib) for _ in range(10)]
+    for name, payload in zip(live, payloads, strict=True):
+        intake.offer(name, payload, 0)
+    tokenless = [_Payload(3 * mib) for _ in range(3)]
+    for i, payload in enumerate(tokenless):
+        intake.offer(f"fake{i}", payload, 0)
+    names = _taken(intake)
+    assert len(names) == MAX_DESCRIPTION_BYTES // (3 * mib)  # 5 token holders, no fake
+    assert sum(p.copies for p in payloads + tokenless) == len(names)
+    assert any("beyond the" in line for line in intake.reasons())
+
+
+def test_tokenless_replies_take_their_share_and_come_after_token_holders() -> None:
+    intake = InfoIntake(float("inf"), ["real"])
+    for i in range(MAX_DESCRIPTIONS):
+        intake.offer(f"fake{i}", _Payload(TOKENLESS_BYTES // 4), 0)
+    intake.offer("real", _Payload(100), 0)
+    names = _taken(intake)
+    assert names[0] == "real"
+    assert len(names) == 1 + 4
+    assert intake.kept == len(names)
+
+
+def test_nothing_is_decoded_after_the_deadline() -> None:
+    now = [0.0]
+    intake = InfoIntake(1.0, ["a", "b"], monotonic=lambda: now[0])
+    intake.offer("a", _Payload(10), 0)
+    intake.offer("b", _Payload(10), 0)
+    assert intake.take() is not None
+    now[0] = 1.0
+    assert intake.take() is None
+    intake.offer("c", _Payload(10), 0)  # after the deadline: ignored
+    assert any(line.startswith("1 descriptions not decoded") for line in intake.reasons())
