@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import difflib
+import threading
 import time
 from collections.abc import Callable, Iterator
 from contextlib import suppress
@@ -171,17 +172,6 @@ class Discovery:
             invalid.extend(intake.reasons())
         return sorted(out, key=lambda s: s.service)
 
-    def _replies(self, keyexpr: str, timeout_s: float) -> zenoh.Handler[zenoh.Reply]:
-        """The replies to an ``@info`` query, read one at a time as they come (never all
-        held: 300 replies of 4 MiB from one peer grew ``ls`` to 1.3 GB), through a short
-        channel (a peer's replies wait in Zenoh, on its link, while one is decoded)."""
-        return self._session.get(
-            keyexpr,
-            handler=zenoh.handlers.FifoChannel(_REPLY_CHANNEL),
-            consolidation=zenoh.ConsolidationMode.NONE,
-            timeout=timeout_s,
-        )
-
     def service_info(
         self,
         service: str,
@@ -200,9 +190,21 @@ class Discovery:
         counts for nothing."""
         start, began = now_ns(), time.monotonic()
         answers = Answers(service, start)  # bounded: each session's first reply
+        ended = threading.Event()
+
+        def on_reply(reply: zenoh.Reply) -> None:  # (Zenoh's thread, or this one) never waits
+            answers.add(reply, now_ns())
+
+        # A callback, never a bounded channel: Zenoh delivers the replies of this session's
+        # own queryables on this thread, inside ``get``, and a full channel parks it for good.
         with zenoh_errors(f"describing {service}"):
-            for reply in self._replies(self.keys.info(service), timeout_s):
-                answers.add(reply, now_ns())
+            self._session.get(
+                self.keys.info(service),
+                zenoh.handlers.Callback(on_reply, ended.set, indirect=False),
+                consolidation=zenoh.ConsolidationMode.NONE,
+                timeout=timeout_s,
+            )
+        ended.wait(timeout_s + _END_SLACK_S)
         if session is not None:
             found = answers.of_session(session)
         else:
@@ -296,8 +298,8 @@ class Discovery:
         return buffer_of(info, target)
 
 
-# Replies to an ``@info`` query waiting to be read (``Discovery._replies``).
-_REPLY_CHANNEL = 16
+# Beyond a query's timeout, how long to wait for Zenoh to say that it ended.
+_END_SLACK_S = 1.0
 # Sessions whose answers to one ``@info`` query are kept; one more makes the answers
 # ambiguous (a crowd of rogue repliers could otherwise push the real one out unseen).
 MAX_REPLIERS = 8

@@ -12,7 +12,7 @@ from contextlib import contextmanager
 import pytest
 import zenoh
 
-from middleware import NetworkConfig, Node, ServiceInfo
+from middleware import FramegateError, NetworkConfig, Node, ServiceInfo
 from middleware._info_intake import MAX_DESCRIPTIONS, TOKENLESS_DESCRIPTIONS
 from middleware._wire import Keys
 from tests.helpers.raw_zenoh import open_session
@@ -152,3 +152,39 @@ def test_descriptions_kept_stay_at_the_cap_when_made_up_services_hold_tokens(
             services = _services_ends(client, invalid)
     assert len(services) == MAX_DESCRIPTIONS
     assert any(f"beyond the {MAX_DESCRIPTIONS}" in line for line in invalid), invalid
+
+
+def test_queryables_of_the_asking_session_cannot_park_service_info(
+    listen_net: NetworkConfig,
+) -> None:
+    """The same for one service's description (``info``, ``ls``'s clock samples): 40 replies
+    of the asking session's own queryables on ``@info/real`` parked ``service_info`` in
+    ``get`` for good; now it ends, with what it made of them."""
+    with Node("real", listen_net) as node:
+        node.offer("b")
+        key = KEYS.info("real")
+
+        def answer(query: zenoh.Query) -> None:
+            with query:
+                query.reply(key, b"{}")
+
+        queryables = [
+            node._session.declare_queryable(key, zenoh.handlers.Callback(answer, indirect=False))
+            for _ in range(40)
+        ]
+        out: list[object] = []
+
+        def ask() -> None:
+            try:
+                out.append(node.service_info("real", timeout_s=scaled(2)))
+            except FramegateError as exc:
+                out.append(exc)
+
+        try:
+            thread = threading.Thread(target=ask, daemon=True)
+            thread.start()
+            thread.join(scaled(30))
+        finally:
+            for queryable in queryables:
+                queryable.undeclare()
+    assert out, "service_info() never ended"
