@@ -33,7 +33,9 @@ Messages in, and what they do in every state:
     (no subscriber took what was never sent: a forgery) is counted there too and changes
     nothing: taken as ``sent``, it would have acked what the subscriber still holds, and the
     producer would send past its window notifications the subscriber ignores and nobody
-    resends (both sides held for good). Otherwise ``acked = max(acked, seq)``: duplicates
+    resends (both sides held for good). So is a seq below 1 (seqs start at 1 and only taken
+    ones are acked: a forgery, and distinct ones would otherwise fill the ack inbox, which
+    keeps what ``plausible`` passes). Otherwise ``acked = max(acked, seq)``: duplicates
     and reordering cannot move it back; an ack that moves it records
     its time (``taken_ns``: when the producer last saw the subscriber take). An ack that
     moves nothing while notifications are outstanding is an idle subscriber's repeat: the
@@ -217,12 +219,12 @@ class ProducerLedger(Generic[H]):
     # -- acks ------------------------------------------------------------------------------
     def plausible(self, sub_id: str, epoch: str, seq: int) -> bool:
         """Whether ``ack`` would look at this ack at all: a live registration owns the
-        epoch, under this id, and sent at least ``seq``. The one method safe to call from
-        another thread (an ack inbox on Zenoh's thread: one dict look-up and two reads,
-        each atomic under the GIL; a registration made or retired meanwhile is seen either
-        way, and ``ack`` checks again)."""
+        epoch, under this id, and sent at least ``seq`` (itself at least 1). The one method
+        safe to call from another thread (an ack inbox on Zenoh's thread: one dict look-up
+        and two reads, each atomic under the GIL; a registration made or retired meanwhile is
+        seen either way, and ``ack`` checks again)."""
         reg = self._by_epoch.get(epoch)
-        return reg is not None and reg.key.sub_id == sub_id and seq <= reg.sent
+        return reg is not None and reg.key.sub_id == sub_id and 1 <= seq <= reg.sent
 
     def ack(self, sub_id: str, epoch: str, seq: int, now_ns: int) -> bool:
         """Apply a cumulative ack; True if it freed credit."""

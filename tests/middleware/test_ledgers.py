@@ -234,3 +234,21 @@ def test_an_observer_keeps_missed_counts_with_their_producer_instance() -> None:
     assert observer.receive("A", 2, 2, descriptor=None)
     assert [(e.epoch, e.seq, e.missed) for e in observer.take_many(1)] == [("A", 2, 1)]
     assert observer.missed_total == 1
+
+
+def test_an_ack_below_seq_one_is_counted_and_never_reaches_the_inbox() -> None:
+    """No subscriber acks seq 0 or a negative seq (seqs start at 1 and acks are of taken
+    ones): a peer that read a registration's epoch sent them, distinct each, and every one
+    passed ``plausible`` (so the ack inbox kept them, up to its 8,192, beside the honest
+    acks) and was then ignored uncounted. They are foreign acks now, counted, and the
+    subscriber's own acks still work."""
+    producer, subscriber, _ = _pair(2)
+    _fill(producer, subscriber, 2)
+    epoch = producer.registrations()[0].epoch
+    for lie in (0, -1, -(2**62)):
+        assert not producer.plausible("s", epoch, lie)
+        assert not producer.ack("s", epoch, lie, 0)
+    assert producer.counters.foreign_acks == 3
+    assert producer.registrations()[0].resend_now is False  # nor made anything due again
+    epoch, seq = _take_counting_acks(subscriber, 2)[-1]
+    assert producer.ack("s", epoch, seq, 0) and producer.full() is None
