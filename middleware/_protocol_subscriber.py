@@ -139,9 +139,6 @@ class SubscriberProtocol:
         self._lapsed = 0
         # Counted at a greeting, not yet carried by a queued notification.
         self._ahead = 0
-        # Per producer instance, the last lapse counted: its element numbers (low, high]; one
-        # of them queued after all (``_uncount``) is taken off the count.
-        self._gaps: OrderedDict[str, list[int]] = OrderedDict()
         # Fetch ahead: set once the consumer had to query for an element (see ``fetch_ahead``).
         self.fetching = False
 
@@ -154,30 +151,34 @@ class SubscriberProtocol:
             if attachment is None:
                 raise ValueError("notification without a header")
             head = decode_notification_header(attachment)
+            if (
+                not isinstance(head, Control)
+                and head.epoch != self.registered_epoch
+                and self._retired(head.epoch)
+            ):
+                self.ledger.counters.duplicates += 1
+                return False
             if type(head) is Header:
                 if head.epoch != self._epoch and head.base is not None:
                     return self._first_of_epoch(head, [_item(head, payload)])
                 metadata = head.metadata
                 pushed = payload if head.pushed and metadata is not None else None
-                queued = self.ledger.receive(
+                return self.ledger.receive(
                     head.epoch,
                     head.seq,
                     (head.timestamp_ns, metadata, pushed),
                     descriptor=head.descriptor,
                 )
-                if queued and self._gaps and head.epoch != self.registered_epoch:
-                    self._uncount(head, 1)
-                return queued
             if type(head) is BatchHeader:
                 items = _batch_items(head, payload)
                 if head.epoch != self._epoch and head.base is not None:
                     return self._first_of_epoch(head, items)
-                count = self.ledger.receive_many(
-                    head.epoch, head.seq, items, descriptor=head.descriptor
+                return (
+                    self.ledger.receive_many(
+                        head.epoch, head.seq, items, descriptor=head.descriptor
+                    )
+                    > 0
                 )
-                if count and self._gaps and head.epoch != self.registered_epoch:
-                    self._uncount(head, count)
-                return count > 0
             assert type(head) is Control
             self._control(head, sender)
             return False
@@ -200,13 +201,11 @@ class SubscriberProtocol:
         track = ledger.track(head.epoch)
         if not queued or track is None:
             return False
-        self._uncount(head, queued)
         high = self._high.get(head.epoch.rpartition(".")[0])
         if new and high is not None and head.base > high:
             gap = head.base - high
             ledger.note_missed(gap, before)
             self._lapsed += gap
-            self._note_gap(head.epoch, high, head.base)
         if new and self._ahead:
             ledger.note_missed(self._ahead, before, counted=True)
             self._ahead = 0
@@ -214,32 +213,24 @@ class SubscriberProtocol:
         self._raise_high(head.epoch, head.base + track.last)
         return True
 
-    def _note_gap(self, epoch: str, low: int, high: int) -> None:
-        instance = epoch.rpartition(".")[0]
-        self._gaps[instance] = [low, high]
-        self._gaps.move_to_end(instance)
-        if len(self._gaps) > _INSTANCES:
-            self._gaps.popitem(last=False)
-
-    def _uncount(self, head: Header | BatchHeader, queued: int) -> None:
-        """The last ``queued`` elements accepted of ``head``'s epoch were just queued: those
-        of them a lapse counted as missed were not (a notification sent before our token
-        lapsed, held back or replayed past the greeting that counted it). They come off
-        ``missed_total`` and, while not carried by a queued notification yet, off what the
-        next one carries (once carried, that notification's ``missed`` stays as it was)."""
-        gap = self._gaps.get(head.epoch.rpartition(".")[0])
-        track = self.ledger.track(head.epoch)
-        if gap is None or track is None or head.base is None:
-            return
-        last = head.base + track.last
-        low, high = gap
-        found = min(high, last) - max(low, last - queued)
-        if found <= 0:
-            return
-        gap[0] = max(low, min(high, last))  # each counted back once
-        self.ledger.missed_total -= found
-        self._ahead -= min(self._ahead, found)
-        self._lapsed -= min(self._lapsed, found)
+    def _retired(self, epoch: str) -> bool:
+        """Whether ``epoch`` is an earlier registration of the producer instance that greeted
+        us last (``<instance>.<n>``, n counting its registrations): retired, so none of its
+        notifications can be in flight any more. One that arrives now was held back or is
+        replayed, after the greeting counted what it carries as missed (our token lapsed):
+        taken as well, it was counted twice and came after newer elements. (The greeting is
+        trusted here: one of our producer's instance from another session is garbage.)"""
+        registered = self.registered_epoch
+        if registered is None:
+            return False
+        instance, _, number = epoch.rpartition(".")
+        ours, _, latest = registered.rpartition(".")
+        if instance != ours:
+            return False
+        try:
+            return int(number) < int(latest)
+        except ValueError:
+            return False
 
     def _raise_current(self) -> None:
         """Remember how far the registration of the last notification queued has got."""
@@ -294,7 +285,6 @@ class SubscriberProtocol:
             self.ledger.missed_total += gap
             self._ahead += gap
             self._lapsed += gap
-            self._note_gap(epoch, high, base)
         # First contact: what the producer stored before our registration was never ours;
         # a later lapse counts from here.
         self._raise_high(epoch, base)
