@@ -196,11 +196,13 @@ class SubscriberProtocol:
         self._raise_current()
         known = ledger.track(head.epoch)
         new = known is None or known.last == 0  # nothing of this epoch accepted yet
-        before = len(ledger)
         queued = ledger.receive_many(head.epoch, head.seq, items, descriptor=head.descriptor)
         track = ledger.track(head.epoch)
         if not queued or track is None:
             return False
+        # The first of them still queued: counted from the end, since a full observer's
+        # queue pushed its oldest out for them (from the start it was past the end).
+        before = max(0, len(ledger) - queued)
         high = self._high.get(head.epoch.rpartition(".")[0])
         if new and high is not None and head.base > high:
             gap = head.base - high

@@ -21,12 +21,10 @@ SERVICE, BUFFER, SUB = "svc", "buf", "s1"
 class _Pair:
     """A producer and one flow-controlled subscriber, the network a list in between."""
 
-    def __init__(self) -> None:
+    def __init__(self, mode: SubscriptionMode = SubscriptionMode.FLOW, queue: int = 4) -> None:
         self.producer = ProducerProtocol(KEYS, SERVICE, BUFFER, "P0", inline_max_bytes=4)
-        self.sub = SubscriberProtocol(SubscriptionMode.FLOW, 4, -1)
-        self.token = KEYS.subscription_token(
-            SERVICE, BUFFER, SUB, SubscriptionMode.FLOW, 4, -1, "n~h"
-        )
+        self.sub = SubscriberProtocol(mode, queue, -1)
+        self.token = KEYS.subscription_token(SERVICE, BUFFER, SUB, mode, queue, -1, "n~h")
         self.now = 0
         self.next_t = 1
         self.kinds: list[str] = []
@@ -134,3 +132,26 @@ def test_an_element_of_the_lapsed_registration_that_arrives_late_is_not_taken_to
     entries = pair.sub.take_many(100)
     assert [(e.item[0], e.missed) for e in entries] == [(6, 3)]
     assert pair.sub.ledger.missed_total == 3
+
+
+def test_a_full_observer_carries_a_lapse_on_the_element_that_pushed_out_its_oldest() -> None:
+    """An observer of queue 1 still holding an element when its token lapsed: the first
+    element of the new registration pushes that one out, and the lapse's count was to go on
+    the new element at the index the queue had before the push (past its end). The
+    notification was queued but counted as garbage, the new element carried neither count,
+    and the next lapse, with nothing stored during it, counted one element more."""
+    pair = _Pair(SubscriptionMode.OBSERVE, 1)
+    pair.declare(True)
+    pair.put(1)  # element 1 waits, not taken
+    pair.declare(False)
+    pair.put(1)  # element 2, stored during the lapse
+    pair.declare(True)
+    pair.put(1)  # element 3 pushes element 1 out
+    assert pair.sub.garbage == 0
+    # It carries the lapse (element 2); element 1's push-out stays with its registration's
+    # epoch (``SubscriberLedger._drop_oldest``), counted in the total.
+    assert pair.take_all() == [1]
+    assert pair.sub.ledger.missed_total == 2
+    pair.declare(False)
+    pair.declare(True)  # a lapse with nothing stored during it
+    assert pair.sub.ledger.missed_total == 2
