@@ -124,8 +124,6 @@ class SubscriberProtocol:
         # contests the greeting; answers in the service's name count only from it (a clock).
         self.greeted_by: str | None = None
         self._producer_ids: frozenset[str] | None = None
-        # The session each producer instance greeted us from (the last ``_INSTANCES``).
-        self._greeters: OrderedDict[str, str] = OrderedDict()
         self._ids_at_ns = 0
         self._refusal_reported = False
         self._retry_at_ns: int | None = None
@@ -221,7 +219,7 @@ class SubscriberProtocol:
         notifications can be in flight any more. One that arrives now was held back or is
         replayed, after the greeting counted what it carries as missed (our token lapsed):
         taken as well, it was counted twice and came after newer elements. (The greeting is
-        trusted here: one of our producer's instance from another session is garbage.)"""
+        trusted here: a forged one of a made-up instance can still move it.)"""
         registered = self.registered_epoch
         if registered is None:
             return False
@@ -295,25 +293,18 @@ class SubscriberProtocol:
         if control.descriptor != self.descriptor:
             return  # meant for another registration of this key: not ours to judge
         if control.kind == "hello":
-            instance = control.text.rpartition(".")[0]
-            greeter = self._greeters.get(instance)
             if (
                 control.text == self.registered_epoch
                 and self.greeted_by is not None
                 and sender != self.greeted_by
-            ) or (greeter is not None and sender != greeter):
+            ) or self._retired(control.text):
                 # An epoch is one producer instance's, greeting from its one session: the
                 # same epoch in another session's name is forged (it would make that session
-                # the one whose answers speak for the service: a mediator's clock), and so
-                # is an old greeting of that instance replayed from another session (it
-                # would move the pin off the live epoch: ``SubscriberLedger`` rule 3).
+                # the one whose answers speak for the service: a mediator's clock). A
+                # greeting of a retired registration is a replay: it would move the pin off
+                # the live epoch (``SubscriberLedger`` rule 3).
                 self.garbage += 1
                 return
-            if sender is not None:
-                self._greeters[instance] = sender
-                self._greeters.move_to_end(instance)
-                if len(self._greeters) > _INSTANCES:
-                    self._greeters.popitem(last=False)
             if self.registered_epoch is not None and self.registered_epoch != control.text:
                 self.registrations += 1  # a producer restart, or our token had lapsed
                 self._registered_again += 1
@@ -353,7 +344,6 @@ class SubscriberProtocol:
         elif self.registered_epoch is not None:
             # The producer refused us after another session greeted us in its name: that
             # greeting was forged, and the refusal stands (logged, retried).
-            self._greeters.pop(self.registered_epoch.rpartition(".")[0], None)
             self.registered_epoch = None
             self.greeted_by = None
         if self._retry_at_ns is None:

@@ -21,8 +21,8 @@ def test_replayed_old_greetings_cannot_make_a_subscription_forget_its_live_epoch
     epochs at seq 1: each replay moved the subscription's pin (the live epoch, never
     evicted) to an old epoch and opened room for 32 more made-up ones, and after 12 rounds
     the live epoch was gone from the subscription's memory: every resend of it was ignored
-    (out of order) and the producer was held for good once its queue filled. An instance
-    greets from its one session: a greeting naming it from another is garbage."""
+    (out of order) and the producer was held for good once its queue filled. A greeting of
+    an earlier registration of the instance that greeted it last is garbage now."""
     producer = ProducerProtocol(KEYS, "svc", "buf", "P0", inline_max_bytes=4)
     sub = SubscriberProtocol(FLOW, 4, -1)
     token = KEYS.subscription_token("svc", "buf", "s1", FLOW, 4, -1, "n~h")
