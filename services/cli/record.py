@@ -176,6 +176,9 @@ def run(args: argparse.Namespace) -> int:
             overwrite=args.overwrite,
         )
         with writer:
+            # Every channel before any subscription: a recording stopped at once is readable.
+            for b in buffers:
+                writer.add_buffer(b.service, b.buffer, kind=b.kind, retention=b.retention)
             queue = WriteQueue(writer)
             # The recording starts now: --duration counts from here (see the module).
             started_ns, started = now_ns(), time.monotonic()
@@ -195,7 +198,7 @@ def run(args: argparse.Namespace) -> int:
                     "started_ns": str(started_ns + min(args.offsets.values(), default=0)),
                 },
             )
-            recorders = _start(node, writer, queue, buffers, args)
+            recorders = _start(node, queue, buffers, args)
             if not recorders:
                 raise ConfigError(f"none of the {len(buffers)} live buffers could be recorded")
             if not args.json:
@@ -271,7 +274,6 @@ def run(args: argparse.Namespace) -> int:
 
 def _start(
     node: Node,
-    writer: BagWriter,
     queue: WriteQueue,
     buffers: list[BufferInfo],
     args: argparse.Namespace,
@@ -296,7 +298,6 @@ def _start(
             # (gone since, or a peer's invention) must not cost the others their recording.
             print(f"warning: not recording {b.name}: {exc}", file=sys.stderr, flush=True)
             continue
-        writer.add_buffer(b.service, b.buffer, kind=b.kind, retention=b.retention)
         progress = Progress(b.name, b.kind)
         recorder = Recorder(node, sub, queue, progress, stop, args.count, initial)
         recorder.stop_ns, recorder.deadline = stop_ns, args.fetch_deadline
@@ -378,7 +379,9 @@ def _discover(
         new = [b for s in services for b in s.buffers if b.name not in known]
         unmeasured = [b.service for b in new if b.service not in args.offsets]
         args.offsets.update(_offsets(node, unmeasured, 1.0))
-        started = _start(node, writer, queue, new, args, recorders[0].stop)
+        for b in new:
+            writer.add_buffer(b.service, b.buffer, kind=b.kind, retention=b.retention)
+        started = _start(node, queue, new, args, recorders[0].stop)
         recorders.extend(started)
         if started and not args.json:
             print(f"recording {', '.join(r.sub.name for r in started)} too", flush=True)
