@@ -61,6 +61,25 @@ class Payload(Protocol):
     def to_bytes(self) -> bytes: ...
 
 
+class _LeftOut:
+    """Replies of one kind left out: how many, and the first few names (a peer may send
+    millions of replies in one query's time: their names are not all kept)."""
+
+    def __init__(self) -> None:
+        self.count = 0
+        self.names: list[str] = []
+
+    def add(self, name: str) -> None:
+        self.count += 1
+        if len(self.names) < _NAMED:
+            self.names.append(name)
+
+    def listing(self) -> str:
+        shown = listing(self.names, _NAMED)
+        rest = self.count - len(self.names)
+        return shown + (f" and {rest} more" if rest > 0 else "")
+
+
 class InfoIntake:
     """The replies of one ``@info/*`` query waiting to be decoded, within the bounds above."""
 
@@ -81,10 +100,10 @@ class InfoIntake:
         self._bytes = [0, 0]
         self._ended = False
         self._closed = False
-        self._too_large: list[str] = []
-        self._over_cap: list[str] = []
-        self._tokenless: list[str] = []
-        self._late: list[str] = []
+        self._too_large = _LeftOut()
+        self._over_cap = _LeftOut()
+        self._tokenless = _LeftOut()
+        self._late = _LeftOut()
 
     # -- Zenoh's threads -------------------------------------------------------------------
     def offer(self, name: str, payload: Payload, arrived_ns: int) -> None:
@@ -94,17 +113,17 @@ class InfoIntake:
             if self._closed:
                 return
             if size > MAX_REPLY_BYTES:
-                self._too_large.append(name)
+                self._too_large.add(name)
                 return
             tokenless = int(name not in self._live)
             count, used = sum(self._count), sum(self._bytes)
             if count >= MAX_DESCRIPTIONS or used + size > MAX_DESCRIPTION_BYTES:
-                self._over_cap.append(name)
+                self._over_cap.add(name)
                 return
             if tokenless and (
                 self._count[1] >= TOKENLESS_DESCRIPTIONS or self._bytes[1] + size > TOKENLESS_BYTES
             ):
-                self._tokenless.append(name)
+                self._tokenless.add(name)
                 return
             self._count[tokenless] += 1
             self._bytes[tokenless] += size
@@ -147,33 +166,34 @@ class InfoIntake:
     def _close(self) -> None:
         self._closed = True
         for kept in self._kept:
-            self._late.extend(name for name, _raw, _end in kept)
+            for name, _raw, _end in kept:
+                self._late.add(name)
             kept.clear()
 
     def reasons(self) -> list[str]:
         """One line per kind of reply left out, naming a few and saying how many."""
         with self._cond:
             out = []
-            if self._too_large:
+            if self._too_large.count:
                 out.append(
-                    f"{len(self._too_large)} descriptions of more than {MAX_REPLY_BYTES} bytes "
-                    f"each, not read ({listing(self._too_large, _NAMED)})"
+                    f"{self._too_large.count} descriptions of more than {MAX_REPLY_BYTES} bytes "
+                    f"each, not read ({self._too_large.listing()})"
                 )
-            if self._over_cap:
+            if self._over_cap.count:
                 out.append(
-                    f"{len(self._over_cap)} descriptions beyond the {MAX_DESCRIPTIONS} (and "
+                    f"{self._over_cap.count} descriptions beyond the {MAX_DESCRIPTIONS} (and "
                     f"{MAX_DESCRIPTION_BYTES >> 20} MiB) read per query, not read "
-                    f"({listing(self._over_cap, _NAMED)})"
+                    f"({self._over_cap.listing()})"
                 )
-            if self._tokenless:
+            if self._tokenless.count:
                 out.append(
-                    f"{len(self._tokenless)} descriptions of services holding no liveliness "
+                    f"{self._tokenless.count} descriptions of services holding no liveliness "
                     f"token beyond the {TOKENLESS_DESCRIPTIONS} (and {TOKENLESS_BYTES >> 20} MiB) "
-                    f"read per query, not read ({listing(self._tokenless, _NAMED)})"
+                    f"read per query, not read ({self._tokenless.listing()})"
                 )
-            if self._late:
+            if self._late.count:
                 out.append(
-                    f"{len(self._late)} descriptions not decoded by the query's deadline "
-                    f"({listing(self._late, _NAMED)})"
+                    f"{self._late.count} descriptions not decoded by the query's deadline "
+                    f"({self._late.listing()})"
                 )
             return out

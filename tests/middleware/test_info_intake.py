@@ -70,3 +70,16 @@ def test_nothing_is_decoded_after_the_deadline() -> None:
     assert intake.take() is None
     intake.offer("c", _Payload(10), 0)  # after the deadline: ignored
     assert any(line.startswith("1 descriptions not decoded") for line in intake.reasons())
+
+
+def test_a_million_replies_left_out_keep_a_count_and_a_few_names_only() -> None:
+    """Every reply over the caps kept its name for the reason line: a peer answering one
+    query a million times held a million names (up to 1 KiB each) until the query ended."""
+    intake = InfoIntake(float("inf"), [])
+    payload = _Payload(1)
+    for i in range(100_000):
+        intake.offer(f"made-up-{i}", payload, 0)
+    (line,) = intake.reasons()
+    assert line.startswith("99984 descriptions of services holding no liveliness token"), line
+    assert line.endswith("and 99979 more)"), line
+    assert len(intake._tokenless.names) == 5
