@@ -15,7 +15,7 @@ import zenoh
 from middleware import FramegateError, NetworkConfig, Node, ServiceInfo
 from middleware._info_intake import MAX_DESCRIPTIONS, TOKENLESS_DESCRIPTIONS
 from middleware._wire import Keys
-from tests.helpers.raw_zenoh import open_session
+from tests.helpers.raw_zenoh import answering, open_session
 from tests.helpers.timing import scaled, wait_until
 
 pytestmark = pytest.mark.integration
@@ -98,25 +98,13 @@ def _made_up(endpoint: str, template: bytes, *, tokens: bool) -> Iterator[None]:
     blobs = [
         (f"fake{i:03d}", zenoh.ZBytes(_renamed(template, f"fake{i:03d}"))) for i in range(FLOOD)
     ]
-    with open_session(endpoint) as rogue:
-        held = [rogue.liveliness().declare_token(KEYS.service_token(n)) for n, _ in blobs if tokens]
-        queryable = rogue.declare_queryable(KEYS.info("*"), zenoh.handlers.FifoChannel(16))
-
-        def serve() -> None:
-            for query in queryable.handler:
-                with query:
-                    for name, blob in blobs:
-                        query.reply(KEYS.info(name), blob)
-
-        thread = threading.Thread(target=serve, daemon=True)
-        thread.start()
-        try:
-            yield
-        finally:
-            queryable.undeclare()
-            for token in held:
-                token.undeclare()
-            thread.join(timeout=scaled(30))
+    held = [KEYS.service_token(n) for n, _ in blobs] if tokens else []
+    replies = [(KEYS.info(name), blob) for name, blob in blobs]
+    with (
+        open_session(endpoint) as rogue,
+        answering(rogue, KEYS.info("*"), lambda _k: replies, held),
+    ):
+        yield
 
 
 def test_a_flood_of_made_up_descriptions_cannot_push_out_a_real_service(

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import subprocess
 import sys
-import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 
@@ -15,7 +14,7 @@ import zenoh
 from middleware._decode import MAX_REPLY_BYTES
 from middleware._wire import Keys
 from tests.conftest import REPO, child_env
-from tests.helpers.raw_zenoh import open_session
+from tests.helpers.raw_zenoh import answering, open_session
 from tests.helpers.timing import scaled
 
 pytestmark = pytest.mark.integration
@@ -38,25 +37,13 @@ def _reply_bomb(endpoint: str) -> Iterator[None]:
     """A peer offering ``evil`` that answers every ``@info`` query with ``REPLIES`` replies
     of the largest size a description may have (none of them a valid description)."""
     blob = zenoh.ZBytes(b"{" + b" " * (MAX_REPLY_BYTES - 2) + b"}")
+
+    def replies(key: str) -> list[tuple[str, zenoh.ZBytes]]:
+        return [(key.replace("*", f"evil{i}"), blob) for i in range(REPLIES)]
+
     with open_session(endpoint, listen=True) as rogue:
-        token = rogue.liveliness().declare_token(KEYS.service_token("evil"))
-        queryable = rogue.declare_queryable(KEYS.info("*"), zenoh.handlers.FifoChannel(16))
-
-        def serve() -> None:
-            for query in queryable.handler:
-                with query:
-                    key = str(query.key_expr)
-                    for i in range(REPLIES):
-                        query.reply(key.replace("*", f"evil{i}"), blob)
-
-        thread = threading.Thread(target=serve, daemon=True)
-        thread.start()
-        try:
+        with answering(rogue, KEYS.info("*"), replies, [KEYS.service_token("evil")]):
             yield
-        finally:
-            queryable.undeclare()
-            token.undeclare()
-            thread.join(timeout=scaled(30))
 
 
 @pytest.mark.parametrize("command", [["info", "evil"], ["ls"]], ids=["info", "ls"])
