@@ -5,19 +5,23 @@ Each ``geometry_msgs/msg/TransformStamped`` says where ``child_frame_id`` is in
 into the parent frame, v_parent = R(q) v_child (tf2's convention). Only rotations matter
 here: angular velocity does not depend on where a sensor sits.
 
-Every static broadcaster (tf2_ros' ``StaticTransformBroadcaster``) publishes one
-``tf2_msgs/msg/TFMessage`` holding all its transforms, again whole when one changes; the
-topic is transient-local, so a late joiner receives the latest message of each. The
-transforms are those of the latest message of every broadcaster (keyed by its gid), merged;
-where two broadcasters give a frame a parent, the one heard last wins, as in tf2's buffer.
-The rotation between two frames composes the chain up to their common root.
+A static broadcaster publishes ``tf2_msgs/msg/TFMessage`` messages on a transient-local
+topic, so a late joiner receives the latest message of each. rclcpp's
+``StaticTransformBroadcaster`` sends all its transforms in every message; rclpy's sends only
+those of each ``sendTransform`` call, so one Python node's camera link and IMU mount may
+come in two messages. As in tf2's buffer, which keeps every static transform it hears until
+a newer one names the same child, a broadcaster's (keyed by its gid) transforms are merged
+message by message, not replaced by its latest; where two broadcasters give a frame a
+parent, the one heard last wins (tf2 keeps one static transform per child frame). The
+rotation between two frames composes the chain up to their common root.
 
 Frame names are compared without a leading ``/`` (tf2 strips it too). Bounded: at most
 ``MAX_BROADCASTERS`` broadcasters and ``MAX_FRAMES`` transforms each are kept, and a walk
-up the tree stops at a cycle and after ``MAX_CHAIN`` links. Each step looks its frame up in
-the broadcasters' own tables, newest first: merging them all (up to 262,144 transforms) for
-every composition took 0.7 s along a peer's 262,144-link chain, and a composition follows
-every /tf_static message, so a trickle of them held every image that long.
+up the tree stops at a cycle and after ``MAX_CHAIN`` links. Each step looks its frame up
+through the index of which broadcaster sent it last, in O(1): merging all tables (up to
+262,144 transforms) for every composition took 0.7 s along a peer's 262,144-link chain, and
+a composition follows every /tf_static message, so a trickle of them held every image that
+long.
 """
 
 from __future__ import annotations
@@ -82,30 +86,44 @@ class StaticTransforms:
     """The merged static transform tree (one caller at a time)."""
 
     def __init__(self) -> None:
-        # broadcaster gid -> its latest transforms, by child frame; in order heard.
+        # broadcaster gid -> the transforms it sent last of each child frame, oldest first;
+        # in order heard. A child frame is in one table only: its sender's last.
         self._latest: collections.OrderedDict[bytes, dict[str, Transform]] = (
             collections.OrderedDict()
         )
+        self._sender: dict[str, bytes] = {}  # child frame -> whose table holds it
 
     def update(self, broadcaster: bytes, transforms: Iterable[Transform]) -> int:
-        """A broadcaster's latest message replaces its previous one; how many it kept."""
-        kept: dict[str, Transform] = {}
+        """A broadcaster's message: each transform replaces the one heard before of the same
+        child frame, from any broadcaster, and the others stay (tf2's buffer forgets no
+        static transform; an rclpy broadcaster sends one message per ``sendTransform``
+        call); how many of the message's it kept. Past ``MAX_FRAMES`` the broadcaster's
+        oldest are forgotten."""
+        kept = self._latest.pop(broadcaster, {})
+        taken = 0
         for transform in transforms:
-            if len(kept) >= MAX_FRAMES:
+            if taken >= MAX_FRAMES:
                 break
             parent, child = frame(transform.parent), frame(transform.child)
+            sender = self._sender.get(child)
+            if sender is not None and sender != broadcaster:
+                del self._latest[sender][child]
+            kept.pop(child, None)  # to the end: the newest is forgotten last
             kept[child] = Transform(parent, child, transform.rotation)
-        self._latest.pop(broadcaster, None)
+            self._sender[child] = broadcaster
+            taken += 1
+        while len(kept) > MAX_FRAMES:
+            del self._sender[(oldest := next(iter(kept)))]
+            del kept[oldest]
         self._latest[broadcaster] = kept
         while len(self._latest) > MAX_BROADCASTERS:
-            self._latest.popitem(last=False)
-        return len(kept)
+            for child in self._latest.popitem(last=False)[1]:
+                del self._sender[child]
+        return taken
 
     def _parent(self, name: str) -> Transform | None:
-        for transforms in reversed(self._latest.values()):  # heard last: it wins
-            if (step := transforms.get(name)) is not None:
-                return step
-        return None
+        sender = self._sender.get(name)
+        return None if sender is None else self._latest[sender][name]
 
     def _to_root(self, name: str) -> tuple[str, Matrix] | None:
         """The root of ``name``'s tree and R with v_root = R @ v_name; None for a chain

@@ -67,14 +67,44 @@ def test_a_two_link_chain_composes_to_the_rotation_between_its_ends() -> None:
     assert tree.rotation("camera_optical_frame", "gps") is None
 
 
-def test_a_broadcasters_latest_message_replaces_its_previous_one() -> None:
+def test_a_broadcasters_later_message_replaces_its_transform_of_the_same_child() -> None:
     tree = StaticTransforms()
     tree.update(b"a", [Transform("base", "imu", _about("z", 0.1))])
     tree.update(b"b", [Transform("base", "cam", _about("z", 0.0))])
     tree.update(b"a", [Transform("base", "imu", _about("z", 0.5))])
     assert np.allclose(_matrix(tree.rotation("cam", "imu")), _matrix(_about("z", 0.5)))
-    tree.update(b"a", [])  # broadcaster a now says nothing about imu
-    assert tree.rotation("cam", "imu") is None
+    tree.update(b"a", [])  # says nothing about imu: tf2 forgets no static transform
+    assert np.allclose(_matrix(tree.rotation("cam", "imu")), _matrix(_about("z", 0.5)))
+
+
+def test_one_broadcasters_transforms_sent_in_separate_messages_all_count() -> None:
+    # rclpy's StaticTransformBroadcaster publishes each sendTransform call alone: a Python
+    # node sending the camera's link, then its IMU mount, gave a tree without the camera.
+    tree = StaticTransforms()
+    tree.update(b"py", [Transform("base_link", "camera_link", _about("z", 0.3))])
+    tree.update(b"py", [Transform("camera_link", "camera_optical_frame", _about("x", -1.0))])
+    tree.update(b"py", [Transform("base_link", "imu_link", _about("y", 0.2))])
+    base_cam = _matrix(_about("z", 0.3)) @ _matrix(_about("x", -1.0))
+    expected = base_cam.T @ _matrix(_about("y", 0.2))
+    assert np.allclose(_matrix(tree.rotation("camera_optical_frame", "imu_link")), expected)
+
+
+def test_the_transform_of_a_child_heard_last_wins_whoever_sent_it() -> None:
+    tree = StaticTransforms()
+    tree.update(b"a", [Transform("base", "imu", _about("z", 0.1))])
+    tree.update(b"b", [Transform("base", "imu", _about("z", 0.5))])
+    tree.update(b"a", [Transform("base", "cam", _about("z", 0.0))])  # a heard last, not of imu
+    assert np.allclose(_matrix(tree.rotation("cam", "imu")), _matrix(_about("z", 0.5)))
+
+
+def test_a_broadcaster_keeps_at_most_max_frames_transforms_its_newest() -> None:
+    identity = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
+    tree = StaticTransforms()
+    for i in range(MAX_FRAMES + 1):  # one message each: all merged, the first forgotten
+        tree.update(b"a", [Transform("root", f"c{i}", identity)])
+    assert tree.rotation("c0", "root") is None
+    assert tree.rotation("c1", "root") == identity
+    assert tree.rotation(f"c{MAX_FRAMES}", "root") == identity
 
 
 def test_a_cycle_of_transforms_ends_the_walk() -> None:
