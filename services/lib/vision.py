@@ -18,13 +18,15 @@ It returns one of:
   ``detections`` buffer, one element per frame, keyed by the frame's timestamp, so a
   frame where nothing was found is told apart from one never processed;
 - an :class:`Output` — anything else (a payload and free-form fields): stored in a
-  ``generic`` buffer; plain ``bytes`` is an ``Output`` with no fields;
+  ``generic`` buffer; plain ``bytes`` is an ``Output`` with no fields, a ``dict`` (any
+  mapping of field names) an ``Output`` with no payload;
 - ``None`` — no result for this frame (counted ``no-result``).
 
 The buffer's kind is chosen once, at start: from the handler's return annotation
-(``-> list[Box]`` / ``-> Output``) or ``--kind``; unannotated handlers are taken to return
-boxes. :func:`encode_result` turns a result into the element's metadata and payload, and
-raises :class:`~middleware.SchemaError` for a result that does not fit the buffer.
+(``-> list[Box]`` / ``-> Output``, ``bytes`` or ``dict``) or ``--kind``; unannotated
+handlers are taken to return boxes. :func:`encode_result` turns a result into the element's
+metadata and payload, and raises :class:`~middleware.SchemaError` for a result that does not
+fit the buffer.
 """
 
 from __future__ import annotations
@@ -167,6 +169,8 @@ def plain_result(result: object, kind: ResultKind) -> object:
                 )
                 for box in _boxes(result)
             ]
+        if isinstance(result, Mapping):  # a dict of fields: an Output without a payload
+            result = Output(b"", result)
         if isinstance(result, Output):
             payload = result.payload
             if isinstance(payload, bytes | bytearray | memoryview):
@@ -234,9 +238,11 @@ def _encode(
     }
     if isinstance(result, bytes | bytearray | memoryview):
         result = Output(bytes(result))
+    if isinstance(result, Mapping):
+        result = Output(b"", result)
     if not isinstance(result, Output):
         raise SchemaError(
-            f"a handler for a generic buffer returns Output, bytes or None, not "
+            f"a handler for a generic buffer returns Output, bytes, a dict or None, not "
             f"{type(result).__name__}"
         )
     if not isinstance(result.payload, bytes | bytearray | memoryview):

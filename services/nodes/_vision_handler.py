@@ -19,8 +19,9 @@ import pkgutil
 import re
 import subprocess
 import sys
+import types
 import typing
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from contextvars import ContextVar
 from pathlib import Path
 from types import ModuleType
@@ -388,7 +389,8 @@ def _check_in_child(spec: str) -> None:
 
 def result_kind(handler: Handler, requested: str) -> ResultKind:
     """The output's kind: ``requested`` unless ``auto``; then the handler's return annotation
-    (``Output`` or ``bytes`` → generic), and detections for anything else or none."""
+    (``Output``, ``bytes`` or a ``dict``/``Mapping`` of fields → generic), and detections for
+    anything else or none."""
     if requested != "auto":
         return ResultKind(requested)
     # A callable object (a class with state, such as the previous frame) declares it on
@@ -399,9 +401,25 @@ def result_kind(handler: Handler, requested: str) -> ResultKind:
     except Exception:  # unresolvable (``Output`` imported under TYPE_CHECKING): read the text
         raw = getattr(function, "__annotations__", {}).get("return")
         names = set(re.findall(r"\w+", raw)) if isinstance(raw, str) else set()
-        return ResultKind.GENERIC if names & {"Output", "bytes"} else ResultKind.DETECTIONS
+        generic_names = {"Output", "bytes", "dict", "Mapping"}
+        return ResultKind.GENERIC if names & generic_names else ResultKind.DETECTIONS
     # Compared by identity: an annotation may be any object (``-> [Box]`` is a list, which
     # a set cannot hold; another's ``__eq__`` may raise), and the runner failed to start.
-    options = [*typing.get_args(returns), returns]
-    generic = any(option is Output or option is bytes for option in options)
-    return ResultKind.GENERIC if generic else ResultKind.DETECTIONS
+    # The members of a union (``Output | None``), not the items of a container: ``list[dict]``
+    # is a list, of boxes gone wrong; ``dict[str, float]`` is compared by its origin, ``dict``.
+    union = typing.get_origin(returns) in (typing.Union, types.UnionType)
+    options = [*typing.get_args(returns)] if union else [returns]
+    origins = [typing.get_origin(option) or option for option in options]
+    return ResultKind.GENERIC if any(map(_generic, origins)) else ResultKind.DETECTIONS
+
+
+def _generic(annotation: object) -> bool:
+    """Whether a return annotation names a generic result: Output, bytes, or a mapping of
+    fields (``dict``, ``Mapping``, a ``TypedDict``, which is a dict); any other object, or
+    a class whose subclass check raises, is not."""
+    if not isinstance(annotation, type):
+        return False
+    try:
+        return issubclass(annotation, Output | bytes | Mapping)
+    except Exception:
+        return False

@@ -89,7 +89,11 @@ def test_nested_lists_are_flat_as_arrays_are_and_a_none_field_is_left_out() -> N
         (Output(b""), ResultKind.DETECTIONS, "returns a list of Box or None, not Output"),
         ([1, 2], ResultKind.DETECTIONS, "holds Box records, not int"),
         ([Box(0, ((0, 0),) * 4)] * 1001, ResultKind.DETECTIONS, "at most 1000"),
-        ([Box(0, ((0, 0),) * 4)], ResultKind.GENERIC, "returns Output, bytes or None, not list"),
+        (
+            [Box(0, ((0, 0),) * 4)],
+            ResultKind.GENERIC,
+            "returns Output, bytes, a dict or None, not list",
+        ),
         (Output(b"", {"bad name": 1}), ResultKind.GENERIC, "cannot be written as XML"),
         (Output(b"", {"frame_id": 1}), ResultKind.GENERIC, "set by the runner"),
         (Output("text", {}), ResultKind.GENERIC, "payload must be bytes"),  # type: ignore[arg-type]

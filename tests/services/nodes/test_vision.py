@@ -8,8 +8,9 @@ import subprocess
 import sys
 import threading
 import tracemalloc
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
+from typing import TypedDict
 
 import numpy as np
 import pytest
@@ -201,6 +202,36 @@ def test_a_generic_handler_stores_its_payload() -> None:
     outcome = step.process(*_frame(9))
     assert isinstance(outcome, Encoded) and len(outcome.payload) == 16 * 4
     assert b"<mean>9.0</mean>" in outcome.metadata
+
+
+class _Stats(TypedDict):
+    mean: float
+
+
+def test_a_dict_returned_is_a_generic_result_of_those_fields() -> None:
+    # "detections where they are boxes, generic otherwise": a dict was a bad-result every
+    # frame, its annotation chose a detections buffer.
+    def stats(image: np.ndarray, frame: FrameMeta) -> dict[str, float]:
+        return {"mean": float(image.mean()), "peak": np.uint8(image.max())}
+
+    def maybe(image: np.ndarray, frame: FrameMeta) -> Mapping[str, int] | None:
+        return {"id": frame.frame_id}
+
+    def listed(image: np.ndarray, frame: FrameMeta) -> list[dict[str, float]]:
+        return []
+
+    def typed(image: np.ndarray, frame: FrameMeta) -> _Stats:
+        return {"mean": 0.0}
+
+    assert result_kind(stats, "auto") is ResultKind.GENERIC
+    assert result_kind(maybe, "auto") is ResultKind.GENERIC
+    assert result_kind(listed, "auto") is ResultKind.DETECTIONS  # a list: of boxes gone wrong
+    assert result_kind(typed, "auto") is ResultKind.GENERIC
+    step = VisionStep(stats, result_kind(stats, "auto"), "a/b", LOG)
+    outcome = step.process(*_frame(9))
+    assert isinstance(outcome, Encoded) and outcome.payload == b""
+    assert b"<mean>9.0</mean>" in outcome.metadata and b"<peak>9</peak>" in outcome.metadata
+    assert step.skipped == {}
 
 
 class _Tracker:
