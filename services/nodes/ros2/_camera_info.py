@@ -21,7 +21,8 @@ messages in a short queue (oldest dropped, counted) until the image worker, the 
 of :meth:`CameraSource.for_image`, reads them before its next image, at most
 ``TF_BYTES_PER_IMAGE`` of them per image (a flood must not hold the images). A CameraInfo whose
 size is not the images' is a counted skip (``camera-info-mismatch``), an undecodable one
-``bad-camera-info``, an undecodable /tf_static message ``bad-tf``. While something is
+``bad-camera-info``, an undecodable /tf_static message (or a transform in it whose
+quaternion is no rotation: that one alone) ``bad-tf``. While something is
 missing the bridge says once, in one line, what it waits for and which topic or flag
 provides it.
 
@@ -129,23 +130,25 @@ def intrinsics(codec: Codec, raw: bytes, rectified: bool) -> Intrinsics:
     return Intrinsics(width // bx, height // by, fx / bx, fy / by, cx / bx, cy / by)
 
 
-def transforms(codec: Codec, raw: bytes) -> list[Transform]:
-    """The rotations of a ``tf2_msgs/msg/TFMessage``; CdrError for a bad message."""
+def transforms(codec: Codec, raw: bytes) -> tuple[list[Transform], list[str]]:
+    """The rotations of a ``tf2_msgs/msg/TFMessage``, and why each transform left out was
+    (a quaternion that is no rotation: tf2 refuses that transform alone and keeps the
+    message's others); CdrError for a message that does not decode."""
     try:
         msg: Any = codec.store.deserialize_cdr(memoryview(raw), TF_MESSAGE)
-        found = []
+        found, refused = [], []
         for stamped in msg.transforms:
             q = stamped.transform.rotation
-            found.append(
-                Transform(
-                    frame(str(stamped.header.frame_id)),
-                    frame(str(stamped.child_frame_id)),
-                    rotation_from_quaternion(float(q.x), float(q.y), float(q.z), float(q.w)),
-                )
-            )
-    except Exception as exc:  # rosbags' errors, or a quaternion that is no rotation
+            parent, child = str(stamped.header.frame_id), str(stamped.child_frame_id)
+            try:
+                rotation = rotation_from_quaternion(float(q.x), float(q.y), float(q.z), float(q.w))
+            except ValueError as exc:
+                refused.append(f"{TF_STATIC} transform {parent[:80]} -> {child[:80]}: {exc}")
+                continue
+            found.append(Transform(frame(parent), frame(child), rotation))
+    except Exception as exc:  # rosbags' errors
         raise CdrError(f"not a usable {TF_MESSAGE}: {exc}") from exc
-    return found
+    return found, refused
 
 
 class CameraSource:
@@ -241,10 +244,14 @@ class CameraSource:
             skip("bad-tf", f"{oversize} {TF_STATIC} messages over {TF_MAX_BYTES} bytes", oversize)
         for broadcaster, raw in tf_raw:
             try:
-                self._tf.update(broadcaster, transforms(self._codec, raw))
-                self._tf_version += 1
+                found, refused = transforms(self._codec, raw)
             except CdrError as exc:
                 skip("bad-tf", str(exc), 1)
+                continue
+            if refused:  # one count for all of a message's (a peer's may hold thousands)
+                skip("bad-tf", refused[0], len(refused))
+            self._tf.update(broadcaster, found)
+            self._tf_version += 1
         if info_raw is not None:
             self._read_info(info_raw, width, height, skip)
         elif self._intrinsics is not None and (

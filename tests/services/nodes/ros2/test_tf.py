@@ -190,3 +190,39 @@ def test_a_chain_longer_than_any_robots_connects_nothing() -> None:
         )
     assert tree.rotation(f"n{MAX_BROADCASTERS * MAX_FRAMES}", "n0") is None
     assert tree.rotation(f"n{MAX_CHAIN}", "n0") == identity  # a chain within the bound
+
+
+def test_a_transform_that_is_no_rotation_leaves_out_itself_not_its_messages_others() -> None:
+    # tf2 refuses a denormalized quaternion per transform; the bridge refused the whole
+    # message, so one bad mount in robot_state_publisher's message hid the camera's chain.
+    codec = Codec("jazzy")
+    t = codec.store.types
+
+    def stamped(parent: str, child: str, q: tuple[float, float, float, float]) -> object:
+        return t["geometry_msgs/msg/TransformStamped"](
+            header=t["std_msgs/msg/Header"](t["builtin_interfaces/msg/Time"](0, 0), parent),
+            child_frame_id=child,
+            transform=t["geometry_msgs/msg/Transform"](
+                translation=t["geometry_msgs/msg/Vector3"](0.0, 0.0, 0.0),
+                rotation=t["geometry_msgs/msg/Quaternion"](*q),
+            ),
+        )
+
+    half = math.sqrt(0.5)
+    message = t[TF_MESSAGE](
+        transforms=[
+            stamped("base_link", "imu_link", (0.0, 0.0, 0.0, 1.0)),
+            stamped("base_link", "lidar", (0.0, 0.0, 0.0, 0.0)),  # no rotation
+            stamped("base_link", "camera_optical_frame", (0.0, 0.0, half, half)),
+        ]
+    )
+    cameras = CameraSource(
+        codec, logging.getLogger("test.tf_bad"), image_topic="/i", info_topic=None, imu_topic="/m"
+    )
+    cameras.on_tf(bytes(codec.store.serialize_cdr(message, TF_MESSAGE)), None)
+    cameras.set_imu_frame("imu_link")
+    skipped: list[tuple[str, int]] = []
+    cameras.for_image("camera_optical_frame", 8, 4, lambda r, d, n: skipped.append((r, n)))
+    assert skipped == [("bad-tf", 1)]
+    expected = _matrix(_about("z", math.pi / 2)).T  # v_camera = R_base_cam^T v_base
+    assert np.allclose(_matrix(cameras._tf.rotation("camera_optical_frame", "imu_link")), expected)
