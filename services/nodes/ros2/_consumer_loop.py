@@ -14,9 +14,10 @@ of the node's input (``mediator/images=/camera/image_sharp``) from an observer i
   element, which is published to ROS 2 as a ``sensor_msgs/msg/Image`` and recorded in
   :class:`Outstanding`. Every element the feed gets is resolved exactly once (answered,
   timed out, or not publishable), and each resolution takes one notification off the gate.
-- the result topic is subscribed once a publisher's liveliness token names its type (the
-  subscription's own token names that one), and takes messages of every type on it, read
-  only as far as their leading ``std_msgs/Header``.
+- the result topic is subscribed from the start, before any image can reach the node, and
+  takes messages of every type on it, read only as far as their leading
+  ``std_msgs/Header``; the subscription's liveliness token follows once a publisher's
+  token names the type (the graph then shows that one).
 
 Counted, never silent (``framegate info NAME/results``, ``skipped``): ``consumer-timeout``
 (an image never answered; its slot freed), ``late-result``, ``unmatched-result``,
@@ -31,8 +32,8 @@ slot.
 
 Threads: Zenoh's callback thread only enqueues results (a bounded ``queue.Queue``) and
 reads tokens (``on_token``, under ``_lock``); the *feed* thread takes, encodes and publishes
-images; the *resolver* thread declares the result subscription once its type is known,
-matches results, expires slots and takes gate notifications. ``_lock`` guards the ledger,
+images; the *resolver* thread declares the result subscription's token once its type is
+known, matches results, expires slots and takes gate notifications. ``_lock`` guards the ledger,
 the ``GateBook`` (resolutions not yet paid by a gate take) and the type discovery.
 
 Why threads of its own rather than the node's executor (``Node.on``/``at``): on its one
@@ -118,6 +119,22 @@ class ConsumerLoop:
         self._encode, self._config, self._skips = encode, config, skips
         depth = config.consumer_queue
         self.results = node.offer("results", kind="generic", retention=Retention(max_count=10_000))
+        self._lock = threading.Lock()
+        self._ledger = Outstanding(depth, int(config.consumer_timeout_ms * 1e6))
+        self._book = GateBook(self._ledger.timeout_ns)
+        self._done = DoneTopic(config.consumer_done)
+        self._depth = InputDepthCheck(mapping.topic, depth)
+        self._subscribed: set[ResultType] = set()  # the result types announced (tokens)
+        # A full queue refuses the newest result, counted (see _on_result).
+        self._answers: queue.Queue[tuple[bytes, bytes | None]] = queue.Queue(_RESULTS_DEPTH)
+        self.published = 0
+        # The node's results are listened to before any image can reach it: Zenoh routes
+        # them by data subscribers, and one declared only once the graph named the result
+        # type (the resolver's turn after the token arrived) could reach a node that
+        # answered its first image sooner too late, losing that answer (consumer-timeout).
+        # Every type on the topic: a peer's tokens of made-up types choose nothing
+        # (``DoneTopic``). The subscription's token, which names a type, follows.
+        link.listen_any_type(config.consumer_done, self._on_result)
         # The feed first: an element the gate holds but the feed missed would hold a slot
         # until the timeout; one the feed has and the gate missed costs nothing lasting.
         self._feed = node.subscribe(
@@ -139,15 +156,6 @@ class ConsumerLoop:
             # the mediator saw the node one image fuller until the next answer.
             ack_each_take=True,
         )
-        self._lock = threading.Lock()
-        self._ledger = Outstanding(depth, int(config.consumer_timeout_ms * 1e6))
-        self._book = GateBook(self._ledger.timeout_ns)
-        self._done = DoneTopic(config.consumer_done)
-        self._depth = InputDepthCheck(mapping.topic, depth)
-        self._subscribed: set[ResultType] = set()  # the result types listened to
-        # A full queue refuses the newest result, counted (see _on_result).
-        self._answers: queue.Queue[tuple[bytes, bytes | None]] = queue.Queue(_RESULTS_DEPTH)
-        self.published = 0
 
     # -- the ROS graph (Zenoh's thread) ------------------------------------------------------
     def on_token(self, token: str) -> None:
@@ -248,11 +256,8 @@ class ConsumerLoop:
 
     def _subscribe(self, found: ResultType) -> None:
         topic = self._done.topic
-        # Every type on the topic, whichever tokens were declared first: a peer's tokens of
-        # made-up types must not crowd out the node's own (``DoneTopic``).
-        self._link.subscribe(
-            topic, found.ros_type, found.type_hash, Qos(), self._on_result, any_type=True
-        )
+        # The ROS graph's view of the subscriber listening since the start (``__init__``).
+        self._link.subscription_token(topic, found.ros_type, found.type_hash, Qos())
         self._subscribed.add(found)
         log.info(
             "ros2: consumer results on %s, of every type (first announced: %s, %s)",

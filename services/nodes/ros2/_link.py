@@ -43,6 +43,20 @@ _Subscriber = zenoh.Subscriber[None] | zenoh.ext.AdvancedSubscriber[None]
 GRAPH_MAX = 65_536
 
 
+def _callback(on_sample: OnSample) -> zenoh.handlers.Callback[zenoh.Sample]:
+    """``on_sample(payload, attachment)`` per sample, run by zenoh-python's thread
+    (``indirect``: Zenoh's own thread only queues)."""
+
+    def deliver(sample: zenoh.Sample) -> None:
+        attachment = sample.attachment
+        on_sample(
+            sample.payload.to_bytes(),
+            attachment.to_bytes() if attachment is not None else None,
+        )
+
+    return zenoh.handlers.Callback(deliver, indirect=True)
+
+
 class RosPublisher:
     """A ROS 2 publisher: a Zenoh publisher on the topic's data key plus its MP token."""
 
@@ -88,8 +102,11 @@ class RosLink:
         self.identity = NodeIdentity(
             domain_id, str(self._session.info.zid()), node_name, namespace=namespace
         )
-        self._entities: list[RosPublisher | tuple[_Subscriber, zenoh.LivelinessToken]]
-        self._entities = []
+        # Publishers, and subscriptions as their data subscriber and token (either may be
+        # declared alone: ``listen_any_type``, ``subscription_token``).
+        self._entities: list[
+            RosPublisher | tuple[_Subscriber | None, zenoh.LivelinessToken | None]
+        ] = []
         self._watchers: list[zenoh.Subscriber[None]] = []
         self._next_id = self.identity.node_id + 1
         self._node_token = self._session.liveliness().declare_token(self.identity.node_token())
@@ -183,30 +200,15 @@ class RosLink:
         hash_chunk: str,
         qos: Qos,
         on_sample: OnSample,
-        *,
-        any_type: bool = False,
     ) -> None:
         """Declare a subscription (data key + MS liveliness token); ``on_sample(payload,
-        attachment)`` runs on Zenoh's callback thread and must only enqueue. ``any_type``:
-        the data key takes samples of every type and hash on the topic (the token still
-        names ``ros_type``)."""
+        attachment)`` runs on Zenoh's callback thread and must only enqueue."""
         token_key = self.identity.endpoint_token(
             self._entity_id(), EntityKind.SUBSCRIPTION, topic_fqn, ros_type, hash_chunk, qos
         )
         key = data_key(self.identity.domain_id, topic_fqn, ros_type, hash_chunk)
-        if any_type:
-            key = f"{self.identity.domain_id}/{topic_fqn.strip('/')}/*/*"
-
-        def deliver(sample: zenoh.Sample) -> None:
-            attachment = sample.attachment
-            on_sample(
-                sample.payload.to_bytes(),
-                attachment.to_bytes() if attachment is not None else None,
-            )
-
         try:
-            # indirect=True: Zenoh's own thread only queues; zenoh-python's thread runs us.
-            callback = zenoh.handlers.Callback(deliver, indirect=True)
+            callback = _callback(on_sample)
             subscriber: _Subscriber
             if qos.durability is Durability.TRANSIENT_LOCAL:
                 # As rmw_zenoh's transient-local subscriptions: an advanced subscriber asks
@@ -228,6 +230,30 @@ class RosLink:
             raise ConfigError(f"cannot subscribe to ROS 2 topic {topic_fqn}: {exc}") from exc
         self._entities.append((subscriber, token))
 
+    def listen_any_type(self, topic_fqn: str, on_sample: OnSample) -> None:
+        """A data subscriber taking samples of every type and hash on the topic, with no
+        liveliness token yet (``subscription_token`` declares it once the type is known):
+        Zenoh routes a publisher's samples by data subscribers, so one declared before the
+        type is learnt hears the first. ``on_sample`` as for ``subscribe``."""
+        key = f"{self.identity.domain_id}/{topic_fqn.strip('/')}/*/*"
+        try:
+            subscriber = self._session.declare_subscriber(key, _callback(on_sample))
+        except zenoh.ZError as exc:
+            raise ConfigError(f"cannot subscribe to ROS 2 topic {topic_fqn}: {exc}") from exc
+        self._entities.append((subscriber, None))
+
+    def subscription_token(self, topic_fqn: str, ros_type: str, hash_chunk: str, qos: Qos) -> None:
+        """The MS liveliness token of a subscription of ``ros_type`` (the ROS graph's view of
+        a ``listen_any_type`` subscriber)."""
+        token_key = self.identity.endpoint_token(
+            self._entity_id(), EntityKind.SUBSCRIPTION, topic_fqn, ros_type, hash_chunk, qos
+        )
+        try:
+            token = self._session.liveliness().declare_token(token_key)
+        except zenoh.ZError as exc:
+            raise ConfigError(f"cannot subscribe to ROS 2 topic {topic_fqn}: {exc}") from exc
+        self._entities.append((None, token))
+
     def close(self) -> None:
         """Withdraw every token and close the session (a process with it open may hang)."""
         for entity in reversed(self._entities):
@@ -235,8 +261,9 @@ class RosLink:
                 if isinstance(entity, RosPublisher):
                     entity.close()
                 else:
-                    entity[1].undeclare()
-                    entity[0].undeclare()
+                    for declared in (entity[1], entity[0]):
+                        if declared is not None:
+                            declared.undeclare()
             except zenoh.ZError:
                 pass  # the session is going anyway
         self._entities.clear()

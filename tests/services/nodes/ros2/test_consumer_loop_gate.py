@@ -46,14 +46,38 @@ class _Sub:
         pass
 
 
+class _Link:
+    """The ROS 2 side's subscriptions as the loop declares them, in order, with what the
+    data subscriber delivers to (``on_result``)."""
+
+    def __init__(self, calls: list[str] | None = None) -> None:
+        self.calls = calls if calls is not None else []
+        self.on_result: Any = None
+        self.tokens: list[str] = []
+
+    def listen_any_type(self, topic: str, on_sample: Any) -> None:
+        self.calls.append(f"listen {topic}")
+        self.on_result = on_sample
+
+    def subscription_token(self, topic: str, ros_type: str, *a: Any) -> None:
+        self.tokens.append(ros_type)
+
+
 def _loop(feed: _Sub, gate: _Sub, queue: int, link: Any = None) -> tuple[ConsumerLoop, list[str]]:
     """A loop of ``--consumer-queue queue`` on the stand-in subscriptions (the feed first, as
     the loop subscribes), and the skip reasons it counts."""
     subscriptions = iter([feed, gate])
+    calls = link.calls if isinstance(link, _Link) else []
+
+    def subscribe(*a: Any, **k: Any) -> _Sub:
+        calls.append("framegate subscribe")
+        return next(subscriptions)
+
     node = types.SimpleNamespace(
         offer=lambda *a, **k: types.SimpleNamespace(put=lambda *a: None),
-        subscribe=lambda *a, **k: next(subscriptions),
+        subscribe=subscribe,
     )
+    link = link if link is not None else _Link()
     skipped: list[str] = []
     config = Ros2Config(
         image_out=(Mapping("m/images", "/in"),),
@@ -144,15 +168,25 @@ def test_a_flood_of_results_does_not_keep_the_resolver_from_expiring_slots(
     assert flood.given < 1000, "one turn took the whole flood"
 
 
+def test_the_nodes_results_are_heard_before_any_image_can_reach_it() -> None:
+    # The result subscription was declared only once the graph watch had named the result
+    # type: a node answering its first image before that lost the answer (consumer-timeout).
+    link = _Link()
+    feed, gate = _Sub([1000]), _Sub([1000])
+    loop, skipped = _loop(feed, gate, 1, link)
+    assert link.calls[0] == "listen /out", link.calls  # before the loop's subscriptions
+    loop._publish(feed.take())
+    link.on_result(bytes(_header_cdr(1000, "camera", 0)), None)  # no token seen yet
+    loop._turn()
+    assert len(loop._ledger) == 0 and gate.pending == 0 and skipped == []
+    assert link.tokens == []  # the graph shows the subscription once the type is known
+
+
 def test_tokens_of_made_up_types_declared_first_do_not_shut_out_the_nodes_results() -> None:
     feed, gate = _Sub([]), _Sub([])
     real = "vision_msgs/msg/Detection2DArray"
-    heard: list[bool] = []  # per subscription: does it take the node's results?
-
-    def subscribe(topic: str, ros_type: str, *a: Any, any_type: bool = False) -> None:
-        heard.append(any_type or ros_type == real)
-
-    loop, _ = _loop(feed, gate, 1, types.SimpleNamespace(subscribe=subscribe))
+    link = _Link()
+    loop, _ = _loop(feed, gate, 1, link)
     identity = NodeIdentity(0, "a1b2", "peer")
     # A hostile peer declares (and may withdraw at once) publishers of made-up types.
     for i in range(2 * MAX_RESULT_TYPES):
@@ -166,7 +200,9 @@ def test_tokens_of_made_up_types_declared_first_do_not_shut_out_the_nodes_result
     stop = threading.Event()
     loop._turn = stop.set  # type: ignore[method-assign]
     loop.run_resolver(stop)
-    assert any(heard), "the node's results are not heard"
+    # Heard whatever the tokens: the data subscriber takes every type on the topic.
+    assert link.calls == ["listen /out", "framegate subscribe", "framegate subscribe"]
+    assert len(link.tokens) == 1
 
 
 def test_a_queued_result_keeps_only_its_header_however_large_it_came() -> None:
