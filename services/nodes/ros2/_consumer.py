@@ -276,6 +276,10 @@ class Outstanding:
         self._answered += 1
         return Resolved(stamp_ns, published, now_ns, True)
 
+    def nearest(self, stamp_ns: int) -> int | None:
+        """The stamp of the image without a result nearest to ``stamp_ns`` (None: none)."""
+        return min(self._open, key=lambda open_ns: abs(open_ns - stamp_ns), default=None)
+
     def bad_result(self) -> None:
         self._bad += 1
 

@@ -330,10 +330,20 @@ class ConsumerLoop:
         with self._lock:
             resolved = self._ledger.answer(header.stamp_ns, time.monotonic_ns())
         if isinstance(resolved, str):
-            reason = f"{resolved}-result"
-            self._skips.count(
-                self.results, reason, f"result stamped {header.stamp_ns} ns ({header.frame_id})"
-            )
+            detail = f"result stamped {header.stamp_ns} ns ({header.frame_id[:40]})"
+            if resolved == "unmatched":
+                # Said once: a node stamping its results itself (now(), not its image's)
+                # shows only as every image timing out, unless this line says why.
+                with self._lock:
+                    near = self._ledger.nearest(header.stamp_ns)
+                waiting = "" if near is None else f" (nearest waiting: {near} ns)"
+                detail = (
+                    f"result stamped {header.stamp_ns} ns names no image sent to "
+                    f"{self.mapping.topic}{waiting}: a second result for one image, or a node "
+                    f"that does not copy its image's header.stamp into its result "
+                    f"(frame {header.frame_id[:40]!r})"
+                )
+            self._skips.count(self.results, f"{resolved}-result", detail)
             return None
         sent_ns = time.time_ns()
         if attachment is not None:

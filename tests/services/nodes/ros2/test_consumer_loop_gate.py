@@ -216,3 +216,22 @@ def test_a_queued_result_keeps_only_its_header_however_large_it_came() -> None:
     assert len(raw) <= 8192 and (attachment is None or len(attachment) <= 8192)
     loop._turn()  # what was kept still answers the image
     assert len(loop._ledger) == 0 and gate.pending == 0
+
+
+def test_a_result_stamped_by_the_node_itself_says_the_header_must_be_copied() -> None:
+    # A node stamping its results with now() had every image time out; the one warning said
+    # only "result stamped ... ns (camera)", not what names an image or what to change.
+    feed, gate = _Sub([1_000_000]), _Sub([1_000_000])
+    loop, _ = _loop(feed, gate, 1)
+    said: list[tuple[str, str]] = []
+    loop._skips = types.SimpleNamespace(
+        count=lambda p, reason, detail: said.append((reason, detail))
+    )
+    loop._publish(feed.take())
+    loop._answers.put((_header_cdr(1_004_000, "camera", 0), None))
+    loop._turn()
+    [(reason, detail)] = said
+    assert reason == "unmatched-result"
+    assert "names no image sent to /in (nearest waiting: 1000000 ns)" in detail
+    assert "copy its image's header.stamp" in detail
+    assert len(loop._ledger) == 1  # its image still waits for its own result
