@@ -1,7 +1,9 @@
 """The quick run of ``framegate bench`` as a subprocess, and what its report must hold.
 
-Two test files run it, the hostile scenario (about two thirds of a quick run) apart from the
-rest, so that the suite's workers share them and each run has its own time budget.
+Three test files run it in parts, so that the suite's workers share them and each part has
+its own time budget (a whole quick run took 283 s at a load of 18-20 on 2 cores, once 834
+s): the transport scenarios (``test_bench_command.py``), the rest
+(``test_bench_quick_rest.py``) and the hostile one (``test_bench_hostile_quick.py``).
 Asserted: every scenario produced numbers and the JSON has the documented keys, never a
 speed: this machine is shared and its speed is not ours to test.
 """
@@ -19,6 +21,19 @@ from typing import Any
 from services.evidence.bench import SCHEMA
 from tests.conftest import REPO, child_env
 from tests.helpers.timing import scaled
+
+# The quick run's parts (hostile apart); test_bench_command.py checks they cover every one.
+TRANSPORT = ("frames", "small", "batch", "latency")
+REST = (
+    "fan-out",
+    "working-point",
+    "query-scaling",
+    "memory",
+    "quality",
+    "idle",
+    "ros2",
+    "startup",
+)
 
 REPORT_KEYS = {"schema", "created_utc", "elapsed_s", "machine", "options", "scenarios", "goals"}
 MACHINE_KEYS = {"cpu_count", "python", "zenoh", "numpy", "msgpack", "platform"}

@@ -18,15 +18,18 @@ from services.cli import main
 from services.evidence.bench import SCENARIO_NAMES
 from tests.conftest import REPO, child_env, wait_until
 from tests.helpers.timing import scaled
-from tests.services.evidence.bench.quick_run import bench_command, quick_run
+from tests.services.evidence.bench.quick_run import REST, TRANSPORT, bench_command, quick_run
 
 
 @pytest.mark.integration
 @pytest.mark.slow
 @pytest.mark.timeout(960)
-def test_quick_run_gives_numbers_for_every_scenario_but_hostile(tmp_path: Path) -> None:
-    # hostile: test_bench_hostile_quick.py (two thirds of a quick run, on its own worker).
-    quick_run(tmp_path, [name for name in SCENARIO_NAMES if name != "hostile"])
+def test_quick_run_gives_numbers_for_the_transport_scenarios(tmp_path: Path) -> None:
+    quick_run(tmp_path, list(TRANSPORT))
+
+
+def test_the_quick_run_files_cover_every_scenario() -> None:
+    assert sorted([*TRANSPORT, *REST, "hostile"]) == sorted(SCENARIO_NAMES)
 
 
 def test_unknown_scenario_is_an_error_naming_it(capsys: pytest.CaptureFixture[str]) -> None:
