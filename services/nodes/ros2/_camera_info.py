@@ -339,6 +339,19 @@ class CameraSource:
                         f"the transform from {imu_frame} to {image_frame} on {TF_STATIC} "
                         "(or --imu-to-camera)"
                     )
+                elif "optical" not in image_frame:
+                    # TF gives the rotation into whatever frame the images name; a driver
+                    # that stamps them in its body frame (x forward) turns the blur's axes
+                    # and nothing else would show it.
+                    self._say(
+                        f"ros2: the images on {self._image_topic} are stamped in frame "
+                        f"{image_frame!r}, which is not named as an optical frame (REP 103: "
+                        "images are in the camera's optical frame, z forward, x right, y "
+                        "down, by convention '<camera>_optical_frame'); its rotation from "
+                        f"{TF_STATIC} is used as the optical frame's: if it is the camera's "
+                        "body frame, the blur is estimated about the wrong axes: give "
+                        "--imu-to-camera"
+                    )
         if missing or self._intrinsics is None or rotation is None:
             self._say(
                 "ros2: no camera description for the mediator yet (it cannot estimate blur "

@@ -433,3 +433,32 @@ def test_k0_zero_is_uncalibrated_for_a_rectified_topic_too(codec: Codec) -> None
     )
     with pytest.raises(Uncalibrated, match=r"K\[0\] is 0"):
         intrinsics(codec, raw, rectified=True)
+
+
+@pytest.mark.parametrize("frame", ["camera_link", IMAGE_FRAME])
+def test_images_stamped_outside_an_optical_frame_are_said_once_to_turn_the_blur_axes(
+    frame: str, node: Node, codec: Codec, caplog: pytest.LogCaptureFixture
+) -> None:
+    # A driver stamping its images in the camera's body frame (x forward) got the rotation
+    # into that frame from /tf_static, and the blur about the wrong axes, without a word.
+    camera = CameraModel(64, 48, 50.0, 50.0, 32.0, 24.0)
+    skips = _Skips(logging.getLogger("test"))
+    config = Ros2Config(image_in="/cam/image_raw", imu_in="/imu/data")
+    images = ImagesIn(node, codec, config, skips)
+    imu = ImuIn(node, codec, config, skips, images.cameras)
+    now = time.time_ns()
+    images.cameras.on_camera_info(camera_info(codec, camera, now), None)
+    _broadcast(images.cameras, tf_static(codec, _IDENTITY))
+    imu.add(_imu(codec, now // 10**9 - 1, 0))
+    with caplog.at_level(logging.WARNING):
+        for i in range(3):
+            image = codec.encode_image(now + i, frame, 64, 48, "mono8", bytes(64 * 48))
+            images.handle(bytes(image), i + 1)
+    said = [r.getMessage() for r in caplog.records if "optical frame" in r.getMessage()]
+    if frame == IMAGE_FRAME:
+        assert said == []
+    else:
+        assert len(said) == 1, said
+        assert "stamped in frame 'camera_link'" in said[0] and "--imu-to-camera" in said[0]
+    [element, *_] = answered(lambda: node.query("ros2/images"), "ros2/images")
+    assert read_frame_metadata(element.metadata).camera is not None  # described either way
