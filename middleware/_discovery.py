@@ -18,7 +18,7 @@ from ._decode import MAX_REPLY_BYTES, listing
 from ._errors import ConfigError, NotFoundError, QueryError
 from ._executor import Executor
 from ._info_codec import decode_service_info
-from ._info_intake import InfoIntake
+from ._info_intake import InfoIntake, ask
 from ._liveliness import live_keys
 from ._records import BufferInfo, ServiceInfo
 from ._service import answering_sessions, offered
@@ -149,22 +149,11 @@ class Discovery:
         # Who holds a token: answered from what the session knows, at once (see _info_intake).
         intake = InfoIntake(deadline, self.live_services(timeout_s=timeout_s))
 
-        def on_reply(reply: zenoh.Reply) -> None:  # (Zenoh's thread, or this one) never waits
-            if reply.ok is not None:
-                name = str(reply.ok.key_expr).rsplit("/", 1)[-1]
-                intake.offer(name, reply.ok.payload, now_ns())
-
         with zenoh_errors("describing services"):
-            self._session.get(
-                self.keys.info("*"),
-                zenoh.handlers.Callback(on_reply, intake.end, indirect=False),
-                consolidation=zenoh.ConsolidationMode.NONE,
-                timeout=timeout_s,
-            )
+            ask(self._session, self.keys.info("*"), intake, timeout_s=timeout_s)
         while (kept := intake.take()) is not None:
-            name, raw, end_ns = kept
             try:  # a peer that answers garbage is left out, not fatal
-                out.append(decode_service_info(raw, start, end_ns, service=name))
+                out.append(decode_service_info(kept.raw, start, kept.arrived_ns, service=kept.name))
             except QueryError as exc:
                 if invalid is not None:
                     invalid.append(str(exc))

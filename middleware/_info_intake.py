@@ -15,7 +15,15 @@ description of up to ``MAX_REPLY_BYTES``: a peer answering with 100 descriptions
 - nothing is decoded after the query's deadline (its timeout): what is kept and not yet
   decoded then is counted, not decoded.
 
+- one reply per replying session and name is kept (``replier``): a session answering one
+  name again and again takes one place, not the caps, so a single rogue session cannot push
+  out the real holder of a name (the one-producer-per-name check, ``_service``, reads its
+  name's answers so).
+
 One line per kind of reply left out (``reasons``) says how many, so ``ls`` names them.
+``ask`` sends the query whose replies an intake takes: every ``@info`` read of framegate that
+keeps more than one answer per session goes through here (``service_info`` keeps each
+session's first answer only: ``_discovery.Answers``).
 
 Threads: ``offer`` and ``end`` run on Zenoh's threads: a remote peer's reply on the thread
 of the link it came on, but the reply of a queryable of the asking session itself on the
@@ -32,8 +40,12 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Collection
+from dataclasses import dataclass
 from typing import Protocol
 
+import zenoh
+
+from ._clock import now_ns
 from ._decode import MAX_REPLY_BYTES, listing
 
 # Replies of one ``@info/*`` query kept to be decoded at most, and their bytes in all: a
@@ -47,10 +59,21 @@ TOKENLESS_DESCRIPTIONS = 16
 TOKENLESS_BYTES = 4 << 20
 # Names of left-out replies a reason line lists at most.
 _NAMED = 5
+# (session, name) pairs remembered to tell a repeated answer, at most (a flood of distinct
+# names would otherwise grow the set): beyond, a repeated answer is held to the caps above
+# like any other.
+_REMEMBERED = 4 * MAX_DESCRIPTIONS
 
 
-# A kept reply: the service it names, its payload, when it came (ns, local clock).
-Kept = tuple[str, bytes, int]
+@dataclass(frozen=True)
+class Kept:
+    """A kept reply: the service it names, its payload, when it came (ns, local clock), and
+    the Zenoh session that sent it ("" when not told)."""
+
+    name: str
+    raw: bytes
+    arrived_ns: int
+    replier: str = ""
 
 
 class Payload(Protocol):
@@ -104,14 +127,23 @@ class InfoIntake:
         self._over_cap = _LeftOut()
         self._tokenless = _LeftOut()
         self._late = _LeftOut()
+        self._repeated = _LeftOut()
+        self._answered: set[tuple[str, str]] = set()  # (replier, name) kept or counted
 
     # -- Zenoh's threads -------------------------------------------------------------------
-    def offer(self, name: str, payload: Payload, arrived_ns: int) -> None:
-        """Keep ``name``'s reply (copied) if the bounds allow; else count it. Never blocks."""
+    def offer(self, name: str, payload: Payload, arrived_ns: int, replier: str = "") -> None:
+        """Keep ``name``'s reply (copied) if the bounds allow; else count it. Never blocks.
+        ``replier``: the session that sent it; its further replies for ``name`` are counted."""
         size = len(payload)
         with self._cond:
             if self._closed:
                 return
+            if replier:
+                if (replier, name) in self._answered:
+                    self._repeated.add(name)
+                    return
+                if len(self._answered) < _REMEMBERED:
+                    self._answered.add((replier, name))
             if size > MAX_REPLY_BYTES:
                 self._too_large.add(name)
                 return
@@ -130,7 +162,7 @@ class InfoIntake:
         raw = payload.to_bytes()  # outside the lock: a copy of up to 4 MiB
         with self._cond:
             if not self._closed:
-                self._kept[tokenless].append((name, raw, arrived_ns))
+                self._kept[tokenless].append(Kept(name, raw, arrived_ns, replier))
                 self._cond.notify()
 
     @property
@@ -166,8 +198,8 @@ class InfoIntake:
     def _close(self) -> None:
         self._closed = True
         for kept in self._kept:
-            for name, _raw, _end in kept:
-                self._late.add(name)
+            for left in kept:
+                self._late.add(left.name)
             kept.clear()
 
     def reasons(self) -> list[str]:
@@ -191,9 +223,36 @@ class InfoIntake:
                     f"token beyond the {TOKENLESS_DESCRIPTIONS} (and {TOKENLESS_BYTES >> 20} MiB) "
                     f"read per query, not read ({self._tokenless.listing()})"
                 )
+            if self._repeated.count:
+                out.append(
+                    f"{self._repeated.count} further descriptions of a name from a session "
+                    f"that had already answered for it, not read ({self._repeated.listing()})"
+                )
             if self._late.count:
                 out.append(
                     f"{self._late.count} descriptions not decoded by the query's deadline "
                     f"({self._late.listing()})"
                 )
             return out
+
+
+def ask(session: zenoh.Session, keyexpr: str, intake: InfoIntake, *, timeout_s: float) -> None:
+    """Send the ``@info`` query ``keyexpr`` whose replies go to ``intake`` (then ``take``
+    them). A callback, never a bounded channel: Zenoh delivers the replies of this session's
+    own queryables on this thread, inside ``get``, and a full channel parks it for good; a
+    channel also holds every reply whole until it is read, as big as a peer makes it.
+    Raises what ``get`` raises (``ZError``)."""
+
+    def on_reply(reply: zenoh.Reply) -> None:  # (Zenoh's thread, or this one) never waits
+        if reply.ok is not None:
+            who = reply.replier_id
+            replier = str(who.zid) if who is not None else ""
+            name = str(reply.ok.key_expr).rsplit("/", 1)[-1]
+            intake.offer(name, reply.ok.payload, now_ns(), replier)
+
+    session.get(
+        keyexpr,
+        zenoh.handlers.Callback(on_reply, intake.end, indirect=False),
+        consolidation=zenoh.ConsolidationMode.NONE,
+        timeout=timeout_s,
+    )

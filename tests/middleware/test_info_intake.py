@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from middleware._info_intake import (
+    _REMEMBERED,
     MAX_DESCRIPTION_BYTES,
     MAX_DESCRIPTIONS,
     TOKENLESS_BYTES,
@@ -29,7 +30,7 @@ def _taken(intake: InfoIntake) -> list[str]:
     intake.end()
     names = []
     while (kept := intake.take()) is not None:
-        names.append(kept[0])
+        names.append(kept.name)
     return names
 
 
@@ -83,3 +84,29 @@ def test_a_million_replies_left_out_keep_a_count_and_a_few_names_only() -> None:
     assert line.startswith("99984 descriptions of services holding no liveliness token"), line
     assert line.endswith("and 99979 more)"), line
     assert len(intake._tokenless.names) == 5
+
+
+def test_one_session_answering_a_name_again_and_again_takes_one_place() -> None:
+    """A rogue session answering ``@info/victim`` 1,000 times filled the caps (64 replies)
+    before the real instance's answer came, which a starting service's one-producer-per-name
+    check then never read; now each session's first answer for a name is kept, the rest
+    counted, and the real answer with its session comes through."""
+    intake = InfoIntake(float("inf"), ["victim"])
+    garbage = _Payload(10)
+    for _ in range(1_000):
+        intake.offer("victim", garbage, 0, "rogue")
+    intake.offer("victim", _Payload(10), 0, "real")
+    intake.end()
+    taken = []
+    while (kept := intake.take()) is not None:
+        taken.append(kept.replier)
+    assert taken == ["rogue", "real"]
+    assert garbage.copies == 1
+    assert any(line.startswith("999 further descriptions") for line in intake.reasons())
+
+
+def test_the_sessions_remembered_stay_bounded() -> None:
+    intake = InfoIntake(float("inf"), [])
+    for i in range(100_000):
+        intake.offer(f"made-up-{i}", _Payload(1), 0, f"session{i}")
+    assert len(intake._answered) == _REMEMBERED
