@@ -201,6 +201,13 @@ class Queries(Discovery):
                         if end != since.get(replier, 0):
                             short.add(replier)
                         since[replier], answered = 0, True
+                        if session is not None:
+                            # The one session asked for has answered (one buffer, one end
+                            # mark): any other queryable on the key may hold the query open
+                            # to its timeout, a peer that never finalizes it for nothing, and
+                            # every fetch waited that long (5 s: a mediator fetching frames
+                            # fell from 15 to 0-2 frames/s and throttled the camera).
+                            break
                         continue
                     since[replier] = since.get(replier, 0) + 1
                     if most is not None and kept.get(replier, 0) >= most:

@@ -3,6 +3,8 @@ query, so a peer's reply to a fetch (garbage, or an element stamped alike) is no
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from collections.abc import Callable
 
 import pytest
@@ -10,7 +12,7 @@ import zenoh
 
 from middleware import DataObject, NetworkConfig, Node, make_metadata, now_ns
 from middleware._wire import Keys, encode_element_attachment
-from tests.conftest import free_port
+from tests.conftest import REPO, child_env, free_port
 from tests.helpers.raw_zenoh import open_session
 from tests.helpers.timing import scaled
 
@@ -60,3 +62,66 @@ def test_a_fetch_reads_only_the_producer_s_answer(
             assert got == [bytes([i]) * SIZE for i in range(3)]
         finally:
             queryable.undeclare()
+
+
+# A consumer process: subscribes to cam/images (its elements are above the inline limit:
+# fetched), says so, then fetches ``N`` elements with ``timeout_s`` each and prints how long
+# each fetch took and whether it got the producer's payload.
+_CONSUMER = """
+import sys, time
+from middleware import NetworkConfig, Node
+port, count, size = int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[4])
+timeout_s = float(sys.argv[3])
+with Node("cons", NetworkConfig(local_port=port)) as node:
+    sub = node.subscribe("cam/images", queue_size=4, wait_s=timeout_s, await_service=True)
+    print("subscribed", flush=True)
+    for note in sub.take_many(count, timeout_s=timeout_s):
+        began = time.monotonic()
+        element = sub.fetch(note, timeout_s=timeout_s)
+        same = element.payload == bytes([note.timestamp_ns % 251]) * size
+        print(time.monotonic() - began, same, flush=True)
+"""
+
+
+def test_a_peer_holding_fetches_open_does_not_hold_them_up() -> None:
+    """A peer's queryable on the producer's data key that takes each query and never ends
+    it: a fetch waited for every queryable to end its query, so each took its whole timeout
+    (5 s by default; with a peer that also took the large-push slots, a real mediator fell
+    from 15 decisions/s to 0-2 and the camera stored 1.6 of its 15 frames/s). The producer's
+    answer is the only one a fetch reads: it ends when that answer has."""
+    port = free_port()
+    timeout_s = scaled(20)
+    held: list[zenoh.Query] = []
+    with (
+        Node("cam", NetworkConfig(local_port=port)) as cam,
+        open_session(f"tcp/127.0.0.1:{port}") as rogue,
+    ):
+        images = cam.offer("images", kind="generic")
+        queryable = rogue.declare_queryable(
+            Keys("framegate").data("cam", "images"), zenoh.handlers.Callback(held.append)
+        )
+        consumer = subprocess.Popen(
+            [sys.executable, "-c", _CONSUMER, str(port), "2", str(timeout_s), str(SIZE)],
+            cwd=REPO,
+            env=child_env(),
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+        try:
+            assert consumer.stdout is not None
+            assert consumer.stdout.readline().strip() == "subscribed"
+            assert images.wait_for_subscribers(1, timeout_s=timeout_s)
+            for i in range(2):
+                stamp = now_ns() // 251 * 251 + i
+                images.put(stamp, bytes([stamp % 251]) * SIZE, make_metadata("generic", stamp))
+            out, _ = consumer.communicate(timeout=scaled(120))
+            reached = len(held)
+        finally:
+            consumer.kill()
+            queryable.undeclare()
+            held.clear()
+    assert reached, "the rogue's queryable never saw a fetch: the test proves nothing"
+    fetches = [line.split() for line in out.splitlines()]
+    assert [ok for _s, ok in fetches] == ["True", "True"], out
+    # Before: each took timeout_s exactly. A hang detector, not a speed bound.
+    assert all(float(s) < timeout_s / 2 for s, _ok in fetches), out
