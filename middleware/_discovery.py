@@ -183,6 +183,8 @@ class Discovery:
 
         def on_reply(reply: zenoh.Reply) -> None:  # (Zenoh's thread, or this one) never waits
             answers.add(reply, now_ns())
+            if session is not None and session in answers:
+                ended.set()  # the one answer that counts came (see ``ask_service_info``)
 
         # A callback, never a bounded channel: Zenoh delivers the replies of this session's
         # own queryables on this thread, inside ``get``, and a full channel parks it for good.
@@ -233,9 +235,16 @@ class Discovery:
         # trip that bounds a clock sample's error), and decoded on the executor: a peer
         # that answers garbage beside the service does not void its answer.
         answers = Answers(service, now_ns())
+        once = threading.Lock()  # taken by the first of the two ends below, never released
 
         def on_reply(reply: zenoh.Reply) -> None:
             answers.add(reply, now_ns())
+            # With ``session``, its answer is the only one that counts: delivered as it
+            # comes. Any other queryable on the key may hold the query open to its timeout
+            # (a peer that never ends it), and every clock sample of the mediator came that
+            # much late: 17 frames skipped clock-unmeasured after each restart.
+            if session is not None and session in answers:
+                finished()
 
         def deliver(_now_ns: int) -> None:
             try:
@@ -245,7 +254,8 @@ class Discovery:
             answer(info)
 
         def finished() -> None:  # (Zenoh's thread) the query ended: replied or timed out
-            self._executor.schedule(deliver, time.monotonic_ns())
+            if once.acquire(blocking=False):
+                self._executor.schedule(deliver, time.monotonic_ns())
 
         handler = zenoh.handlers.Callback(on_reply, finished, indirect=False)
         with zenoh_errors(f"describing {service}"):
@@ -318,6 +328,10 @@ class Answers:
 
     def __len__(self) -> int:
         return len(self._first)
+
+    def __contains__(self, session: object) -> bool:
+        """Whether ``session`` answered (its first reply is kept)."""
+        return session in self._first
 
     def _decoded(self) -> Iterator[ServiceInfo | QueryError]:
         for raw, end_ns in self._first.values():

@@ -1,0 +1,67 @@
+"""A peer's queryable that takes each query and never ends it: whoever asks one session
+in particular (a subscription's producer) has its answer when that session's has come,
+not at the query's timeout (a producer in its own process, real Zenoh)."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+import zenoh
+
+from middleware import NetworkConfig, Node, ServiceInfo
+from middleware._wire import Keys
+from tests.conftest import NodeProcess
+from tests.helpers.raw_zenoh import open_session
+from tests.helpers.timing import scaled, wait_until
+
+pytestmark = pytest.mark.integration
+
+
+def test_a_clock_sample_of_the_producer_comes_when_its_answer_does(endpoint: str) -> None:
+    """``ask_service_info(session=)`` (a mediator's clock samples of camera and gyro)
+    delivered when the query ended: beside a peer holding ``@info/camera`` queries open,
+    every sample came at the timeout (1 s), and a restarted mediator skipped 17 frames
+    clock-unmeasured (none without the peer). Now it comes with the producer's answer."""
+    cam = NodeProcess("cam", ["--listen", endpoint])
+    held: list[zenoh.Query] = []
+    try:
+        assert cam.call("offer", buffer="images")["ok"]
+        with (
+            open_session(endpoint) as rogue,
+            Node(network=NetworkConfig(connect=(endpoint,))) as client,
+        ):
+            queryable = rogue.declare_queryable(
+                Keys("framegate").info("cam"), zenoh.handlers.Callback(held.append)
+            )
+            try:
+                sub = client.subscribe("cam/images", queue_size=2, wait_s=scaled(10))
+                assert sub.wait_registered(scaled(10))
+                assert cam.call("put", buffer="images", t=1)["ok"]
+                sub.take(timeout_s=scaled(10))
+                session = sub.producer_session
+                assert session is not None
+                timeout_s = scaled(20)
+                answers: list[tuple[ServiceInfo | None, float]] = []
+                began = time.monotonic()
+                client.ask_service_info(
+                    "cam",
+                    lambda info: answers.append((info, time.monotonic() - began)),
+                    timeout_s=timeout_s,
+                    session=session,
+                )
+                (info, took_s), *_ = wait_until(lambda: answers, 60, "the answer")
+                began = time.monotonic()
+                client.service_info("cam", session=session, timeout_s=timeout_s)
+                waited_s = time.monotonic() - began  # the same, waiting (``info``, ``ls``)
+                reached = len(held)
+            finally:
+                queryable.undeclare()
+                held.clear()
+    finally:
+        cam.close()
+    assert reached, "the rogue's queryable never saw the query: the test proves nothing"
+    assert isinstance(info, ServiceInfo) and info.service == "cam"
+    # Before: timeout_s each. Hang detectors, not speed bounds.
+    assert took_s < timeout_s / 2, f"{took_s:.1f} s"
+    assert waited_s < timeout_s / 2, f"{waited_s:.1f} s"
