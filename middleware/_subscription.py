@@ -78,9 +78,7 @@ class Subscription:
         mode: SubscriptionMode,
         fetch: Callable[[str, int, float, str | None], DataObject],
         executor: Executor,
-        prefetch: tuple[
-            Callable[[str, int, float], Any], Callable[[str, int, Any, str | None], DataObject]
-        ]
+        prefetch: tuple[Callable[[str, int, float, str | None], Any], Callable[..., DataObject]]
         | None = None,
         push_max_bytes: int = -1,
         holder: str | None = None,
@@ -459,7 +457,7 @@ class Subscription:
             start = self._protocol.fetch_ahead(missing, self._inflight)
         for stamp in start:
             try:
-                pending = self._prefetch[0](self.name, stamp, 5.0)
+                pending = self._prefetch[0](self.name, stamp, 5.0, self.producer_session)
             except FramegateError:
                 return  # fetch() will query, and say what failed
             with self._lock:

@@ -13,7 +13,7 @@ import zenoh
 from middleware import DataObject, NetworkConfig, Node, make_metadata, now_ns
 from middleware._wire import Keys, encode_element_attachment
 from tests.conftest import REPO, child_env, free_port
-from tests.helpers.raw_zenoh import open_session
+from tests.helpers.raw_zenoh import answering, open_session
 from tests.helpers.timing import scaled
 
 pytestmark = pytest.mark.integration
@@ -125,3 +125,75 @@ def test_a_peer_holding_fetches_open_does_not_hold_them_up() -> None:
     assert [ok for _s, ok in fetches] == ["True", "True"], out
     # Before: each took timeout_s exactly. A hang detector, not a speed bound.
     assert all(float(s) < timeout_s / 2 for s, _ok in fetches), out
+
+
+# A process with a producer and a consumer that fetches ahead and is slow: fetches one
+# element (so it fetches ahead from then on), then 3 times: 7 elements put, their
+# notifications taken and held 2 s (the fetches started ahead meanwhile), then fetched.
+# Prints how many were fetched ahead and its peak RSS (kB).
+_AHEAD = """
+import resource, sys, time
+from middleware import NetworkConfig, Node, make_metadata, now_ns
+port, size = int(sys.argv[1]), int(sys.argv[2])
+net = NetworkConfig(local_port=port)
+with Node("cam", net) as cam, Node("cons", net) as cons:
+    images = cam.offer("images", kind="generic")
+    sub = cons.subscribe("cam/images", queue_size=32, wait_s=60)
+    print("subscribed", flush=True)
+    sys.stdin.readline()  # the peer is up
+    def put():
+        stamp = now_ns()
+        images.put(stamp, b"y" * size, make_metadata("generic", stamp), wait_s=60)
+    put()
+    sub.fetch(sub.take(timeout_s=60), timeout_s=60)
+    for _ in range(3):
+        for _ in range(7):
+            put()
+        notes = sub.take_many(7, timeout_s=60)
+        time.sleep(2)
+        for note in notes:
+            sub.fetch(note, timeout_s=60)
+    print(sub.fetched_ahead, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, flush=True)
+"""
+FLOOD_REPLIES, FLOOD_BYTES = 40, 16 << 20
+
+
+def test_fetches_started_ahead_hold_no_peer_s_replies() -> None:
+    """A peer answering every fetch with 40 replies of 16 MiB: the fetches a slow consumer
+    started ahead held every reply whole in Zenoh's channel until fetched, 460-542 MB (93 MB
+    without the peer); now only the producer's replies are kept, the rest dropped as they
+    come (142 MB, what Zenoh's receive buffers take)."""
+    port = free_port()
+    blob = zenoh.ZBytes(b"x" * FLOOD_BYTES)
+    asked: list[str] = []
+
+    def replies(key: str) -> list[tuple[str, zenoh.ZBytes]]:
+        asked.append(key)
+        return [(key, blob)] * FLOOD_REPLIES
+
+    victim = subprocess.Popen(
+        [sys.executable, "-c", _AHEAD, str(port), str(SIZE)],
+        cwd=REPO,
+        env=child_env(),
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert victim.stdout is not None and victim.stdin is not None
+        assert victim.stdout.readline().strip() == "subscribed"
+        with (
+            open_session(f"tcp/127.0.0.1:{port}") as rogue,
+            answering(rogue, Keys("framegate").data("cam", "images"), replies),
+        ):
+            victim.stdin.write("go\n")
+            victim.stdin.flush()
+            out, _ = victim.communicate(timeout=scaled(120))
+    finally:
+        victim.kill()
+    assert asked, "the rogue never saw a fetch: the test proves nothing"
+    ahead, peak = (int(word) for word in out.split())
+    assert ahead > 0, out  # the consumer did fetch ahead
+    peak_mb = peak / 1024
+    # Below half of one query's flood held whole (before: most of one was).
+    assert peak_mb < FLOOD_REPLIES * FLOOD_BYTES / 2 / 2**20, f"peak RSS {peak_mb:.0f} MB"

@@ -34,6 +34,13 @@ class _Lapsing(Queries):
             return self.held[-int(params["last"]) :]
         return [t for t in self.held if parse_time_range(params["_time"]).contains(t)]
 
+    def _start_exact(
+        self, target: str, timestamp_ns: int, timeout_s: float, session: str | None = None
+    ) -> Any:
+        # The real one collects Zenoh replies on a callback (``Collected``); here the
+        # stand-in's answer is the pending fetch, as for every other query.
+        return self._start_get(target, {"ts": str(timestamp_ns)}, timeout_s)
+
     def _answer(
         self, target: str, replies: Any, *, most: int | None = None, session: str | None = None
     ) -> tuple[list[DataObject], bool]:
