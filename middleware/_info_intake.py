@@ -20,7 +20,10 @@ description of up to ``MAX_REPLY_BYTES``: a peer answering with 100 descriptions
   out the real holder of a name (the one-producer-per-name check, ``_service``, reads its
   name's answers so).
 
-One line per kind of reply left out (``reasons``) says how many, so ``ls`` names them.
+One line per kind of reply left out (``reasons``) says how many, so ``ls`` names them; and
+one names the token holders that gave no description by the deadline (a bare token, or a
+service whose answer came late: under a churn of thousands of tokens a second, ``ls`` left
+out real services with no word).
 ``ask`` sends the query whose replies an intake takes: every ``@info`` read of framegate that
 keeps more than one answer per session goes through here (``service_info`` keeps each
 session's first answer only: ``_discovery.Answers``).
@@ -129,6 +132,7 @@ class InfoIntake:
         self._late = _LeftOut()
         self._repeated = _LeftOut()
         self._answered: set[tuple[str, str]] = set()  # (replier, name) kept or counted
+        self._live_heard: set[str] = set()  # names of ``live`` that replied (bounded by it)
 
     # -- Zenoh's threads -------------------------------------------------------------------
     def offer(self, name: str, payload: Payload, arrived_ns: int, replier: str = "") -> None:
@@ -138,6 +142,8 @@ class InfoIntake:
         with self._cond:
             if self._closed:
                 return
+            if name in self._live:
+                self._live_heard.add(name)
             if replier:
                 if (replier, name) in self._answered:
                     self._repeated.add(name)
@@ -227,6 +233,12 @@ class InfoIntake:
                 out.append(
                     f"{self._repeated.count} further descriptions of a name from a session "
                     f"that had already answered for it, not read ({self._repeated.listing()})"
+                )
+            silent = sorted(self._live - self._live_heard)
+            if silent:
+                out.append(
+                    f"{len(silent)} live services (holding their liveliness token) gave no "
+                    f"description within the query's timeout ({listing(silent, _NAMED)})"
                 )
             if self._late.count:
                 out.append(

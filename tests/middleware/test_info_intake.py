@@ -110,3 +110,13 @@ def test_the_sessions_remembered_stay_bounded() -> None:
     for i in range(100_000):
         intake.offer(f"made-up-{i}", _Payload(1), 0, f"session{i}")
     assert len(intake._answered) == _REMEMBERED
+
+
+def test_live_names_that_gave_no_description_are_named() -> None:
+    intake = InfoIntake(float("inf"), ["a", "b", "quiet"])
+    intake.offer("a", _Payload(10), 0, "s1")
+    intake.offer("b", _Payload(10), 0, "s2")
+    assert _taken(intake) == ["a", "b"]
+    (line,) = intake.reasons()
+    assert line.startswith("1 live services (holding their liveliness token) gave no"), line
+    assert line.endswith("(quiet)"), line
