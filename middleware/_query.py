@@ -17,7 +17,7 @@ from ._decode import printable
 from ._discovery import MAX_REPLIERS, Discovery, split_target
 from ._errors import FramegateError, NotFoundError, QueryError
 from ._records import DataObject
-from ._service import answer_end
+from ._service import END_MARK_BYTES, answer_end
 from ._session import zenoh_errors
 from ._timerange import TimeRange, parse_time_range
 from ._wire import ERR_NOT_FOUND, decode_element
@@ -85,6 +85,7 @@ class Queries(Discovery):
         asked = time_range if isinstance(time_range, TimeRange) else parse_time_range(time_range)
         replies: list[zenoh.Reply] = []
         kept_bytes = [0]
+        once = threading.Lock()  # taken by the first of the two ends below, never released
 
         def on_reply(reply: zenoh.Reply) -> None:  # (Zenoh's thread) kept, decoded later
             if not _from(reply, session):
@@ -93,6 +94,16 @@ class Queries(Discovery):
             if len(replies) < _ASK_REPLIES_MAX and kept_bytes[0] + size <= _ASK_BYTES_MAX:
                 kept_bytes[0] += size
                 replies.append(reply)
+            # With ``session``, its end mark ends the answer (as in ``_answer``): a peer's
+            # queryable that holds the query open does not hold the answer to its timeout.
+            attachment = reply.ok.attachment if reply.ok is not None else None
+            if (
+                session is not None
+                and attachment is not None
+                and len(attachment) <= END_MARK_BYTES
+                and answer_end(attachment.to_bytes()) is not None
+            ):
+                finished()
 
         def deliver(_now_ns: int) -> None:
             try:
@@ -106,7 +117,8 @@ class Queries(Discovery):
             answer([within[t] for t in sorted(within)])
 
         def finished() -> None:  # (Zenoh's thread) the query ended: replied or timed out
-            self._executor.schedule(deliver, time.monotonic_ns())
+            if once.acquire(blocking=False):
+                self._executor.schedule(deliver, time.monotonic_ns())
 
         handler = zenoh.handlers.Callback(on_reply, finished, indirect=False)
         self._start_get(target, {"_time": _time_value(time_range)}, timeout_s, handler)

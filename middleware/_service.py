@@ -164,7 +164,7 @@ def _described(session: zenoh.Session, keys: Keys, service: str, *, held: bool) 
 
 
 # An answer end's attachment is a few bytes; a reply's larger attachment is not read.
-_END_BYTES = 64
+END_MARK_BYTES = 64
 
 
 def _answers_data(session: zenoh.Session, keys: Keys, service: str) -> str | None:
@@ -177,7 +177,7 @@ def _answers_data(session: zenoh.Session, keys: Keys, service: str) -> str | Non
 
     def on_reply(reply: zenoh.Reply) -> None:  # (Zenoh's thread, or this one) never waits
         attachment = reply.ok.attachment if reply.ok is not None else None
-        if found or attachment is None or len(attachment) > _END_BYTES:
+        if found or attachment is None or len(attachment) > END_MARK_BYTES:
             return
         if answer_end(attachment.to_bytes()) is not None:
             who = reply.replier_id

@@ -65,3 +65,45 @@ def test_a_clock_sample_of_the_producer_comes_when_its_answer_does(endpoint: str
     # Before: timeout_s each. Hang detectors, not speed bounds.
     assert took_s < timeout_s / 2, f"{took_s:.1f} s"
     assert waited_s < timeout_s / 2, f"{waited_s:.1f} s"
+
+
+def test_a_range_asked_of_the_producer_comes_when_its_answer_does(endpoint: str) -> None:
+    """``ask_query(session=)`` (a restarted mediator's look-up of the frames it missed)
+    delivered when the query ended: beside a peer holding the buffer's data queries open,
+    at the query's timeout. Now with the producer's end mark."""
+    cam = NodeProcess("cam", ["--listen", endpoint])
+    held: list[zenoh.Query] = []
+    try:
+        assert cam.call("offer", buffer="images")["ok"]
+        with (
+            open_session(endpoint) as rogue,
+            Node(network=NetworkConfig(connect=(endpoint,))) as client,
+        ):
+            queryable = rogue.declare_queryable(
+                Keys("framegate").data("cam", "images"), zenoh.handlers.Callback(held.append)
+            )
+            try:
+                sub = client.subscribe("cam/images", queue_size=2, wait_s=scaled(10))
+                assert sub.wait_registered(scaled(10))
+                assert cam.call("put", buffer="images", t=5)["ok"]
+                sub.take(timeout_s=scaled(10))
+                timeout_s = scaled(20)
+                answers: list[tuple[object, float]] = []
+                began = time.monotonic()
+                client.ask_query(
+                    "cam/images",
+                    lambda found: answers.append((found, time.monotonic() - began)),
+                    time_range="[1..10]",
+                    timeout_s=timeout_s,
+                    session=sub.producer_session,
+                )
+                (found, took_s), *_ = wait_until(lambda: answers, 60, "the answer")
+                reached = len(held)
+            finally:
+                queryable.undeclare()
+                held.clear()
+    finally:
+        cam.close()
+    assert reached, "the rogue's queryable never saw the query: the test proves nothing"
+    assert isinstance(found, list) and [e.timestamp_ns for e in found] == [5], found
+    assert took_s < timeout_s / 2, f"{took_s:.1f} s"  # before: timeout_s; a hang detector
