@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import threading
 from collections.abc import Callable, Iterable, Iterator
@@ -20,6 +21,19 @@ def open_session(endpoint: str, *, listen: bool = False) -> zenoh.Session:
     conf.insert_json5("scouting/multicast/enabled", "false")
     conf.insert_json5("listen/endpoints" if listen else "connect/endpoints", json.dumps([endpoint]))
     return zenoh.open(conf)
+
+
+@contextmanager
+def flooding_session(endpoint: str, *, listen: bool = False) -> Iterator[zenoh.Session]:
+    """``open_session`` for a peer that floods with large replies: its close may time out
+    (Zenoh's "close operation timed out") while replies it queued for a peer that has left
+    are still unsent. That is the flooding peer's own business, not what a test checks."""
+    session = open_session(endpoint, listen=listen)
+    try:
+        yield session
+    finally:
+        with contextlib.suppress(zenoh.ZError):
+            session.close()
 
 
 @contextmanager

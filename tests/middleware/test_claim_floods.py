@@ -15,7 +15,7 @@ import zenoh
 from middleware._decode import MAX_REPLY_BYTES
 from middleware._wire import Keys
 from tests.conftest import REPO, child_env
-from tests.helpers.raw_zenoh import answering, open_session
+from tests.helpers.raw_zenoh import answering, flooding_session
 from tests.helpers.timing import scaled
 
 pytestmark = pytest.mark.integration
@@ -46,7 +46,7 @@ def test_a_reply_flood_on_a_services_own_info_key_is_not_held(endpoint: str) -> 
     blob = zenoh.ZBytes(b"{" + b" " * (MAX_REPLY_BYTES - 2) + b"}")
     replies = [(KEYS.info("victim"), blob)] * REPLIES
     with (
-        open_session(endpoint, listen=True) as rogue,
+        flooding_session(endpoint, listen=True) as rogue,
         answering(rogue, KEYS.info("victim"), lambda _key: replies),
     ):
         done = subprocess.run(

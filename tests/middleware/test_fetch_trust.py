@@ -13,7 +13,7 @@ import zenoh
 from middleware import DataObject, NetworkConfig, Node, make_metadata, now_ns
 from middleware._wire import Keys, encode_element_attachment
 from tests.conftest import REPO, child_env, free_port
-from tests.helpers.raw_zenoh import answering, open_session
+from tests.helpers.raw_zenoh import answering, flooding_session
 from tests.helpers.timing import scaled
 
 pytestmark = pytest.mark.integration
@@ -43,7 +43,7 @@ def test_a_fetch_reads_only_the_producer_s_answer(
     with (
         Node("cam", net) as cam,
         Node("cons", net) as cons,
-        open_session(f"tcp/127.0.0.1:{port}") as rogue,
+        flooding_session(f"tcp/127.0.0.1:{port}") as rogue,
     ):
         images = cam.offer("images", kind="generic")
         sub = cons.subscribe("cam/images", queue_size=4, wait_s=scaled(10))
@@ -75,7 +75,10 @@ timeout_s = float(sys.argv[3])
 with Node("cons", NetworkConfig(local_port=port)) as node:
     sub = node.subscribe("cam/images", queue_size=4, wait_s=timeout_s, await_service=True)
     print("subscribed", flush=True)
-    for note in sub.take_many(count, timeout_s=timeout_s):
+    # One take each: take_many returns what is queued once one is (the second may be on
+    # its way), and this consumer must fetch both.
+    notes = [sub.take(timeout_s=timeout_s) for _ in range(count)]
+    for note in notes:
         began = time.monotonic()
         element = sub.fetch(note, timeout_s=timeout_s)
         same = element.payload == bytes([note.timestamp_ns % 251]) * size
@@ -94,7 +97,7 @@ def test_a_peer_holding_fetches_open_does_not_hold_them_up() -> None:
     held: list[zenoh.Query] = []
     with (
         Node("cam", NetworkConfig(local_port=port)) as cam,
-        open_session(f"tcp/127.0.0.1:{port}") as rogue,
+        flooding_session(f"tcp/127.0.0.1:{port}") as rogue,
     ):
         images = cam.offer("images", kind="generic")
         queryable = rogue.declare_queryable(
@@ -183,7 +186,7 @@ def test_fetches_started_ahead_hold_no_peer_s_replies() -> None:
         assert victim.stdout is not None and victim.stdin is not None
         assert victim.stdout.readline().strip() == "subscribed"
         with (
-            open_session(f"tcp/127.0.0.1:{port}") as rogue,
+            flooding_session(f"tcp/127.0.0.1:{port}") as rogue,
             answering(rogue, Keys("framegate").data("cam", "images"), replies),
         ):
             victim.stdin.write("go\n")

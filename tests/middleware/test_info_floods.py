@@ -15,7 +15,7 @@ import zenoh
 from middleware import FramegateError, NetworkConfig, Node, ServiceInfo
 from middleware._info_intake import MAX_DESCRIPTIONS, TOKENLESS_DESCRIPTIONS
 from middleware._wire import Keys
-from tests.helpers.raw_zenoh import answering, open_session
+from tests.helpers.raw_zenoh import answering, flooding_session, open_session
 from tests.helpers.timing import scaled, wait_until
 
 pytestmark = pytest.mark.integration
@@ -101,7 +101,7 @@ def _made_up(endpoint: str, template: bytes, *, tokens: bool) -> Iterator[None]:
     held = [KEYS.service_token(n) for n, _ in blobs] if tokens else []
     replies = [(KEYS.info(name), blob) for name, blob in blobs]
     with (
-        open_session(endpoint) as rogue,
+        flooding_session(endpoint) as rogue,
         answering(rogue, KEYS.info("*"), lambda _k: replies, held),
     ):
         yield

@@ -14,7 +14,7 @@ import zenoh
 from middleware._decode import MAX_REPLY_BYTES
 from middleware._wire import Keys
 from tests.conftest import REPO, child_env
-from tests.helpers.raw_zenoh import answering, open_session
+from tests.helpers.raw_zenoh import answering, flooding_session
 from tests.helpers.timing import scaled
 
 pytestmark = pytest.mark.integration
@@ -41,7 +41,7 @@ def _reply_bomb(endpoint: str) -> Iterator[None]:
     def replies(key: str) -> list[tuple[str, zenoh.ZBytes]]:
         return [(key.replace("*", f"evil{i}"), blob) for i in range(REPLIES)]
 
-    with open_session(endpoint, listen=True) as rogue:
+    with flooding_session(endpoint, listen=True) as rogue:
         with answering(rogue, KEYS.info("*"), replies, [KEYS.service_token("evil")]):
             yield
 
