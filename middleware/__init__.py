@@ -3,7 +3,8 @@
 A service offers named buffers (time series of payload + XML metadata keyed by int
 nanoseconds); clients query them by time and subscribe to availability notifications with
 a queue size of their choice. While a flow-controlled subscriber's queue is full the
-producer is refused (paper §4.1). See the README's *Wire format* for the protocol.
+producer is refused (paper §4.1). The bytes on the wire: docs/wire-format.md; the protocol:
+docs/protocol.md.
 
 Reading order, for whoever must change something:
 

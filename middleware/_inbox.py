@@ -17,7 +17,7 @@ Bounds, so that a flood of any size and rate costs bounded memory and bounded wo
   cumulative acks).
 
 A deque, not a Zenoh FIFO: a full FIFO would block Zenoh's receive thread and stall the
-whole link (see the README's *Floods*).
+whole link (docs/protocol.md, *Floods*).
 
 A small Zenoh sample is a slice of the batch it arrived in (up to 64 KiB), and keeps all of
 it alive: 8192 held 20-byte messages, each sent in its own batch (``express``), held 580 MB

@@ -61,8 +61,8 @@ Properties (checked by tests/middleware/test_protocol_model.py after every step)
   however they were batched);
 - the table holds at most ``max_registrations`` registrations and each at most
   ``queue_size`` outstanding headers, whatever peers send;
-- only the subscriber that owns an epoch (or a peer allowed to ack for it, see the README's
-  trust profiles) can move its ``acked``.
+- only the subscriber that owns an epoch (or a peer allowed to ack for it, see docs/protocol.md,
+  *Trust*) can move its ``acked``.
 """
 
 from __future__ import annotations

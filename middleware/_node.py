@@ -59,7 +59,7 @@ class Node(Queries):
     ``_discovery``)."""
 
     def __init__(self, name: str | None = None, network: NetworkConfig | None = None) -> None:
-        # The same FRAMEGATE_* variables as every command (see the README's table).
+        # The same FRAMEGATE_* variables as every command (docs/networking.md's table).
         self.network = network or NetworkConfig().with_env()
         self.name = check_name(name, "service") if name else None
         self.keys = Keys(self.network.namespace)

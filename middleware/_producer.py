@@ -46,7 +46,7 @@ from ._xml import XmlLimits
 log = logging.getLogger("framegate.middleware")
 
 # Elements stamped further ahead of this process's clock are refused: a stamp a consumer
-# cannot bound must never reach it (see the README's time model).
+# cannot bound must never reach it (docs/time.md).
 HORIZON_NS = 10_000_000_000
 # Rate over the last this-many puts.
 _RATE_WINDOW = 64

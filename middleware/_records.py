@@ -231,7 +231,7 @@ class ServiceInfo:
     clock_offset_ns: int | None = None
     round_trip_ns: int | None = None
     # Steps of the service's system clock it absorbed, and how far ahead of its system
-    # clock it runs while slewing back (see the README's time model); None from old peers.
+    # clock it runs while slewing back (docs/time.md); None from old peers.
     clock_steps: int | None = None
     clock_lead_ns: int | None = None
     # The names of the service process's Python threads (docs/threads.md); None from old

@@ -14,7 +14,7 @@ was stored meanwhile must reach ``missed``. Tokens travel reliably (Zenoh liveli
 The invariants are checked after every step; ``heal`` lets the network deliver again and
 checks liveness and no loss.
 
-Outside the model, on purpose (see the README's trust profiles): a rogue that forges an
+Outside the model, on purpose (see docs/protocol.md, *Trust*): a rogue that forges an
 in-window notification or ack of the current epoch, or a token identical to another's.
 
 CI runs a few thousand steps; ``python -m pytest tests/middleware --hypothesis-profile long``

@@ -36,7 +36,8 @@ def _rogue(endpoint: str) -> Iterator[zenoh.Session]:
 
 
 def _forged(epoch: str, seq: int) -> bytes:
-    # The README's array: epoch, seq, timestamp_ns, metadata, pushed, acked, descriptor.
+    # docs/wire-format.md's array of 7: epoch, seq, timestamp_ns, metadata, pushed, acked,
+    # descriptor.
     body = [epoch, seq, FORGED_T, make_metadata("generic", 1), True, None, None]
     return bytes(msgpack.packb(body, use_bin_type=True))
 

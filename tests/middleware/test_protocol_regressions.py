@@ -2,7 +2,7 @@
 
 A producer ``Node`` listens on a loopback port, a client ``Node`` connects to it, and a raw
 Zenoh session (what any peer in the default trusted profile can open) forges messages on
-the wire keys of the README's *Wire format*. Each test names the defect it pins down.
+the wire keys of docs/wire-format.md. Each test names the defect it pins down.
 """
 
 from __future__ import annotations
@@ -45,7 +45,8 @@ def _put(producer: Producer, t: int, wait_s: float = 0.0) -> None:
 
 
 def _forged_header(epoch: str, seq: int, t: int = FORGED_T) -> bytes:
-    # The README's array: epoch, seq, timestamp_ns, metadata, pushed, acked, descriptor.
+    # docs/wire-format.md's array of 7: epoch, seq, timestamp_ns, metadata, pushed, acked,
+    # descriptor.
     body = [epoch, seq, t, make_metadata("generic", t), True, None, None]
     return bytes(msgpack.packb(body, use_bin_type=True))
 

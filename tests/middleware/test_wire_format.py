@@ -1,4 +1,4 @@
-"""A client that uses only the zenoh package reads a buffer per the README's Wire format."""
+"""A client that uses only the zenoh package reads a buffer per docs/wire-format.md."""
 
 from __future__ import annotations
 
