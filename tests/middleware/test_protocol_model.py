@@ -1,6 +1,6 @@
 """The flow-control protocol as a whole: the real sans-IO protocol objects of both sides
 (``ProducerProtocol``, ``SubscriberProtocol``) driven by hypothesis's stateful testing, on
-wire bytes, with the node loop's deadlines (``tick``, the delayed-ack flush) as rules.
+wire bytes, with the node executor's deadlines (``tick``, the delayed-ack flush) as rules.
 
 One producer (restartable), several subscribers (flow and observe, joining and leaving) and
 an adversarial network that loses, duplicates, reorders and delays notifications and acks.
@@ -220,7 +220,7 @@ class ProtocolModel(RuleBasedStateMachine):
         """``every``: the ack policy coalesces that many takes into one ack (any value, even
         beyond the queue: liveness must not depend on it), 0 for what subscriptions use
         (``AckPolicy.for_queue``); ``delay_ns``: an emptied queue's ack waits that long (the
-        node's loop sends it, see ``flush``); ``push``: -1 for the producer's default."""
+        node's executor sends it, see ``flush``); ``push``: -1 for the producer's default."""
         STEPS[0] += 1
         key = RegistrationKey(f"s{len(self.subs)}", mode, size, push)
         policy = None if every == 0 else AckPolicy(every=every, delay_ns=delay_ns)
@@ -252,7 +252,7 @@ class ProtocolModel(RuleBasedStateMachine):
     @precondition(lambda self: bool(self._live()))
     @rule(data=st.data())
     def flush(self, data: st.DataObject) -> None:
-        """The node's loop: at the subscription's deadline, the delayed ack."""
+        """The node's executor: at the subscription's deadline, the delayed ack."""
         STEPS[0] += 1
         self._flush(data.draw(st.sampled_from(self._live())))
 
@@ -260,7 +260,7 @@ class ProtocolModel(RuleBasedStateMachine):
         due = sub.protocol.next_deadline_ns()
         if due is not None:
             self.now = max(self.now, due)
-            event("flush: a delayed ack sent by the node's loop")
+            event("flush: a delayed ack sent by the node's executor")
             self._acks(sub, idle=False)
 
     @precondition(lambda self: bool(self._live()))
@@ -305,7 +305,7 @@ class ProtocolModel(RuleBasedStateMachine):
 
     @rule(dt=st.sampled_from([1 * MS, RESEND_PACE_NS, 100 * MS, RETRANSMIT_NS + 1]))
     def time_passes(self, dt: int) -> None:
-        """The node's loop: ``tick`` at whatever time has come (paced resends included)."""
+        """The node's executor: ``tick`` at whatever time has come (paced resends included)."""
         STEPS[0] += 1
         self.now += dt
         self.producer.tick(self.now)
