@@ -90,7 +90,7 @@ class Wake:
     else the callers
     blocked in the object's condition (``take``, a waiting ``put``), which then feed the
     input themselves; else nobody: the input waits in its bounded inbox for the next caller
-    that looks (a ``put``, ``fill``, ``take``, or the executor at the object's deadline).
+    that looks (a ``put``, ``info``, ``take``, or the executor at the object's deadline).
     ``threads`` and ``handler_waiting`` are changed under the condition's lock, and set *before*
     the waiter's last look at the inbox, so an append that the look missed sees them.
     """

@@ -116,7 +116,7 @@ class Producer:
         self._on_change: Callable[[], object] | None = None
         executor.add(self)
         self._wake = Wake(self, self._cond, executor, lambda: len(self._acks))
-        # Acks are fed by whoever needs credit next (a put, ``fill``, the executor before a
+        # Acks are fed by whoever needs credit next (a put, ``info``, the executor before a
         # resend); only a waiting put, or a backlog, wakes anyone (``Wake``).
         self._acks = AckInbox(
             max_bytes=ACK_MAX_BYTES,
