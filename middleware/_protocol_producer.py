@@ -271,10 +271,6 @@ class ProducerProtocol:
         thread): what an ack inbox keeps, so that forged acks never fill it."""
         return self._ledger.plausible(sub_id, epoch, seq)
 
-    def full(self, count: int = 1) -> Registration[_Kept] | None:
-        """A flow registration without room for ``count`` more elements, or None."""
-        return self._ledger.full(count)
-
     def admit(self, count: int, *, may_wait: bool) -> Refusal | None:
         """Whether ``count`` elements may be stored now (None), else why not and whether to
         wait for credit: never for a batch larger than the full subscriber's queue, which
@@ -293,7 +289,7 @@ class ProducerProtocol:
         )
 
     def put_many(self, elements: tuple[DataObject, ...], now_ns: int) -> int:
-        """Count stored elements (the caller checked ``full``) and queue their notifications:
+        """Count stored elements (the caller checked ``admit``) and queue their notifications:
         one per registration, a batch if there are several. How many flow-controlled
         registrations were notified."""
         kept = tuple(

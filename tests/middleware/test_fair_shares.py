@@ -127,12 +127,13 @@ def test_a_resync_after_lost_token_events_repairs_the_table() -> None:
     producer.token(_token(ghost, "churn~x"), True, 0)
     producer.put_many((DataObject(1, b"x", b"<m/>"),), 0)
     producer.put_many((DataObject(2, b"x", b"<m/>"),), 0)
-    assert producer.full() is not None  # the ghost, whose withdrawal was lost, holds it
+    # The ghost, whose withdrawal was lost, holds it.
+    assert producer.admit(1, may_wait=False) is not None
     producer.tokens_lost(0)
     assert producer.next_deadline_ns() is not None and producer.resync_due(0)
     producer.resync([_token(live, "mediator~x")], 0)
     assert [r.key for r in producer.registrations()] == [live]
-    assert producer.full() is None and not producer.resync_due(0)
+    assert producer.admit(1, may_wait=False) is None and not producer.resync_due(0)
 
 
 def test_a_resync_answer_cut_short_by_a_crowd_of_tokens_removes_no_registration() -> None:

@@ -287,7 +287,7 @@ class ProtocolModel(RuleBasedStateMachine):
         for _ in range(count):
             self.producer.tick(self.now)
             self._emit()
-            if self.producer.full(batch) is not None:
+            if self.producer.admit(batch, may_wait=False) is not None:
                 self.refused += 1
                 return
             elements = tuple(
@@ -503,7 +503,7 @@ class ProtocolModel(RuleBasedStateMachine):
             self.producer.token(_token(key, holder), True, self.now)
             self._check_shares()
         self._emit()
-        if put_between and self.producer.full() is None:
+        if put_between and self.producer.admit(1, may_wait=False) is None:
             meta = str(self.instance).encode()
             self.producer.put_many((DataObject(self.next_t, b"", meta),), self.now)
             self.next_t += 1
@@ -533,7 +533,7 @@ class ProtocolModel(RuleBasedStateMachine):
         self._emit()
         meta = str(self.instance).encode()
         for _ in range(puts):
-            if self.producer.full() is not None:
+            if self.producer.admit(1, may_wait=False) is not None:
                 break
             self.producer.put_many((DataObject(self.next_t, b"", meta),), self.now)
             self.next_t += 1
@@ -579,7 +579,7 @@ class ProtocolModel(RuleBasedStateMachine):
             self._emit()
         else:
             raise AssertionError("the producer stayed held after the network healed")
-        assert self.producer.full() is None
+        assert self.producer.admit(1, may_wait=False) is None
         for sub in self._live():
             reg = self.producer.get(sub.key)
             assert reg is not None
