@@ -171,12 +171,6 @@ class InfoIntake:
                 self._kept[tokenless].append(Kept(name, raw, arrived_ns, replier))
                 self._cond.notify()
 
-    @property
-    def kept(self) -> int:
-        """How many replies were kept to be decoded (at most ``MAX_DESCRIPTIONS``)."""
-        with self._cond:
-            return sum(self._count)
-
     def end(self) -> None:
         """The query ended (all answered, or its timeout)."""
         with self._cond:
