@@ -197,7 +197,6 @@ class Mediator:
         self._attached = False
         self._timer: _Deadline | None = None
         self._timer_at: int | None = None
-        self._measure_at = 0  # a test stepping it by hand: when to measure the clocks next
         # Camera notifications taken and the newest gyro sample, at the last measurement.
         self._camera_notes = 0
         self._seen: tuple[int | None, int | None] = (0, None)

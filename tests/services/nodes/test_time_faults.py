@@ -28,7 +28,7 @@ from tests.conftest import REPO, child_env, free_port, wait_until
 from tests.helpers.clock_shim import build_clock_shim, shifted_clock_env, step_clock
 from tests.helpers.frames import simulated_frames
 from tests.helpers.timing import LEASE_LAPSE_S, answered, scaled
-from tests.services.nodes.mediator_driver import step
+from tests.services.nodes.mediator_driver import next_measure_ns, step
 from tests.services.nodes.pipeline import Pipeline
 
 pytestmark = pytest.mark.integration
@@ -320,9 +320,9 @@ def test_a_camera_that_sent_one_frame_before_the_gyro_was_up_is_measured(
         assert rogue.stdout.readline().strip() == "put"
         recorded.step_until(lambda: recorded.records, 30, "the rogue frame's record")
         # A measurement with the camera's frame new and no gyro yet: the camera alone.
-        measured_at = recorded.mediator._measure_at
+        measured_at = next_measure_ns(recorded.mediator)
         recorded.step_until(
-            lambda: recorded.mediator._measure_at > measured_at, 30, "a measurement"
+            lambda: next_measure_ns(recorded.mediator) > measured_at, 30, "a measurement"
         )
         assert recorded.mediator._offsets.current() is None
         gyro = _start(GYRO, port)
