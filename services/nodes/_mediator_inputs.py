@@ -137,11 +137,6 @@ class GyroCache:
         with self._lock:
             return int(self._batches[-1].t_ns[-1]) if self._batches else None
 
-    def times_ns(self) -> list[int]:
-        """Every sample time kept, oldest first (for tests and reports)."""
-        with self._lock:
-            return [int(t) for b in self._batches for t in b.t_ns]
-
     def window(self, start_ns: int, end_ns: int, margin_ns: int = 20_000_000) -> GyroSamples:
         """Samples from batches overlapping [start - margin, end + margin]."""
         with self._lock:
