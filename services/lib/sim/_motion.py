@@ -166,10 +166,6 @@ class Motion:
         """Distance travelled since the first exposure started (negative before)."""
         return self.config.speed_m_s * (np.asarray(t_s, dtype=float) - self.config.lead_in_ns * _NS)
 
-    def attitude(self, t_s: np.ndarray) -> np.ndarray:
-        """(n, 3): heave m, pitch rad (nose down +), roll rad (left side up +)."""
-        return np.asarray(self._state(np.asarray(t_s, dtype=float)))
-
     def body_rate_rad_s(self, t_s: np.ndarray) -> np.ndarray:
         """(n, 3) angular velocity of the body in body axes (x forward, y left, z up)."""
         t_s = np.asarray(t_s, dtype=float)
