@@ -10,7 +10,9 @@ Reading order, for whoever must change something:
 
 1. ``_node`` — ``Node``: one Zenoh session, ``offer`` / ``subscribe``, and the executor API
    (``on`` / ``every`` / ``at`` / ``spin``); its parts ``_query`` (reading by time),
-   ``_discovery`` (what is live, ``@info``) and ``_session`` (opening, Zenoh's errors).
+   ``_discovery`` (what is live, ``@info``; the bounded answers to ``@info/*`` in
+   ``_info_intake``, liveliness queries no number of tokens can hang in ``_liveliness``)
+   and ``_session`` (opening, Zenoh's errors).
 2. ``_executor`` — the node's one thread: what waits, what runs per turn, and how a handler
    that blocks avoids waiting for itself. ``_inbox``: what runs on Zenoh's threads.
 3. One side of the protocol at a time, each as one object: ``_protocol_producer`` (every

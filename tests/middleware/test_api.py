@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
 
 import pytest
@@ -24,6 +25,16 @@ def test_all_is_sorted_and_complete() -> None:
     assert middleware.__all__ == sorted(middleware.__all__, key=_isort_style)
     for name in middleware.__all__:
         assert hasattr(middleware, name), name
+
+
+def test_the_reading_order_names_every_module_that_exists() -> None:
+    """The package's docstring is a newcomer's map: a module left out of it, or one it
+    names that is gone, sends them the wrong way."""
+    doc = middleware.__doc__ or ""
+    named = set(re.findall(r"``(_[a-z_]+)``", doc.split("Reading order", 1)[1]))
+    modules = {p.stem for p in (REPO / "middleware").glob("_*.py")} - {"__init__"}
+    assert modules - named == set(), "not in the reading order"
+    assert named - modules == set(), "in the reading order, but no such module"
 
 
 def test_every_error_is_a_framegate_error() -> None:
