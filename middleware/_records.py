@@ -74,8 +74,9 @@ class Notification:
     """An availability notification: a new element exists in ``service/buffer``.
 
     ``element`` is filled when the producer sent the element inline (small payloads);
-    otherwise fetch it with ``Subscription.fetch``. ``missed`` counts notifications this
-    subscription lost before this one (observers only; always 0 for flow control).
+    otherwise fetch it with ``Subscription.fetch``. ``missed`` counts elements this
+    subscription lost before this one: an observer's pushed out of its full queue, and,
+    for either mode, those stored while its token had lapsed (docs/limits.md).
     ``epoch``: the registration it came with (``Subscription.registered_epoch`` names the
     one the producer greeted; a notification of another epoch is an old registration's, or
     a peer's that made one up).

@@ -143,7 +143,7 @@ class Subscription:
 
     @property
     def missed_total(self) -> int:
-        """Notifications lost so far (observers only: flow control loses none)."""
+        """Elements lost so far: out of an observer's full queue, or while the token lapsed."""
         return self._fed(lambda protocol: protocol.missed_total)
 
     @property
