@@ -50,7 +50,7 @@ class Queries(Discovery):
         such as ``[now(-2s)..]``) and/or the newest ``last``, in timestamp order.
         ``session``: only that Zenoh session's replies count (a subscription's
         ``producer_session``): a peer answering inside the range asked is not taken for the
-        service.
+        service. Not named, it is the one session that answers as the service, if one does.
 
         Any peer may answer: with a ``TimeRange``, an element outside it is no answer to the
         question and is left out (a peer's one element stamped an hour ahead became a
@@ -145,7 +145,7 @@ class Queries(Discovery):
         return found[0]
 
     def latest(self, target: str, n: int = 1, *, timeout_s: float = 5.0) -> list[DataObject]:
-        """The newest ``n`` elements, oldest first."""
+        """The newest ``n`` elements, oldest first (the owning session's: see ``_get``)."""
         return self._get(target, {"last": str(n)}, timeout_s, most=n)
 
     def _fetch_exact(
@@ -184,6 +184,21 @@ class Queries(Discovery):
             return self._session.get(
                 selector, handler, consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout_s
             )
+
+    def _ask(
+        self, target: str, params: dict[str, str], timeout_s: float, session: str | None
+    ) -> Any:
+        """Start a query whose replies ``_answer`` reads. Asked of ``session``: its replies
+        alone, taken as they come (``Collected``; all of them: what was asked for, read as it
+        comes), others dropped at once. Its end mark ends the reading while a peer's
+        queryable may still answer, and Zenoh's channel would hold those replies whole until
+        the query's timeout. Of no session: Zenoh's channel, read to the end."""
+        if session is None:
+            return self._start_get(target, params, timeout_s)
+        collected = Collected(session, None)
+        handler = zenoh.handlers.Callback(collected.add, collected.end, indirect=False)
+        self._start_get(target, params, timeout_s, handler)
+        return collected
 
     def _answer(
         self, target: str, replies: Any, *, most: int | None = None, session: str | None = None
@@ -263,7 +278,14 @@ class Queries(Discovery):
         session: str | None = None,
     ) -> list[DataObject]:
         deadline = time.monotonic() + timeout_s
-        replies = self._start_get(target, params, timeout_s)
+        if session is None:
+            # Not named: the session that answers as the service is its owner, asked for its
+            # answer alone (as a subscription's fetches are), so its end mark ends the query.
+            # Waiting for every queryable on the key instead, a peer that takes each query
+            # and never finalizes it held every query, latest and backfill to its timeout.
+            # None (no one, or more than one, answers as it): every reply counts, as before.
+            session = self.service_session(split_target(target)[0])
+        replies = self._ask(target, params, timeout_s, session)
         elements, answered = self._answer(target, replies, most=most, session=session)
         if not elements:
             # NotFoundError, with a did-you-mean, if there is none; asked with the caller's
@@ -273,7 +295,7 @@ class Queries(Discovery):
             # moment; Zenoh then answers with nothing, not an error). Asked once more.
             left_s = deadline - time.monotonic()
             if not answered and left_s > 0:
-                replies = self._start_get(target, params, left_s)
+                replies = self._ask(target, params, left_s, session)
                 elements = self._answer(target, replies, most=most, session=session)[0]
         elements.sort(key=lambda e: e.timestamp_ns)
         return elements
@@ -287,12 +309,15 @@ class Collected:
     (the producer's), only its replies are kept, at most ``_FETCH_REPLIES`` (an element and
     its end mark); without, at most ``_FETCH_REPLIES`` of each of ``MAX_REPLIERS`` sessions
     and ``_ASK_BYTES_MAX`` in all. The rest are dropped as they come, never held.
+    ``per_replier`` None (a query asked of ``session``, read as it comes: ``_ask``): all of
+    that session's replies, what was asked of it.
 
     Threads: ``add`` and ``end`` run on Zenoh's threads, iterating on the fetching one;
     ``_cond`` guards the replies."""
 
-    def __init__(self, session: str | None) -> None:
+    def __init__(self, session: str | None, per_replier: int | None = _FETCH_REPLIES) -> None:
         self._session = session
+        self._most = per_replier
         self._cond = threading.Condition()
         self._replies: deque[zenoh.Reply] = deque()
         self._per_replier: dict[str, int] = {}
@@ -308,7 +333,7 @@ class Collected:
             count = self._per_replier.get(who)
             if count is None and len(self._per_replier) >= MAX_REPLIERS:
                 return
-            if (count or 0) >= _FETCH_REPLIES:
+            if self._most is not None and (count or 0) >= self._most:
                 return
             if self._session is None and self._bytes + size > _ASK_BYTES_MAX:
                 return

@@ -107,3 +107,43 @@ def test_a_range_asked_of_the_producer_comes_when_its_answer_does(endpoint: str)
     assert reached, "the rogue's queryable never saw the query: the test proves nothing"
     assert isinstance(found, list) and [e.timestamp_ns for e in found] == [5], found
     assert took_s < timeout_s / 2, f"{took_s:.1f} s"  # before: timeout_s; a hang detector
+
+
+def test_a_query_naming_no_session_comes_with_the_owners_answer(endpoint: str) -> None:
+    """``query`` and ``latest`` without ``session`` (``framegate query``, the backfill of
+    ``echo`` and ``record``, ``view``'s frame look-up) waited for every queryable on the
+    key: beside a peer holding the buffer's data queries open, each took its timeout. Now
+    the session that answers as the service is asked for, and its end mark ends each."""
+    cam = NodeProcess("cam", ["--listen", endpoint])
+    held: list[zenoh.Query] = []
+    try:
+        assert cam.call("offer", buffer="images")["ok"]
+        assert cam.call("put", buffer="images", t=5)["ok"]
+        with (
+            open_session(endpoint) as rogue,
+            Node(network=NetworkConfig(connect=(endpoint,))) as client,
+        ):
+            queryable = rogue.declare_queryable(
+                Keys("framegate").data("cam", "images"), zenoh.handlers.Callback(held.append)
+            )
+            try:
+                wait_until(lambda: "cam" in client.live_services(), 60, "the service's token")
+                timeout_s = scaled(20)
+                began = time.monotonic()
+                found = client.query("cam/images", last=1, timeout_s=timeout_s)
+                query_s = time.monotonic() - began
+                began = time.monotonic()
+                newest = client.latest("cam/images", 1, timeout_s=timeout_s)
+                latest_s = time.monotonic() - began
+                reached = len(held)
+            finally:
+                queryable.undeclare()
+                held.clear()
+    finally:
+        cam.close()
+    assert reached, "the rogue's queryable never saw the query: the test proves nothing"
+    assert [e.timestamp_ns for e in found] == [5], found
+    assert [e.timestamp_ns for e in newest] == [5], newest
+    # Before: timeout_s each. Hang detectors, not speed bounds.
+    assert query_s < timeout_s / 2, f"{query_s:.1f} s"
+    assert latest_s < timeout_s / 2, f"{latest_s:.1f} s"

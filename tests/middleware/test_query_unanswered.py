@@ -48,6 +48,9 @@ class _Lapsing(Queries):
             return [], False
         return [DataObject(t, b"", b"<m/>") for t in replies], True
 
+    def service_session(self, service: str) -> str | None:
+        return None  # no session answers as the service here: every reply counts
+
     def buffer_info(self, target: str, *, timeout_s: float = 2.0) -> BufferInfo:
         return BufferInfo(
             "cam", "log", "generic", Retention(), len(self.held), 0,
