@@ -147,7 +147,9 @@ class Discovery:
         start = now_ns()
         deadline = time.monotonic() + timeout_s
         # Who holds a token: answered from what the session knows, at once (see _info_intake).
-        intake = InfoIntake(deadline, self.live_services(timeout_s=timeout_s))
+        # Ends once every token holder's name has answered (``every_live``), not when every
+        # queryable on ``@info/*`` has: a peer's may hold the query open to its timeout.
+        intake = InfoIntake(deadline, self.live_services(timeout_s=timeout_s), every_live=True)
 
         with zenoh_errors("describing services"):
             ask(self._session, self.keys.info("*"), intake, timeout_s=timeout_s)

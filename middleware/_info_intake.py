@@ -62,6 +62,9 @@ TOKENLESS_DESCRIPTIONS = 16
 TOKENLESS_BYTES = 4 << 20
 # Names of left-out replies a reason line lists at most.
 _NAMED = 5
+# With ``every_live``, once every live name has answered, replies are still taken for as long
+# again as that took (at least this long): the query ends there, not at its timeout.
+_HEARD_SLACK_S = 0.05
 # (session, name) pairs remembered to tell a repeated answer, at most (a flood of distinct
 # names would otherwise grow the set): beyond, a repeated answer is held to the caps above
 # like any other.
@@ -115,10 +118,20 @@ class InfoIntake:
         live: Collection[str],
         *,
         monotonic: Callable[[], float] = time.monotonic,
+        every_live: bool = False,
     ) -> None:
         self._deadline = deadline
         self._live = frozenset(live)
         self._monotonic = monotonic
+        # ``every_live``: the query ends (``_heard_end``) once each name of ``live`` has
+        # answered, not at its timeout: any peer can declare a queryable on ``@info/*`` that
+        # takes each query and never finalizes it, and ``ls`` and ``info`` waited that long
+        # (the held queries of the named-session case, ``_discovery``, but asked of no one
+        # session). The slack after lets a second answer in a live name (a peer's, or the
+        # service's own behind a peer's) arrive to be listed beside the first.
+        self._every_live = every_live and bool(self._live)
+        self._asked = monotonic()
+        self._heard_end: float | None = None
         self._cond = threading.Condition()
         # [0]: of services holding their token, [1]: of the others (taken after [0])
         self._kept: tuple[deque[Kept], deque[Kept]] = (deque(), deque())
@@ -144,6 +157,10 @@ class InfoIntake:
                 return
             if name in self._live:
                 self._live_heard.add(name)
+                if self._every_live and self._heard_end is None and self._live_heard == self._live:
+                    now = self._monotonic()
+                    self._heard_end = now + max(now - self._asked, _HEARD_SLACK_S)
+                    self._cond.notify()
             if replier:
                 if (replier, name) in self._answered:
                     self._repeated.add(name)
@@ -180,7 +197,8 @@ class InfoIntake:
     # -- the asking thread -----------------------------------------------------------------
     def take(self) -> Kept | None:
         """The next kept reply (name, payload, when it came), token holders' first; None once
-        the query has ended and all are taken, or at the deadline (the rest counted late)."""
+        the query has ended (with ``every_live``: every live name answered, and the slack
+        after passed) and all are taken, or at the deadline (the rest counted late)."""
         with self._cond:
             while True:
                 now = self._monotonic()
@@ -190,10 +208,13 @@ class InfoIntake:
                 for kept in self._kept:
                     if kept:
                         return kept.popleft()
-                if self._ended:
+                ends = self._deadline
+                if self._heard_end is not None:
+                    ends = min(ends, self._heard_end)
+                if self._ended or now >= ends:
                     self._close()
                     return None
-                self._cond.wait(self._deadline - now)
+                self._cond.wait(ends - now)
 
     def _close(self) -> None:
         self._closed = True

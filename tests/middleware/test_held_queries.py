@@ -147,3 +147,35 @@ def test_a_query_naming_no_session_comes_with_the_owners_answer(endpoint: str) -
     # Before: timeout_s each. Hang detectors, not speed bounds.
     assert query_s < timeout_s / 2, f"{query_s:.1f} s"
     assert latest_s < timeout_s / 2, f"{latest_s:.1f} s"
+
+
+def test_the_services_listed_come_when_every_live_one_has_answered(endpoint: str) -> None:
+    """``services()`` (``ls``, ``launch --status``, ``view``) waited for every queryable on
+    ``@info/*``: beside a peer holding those queries open, it took its timeout. Now it ends
+    once each live service (holding its token) has answered, and a moment after."""
+    cam = NodeProcess("cam", ["--listen", endpoint])
+    held: list[zenoh.Query] = []
+    try:
+        assert cam.call("offer", buffer="images")["ok"]
+        with (
+            open_session(endpoint) as rogue,
+            Node(network=NetworkConfig(connect=(endpoint,))) as client,
+        ):
+            queryable = rogue.declare_queryable(
+                Keys("framegate").info("*"), zenoh.handlers.Callback(held.append)
+            )
+            try:
+                wait_until(lambda: "cam" in client.live_services(), 60, "the service's token")
+                timeout_s = scaled(20)
+                began = time.monotonic()
+                listed = client.services(timeout_s=timeout_s)
+                took_s = time.monotonic() - began
+                reached = len(held)
+            finally:
+                queryable.undeclare()
+                held.clear()
+    finally:
+        cam.close()
+    assert reached, "the rogue's queryable never saw the query: the test proves nothing"
+    assert [s.service for s in listed] == ["cam"], listed
+    assert took_s < timeout_s / 2, f"{took_s:.1f} s"  # before: timeout_s; a hang detector

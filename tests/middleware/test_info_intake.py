@@ -119,3 +119,21 @@ def test_live_names_that_gave_no_description_are_named() -> None:
     (line,) = intake.reasons()
     assert line.startswith("1 live services (holding their liveliness token) gave no"), line
     assert line.endswith("(quiet)"), line
+
+
+def test_with_every_live_the_intake_ends_once_each_live_name_answered_and_as_long_again() -> None:
+    """``services()``: a peer's queryable that never ends the query does not hold it to its
+    timeout; a second answer in a live name inside the slack is still taken."""
+    now = [0.0]
+    intake = InfoIntake(100.0, ["a", "b"], monotonic=lambda: now[0], every_live=True)
+    now[0] = 0.5
+    intake.offer("a", _Payload(1), 0, "s1")
+    now[0] = 1.0
+    intake.offer("b", _Payload(1), 0, "s2")  # every live name: 1 s after asking
+    now[0] = 1.5
+    intake.offer("a", _Payload(1), 0, "peer")  # within as long again: kept
+    taken = [kept.name for _ in range(3) if (kept := intake.take()) is not None]
+    assert taken == ["a", "b", "a"]
+    now[0] = 2.0
+    assert intake.take() is None  # ended, not at the deadline (100)
+    assert intake.reasons() == []
