@@ -18,7 +18,7 @@ from ._decode import MAX_REPLY_BYTES, listing
 from ._errors import ConfigError, NotFoundError, QueryError
 from ._executor import Executor
 from ._info_codec import decode_service_info
-from ._info_intake import InfoIntake, ask
+from ._info_intake import InfoIntake, ask, heard_end
 from ._liveliness import live_keys
 from ._records import BufferInfo, ServiceInfo
 from ._service import answering_sessions, offered
@@ -178,15 +178,20 @@ class Discovery:
         a valid description of ``service`` (any peer can answer, and Zenoh would pass on only
         the newest answer). ``session``: stricter, only that Zenoh session's answer counts
         (a subscription's ``producer_session``). A reply that is no valid description
-        counts for nothing."""
+        counts for nothing. Without ``session``, the answers that came by as long again
+        after the first (``heard_end``) are read, not those of the query's timeout."""
         start, began = now_ns(), time.monotonic()
         answers = Answers(service, start)  # bounded: each session's first reply
         ended = threading.Event()
+
+        heard: list[float] = []  # when the first answer came (no ``session``: see below)
 
         def on_reply(reply: zenoh.Reply) -> None:  # (Zenoh's thread, or this one) never waits
             answers.add(reply, now_ns())
             if session is not None and session in answers:
                 ended.set()  # the one answer that counts came (see ``ask_service_info``)
+            elif not heard and answers:
+                heard.append(time.monotonic())
 
         # A callback, never a bounded channel: Zenoh delivers the replies of this session's
         # own queryables on this thread, inside ``get``, and a full channel parks it for good.
@@ -197,7 +202,14 @@ class Discovery:
                 consolidation=zenoh.ConsolidationMode.NONE,
                 timeout=timeout_s,
             )
-        ended.wait(timeout_s + _END_SLACK_S)
+        # Named no session, it ends soon after the first answer (``heard_end``), not when
+        # every queryable on the key has: a peer's that takes each query and never ends it
+        # held ``info``, and every CLI look-up of a service, to the timeout.
+        ends = began + timeout_s + _END_SLACK_S
+        while not ended.is_set() and (now := time.monotonic()) < ends:
+            if heard:
+                ends = min(ends, heard_end(began, heard[0]))
+            ended.wait(min(ends - now, _HEARD_POLL_S))
         if session is not None:
             found = answers.of_session(session)
         else:
@@ -301,6 +313,8 @@ class Discovery:
 
 # Beyond a query's timeout, how long to wait for Zenoh to say that it ended.
 _END_SLACK_S = 1.0
+# How often ``service_info`` looks whether its first answer has come (its wait's step).
+_HEARD_POLL_S = 0.02
 # Sessions whose answers to one ``@info`` query are kept; one more makes the answers
 # ambiguous (a crowd of rogue repliers could otherwise push the real one out unseen).
 MAX_REPLIERS = 8

@@ -65,6 +65,15 @@ _NAMED = 5
 # With ``every_live``, once every live name has answered, replies are still taken for as long
 # again as that took (at least this long): the query ends there, not at its timeout.
 _HEARD_SLACK_S = 0.05
+
+
+def heard_end(asked: float, heard: float) -> float:
+    """When a query of descriptions asked at ``asked`` ends, all it waits for having come at
+    ``heard`` (monotonic seconds): as long again after, so that a second answer in the same
+    name (a peer's, or the service's own behind a peer's) is still taken beside the first."""
+    return heard + max(heard - asked, _HEARD_SLACK_S)
+
+
 # (session, name) pairs remembered to tell a repeated answer, at most (a flood of distinct
 # names would otherwise grow the set): beyond, a repeated answer is held to the caps above
 # like any other.
@@ -158,8 +167,7 @@ class InfoIntake:
             if name in self._live:
                 self._live_heard.add(name)
                 if self._every_live and self._heard_end is None and self._live_heard == self._live:
-                    now = self._monotonic()
-                    self._heard_end = now + max(now - self._asked, _HEARD_SLACK_S)
+                    self._heard_end = heard_end(self._asked, self._monotonic())
                     self._cond.notify()
             if replier:
                 if (replier, name) in self._answered:

@@ -179,3 +179,35 @@ def test_the_services_listed_come_when_every_live_one_has_answered(endpoint: str
     assert reached, "the rogue's queryable never saw the query: the test proves nothing"
     assert [s.service for s in listed] == ["cam"], listed
     assert took_s < timeout_s / 2, f"{took_s:.1f} s"  # before: timeout_s; a hang detector
+
+
+def test_a_description_asked_of_no_session_comes_with_the_first_answer(endpoint: str) -> None:
+    """``service_info`` without ``session`` (``framegate info``, and the look-up of the
+    service before ``query``, ``echo`` and ``record``) waited for every queryable on
+    ``@info/<service>``: beside a peer holding those queries open, it took its timeout."""
+    cam = NodeProcess("cam", ["--listen", endpoint])
+    held: list[zenoh.Query] = []
+    try:
+        assert cam.call("offer", buffer="images")["ok"]
+        with (
+            open_session(endpoint) as rogue,
+            Node(network=NetworkConfig(connect=(endpoint,))) as client,
+        ):
+            queryable = rogue.declare_queryable(
+                Keys("framegate").info("cam"), zenoh.handlers.Callback(held.append)
+            )
+            try:
+                wait_until(lambda: "cam" in client.live_services(), 60, "the service's token")
+                timeout_s = scaled(20)
+                began = time.monotonic()
+                info = client.service_info("cam", timeout_s=timeout_s, unambiguous=True)
+                took_s = time.monotonic() - began
+                reached = len(held)
+            finally:
+                queryable.undeclare()
+                held.clear()
+    finally:
+        cam.close()
+    assert reached, "the rogue's queryable never saw the query: the test proves nothing"
+    assert info.service == "cam" and [b.buffer for b in info.buffers] == ["images"]
+    assert took_s < timeout_s / 2, f"{took_s:.1f} s"  # before: timeout_s; a hang detector
