@@ -5,12 +5,16 @@ from __future__ import annotations
 import contextlib
 import json
 import threading
-from collections.abc import Callable, Iterable, Iterator
+import time
+from collections.abc import Callable, Iterable, Iterator, Sized
 from contextlib import contextmanager
+from typing import TypeVar
 
 import zenoh
 
 from tests.helpers.timing import scaled
+
+T = TypeVar("T")
 
 
 def open_session(endpoint: str, *, listen: bool = False) -> zenoh.Session:
@@ -64,3 +68,20 @@ def answering(
         for token in held:
             token.undeclare()
         thread.join(timeout=scaled(30))
+
+
+def first_seen(call: Callable[[], T], seen: Sized, what: str) -> tuple[T, float]:
+    """``call()`` repeated until a peer's queryable has seen one of its queries (``seen``
+    grows), then its result and how long that call took. A queryable's declaration reaches
+    the caller a moment after it is made: a call before then never met the peer, and is not
+    the one a test measures."""
+    deadline = time.monotonic() + scaled(30)
+    while True:
+        began = time.monotonic()
+        result = call()
+        took_s = time.monotonic() - began
+        if len(seen):
+            return result, took_s
+        if time.monotonic() > deadline:
+            raise AssertionError(f"the peer's queryable never saw {what}: the test proves nothing")
+        time.sleep(0.05)

@@ -23,6 +23,7 @@ class _Lapsing(Queries):
 
     def __init__(self, held: list[int], lapses: int = 1) -> None:
         self.held, self.lapses, self.asked = held, lapses, 0
+        self._owners: dict[str, str] = {}  # made by Node.__init__ in a real node
 
     def _start_get(self, target: str, params: dict[str, str], timeout_s: float) -> Any:
         self.asked += 1
