@@ -108,9 +108,13 @@ class Queries(Discovery):
             ):
                 finished()
 
-        def deliver(_now_ns: int) -> None:
+        def deliver(ended_ns: int) -> None:
+            # Judged by when the query ended, not by when the executor got to it.
+            timed_out = ended_ns / 1e9 >= deadline
             try:
-                elements = self._answer(target, replies)[0]
+                elements = self._answer(
+                    target, replies, deadline=deadline if timed_out else None, timeout_s=timeout_s
+                )[0]
             except FramegateError as exc:
                 answer(exc)
                 return
@@ -124,6 +128,7 @@ class Queries(Discovery):
                 self._executor.schedule(deliver, time.monotonic_ns())
 
         handler = zenoh.handlers.Callback(on_reply, finished, indirect=False)
+        deadline = time.monotonic() + timeout_s
         self._start_get(target, {"_time": _time_value(time_range)}, timeout_s, handler)
 
     def get(
@@ -218,14 +223,24 @@ class Queries(Discovery):
         return collected
 
     def _answer(
-        self, target: str, replies: Any, *, most: int | None = None, session: str | None = None
+        self,
+        target: str,
+        replies: Any,
+        *,
+        most: int | None = None,
+        session: str | None = None,
+        deadline: float | None = None,
+        timeout_s: float = 0.0,
     ) -> tuple[list[DataObject], bool]:
         """The elements of an answer, and whether any service answered (its end mark came).
 
         QueryError if it was cut short: elements came but not the service's end mark
         counting them (``_service.encode_answer_end``), as when its link dropped while
-        answering; the first part of an answer never reads as all of it. No reply at all
-        (no end mark) is a query that reached no one: see ``_get``.
+        answering or the query's ``timeout_s`` (asked to end at the monotonic ``deadline``)
+        passed first; the first part of an answer never reads as all of it. The error says
+        which of the two it was: Zenoh ends the replies the same way for both, but only a
+        timeout ends them at or after the deadline. No reply at all (no end mark) is a
+        query that reached no one: see ``_get``.
 
         Any session may answer a query: ``most`` (what was asked for: ``last=N``, one
         element) bounds what each answering session adds, and an error reply counts only
@@ -277,6 +292,15 @@ class Queries(Discovery):
         if error is not None and not elements and not answered:
             raise _error_from_reply(target, error)
         complete = not short and not any(since.values())
+        if elements and not complete and deadline is not None and time.monotonic() >= deadline:
+            # A slow answer (a long range, a service without CPU on a busy machine) is no
+            # dropped link: said as one, the user asked again with the same timeout in vain.
+            raise QueryError(
+                f"the answer from {target} ended early ({len(elements)} elements, no end "
+                f"mark): the query's timeout ({timeout_s:g} s) passed before its service had "
+                "answered all of it (a long range, or a busy machine); ask again with a "
+                "longer timeout or a shorter range"
+            )
         if elements and not complete:
             raise QueryError(
                 f"the answer from {target} ended early ({len(elements)} elements, no end "
@@ -304,7 +328,9 @@ class Queries(Discovery):
             # None (no one, or more than one, answers as it): every reply counts, as before.
             session, remembered = self._owner(service)
         replies = self._ask(target, params, timeout_s, session)
-        elements, answered = self._answer(target, replies, most=most, session=session)
+        elements, answered = self._answer(
+            target, replies, most=most, session=session, deadline=deadline, timeout_s=timeout_s
+        )
         if not elements:
             # NotFoundError, with a did-you-mean, if there is none; asked with the caller's
             # patience (a loaded machine's service answers late, and is not "gone" for it).
@@ -317,7 +343,14 @@ class Queries(Discovery):
                     self._owners.pop(service, None)
                     session = self._owner(service)[0]
                 replies = self._ask(target, params, left_s, session)
-                elements = self._answer(target, replies, most=most, session=session)[0]
+                elements = self._answer(
+                    target,
+                    replies,
+                    most=most,
+                    session=session,
+                    deadline=deadline,
+                    timeout_s=timeout_s,
+                )[0]
         elements.sort(key=lambda e: e.timestamp_ns)
         return elements
 
