@@ -84,7 +84,6 @@ class Node(Queries):
         self._opened = time.monotonic()
         self._endpoint: ServiceEndpoint | None = None
         self._subscriptions: list[Subscription] = []
-        self._owners: dict[str, str] = {}
         self._lock = threading.Lock()
         self._closed = False
 

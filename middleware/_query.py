@@ -37,9 +37,6 @@ _FETCH_REPLIES = 4
 class Queries(Discovery):
     """Elements of live buffers, by time (see ``Node``)."""
 
-    # service -> the session that answered as it (``_owner``); made by Node.__init__.
-    _owners: dict[str, str]
-
     def query(
         self,
         target: str,
@@ -193,20 +190,6 @@ class Queries(Discovery):
                 selector, handler, consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout_s
             )
 
-    def _owner(self, service: str) -> tuple[str | None, bool]:
-        """(The session that answers as ``service``, whether it was remembered). Remembered
-        once found, so that a query naming no session costs no ``@info`` round trip each
-        (that doubled a small query's time); forgotten when it stops answering."""
-        owner = self._owners.get(service)
-        if owner is not None:
-            return owner, True
-        owner = self.service_session(service)
-        if owner is not None:
-            if len(self._owners) >= _OWNERS_MAX:  # names a peer makes up cannot grow it
-                self._owners.pop(next(iter(self._owners)), None)
-            self._owners[service] = owner
-        return owner, False
-
     def _ask(
         self, target: str, params: dict[str, str], timeout_s: float, session: str | None
     ) -> Any:
@@ -319,14 +302,13 @@ class Queries(Discovery):
         session: str | None = None,
     ) -> list[DataObject]:
         deadline = time.monotonic() + timeout_s
-        service, remembered = split_target(target)[0], False
         if session is None:
             # Not named: the session that answers as the service is its owner, asked for its
             # answer alone (as a subscription's fetches are), so its end mark ends the query.
             # Waiting for every queryable on the key instead, a peer that takes each query
             # and never finalizes it held every query, latest and backfill to its timeout.
             # None (no one, or more than one, answers as it): every reply counts, as before.
-            session, remembered = self._owner(service)
+            session = self.service_session(split_target(target)[0])
         replies = self._ask(target, params, timeout_s, session)
         elements, answered = self._answer(
             target, replies, most=most, session=session, deadline=deadline, timeout_s=timeout_s
@@ -339,9 +321,6 @@ class Queries(Discovery):
             # moment; Zenoh then answers with nothing, not an error). Asked once more.
             left_s = deadline - time.monotonic()
             if not answered and left_s > 0:
-                if remembered:  # the owner remembered did not answer: a restarted service
-                    self._owners.pop(service, None)
-                    session = self._owner(service)[0]
                 replies = self._ask(target, params, left_s, session)
                 elements = self._answer(
                     target,
@@ -353,10 +332,6 @@ class Queries(Discovery):
                 )[0]
         elements.sort(key=lambda e: e.timestamp_ns)
         return elements
-
-
-# Services whose owning session a node remembers (``Queries._owner``).
-_OWNERS_MAX = 256
 
 
 class Collected:

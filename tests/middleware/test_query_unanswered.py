@@ -23,7 +23,6 @@ class _Lapsing(Queries):
 
     def __init__(self, held: list[int], lapses: int = 1) -> None:
         self.held, self.lapses, self.asked = held, lapses, 0
-        self._owners: dict[str, str] = {}  # made by Node.__init__ in a real node
 
     def _start_get(self, target: str, params: dict[str, str], timeout_s: float) -> Any:
         self.asked += 1
@@ -43,7 +42,14 @@ class _Lapsing(Queries):
         return self._start_get(target, {"ts": str(timestamp_ns)}, timeout_s)
 
     def _answer(
-        self, target: str, replies: Any, *, most: int | None = None, session: str | None = None
+        self,
+        target: str,
+        replies: Any,
+        *,
+        most: int | None = None,
+        session: str | None = None,
+        deadline: float | None = None,
+        timeout_s: float = 0.0,
     ) -> tuple[list[DataObject], bool]:
         if replies is None:
             return [], False
