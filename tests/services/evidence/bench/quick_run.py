@@ -18,22 +18,13 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from services.evidence.bench import SCHEMA
+from services.evidence.bench import SCENARIO_NAMES, SCHEMA
 from tests.conftest import REPO, child_env
 from tests.helpers.timing import scaled
 
-# The quick run's parts (hostile apart); test_bench_command.py checks they cover every one.
+# The quick run's parts: the transport scenarios, hostile, and the rest of them.
 TRANSPORT = ("frames", "small", "batch", "latency")
-REST = (
-    "fan-out",
-    "working-point",
-    "query-scaling",
-    "memory",
-    "quality",
-    "idle",
-    "ros2",
-    "startup",
-)
+REST = tuple(name for name in SCENARIO_NAMES if name not in (*TRANSPORT, "hostile"))
 
 REPORT_KEYS = {"schema", "created_utc", "elapsed_s", "machine", "options", "scenarios", "goals"}
 MACHINE_KEYS = {"cpu_count", "python", "zenoh", "numpy", "msgpack", "platform"}

@@ -15,10 +15,9 @@ import psutil
 import pytest
 
 from services.cli import main
-from services.evidence.bench import SCENARIO_NAMES
 from tests.conftest import REPO, child_env, wait_until
 from tests.helpers.timing import scaled
-from tests.services.evidence.bench.quick_run import REST, TRANSPORT, bench_command, quick_run
+from tests.services.evidence.bench.quick_run import TRANSPORT, bench_command, quick_run
 
 
 @pytest.mark.integration
@@ -26,10 +25,6 @@ from tests.services.evidence.bench.quick_run import REST, TRANSPORT, bench_comma
 @pytest.mark.timeout(960)
 def test_quick_run_gives_numbers_for_the_transport_scenarios(tmp_path: Path) -> None:
     quick_run(tmp_path, list(TRANSPORT))
-
-
-def test_the_quick_run_files_cover_every_scenario() -> None:
-    assert sorted([*TRANSPORT, *REST, "hostile"]) == sorted(SCENARIO_NAMES)
 
 
 def test_unknown_scenario_is_an_error_naming_it(capsys: pytest.CaptureFixture[str]) -> None:

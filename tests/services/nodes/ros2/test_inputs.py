@@ -147,13 +147,9 @@ def test_a_wrong_size_camera_info_is_a_counted_skip_and_what_is_missing_is_said_
     assert "K[0] is 0: the camera is uncalibrated" in waits[1]
 
 
-@pytest.mark.parametrize("empty", ["imu", "image"])
-def test_an_empty_frame_id_is_said_to_need_the_rotation_flag_not_an_imu_message(
-    empty: str, node: Node, codec: Codec, caplog: pytest.LogCaptureFixture
-) -> None:
-    # tf2 has no frame "": an IMU or images without a header.frame_id never get a rotation
-    # from /tf_static. The line said it waited for "an IMU message on /imu/data to name the
-    # IMU frame" while they arrived.
+def _described_inputs(node: Node, codec: Codec, imu_frame: str = IMU_FRAME) -> tuple[ImagesIn, int]:
+    """The inputs of /cam/image_raw (64x48) and /imu/data, given a CameraInfo, an identity
+    mount on /tf_static and one IMU message naming ``imu_frame``; (images in, now)."""
     camera = CameraModel(64, 48, 50.0, 50.0, 32.0, 24.0)
     skips = _Skips(logging.getLogger("test"))
     config = Ros2Config(image_in="/cam/image_raw", imu_in="/imu/data")
@@ -162,7 +158,18 @@ def test_an_empty_frame_id_is_said_to_need_the_rotation_flag_not_an_imu_message(
     now = time.time_ns()
     images.cameras.on_camera_info(camera_info(codec, camera, now), None)
     _broadcast(images.cameras, tf_static(codec, _IDENTITY))
-    imu.add(_imu(codec, now // 10**9 - 1, 0, "" if empty == "imu" else IMU_FRAME))
+    imu.add(_imu(codec, now // 10**9 - 1, 0, imu_frame))
+    return images, now
+
+
+@pytest.mark.parametrize("empty", ["imu", "image"])
+def test_an_empty_frame_id_is_said_to_need_the_rotation_flag_not_an_imu_message(
+    empty: str, node: Node, codec: Codec, caplog: pytest.LogCaptureFixture
+) -> None:
+    # tf2 has no frame "": an IMU or images without a header.frame_id never get a rotation
+    # from /tf_static. The line said it waited for "an IMU message on /imu/data to name the
+    # IMU frame" while they arrived.
+    images, now = _described_inputs(node, codec, "" if empty == "imu" else IMU_FRAME)
     image = codec.encode_image(
         now, "" if empty == "image" else IMAGE_FRAME, 64, 48, "mono8", bytes(64 * 48)
     )
@@ -441,15 +448,7 @@ def test_images_stamped_outside_an_optical_frame_are_said_once_to_turn_the_blur_
 ) -> None:
     # A driver stamping its images in the camera's body frame (x forward) got the rotation
     # into that frame from /tf_static, and the blur about the wrong axes, without a word.
-    camera = CameraModel(64, 48, 50.0, 50.0, 32.0, 24.0)
-    skips = _Skips(logging.getLogger("test"))
-    config = Ros2Config(image_in="/cam/image_raw", imu_in="/imu/data")
-    images = ImagesIn(node, codec, config, skips)
-    imu = ImuIn(node, codec, config, skips, images.cameras)
-    now = time.time_ns()
-    images.cameras.on_camera_info(camera_info(codec, camera, now), None)
-    _broadcast(images.cameras, tf_static(codec, _IDENTITY))
-    imu.add(_imu(codec, now // 10**9 - 1, 0))
+    images, now = _described_inputs(node, codec)
     with caplog.at_level(logging.WARNING):
         for i in range(3):
             image = codec.encode_image(now + i, frame, 64, 48, "mono8", bytes(64 * 48))
