@@ -41,6 +41,14 @@ def split_target(target: str) -> tuple[str, str]:
         raise QueryError(str(exc)) from exc
 
 
+# A description query that ended at once unanswered is asked again after this long.
+_ASK_AGAIN_S = 0.1
+
+
+class _AskedTooSoon(Exception):
+    """(within ``service_info``) The query ended at once, unanswered: ask again."""
+
+
 class Discovery:
     """What a node asks the network about services (see ``Node``)."""
 
@@ -179,7 +187,24 @@ class Discovery:
         the newest answer). ``session``: stricter, only that Zenoh session's answer counts
         (a subscription's ``producer_session``). A reply that is no valid description
         counts for nothing. Without ``session``, the answers that came by as long again
-        after the first (``heard_end``) are read, not those of the query's timeout."""
+        after the first (``heard_end``) are read, not those of the query's timeout.
+
+        A query that ended at once with no answer while the service's token is live is
+        asked again until the timeout: its queryable may not be known here yet (a service
+        that just started: its token came first) or it was busy."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            try:
+                return self._service_info_once(service, timeout_s, unambiguous, session)
+            except _AskedTooSoon as soon:
+                timeout_s = deadline - time.monotonic() - _ASK_AGAIN_S
+                if timeout_s <= _ASK_AGAIN_S:
+                    raise NotFoundError(str(soon)) from None
+                time.sleep(_ASK_AGAIN_S)
+
+    def _service_info_once(
+        self, service: str, timeout_s: float, unambiguous: bool, session: str | None
+    ) -> ServiceInfo:
         start, began = now_ns(), time.monotonic()
         answers = Answers(service, start)  # bounded: each session's first reply
         ended = threading.Event()
@@ -223,7 +248,7 @@ class Discovery:
         if elapsed < timeout_s * 0.9:
             # Ended before the timeout with nothing: the service finalized it unanswered
             # (its bounded inbox of queries was full), it did not time out.
-            raise NotFoundError(
+            raise _AskedTooSoon(
                 f"service {service!r} ended the query without an answer after "
                 f"{elapsed:.1f} s (busy: it drops queries beyond its inbox)"
             )
