@@ -45,10 +45,6 @@ def split_target(target: str) -> tuple[str, str]:
 _ASK_AGAIN_S = 0.1
 
 
-class _AskedTooSoon(Exception):
-    """(within ``service_info``) The query ended at once, unanswered: ask again."""
-
-
 class Discovery:
     """What a node asks the network about services (see ``Node``)."""
 
@@ -192,19 +188,23 @@ class Discovery:
         A query that ended at once with no answer while the service's token is live is
         asked again until the timeout: its queryable may not be known here yet (a service
         that just started: its token came first) or it was busy."""
-        deadline = time.monotonic() + timeout_s
-        while True:
-            try:
-                return self._service_info_once(service, timeout_s, unambiguous, session)
-            except _AskedTooSoon as soon:
-                timeout_s = deadline - time.monotonic() - _ASK_AGAIN_S
-                if timeout_s <= _ASK_AGAIN_S:
-                    raise NotFoundError(str(soon)) from None
-                time.sleep(_ASK_AGAIN_S)
+        began = time.monotonic()
+        left_s = timeout_s
+        while (found := self._service_info_once(service, left_s, unambiguous, session)) is None:
+            left_s = began + timeout_s - time.monotonic() - _ASK_AGAIN_S
+            if left_s <= _ASK_AGAIN_S:
+                raise NotFoundError(
+                    f"service {service!r} ended every query without an answer for "
+                    f"{time.monotonic() - began:.1f} s (busy: it drops queries beyond its "
+                    "inbox)"
+                )
+            time.sleep(_ASK_AGAIN_S)
+        return found
 
     def _service_info_once(
         self, service: str, timeout_s: float, unambiguous: bool, session: str | None
-    ) -> ServiceInfo:
+    ) -> ServiceInfo | None:
+        """One query of ``service_info``; None if it ended at once unanswered."""
         start, began = now_ns(), time.monotonic()
         answers = Answers(service, start)  # bounded: each session's first reply
         ended = threading.Event()
@@ -248,10 +248,7 @@ class Discovery:
         if elapsed < timeout_s * 0.9:
             # Ended before the timeout with nothing: the service finalized it unanswered
             # (its bounded inbox of queries was full), it did not time out.
-            raise _AskedTooSoon(
-                f"service {service!r} ended the query without an answer after "
-                f"{elapsed:.1f} s (busy: it drops queries beyond its inbox)"
-            )
+            return None
         raise NotFoundError(f"service {service!r} did not answer within {timeout_s} s")
 
     def ask_service_info(
