@@ -96,8 +96,20 @@ def run_framegate(
 ) -> subprocess.CompletedProcess[str]:
     """``framegate ARGV`` run to its end (stdout and stderr apart, as text); ``timeout_s``
     is scaled for a slow machine."""
+    return run_python(["-m", "services.cli", *argv], cwd=cwd, env=env, timeout_s=timeout_s)
+
+
+def run_python(
+    argv: list[str],
+    *,
+    cwd: Path = REPO,
+    env: dict[str, str] | None = None,
+    timeout_s: float = 60.0,
+) -> subprocess.CompletedProcess[str]:
+    """``python ARGV`` run to its end (stdout and stderr apart, as text); ``timeout_s`` is
+    scaled for a slow machine."""
     return subprocess.run(
-        [sys.executable, "-m", "services.cli", *argv],
+        [sys.executable, *argv],
         capture_output=True,
         text=True,
         cwd=cwd,

@@ -6,17 +6,13 @@ subscriber asks who may refuse it (``answering_sessions``): both read through th
 
 from __future__ import annotations
 
-import subprocess
-import sys
-
 import pytest
 import zenoh
 
 from middleware._decode import MAX_REPLY_BYTES
 from middleware._wire import Keys
-from tests.conftest import REPO, child_env
+from tests.conftest import run_python
 from tests.helpers.raw_zenoh import answering, flooding_session
-from tests.helpers.timing import scaled
 
 pytestmark = pytest.mark.integration
 
@@ -49,15 +45,7 @@ def test_a_reply_flood_on_a_services_own_info_key_is_not_held(endpoint: str) -> 
         flooding_session(endpoint, listen=True) as rogue,
         answering(rogue, KEYS.info("victim"), lambda _key: replies),
     ):
-        done = subprocess.run(
-            [sys.executable, "-c", _VICTIM, endpoint],
-            cwd=REPO,
-            env=child_env(),
-            capture_output=True,
-            text=True,
-            timeout=scaled(120),
-            check=False,
-        )
+        done = run_python(["-c", _VICTIM, endpoint], timeout_s=120)
     assert done.returncode == 0, done.stderr
     answering_ids, own_id, peak = done.stdout.split()
     assert answering_ids == own_id  # the garbage answers count for no one

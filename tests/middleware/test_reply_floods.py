@@ -3,8 +3,6 @@ one at a time and keeps a bounded few, never all of them (real processes, real Z
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
 
@@ -13,9 +11,8 @@ import zenoh
 
 from middleware._decode import MAX_REPLY_BYTES
 from middleware._wire import Keys
-from tests.conftest import REPO, child_env
+from tests.conftest import run_python
 from tests.helpers.raw_zenoh import answering, flooding_session
-from tests.helpers.timing import scaled
 
 pytestmark = pytest.mark.integration
 
@@ -52,15 +49,7 @@ def test_a_flood_of_large_replies_to_info_is_not_held(endpoint: str, command: li
     holding every reply before looking at any; now each is read as it comes, so the
     process holds a short channel of them, and says what was wrong in one line."""
     with _reply_bomb(endpoint):
-        done = subprocess.run(
-            [sys.executable, "-c", _MEASURED, *command, "--connect", endpoint],
-            cwd=REPO,
-            env=child_env(),
-            capture_output=True,
-            text=True,
-            timeout=scaled(120),
-            check=False,
-        )
+        done = run_python(["-c", _MEASURED, *command, "--connect", endpoint], timeout_s=120)
     *said, peak = done.stderr.strip().splitlines()
     assert "Traceback" not in done.stderr, done.stderr
     peak_mb = int(peak) / 1024
