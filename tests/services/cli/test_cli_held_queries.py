@@ -20,7 +20,7 @@ pytestmark = pytest.mark.integration
 
 
 def test_ls_info_and_query_end_with_the_services_answers(endpoint: str) -> None:
-    timeout_s = scaled(20)
+    timeout_s = scaled(60)
     held: list[zenoh.Query] = []
     took: dict[str, float] = {}
     with (
