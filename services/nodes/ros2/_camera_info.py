@@ -254,11 +254,14 @@ class CameraSource:
             self._tf_version += 1
         if info_raw is not None:
             self._read_info(info_raw, width, height, skip)
-        elif self._intrinsics is not None and (
+        if self._intrinsics is not None and (
             self._intrinsics.width_px,
             self._intrinsics.height_px,
         ) != (width, height):
-            self._intrinsics = None  # the images changed size: wait for a new CameraInfo
+            # The images changed size (a CameraInfo of the old size with them, a skip, is
+            # not a reason to keep it): wait for a new CameraInfo, the images going on
+            # without a description, as before the first one.
+            self._intrinsics = None
         return self._describe(frame(image_frame), imu_frame, width, height)
 
     def _decoded(self, raw: bytes) -> Intrinsics | CdrError:

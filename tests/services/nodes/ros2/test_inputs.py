@@ -461,3 +461,21 @@ def test_images_stamped_outside_an_optical_frame_are_said_once_to_turn_the_blur_
         assert "stamped in frame 'camera_link'" in said[0] and "--imu-to-camera" in said[0]
     [element, *_] = answered(lambda: node.query("ros2/images"), "ros2/images")
     assert read_frame_metadata(element.metadata).camera is not None  # described either way
+
+
+def test_images_of_a_new_size_with_a_stale_camera_info_go_on_without_a_description(
+    node: Node, codec: Codec
+) -> None:
+    # The driver binned its images (64x48 -> 32x24) and still sends the old CameraInfo with
+    # each. That CameraInfo is the counted skip; the images are fine and go on without a
+    # description, as when no CameraInfo had ever matched. The 64x48 intrinsics taken
+    # before stayed, and every image was dropped as ``camera-mismatch``.
+    images, now = _described_inputs(node, codec)
+    images.handle(_image(codec, now, 64, 48), 1)
+    camera = CameraModel(64, 48, 50.0, 50.0, 32.0, 24.0)
+    for i in range(1, 4):
+        images.cameras.on_camera_info(camera_info(codec, camera, now + i * 1000), None)
+        images.handle(_image(codec, now + i * 1000, 32, 24), i + 1)
+    info = images.producer.info()
+    assert info.puts == 4, info.skipped
+    assert info.skipped == {"camera-info-mismatch": 3}
