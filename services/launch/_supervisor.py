@@ -9,8 +9,11 @@ SIGTERM, waits up to 1.5 s, then SIGKILLs.
 A process that dies by a signal (an abort in native code, a kill by someone else) is said
 so by name, and counted in ``signal_deaths``: a launcher reports it and exits non-zero. The
 SIGKILL ``stop`` itself sends to a process that would not stop is not counted. A process
-that exits with ``EXIT_NAME_TAKEN`` (another live instance offers its service name) is not
-restarted: it could not start while that one lives, and retrying would starve it.
+that exits with ``EXIT_NAME_TAKEN`` (another live instance offers its service name) is tried
+again only every ``NAME_TAKEN_RETRY_S`` (10 s), said once: it cannot start while that one
+lives, and restarting at once would storm the host; but the other instance may go (a camera
+run by hand for a test, a peer answering in its name at the instant of a restart), and a
+service given up for good stayed down for the rest of the launch after it had.
 
 No orphans: every child gets ``FRAMEGATE_PARENT_PID`` and the read end of a pipe whose
 write end only this process holds (``FRAMEGATE_PARENT_FD``). The child
@@ -41,6 +44,8 @@ _BACKOFF_START_S = 0.2
 _BACKOFF_MAX_S = 10.0
 # A process that ran this long is restarted at once when it dies; shorter lives back off.
 HEALTHY_AFTER_S = 10.0
+# How often a service whose name another instance held is tried again (see the module).
+NAME_TAKEN_RETRY_S = 10.0
 _POLL_S = 0.05
 PARENT_PID_ENV = "FRAMEGATE_PARENT_PID"
 PARENT_FD_ENV = "FRAMEGATE_PARENT_FD"
@@ -71,6 +76,7 @@ class _Running:
     killed_by_us: bool = False
     exit_recorded: bool = False  # by stop(): a second stop() must not count it again
     up_at_stop: bool = False  # running when stop() came (its earlier deaths were restarted)
+    name_taken_said: bool = False  # its name was taken: said once, retried quietly
 
 
 def exit_text(code: int) -> str:
@@ -94,7 +100,9 @@ class Supervisor:
         colour: bool | None = None,
         out: Callable[[str], None] | None = None,
         quiet: bool = False,
+        name_taken_retry_s: float = NAME_TAKEN_RETRY_S,
     ) -> None:
+        self._name_taken_retry_s = name_taken_retry_s
         use_colour = sys.stdout.isatty() if colour is None else colour
         self._running = [
             _Running(spec, _COLOURS[i % len(_COLOURS)] if use_colour else "")
@@ -171,12 +179,18 @@ class Supervisor:
                     continue
                 if code == EXIT_NAME_TAKEN:
                     # Another live instance holds the name (a second launcher, a copy of the
-                    # deploy file): restarting would only storm the host and starve it.
-                    running.next_start = float("inf")
-                    self._emit(
-                        running, "its service name is taken by another instance; not restarting"
-                    )
+                    # deploy file, a peer): restarting at once would only storm the host and
+                    # starve it; tried again slowly, it takes over once that one is gone.
+                    running.next_start = now + self._name_taken_retry_s
+                    if not running.name_taken_said:
+                        running.name_taken_said = True
+                        self._emit(
+                            running,
+                            "its service name is taken by another instance; trying again every "
+                            f"{self._name_taken_retry_s:g} s until that one is gone",
+                        )
                     continue
+                running.name_taken_said = False
                 if now - running.started_at > HEALTHY_AFTER_S:
                     running.backoff_s = 0.0
                 running.next_start = now + running.backoff_s
@@ -186,7 +200,8 @@ class Supervisor:
                 )
             if not self._stopping and now >= running.next_start:
                 running.restarts += 1
-                self._emit(running, f"restarting (restart {running.restarts})")
+                if not running.name_taken_said:  # its slow retries were said once
+                    self._emit(running, f"restarting (restart {running.restarts})")
                 self._start(running)
 
     def run(
@@ -221,7 +236,11 @@ class Supervisor:
 
     def name_taken(self) -> list[str]:
         """Processes that stopped because another live instance offers their service name."""
-        return [r.spec.name for r in self._running if r.exit_codes[-1:] == [EXIT_NAME_TAKEN]]
+        return [
+            r.spec.name
+            for r in self._running
+            if r.proc is None and r.exit_codes[-1:] == [EXIT_NAME_TAKEN]
+        ]
 
     def restarts(self) -> dict[str, int]:
         return {r.spec.name: r.restarts for r in self._running}

@@ -190,7 +190,7 @@ def test_supervisor_restarts_a_crashing_process_and_stops_cleanly(tmp_path: Path
 
 
 @pytest.mark.integration
-def test_a_service_whose_name_is_taken_exits_4_and_is_not_restarted(listen_net) -> None:
+def test_a_service_whose_name_is_taken_exits_4_and_is_not_restarted_at_once(listen_net) -> None:
     """A copy of a running deploy file (or any second instance) must not storm the host
     with restarts that cannot succeed while the first instance lives."""
     from middleware import EXIT_NAME_TAKEN, Node
@@ -220,7 +220,50 @@ def test_a_service_whose_name_is_taken_exits_4_and_is_not_restarted(listen_net) 
             supervisor.stop()
     assert EXIT_NAME_TAKEN == 4
     assert any("already offered by pid" in line for line in lines), lines
-    assert any("not restarting" in line for line in lines), lines
+    assert any("trying again every 10 s" in line for line in lines), lines
+
+
+@pytest.mark.integration
+def test_a_service_whose_name_was_taken_starts_once_the_other_instance_is_gone(
+    listen_net,
+) -> None:
+    """Issue 30: a service given up when its name was taken (another instance run by hand,
+    a peer answering in its name at the instant of a restart) stayed down for the rest of
+    the launch after that instance had gone; it is tried again, slowly, and starts."""
+    from middleware import Node
+
+    argv = (
+        sys.executable, "-m", "services.cli", "run", "gyro", "--source", "sim",
+        "--connect", listen_net.listen[0],
+    )  # fmt: skip
+    lines: list[str] = []
+    supervisor = Supervisor([ProcessSpec("gyro", argv)], colour=False, out=lines.append)
+    try:
+        with Node("gyro", listen_net) as first:
+            first.offer("rates")
+            supervisor.start()
+            wait_until(
+                lambda: (supervisor.poll(), supervisor.name_taken())[1] == ["gyro"],
+                60,
+                "the second gyro to find its name taken",
+            )
+        # The first instance is gone: the launcher's own gyro starts and stays up.
+        with Node("watcher", listen_net) as watcher:
+
+            def launched_gyro_offers() -> bool:
+                supervisor.poll()
+                pid = supervisor.pids()["gyro"]
+                return any(
+                    info.service == "gyro" and info.pid == pid
+                    for info in watcher.services(timeout_s=1.0)
+                )
+
+            wait_until(launched_gyro_offers, scaled(60), "the launcher's gyro to start once free")
+        assert supervisor.name_taken() == [] and supervisor.pids()["gyro"] is not None
+        said = [line for line in lines if "trying again every 10 s" in line]
+        assert len(said) == 1, lines  # said once, not at every retry
+    finally:
+        supervisor.stop()
 
 
 def test_flags_outrank_the_deploy_file() -> None:
