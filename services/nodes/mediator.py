@@ -353,7 +353,11 @@ class Mediator:
             now = time.monotonic_ns()
             for paired in self.pairing.drain():  # the old stream's frames, still in order
                 self._decide(paired, now)
-            self._offsets.forget()  # maybe another process, another clock: measured at once
+            # Another producer instance may have another clock: measured afresh. The same one
+            # registering us again (we lapsed) has the same clock: forgotten, its frames went
+            # clock-unmeasured for a round trip (a step shows in the next sample's identity).
+            if note.epoch.partition(".")[0] != str(self._camera_epoch).partition(".")[0]:
+                self._offsets.forget()
             self._measure_soon(now)
             if self._newest_camera_ns is not None:
                 self.starts.missed(self._newest_camera_ns, note.timestamp_ns)

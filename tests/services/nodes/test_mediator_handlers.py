@@ -288,6 +288,34 @@ def test_a_brief_gyro_outage_is_counted_and_a_long_one_warned(
     assert "covers frames again" in said[1]
 
 
+def test_a_subscription_registered_again_by_the_same_camera_keeps_its_clock_samples(
+    fed: Fed, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Issue 30: the mediator stopped 20 s (SIGSTOP) and resumed, its subscription lapsed and
+    # the same camera process registered it again: the clock samples were forgotten, and the
+    # frames that came before they were measured again went clock-unmeasured (4 in that
+    # run), though the camera's clock was the one measured all along.
+    mediator = fed.mediator
+    asked: list[Callable[[SourceClock | None], object]] = []
+    mediator._offsets.ask = lambda service, then: asked.append(then)  # type: ignore[method-assign]
+    fed.gyro(0, 300)
+    fed.frame(10)
+    fed.epoch, fed.seq = "C0.2", 0  # the same producer instance (C0), a new registration
+    monkeypatch.setattr(Subscription, "registered_epoch", property(lambda _: fed.epoch))
+    fed.frame(50)
+    fed.frame(100)
+    clock = SourceClock("host", 1, 0, 0, 100_000)
+    for then in list(asked):
+        then(clock)  # the stream's start asked the camera's clock: the same clock
+    mediator.on_time(time.monotonic_ns() + int(WAIT_MS * MS))  # every wait has passed
+    assert not mediator.starts.holding
+    assert len(fed.records) == 3 and "clock-unmeasured" not in fed.reasons(), fed.reasons()
+    # Another instance is another process: its clock is measured afresh.
+    fed.restart()
+    fed.frame(150)
+    assert mediator._offsets.current() is None
+
+
 def test_a_made_up_epoch_is_skipped_and_starts_nothing_over(
     fed: Fed, monkeypatch: pytest.MonkeyPatch
 ) -> None:
