@@ -109,6 +109,11 @@ class GyroPump:
         self._stop = stop
         self._log = log
         self._timeline = Timeline(start_at_ns(config.source.start_at_ns))
+        # Where on the shared timeline this gyro begins (as the camera's ``_joined_rel``): a
+        # gyro restarted by ``launch``, or one slow to start, joins there. Samples due before
+        # were never its to make: skipped, not counted late (a restart counted every sample
+        # since the launch, 39,497 after 40 s).
+        self._joined_rel = self._timeline.late_ns(0)
         self._batches = iter(source.batches(config.batch, stop))
         self._pending: tuple[list[int], npt.NDArray[np.float64]] | None = None
         self.stored = self.dropped = 0
@@ -127,6 +132,8 @@ class GyroPump:
             self._put(rel, w)
         for t_rel, w in self._batches:
             rel = [self._source.scale(int(t)) for t in t_rel]
+            if rel[-1] < self._joined_rel:
+                continue
             late = self._timeline.late_ns(rel[-1])
             # A sensor cannot deliver the past: a restarted or stalled gyro resumes now.
             if late > _STALE_NS:

@@ -1,6 +1,6 @@
-"""A camera that joins its timeline late (restarted by ``launch``, or started after its source
-took long to open) counts as ``late`` only frames it really could not make in time: the
-frames due before it was running are not its own."""
+"""A camera or gyro that joins its timeline late (restarted by ``launch``, or started after its
+source took long to open) counts as ``late`` only frames or samples it really could not make in
+time: those due before it was running are not its own."""
 
 from __future__ import annotations
 
@@ -29,14 +29,13 @@ def dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return simulated_frames(tmp_path_factory.mktemp("tiny") / "approach")
 
 
-@pytest.fixture
-def camera(dataset: Path) -> Iterator[int]:
-    """A looping replay camera whose launch instant was BEHIND_S ago; its rendezvous port."""
+def _replay_behind(service: str, dataset: Path) -> Iterator[int]:
+    """A looping replay ``service`` whose launch instant was BEHIND_S ago; its rendezvous port."""
     port = free_port()
     env = child_env()
     env["FRAMEGATE_LOCAL_PORT"] = str(port)
     env["FRAMEGATE_START_AT_NS"] = str(time.time_ns() - BEHIND_S * 1_000_000_000)
-    argv = ["run", "camera", "--source", "replay", "--path", str(dataset), "--loop"]
+    argv = ["run", service, "--source", "replay", "--path", str(dataset), "--loop"]
     proc = subprocess.Popen(
         [sys.executable, "-m", "services.cli", *argv],
         cwd=REPO,
@@ -49,6 +48,16 @@ def camera(dataset: Path) -> Iterator[int]:
     finally:
         proc.terminate()
         proc.wait(timeout=STARTUP_S)
+
+
+@pytest.fixture
+def camera(dataset: Path) -> Iterator[int]:
+    yield from _replay_behind("camera", dataset)
+
+
+@pytest.fixture
+def gyro(dataset: Path) -> Iterator[int]:
+    yield from _replay_behind("gyro", dataset)
 
 
 def test_a_camera_that_joins_late_does_not_count_the_frames_before_it_ran(camera: int) -> None:
@@ -66,6 +75,24 @@ def test_a_camera_that_joins_late_does_not_count_the_frames_before_it_ran(camera
     # Before the fix every frame of the backlog was counted late at once (>= BACKLOG); a
     # busy machine may still miss a few of the frames due while the camera ran.
     assert late < BACKLOG // 10, f"{late} late of a {BACKLOG}-frame backlog: {info}"
+
+
+def test_a_gyro_that_joins_late_does_not_count_the_samples_before_it_ran(gyro: int) -> None:
+    with Node(network=NetworkConfig(local_port=gyro)) as node:
+
+        def stored_some() -> object:
+            try:
+                info = node.buffer_info("gyro/rates", timeout_s=2.0)
+            except FramegateError:
+                return None
+            return info if info.puts >= 10 else None
+
+        info = wait_until(stored_some, STARTUP_S, "the gyro to store 10 batches")
+    late = info.skipped.get("late", 0)
+    # Before the fix every sample due since the launch instant was counted late at once
+    # (BEHIND_S s of samples at the dataset's rate, >= 100 per second); a busy machine may
+    # still miss a few batches (0.5 s stale each) while the gyro ran.
+    assert late < BEHIND_S * 100 // 10, f"{late} late of {BEHIND_S} s behind: {info}"
 
 
 def test_a_replayed_frame_that_cannot_be_read_is_skipped_and_counted(
