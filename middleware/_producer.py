@@ -38,7 +38,7 @@ from ._ledger_producer import RegistrationKey
 from ._liveliness import live_keys
 from ._protocol_events import Event, Publish, Retire
 from ._protocol_producer import RESYNC_TOKENS, ProducerProtocol
-from ._rate import put_rate_hz
+from ._rate import PutRate
 from ._records import BufferInfo, DataObject, Retention, Rewind, SubscriptionInfo
 from ._wire import Keys
 from ._xml import XmlLimits
@@ -48,8 +48,6 @@ log = logging.getLogger("framegate.middleware")
 # Elements stamped further ahead of this process's clock are refused: a stamp a consumer
 # cannot bound must never reach it (docs/time.md).
 HORIZON_NS = 10_000_000_000
-# Rate over the last this-many puts.
-_RATE_WINDOW = 64
 # A put that waits for credit looks again at least this often (it is woken at once when an
 # ack arrives; this only bounds what a missed wake-up could cost).
 _WAIT_S = 0.1
@@ -63,8 +61,8 @@ class _Counters:
     refused: int = 0
     rejected: int = 0
     skipped: dict[str, int] = field(default_factory=dict)
-    # (when, elements) per put or put_many: a batch is one event (``_rate``).
-    put_times: deque[tuple[int, int]] = field(default_factory=lambda: deque(maxlen=_RATE_WINDOW))
+    # When puts came and how many elements each held: a batch is one event (``_rate``).
+    put_rate: PutRate = field(default_factory=PutRate)
     # The latest rewinds, for ``info``; older ones stay counted in ``skipped``.
     rewinds: deque[Rewind] = field(default_factory=lambda: deque(maxlen=_REWINDS_KEPT))
 
@@ -345,7 +343,7 @@ class Producer:
             raise
         self._counters.puts += len(elements)
         now = time.monotonic_ns()
-        self._counters.put_times.append((now, len(elements)))
+        self._counters.put_rate.add(now, len(elements))
         return self._protocol.put_many(elements, now)
 
     def _carry_out(self, events: list[Event]) -> None:
@@ -448,13 +446,12 @@ class Producer:
         with self._lock:
             self._feed(_BUDGET)
             c = self._counters
-            times = list(c.put_times)
+            rate = c.put_rate.hz(time.monotonic_ns())
             puts, refused, rejected = c.puts, c.refused, c.rejected
             skipped, rewinds = dict(c.skipped), tuple(c.rewinds)
             subs = tuple(self._protocol.subscriptions())
             protocol = replace(self._protocol.counters)  # a copy: read outside the lock
             foreign = self._protocol.foreign_acks + self._acks.foreign  # either drops one
-        rate = put_rate_hz(times, time.monotonic_ns())
         return BufferInfo(
             service=self.service,
             buffer=self.buffer,
