@@ -45,7 +45,7 @@ def _pair(
     with Node(SERVICE, listen_net) as server, Node(network=connect_net) as client:
         rates = server.offer(BUFFER)
         sub = client.subscribe(f"{SERVICE}/{BUFFER}", queue_size=queue, push_max_bytes=push)
-        assert rates.wait_for_subscribers(1, timeout_s=scaled(5))
+        assert rates.wait_for_subscribers(1, timeout_s=scaled(30))
         yield rates, sub, client
 
 
@@ -58,7 +58,7 @@ def test_a_batch_is_refused_whole_when_the_queue_lacks_room_for_all_of_it(
 ) -> None:
     with _pair(listen_net, connect_net, queue=4) as (rates, sub, _):
         rates.put_many(_batch(1, 2, 3))
-        wait_until(lambda: sub.pending == 3, 5, "three notifications queued")
+        wait_until(lambda: sub.pending == 3, 30, "three notifications queued")
         with pytest.raises(FlowControlRefused, match="no room for a batch of 2"):
             rates.put_many(_batch(4, 5))
         assert len(rates.series) == 3, "a refused batch stores nothing"
@@ -67,7 +67,7 @@ def test_a_batch_is_refused_whole_when_the_queue_lacks_room_for_all_of_it(
         assert _queued(rates) == 4
         with pytest.raises(FlowControlRefused, match="never fit: put batches of at most 4"):
             rates.put_many(_batch(*range(10, 15)), wait_s=5.0)  # refused at once, not waited
-        wait_until(lambda: sub.pending == 4, 5, "the fourth notification")
+        wait_until(lambda: sub.pending == 4, 30, "the fourth notification")
         assert [n.timestamp_ns for n in sub.take_many(10, timeout_s=scaled(5))] == [1, 2, 3, 4]
 
 
@@ -101,15 +101,15 @@ def test_take_many_takes_a_whole_batch_with_one_ack(
         # Any reply at all (iterating ends when the get is done, replies or not).
         wait_until(
             lambda: any(True for _ in spy.liveliness().get(f"framegate/@sub/{SERVICE}/**")),
-            5,
+            30,
             "the mesh",
         )
         rates.put_many(_batch(*range(1, 7)))
-        wait_until(lambda: sub.pending == 6, 5, "six notifications queued")
+        wait_until(lambda: sub.pending == 6, 30, "six notifications queued")
         notes = sub.take_many(10, timeout_s=scaled(5))
         assert [(n.timestamp_ns, n.seq) for n in notes] == [(t, t) for t in range(1, 7)]
-        wait_until(lambda: _queued(rates) == 0, 5, "the producer seeing the batch taken")
-        wait_until(lambda: acks, 5, "the spy seeing the ack")
+        wait_until(lambda: _queued(rates) == 0, 30, "the producer seeing the batch taken")
+        wait_until(lambda: acks, 30, "the spy seeing the ack")
         assert [seq for _, seq in acks] == [6], "one cumulative ack for six elements"
         spy_sub.undeclare()
 
@@ -122,7 +122,7 @@ def test_single_puts_and_batches_mix_in_one_stream(
         rates.put_many(_batch(2, 3, 4))
         rates.put(*_element(5))
         rates.put_many(_batch(6, 7))
-        wait_until(lambda: sub.pending == 7, 5, "seven notifications queued")
+        wait_until(lambda: sub.pending == 7, 30, "seven notifications queued")
         first = sub.take(timeout_s=scaled(5))
         rest = sub.take_many(3, timeout_s=scaled(5)) + sub.take_many(10, timeout_s=scaled(5))
         notes = [first, *rest]
@@ -140,7 +140,7 @@ def test_a_batch_beyond_the_push_limit_is_fetched_element_by_element(
 ) -> None:
     with _pair(listen_net, connect_net, queue=4, push=0) as (rates, sub, _):
         rates.put_many(_batch(1, 2, 3))
-        notes = wait_until(lambda: sub.take_many(3, timeout_s=scaled(0.1)), 5, "the batch")
+        notes = wait_until(lambda: sub.take_many(3, timeout_s=scaled(0.1)), 30, "the batch")
         notes += sub.take_many(3, timeout_s=scaled(1)) if len(notes) < 3 else []
         assert all(n.element is None for n in notes)
         assert [sub.fetch(n).payload for n in notes] == [b"p1", b"p2", b"p3"]
@@ -219,8 +219,8 @@ def test_a_subscriber_that_took_everything_and_went_away_frees_the_producer_at_o
     (the subscription's flusher sends the ack, not the caller's next take)."""
     with _pair(listen_net, connect_net, queue=8) as (rates, sub, _):
         rates.put_many(_batch(1, 2, 3))
-        wait_until(lambda: sub.pending == 3, 5, "three notifications queued")
+        wait_until(lambda: sub.pending == 3, 30, "three notifications queued")
         assert len(sub.take_many(3, timeout_s=scaled(5))) == 3
         # No further take: the caller is "processing".
-        wait_until(lambda: _queued(rates) == 0, 2, "the delayed ack from the flusher")
+        wait_until(lambda: _queued(rates) == 0, 30, "the delayed ack from the flusher")
         rates.put_many(_batch(*range(4, 12)), wait_s=0.0)  # the whole queue is free again

@@ -58,7 +58,7 @@ def test_a_fetch_reads_only_the_producer_s_answer(
                 images.put(stamp, payload, make_metadata("generic", stamp))
                 (note,) = sub.take_many(1, timeout_s=scaled(10))
                 assert note.element is None  # fetched, not pushed
-                got.append(sub.fetch(note, timeout_s=scaled(5)).payload)
+                got.append(sub.fetch(note, timeout_s=scaled(30)).payload)
             assert got == [bytes([i]) * SIZE for i in range(3)]
         finally:
             queryable.undeclare()

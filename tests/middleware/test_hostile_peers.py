@@ -1,7 +1,7 @@
 """Hostile peers of a producer, across real processes over Zenoh on loopback: greedy
 holders, forged refusals, fake service tokens, hostile ``@info`` answers and data replies.
 The hostile peers are raw Zenoh sessions in this process; token churn and ack floods from
-worker processes: ``test_hostile_floods.py``."""
+worker processes: ``test_hostile_floods.py`` and ``test_ack_floods.py``."""
 
 from __future__ import annotations
 
@@ -252,8 +252,8 @@ def test_a_forged_refusal_does_not_refuse(
             try:
                 for t in range(1, 6):
                     sub = client.subscribe("cam/images", queue_size=2, wait_s=scaled(10))
-                    images.put(t, b"x", make_metadata("generic", t), wait_s=scaled(5))
-                    note = sub.take(timeout_s=scaled(5))
+                    images.put(t, b"x", make_metadata("generic", t), wait_s=scaled(30))
+                    note = sub.take(timeout_s=scaled(30))
                     assert note is not None and note.timestamp_ns == t
                     sub.close()
             finally:
@@ -314,7 +314,7 @@ def test_only_the_session_that_greeted_a_subscription_speaks_for_its_service(
         images = service.offer("images")
         sub = client.subscribe("cam/images", queue_size=2, wait_s=scaled(10))
         assert sub.wait_registered(scaled(10))
-        images.put(1, b"x", make_metadata("generic", 1), wait_s=scaled(5))
+        images.put(1, b"x", make_metadata("generic", 1), wait_s=scaled(30))
         real = sub.producer_session
         assert real == str(service._session.zid()), real  # type: ignore[attr-defined]
 
@@ -532,8 +532,8 @@ def test_a_flood_of_made_up_epochs_does_not_hold_the_producer(
     with _cam_rogue_client(listen_net, endpoint) as (service, rogue, client):
         images = service.offer("images")
         sub = client.subscribe("cam/images", queue_size=2, wait_s=scaled(10))
-        images.put(1, b"x", make_metadata("generic", 1), wait_s=scaled(5))
-        note = sub.take(timeout_s=scaled(5))
+        images.put(1, b"x", make_metadata("generic", 1), wait_s=scaled(30))
+        note = sub.take(timeout_s=scaled(30))
         assert note is not None and note.timestamp_ns == 1
         for i in range(600):
             _forge(rogue, sub, f"F{i}.1", 1, 999, None, False, None, "flow/2/-1", None)

@@ -18,6 +18,7 @@ import zenoh
 
 from middleware import make_metadata
 from tests.conftest import NodeProcess, wait_until
+from tests.helpers.timing import scaled
 
 pytestmark = pytest.mark.integration
 
@@ -49,7 +50,7 @@ def _setup(
     assert producer.call("offer", buffer="images")["ok"]
     consumer = node_process(None, "--connect", endpoint)
     sub_id = consumer.call("subscribe", target=TARGET, queue=queue)["id"]
-    assert producer.call("wait_subscribers", buffer="images", count=1, timeout=5)["registered"]
+    assert producer.call("wait_subscribers", buffer="images", count=1, timeout=30)["registered"]
     return producer, consumer, sub_id
 
 
@@ -63,8 +64,8 @@ def _take_all(consumer: NodeProcess) -> list[int]:
 def _free_and_lossless(producer: NodeProcess, consumer: NodeProcess, ts: list[int]) -> None:
     """The producer accepts more, and each new element reaches the consumer once, unmissed."""
     for t in ts:
-        assert producer.call("put", buffer="images", t=t, wait_s=5)["ok"]
-        took = consumer.call("take", target=TARGET, timeout=5)
+        assert producer.call("put", buffer="images", t=t, wait_s=30)["ok"]
+        took = consumer.call("take", target=TARGET, timeout=30)
         assert took["notification"] == {"t": t, "missed": 0}, took
     assert consumer.call("stats", target=TARGET)["missed_total"] == 0
 
@@ -75,7 +76,7 @@ def test_forged_foreign_epoch_across_processes(
     producer, consumer, sub_id = _setup(node_process, endpoint, queue=2)
     for t in (1, 2):
         assert producer.call("put", buffer="images", t=t)["ok"]
-    wait_until(lambda: consumer.call("stats", target=TARGET)["pending"] == 2, 5, "2 queued")
+    wait_until(lambda: consumer.call("stats", target=TARGET)["pending"] == 2, 30, "2 queued")
     with _rogue(endpoint) as rogue:
         rogue.put(f"framegate/@notify/{TARGET}/{sub_id}", b"x", attachment=_forged("evil", 1))
         assert [t for t in _take_all(consumer) if t != FORGED_T] == [1, 2]
@@ -96,9 +97,9 @@ def test_forged_future_seq_across_processes(
             seen.set()
 
         listener = rogue.declare_subscriber(f"framegate/@notify/{TARGET}/{sub_id}", spy)
-        wait_until(lambda: producer.call("put", buffer="images", t=1)["ok"], 5, "put 1")
-        assert seen.wait(5)
-        assert consumer.call("take", target=TARGET, timeout=5)["notification"]["t"] == 1
+        wait_until(lambda: producer.call("put", buffer="images", t=1)["ok"], 30, "put 1")
+        assert seen.wait(scaled(30))
+        assert consumer.call("take", target=TARGET, timeout=30)["notification"]["t"] == 1
         rogue.put(f"framegate/@notify/{TARGET}/{sub_id}", b"x", attachment=_forged(epochs[0], 500))
         listener.undeclare()
     _free_and_lossless(producer, consumer, [2, 3, 4])
@@ -115,13 +116,13 @@ def test_colliding_observe_token_across_processes(
 
     with _rogue(endpoint) as rogue:
         token = rogue.liveliness().declare_token(f"framegate/@sub/{TARGET}/{sub_id}/observe/1/-1")
-        wait_until(lambda: len(registrations()) == 2, 5, "the colliding token")
+        wait_until(lambda: len(registrations()) == 2, 30, "the colliding token")
         token.undeclare()
-        wait_until(lambda: len(registrations()) == 1, 5, "the colliding token to go")
+        wait_until(lambda: len(registrations()) == 1, 30, "the colliding token to go")
     assert registrations() == [{"id": sub_id, "mode": "flow", "queued": 0}]
     assert producer.call("put", buffer="images", t=1)["ok"]
     assert producer.call("fill", buffer="images")["fill"] == pytest.approx(0.5)
-    assert consumer.call("take", target=TARGET, timeout=5)["notification"]["t"] == 1
+    assert consumer.call("take", target=TARGET, timeout=30)["notification"]["t"] == 1
     _free_and_lossless(producer, consumer, [2, 3])
 
 
@@ -137,7 +138,7 @@ def test_second_process_offering_a_live_name_across_processes(
     # The first keeps serving; once it is gone, a restart takes the name over.
     consumer = node_process(None, "--connect", endpoint)
     consumer.call("subscribe", target=TARGET, queue=2)
-    assert first.call("wait_subscribers", buffer="images", count=1, timeout=5)["registered"]
+    assert first.call("wait_subscribers", buffer="images", count=1, timeout=30)["registered"]
     _free_and_lossless(first, consumer, [1, 2])
     first.kill()
     third = node_process("cam", "--connect", endpoint, "--listen", "tcp/127.0.0.1:0")

@@ -44,7 +44,7 @@ def test_raw_zenoh_client_reads_a_time_range(
                     out.append((head["t"], head["m"], reply.ok.payload.to_bytes()))
             return None  # no end mark: the answer was cut short
 
-        elements = wait_until(read, 5, "a whole answer from the producer")
+        elements = wait_until(read, 30, "a whole answer from the producer")
         assert [(t, p) for t, _, p in elements] == [(200, b"p200"), (300, b"p300"), (400, b"p400")]
         assert all(f'timestamp_ns="{t}"' in m for t, m, _ in elements)
 

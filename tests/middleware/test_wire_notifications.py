@@ -160,7 +160,7 @@ def test_a_subscription_counts_malformed_compact_headers_as_garbage(
 
         with open_session(endpoint) as rogue:
             # Until Zenoh has matched the subscriber, puts go nowhere: repeat the first one.
-            wait_until(lambda: rogue.put(key, b"p1", attachment=valid(1)) or sub.pending, 5, "1")
+            wait_until(lambda: rogue.put(key, b"p1", attachment=valid(1)) or sub.pending, 30, "1")
             for payload, attachment in garbage:
                 rogue.put(key, payload, attachment=attachment)
             rogue.put(key, b"p2", attachment=valid(2))  # one link: it arrives after the rest

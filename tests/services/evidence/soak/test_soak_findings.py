@@ -29,12 +29,12 @@ def test_subscription_survives_a_liveliness_flap(
     consumer = node_process(None, "--connect", endpoint)
     assert producer.call("offer", buffer="images")["ok"]
     assert consumer.call("subscribe", target="cam/images", queue=2)["ok"]
-    assert producer.call("wait_subscribers", buffer="images", count=1, timeout=5)["registered"]
+    assert producer.call("wait_subscribers", buffer="images", count=1, timeout=30)["registered"]
     for t in (1 * MS, 2 * MS, 3 * MS):
         # The credit of a taken element comes back with the consumer's (delayed) ack: the
         # third put may have to wait for it (a loaded machine's acks came after the put).
-        assert producer.call("put", buffer="images", t=t, wait_s=5)["ok"]
-        assert consumer.call("take", target="cam/images", timeout=5)["notification"]["t"] == t
+        assert producer.call("put", buffer="images", t=t, wait_s=30)["ok"]
+        assert consumer.call("take", target="cam/images", timeout=30)["notification"]["t"] == t
 
     # Stopped longer than the lease: the producer sees the token go, then come back.
     os.kill(consumer.proc.pid, signal.SIGSTOP)
@@ -45,5 +45,5 @@ def test_subscription_survives_a_liveliness_flap(
     wait_until(lambda: producer.call("fill", buffer="images")["subscriptions"], 10, "token back")
 
     assert producer.call("put", buffer="images", t=4 * MS)["ok"]
-    taken = consumer.call("take", target="cam/images", timeout=3)
+    taken = consumer.call("take", target="cam/images", timeout=30)
     assert taken["notification"] is not None and taken["notification"]["t"] == 4 * MS

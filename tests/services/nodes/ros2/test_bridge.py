@@ -69,14 +69,14 @@ def test_a_refused_image_is_dropped_at_the_bridge_and_counted(
     images = ImagesIn(node, codec, Ros2Config(image_in="/cam"), _Skips(logging.getLogger()))
     # A flow-controlled subscriber with a queue of one that never takes.
     sub = consumer.subscribe("ros2/images", queue_size=1, wait_s=5)
-    wait_until(lambda: images.producer.subscriptions(), 5, "the subscription")
+    wait_until(lambda: images.producer.subscriptions(), 30, "the subscription")
     now = time.time_ns()
     images.handle(_image(codec, now), 1)
     images.handle(_image(codec, now + 1_000_000), 2)
     info = images.producer.info()
     assert (info.puts, info.refused) == (1, 1)
     assert (images.stored, images.dropped) == (1, 1)
-    note = sub.take(timeout_s=scaled(5))
+    note = sub.take(timeout_s=scaled(30))
     assert note is not None and note.timestamp_ns == now
 
 
