@@ -28,6 +28,12 @@ TIMEOUT_S = 180.0
 # deadline, scaled as every other; only a command whose service is missing waits it out.
 # 20 s was too short with two CPU hogs beside the suite (hz found no 'cam' in 35 s).
 DISCOVERY_TIMEOUT_S = scaled(60.0)
+# The --timeout of a command looking for what the test knows is missing (a misspelt buffer of
+# a live service, a service in another namespace): such a command waits all of it, so
+# DISCOVERY_TIMEOUT_S there cost a minute a command. It must still meet the live service
+# first (for its did-you-mean or its other namespace): the command's clock starts once its
+# session is open, and meeting a service on loopback takes well under a second.
+ABSENCE_TIMEOUT_S = scaled(15.0)
 
 
 def frame_metadata(t: int, frame_id: int) -> bytes:

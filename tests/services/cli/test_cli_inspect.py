@@ -26,6 +26,7 @@ from tests.conftest import free_port
 from tests.helpers.background import in_background
 from tests.helpers.timing import scaled
 from tests.services.cli.conftest import (
+    ABSENCE_TIMEOUT_S,
     HEIGHT,
     MS,
     WIDTH,
@@ -171,10 +172,14 @@ def test_user_mistakes_give_one_line_errors(service: Node, cli: Cli, tmp_path: P
     not_mcap = tmp_path / "notes.mcap"
     not_mcap.write_text("hello")
     cases = [
-        (("info", "cam/imgs"), "no buffer 'imgs' (did you mean 'images'?)"),
         (
-            # Long enough to meet 'cam' on a loaded machine (for the did-you-mean).
-            ("query", "camra/images", "--timeout", str(scaled(5))),
+            ("info", "cam/imgs", "--timeout", str(ABSENCE_TIMEOUT_S)),
+            "no buffer 'imgs' (did you mean 'images'?)",
+        ),
+        (
+            # Long enough to meet 'cam' on a loaded machine (for the did-you-mean); the
+            # commands run at once, so it costs no more than the one above.
+            ("query", "camra/images", "--timeout", str(ABSENCE_TIMEOUT_S)),
             "no live service named 'camra' (did you mean 'cam'?)",
         ),
         (("query", "cam/images", "--from", "yesterday"), "bad time 'yesterday' for --from"),

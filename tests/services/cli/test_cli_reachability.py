@@ -15,7 +15,7 @@ import pytest
 from middleware import DataObject, Node, Retention, make_metadata
 from services.tools.bag import BagWriter
 from tests.conftest import REPO, child_env, free_port, run_framegate, start_framegate
-from tests.services.cli.conftest import Cli
+from tests.services.cli.conftest import ABSENCE_TIMEOUT_S, Cli
 
 pytestmark = pytest.mark.integration
 
@@ -84,7 +84,10 @@ def test_nothing_live_in_a_namespace_names_it_and_where_services_are(
     # is --connect right?", though the rendezvous answered.
     service.offer("images", kind="frame")
     listed, info = cli.run_many(
-        [("ls", "--namespace", "other"), ("info", "cam/images", "--namespace", "other")]
+        [
+            ("ls", "--namespace", "other"),
+            ("info", "cam/images", "--namespace", "other", "--timeout", str(ABSENCE_TIMEOUT_S)),
+        ]
     )
     assert listed.returncode == 0, listed.describe()
     assert info.returncode == 1, info.describe()
