@@ -114,21 +114,23 @@ def _holder_of(port: int) -> int | None:
     return None
 
 
-@pytest.fixture
-def frozen_holder(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[tuple[int, Path]]:
-    """A rendezvous whose port holder (a gyro) is stopped with SIGSTOP, beside a live gyro2."""
-    port, runtime = free_port(), tmp_path / "run"
-    runtime.mkdir()
-    monkeypatch.setenv("XDG_RUNTIME_DIR", str(runtime))
+@pytest.fixture(scope="module")
+def frozen_holder(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[int, Path]]:
+    """A rendezvous whose port holder (a gyro) is stopped with SIGSTOP, beside a live gyro2.
+    One for the module: its tests only run commands against it, and two gyros started and
+    a holder frozen past its lease took seconds a test."""
+    port, runtime = free_port(), tmp_path_factory.mktemp("run")
     hub = _framegate(["run", "gyro", "--source", "sim", "--loop"], port, runtime)
     other: subprocess.Popen[str] | None = None
     try:
         wait_until(lambda: _holder_of(port) == hub.pid, 60, "the first gyro on the port")
-        with Node(network=NetworkConfig(local_port=port)) as probe:
-            wait_until(lambda: "gyro" in probe.live_services(), 60, "the first gyro")
-            other = _framegate(["run", "gyro", "--source", "sim", "--loop", "--name", "gyro2"],
-                               port, runtime)  # fmt: skip
-            wait_until(lambda: "gyro2" in probe.live_services(), 60, "gyro2")
+        with pytest.MonkeyPatch.context() as monkeypatch:  # the probe's rendezvous files
+            monkeypatch.setenv("XDG_RUNTIME_DIR", str(runtime))
+            with Node(network=NetworkConfig(local_port=port)) as probe:
+                wait_until(lambda: "gyro" in probe.live_services(), 60, "the first gyro")
+                other = _framegate(["run", "gyro", "--source", "sim", "--loop", "--name",
+                                    "gyro2"], port, runtime)  # fmt: skip
+                wait_until(lambda: "gyro2" in probe.live_services(), 60, "gyro2")
         os.kill(hub.pid, signal.SIGSTOP)
         # Past the lease, so that the others have dropped it too.
         wait_until(lambda: Path(f"/proc/{hub.pid}/stat").read_text().split()[2] == "T", 30, "stop")
