@@ -8,6 +8,7 @@ import subprocess
 import sys
 import threading
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
@@ -49,8 +50,13 @@ def mute_endpoint() -> Iterator[str]:
 
 
 def test_ls_where_nothing_answers_is_an_error_like_info(mute_endpoint: str) -> None:
-    for argv in (["ls"], ["info", "camera/images"]):
-        result = _framegate(*argv, "--connect", mute_endpoint, "--timeout", "1")
+    # At once: each waits out its connection attempts to the mute endpoint (seconds each).
+    with ThreadPoolExecutor() as pool:
+        results = pool.map(
+            lambda argv: _framegate(*argv, "--connect", mute_endpoint, "--timeout", "1"),
+            (["ls"], ["info", "camera/images"]),
+        )
+    for result in results:
         assert result.returncode == 1, result
         assert result.stderr.startswith("error: nothing answered via " + mute_endpoint), result
         assert result.stderr.count("\n") == 1 and not result.stdout, result
