@@ -191,11 +191,14 @@ def test_intruder_cannot_ack_for_the_camera_s_subscriber(
     mediator = node_process(None, *secure_router.args("mediator"))
     sub_id = mediator.call("subscribe", target="camera/images", queue=2)["id"]
     epochs: list[str] = []
+    notified: list[tuple[str, int]] = []  # (epoch, seq) of each notification seen
     seen = threading.Event()
 
     def on_notification(sample: zenoh.Sample) -> None:
         assert sample.attachment is not None
-        epochs.append(msgpack.unpackb(sample.attachment.to_bytes())[0])
+        header = msgpack.unpackb(sample.attachment.to_bytes())
+        epochs.append(header[0])
+        notified.append((header[0], header[1]))
         seen.set()
 
     spy = raw_session("mediator").declare_subscriber(
@@ -217,17 +220,22 @@ def test_intruder_cannot_ack_for_the_camera_s_subscriber(
     assert camera.call("put", buffer="images", t=8 * MS)["error"] == "FlowControlRefused"
 
     # Control: the subscriber's own principal may ack, and then the camera may put again.
-    # Sent again until it counts (an ack is cumulative: a copy changes nothing): a put right
+    # Sent again until it counts, each time for the newest notification seen: a put right
     # after its session opened can go nowhere until the router's routes reach the session,
-    # and at load 30 the one ack sent then never arrived.
+    # and a mediator process starved past its lease registers again, so that the queued
+    # elements are notified again under a new epoch, which an ack of the old one does not
+    # free (at load 30 the one ack of epochs[0] never freed the queue).
     as_mediator = raw_session("mediator")
+
+    def acked() -> bool:
+        epoch, seq = notified[-1]
+        as_mediator.put(ack_key, msgpack.packb({"e": epoch, "s": seq}))
+        return bool(camera.call("fill", buffer="images")["fill"] == 0.0)
+
     wait_until(
-        lambda: (
-            as_mediator.put(ack_key, ack) is None
-            and camera.call("fill", buffer="images")["fill"] == 0.0
-        ),
+        acked,
         30,
-        "the mediator's ack",
+        lambda: f"the mediator's ack (notified {notified}, {camera.call('fill', buffer='images')})",
     )
     assert camera.call("put", buffer="images", t=8 * MS)["ok"]
     spy.undeclare()
