@@ -563,8 +563,13 @@ def test_an_observer_survives_a_batch_whose_seqs_overflow(
         )
         now = now_ns()
         header = ("rogue.1", 2**64 - 1, [now, now + 1], [None, None], None, None)
-        _forge(rogue, sub, *header, "observe/4/-1", None)
-        wait_until(lambda: sub.garbage >= 1, scaled(10), "the forged batch counted")
+        # Forged again until counted: the rogue's put can go nowhere until the subscriber's
+        # declaration reaches its session (at load 11 the one put made never arrived).
+        wait_until(
+            lambda: _forge(rogue, sub, *header, "observe/4/-1", None) is None and sub.garbage,
+            30,
+            "the forged batch counted",
+        )
         for t in range(1, 4):
             images.put(t, b"x", make_metadata("generic", t))
             note = sub.take(timeout_s=scaled(10))
