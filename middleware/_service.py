@@ -241,6 +241,11 @@ _LISTEN_FRESH_NS = 5_000_000_000
 # already waiting is answered.
 DATA_QUERIES = 256
 INFO_QUERIES = 64
+# A query's payload and attachment together, at most: framegate's queries carry neither (what
+# they ask is in the selector), and a waiting query holds what it carries, so 256 queries
+# with 4 MB payloads each, sent faster than a 16 MB answer goes out, grew a producer from
+# 57 to 411 MB. A larger one is finalized unanswered and counted as an overflow is.
+QUERY_BODY_MAX_BYTES = 1024
 
 
 class QueryInbox:
@@ -264,7 +269,7 @@ class QueryInbox:
             with self._cond:
                 if self.closed:
                     return
-                if len(waiting) >= capacity:
+                if len(waiting) >= capacity or _body_bytes(query) > QUERY_BODY_MAX_BYTES:
                     self.dropped += 1  # finalized when dropped: its querier's answer ends
                     return
                 waiting.append(query)
@@ -290,6 +295,14 @@ class QueryInbox:
             for waiting in self._waiting.values():
                 waiting.clear()
             self._cond.notify_all()
+
+
+def _body_bytes(query: zenoh.Query) -> int:
+    """What ``query`` carries beside its selector (payload and attachment), in bytes."""
+    payload, attachment = query.payload, query.attachment
+    return (len(payload) if payload is not None else 0) + (
+        len(attachment) if attachment is not None else 0
+    )
 
 
 class ServiceEndpoint:

@@ -11,7 +11,7 @@ import threading
 import pytest
 
 from middleware import Node, make_metadata
-from middleware._service import DATA_QUERIES, INFO_QUERIES, QueryInbox
+from middleware._service import DATA_QUERIES, INFO_QUERIES, QUERY_BODY_MAX_BYTES, QueryInbox
 from tests.conftest import REPO, child_env, wait_until
 from tests.helpers.raw_zenoh import open_session
 from tests.helpers.timing import scaled
@@ -20,8 +20,10 @@ from tests.helpers.timing import scaled
 class _Query:
     """A stand-in for ``zenoh.Query``: the inbox only holds and drops them."""
 
-    def __init__(self, n: int) -> None:
+    def __init__(self, n: int, payload: bytes | None = None) -> None:
         self.n = n
+        self.payload = payload
+        self.attachment = None
 
 
 def _ask(inbox: QueryInbox, which: str, n: int) -> None:
@@ -43,6 +45,42 @@ def test_the_inbox_holds_at_most_its_capacity_and_answers_both_kinds_in_turn() -
     # What was waiting is answered, oldest first; the excess that arrived later was not kept.
     assert numbers["info"] == list(range(INFO_QUERIES))
     assert numbers["data"] == list(range(DATA_QUERIES))
+
+
+def test_a_query_carrying_more_than_a_query_needs_is_not_kept() -> None:
+    # Issue 30: a waiting query holds what it carries; 4 MB payloads on queries sent faster
+    # than a 16 MB answer went out grew a producer from 57 to 411 MB (101 MB now).
+    inbox = QueryInbox()
+    inbox.callback("data").callback(_Query(1, b"q" * (4 << 20)))  # type: ignore[arg-type]
+    inbox.callback("info").callback(_Query(2, b"q" * (QUERY_BODY_MAX_BYTES + 1)))  # type: ignore[arg-type]
+    inbox.callback("data").callback(_Query(3, b"q" * QUERY_BODY_MAX_BYTES))  # type: ignore[arg-type]
+    assert inbox.dropped == 2
+    taken = inbox.take()
+    assert taken is not None and taken[1].n == 3  # type: ignore[attr-defined]
+    assert not inbox._waiting["data"] and not inbox._waiting["info"]
+
+
+@pytest.mark.integration
+def test_a_query_with_a_large_payload_is_counted_and_not_answered(
+    listen_net, connect_net, endpoint
+) -> None:
+    with Node("cam", listen_net) as service, Node(network=connect_net) as client:
+        log = service.offer("log")
+        for t in range(1, 11):
+            log.put(t, b"x", make_metadata("generic", t))
+        with open_session(endpoint) as rogue:
+            wait_until(
+                lambda: client.query("cam/log", timeout_s=scaled(10)) != [],
+                scaled(30),
+                "the service to answer an ordinary query",
+            )
+            replies = list(
+                rogue.get("framegate/cam/log", payload=b"q" * (64 << 10), timeout=scaled(10))
+            )
+            assert [r for r in replies if r.ok is not None] == []
+            assert client.service_info("cam").dropped_queries == 1
+            got = client.query("cam/log", timeout_s=scaled(10))
+            assert [e.timestamp_ns for e in got] == list(range(1, 11))
 
 
 def test_take_sleeps_until_a_query_comes_and_close_ends_it() -> None:
