@@ -91,13 +91,19 @@ class GyroCache:
         self._batches: list[GyroSamples] = []
         self._lock = threading.Lock()
         self.dropped = collections.Counter[str]()
+        self._producer: str | None = None  # the gyro's producer instance, as last greeted
 
-    def feed(self, sub: Subscription, notes: list[Notification]) -> None:
-        """Add the batches of gyro notifications taken together.
+    def feed(self, sub: Subscription, notes: list[Notification]) -> bool:
+        """Add the batches of gyro notifications taken together; True when the gyro's
+        producer is another instance than at the last feed (another process: another clock,
+        so the camera-gyro offset measured is not its own).
 
         The gyro puts its samples as elements in batches (put_many); taking up to a
         batch's worth at once and joining them keeps the cache at batch granularity.
         """
+        producer = sub.producer_epoch  # greeted: a peer's made-up epoch does not move it
+        changed = producer is not None and self._producer not in (None, producer)
+        self._producer = producer or self._producer
         parts: list[GyroSamples] = []
         for note in notes:
             try:
@@ -106,6 +112,7 @@ class GyroCache:
                 self.dropped["bad-batch"] += 1
         if parts:
             self.add_parts(parts)
+        return changed
 
     def add_parts(self, parts: list[GyroSamples]) -> None:
         """Add consecutive parts; joined when in order, one by one (trimmed) when not."""

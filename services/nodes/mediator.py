@@ -268,7 +268,8 @@ class Mediator:
 
     def on_gyro(self, notes: list[Notification]) -> None:
         """Gyro notifications taken together: frames they cover may be decided now."""
-        self.gyro.feed(self._gyro_sub, notes)
+        if self.gyro.feed(self._gyro_sub, notes):  # a restarted gyro: its clock unmeasured
+            self._offsets.forget()
         now = time.monotonic_ns()
         if self.pairing.waiting and self._offsets.current() is None:
             self._measure_soon(now)  # frames wait for the clocks, which can be asked now

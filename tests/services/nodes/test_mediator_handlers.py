@@ -316,6 +316,30 @@ def test_a_subscription_registered_again_by_the_same_camera_keeps_its_clock_samp
     assert mediator._offsets.current() is None
 
 
+def test_frames_after_a_gyro_restart_wait_for_its_clock(
+    fed: Fed, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Issue 30, the gyro's side of a restart: a gyro restarted under another clock was
+    # paired by the offset measured of the one before until the next measurement (up to a
+    # period, 2 s), its samples taken for another moment's motion.
+    producer = {"epoch": "G0"}
+    monkeypatch.setattr(Subscription, "producer_epoch", property(lambda _: producer["epoch"]))
+    mediator = fed.mediator
+    fed.gyro(0, 300)
+    fed.frame(10)
+    assert fed.reasons() == ["quality>load"]
+    producer["epoch"] = "G1"  # another gyro process greeted the subscription
+    fed.gyro(301, 400)
+    fed.frame(320)
+    mediator.on_time(time.monotonic_ns() + int(WAIT_MS * MS))  # its wait has passed
+    assert fed.reasons() == ["quality>load", "clock-unmeasured"]
+    clock = SourceClock("host", 2, 0, 0, 100_000)
+    mediator._offsets.add(clock, clock)  # measured: the new gyro's clock
+    fed.gyro(401, 500)  # the same instance, later batches: nothing forgotten
+    fed.frame(420)
+    assert fed.reasons()[-1] == "quality>load"
+
+
 def test_a_made_up_epoch_is_skipped_and_starts_nothing_over(
     fed: Fed, monkeypatch: pytest.MonkeyPatch
 ) -> None:
