@@ -25,6 +25,16 @@ _GYRO_RESTART_NS = 10_000_000_000
 # Time alone bounds nothing: a peer offering gyro/rates can pack a million samples into
 # one batch 1 ns apart, 32 MB a put, all of them within the 10 s kept.
 MAX_GYRO_SAMPLES = 100_000
+# Two batches of fewer samples are kept joined (every batch kept follows the one before in
+# time), so at most 2 * MAX_GYRO_SAMPLES / JOIN_BELOW batches, and two per join span, are
+# kept whatever the gyro's batch size: each arrival and each frame's look-up scans the
+# batches, and 10,000 one-sample batches (10 s at 1 kHz, each notification taken alone)
+# made each 5-6 ms, measured on the cache.
+JOIN_BELOW = 64
+# ... and only while the joined batch spans at most this part of ``keep_ns`` (100 ms of
+# 10 s): a batch is forgotten whole, and one joined across an outage would keep its old
+# samples past ``keep_ns``.
+_JOIN_SPAN_PART = 100
 
 log = logging.getLogger("mediator")
 
@@ -64,6 +74,14 @@ def merge_batch(
             np.asarray(batch.rates_rad_s)[-MAX_GYRO_SAMPLES:],
             period_ns=batch.period_ns,
         )
+    last = batches[-1] if batches and outcome != "restart" else None
+    if (
+        last is not None
+        and len(last) < JOIN_BELOW > len(batch)
+        and int(batch.t_ns[0]) - int(last.t_ns[0]) <= keep_ns // _JOIN_SPAN_PART
+    ):
+        batch = GyroSamples.concat([batches[-1], batch])
+        batches = batches[:-1]
     kept = [*batches, batch]
     horizon = int(batch.t_ns[-1]) - keep_ns
     while kept and int(kept[0].t_ns[-1]) < horizon:

@@ -12,7 +12,7 @@ from middleware import ConfigError
 from services.lib.camera_model import CameraModel
 from services.lib.messages import FrameMeta
 from services.lib.quality import BlurOptions, Exposure, GyroSamples
-from services.nodes._mediator_inputs import MAX_GYRO_SAMPLES
+from services.nodes._mediator_inputs import JOIN_BELOW, MAX_GYRO_SAMPLES
 from services.nodes.mediator import (
     SERVICE,
     BadFrame,
@@ -208,3 +208,15 @@ def test_gyro_cache_joins_in_order_samples_and_trims_overlapping_ones() -> None:
     cache.add_parts([_batch(5, 2), _batch(1, 1), _batch(6, 3)])
     assert [int(t) // MS for t in cache.window(0, 8 * MS).t_ns] == [0, 1, 2, 5, 6, 7, 8]
     assert cache.dropped["late-batch"] == 1 and cache.dropped["overlap"] == 1
+
+
+def test_small_gyro_batches_are_kept_joined() -> None:
+    # Issue 30: 10 s of one-sample batches at 1 kHz, each taken alone, were 10,000 batches
+    # kept, each arrival and each frame's look-up scanning them all: 5-6 ms each.
+    kept: list[GyroSamples] = []
+    for i in range(20_000):
+        kept, _ = merge_batch(kept, _batch(i, 1), keep_ns=10_000 * MS)
+    samples = sum(len(b) for b in kept)
+    assert 10_000 <= samples <= 10_000 + 2 * JOIN_BELOW  # 10 s, forgotten a batch at a time
+    assert len(kept) <= 2 * samples // JOIN_BELOW + 1, len(kept)
+    assert _times_ms(kept) == list(range(20_000 - samples, 20_000))  # in order, none lost
