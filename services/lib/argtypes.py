@@ -44,6 +44,30 @@ def did_you_mean(word: str, candidates: Iterable[str], *, quote: bool = False) -
     return f" (did you mean {hint!r}?)" if quote else f" (did you mean {hint}?)"
 
 
+# What a ROS 2 user types out of habit (``ros2 topic ...``, ``ros2 bag ...``), per command,
+# and how framegate says it: named before any did-you-mean, which pointed elsewhere
+# (``echo --once`` suggested --json, ``record -a`` nothing).
+ROS2_FLAGS: dict[str, dict[str, str]] = {
+    "echo": {"--once": "--count 1 here"},
+    "pub": {"--once": "--count 1 here", "-t": "--count N here", "--times": "--count N here"},
+    "hz": {"-w": "--window N here"},
+    "record": {"-a": "--all here", "--topics": "not needed here: name SERVICE/BUFFER ..."},
+    "play": {
+        "-r": "--rate R here",
+        "--topics": "--only SERVICE/BUFFER here",
+        "-d": "--start-delay S here",
+    },
+    "info": {"-v": "not needed here: info lists the subscriptions always"},
+    "ls": {"-t": "not needed here: ls shows each buffer's kind always"},
+}
+
+
+def _ros2_flag(prog: str, flag: str) -> str:
+    """`` (ros2's --once is --count 1 here)`` for a ROS 2 habit of command ``prog``."""
+    ours = ROS2_FLAGS.get(prog.split()[-1], {}).get(flag)
+    return f" (ros2's {flag} is {ours})" if ours else ""
+
+
 def _options(parser: argparse.ArgumentParser) -> list[str]:
     return [s for a in parser._actions for s in a.option_strings if s.startswith("--")]
 
@@ -76,7 +100,10 @@ class FramegateParser(argparse.ArgumentParser):
             target = sub or self
             known = _options(target) + ([] if sub is None else _options(self))
             first = extras[0]
-            hint = did_you_mean(first.split("=", 1)[0], known) if first.startswith("-") else ""
+            flag = first.split("=", 1)[0]
+            hint = _ros2_flag(target.prog, flag) or (
+                did_you_mean(flag, known) if first.startswith("-") else ""
+            )
             what = "unknown option" if first.startswith("-") else "unexpected argument"
             target.error(f"{what} {first!r}{hint}; see {target.prog} --help")
         return parsed

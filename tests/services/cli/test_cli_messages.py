@@ -107,6 +107,38 @@ def test_a_ros2_command_gets_framegates_own_name(args: tuple[str, ...], expected
     assert expected in result.stderr, result.stderr
 
 
+@pytest.mark.parametrize(
+    ("args", "expected"),
+    [
+        (("echo", "camera/images", "--once"), "unknown option '--once' (ros2's --once is --count 1 here)"),  # noqa: E501
+        (("record", "-a", "-o", "x.mcap"), "unknown option '-a' (ros2's -a is --all here)"),
+        (("play", "x.mcap", "-r", "2"), "unknown option '-r' (ros2's -r is --rate R here)"),
+        (("play", "x.mcap", "--topics", "camera/images"), "(ros2's --topics is --only SERVICE/BUFFER here)"),  # noqa: E501
+        (("hz", "camera/images", "-w", "10"), "(ros2's -w is --window N here)"),
+        (("echo", "camera/images", "--lats"), "unknown option '--lats'; see framegate echo --help"),
+    ],
+)  # fmt: skip
+def test_a_ros2_flag_gets_framegates_own_spelling(args: tuple[str, ...], expected: str) -> None:
+    # `echo --once` was answered "(did you mean --json?)", `record -a` with no hint at all.
+    result = _framegate(*args)
+    assert result.returncode == 1, result
+    assert result.stderr.count("\n") == 1 and result.stderr.startswith("error: "), result
+    assert expected in result.stderr, result.stderr
+
+
+def test_every_ros2_flag_names_a_flag_its_command_has() -> None:
+    from services.lib.argtypes import ROS2_FLAGS
+
+    for command, flags in ROS2_FLAGS.items():
+        parser = build_parser(only=command)
+        sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+        options = {s for a in sub.choices[command]._actions for s in a.option_strings}
+        for ros2, ours in flags.items():
+            assert ros2 not in options, f"{command} {ros2} is a flag of its own"
+            named = ours.split()[0]
+            assert not named.startswith("--") or named in options, (command, ros2, ours)
+
+
 def test_an_endpoint_without_a_port_is_named_with_exit_1() -> None:
     result = _framegate("ls", "--connect", "tcp/abc")
     assert result.returncode == 1, result
