@@ -149,11 +149,15 @@ def _duration(seconds: float | None) -> str:
 
 
 def status_lines(
-    supervisor: Supervisor, rates: dict[str, list[tuple[str, float, int]]]
+    supervisor: Supervisor,
+    rates: dict[str, list[tuple[str, float, int]]],
+    silent: frozenset[str] = frozenset(),
 ) -> list[str]:
     """One line per process: pid, uptime, restarts, then each buffer's rate and skips.
 
-    ``rates`` maps a service to (buffer, Hz, skipped) of each of its buffers.
+    ``rates`` maps a service to (buffer, Hz, skipped) of each of its buffers; a service in
+    ``silent`` answered an earlier tick but not this one, and its line says so (the line
+    without buffers read as if the service had none).
     """
     pids, ups, restarts = supervisor.pids(), supervisor.uptimes(), supervisor.restarts()
     width = max((len(n) for n in pids), default=4)
@@ -167,6 +171,8 @@ def status_lines(
             f"{buffer} {hz:.1f} Hz" + (f" ({skipped} skipped)" if skipped else "")
             for buffer, hz, skipped in rates.get(name, [])
         ]
+        if not parts and name in silent:
+            parts = ["no answer this tick"]
         line = head + ("  " + ", ".join(parts) if parts else "")
         if len(line) > STATUS_COLUMNS:
             line = line[: STATUS_COLUMNS - 3] + "..."
@@ -184,6 +190,7 @@ def _status_loop(
     from middleware import FramegateError, Node
 
     node: Node | None = None
+    answered: set[str] = set()  # services that answered some tick
     try:
         while not stop.wait(every_s):
             rates: dict[str, list[tuple[str, float, int]]] = {}
@@ -199,8 +206,19 @@ def _status_loop(
                 pass  # the pids and restarts are still worth a line
             if stop.is_set() or supervisor.stopping:
                 break  # a tick during the stop would show the services half gone
-            for line in status_lines(supervisor, rates):
+            answered |= rates.keys()
+            running = {n for n, pid in supervisor.pids().items() if pid}
+            silent = frozenset((answered & running) - rates.keys())
+            for line in status_lines(supervisor, rates, silent):
                 emit(line)
+            if node is not None and silent and not rates:
+                # None of the services that answered before did, while their processes
+                # run: this session, not they, is likely at fault (seen on a loaded
+                # machine: the launcher's link to the camera stopped being read, and every
+                # later tick came back empty for 25 minutes while `ls` saw all four).
+                # The next tick asks through a new one.
+                node.close()
+                node = None
     finally:
         if node is not None:
             node.close()

@@ -372,3 +372,52 @@ def test_status_says_nothing_once_the_stop_began() -> None:
     loop.start()
     loop.join(timeout=scaled(30))
     assert not loop.is_alive() and lines == [], lines
+
+
+@pytest.mark.integration
+def test_status_says_when_a_service_that_answered_stops_answering() -> None:
+    """A service that answered an earlier tick and is silent now (stopped here; on a loaded
+    machine the launcher's own session went deaf) got a line without buffers, as if it had
+    none: it says `no answer this tick`, and its rates come back when it answers again."""
+    from services.cli.launch import _status_loop
+
+    port = free_port()
+    argv = (sys.executable, "-m", "services.cli", "pub", "test/x", "--kind", "generic")
+    supervisor = Supervisor(
+        [ProcessSpec("test", (*argv, "--rate", "5"), env=(("FRAMEGATE_LOCAL_PORT", str(port)),))],
+        colour=False,
+        out=lambda line: None,
+    )
+    lines: queue.Queue[str] = queue.Queue()
+    stop = threading.Event()
+    loop = threading.Thread(
+        target=_status_loop,
+        args=(supervisor, NetworkConfig(local_port=port), 0.5, stop, lines.put),
+        daemon=True,
+    )
+
+    def a_line(says: str) -> str | None:
+        while True:
+            try:
+                line = lines.get(timeout=0.1)
+            except queue.Empty:
+                return None
+            if says in line:
+                return line
+
+    supervisor.start()
+    try:
+        loop.start()
+        wait_until(lambda: a_line(" x "), scaled(60), "a status line with test/x's rate")
+        pid = supervisor.pids()["test"]
+        assert pid is not None
+        os.kill(pid, signal.SIGSTOP)
+        try:
+            wait_until(lambda: a_line("no answer this tick"), scaled(60), "'no answer'")
+        finally:
+            os.kill(pid, signal.SIGCONT)
+        wait_until(lambda: a_line(" x "), scaled(60), "test/x's rate again")
+    finally:
+        stop.set()
+        supervisor.stop()
+        loop.join(timeout=scaled(30))
