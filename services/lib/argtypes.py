@@ -60,12 +60,23 @@ ROS2_FLAGS: dict[str, dict[str, str]] = {
     "info": {"-v": "not needed here: info lists the subscriptions always"},
     "ls": {"-t": "not needed here: ls shows each buffer's kind always"},
 }
+# ROS 2 habits that are framegate flags of another meaning: said when that flag's own use
+# fails (``play run.mcap -l``: "argument --listen/-l: expected one argument").
+ROS2_SHADOWED: dict[str, dict[str, str]] = {"play": {"-l": "--loop"}}
 
 
 def _ros2_flag(prog: str, flag: str) -> str:
     """`` (ros2's --once is --count 1 here)`` for a ROS 2 habit of command ``prog``."""
     ours = ROS2_FLAGS.get(prog.split()[-1], {}).get(flag)
     return f" (ros2's {flag} is {ours})" if ours else ""
+
+
+def _long(parser: argparse.ArgumentParser, flag: str) -> str:
+    """The long name of ``parser``'s option ``flag`` (``-l`` -> ``--listen``)."""
+    for action in parser._actions:
+        if flag in action.option_strings:
+            return max(action.option_strings, key=len)
+    return flag
 
 
 def _options(parser: argparse.ArgumentParser) -> list[str]:
@@ -89,6 +100,9 @@ class FramegateParser(argparse.ArgumentParser):
     """An ArgumentParser whose errors are one line, with a did-you-mean, and exit code 1."""
 
     def error(self, message: str) -> NoReturn:
+        for flag, ours in ROS2_SHADOWED.get(self.prog.split()[-1], {}).items():
+            if message.startswith("argument ") and f"/{flag}:" in message.split(" ", 2)[1]:
+                message += f" ({flag} is {_long(self, flag)} here; ros2's {flag} is {ours})"
         self.exit(USAGE_EXIT_CODE, f"error: {self.prog}: {message}\n")
 
     def parse_args(  # type: ignore[override]

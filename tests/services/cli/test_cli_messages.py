@@ -115,6 +115,7 @@ def test_a_ros2_command_gets_framegates_own_name(args: tuple[str, ...], expected
         (("play", "x.mcap", "-r", "2"), "unknown option '-r' (ros2's -r is --rate R here)"),
         (("play", "x.mcap", "--topics", "camera/images"), "(ros2's --topics is --only SERVICE/BUFFER here)"),  # noqa: E501
         (("hz", "camera/images", "-w", "10"), "(ros2's -w is --window N here)"),
+        (("play", "x.mcap", "-l"), "expected one argument (-l is --listen here; ros2's -l is --loop)"),  # noqa: E501
         (("echo", "camera/images", "--lats"), "unknown option '--lats'; see framegate echo --help"),
     ],
 )  # fmt: skip
@@ -126,17 +127,25 @@ def test_a_ros2_flag_gets_framegates_own_spelling(args: tuple[str, ...], expecte
     assert expected in result.stderr, result.stderr
 
 
+def _options_of(command: str) -> set[str]:
+    parser = build_parser(only=command)
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    return {s for a in sub.choices[command]._actions for s in a.option_strings}
+
+
 def test_every_ros2_flag_names_a_flag_its_command_has() -> None:
-    from services.lib.argtypes import ROS2_FLAGS
+    from services.lib.argtypes import ROS2_FLAGS, ROS2_SHADOWED
 
     for command, flags in ROS2_FLAGS.items():
-        parser = build_parser(only=command)
-        sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
-        options = {s for a in sub.choices[command]._actions for s in a.option_strings}
+        options = _options_of(command)
         for ros2, ours in flags.items():
             assert ros2 not in options, f"{command} {ros2} is a flag of its own"
             named = ours.split()[0]
             assert not named.startswith("--") or named in options, (command, ros2, ours)
+    for command, flags in ROS2_SHADOWED.items():
+        options = _options_of(command)
+        for ros2, ours in flags.items():
+            assert ros2 in options and ours in options, (command, ros2, ours)
 
 
 def test_an_endpoint_without_a_port_is_named_with_exit_1() -> None:
