@@ -309,7 +309,7 @@ def run(config: Ros2Config, network: NetworkConfig, stop: threading.Event | None
                 )
                 if mapping == config.consumer_mapping:
                     consumer = _start_consumer(
-                        node, link, publisher, encode, config, skips, start, stop
+                        node, link, publisher, encode, config, skips, start, stop, codec
                     )
                     continue
                 output = Output(node, publisher, mapping, encode, config, skips)
@@ -423,13 +423,16 @@ def _start_consumer(
     skips: _Skips,
     start: Callable[[str, Callable[[], None]], None],
     stop: threading.Event,
+    codec: Codec,
 ) -> Any:
     """The ``--consumer-done`` loop on the node's input mapping, its two threads started."""
     from ._consumer_loop import ConsumerLoop  # only a bridge with --consumer-done needs it
 
     mapping = config.consumer_mapping
     assert mapping is not None
-    consumer = ConsumerLoop(node, link, publisher, mapping, encode, config, skips)
+    consumer = ConsumerLoop(
+        node, link, publisher, mapping, encode, config, skips, first_field=codec.first_field
+    )
     start(f"ros2-feed-{mapping.topic}", lambda: consumer.run_feed(stop))
     start("ros2-consumer-results", lambda: consumer.run_resolver(stop))
     return consumer

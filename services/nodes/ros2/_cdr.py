@@ -119,6 +119,16 @@ class Codec:
             types["builtin_interfaces/msg/Time"],
         )
 
+    def first_field(self, ros_type: str) -> str | None:
+        """The type of a message type's first field (``std_msgs/msg/Header``, ``string``),
+        or None when the type store does not know ``ros_type`` (a node's own package)."""
+        try:
+            _consts, fields = self.store.fielddefs[ros_type]
+            kind = fields[0][1][1]
+        except (KeyError, IndexError, TypeError):
+            return None
+        return str(kind[0] if isinstance(kind, tuple) else kind)
+
     def rihs01(self, ros_type: str) -> str:
         """The RIHS01 type hash of ``ros_type``."""
         return str(self.store.hash_rihs01(ros_type))

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import struct
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass, fields
 
 from middleware import printable
@@ -93,6 +94,7 @@ def ros_type_of(dds_type: str) -> str:
     return f"{parts[0]}/{parts[1]}/{parts[3][:-1]}"
 
 
+HEADER_TYPE = "std_msgs/msg/Header"
 # Result types listened to on the result topic at most (a node publishes one).
 MAX_RESULT_TYPES = 8
 
@@ -116,8 +118,11 @@ class DoneTopic:
     leading header alone, so a type that has none costs counted ``bad-result`` skips.
     """
 
-    def __init__(self, topic: str) -> None:
+    def __init__(self, topic: str, first_field: Callable[[str], str | None] | None = None) -> None:
         self.topic = topic
+        # The type of a known message type's first field (None: a type the bridge does not
+        # know, e.g. the node's own package's): one that is no Header is said at once.
+        self._first_field = first_field or (lambda _ros_type: None)
         self.found: list[ResultType] = []
         self._said: set[tuple[str, str]] = set()
 
@@ -143,6 +148,20 @@ class DoneTopic:
                 f"knows {MAX_RESULT_TYPES} types on this topic (it hears every type)",
             )
         self.found.append(seen)
+        first = self._first_field(ros_type)
+        if first is not None and first != HEADER_TYPE:
+            # Listened to all the same (a type name may be redefined), but its results will
+            # be ``bad-result`` or ``unmatched-result``, and every image a consumer-timeout.
+            return self._once(
+                endpoint.dds_type,
+                endpoint.type_hash,
+                f"a publisher announces {ros_type}, whose first field is {first}, not a "
+                f"{HEADER_TYPE}: the bridge frees an image's slot on the result carrying "
+                "that image's header.stamp in a leading Header, so none of these results "
+                "will, and every image waits --consumer-timeout-ms; give --consumer-done the "
+                "topic of a type that starts with a Header copied from the image (as "
+                "vision_msgs/msg/Detection2DArray does)",
+            )
         return None
 
     def _once(self, dds_type: str, type_hash: str, text: str) -> str | None:

@@ -112,6 +112,8 @@ class ConsumerLoop:
         encode: Callable[[Any], bytes | bytearray | None],
         config: Ros2Config,
         skips: Skips,
+        *,
+        first_field: Callable[[str], str | None] | None = None,
     ) -> None:
         assert config.consumer_done is not None
         self.mapping = mapping
@@ -122,7 +124,8 @@ class ConsumerLoop:
         self._lock = threading.Lock()
         self._ledger = Outstanding(depth, int(config.consumer_timeout_ms * 1e6))
         self._book = GateBook(self._ledger.timeout_ns)
-        self._done = DoneTopic(config.consumer_done)
+        # ``first_field``: a known result type's first field (Codec.first_field).
+        self._done = DoneTopic(config.consumer_done, first_field)
         self._depth = InputDepthCheck(mapping.topic, depth)
         self._subscribed: set[ResultType] = set()  # the result types announced (tokens)
         # A full queue refuses the newest result, counted (see _on_result).
@@ -325,7 +328,12 @@ class ConsumerLoop:
         except HeaderError as exc:
             with self._lock:
                 self._ledger.bad_result()
-            self._skips.count(self.results, "bad-result", str(exc))
+            self._skips.count(
+                self.results,
+                "bad-result",
+                f"a result on {self._done.topic} that does not start with a std_msgs/Header "
+                f"({exc}): its type must lead with the image's Header for the loop to match it",
+            )
             return None
         with self._lock:
             resolved = self._ledger.answer(header.stamp_ns, time.monotonic_ns())

@@ -271,3 +271,23 @@ def test_a_node_subscribing_with_a_queue_shorter_than_the_loops_is_said_once() -
     said = check.feed(subscription("b1", Qos(Reliability.BEST_EFFORT, 1)))
     assert said is not None and "keeps 1 image(s)" in said and "--consumer-queue 1" in said
     assert check.feed(subscription("b1", Qos(depth=2))) is None  # once per node's session
+
+
+def test_a_result_type_known_to_start_with_no_header_is_said_at_once() -> None:
+    # A node publishing std_msgs/String (JSON, say) on the result topic: no result can
+    # free a slot, and the user saw only a cryptic bad-result line and every image timing
+    # out. Said when its token names the type; still listened to (a name may be redefined).
+    codec = Codec("jazzy")
+    done = DoneTopic("/yolo/detections", codec.first_field)
+    string = _token("/yolo/detections", "std_msgs/msg/String", "RIHS01_00", EntityKind.PUBLISHER)
+    said = done.feed(string)
+    assert said is not None
+    assert "std_msgs/msg/String, whose first field is string, not a std_msgs/msg/Header" in said
+    assert "--consumer-timeout-ms" in said
+    assert done.feed(string) is None  # once
+    assert [t.ros_type for t in done.found] == ["std_msgs/msg/String"]
+    # Types that lead with a Header, and types the bridge does not know, say nothing.
+    for ros_type in (DETECTIONS, "my_msgs/msg/Done"):
+        assert done.feed(_token("/yolo/detections", ros_type, "h", EntityKind.PUBLISHER)) is None
+    assert codec.first_field(DETECTIONS) == "std_msgs/msg/Header"
+    assert codec.first_field("my_msgs/msg/Done") is None
