@@ -64,8 +64,8 @@ def decode_header(raw: bytes) -> Header:
         raise HeaderError(f"CDR encapsulation {kind.hex()} (expected 0000 or 0001, plain CDR)")
     order = "<" if kind == _CDR_LE else ">"
     sec, nanosec, length = struct.unpack_from(order + "iII", raw, _ENCAPSULATION_BYTES)
-    if nanosec >= 1_000_000_000:
-        raise HeaderError(f"header.stamp.nanosec {nanosec} is not below 1e9")
+    if nanosec >= 1_000_000_000 or sec < 0:  # the rule of every stamp the bridge reads
+        raise HeaderError(f"header.stamp sec={sec} nanosec={nanosec} is not a time")
     start = _ENCAPSULATION_BYTES + 12
     if not 1 <= length <= MAX_FRAME_ID_BYTES or start + length > len(raw):
         raise HeaderError(f"header.frame_id of {length} bytes in a {len(raw)}-byte message")

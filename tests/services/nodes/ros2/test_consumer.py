@@ -46,6 +46,7 @@ def test_the_header_of_a_big_endian_message_is_read() -> None:
         (b"", "cannot hold"),
         (b"\x00\x07\x00\x00" + bytes(16), "encapsulation 0007"),
         (b"\x00\x01\x00\x00" + struct.pack("<iII", 1, 10**9, 1) + b"\0", "nanosec"),
+        (b"\x00\x01\x00\x00" + struct.pack("<iII", -1, 0, 1) + b"\0", "sec=-1"),
         (b"\x00\x01\x00\x00" + struct.pack("<iII", 1, 0, 99) + b"ab\0", "frame_id of 99"),
         (b"\x00\x01\x00\x00" + struct.pack("<iII", 1, 0, 0) + b"\0", "frame_id of 0"),
         (b"\x00\x01\x00\x00" + struct.pack("<iII", 1, 0, 2) + b"ab", "NUL"),
