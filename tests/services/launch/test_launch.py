@@ -197,12 +197,8 @@ def test_a_service_whose_name_is_taken_exits_4_and_is_not_restarted_at_once(list
 
     with Node("gyro", listen_net) as first:
         first.offer("rates")
-        argv = (
-            sys.executable, "-m", "services.cli", "run", "gyro", "--source", "sim",
-            "--connect", listen_net.listen[0],
-        )  # fmt: skip
         lines: list[str] = []
-        supervisor = Supervisor([ProcessSpec("gyro", argv)], colour=False, out=lines.append)
+        supervisor = Supervisor([_sim_gyro(listen_net)], colour=False, out=lines.append)
         supervisor.start()
         try:
             wait_until(
@@ -232,12 +228,8 @@ def test_a_service_whose_name_was_taken_starts_once_the_other_instance_is_gone(
     the launch after that instance had gone; it is tried again, slowly, and starts."""
     from middleware import Node
 
-    argv = (
-        sys.executable, "-m", "services.cli", "run", "gyro", "--source", "sim",
-        "--connect", listen_net.listen[0],
-    )  # fmt: skip
     lines: list[str] = []
-    supervisor = Supervisor([ProcessSpec("gyro", argv)], colour=False, out=lines.append)
+    supervisor = Supervisor([_sim_gyro(listen_net)], colour=False, out=lines.append)
     try:
         with Node("gyro", listen_net) as first:
             first.offer("rates")
@@ -411,3 +403,12 @@ def test_a_router_does_not_connect_to_its_own_listener_written_differently(
 )
 def test_a_router_keeps_a_connect_that_reaches_another_listener(connect: str, listen: str) -> None:
     assert not reaches_own_listener(connect, listen)
+
+
+def _sim_gyro(net: NetworkConfig) -> ProcessSpec:
+    """A simulated gyro named ``gyro`` that connects to ``net``'s listen endpoint."""
+    argv = (
+        sys.executable, "-m", "services.cli", "run", "gyro", "--source", "sim",
+        "--connect", net.listen[0],
+    )  # fmt: skip
+    return ProcessSpec("gyro", argv)
