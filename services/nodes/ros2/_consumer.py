@@ -156,11 +156,9 @@ class DoneTopic:
                 endpoint.dds_type,
                 endpoint.type_hash,
                 f"a publisher announces {ros_type}, whose first field is {first}, not a "
-                f"{HEADER_TYPE}: the bridge frees an image's slot on the result carrying "
-                "that image's header.stamp in a leading Header, so none of these results "
-                "will, and every image waits --consumer-timeout-ms; give --consumer-done the "
-                "topic of a type that starts with a Header copied from the image (as "
-                "vision_msgs/msg/Detection2DArray does)",
+                f"{HEADER_TYPE} with the image's stamp: no such result frees a slot, every "
+                "image waits --consumer-timeout-ms; publish a type that starts with the "
+                "image's Header (as vision_msgs/msg/Detection2DArray)",
             )
         return None
 

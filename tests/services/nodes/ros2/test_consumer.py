@@ -285,6 +285,7 @@ def test_a_result_type_known_to_start_with_no_header_is_said_at_once() -> None:
     assert said is not None
     assert "std_msgs/msg/String, whose first field is string, not a std_msgs/msg/Header" in said
     assert "--consumer-timeout-ms" in said
+    assert said.endswith("(as vision_msgs/msg/Detection2DArray)"), said  # whole, not cut
     assert done.feed(string) is None  # once
     assert [t.ros_type for t in done.found] == ["std_msgs/msg/String"]
     # Types that lead with a Header, and types the bridge does not know, say nothing.
