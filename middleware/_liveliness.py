@@ -32,15 +32,36 @@ def live_keys(
 ) -> list[str]:
     """The keys of the liveliness tokens matching ``keyexpr`` that answer within
     ``timeout_s`` (at most ``limit`` of them). Raises what ``get`` raises (``ZError``)."""
+    return _ask(session, keyexpr, timeout_s, limit)[0]
+
+
+def live_keys_whole(
+    session: zenoh.Session, keyexpr: str, *, timeout_s: float, limit: int = LIVE_KEYS
+) -> tuple[list[str], bool]:
+    """``live_keys``, and whether the answer is whole: it ended within ``timeout_s`` with
+    no error reply (a timeout is one) and ``get`` raised nothing (then: [], False). Who
+    removes what a partial answer lacks would remove live tokens' owners."""
+    try:
+        return _ask(session, keyexpr, timeout_s, limit)
+    except zenoh.ZError:
+        return [], False
+
+
+def _ask(
+    session: zenoh.Session, keyexpr: str, timeout_s: float, limit: int
+) -> tuple[list[str], bool]:
     keys: list[str] = []
+    errors: list[bool] = []
     ended = threading.Event()
 
     def on_reply(reply: zenoh.Reply) -> None:
-        if reply.ok is not None and len(keys) < limit:
+        if reply.ok is None:
+            errors.append(True)
+        elif len(keys) < limit:
             keys.append(str(reply.ok.key_expr))
 
     session.liveliness().get(
         keyexpr, zenoh.handlers.Callback(on_reply, ended.set, indirect=False), timeout=timeout_s
     )
-    ended.wait(timeout_s + _END_SLACK_S)
-    return keys[:]
+    whole = ended.wait(timeout_s + _END_SLACK_S) and not errors
+    return keys[:], whole

@@ -35,7 +35,7 @@ from ._executor import BUDGET as _BUDGET
 from ._executor import Executor, Wake, remaining_s
 from ._inbox import ACK_MAX_BYTES, TOKEN_INBOX, AckInbox, TokenInbox, control_inbox_bytes
 from ._ledger_producer import RegistrationKey
-from ._liveliness import live_keys
+from ._liveliness import live_keys_whole
 from ._protocol_events import Event, Publish, Retire
 from ._protocol_producer import RESYNC_TOKENS, ProducerProtocol
 from ._rate import PutRate
@@ -194,13 +194,13 @@ class Producer:
         registrations after lost token events (one liveliness query, not under the locks)."""
         with self._lock:
             resync = self._protocol.resync_due(now_ns)
+            if resync:  # token events fed from now on are newer than the answer
+                self._protocol.resync_begin()
         if resync:
-            live: list[str] = []
-            with contextlib.suppress(zenoh.ZError):
-                keyexpr, limit = self._token_keys, RESYNC_TOKENS  # a peer may declare more
-                live = live_keys(self._session, keyexpr, timeout_s=1.0, limit=limit)
+            keyexpr, limit = self._token_keys, RESYNC_TOKENS  # a peer may declare more
+            live, whole = live_keys_whole(self._session, keyexpr, timeout_s=1.0, limit=limit)
             with self._lock:
-                self._protocol.resync(live, time.monotonic_ns())
+                self._protocol.resync(live, time.monotonic_ns(), ended=whole)
         with self._send_lock:
             with self._lock:
                 if self._closed:

@@ -42,7 +42,11 @@ states them for users and ``info`` reports them as ``BufferLimits``):
   sums per holder), so token churn at any rate costs the producer bounded work per token.
   Token events the Zenoh layer had to drop (its inbox is bounded) are repaired by a
   ``resync`` against the live tokens, at most every ``RESYNC_NS``: a withdrawn token whose
-  event was lost cannot hold the producer for ever, nor a live one stay unregistered.
+  event was lost cannot hold the producer for ever, nor a live one stay unregistered. Only
+  a whole answer (one that ended, with fewer than ``RESYNC_TOKENS`` keys) retires anyone,
+  and a token event fed while the query was out is newer than the answer and wins: a live
+  subscriber retired on a partial or stale answer is never told (its token still lives,
+  so nothing would register it again) and waits for good.
 
 Every refusal reaches the subscriber as a control message on its notification key
 (``["refused", descriptor, reason]``; see ``_wire``) and is counted; an accepted
@@ -141,9 +145,12 @@ class ProducerProtocol:
         self._shares = Shares(self.name, queue_budget, max_flow, max_observe)
         self._push_limit: dict[RegistrationKey, int] = {}
         self._notify_keys: dict[RegistrationKey, str] = {}  # see ``_notify_key``
-        # Lost token events: when a resync is due (None: none), when the last one was.
+        # Lost token events: when a resync is due (None: none), when the last one was; while
+        # its query is out, the keys of the token events fed since (None: too many to keep).
         self._resync_at_ns: int | None = None
         self._resynced_ns = -RESYNC_NS
+        self._changed: set[RegistrationKey] | None = None
+        self._querying = False
         # The last ack decoded per ack key and when (see ``ack``).
         self._acks_seen = AckFilter(REPEAT_RESEND_NS)
         self.counters = ProtocolCounters()
@@ -158,6 +165,10 @@ class ProducerProtocol:
             log.debug("%s: ignored token %s: %s", self.name, keyexpr, exc)
             return
         key = RegistrationKey(*parsed[:4])
+        if self._querying and self._changed is not None:
+            self._changed.add(key)
+            if len(self._changed) > RESYNC_TOKENS:
+                self._changed = None
         if not alive:
             gone = self._ledger.token_delete(key)
             if gone is not None:
@@ -200,14 +211,30 @@ class ProducerProtocol:
     def resync_due(self, now_ns: int) -> bool:
         return self._resync_at_ns is not None and self._resync_at_ns <= now_ns
 
-    def resync(self, live_tokens: list[str], now_ns: int) -> None:
+    def resync_begin(self) -> None:
+        """The liveliness query of a due ``resync`` goes out now: token events fed until its
+        answer is given are newer than the answer, and are remembered to win over it."""
+        self._querying = True
+        self._changed = set()
+
+    def resync(self, live_tokens: list[str], now_ns: int, *, ended: bool = True) -> None:
         """The tokens live now (a liveliness query's answer, at most ``RESYNC_TOKENS`` of
         them read): registrations without a live token go, live tokens not registered are
-        judged as if they had just appeared. An answer of ``RESYNC_TOKENS`` or more may
-        have left a live token out (a peer can declare any number): then nothing goes."""
+        judged as if they had just appeared. An answer that may have left a live token out
+        retires nobody: one of ``RESYNC_TOKENS`` or more (a peer can declare any number), or
+        one that did not end (``ended`` False: the query failed or timed out; it is asked
+        again after ``RESYNC_NS``, so that a lost withdrawal still cannot hold the producer
+        for ever). A key with a token event fed since ``resync_begin`` keeps what that event
+        said; more such keys than can be kept make the whole answer stale (asked again)."""
+        changed = self._changed if self._querying else set()
+        self._querying, self._changed = False, None
         self._resync_at_ns = None
         self._resynced_ns = now_ns
-        complete = len(live_tokens) < RESYNC_TOKENS
+        if not ended or changed is None:
+            self._resync_at_ns = now_ns + RESYNC_NS
+            if changed is None:
+                return
+        complete = ended and len(live_tokens) < RESYNC_TOKENS
         live: dict[RegistrationKey, str] = {}
         for keyexpr in live_tokens[:RESYNC_TOKENS]:
             try:
@@ -216,12 +243,14 @@ class ProducerProtocol:
                 continue
             live[RegistrationKey(*parsed[:4])] = keyexpr
         for reg in self._ledger.registrations():
-            if complete and reg.key not in live:
+            if complete and reg.key not in live and reg.key not in changed:
                 self._ledger.token_delete(reg.key)
                 self._forget(reg.key)
                 self._events.append(Retire(reg.key))
-        for keyexpr in live.values():
-            self.token(keyexpr, True, now_ns)
+                log.debug("%s: subscription %s gone at a resync", self.name, reg.key.sub_id)
+        for key, keyexpr in live.items():
+            if key not in changed:
+                self.token(keyexpr, True, now_ns)
 
     def _forget(self, key: RegistrationKey) -> None:
         """Drop what the protocol keeps beside the ledger for a registration that is gone."""

@@ -14,6 +14,7 @@ from middleware._protocol_producer import (
     LARGE_PUSH_TOTAL,
     MAX_OBSERVE_REGISTRATIONS,
     QUEUE_BUDGET,
+    RESYNC_NS,
     RESYNC_TOKENS,
     ProducerProtocol,
 )
@@ -151,6 +152,43 @@ def test_a_resync_answer_cut_short_by_a_crowd_of_tokens_removes_no_registration(
     producer.tokens_lost(0)
     producer.resync(crowd[:-1], 0)  # a whole answer without it: it is gone
     assert producer.get(real) is None
+
+
+def test_a_resync_on_an_answer_that_did_not_end_retires_no_one_and_asks_again() -> None:
+    """A liveliness query that failed or timed out answers with part of the live tokens (or
+    none): the registrations it left out were retired, and their subscribers, whose tokens
+    still live, were never registered again (no element for 60 s under a token churn). A
+    withdrawal that was lost is still repaired, by the answer asked again."""
+    producer = _producer()
+    real = RegistrationKey("real", FLOW, 8, -1)
+    ghost = RegistrationKey("ghost", FLOW, 2, -1)
+    producer.token(_token(real, "consumer~x"), True, 0)
+    producer.token(_token(ghost, "churn~x"), True, 0)
+    producer.tokens_lost(0)
+    producer.resync_begin()
+    producer.resync([], 0, ended=False)
+    assert producer.get(real) is not None and producer.get(ghost) is not None
+    assert not producer.resync_due(RESYNC_NS - 1) and producer.resync_due(RESYNC_NS)
+    producer.resync_begin()
+    producer.resync([_token(real, "consumer~x")], RESYNC_NS)
+    assert producer.get(real) is not None and producer.get(ghost) is None
+
+
+def test_a_token_event_fed_while_the_resync_query_was_out_wins_over_its_answer() -> None:
+    """The executor asks for the live tokens outside the producer's lock, while a ``put``
+    feeds token events: a subscriber that registered meanwhile is not in the answer, and a
+    token withdrawn meanwhile still is; neither answer may undo the event."""
+    producer = _producer()
+    joined = RegistrationKey("joined", FLOW, 8, -1)
+    left = RegistrationKey("left", FLOW, 2, -1)
+    producer.tokens_lost(0)
+    producer.resync_begin()
+    answer = [_token(left, "churn~x")]  # as the query saw it
+    producer.token(_token(joined, "consumer~x"), True, 0)
+    producer.token(_token(left, "churn~x"), True, 0)
+    producer.token(_token(left, "churn~x"), False, 0)
+    producer.resync(answer, 0)
+    assert producer.get(joined) is not None and producer.get(left) is None
 
 
 def test_a_token_whose_id_or_holder_no_client_could_read_is_ignored_and_counted() -> None:

@@ -50,6 +50,7 @@ from middleware._protocol_producer import (
     QUEUE_BUDGET,
     RESEND_BURST,
     RESEND_PACE_NS,
+    RESYNC_NS,
     ProducerProtocol,
 )
 from middleware._protocol_subscriber import Item, SubscriberProtocol
@@ -513,6 +514,62 @@ class ProtocolModel(RuleBasedStateMachine):
         self._emit()
         left = {r.key.sub_id for r in self.producer.registrations()}
         assert not any(k.sub_id in left for k, _ in keys), "a churned token stayed registered"
+
+    @rule(
+        data=st.data(),
+        whole=st.booleans(),
+        lose_delete=st.booleans(),
+        during=st.sampled_from(["nothing", "churn", "subscribe"]),
+    )
+    def lost_token_events(
+        self, data: st.DataObject, whole: bool, lose_delete: bool, during: str
+    ) -> None:
+        """Token events were dropped (a churn overflowed the inbox), with a live subscriber's
+        withdrawal among them (``lose_delete``), and the producer resyncs against a
+        liveliness query whose answer is ``whole`` or not (it failed or timed out: any part
+        of the live tokens), while token events are fed before it answers (``during``: a
+        churned token the answer still names is withdrawn, or a subscriber joins that it
+        does not name). No live subscriber may lose its registration, no withdrawn token
+        may come back, and the lost withdrawal is repaired, at the latest by the query asked
+        again after ``RESYNC_NS`` (``heal`` fails while it holds the producer)."""
+        STEPS[0] += 1
+        ghost = None
+        if lose_delete and self._live():
+            ghost = data.draw(st.sampled_from(self._live()))
+            ghost.alive = False  # its token is withdrawn; the producer never hears of it
+        churned = RegistrationKey(f"gone{self.now}", OBSERVE, 2, -1)
+        if during == "churn":
+            self.producer.token(_token(churned, "rogue~x"), True, self.now)
+        self.producer.tokens_lost(self.now)
+        while True:
+            due = self.producer.next_deadline_ns()
+            assert due is not None, "no resync after lost token events"
+            self.now = max(self.now, due)
+            if self.producer.resync_due(self.now):
+                break
+            self.producer.tick(self.now)
+            self._emit()
+        self.producer.resync_begin()
+        answer = [_token(k) for k in self._registered_keys()]  # as Zenoh knows them now
+        if during == "churn":
+            answer.append(_token(churned, "rogue~x"))
+            self.producer.token(_token(churned, "rogue~x"), False, self.now)
+        elif during == "subscribe" and len(self._live()) < 4:
+            self.subscribe(FLOW, 2)
+        if not whole:
+            event("a resync on an answer that did not end")
+            answer = data.draw(st.lists(st.sampled_from(answer), unique=True)) if answer else []
+        self.producer.resync(answer, self.now, ended=whole)
+        self._emit()
+        assert self.producer.get(churned) is None, "a withdrawn token came back at a resync"
+        if not whole:  # asked again: this answer is whole
+            self.now += RESYNC_NS
+            assert self.producer.resync_due(self.now), "a partial answer was not asked again"
+            self.producer.resync_begin()
+            self.producer.resync([_token(k) for k in self._registered_keys()], self.now)
+            self._emit()
+        if ghost is not None:
+            assert self.producer.get(ghost.key) is None, "a lost withdrawal held on"
 
     @precondition(lambda self: bool(self._live()))
     @rule(data=st.data(), puts=st.integers(0, 3))
