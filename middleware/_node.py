@@ -32,7 +32,7 @@ import zenoh
 from ._config import RENDEZVOUS_WAIT_S, NetworkConfig, check_name, listening_endpoints
 from ._discovery import buffer_of, split_target
 from ._errors import ConfigError, FramegateError, NotFoundError
-from ._executor import BUDGET, Executor, Timer
+from ._executor import BUDGET, STALL_NS, Executor, Timer
 from ._producer import HORIZON_NS, Producer
 from ._query import Queries
 from ._records import Retention, SubscriptionMode
@@ -85,6 +85,7 @@ class Node(Queries):
         self._endpoint: ServiceEndpoint | None = None
         self._subscriptions: list[Subscription] = []
         self._lock = threading.Lock()
+        self._stalled_until_ns = 0  # when the last stall said ended (``_stalled``)
         self._closed = False
 
     # -- service side ----------------------------------------------------------------------
@@ -215,7 +216,14 @@ class Node(Queries):
                 raise executor.error
             # A signal handler's stop.set() ends the wait at once; a close or a handler's
             # error from another thread is seen within one slice.
+            planned = time.monotonic_ns() + int(_SPIN_SLICE_S * 1e9)
             stop.wait(_SPIN_SLICE_S)
+            # This thread does nothing else, so waking late means the process did not run.
+            # The executor sees that only when the stop comes while it sleeps: a busy
+            # mediator was stopped 14 s mid-turn and said "1.9 s" (a later starvation).
+            late = time.monotonic_ns() - planned
+            if late > STALL_NS:
+                self._stalled(late)
         if executor.error is not None and not stop.is_set():
             raise executor.error
 
@@ -262,9 +270,14 @@ class Node(Queries):
             raise missing
 
     def _stalled(self, late_ns: int) -> None:
-        """(the node's executor) The process did not run for ``late_ns``: say so, once."""
+        """(the executor, or ``spin``) The process did not run for ``late_ns``: say so,
+        once: a stop both saw (the executor slept through it) is said by the first."""
         lease_s = self.network.lease_ms / 1000
-        if late_ns / 1e9 > lease_s:
+        now = time.monotonic_ns()
+        with self._lock:
+            seen = now - late_ns < self._stalled_until_ns
+            self._stalled_until_ns = max(self._stalled_until_ns, now)
+        if late_ns / 1e9 > lease_s and not seen:
             # Not only SIGSTOP: with more runnable threads than CPUs a thread can wait seconds
             # for one (measured: 2.3 s at load 22 on 2 cores), so the load is part of the answer.
             load = os.getloadavg()[0] if hasattr(os, "getloadavg") else math.nan

@@ -5,9 +5,11 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -76,6 +78,52 @@ def test_a_subscriber_resumed_after_a_stop_registers_again_and_says_why(
         images.put(1, b"x", make_metadata("generic", 1))
         assert sub.call("take", target="cam/images", timeout=30)["notification"]["t"] == 1
         wait_until(lambda: "did not run for" in capfd.readouterr().err, 30, "the stop logged")
+
+
+# A service whose executor is nearly always inside a handler (sleeping there, not in its
+# own wait), as a loaded mediator's is: a stop then comes mid-turn.
+BUSY_SERVICE = """
+import logging, sys, threading, time
+from middleware import NetworkConfig, Node
+logging.basicConfig(level=logging.INFO, format="%(message)s")
+def busy(_now):
+    print("busy", flush=True)
+    time.sleep(0.5)
+with Node("busy", NetworkConfig(listen=(sys.argv[1],))) as node:
+    node.every(0.01, busy)
+    node.spin(threading.Event())
+"""
+
+
+@pytest.mark.integration
+def test_a_stop_that_comes_mid_turn_is_said_whole(endpoint: str) -> None:
+    proc = subprocess.Popen(
+        [sys.executable, "-c", BUSY_SERVICE, endpoint],
+        cwd=REPO, env=child_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    said: list[float] = []
+
+    def pump() -> None:
+        assert proc.stderr is not None
+        for line in proc.stderr:
+            found = re.search(r"did not run for ([0-9.]+) s", line)
+            if found:
+                said.append(float(found.group(1)))
+
+    threading.Thread(target=pump, daemon=True).start()
+    try:
+        assert proc.stdout is not None and proc.stdout.readline().strip() == "busy"
+        os.kill(proc.pid, signal.SIGSTOP)
+        try:
+            time.sleep(3.0)  # the stop's length (a duration, not a condition)
+        finally:
+            os.kill(proc.pid, signal.SIGCONT)
+        # At least the stop less one 0.25 s slice of ``spin``, less the log's rounding: a
+        # lower bound that no slow machine can miss (the stop lasted that long).
+        wait_until(lambda: any(s >= 2.7 for s in said), 30, lambda: f"the stop said whole: {said}")
+    finally:
+        proc.kill()
+        proc.wait()
 
 
 def _framegate(argv: list[str], port: int, runtime: Path) -> subprocess.Popen[str]:
