@@ -304,7 +304,10 @@ class AckInbox(ControlInbox):
     - ``foreign``: an ack that cannot count (``plausible`` says no: no live registration owns
       its epoch under its key's id, or it acks more than was sent): forged acks of made-up
       epochs, ids or numbers, distinct each (undecodable ones count as ``malformed``);
-      reported with the protocol's own count of them (``BufferInfo.foreign_acks``).
+      reported with the protocol's own count of them (``BufferInfo.foreign_acks``). Those of
+      a registration the producer retired are counted apart too (``retired``; see
+      ``ProducerProtocol.tokens_lost`` for why), and ``on_retired`` is called, at most every
+      ``REPEAT_RESEND_NS`` whatever a flood sends.
 
     Garbage and forged acks then cost Zenoh's thread a copy of at most ``max_bytes``, a
     comparison or a decode, and the executor nothing: they never fill the inbox, so an
@@ -319,13 +322,19 @@ class AckInbox(ControlInbox):
         max_bytes: int,
         signal: Callable[[], None],
         plausible: Callable[[str, str, int], bool],
+        retired: Callable[[str], bool],
+        on_retired: Callable[[], None],
     ) -> None:
         super().__init__(capacity=capacity, max_bytes=max_bytes, signal=signal)
         self.malformed = 0
         self.repeats = 0
         self.foreign = 0
+        self.retired = 0  # of the foreign ones: of a registration the producer retired
+        self._on_retired = on_retired  # told of them, at most every REPEAT_RESEND_NS
+        self._retired_told_ns: int | None = None
         self._filter = AckFilter(REPEAT_RESEND_NS)  # only a shortcut: the protocol checks again
         self._plausible = plausible
+        self._retired = retired
 
     @property
     def dropped(self) -> int:
@@ -352,8 +361,16 @@ class AckInbox(ControlInbox):
                 self.malformed += 1
             return DROPPED
         if not self._plausible(key.rsplit("/", 1)[-1], epoch, seq):
+            retired = self._retired(epoch)
             with self._count_lock:
                 self.foreign += 1
+                self.retired += retired
+                told = self._retired_told_ns
+                tell = retired and (told is None or now_ns - told >= REPEAT_RESEND_NS)
+                if tell:
+                    self._retired_told_ns = now_ns
+            if tell:
+                self._on_retired()
             return DROPPED
         self._filter.remember(key, data, now_ns)
         return Control(key, data, sample.kind == zenoh.SampleKind.PUT, (epoch, seq))

@@ -226,6 +226,17 @@ class ProducerLedger(Generic[H]):
         reg = self._by_epoch.get(epoch)
         return reg is not None and reg.key.sub_id == sub_id and 1 <= seq <= reg.sent
 
+    def retired(self, epoch: str) -> bool:
+        """Whether ``epoch`` is one this ledger gave a registration that it has retired since
+        (safe from another thread, as ``plausible``)."""
+        prefix, _, count = epoch.rpartition(".")
+        return (
+            prefix == self.epoch
+            and count.isdigit()
+            and 0 < int(count[:9]) <= self._count
+            and epoch not in self._by_epoch
+        )
+
     def ack(self, sub_id: str, epoch: str, seq: int, now_ns: int) -> bool:
         """Apply a cumulative ack; True if it freed credit."""
         if not self.plausible(sub_id, epoch, seq):

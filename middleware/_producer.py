@@ -120,11 +120,13 @@ class Producer:
             max_bytes=ACK_MAX_BYTES,
             signal=self._wake.signal,
             plausible=self._protocol.plausible_ack,
+            retired=self._protocol.retired_epoch,
+            on_retired=self._signal,
         )
         # A token is the executor's at once: a new subscriber waits for its greeting. A token
         # is its key; it carries no payload.
         self._token_keys = keys.subscription_tokens(service, buffer)
-        self._tokens_dropped = 0
+        self._lost = (0, 0)  # see ``_feed``
         self._tokens = TokenInbox(capacity=TOKEN_INBOX, signal=self._signal)
         self._acks.declare(session, keys.acks(service, buffer))
         # Declared last: its callback (history included) may run at once.
@@ -147,7 +149,10 @@ class Producer:
     def _feed(self, budget: int) -> bool:
         """(under _lock) Feed the protocol at most ``budget`` acks and as many tokens; True
         if anything changed for a waiting put (credit freed, a subscriber came or went)."""
-        if not (self._acks or self._tokens) and self._tokens.dropped == self._tokens_dropped:
+        # Signs of lost token events (``ProducerProtocol.tokens_lost``): churn overflowed
+        # the token inbox, or the ack inbox dropped acks of a registration we retired.
+        lost = (self._tokens.dropped, self._acks.retired)
+        if not (self._acks or self._tokens) and lost == self._lost:
             return False  # every put asks: nothing came is the common case
         changed = False
         ack = self._protocol.ack
@@ -157,8 +162,8 @@ class Producer:
         for message in self._tokens.take(budget):
             self._protocol.token(message.key, message.alive, now)
             changed = True
-        if self._tokens.dropped != self._tokens_dropped:  # churn overflowed the inbox
-            self._tokens_dropped = self._tokens.dropped
+        if lost != self._lost:
+            self._lost = lost
             self._protocol.tokens_lost(now)
         return changed
 

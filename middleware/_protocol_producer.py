@@ -202,9 +202,13 @@ class ProducerProtocol:
 
     # -- lost token events ----------------------------------------------------------------
     def tokens_lost(self, now_ns: int) -> None:
-        """The Zenoh layer dropped token events (its bounded inbox overflowed under churn):
-        the table may hold a registration whose token is gone (it would hold the producer
-        for ever) or lack a live one. A ``resync`` falls due, at most every ``RESYNC_NS``."""
+        """Token events may be lost: the Zenoh layer's bounded inbox overflowed under churn,
+        or someone acked a registration we retired (``retired_epoch``; mostly a leaver's last
+        ack, but Zenoh can lose a token event unseen, "Unknown token id" under churn, and a
+        subscriber whose token came back unheard repeats its ack while idle: nothing else
+        would tell us it lives). The table may hold a registration whose token is gone (it
+        would hold the producer for ever) or lack a live one. A ``resync`` falls due, at
+        most every ``RESYNC_NS``, however many call this."""
         if self._resync_at_ns is None:
             self._resync_at_ns = max(now_ns, self._resynced_ns + RESYNC_NS)
 
@@ -288,6 +292,8 @@ class ProducerProtocol:
             self.counters.bad_messages += 1
             return False
         self._acks_seen.remember(keyexpr, payload, now_ns)
+        if not self._ledger.plausible(sub_id, epoch, seq) and self._ledger.retired(epoch):
+            self.tokens_lost(now_ns)
         freed = self._ledger.ack(sub_id, epoch, seq, now_ns)
         if freed:
             reg = self._ledger.by_epoch(epoch)
@@ -300,6 +306,10 @@ class ProducerProtocol:
         thread): what an ack inbox keeps, so that forged acks never fill it."""
         return self._ledger.plausible(sub_id, epoch, seq)
 
+    def retired_epoch(self, epoch: str) -> bool:
+        """``ProducerLedger.retired`` (safe from another thread; see ``tokens_lost``)."""
+        return self._ledger.retired(epoch)
+
     def admit(self, count: int, *, may_wait: bool) -> Refusal | None:
         """Whether ``count`` elements may be stored now (None), else why not and whether to
         wait for credit: never for a batch larger than the full subscriber's queue, which
@@ -307,15 +317,8 @@ class ProducerProtocol:
         full = self._ledger.full(count)
         if full is None:
             return None
-        k = full.key
-        return Refusal(
-            self.name,
-            k.sub_id,
-            full.queued,
-            k.queue_size,
-            count,
-            wait=may_wait and count <= k.queue_size,
-        )
+        k, wait = full.key, may_wait and count <= full.key.queue_size
+        return Refusal(self.name, k.sub_id, full.queued, k.queue_size, count, wait=wait)
 
     def put_many(self, elements: tuple[DataObject, ...], now_ns: int) -> int:
         """Count stored elements (the caller checked ``admit``) and queue their notifications:

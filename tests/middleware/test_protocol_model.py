@@ -33,12 +33,13 @@ from hypothesis import strategies as st
 from hypothesis.database import DirectoryBasedExampleDatabase
 from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, precondition, rule
 
-from middleware._ledger_producer import RETRANSMIT_NS, RegistrationKey
+from middleware._ledger_producer import REPEAT_RESEND_NS, RETRANSMIT_NS, RegistrationKey
 from middleware._ledger_subscriber import (
     ACK_DELAY_NS,
     DEEP_ACK_DELAY_NS,
     FORGOTTEN_EPOCHS,
     MAX_EPOCHS,
+    REACK_NS,
     AckPolicy,
     Entry,
 )
@@ -570,6 +571,61 @@ class ProtocolModel(RuleBasedStateMachine):
             self._emit()
         if ghost is not None:
             assert self.producer.get(ghost.key) is None, "a lost withdrawal held on"
+
+    @precondition(lambda self: bool(self._acked_live()))
+    @rule(data=st.data(), puts=st.integers(0, 3))
+    def token_back_unheard(self, data: st.DataObject, puts: int) -> None:
+        """Zenoh lost a token event with no sign of it (no inbox overflowed: "Unknown token
+        id" under churn): a live subscriber's token was withdrawn and declared again, and
+        the producer heard only the withdrawal. The subscriber, idle, repeats its ack of the
+        registration it still holds; that ack names a registration the producer retired,
+        so a resync falls due and registers the live token again, with ``puts`` elements
+        stored meanwhile counted missed."""
+        STEPS[0] += 1
+        sub = data.draw(st.sampled_from(self._acked_live()))
+        sub.lapsed = True
+        for msg in [m for m in self.net if isinstance(m, Note) and m.sub_id == sub.key.sub_id]:
+            self.net.remove(msg)
+            self._deliver(msg)
+        self.producer.token(_token(sub.key), False, self.now)
+        self._emit()
+        meta = str(self.instance).encode()
+        for _ in range(puts):
+            if self.producer.admit(1, may_wait=False) is not None:
+                break
+            self.producer.put_many((DataObject(self.next_t, b"", meta),), self.now)
+            self.next_t += 1
+            self._emit()
+        self.now += max(REACK_NS, REPEAT_RESEND_NS)  # a repeat, not one the filter drops
+        keyexpr = KEYS.ack(SERVICE, BUFFER, sub.key.sub_id)
+        acks = sub.protocol.acks(self.now, idle=True)
+        assert acks, "an idle subscriber that took something repeats no ack"
+        for ack in acks:
+            self.producer.ack(keyexpr, ack, self.now)
+        limit = self.now + RESYNC_NS
+        while not self.producer.resync_due(self.now):
+            due = self.producer.next_deadline_ns()
+            assert due is not None and due <= limit, "an ack of a retired one: no resync"
+            self.now = max(self.now, due)
+            self.producer.tick(self.now)
+            self._emit()
+        self.producer.resync_begin()
+        self.producer.resync([_token(k) for k in self._registered_keys()], self.now)
+        reg = self.producer.get(sub.key)
+        assert reg is not None, "a live subscriber whose token came back unheard stayed out"
+        event(f"token back unheard: re-registered, {min(puts, 1)}+ stored meanwhile")
+        self.epochs_of.setdefault(sub.key, set()).add(reg.epoch)
+        self._emit()
+
+    def _acked_live(self) -> list[Sub]:
+        """Live subscribers that took something of the registration they hold now (only
+        those repeat an ack while idle)."""
+        out = []
+        for sub in self._live():
+            reg = self.producer.get(sub.key)
+            if reg is not None and any(e == reg.epoch for e, _, _ in sub.taken):
+                out.append(sub)
+        return out
 
     @precondition(lambda self: bool(self._live()))
     @rule(data=st.data(), puts=st.integers(0, 3))

@@ -67,11 +67,12 @@ def test_an_answer_cut_short_by_a_lapsed_link_raises_instead_of_reading_as_the_b
         finally:
             os.kill(server.proc.pid, signal.SIGCONT)
 
-        # Running again, the service answers whole and the end mark says so (once the link
-        # is back and the stopped answer's rest has gone: asked again meanwhile).
-        again = answered(
-            lambda: client.query("cam/images", timeout_s=scaled(10)), "cam/images", wait_s=120
-        )
+    # Running again, the service answers whole and the end mark says so. Asked from a new
+    # session: the one above can stay deaf to the service for good when it reconnected while
+    # the service was still closing its side of the lapsed link (a Zenoh race: 6 of 222 runs,
+    # 8 at once beside a busy loop; docs/limits.md), which is not what this test is about.
+    with Node(network=NetworkConfig(connect=(endpoint,), shared_memory=False)) as client:
+        again = answered(lambda: client.query("cam/images", timeout_s=scaled(10)), "cam/images")
         assert len(again) == COUNT
 
 
