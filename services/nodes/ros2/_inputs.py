@@ -19,6 +19,7 @@ lock.
 from __future__ import annotations
 
 import collections
+import dataclasses
 import logging
 import threading
 import time
@@ -473,8 +474,12 @@ def _subscribe_camera(
     """Subscribe to what the camera description is built from (nothing with --camera-xml)."""
     topic = config.camera_info_topic
     if cameras.wants_camera_info and topic:
-        link.subscribe(
-            topic, CAMERA_INFO, hashed(CAMERA_INFO), config.in_qos, cameras.on_camera_info
+        # Transient local, depth 1: a driver that publishes CameraInfo once, latched (as
+        # many do for a fixed calibration), is read from its publisher's cache however late
+        # the bridge starts; one that publishes it beside every image is heard as before.
+        info_qos = dataclasses.replace(
+            config.in_qos, depth=1, durability=Durability.TRANSIENT_LOCAL
         )
+        link.subscribe(topic, CAMERA_INFO, hashed(CAMERA_INFO), info_qos, cameras.on_camera_info)
     if cameras.wants_tf:
         link.subscribe(TF_STATIC, TF_MESSAGE, hashed(TF_MESSAGE), _TF_STATIC_QOS, cameras.on_tf)

@@ -100,16 +100,28 @@ def main(params: dict[str, Any]) -> None:
         camera = dataclasses.replace(scenario.camera, gyro_time_offset_ns=0)
         image_frame, imu_frame = (IMAGE_FRAME, IMU_FRAME) if described else ("camera", "imu")
         gyro_shift = scenario.camera.gyro_time_offset_ns if described else 0
+        # ``latched_info``: CameraInfo once, before the bridge starts, from a transient-local
+        # publisher's cache (as a driver with a fixed calibration publishes it), not per image.
+        latched_info = bool(params.get("latched_info"))
+        latched = Qos(depth=1, durability=Durability.TRANSIENT_LOCAL)
         if described:
             info_hash = type_hash(codec.rihs01(CAMERA_INFO), "jazzy")
+            info_key = data_key(0, "/camera/camera_info", CAMERA_INFO, info_hash)
             token = node.endpoint_token(
-                3, EntityKind.PUBLISHER, "/camera/camera_info", CAMERA_INFO, info_hash, qos
+                3,
+                EntityKind.PUBLISHER,
+                "/camera/camera_info",
+                CAMERA_INFO,
+                info_hash,
+                latched if latched_info else qos,
             )
             tokens.append(session.liveliness().declare_token(token))
             publishers[CAMERA_INFO] = (
-                session.declare_publisher(
-                    data_key(0, "/camera/camera_info", CAMERA_INFO, info_hash)
-                ),
+                zenoh.ext.declare_advanced_publisher(
+                    session, info_key, cache=zenoh.ext.CacheConfig(1), publisher_detection=True
+                )
+                if latched_info
+                else session.declare_publisher(info_key),
                 gid(token),
             )
         sequence = {IMAGE: 0, IMU: 0, CAMERA_INFO: 0}
@@ -121,7 +133,6 @@ def main(params: dict[str, Any]) -> None:
             publisher.put(cdr, attachment=attachment)
 
         broadcasts = tf_static(codec, camera.gyro_to_camera)
-        latched = Qos(depth=1, durability=Durability.TRANSIENT_LOCAL)
 
         def broadcaster(entity_id: int, name: str) -> None:
             # A tf2_ros StaticTransformBroadcaster on rmw_zenoh: one latched message.
@@ -147,6 +158,8 @@ def main(params: dict[str, Any]) -> None:
         tf_publishers: list[Any] = []
         if described:
             broadcaster(4, "robot")
+        if latched_info:
+            publish(CAMERA_INFO, camera_info(codec, camera, time.time_ns()))
         _emit(ready=True)
         if not sys.stdin.readline():
             return  # the test ended first
@@ -197,7 +210,7 @@ def main(params: dict[str, Any]) -> None:
                     cdr = codec.encode_image(
                         stamp, image_frame, images.shape[2], images.shape[1], "mono8", images[frame]
                     )
-                    if described:
+                    if described and not latched_info:
                         publish(CAMERA_INFO, camera_info(codec, camera, stamp))
                     if frame in skip:
                         sequence[IMAGE] += 1  # as if one sample had been lost on the way

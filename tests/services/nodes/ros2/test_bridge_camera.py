@@ -1,9 +1,9 @@
 """The camera description from ROS 2 itself, end to end: a plain-Zenoh camera driver that
-publishes CameraInfo beside its images and the robot's /tf_static (one broadcaster before
-the bridge starts, one after), a bridge without --camera-xml and its mediator, beside a
-bridge given the equivalent --camera-xml and its mediator (on the first bridge's gyro
-buffer), all real processes. Both mediators must estimate the same blur for every frame;
-a sequence number the driver skips is counted as lost in transport."""
+publishes CameraInfo beside its images (or once, latched) and the robot's /tf_static (one
+broadcaster before the bridge starts, one after), a bridge without --camera-xml and its
+mediator, beside a bridge given the equivalent --camera-xml and its mediator (on the first
+bridge's gyro buffer), all real processes. Both mediators must estimate the same blur for
+every frame; a sequence number the driver skips is counted as lost in transport."""
 
 from __future__ import annotations
 
@@ -64,9 +64,12 @@ def _blurs(pipe: Pipeline, buffer: str) -> dict[int, float]:
     return {r.frame_timestamp_ns: r.blur_px for r in records if r.blur_px is not None}
 
 
+@pytest.mark.parametrize("latched_info", [False, True], ids=["info-per-image", "info-latched"])
 def test_blur_from_camera_info_and_tf_static_equals_blur_from_the_camera_xml(
-    tmp_path: Path,
+    tmp_path: Path, latched_info: bool
 ) -> None:
+    """``info-latched``: the driver published its CameraInfo once, transient local, before
+    the bridge started (a plain subscriber would never hear it)."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     driver = Driver(
         {
@@ -77,6 +80,7 @@ def test_blur_from_camera_info_and_tf_static_equals_blur_from_the_camera_xml(
             "frames_path": str(tmp_path / "frames.npy"),
             "camera_path": str(tmp_path / "sim.xml"),
             "camera_info": True,
+            "latched_info": latched_info,
             "skip_sequence": [4],
         }
     )
