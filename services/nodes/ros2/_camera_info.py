@@ -14,7 +14,9 @@ description ``--camera-xml`` reads). Without ``--camera-xml`` the bridge builds 
 - rotation: v_camera = R v_imu where the camera frame is the image's ``header.frame_id``
   (normally the optical frame, REP 103: x right, y down, z forward, framegate's camera
   axes) and the IMU frame the IMU message's ``header.frame_id``, from the static transform
-  tree (:mod:`._tf`). ``--imu-to-camera`` gives R instead.
+  tree (:mod:`._tf`), turned by the CameraInfo's rectification R for a rectified topic
+  (a stereo pair's images are rotated into the common rectified plane). ``--imu-to-camera``
+  gives the rotation instead, as it is.
 
 Both change rarely; the latest CameraInfo waits in a one-message slot and /tf_static
 messages in a short queue (oldest dropped, counted) until the image worker, the one caller
@@ -43,8 +45,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from middleware import FramegateError, printable
-from services.lib.camera_model import CameraModel
+import numpy as np
+
+from middleware import ConfigError, FramegateError, printable
+from services.lib.camera_model import CameraModel, check_rotation
 
 from ._cdr import CdrError, Codec
 from ._rmw import Attachment
@@ -92,6 +96,9 @@ class Intrinsics:
     fy_px: float
     cx_px: float
     cy_px: float
+    # A rectified topic's R when it is not the identity (a stereo pair's): the rotation from
+    # the camera frame the images name to the rectified one, v_rect = R v_camera.
+    rectification: tuple[float, ...] | None = None
 
 
 class Uncalibrated(CdrError):
@@ -103,7 +110,7 @@ def intrinsics(codec: Codec, raw: bytes, rectified: bool) -> Intrinsics:
     one, Uncalibrated for a camera without calibration."""
     try:
         msg: Any = codec.store.deserialize_cdr(memoryview(raw), CAMERA_INFO)
-        k, p = [float(v) for v in msg.k], [float(v) for v in msg.p]
+        k, p, r = [float(v) for v in msg.k], [float(v) for v in msg.p], [float(v) for v in msg.r]
         width, height = int(msg.width), int(msg.height)
         bx, by = max(1, int(msg.binning_x)), max(1, int(msg.binning_y))
         roi = msg.roi
@@ -111,8 +118,8 @@ def intrinsics(codec: Codec, raw: bytes, rectified: bool) -> Intrinsics:
         roi_w, roi_h = int(roi.width), int(roi.height)
     except Exception as exc:  # rosbags raises several types for truncated input
         raise CdrError(f"not a CDR {CAMERA_INFO}: {exc}") from exc
-    if len(k) != 9 or len(p) != 12:
-        raise CdrError(f"{CAMERA_INFO} with {len(k)} K and {len(p)} P numbers")
+    if len(k) != 9 or len(p) != 12 or len(r) != 9:
+        raise CdrError(f"{CAMERA_INFO} with {len(k)} K, {len(r)} R and {len(p)} P numbers")
     fx, fy, cx, cy = (p[0], p[5], p[2], p[6]) if rectified else (k[0], k[4], k[2], k[5])
     # K[0] == 0 says uncalibrated for the rectified images too (image_proc then rectifies
     # nothing), whatever P holds.
@@ -127,7 +134,22 @@ def intrinsics(codec: Codec, raw: bytes, rectified: bool) -> Intrinsics:
         width, height, cx, cy = roi_w, roi_h, cx - x0, cy - y0
         if abs(cx) > MAX_PIXELS or abs(cy) > MAX_PIXELS:  # an offset of 2**32 - 1, say
             raise CdrError(f"{CAMERA_INFO} centre {cx}, {cy} after its region of interest")
-    return Intrinsics(width // bx, height // by, fx / bx, fy / by, cx / bx, cy / by)
+    return Intrinsics(
+        width // bx, height // by, fx / bx, fy / by, cx / bx, cy / by, _rectification(r, rectified)
+    )
+
+
+def _rectification(r: list[float], rectified: bool) -> tuple[float, ...] | None:
+    """R when it turns a rectified topic's images (see ``Intrinsics``); None for the identity,
+    for a raw topic (whose images are not turned) and for all zeros (a monocular driver that
+    leaves R unset means no rotation). CdrError for one that is no rotation."""
+    if not rectified or not any(r) or r == [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]:
+        return None
+    try:
+        check_rotation(r, "R")
+    except ConfigError as exc:
+        raise CdrError(f"{CAMERA_INFO} rectification {exc}") from exc
+    return tuple(r)
 
 
 def transforms(codec: Codec, raw: bytes) -> tuple[list[Transform], list[str]]:
@@ -361,10 +383,15 @@ class CameraSource:
                 "until then); waiting for " + "; ".join(missing)
             )
             return None
-        key = (self._intrinsics, rotation)
+        i = self._intrinsics
+        if self._rotation is None and i.rectification is not None:
+            # TF names the rotation into the images' frame; rectified ones are turned by R
+            # from it (``--imu-to-camera`` is taken as given for the images bridged).
+            turn = np.asarray(i.rectification).reshape(3, 3) @ np.asarray(rotation).reshape(3, 3)
+            rotation = tuple(float(v) for v in turn.reshape(-1))
+        key = (i, rotation)
         if key == self._model_key and self._model is not None:
             return self._model
-        i = self._intrinsics
         try:
             model = CameraModel(
                 i.width_px, i.height_px, i.fx_px, i.fy_px, i.cx_px, i.cy_px,

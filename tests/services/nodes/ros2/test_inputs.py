@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from middleware import NetworkConfig, Node
 from services.lib.camera_model import CameraModel
@@ -479,3 +480,61 @@ def test_images_of_a_new_size_with_a_stale_camera_info_go_on_without_a_descripti
     info = images.producer.info()
     assert info.puts == 4, info.skipped
     assert info.skipped == {"camera-info-mismatch": 3}
+
+
+def test_a_rectified_topic_turns_the_tf_rotation_by_the_camera_infos_r(codec: Codec) -> None:
+    """A stereo pair's rectified images are rotated by R from the camera frame their header
+    names: the blur must be estimated about the rectified axes (v_rect = R R_tf v_imu)."""
+    camera = CameraModel(320, 240, 300.0, 300.0, 160.0, 120.0)
+    imu_to_camera = tuple(Rotation.from_euler("xyz", [0.3, -0.2, 0.1]).as_matrix().reshape(-1))
+    r = Rotation.from_euler("y", 0.05).as_matrix()  # a typical small stereo rectification
+    message = codec.store.deserialize_cdr(
+        camera_info(codec, camera, 1), "sensor_msgs/msg/CameraInfo"
+    )
+
+    def described(topic: str, r_values: np.ndarray) -> CameraModel:
+        raw = bytes(
+            codec.store.serialize_cdr(
+                dataclasses.replace(message, r=r_values.reshape(-1)), "sensor_msgs/msg/CameraInfo"
+            )
+        )
+        cameras = CameraSource(
+            codec, logging.getLogger("test"), image_topic=topic, info_topic="/i", imu_topic="/m"
+        )
+        for broadcast in tf_static(codec, imu_to_camera).values():
+            cameras.on_tf(broadcast, None)
+        cameras.on_camera_info(raw, None)
+        cameras.set_imu_frame(IMU_FRAME)
+        found = cameras.for_image(IMAGE_FRAME, 320, 240, lambda r, d, n: None)
+        assert found is not None
+        return found
+
+    tf = np.asarray(imu_to_camera).reshape(3, 3)
+    rect = described("/stereo/left/image_rect", r)
+    assert np.allclose(np.asarray(rect.gyro_to_camera).reshape(3, 3), r @ tf, atol=1e-9)
+    # A raw topic's images are not rectified, and a monocular R (identity, or left all
+    # zeros by some drivers) turns nothing.
+    for topic, r_values in (
+        ("/stereo/left/image_raw", r),
+        ("/cam/image_rect", np.eye(3)),
+        ("/cam/image_rect", np.zeros((3, 3))),
+    ):
+        found = described(topic, r_values)
+        assert np.allclose(np.asarray(found.gyro_to_camera).reshape(3, 3), tf, atol=1e-9), topic
+
+
+def test_a_rectification_r_that_is_no_rotation_is_a_bad_camera_info(codec: Codec) -> None:
+    from services.nodes.ros2._cdr import CdrError
+
+    camera = CameraModel(320, 240, 300.0, 300.0, 160.0, 120.0)
+    message = codec.store.deserialize_cdr(
+        camera_info(codec, camera, 1), "sensor_msgs/msg/CameraInfo"
+    )
+    raw = bytes(
+        codec.store.serialize_cdr(
+            dataclasses.replace(message, r=np.full(9, float("nan"))), "sensor_msgs/msg/CameraInfo"
+        )
+    )
+    with pytest.raises(CdrError, match="rectification"):
+        intrinsics(codec, raw, rectified=True)
+    assert intrinsics(codec, raw, rectified=False).rectification is None  # not used there
