@@ -241,10 +241,11 @@ _LISTEN_FRESH_NS = 5_000_000_000
 # already waiting is answered.
 DATA_QUERIES = 256
 INFO_QUERIES = 64
-# A query's payload and attachment together, at most: framegate's queries carry neither (what
-# they ask is in the selector), and a waiting query holds what it carries, so 256 queries
-# with 4 MB payloads each, sent faster than a 16 MB answer goes out, grew a producer from
-# 57 to 411 MB. A larger one is finalized unanswered and counted as an overflow is.
+# A query's payload, attachment and selector parameters together, at most: framegate's
+# queries carry no payload or attachment and a few short parameters (``_time=[a..b]``), and a
+# waiting query holds all of it, so 256 queries with 4 MB payloads each, sent faster than a
+# 16 MB answer goes out, grew a producer from 57 to 411 MB (parameters of any length go as
+# well). A larger one is finalized unanswered and counted as an overflow is.
 QUERY_BODY_MAX_BYTES = 1024
 
 
@@ -298,10 +299,12 @@ class QueryInbox:
 
 
 def _body_bytes(query: zenoh.Query) -> int:
-    """What ``query`` carries beside its selector (payload and attachment), in bytes."""
+    """What ``query`` carries beside its key: payload, attachment and selector parameters."""
     payload, attachment = query.payload, query.attachment
-    return (len(payload) if payload is not None else 0) + (
-        len(attachment) if attachment is not None else 0
+    return (
+        (len(payload) if payload is not None else 0)
+        + (len(attachment) if attachment is not None else 0)
+        + len(str(query.parameters))
     )
 
 

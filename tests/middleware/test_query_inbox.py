@@ -20,10 +20,11 @@ from tests.helpers.timing import scaled
 class _Query:
     """A stand-in for ``zenoh.Query``: the inbox only holds and drops them."""
 
-    def __init__(self, n: int, payload: bytes | None = None) -> None:
+    def __init__(self, n: int, payload: bytes | None = None, parameters: str = "") -> None:
         self.n = n
         self.payload = payload
         self.attachment = None
+        self.parameters = parameters
 
 
 def _ask(inbox: QueryInbox, which: str, n: int) -> None:
@@ -54,7 +55,9 @@ def test_a_query_carrying_more_than_a_query_needs_is_not_kept() -> None:
     inbox.callback("data").callback(_Query(1, b"q" * (4 << 20)))  # type: ignore[arg-type]
     inbox.callback("info").callback(_Query(2, b"q" * (QUERY_BODY_MAX_BYTES + 1)))  # type: ignore[arg-type]
     inbox.callback("data").callback(_Query(3, b"q" * QUERY_BODY_MAX_BYTES))  # type: ignore[arg-type]
-    assert inbox.dropped == 2
+    # Selector parameters are held as well: a megabyte of them is as much as a payload.
+    inbox.callback("data").callback(_Query(4, None, "_time=" + "9" * (1 << 20)))  # type: ignore[arg-type]
+    assert inbox.dropped == 3
     taken = inbox.take()
     assert taken is not None and taken[1].n == 3  # type: ignore[attr-defined]
     assert not inbox._waiting["data"] and not inbox._waiting["info"]
@@ -79,6 +82,10 @@ def test_a_query_with_a_large_payload_is_counted_and_not_answered(
             )
             assert [r for r in replies if r.ok is not None] == []
             assert client.service_info("cam").dropped_queries == 1
+            long = "framegate/cam/log?_time=[0.." + "0" * (64 << 10) + "1]"
+            replies = list(rogue.get(long, timeout=scaled(10)))
+            assert [r for r in replies if r.ok is not None] == []
+            assert client.service_info("cam").dropped_queries == 2
             got = client.query("cam/log", timeout_s=scaled(10))
             assert [e.timestamp_ns for e in got] == list(range(1, 11))
 
