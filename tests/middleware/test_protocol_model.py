@@ -583,19 +583,7 @@ class ProtocolModel(RuleBasedStateMachine):
         stored meanwhile counted missed."""
         STEPS[0] += 1
         sub = data.draw(st.sampled_from(self._acked_live()))
-        sub.lapsed = True
-        for msg in [m for m in self.net if isinstance(m, Note) and m.sub_id == sub.key.sub_id]:
-            self.net.remove(msg)
-            self._deliver(msg)
-        self.producer.token(_token(sub.key), False, self.now)
-        self._emit()
-        meta = str(self.instance).encode()
-        for _ in range(puts):
-            if self.producer.admit(1, may_wait=False) is not None:
-                break
-            self.producer.put_many((DataObject(self.next_t, b"", meta),), self.now)
-            self.next_t += 1
-            self._emit()
+        self._withdrawn(sub, puts)
         self.now += max(REACK_NS, REPEAT_RESEND_NS)  # a repeat, not one the filter drops
         keyexpr = KEYS.ack(SERVICE, BUFFER, sub.key.sub_id)
         acks = sub.protocol.acks(self.now, idle=True)
@@ -634,11 +622,16 @@ class ProtocolModel(RuleBasedStateMachine):
         came back), with ``puts`` elements stored meanwhile: it must see them as missed."""
         STEPS[0] += 1
         sub = data.draw(st.sampled_from(self._live()))
+        self._withdrawn(sub, puts)
+        self._register(sub.key)
+
+    def _withdrawn(self, sub: Sub, puts: int) -> None:
+        """``sub``'s token withdrawn (a lapse: it counts what it misses), ``puts`` elements
+        stored after. One producer session's messages to one key stay in order (Zenoh): what
+        the old registration had in flight arrives (or is lost, by earlier moves) before the
+        new registration's. Across a lapse the network may not reorder: the count of what
+        was never notified rests on the element numbers seen so far."""
         sub.lapsed = True
-        # One producer session's messages to one key stay in order (Zenoh): what the old
-        # registration had in flight arrives (or is lost, by earlier moves) before the new
-        # registration's. Across a lapse the network may not reorder: the count of what was
-        # never notified rests on the element numbers seen so far.
         for msg in [m for m in self.net if isinstance(m, Note) and m.sub_id == sub.key.sub_id]:
             self.net.remove(msg)
             self._deliver(msg)
@@ -651,7 +644,6 @@ class ProtocolModel(RuleBasedStateMachine):
             self.producer.put_many((DataObject(self.next_t, b"", meta),), self.now)
             self.next_t += 1
             self._emit()
-        self._register(sub.key)
 
     def _check_shares(self) -> None:
         """No holder holds more than the fair share of an idle producer, and the budget

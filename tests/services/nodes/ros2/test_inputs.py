@@ -8,6 +8,7 @@ import logging
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -209,16 +210,23 @@ def test_camera_xml_and_the_rotation_flag_override_ros2(
     assert found is not None and found.gyro_to_camera == flip and found.fx_px == 50.0
 
 
-def test_rectified_topics_read_p_and_binning_divides(codec: Codec) -> None:
+def _info_with(codec: Codec, binning: int = 1, **fields: Any) -> bytes:
+    """A CameraInfo of a 320x240 camera (fx 300, fy 310) with ``fields`` replaced."""
     camera = CameraModel(320, 240, 300.0, 310.0, 160.0, 120.0)
     message = codec.store.deserialize_cdr(
-        camera_info(codec, camera, 1, binning=2), "sensor_msgs/msg/CameraInfo"
+        camera_info(codec, camera, 1, binning=binning), "sensor_msgs/msg/CameraInfo"
     )
+    return bytes(
+        codec.store.serialize_cdr(
+            dataclasses.replace(message, **fields), "sensor_msgs/msg/CameraInfo"
+        )
+    )
+
+
+def test_rectified_topics_read_p_and_binning_divides(codec: Codec) -> None:
     # P, of the rectified image, differs from K: another focal length and centre.
     p = np.array([500.0, 0, 330, 0, 0, 520, 250, 0, 0, 0, 1, 0])
-    raw = bytes(
-        codec.store.serialize_cdr(dataclasses.replace(message, p=p), "sensor_msgs/msg/CameraInfo")
-    )
+    raw = _info_with(codec, binning=2, p=p)
     raw_k = intrinsics(codec, raw, rectified=False)
     assert (raw_k.width_px, raw_k.height_px) == (320, 240)
     assert (raw_k.fx_px, raw_k.fy_px, raw_k.cx_px, raw_k.cy_px) == (300, 310, 160, 120)
@@ -240,16 +248,7 @@ def test_a_camera_info_with_absurd_intrinsics_is_refused(
 ) -> None:
     from services.nodes.ros2._cdr import CdrError
 
-    camera = CameraModel(320, 240, 300.0, 300.0, 160.0, 120.0)
-    message = codec.store.deserialize_cdr(
-        camera_info(codec, camera, 1), "sensor_msgs/msg/CameraInfo"
-    )
-    raw = bytes(
-        codec.store.serialize_cdr(
-            dataclasses.replace(message, k=np.array(k, dtype=np.float64)),
-            "sensor_msgs/msg/CameraInfo",
-        )
-    )
+    raw = _info_with(codec, k=np.array(k, dtype=np.float64))
     with pytest.raises(CdrError, match="focal lengths"):
         intrinsics(codec, raw, rectified=False)
 
@@ -412,16 +411,8 @@ def test_an_in_queue_is_bounded_in_bytes_as_well_as_in_messages() -> None:
 def test_a_region_of_interest_far_off_the_sensor_is_refused(codec: Codec) -> None:
     from services.nodes.ros2._cdr import CdrError
 
-    camera = CameraModel(320, 240, 300.0, 300.0, 160.0, 120.0)
-    message = codec.store.deserialize_cdr(
-        camera_info(codec, camera, 1), "sensor_msgs/msg/CameraInfo"
-    )
     roi = codec.store.types["sensor_msgs/msg/RegionOfInterest"](2**32 - 1, 0, 240, 320, False)
-    raw = bytes(
-        codec.store.serialize_cdr(
-            dataclasses.replace(message, roi=roi), "sensor_msgs/msg/CameraInfo"
-        )
-    )
+    raw = _info_with(codec, roi=roi)
     with pytest.raises(CdrError, match="region of interest"):
         intrinsics(codec, raw, rectified=False)
 
@@ -429,16 +420,8 @@ def test_a_region_of_interest_far_off_the_sensor_is_refused(codec: Codec) -> Non
 def test_k0_zero_is_uncalibrated_for_a_rectified_topic_too(codec: Codec) -> None:
     from services.nodes.ros2._camera_info import Uncalibrated
 
-    camera = CameraModel(320, 240, 300.0, 300.0, 160.0, 120.0)
-    message = codec.store.deserialize_cdr(
-        camera_info(codec, camera, 1), "sensor_msgs/msg/CameraInfo"
-    )
     # K zero (uncalibrated, as image_proc reads it), a P left over from elsewhere.
-    raw = bytes(
-        codec.store.serialize_cdr(
-            dataclasses.replace(message, k=np.zeros(9)), "sensor_msgs/msg/CameraInfo"
-        )
-    )
+    raw = _info_with(codec, k=np.zeros(9))
     with pytest.raises(Uncalibrated, match=r"K\[0\] is 0"):
         intrinsics(codec, raw, rectified=True)
 
@@ -485,19 +468,11 @@ def test_images_of_a_new_size_with_a_stale_camera_info_go_on_without_a_descripti
 def test_a_rectified_topic_turns_the_tf_rotation_by_the_camera_infos_r(codec: Codec) -> None:
     """A stereo pair's rectified images are rotated by R from the camera frame their header
     names: the blur must be estimated about the rectified axes (v_rect = R R_tf v_imu)."""
-    camera = CameraModel(320, 240, 300.0, 300.0, 160.0, 120.0)
     imu_to_camera = tuple(Rotation.from_euler("xyz", [0.3, -0.2, 0.1]).as_matrix().reshape(-1))
     r = Rotation.from_euler("y", 0.05).as_matrix()  # a typical small stereo rectification
-    message = codec.store.deserialize_cdr(
-        camera_info(codec, camera, 1), "sensor_msgs/msg/CameraInfo"
-    )
 
     def described(topic: str, r_values: np.ndarray) -> CameraModel:
-        raw = bytes(
-            codec.store.serialize_cdr(
-                dataclasses.replace(message, r=r_values.reshape(-1)), "sensor_msgs/msg/CameraInfo"
-            )
-        )
+        raw = _info_with(codec, r=r_values.reshape(-1))
         cameras = CameraSource(
             codec, logging.getLogger("test"), image_topic=topic, info_topic="/i", imu_topic="/m"
         )
@@ -526,15 +501,7 @@ def test_a_rectified_topic_turns_the_tf_rotation_by_the_camera_infos_r(codec: Co
 def test_a_rectification_r_that_is_no_rotation_is_a_bad_camera_info(codec: Codec) -> None:
     from services.nodes.ros2._cdr import CdrError
 
-    camera = CameraModel(320, 240, 300.0, 300.0, 160.0, 120.0)
-    message = codec.store.deserialize_cdr(
-        camera_info(codec, camera, 1), "sensor_msgs/msg/CameraInfo"
-    )
-    raw = bytes(
-        codec.store.serialize_cdr(
-            dataclasses.replace(message, r=np.full(9, float("nan"))), "sensor_msgs/msg/CameraInfo"
-        )
-    )
+    raw = _info_with(codec, r=np.full(9, float("nan")))
     with pytest.raises(CdrError, match="rectification"):
         intrinsics(codec, raw, rectified=True)
     assert intrinsics(codec, raw, rectified=False).rectification is None  # not used there
