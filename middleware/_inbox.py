@@ -310,7 +310,8 @@ class AckInbox(ControlInbox):
       ``REPEAT_RESEND_NS`` whatever a flood sends.
 
     Garbage and forged acks then cost Zenoh's thread a copy of at most ``max_bytes``, a
-    comparison or a decode, and the executor nothing: they never fill the inbox, so an
+    comparison or a decode, and the executor nothing (those of a retired registration: a
+    turn every ``REPEAT_RESEND_NS`` at most): they never fill the inbox, so an
     honest ack that arrives among them is kept (measured: ``docs/limits.md``). Only acks a
     live registration could take reach it (a peer that read a subscriber's epoch off its
     notify key can still send those: the default profile's limit, docs/security.md)."""
