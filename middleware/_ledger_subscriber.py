@@ -428,7 +428,8 @@ class SubscriberLedger(Generic[T]):
         """The acks to send now: (epoch, seq) pairs, each cumulative for its epoch.
 
         ``idle``: the caller is waiting for a notification; then every known epoch's ack is
-        repeated once no ack has left for ``reack_ns``.
+        repeated once no ack has left for ``reack_ns`` (but that of a registration the
+        greeted one replaced).
         """
         acks: list[tuple[str, int]] = []
         repeat = idle and (
@@ -443,7 +444,13 @@ class SubscriberLedger(Generic[T]):
             seen_ns = self._takes_seen_ns
             slow = seen_ns is None or now_ns - seen_ns >= delay
             self._takes_seen, self._takes_seen_ns = self._takes, now_ns
+        # A registration the producer replaced by the greeted one (a lapse of our token: the
+        # same producer instance, another epoch) is retired there: an ack repeated for it
+        # would only make the producer check its subscription table (``tokens_lost``).
+        pinned = self._pinned
+        instance = pinned.rpartition(".")[0] if pinned is not None else None
         for epoch, track in self._epochs.items():
+            replaced = epoch != pinned and epoch.rpartition(".")[0] == instance
             due = False
             if track.unacked_takes > 0:
                 if track.unacked_since_ns is None:
@@ -452,7 +459,7 @@ class SubscriberLedger(Generic[T]):
                     (idle or track.queued == 0)
                     and (slow or now_ns - track.unacked_since_ns >= delay)
                 )
-            if due or track.reack_due or (repeat and track.taken > 0):
+            if due or track.reack_due or (repeat and track.taken > 0 and not replaced):
                 acks.append((epoch, track.taken))
                 track.unacked_takes = 0
                 track.unacked_since_ns = None

@@ -58,3 +58,25 @@ def test_a_subscriber_whose_token_came_back_unheard_is_registered_again(
         assert back.timestamp_ns == 6 * MS
         assert back.missed == 3, "what was stored while it was not registered is not counted"
         assert images.info().foreign_acks >= 1  # its repeated ack of the retired registration
+
+
+def test_a_subscriber_registered_again_repeats_no_ack_of_its_replaced_registration() -> None:
+    """A subscriber registered again (a lapse, heard whole) must not repeat, while idle, its
+    ack of the registration the new one replaced: the producer retired it, and each such
+    ack would make it check its table against the network (every 2 s, for good). What it
+    repeats is the ack of the registration it holds now."""
+    from middleware._protocol_subscriber import SubscriberProtocol
+    from middleware._records import SubscriptionMode
+    from middleware._wire import decode_ack, encode_control, encode_notification_header
+
+    sub = SubscriberProtocol(SubscriptionMode.FLOW, 4, -1)
+    descriptor = "flow/4/-1"
+    for epoch in ("P0.1", "P0.2"):  # greeted, took one; its token lapsed; greeted again
+        sub.receive(encode_control("hello", descriptor, epoch, 0, None), b"")
+        sub.receive(
+            encode_notification_header(epoch, 1, 1, b"m", pushed=False, descriptor=descriptor), b""
+        )
+        assert sub.take_many(4)
+        sub.acks(0, idle=False)
+    repeated = [decode_ack(a) for a in sub.acks(10**10, idle=True)]
+    assert repeated == [("P0.2", 1)]
