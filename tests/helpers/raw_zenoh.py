@@ -12,7 +12,7 @@ from typing import TypeVar
 
 import zenoh
 
-from tests.helpers.timing import scaled
+from tests.helpers.timing import scaled, wait_until
 
 T = TypeVar("T")
 
@@ -25,6 +25,15 @@ def open_session(endpoint: str, *, listen: bool = False) -> zenoh.Session:
     conf.insert_json5("scouting/multicast/enabled", "false")
     conf.insert_json5("listen/endpoints" if listen else "connect/endpoints", json.dumps([endpoint]))
     return zenoh.open(conf)
+
+
+def reaching(session: zenoh.Session, key: str, what: str) -> zenoh.Publisher:
+    """A publisher on ``key`` once a subscriber of it is reachable from ``session``. A peer
+    session learns of the other peers' subscribers by gossip: on a loaded machine its first
+    puts reached nobody for a while (a recorder counted none of a rogue's garbage)."""
+    publisher = session.declare_publisher(key)
+    wait_until(lambda: publisher.matching_status.matching, 30, what)
+    return publisher
 
 
 @contextmanager

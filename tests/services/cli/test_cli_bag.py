@@ -340,7 +340,7 @@ def test_record_counts_garbage_on_its_notify_key_and_loses_nothing(
     """A peer's garbage on the key the recorder's notifications come on: said in the summary
     (it was counted inside the subscription only), and every element is still recorded."""
     from middleware._wire import Keys
-    from tests.helpers.raw_zenoh import open_session
+    from tests.helpers.raw_zenoh import open_session, reaching
 
     with Node("cam", listen_net) as service, open_session(endpoint) as rogue:
         log = service.offer("log", retention=Retention(max_count=500))
@@ -351,9 +351,10 @@ def test_record_counts_garbage_on_its_notify_key_and_loses_nothing(
         assert log.wait_for_subscribers(1, timeout_s=scaled(30))
         (sub,) = log.subscriptions()
         key = Keys("framegate").notify("cam", "log", sub.subscription_id)
+        garbage = reaching(rogue, key, "the recorder's notify key, from the rogue")
         base = time.time_ns()
         for i in range(COUNT):
-            rogue.put(key, b"\xff" * 32, attachment=b"not a notification")
+            garbage.put(b"\xff" * 32, attachment=b"not a notification")
             t = base + i * MS
             log.put(t, b"line %d" % i, make_metadata("generic", t, {"n": i}))
         out, err = recorder.communicate(timeout=TIMEOUT_S)
