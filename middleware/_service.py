@@ -267,10 +267,11 @@ class QueryInbox:
 
         def on_query(query: zenoh.Query) -> None:
             pin_thread_state()
+            too_large = _body_bytes(query) > QUERY_BODY_MAX_BYTES  # (a copy: not under the lock)
             with self._cond:
                 if self.closed:
                     return
-                if len(waiting) >= capacity or _body_bytes(query) > QUERY_BODY_MAX_BYTES:
+                if len(waiting) >= capacity or too_large:
                     self.dropped += 1  # finalized when dropped: its querier's answer ends
                     return
                 waiting.append(query)

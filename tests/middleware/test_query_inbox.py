@@ -27,6 +27,13 @@ class _Query:
         self.parameters = parameters
 
 
+def _offer_log(service: Node, count: int) -> None:
+    """``cam/log`` with elements stamped 1..``count``."""
+    log = service.offer("log")
+    for t in range(1, count + 1):
+        log.put(t, b"x" * 16, make_metadata("generic", t))
+
+
 def _ask(inbox: QueryInbox, which: str, n: int) -> None:
     inbox.callback(which).callback(_Query(n))  # type: ignore[arg-type]
 
@@ -68,9 +75,7 @@ def test_a_query_with_a_large_payload_is_counted_and_not_answered(
     listen_net, connect_net, endpoint
 ) -> None:
     with Node("cam", listen_net) as service, Node(network=connect_net) as client:
-        log = service.offer("log")
-        for t in range(1, 11):
-            log.put(t, b"x", make_metadata("generic", t))
+        _offer_log(service, 10)
         with open_session(endpoint) as rogue:
             wait_until(
                 lambda: client.query("cam/log", timeout_s=scaled(10)) != [],
@@ -114,9 +119,7 @@ def test_a_query_flood_is_bounded_and_an_honest_query_is_answered_after_it(
     listen_net, connect_net, endpoint
 ) -> None:
     with Node("cam", listen_net) as service, Node(network=connect_net) as client:
-        log = service.offer("log")
-        for t in range(1, 101):
-            log.put(t, b"x" * 16, make_metadata("generic", t))
+        _offer_log(service, 100)
         with open_session(endpoint) as rogue:
             inbox = service._endpoint._queries  # type: ignore[union-attr]
             held: list[int] = []
