@@ -119,6 +119,17 @@ DEEP_ACK_DELAY_NS = 20_000_000
 T = TypeVar("T")
 
 
+def _earlier(epoch: tuple[str, str, str], than: tuple[str, str, str]) -> bool:
+    """Whether ``epoch`` (``str.rpartition(".")`` of ``<instance>.<n>``) is a registration
+    the same producer instance made before ``than``."""
+    return (
+        epoch[0] == than[0]
+        and epoch[2].isdigit()
+        and than[2].isdigit()
+        and int(epoch[2][:18]) < int(than[2][:18])
+    )
+
+
 @dataclass(frozen=True, slots=True)
 class AckPolicy:
     """When acks leave: after ``every`` takes of one epoch, or once the queue ran empty (or
@@ -445,12 +456,12 @@ class SubscriberLedger(Generic[T]):
             slow = seen_ns is None or now_ns - seen_ns >= delay
             self._takes_seen, self._takes_seen_ns = self._takes, now_ns
         # A registration the producer replaced by the greeted one (a lapse of our token: the
-        # same producer instance, another epoch) is retired there: an ack repeated for it
-        # would only make the producer check its subscription table (``tokens_lost``).
-        pinned = self._pinned
-        instance = pinned.rpartition(".")[0] if pinned is not None else None
+        # same producer instance, an earlier epoch) is retired there: an ack repeated for it
+        # would only make the producer check its subscription table (``tokens_lost``). A
+        # later one (adopted from notifications, its greeting lost) is live: repeated.
+        pinned = self._pinned.rpartition(".") if self._pinned is not None else None
         for epoch, track in self._epochs.items():
-            replaced = epoch != pinned and epoch.rpartition(".")[0] == instance
+            replaced = pinned is not None and _earlier(epoch.rpartition("."), pinned)
             due = False
             if track.unacked_takes > 0:
                 if track.unacked_since_ns is None:

@@ -80,3 +80,12 @@ def test_a_subscriber_registered_again_repeats_no_ack_of_its_replaced_registrati
         sub.acks(0, idle=False)
     repeated = [decode_ack(a) for a in sub.acks(10**10, idle=True)]
     assert repeated == [("P0.2", 1)]
+    # A later registration whose greeting was lost (taken from its notifications) is live:
+    # its ack is repeated, or a lost one would hold the producer for good.
+    sub.receive(
+        encode_notification_header("P0.3", 1, 2, b"m", pushed=False, descriptor=descriptor), b""
+    )
+    assert sub.take_many(4)
+    sub.acks(2 * 10**10, idle=False)
+    repeated = [decode_ack(a) for a in sub.acks(3 * 10**10, idle=True)]
+    assert ("P0.3", 1) in repeated and ("P0.1", 1) not in repeated
