@@ -33,12 +33,14 @@ A notification ``(epoch, seq, descriptor)``:
    registration with (``pin``; until a greeting comes, the first epoch adopted) is never
    evicted, from the table or from that memory: a flood of made-up epochs at seq 1 (any
    peer can send one) would otherwise push the live epoch out of both, and every later seq
-   of it would be ``out_of_order`` for good. Nor, for flow control, is an epoch adopted
-   since the last greeting (``UNGREETED_EPOCHS`` at most; more are ignored, counted in
-   ``refused``, until the next greeting): a restarted producer's first notification can
-   come before its greeting (a lost or delayed one), and a flood between the two would
-   otherwise push its epoch out, and the producer's resend of an element already taken
-   would be taken again. Until its greeting, a made-up epoch and a restarted producer's
+   of it would be ``out_of_order`` for good. Nor is an epoch adopted since the last
+   greeting (``UNGREETED_EPOCHS`` at most; more are ignored, counted in ``refused``, until
+   the next greeting): a restarted producer's first notification can come before its
+   greeting (a lost or delayed one), and a flood between the two would otherwise push its
+   epoch out, and the producer's resend of an element already taken would be taken again
+   (an observer, which adopts at any seq, would take a delayed duplicate again, and would
+   repeat no ack of the registration it holds). Until its greeting, a made-up epoch and a
+   restarted producer's
    are alike; so the first ones are kept and the rest wait: the producer resends, and
    greets again with the resend while nothing of the registration was acked
    (``ProducerProtocol.tick``), so its epoch is adopted once the greeting has come.
@@ -300,9 +302,7 @@ class SubscriberLedger(Generic[T]):
             if known is None and self.flow and seq != 1:
                 c.out_of_order += 1
                 return False
-            ungreeted = (
-                known is None and self.flow and self._pinned is not None and epoch != self._pinned
-            )
+            ungreeted = known is None and self._pinned is not None and epoch != self._pinned
             if (ungreeted and len(self._ungreeted) >= UNGREETED_EPOCHS) or not self._make_room():
                 c.refused += 1
                 return False
@@ -440,7 +440,8 @@ class SubscriberLedger(Generic[T]):
 
         ``idle``: the caller is waiting for a notification; then every known epoch's ack is
         repeated once no ack has left for ``reack_ns`` (but that of a registration the
-        greeted one replaced).
+        greeted one replaced): the table's, and those the memory of evicted epochs keeps for
+        good (the pinned one and those adopted since: the registration we hold may be one).
         """
         acks: list[tuple[str, int]] = []
         repeat = idle and (
@@ -475,6 +476,11 @@ class SubscriberLedger(Generic[T]):
                 track.unacked_takes = 0
                 track.unacked_since_ns = None
                 track.reack_due = False
+        if repeat and pinned is not None:
+            for epoch, (_, taken) in self._forgotten.items():  # at most FORGOTTEN_EPOCHS
+                kept = epoch == self._pinned or epoch in self._ungreeted
+                if kept and taken > 0 and not _earlier(epoch.rpartition("."), pinned):
+                    acks.append((epoch, taken))
         if acks:
             self._acked_ns = now_ns
         return acks

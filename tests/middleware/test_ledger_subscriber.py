@@ -162,6 +162,45 @@ def test_made_up_epochs_never_push_out_the_live_one(greeted: bool) -> None:
     assert ledger.receive("P.1", 2, "real", descriptor=DESCRIPTOR)
 
 
+def test_an_observer_keeps_its_epoch_through_a_flood_before_its_greeting() -> None:
+    """An observer adopts any epoch at any seq. A made-up epoch came first (so the greeting
+    lost or late, it holds the pin), then the producer's, taken; then a flood of made-up
+    epochs, more than the memory of evicted ones holds, then the greeting. The producer's
+    epoch is still known: a delayed duplicate of what was taken is not taken again, and an
+    idle observer repeats its ack (what tells a producer that lost its token it lives)."""
+    observe = "observe/2/-1"
+    ledger = SubscriberLedger[str](SubscriptionMode.OBSERVE, 2, observe)
+    assert ledger.receive("X.1", 1, "forged", descriptor=observe)
+    assert ledger.receive("P0.4", 1, "real", descriptor=observe)
+    assert [e.item for e in ledger.take_many(2)] == ["forged", "real"]
+    for i in range(FORGOTTEN_EPOCHS + 16):
+        ledger.receive(f"F{i}.1", 1, "forged", descriptor=observe)
+        ledger.take_many(1)
+    ledger.pin("P0.4")
+    assert not ledger.receive("P0.4", 1, "real", descriptor=observe)  # the duplicate
+    assert ("P0.4", 1) in ledger.acks_due(10**12, idle=True)
+    assert ledger.receive("P0.4", 2, "next", descriptor=observe)
+
+
+@pytest.mark.parametrize("mode", [SubscriptionMode.FLOW, SubscriptionMode.OBSERVE])
+def test_a_greeting_after_a_flood_keeps_the_evicted_epoch_acked(mode: SubscriptionMode) -> None:
+    """The producer's epoch, taken from, was evicted by a flood of made-up epochs before
+    its greeting came (the greeting late; the flood's first epoch held the pin). Idle, the
+    subscriber still repeats the ack of the registration it holds, from the memory of
+    evicted epochs: a producer that lost its token learns from that ack that it lives."""
+    descriptor = f"{mode.value}/2/-1"
+    ledger = SubscriberLedger[str](mode, 2, descriptor)
+    assert ledger.receive("X.1", 1, "forged", descriptor=descriptor)
+    assert ledger.receive("P2.1", 1, "real", descriptor=descriptor)
+    assert len(ledger.take_many(2)) == 2
+    for i in range(UNGREETED_EPOCHS - 2):  # adopted, each taken: P2.1 is evicted
+        assert ledger.receive(f"F{i}.1", 1, "forged", descriptor=descriptor)
+        ledger.take_many(1)
+    assert ledger.track("P2.1") is None
+    ledger.pin("P2.1")
+    assert ("P2.1", 1) in ledger.acks_due(10**12, idle=True)
+
+
 def test_a_restarted_producers_epoch_survives_a_flood_before_its_greeting() -> None:
     """The producer restarts: its new epoch's first notification comes before its
     greeting, then a flood of made-up epochs. The new epoch stays tracked (its resend of
