@@ -28,6 +28,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import pytest
 from hypothesis import event, settings
 from hypothesis import strategies as st
 from hypothesis.database import DirectoryBasedExampleDatabase
@@ -817,3 +818,6 @@ ProtocolModel.TestCase.settings = (
     else settings(database=_EXAMPLES)
 )
 TestProtocol = ProtocolModel.TestCase
+# A failure found here is shrunk for up to five minutes (hypothesis's own limit); the
+# suite's per-test timeout would cut that short and leave a "flaky" report of the cut.
+pytestmark = pytest.mark.timeout(900)
