@@ -3,11 +3,12 @@ metadata is valid for the buffer's kind and names the element's timestamp."""
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Sequence
 from typing import cast
 
 from ._clock import now_ns
-from ._errors import SchemaError
+from ._errors import DuplicateTimestampError, SchemaError
 from ._records import DataObject, data_object
 from ._shapes import ShapeChecker
 from ._xml import XmlLimits
@@ -73,6 +74,19 @@ class ElementCheck:
                 self(timestamp_ns, payload, metadata)  # raises, naming the mismatch
             append(data_object(timestamp_ns, payload, metadata))
         return tuple(out)
+
+    def batch(self, elements: Sequence[tuple[int, bytes, bytes | str]]) -> tuple[DataObject, ...]:
+        """``many``, and the batch's timestamps strictly increasing (``put_many``)."""
+        checked = self.many(elements)
+        stamps = [e.timestamp_ns for e in checked]
+        if stamps != sorted(set(stamps)):  # C speed for a batch; the loop only to name it
+            for before, after in itertools.pairwise(stamps):
+                if after <= before:
+                    raise DuplicateTimestampError(
+                        f"put_many: timestamp {after} follows {before} "
+                        "in the batch; timestamps must strictly increase"
+                    )
+        return checked
 
     def _horizon_now(self) -> int:
         self._horizon_at_ns = now_ns() + self.horizon_ns

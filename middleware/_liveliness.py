@@ -11,12 +11,15 @@ declare tokens: 300 under ``framegate/@svc/`` hung every ``echo``, ``watch``, ``
 its next resync (after a churn), so it neither registered a subscriber nor stopped.
 
 Here the replies go to a callback that keeps at most ``limit`` keys (never blocks) and the
-caller waits on an event, with a deadline, which a signal interrupts.
+caller waits on an event, with a deadline, which a signal interrupts; or, an executor, it
+does not wait at all and reads the answer when Zenoh says the query ended (``LiveQuery``).
 """
 
 from __future__ import annotations
 
 import threading
+import time
+from collections.abc import Callable
 
 import zenoh
 
@@ -32,36 +35,61 @@ def live_keys(
 ) -> list[str]:
     """The keys of the liveliness tokens matching ``keyexpr`` that answer within
     ``timeout_s`` (at most ``limit`` of them). Raises what ``get`` raises (``ZError``)."""
-    return _ask(session, keyexpr, timeout_s, limit)[0]
+    query = LiveQuery(session, keyexpr, timeout_s=timeout_s, limit=limit)
+    if query.error is not None:
+        raise query.error
+    query.wait()
+    return query.answer()[0]
 
 
-def live_keys_whole(
-    session: zenoh.Session, keyexpr: str, *, timeout_s: float, limit: int = LIVE_KEYS
-) -> tuple[list[str], bool]:
-    """``live_keys``, and whether the answer is whole: it ended within ``timeout_s`` with
-    no error reply (a timeout is one) and ``get`` raised nothing (then: [], False). Who
-    removes what a partial answer lacks would remove live tokens' owners."""
-    try:
-        return _ask(session, keyexpr, timeout_s, limit)
-    except zenoh.ZError:
-        return [], False
+class LiveQuery:
+    """One liveliness query in flight. Its replies are kept on Zenoh's thread (at most
+    ``limit`` keys, never blocking); ``on_end`` runs there once Zenoh says that it ended.
+    A waiter (``wait``) or an executor (``done`` at ``deadline_ns`` at the latest) then
+    reads the ``answer``. A ``get`` that raised (``error``) is done at once, not whole."""
 
+    def __init__(
+        self,
+        session: zenoh.Session,
+        keyexpr: str,
+        *,
+        timeout_s: float,
+        limit: int = LIVE_KEYS,
+        on_end: Callable[[], object] | None = None,
+    ) -> None:
+        self._keys: list[str] = []
+        self._error_reply = False
+        self._ended = threading.Event()
+        self._timeout_s = timeout_s
+        self.deadline_ns = time.monotonic_ns() + int((timeout_s + _END_SLACK_S) * 1e9)
 
-def _ask(
-    session: zenoh.Session, keyexpr: str, timeout_s: float, limit: int
-) -> tuple[list[str], bool]:
-    keys: list[str] = []
-    errors: list[bool] = []
-    ended = threading.Event()
+        def on_reply(reply: zenoh.Reply) -> None:
+            if reply.ok is None:
+                self._error_reply = True
+            elif len(self._keys) < limit:
+                self._keys.append(str(reply.ok.key_expr))
 
-    def on_reply(reply: zenoh.Reply) -> None:
-        if reply.ok is None:
-            errors.append(True)
-        elif len(keys) < limit:
-            keys.append(str(reply.ok.key_expr))
+        def ended() -> None:
+            self._ended.set()
+            if on_end is not None:
+                on_end()
 
-    session.liveliness().get(
-        keyexpr, zenoh.handlers.Callback(on_reply, ended.set, indirect=False), timeout=timeout_s
-    )
-    whole = ended.wait(timeout_s + _END_SLACK_S) and not errors
-    return keys[:], whole
+        self.error: zenoh.ZError | None = None
+        try:
+            session.liveliness().get(
+                keyexpr, zenoh.handlers.Callback(on_reply, ended, indirect=False), timeout=timeout_s
+            )
+        except zenoh.ZError as exc:  # e.g. the session is closing: an answer that is not whole
+            self.error = exc
+            self.deadline_ns = 0
+
+    def wait(self) -> None:
+        self._ended.wait(self._timeout_s + _END_SLACK_S)
+
+    def done(self, now_ns: int) -> bool:
+        return self._ended.is_set() or now_ns >= self.deadline_ns
+
+    def answer(self) -> tuple[list[str], bool]:
+        """The keys so far, and whether they are whole (the query ended, no error)."""
+        whole = self._ended.is_set() and not self._error_reply and self.error is None
+        return self._keys[:], whole

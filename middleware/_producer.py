@@ -16,7 +16,6 @@ events.
 from __future__ import annotations
 
 import contextlib
-import itertools
 import logging
 import secrets
 import threading
@@ -30,12 +29,12 @@ import zenoh
 
 from ._buffer import TimeSeries
 from ._element_check import ElementCheck
-from ._errors import ClosedError, DuplicateTimestampError, FlowControlRefused, FramegateError
+from ._errors import ClosedError, FlowControlRefused, FramegateError
 from ._executor import BUDGET as _BUDGET
 from ._executor import Executor, Wake, remaining_s
 from ._inbox import ACK_MAX_BYTES, TOKEN_INBOX, AckInbox, TokenInbox, control_inbox_bytes
 from ._ledger_producer import RegistrationKey
-from ._liveliness import live_keys_whole
+from ._liveliness import LiveQuery
 from ._protocol_events import Event, Publish, Retire
 from ._protocol_producer import RESYNC_TOKENS, ProducerProtocol
 from ._rate import PutRate
@@ -123,10 +122,10 @@ class Producer:
             retired=self._protocol.retired_epoch,
             on_retired=self._signal,
         )
-        # A token is the executor's at once: a new subscriber waits for its greeting. A token
-        # is its key; it carries no payload.
+        # A token (a key, no payload) is the executor's at once: a subscriber awaits a greeting.
         self._token_keys = keys.subscription_tokens(service, buffer)
         self._lost = (0, 0)  # see ``_feed``
+        self._resync: LiveQuery | None = None  # in flight (the executor's)
         self._tokens = TokenInbox(capacity=TOKEN_INBOX, signal=self._signal)
         self._acks.declare(session, keys.acks(service, buffer))
         # Declared last: its callback (history included) may run at once.
@@ -169,6 +168,8 @@ class Producer:
 
     def run_ready(self, budget: int) -> bool:
         """(the executor) A bounded batch of input; the events it produced carried out."""
+        if self._resync is not None:
+            self._resync_step(time.monotonic_ns())
         with self._send_lock:
             with self._lock:
                 if self._closed:
@@ -191,21 +192,33 @@ class Producer:
 
     def next_deadline_ns(self) -> int | None:
         with self._lock:
-            return self._protocol.next_deadline_ns()
+            due = self._protocol.next_deadline_ns()
+        query = self._resync
+        return due if query is None else min(query.deadline_ns, due or query.deadline_ns)
+
+    def _resync_step(self, now_ns: int) -> None:
+        """(the executor, never waiting) A resync after lost token events: its liveliness
+        query goes out when due; its answer is fed once it ended (Zenoh's end wakes us)."""
+        query = self._resync
+        if query is None:
+            with self._lock:
+                if not self._protocol.resync_due(now_ns):
+                    return
+                self._protocol.resync_begin()  # token events fed from now on are newer
+            keys, limit = self._token_keys, RESYNC_TOKENS  # a peer may declare more
+            self._resync = LiveQuery(
+                self._session, keys, timeout_s=1.0, limit=limit, on_end=self._signal
+            )
+        elif query.done(now_ns):
+            self._resync = None
+            live, whole = query.answer()
+            with self._lock:
+                self._protocol.resync(live, time.monotonic_ns(), ended=whole)
 
     def on_deadline(self, now_ns: int) -> None:
         """(the executor) Resends that are due, once a batch of waiting acks has been fed
-        (more than a batch is a backlog, fed turn by turn: ``Wake``); a resync of the
-        registrations after lost token events (one liveliness query, not under the locks)."""
-        with self._lock:
-            resync = self._protocol.resync_due(now_ns)
-            if resync:  # token events fed from now on are newer than the answer
-                self._protocol.resync_begin()
-        if resync:
-            keyexpr, limit = self._token_keys, RESYNC_TOKENS  # a peer may declare more
-            live, whole = live_keys_whole(self._session, keyexpr, timeout_s=1.0, limit=limit)
-            with self._lock:
-                self._protocol.resync(live, time.monotonic_ns(), ended=whole)
+        (more than a batch is a backlog, fed turn by turn: ``Wake``); a resync's step."""
+        self._resync_step(now_ns)
         with self._send_lock:
             with self._lock:
                 if self._closed:
@@ -248,21 +261,11 @@ class Producer:
         if not elements:
             return 0
         try:
-            checked = self._check.many(elements)
+            checked = self._check.batch(elements)
         except FramegateError:
             with self._lock:
                 self._counters.rejected += 1
             raise
-        stamps = [e.timestamp_ns for e in checked]
-        if stamps != sorted(set(stamps)):  # C speed for a batch; the loop only to name it
-            for before, after in itertools.pairwise(stamps):
-                if after <= before:
-                    with self._lock:
-                        self._counters.rejected += 1
-                    raise DuplicateTimestampError(
-                        f"put_many: timestamp {after} follows {before} "
-                        "in the batch; timestamps must strictly increase"
-                    )
         return self._put(checked, wait_s)
 
     def _put(self, elements: tuple[DataObject, ...], wait_s: float) -> int:

@@ -207,17 +207,18 @@ class ProducerProtocol:
         ack, but Zenoh can lose a token event unseen, "Unknown token id" under churn, and a
         subscriber whose token came back unheard repeats its ack while idle: nothing else
         would tell us it lives). The table may hold a registration whose token is gone (it
-        would hold the producer for ever) or lack a live one. A ``resync`` falls due, at
-        most every ``RESYNC_NS``, however many call this."""
+        would hold us for ever) or lack a live one: a resync is due, every ``RESYNC_NS`` at most."""
         if self._resync_at_ns is None:
             self._resync_at_ns = max(now_ns, self._resynced_ns + RESYNC_NS)
 
     def resync_due(self, now_ns: int) -> bool:
-        return self._resync_at_ns is not None and self._resync_at_ns <= now_ns
+        """Whether to ask for the live tokens now (not while an answer is awaited)."""
+        at = self._resync_at_ns
+        return at is not None and at <= now_ns and not self._querying
 
     def resync_begin(self) -> None:
-        """The liveliness query of a due ``resync`` goes out now: token events fed until its
-        answer is given are newer than the answer, and are remembered to win over it."""
+        """The liveliness query of a due ``resync`` goes out now (its caller times it): token
+        events fed until its answer is given are newer, and are remembered to win over it."""
         self._querying = True
         self._changed = set()
 
@@ -382,7 +383,7 @@ class ProducerProtocol:
     def next_deadline_ns(self) -> int | None:
         """When ``tick`` has work next (None: nothing outstanding)."""
         deadlines = [at for at, _ in self._paced.values()]
-        if self._resync_at_ns is not None:
+        if self._resync_at_ns is not None and not self._querying:
             deadlines.append(self._resync_at_ns)
         retransmit = self._ledger.next_retransmit_ns()
         if retransmit is not None:
@@ -472,8 +473,7 @@ class ProducerProtocol:
     def subscriptions(self) -> list[SubscriptionInfo]:
         out = []
         for reg in self._ledger.registrations():
-            node, host = self._holders.get(reg.key, (None, None))
-            k = reg.key
+            k, (node, host) = reg.key, self._holders.get(reg.key, (None, None))
             # An observer is never held back: sent - acked counts what it missed too, while
             # its queue holds at most N (flow control never exceeds N).
             queued = min(reg.queued, k.queue_size)

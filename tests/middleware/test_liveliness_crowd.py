@@ -80,8 +80,11 @@ def test_a_crowd_of_subscription_tokens_does_not_hang_the_producer_at_resync(
             wait_until(lambda: images.info().bad_messages >= CROWD, 30, "the junk tokens")
             with images._lock:  # what a churn that overflows the token inbox does
                 images._protocol.tokens_lost(time.monotonic_ns())
-            wait_until(
-                lambda: not images._protocol.resync_due(time.monotonic_ns() + 10**12),
+            wait_until(  # asked and answered (the executor never waits on the query)
+                lambda: (
+                    images._resync is None
+                    and not images._protocol.resync_due(time.monotonic_ns() + 10**12)
+                ),
                 30,
                 "the resync",
             )
@@ -114,3 +117,22 @@ def test_a_crowd_of_service_tokens_makes_no_endless_error_line(
         with pytest.raises(NotFoundError, match=r"crowd0019 and \d+ more") as caught:
             service.subscribe("nosuch/b", wait_s=0.1)
         assert len(str(caught.value)) < 1_000
+
+
+def test_a_live_query_tells_its_end_and_never_blocks_on_a_closed_session(endpoint: str) -> None:
+    """What a producer's executor relies on to resync without waiting: the query's end is
+    told (``on_end``, which wakes the executor), and a ``get`` that raises (the session
+    closing) gives a query that is done at once, with an answer that is not whole."""
+    from middleware._liveliness import LiveQuery
+
+    ended = threading.Event()
+    with open_session(endpoint, listen=True) as session:
+        token = session.liveliness().declare_token("x/mine")
+        query = LiveQuery(session, "x/*", timeout_s=scaled(2), on_end=ended.set)
+        assert ended.wait(scaled(10)), "the query's end was never told"
+        assert query.done(time.monotonic_ns())
+        assert query.answer() == (["x/mine"], True)
+        token.undeclare()
+    closed = LiveQuery(session, "x/*", timeout_s=scaled(2))
+    assert closed.error is not None and closed.done(time.monotonic_ns())
+    assert closed.answer() == ([], False)
