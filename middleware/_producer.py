@@ -168,7 +168,7 @@ class Producer:
 
     def run_ready(self, budget: int) -> bool:
         """(the executor) A bounded batch of input; the events it produced carried out."""
-        if self._resync is not None:
+        if self._resync is not None and not self._closed:  # its end may come after close
             self._resync_step(time.monotonic_ns())
         with self._send_lock:
             with self._lock:
