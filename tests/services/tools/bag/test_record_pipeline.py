@@ -21,7 +21,7 @@ from middleware import DataObject, FramegateError, NetworkConfig, Node, TimeRang
 from services.tools.bag import open_bag, recording_info
 from tests.conftest import REPO, child_env, free_port, wait_until
 from tests.helpers.frames import simulated_frames
-from tests.helpers.timing import scaled
+from tests.helpers.timing import answered, scaled
 
 pytestmark = pytest.mark.integration
 
@@ -78,7 +78,10 @@ def _held(node: Node, target: str, since_ns: int) -> dict[int, DataObject]:
     """What ``target`` holds from ``since_ns`` on (not all it holds: a minute of frames is
     too much to fetch in time on a loaded machine)."""
     span = TimeRange(since_ns, None)
-    return {e.timestamp_ns: e for e in node.query(target, time_range=span, timeout_s=scaled(30))}
+    elements = answered(
+        lambda: node.query(target, time_range=span, timeout_s=scaled(30)), f"{target}'s elements"
+    )
+    return {e.timestamp_ns: e for e in elements}
 
 
 def _recorded(out: Path) -> tuple[dict[str, str], dict[str, dict[int, DataObject]]]:
