@@ -193,8 +193,8 @@ class Producer:
     def next_deadline_ns(self) -> int | None:
         with self._lock:
             due = self._protocol.next_deadline_ns()
-        query = self._resync
-        return due if query is None else min(query.deadline_ns, due or query.deadline_ns)
+        awaited = self._resync.deadline_ns if self._resync is not None else None  # its timeout
+        return min((d for d in (due, awaited) if d is not None), default=None)
 
     def _resync_step(self, now_ns: int) -> None:
         """(the executor, never waiting) A resync after lost token events: its liveliness
