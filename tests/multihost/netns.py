@@ -129,7 +129,9 @@ class Lab:
             stdin=subprocess.DEVNULL,
             text=True,
             cwd=REPO,
-            env=child_env(),
+            # Unbuffered: a log file gets each line as it is written, so a fixture that
+            # gives up shows what the launchers had said by then (not an empty file).
+            env={**child_env(), "PYTHONUNBUFFERED": "1"},
         )
         self._procs.append(proc)
         return proc
