@@ -581,4 +581,9 @@ def test_a_stopped_mediator_records_every_frame_stored_meanwhile(pipe: Pipeline)
     _audit(audit, pipe)
     summary = audit.summary()
     assert summary["lost"]["frames_without_decision"] == 0, summary
-    assert summary["lost"]["accepted_without_detection"] == 0, summary
+    # The stopped mediator's own links lapsed too: a frame it accepted on waking, before its
+    # session saw the detector's token go and come back, was notified to the registration
+    # that then went. The detector counts such a frame when its new registration is greeted
+    # (``not-observed``: never notified); only an uncounted one is lost.
+    counted = pipe.info("detector/detections").skipped.get("not-observed", 0)
+    assert summary["lost"]["accepted_without_detection"] <= counted, (summary, counted)
