@@ -373,7 +373,22 @@ def _drain(
         )
 
     buffers = _wait(watch, drained, lambda: time.monotonic() - seen["since"] > _STALL_S)
-    return buffers, drained(buffers)
+    done = drained(buffers)
+    if not done:
+        # What each side saw when progress stopped (typed counters, for the run's log): a
+        # subscription whose producer still counts an element queued was never given it;
+        # one at 0 took everything it was sent.
+        state = {
+            name: {
+                "stored": info.puts,
+                "refused": info.refused,
+                "skipped": dict(info.skipped),
+                "queued": [s.queued for s in info.subscriptions],
+            }
+            for name, info in sorted(buffers.items())
+        }
+        watch.lines.append(f"experiment: drain stalled for {_STALL_S:.0f} s: {state}")
+    return buffers, done
 
 
 def _collect(
