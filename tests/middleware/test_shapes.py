@@ -129,7 +129,7 @@ def test_a_document_like_the_last_one_is_judged_as_in_full(kind: str, data: st.D
     raw = b"".join(pieces)
     assert len(raw) == len(base)
     assert by_shape(checker, raw) == full(raw, kind)
-    # The batch path (``timestamps_ns``, its own copy of the rule) judges it alike.
+    # The batch path (``timestamps_ns``) judges it alike.
     batch = ShapeChecker(kind, DEFAULT_LIMITS)
     batch.timestamp_ns(base)
     batch.timestamp_ns(base)
