@@ -200,9 +200,8 @@ class _Like:
     exactly the documents of its length whose text outside its value spans is its own and
     whose every span holds a canonical counter of the span's width (no leading zero; a
     19-digit one below 9e18, so within 2**63-1 without a comparison: one that starts with 9
-    takes the cut path, which compares). One match in C per document, where a loop of
-    slices and checks in Python cost about three times as much. ``root``: the span of the
-    root's timestamp."""
+    takes the cut path, which compares): one match in C per document instead of a loop of
+    slices and checks in Python. ``root``: the span of the root's timestamp."""
 
     pattern: re.Pattern[bytes]
     root: tuple[int, int]

@@ -376,8 +376,8 @@ def _drain(
     done = drained(buffers)
     if not done:
         # What each side saw when progress stopped (typed counters, for the run's log): a
-        # subscription whose producer still counts an element queued was never given it;
-        # one at 0 took everything it was sent.
+        # subscription whose producer still counts elements queued has not taken them (or
+        # its ack was lost); one at 0 took everything it was sent.
         state = {
             name: {
                 "stored": info.puts,

@@ -23,6 +23,7 @@ from services.evidence.soak import Audit
 from services.launch import pipeline_yaml
 from services.lib.decisions import GyroMissing
 from services.lib.messages import DecisionRecord
+from services.nodes._not_observed import SKIP_REASON as NOT_OBSERVED
 from services.nodes.mediator import Mediator, MediatorConfig
 from tests.conftest import REPO, child_env, free_port, wait_until
 from tests.helpers.clock_shim import build_clock_shim, shifted_clock_env, step_clock
@@ -585,5 +586,5 @@ def test_a_stopped_mediator_records_every_frame_stored_meanwhile(pipe: Pipeline)
     # session saw the detector's token go and come back, was notified to the registration
     # that then went. The detector counts such a frame when its new registration is greeted
     # (``not-observed``: never notified); only an uncounted one is lost.
-    counted = pipe.info("detector/detections").skipped.get("not-observed", 0)
+    counted = pipe.info("detector/detections").skipped.get(NOT_OBSERVED, 0)
     assert summary["lost"]["accepted_without_detection"] <= counted, (summary, counted)
