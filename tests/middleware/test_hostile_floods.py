@@ -27,7 +27,7 @@ from middleware import (
 from tests.conftest import REPO, NodeProcess, child_env
 from tests.helpers.timing import scaled
 
-pytestmark = pytest.mark.integration
+pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
 
 class _Flood:

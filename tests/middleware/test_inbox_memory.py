@@ -74,6 +74,7 @@ with open_session(sys.argv[1]) as session:
 """
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(660)
 def test_a_full_control_inbox_holds_copies_not_zenoh_batches() -> None:
     endpoint = f"tcp/127.0.0.1:{free_port()}"

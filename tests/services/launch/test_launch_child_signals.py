@@ -47,6 +47,7 @@ def _exits(lines: list[str]) -> list[str]:
     return [line for line in list(lines) if "exited with" in line or "died by signal" in line]
 
 
+@pytest.mark.slow
 def test_a_launched_child_signalled_in_its_first_second_exits_0(tmp_path: Path) -> None:
     (tmp_path / "deploy.yaml").write_text(GYRO_AND_MEDIATOR)
     env = child_env()

@@ -22,7 +22,7 @@ from tests.conftest import wait_until
 from tests.helpers.timing import answered, scaled
 from tests.services.nodes.pipeline import Pipeline
 
-pytestmark = pytest.mark.integration
+pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
 # Frames the camera offers (stored + refused) per measured window: a few seconds at 15 fps.
 WINDOW_FRAMES = 45

@@ -13,7 +13,7 @@ from tests.conftest import free_port, wait_until
 from tests.helpers.timing import answered, scaled
 from tests.services.nodes.test_time_faults import CAMERA, _start, _stop
 
-pytestmark = pytest.mark.integration
+pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
 S = 1_000_000_000
 
