@@ -227,7 +227,8 @@ class Ros2Config:
     )
     consumer_timeout_ms: float = setting(
         1000.0,
-        "an image without a result frees its slot after this long, counted",
+        "the most the node may take for one image, from its turn (the image before it "
+        "answered): then its slot is freed, counted",
         parse=positive_float,
         group=_LOOP,
         unset=True,

@@ -4,10 +4,11 @@ A ROS 2 vision node (a detector, a tracker) that copies its input image's ``head
 its results can tell the bridge, without knowing it, when it is done with an image: the
 result whose ``header.stamp`` equals the image's. :class:`Outstanding` keeps the images
 published to the node that are still without such a result (at most ``N``, the node's
-``--consumer-queue``), each with the deadline after which it frees its slot anyway
-(``--consumer-timeout-ms``); :class:`DoneTopic` learns the result topic's message type and
-type hash from the publishers' liveliness tokens (so any type whose first field is a
-``std_msgs/Header`` will do); :func:`decode_header` reads only that leading header.
+``--consumer-queue``), the oldest with the deadline after which it frees its slot anyway
+(``--consumer-timeout-ms`` from its turn: see there); :class:`DoneTopic` learns the result
+topic's message type and type hash from the publishers' liveliness tokens (so any type whose
+first field is a ``std_msgs/Header`` will do); :func:`decode_header` reads only that
+leading header.
 
 Matching is on the stamp alone: frame ids differ between nodes (``camera`` vs
 ``camera_optical_frame``) and carry no identity; the bridge's images have strictly
@@ -151,14 +152,15 @@ class DoneTopic:
         first = self._first_field(ros_type)
         if first is not None and first != HEADER_TYPE:
             # Listened to all the same (a type name may be redefined), but its results will
-            # be ``bad-result`` or ``unmatched-result``, and every image a consumer-timeout.
+            # be ``bad-result`` or ``unmatched-result``: only the topic's other publishers'
+            # results can free a slot (a lying peer's token does not stop the node's own).
             return self._once(
                 endpoint.dds_type,
                 endpoint.type_hash,
                 f"a publisher announces {ros_type}, whose first field is {first}, not a "
-                f"{HEADER_TYPE} with the image's stamp: no such result frees a slot, every "
-                "image waits --consumer-timeout-ms; publish a type that starts with the "
-                "image's Header (as vision_msgs/msg/Detection2DArray)",
+                f"{HEADER_TYPE} with the image's stamp: no result of that type frees a slot "
+                "(if it is the node's, every image waits --consumer-timeout-ms); publish a "
+                "type that starts with the image's Header (as vision_msgs/msg/Detection2DArray)",
             )
         return None
 
@@ -250,6 +252,13 @@ class Resolved:
 class Outstanding:
     """The images published to the node and still without a result (at most ``capacity``).
 
+    The timeout bounds the node's time for one image, not its queue: a node works on its
+    images in order, so an image's clock starts when the one before it left the slots (or
+    when it was published, if later). Counted from each image's publishing, the images
+    queued behind a node slower than timeout / N timed out while it still worked through
+    them; each freed slot let another image in, and the node's real backlog grew past N
+    while the mediator saw at most N. A node that never answers frees one slot per timeout.
+
     Times are the caller's monotonic nanoseconds. Not thread-safe: callers serialise.
     """
 
@@ -259,6 +268,7 @@ class Outstanding:
         self.capacity = capacity
         self.timeout_ns = timeout_ns
         self._open: OrderedDict[int, int] = OrderedDict()  # stamp -> published at
+        self._head_ns = 0  # when the oldest open image's clock started
         self._expired: OrderedDict[int, None] = OrderedDict()
         self._published = self._answered = self._timed_out = 0
         self._late = self._unmatched = self._bad = 0
@@ -271,19 +281,27 @@ class Outstanding:
         every slot is taken (the caller then does not publish it)."""
         if stamp_ns in self._open or len(self._open) >= self.capacity:
             return False
+        if not self._open:
+            self._head_ns = now_ns
         self._open[stamp_ns] = now_ns
         self._published += 1
         return True
 
     def withdraw(self, stamp_ns: int) -> None:
         """Forget an image whose publishing failed (it never reached the node)."""
+        head = self._is_head(stamp_ns)
         if self._open.pop(stamp_ns, None) is not None:
             self._published -= 1
+            if head:
+                self._next_head(self._head_ns)
 
     def answer(self, stamp_ns: int, now_ns: int) -> Resolved | str:
         """A result with this stamp arrived: the image it answers, or why none (``late``:
         its slot had timed out; ``unmatched``: no image of ours, or answered already)."""
+        head = self._is_head(stamp_ns)
         published = self._open.pop(stamp_ns, None)
+        if head:
+            self._next_head(now_ns)
         if published is None:
             if stamp_ns in self._expired:
                 self._late += 1
@@ -303,11 +321,9 @@ class Outstanding:
     def expire(self, now_ns: int) -> list[Resolved]:
         """The images whose result did not come within the timeout (their slots free)."""
         gone: list[Resolved] = []
-        while self._open:
-            stamp, published = next(iter(self._open.items()))
-            if now_ns - published < self.timeout_ns:
-                break  # published in order, so the rest are younger
-            del self._open[stamp]
+        while self._open and now_ns - self._head_ns >= self.timeout_ns:
+            stamp, published = self._open.popitem(last=False)
+            self._next_head(self._head_ns + self.timeout_ns)
             self._expired[stamp] = None
             if len(self._expired) > EXPIRED_MEMORY:
                 self._expired.popitem(last=False)
@@ -319,7 +335,16 @@ class Outstanding:
         """When the oldest open image times out (None: none is open)."""
         if not self._open:
             return None
-        return next(iter(self._open.values())) + self.timeout_ns
+        return self._head_ns + self.timeout_ns
+
+    def _is_head(self, stamp_ns: int) -> bool:
+        return bool(self._open) and next(iter(self._open)) == stamp_ns
+
+    def _next_head(self, left_ns: int) -> None:
+        """The head left the slots at ``left_ns``: the next image's clock starts then, or
+        at its publishing if that was later."""
+        if self._open:
+            self._head_ns = max(left_ns, next(iter(self._open.values())))
 
     def counts(self) -> ConsumerCounts:
         return ConsumerCounts(

@@ -314,8 +314,8 @@ class ConsumerLoop:
             self._skips.count(
                 self.results,
                 "consumer-timeout",
-                f"no result on {self._done.topic} within {self._config.consumer_timeout_ms} ms "
-                f"for the image stamped {gone.stamp_ns} ns",
+                f"no result on {self._done.topic} within {self._config.consumer_timeout_ms:g} "
+                f"ms of its turn for the image stamped {gone.stamp_ns} ns",
             )
         released_ns = self._pay(now)
         for resolved, sent_ns in answered:
@@ -338,7 +338,11 @@ class ConsumerLoop:
         with self._lock:
             resolved = self._ledger.answer(header.stamp_ns, time.monotonic_ns())
         if isinstance(resolved, str):
-            detail = f"result stamped {header.stamp_ns} ns ({header.frame_id[:40]})"
+            detail = (
+                f"result stamped {header.stamp_ns} ns ({header.frame_id[:40]}) came after its "
+                f"image's slot timed out: the node took longer than --consumer-timeout-ms "
+                f"({self._config.consumer_timeout_ms:g} ms) for one image; raise it"
+            )
             if resolved == "unmatched":
                 # Said once: a node stamping its results itself (now(), not its image's)
                 # shows only as every image timing out, unless this line says why.

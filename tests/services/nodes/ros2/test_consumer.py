@@ -88,11 +88,35 @@ def test_an_unanswered_image_times_out_once_and_its_late_answer_is_told_apart() 
     assert ledger.expire(99) == []
     gone = ledger.expire(100)
     assert [(g.stamp_ns, g.answered) for g in gone] == [(10, False)]
-    assert ledger.next_deadline_ns() == 150
+    assert ledger.next_deadline_ns() == 200  # 20's clock started when 10 left, at 100
     assert ledger.answer(10, 120) == "late"
     assert [g.stamp_ns for g in ledger.expire(10_000)] == [20]
     assert ledger.next_deadline_ns() is None
     assert ledger.counts() == ConsumerCounts(published=2, timed_out=2, late=1)
+
+
+def test_images_queued_behind_a_slow_node_time_out_only_on_its_time_for_one() -> None:
+    """A node that takes 500 of a 1000 timeout per image, three images queued at once:
+    each answered in turn, none timed out (counted from their publishing, the third had
+    waited 1500 when answered)."""
+    ledger = Outstanding(3, 1000)
+    for stamp in (1, 2, 3):
+        assert ledger.add(stamp, 0)
+    for stamp in (1, 2, 3):
+        now = 500 * stamp
+        assert ledger.expire(now) == []
+        assert not isinstance(ledger.answer(stamp, now), str)
+    assert ledger.counts() == ConsumerCounts(published=3, answered=3)
+
+
+def test_a_node_that_never_answers_frees_one_slot_per_timeout() -> None:
+    ledger = Outstanding(3, 100)
+    for stamp in (1, 2, 3):
+        ledger.add(stamp, stamp)
+    assert [g.stamp_ns for g in ledger.expire(150)] == [1]
+    assert ledger.next_deadline_ns() == 201  # 2's clock from 1's deadline, 101
+    assert [g.stamp_ns for g in ledger.expire(10_000)] == [2, 3]  # late turn: both due
+    assert ledger.add(4, 10_000) and ledger.next_deadline_ns() == 10_100
 
 
 def test_a_withdrawn_image_was_never_published() -> None:
