@@ -11,7 +11,10 @@ so ``ls`` does not pay for OpenCV, NumPy or the Foxglove bridge.
 Signals are part of it too: ``main`` turns SIGINT and SIGTERM into KeyboardInterrupt
 before it imports the command's module, so a Ctrl-C or ``kill`` at any instant of a
 command's life (the imports, the parsing, the opening of a Zenoh session) ends it with
-exit code 0 and no traceback. Commands that run until stopped replace that handler with
+exit code 0 and no traceback. That instant starts once Python has loaded its site
+packages (the first few tens of milliseconds of the process; before that, Python itself
+answers a Ctrl-C, as it does for any program), and the handler is set before anything else
+is imported (through ``_signal``). Commands that run until stopped replace that handler with
 their own (``_common.stop_on_signals``). A process started with the two signals blocked
 (as ``launch`` starts its services, so that a stop during their start-up waits for this
 handler) gets them delivered once the handler is in place.
@@ -19,8 +22,10 @@ handler) gets them delivered once the handler is in place.
 
 from __future__ import annotations
 
+# ``_signal``, not ``signal``: importing ``signal`` builds its enums first, which took up
+# to half a second on a loaded machine, and a Ctrl-C then ended in a traceback.
+import _signal
 import os
-import signal
 import sys
 
 
@@ -37,12 +42,13 @@ def _stopped_while_importing(_signum: int, _frame: object) -> None:
 # without a traceback; ``main`` installs the real handler. Imported by anything else (tests,
 # a user's script), the importer's handlers are left alone.
 if sys.argv and (sys.argv[0] == "-m" or sys.argv[0].endswith("framegate")):
-    for _signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(_signum, _stopped_while_importing)
+    for _signum in (_signal.SIGINT, _signal.SIGTERM):
+        _signal.signal(_signum, _stopped_while_importing)
 
 import argparse
 import contextlib
 import importlib
+import signal
 from collections.abc import Callable, Sequence
 from types import FrameType
 from typing import Any

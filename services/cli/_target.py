@@ -103,14 +103,17 @@ def nothing_answered(node: Node, waited_s: float) -> NotFoundError | None:
         return NotFoundError(f"cannot reach {bad}; is the router or service running there?")
     return NotFoundError(
         f"nothing answered {where(node.network)} (waited {waited_s:g} s); "
-        "is a router or service running there, and is --connect right?"
+        "is a router or service running there, and is the endpoint right (--connect, or "
+        "FRAMEGATE_CONNECT)?"
     )
 
 
 def _where_else(net: NetworkConfig) -> str:
     """Where else the service may be, when nothing was live where this process looked."""
     if net.connect or net.listen or net.config_file:
-        return "is the service running and is --connect right?"
+        return (
+            "is the service running, and is the endpoint right (--connect, or FRAMEGATE_CONNECT)?"
+        )
     # Alone on the loopback rendezvous: the services may meet on another port (a variable
     # set in one shell and not in the other), or run on another host.
     return (

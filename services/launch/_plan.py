@@ -114,12 +114,23 @@ def _check_files(
             net.check_files()
         except ConfigError as exc:
             config = net.config_file
-            maker = config.parent.parent / "make-certs.sh" if config is not None else None
-            if maker is None or config is None or config.exists() or not maker.is_file():
+            if config is None or config.exists():
                 raise
-            # A secure profile's certificates are made, not shipped: say how.
+            # A secure profile's certificates are made, not shipped: say how, and from where
+            # (its paths are relative: from the directory that holds the script).
+            maker = config.parent.parent / "make-certs.sh"
+            bases = (Path.cwd(), *Path(where).resolve().parents)
+            base = next((d for d in bases if (d / maker).is_file()), None)
+            if base is None:
+                raise
+            make = f"{maker} {config.parent}"
+            if base.resolve() != Path.cwd().resolve():
+                make = (
+                    f"cd {base} && {make}, and run launch from there (relative paths are "
+                    "taken from the current directory)"
+                )
             raise ConfigError(
-                f"{exc}; make the certificates first: {maker} {config.parent} (docs/security.md)"
+                f"{exc}; make the certificates first: {make} (docs/security.md)"
             ) from exc
         if parsed is None:
             return

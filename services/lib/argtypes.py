@@ -71,6 +71,24 @@ def _ros2_flag(prog: str, flag: str) -> str:
     return f" (ros2's {flag} is {ours})" if ours else ""
 
 
+def _short_hint(flag: str, options: list[str]) -> str:
+    """A did-you-mean for ``flag``; for a short one (``-o``) the one long option it may
+    abbreviate (``--out``), which no spelling distance finds."""
+    if len(flag) == 2 and flag[0] == "-" and flag[1] != "-":
+        starting = [o for o in options if o.startswith(f"--{flag[1]}")]
+        if len(starting) == 1:
+            return f" (did you mean {starting[0]}?)"
+    return did_you_mean(flag, options)
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
 def _long(parser: argparse.ArgumentParser, flag: str) -> str:
     """The long name of ``parser``'s option ``flag`` (``-l`` -> ``--listen``)."""
     for action in parser._actions:
@@ -99,7 +117,35 @@ def _subparser(
 class FramegateParser(argparse.ArgumentParser):
     """An ArgumentParser whose errors are one line, with a did-you-mean, and exit code 1."""
 
+    _seen: tuple[str, ...] = ()
+
+    def parse_known_args(  # type: ignore[override]
+        self, args: Sequence[str] | None = None, namespace: argparse.Namespace | None = None
+    ) -> tuple[argparse.Namespace, list[str]]:
+        # Kept for ``error``: a subcommand's parser is handed its own share of the words.
+        self._seen = tuple(sys.argv[1:] if args is None else args)
+        return super().parse_known_args(args, namespace)
+
+    def _unknown_option(self) -> str | None:
+        """The first word of ours that looks like an option and is none of this parser's."""
+        known = {s for a in self._actions for s in a.option_strings}
+        for word in self._seen:
+            flag = word.split("=", 1)[0]
+            if word == "--":
+                return None
+            if flag.startswith("-") and flag not in known and not _is_number(flag):
+                return word
+        return None
+
     def error(self, message: str) -> NoReturn:
+        if message.startswith("the following arguments are required") and (
+            word := self._unknown_option()
+        ):
+            # argparse says what is missing before what it did not know: ``simulate -o x``
+            # was "required: --out", with no word on the -o that was meant for it.
+            flag = word.split("=", 1)[0]
+            hint = _ros2_flag(self.prog, flag) or _short_hint(flag, _options(self))
+            message = f"unknown option {word!r}{hint}; see {self.prog} --help"
         for flag, ours in ROS2_SHADOWED.get(self.prog.split()[-1], {}).items():
             if message.startswith("argument ") and f"/{flag}:" in message.split(" ", 2)[1]:
                 message += f" ({flag} is {_long(self, flag)} here; ros2's {flag} is {ours})"
@@ -116,7 +162,7 @@ class FramegateParser(argparse.ArgumentParser):
             first = extras[0]
             flag = first.split("=", 1)[0]
             hint = _ros2_flag(target.prog, flag) or (
-                did_you_mean(flag, known) if first.startswith("-") else ""
+                _short_hint(flag, known) if first.startswith("-") else ""
             )
             what = "unknown option" if first.startswith("-") else "unexpected argument"
             target.error(f"{what} {first!r}{hint}; see {target.prog} --help")

@@ -54,6 +54,8 @@ def _framegate(*args: str) -> subprocess.CompletedProcess[str]:
         (("run", "gyro", "--frames", "-5"), "argument --frames: must be an integer > 0, got '-5'"),
         (("run", "mediator", "--q-min", "2"), "argument --q-min: must be a number >= 0 and <= 1"),
         (("run", "camera", "--sorce", "sim"), "(did you mean --source?)"),
+        # A short flag meant for a required option: argparse said only "required: --out".
+        (("simulate", "-o", "x"), "unknown option '-o' (did you mean --out?)"),
         (("run", "camra"), "(did you mean camera?)"),
         (("watch", "camera/images", "--queue", "0"), "argument --queue: must be an integer > 0"),
         (("echo", "camera/images", "--count", "-1"), "argument --count: must be an integer > 0"),
