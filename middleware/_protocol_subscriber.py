@@ -63,6 +63,8 @@ from ._wire import (
 # ZBytes for a single element, turned into bytes by ``take`` on the caller's thread; bytes
 # cut out of a batch).
 Item = tuple[int, bytes | None, Any]
+# Greeters remembered per epoch (``data_session``) before the forgotten epochs' are dropped.
+_GREETERS_MAX = 64
 # Room for a notification header's fields besides its metadata (epoch, seq, descriptor, ...).
 _HEADER_SLACK = 1024
 
@@ -123,6 +125,10 @@ class SubscriberProtocol:
         # Which session greeted us (as its control named it): a refusal from another one
         # contests the greeting; answers in the service's name count only from it (a clock).
         self.greeted_by: str | None = None
+        # Who greeted each epoch: the one whose notifications we queue last speaks for the
+        # service (``data_session``), not the last greeting's (a forged one from a peer).
+        self._greeters: dict[str, str | None] = {}
+        self._greeted_mark: tuple[str | None, int] = (None, 0)  # (epoch, last) at a greeting
         self._producer_ids: frozenset[str] | None = None
         self._ids_at_ns = 0
         self._refusal_reported = False
@@ -268,6 +274,40 @@ class SubscriberProtocol:
         lapsed, self._lapsed = self._lapsed, 0
         return lapsed
 
+    def _last_of(self, epoch: str | None) -> int:
+        track = None if epoch is None else self.ledger.track(epoch)
+        return 0 if track is None else track.last
+
+    @property
+    def data_session(self) -> str | None:
+        """The session that greeted the registration whose notifications came last (the
+        producer whose elements we take), or the last greeting's while no notification
+        came after it (a restarted producer greets before it notifies) or the registration
+        of the last ones is unknown.
+
+        A peer can greet us under a made-up epoch from its own session (any peer can put on
+        our key): the last greeting's session then named the peer, and a mediator that asked
+        it for the camera's clock never got an answer (every frame ``clock-unmeasured``, for
+        good, after one forged greeting and one notification). Its notifications cannot
+        follow once the real producer's come again."""
+        epoch = self._epoch
+        since = self._greeted_mark != (epoch, self._last_of(epoch))
+        if since and epoch is not None and epoch in self._greeters:
+            return self._greeters[epoch]
+        return self.greeted_by
+
+    def _forget_greeters(self) -> None:
+        """Keep the greeters of the epochs still known: the greeted one, the last queued and
+        those the ledger tracks (its table is bounded and kept against floods)."""
+        keep = {self.registered_epoch, self._epoch}
+        self._greeters = {
+            epoch: sender
+            for epoch, sender in self._greeters.items()
+            if epoch in keep or self.ledger.track(epoch) is not None
+        }
+        if len(self._greeters) > _GREETERS_MAX:  # a flood the ledger tracks: the two
+            self._greeters = {e: s for e, s in self._greeters.items() if e in keep}
+
     def _greeted(self, epoch: str, base: int, since: int | None) -> None:
         """A registration of ours starts at element ``base`` of its producer instance;
         ``since``: how far the producer saw our previous registration acked, if it had
@@ -313,6 +353,10 @@ class SubscriberProtocol:
             self.registered_epoch = control.text
             self.ledger.pin(control.text)
             self.greeted_by = sender
+            self._greeters[control.text] = sender
+            self._greeted_mark = (self._epoch, self._last_of(self._epoch))
+            if len(self._greeters) > _GREETERS_MAX:
+                self._forget_greeters()
             if control.base is not None:
                 self._greeted(control.text, control.base, control.since)
             self._refusal = None

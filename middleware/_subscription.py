@@ -305,9 +305,10 @@ class Subscription:
 
     @property
     def producer_session(self) -> str | None:
-        """The Zenoh session whose greeting registered this subscription (None: not
-        registered): the one whose answers in its service's name count (a clock sample)."""
-        return self._fed(lambda protocol: protocol.greeted_by)
+        """The Zenoh session that greeted the registration whose notifications came last
+        (None: not registered): the one whose answers in its service's name count (a clock
+        sample, a fetched element). See ``SubscriberProtocol.data_session``."""
+        return self._fed(lambda protocol: protocol.data_session)
 
     @property
     def producer_epoch(self) -> str | None:

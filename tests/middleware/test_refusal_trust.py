@@ -7,7 +7,7 @@ import pytest
 
 from middleware._protocol_subscriber import SubscriberProtocol
 from middleware._records import SubscriptionMode
-from middleware._wire import encode_control
+from middleware._wire import encode_control, encode_notification_header
 
 PRODUCER, ROGUE = "a1", "b2"
 
@@ -95,3 +95,32 @@ def test_a_greeting_of_the_same_epoch_from_another_session_is_forged() -> None:
     assert (sub.greeted_by, sub.garbage) == (PRODUCER, 1), "the producer's own re-greeting"
     sub.receive(encode_control("hello", sub.descriptor, "p2.1", base=0), b"", sender=ROGUE)
     assert (sub.greeted_by, sub.registered_epoch) == (ROGUE, "p2.1")
+
+
+def _notification(sub: SubscriberProtocol, epoch: str, seq: int) -> bytes:
+    return encode_notification_header(
+        epoch, seq, seq, b"<m/>", pushed=False, descriptor=sub.descriptor, base=0
+    )
+
+
+def test_the_session_that_speaks_for_the_service_is_the_one_whose_notifications_come() -> None:
+    """A peer's greeting under a made-up epoch and one notification of it made the peer's
+    session the one a mediator asked for the camera's clock, for good: it never answered
+    and every frame went unpaired (``clock-unmeasured``). The producer's next notification
+    names its own greeter again; a restarted producer's greeting speaks until its first."""
+    sub = SubscriberProtocol(SubscriptionMode.FLOW, 4, -1)
+    sub.receive(encode_control("hello", sub.descriptor, "p1.1", base=0), b"", sender=PRODUCER)
+    assert sub.data_session == PRODUCER
+    sub.receive(_notification(sub, "p1.1", 1), b"")
+    sub.receive(encode_control("hello", sub.descriptor, "rogue.1", base=0), b"", sender=ROGUE)
+    assert sub.data_session == ROGUE  # nothing came after it yet: a restart looks the same
+    sub.receive(_notification(sub, "rogue.1", 1), b"")
+    assert sub.data_session == ROGUE
+    sub.receive(_notification(sub, "p1.1", 2), b"")
+    assert sub.data_session == PRODUCER, "the producer's notifications came again"
+    assert (sub.greeted_by, sub.registered_epoch) == (ROGUE, "rogue.1")  # as before
+    # A real restart: the new session's greeting, then its notifications.
+    sub.receive(encode_control("hello", sub.descriptor, "p2.1", base=0), b"", sender="new")
+    assert sub.data_session == "new"
+    sub.receive(_notification(sub, "p2.1", 1), b"")
+    assert sub.data_session == "new"
