@@ -13,6 +13,7 @@ import os
 import signal
 import subprocess
 import sys
+from collections import Counter
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -458,13 +459,30 @@ def test_a_stopped_detector_loses_no_accepted_frame_without_a_record(pipe: Pipel
     wait_until(
         lambda: pipe.counter("detector/detections") >= detected + 3,
         60,
-        lambda: "detections after SIGCONT\n" + pipe.log(),
+        lambda: f"detections after SIGCONT (from {detected})\n{_resumed(pipe)}\n{pipe.log()}",
     )
     _audit(audit, pipe)
     summary = audit.summary()
     assert summary["lost"]["accepted_without_detection"] == 0, summary
     assert summary["lost"]["frames_without_decision"] == 0, summary
     assert summary["decision_reasons"].get("consumer-lapsed", 0) >= 10, summary
+
+
+def _resumed(pipe: Pipeline) -> str:
+    """What the mediator and the detector said at a deadline that a resumed detector missed
+    (once, under 4 test workers at load 13: which side stopped is what to know)."""
+    lines = []
+    for target in ("mediator/images", "detector/detections"):
+        try:
+            info = pipe.info(target, wait_s=0)
+        except FramegateError as exc:
+            lines.append(f"{target}: {exc}")
+            continue
+        subs = [(s.node, s.mode.value, s.queued, s.queue_size) for s in info.subscriptions]
+        lines.append(f"{target}: puts {info.puts}, skipped {info.skipped}, subscriptions {subs}")
+    reasons = Counter(r.reason for r in _decisions(pipe)[-30:])
+    lines.append(f"the last 30 decisions: {dict(reasons)}")
+    return "\n".join(lines)
 
 
 def _puts(node: Node, target: str) -> int:
