@@ -6,6 +6,7 @@ import json
 import os
 import subprocess
 import sys
+from collections import Counter
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -63,12 +64,14 @@ def slow_files_first(items: list[pytest.Item]) -> list[pytest.Item]:
     The workers (``-n 3 --dist loadfile --no-loadscope-reorder``) take whole files in this
     order as they come free. xdist's own order, most tests per file first, put the files of
     one long test (a quick bench or experiment run, minutes each) last, and the suite ended
-    with one worker busy for minutes while the others idled."""
-    slow: dict[str, int] = {}
-    for item in items:
-        count = slow.setdefault(item.nodeid.split("::")[0], 0)
-        slow[item.nodeid.split("::")[0]] = count + (item.get_closest_marker("slow") is not None)
-    return sorted(items, key=lambda item: -slow[item.nodeid.split("::")[0]])  # stable
+    with one worker busy for minutes while the others idled. (The suite is CPU-bound on 2
+    cores: this shortens its tail, measured 12:34-13:20 against 12:54-13:23 before.)"""
+
+    def file_of(item: pytest.Item) -> str:
+        return item.nodeid.split("::")[0]
+
+    slow = Counter(file_of(item) for item in items if item.get_closest_marker("slow"))
+    return sorted(items, key=lambda item: -slow[file_of(item)])  # stable
 
 
 @pytest.fixture(autouse=True)

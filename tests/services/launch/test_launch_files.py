@@ -181,6 +181,31 @@ def test_check_of_the_secure_deploy_file_without_its_certificates_fails_in_one_l
 
 
 @pytest.mark.integration
+def test_launch_check_of_a_secure_file_elsewhere_says_where_to_make_certificates(
+    tmp_path: Path,
+) -> None:
+    # From another directory the relative certificate paths name nothing there: the line
+    # says where the script is and to launch from that directory.
+    if (REPO / "deploy" / "tls" / "certs").exists():
+        pytest.skip("certificates were generated in this checkout")
+    deploy = REPO / "deploy" / "secure.yaml"
+    result = subprocess.run(
+        [sys.executable, "-m", "services.cli", "launch", str(deploy), "--check"],
+        cwd=tmp_path,
+        env=child_env(),
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert result.returncode == 1, result
+    assert result.stderr.count("\n") == 1, result
+    assert (
+        f"make the certificates first: cd {REPO} && deploy/tls/make-certs.sh deploy/tls/certs, "
+        "and run launch from there" in result.stderr
+    ), result
+
+
+@pytest.mark.integration
 def test_launch_renders_a_prerendered_approach_first_and_a_stop_there_starts_nothing(
     tmp_path: Path,
 ) -> None:
