@@ -155,21 +155,28 @@ def test_a_ros2_side_config_must_exist() -> None:
         _specs(text)
 
 
-def test_check_of_the_secure_deploy_file_without_its_certificates_fails_in_one_line(
-    tmp_path: Path,
-) -> None:
-    # The repository ships no certificates (make-certs.sh makes them): --check must say so.
-    if (REPO / "deploy" / "tls" / "certs").exists():
-        pytest.skip("certificates were generated in this checkout")
+def _check_secure(deploy: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+    """``launch DEPLOY --check`` run in ``cwd``: it must fail (the certificates are made, not
+    shipped)."""
     result = subprocess.run(
-        [sys.executable, "-m", "services.cli", "launch", "deploy/secure.yaml", "--check"],
-        cwd=REPO,
+        [sys.executable, "-m", "services.cli", "launch", deploy, "--check"],
+        cwd=cwd,
         env=child_env(),
         capture_output=True,
         text=True,
         timeout=120,
     )
     assert result.returncode == 1, result
+    return result
+
+
+def test_check_of_the_secure_deploy_file_without_its_certificates_fails_in_one_line(
+    tmp_path: Path,
+) -> None:
+    # The repository ships no certificates (make-certs.sh makes them): --check must say so.
+    if (REPO / "deploy" / "tls" / "certs").exists():
+        pytest.skip("certificates were generated in this checkout")
+    result = _check_secure("deploy/secure.yaml", REPO)
     assert result.stdout == "", result
     assert result.stderr.startswith(
         "error: deploy/secure.yaml:16: service 'router': cannot read"
@@ -188,16 +195,7 @@ def test_launch_check_of_a_secure_file_elsewhere_says_where_to_make_certificates
     # says where the script is and to launch from that directory.
     if (REPO / "deploy" / "tls" / "certs").exists():
         pytest.skip("certificates were generated in this checkout")
-    deploy = REPO / "deploy" / "secure.yaml"
-    result = subprocess.run(
-        [sys.executable, "-m", "services.cli", "launch", str(deploy), "--check"],
-        cwd=tmp_path,
-        env=child_env(),
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
-    assert result.returncode == 1, result
+    result = _check_secure(str(REPO / "deploy" / "secure.yaml"), tmp_path)
     assert result.stderr.count("\n") == 1, result
     assert (
         f"make the certificates first: cd {REPO} && deploy/tls/make-certs.sh deploy/tls/certs, "
