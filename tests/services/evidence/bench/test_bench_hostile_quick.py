@@ -14,6 +14,6 @@ from tests.services.evidence.bench.quick_run import quick_run
 @pytest.mark.slow
 @pytest.mark.timeout(960)
 def test_quick_hostile_run_gives_numbers_for_every_attack(tmp_path: Path) -> None:
-    # Windows of 4 s instead of the quick run's 10: numbers for every attack are what is
+    # Windows of 2 s instead of the quick run's 10: numbers for every attack are what is
     # checked here, not their goals (the 10 s windows made this two thirds of a quick run).
-    quick_run(tmp_path, ["hostile"], "--duration", "4")
+    quick_run(tmp_path, ["hostile"], "--duration", "2")
