@@ -16,6 +16,7 @@ from hypothesis import HealthCheck, settings
 
 from middleware import NetworkConfig
 from services.launch import free_port as free_port  # one for tests and tools
+from services.lib.sim import FRAME_CACHE_ENV
 from tests.helpers.timing import SCALE_VARIABLE, TIMEOUT_SCALE, scaled
 from tests.helpers.timing import wait_until as wait_until
 
@@ -74,14 +75,25 @@ def slow_files_first(items: list[pytest.Item]) -> list[pytest.Item]:
     return sorted(items, key=lambda item: -slow[file_of(item)])  # stable
 
 
+@pytest.fixture(scope="session")
+def _sim_cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """One frame cache for every worker of the run (their base directories' parent)."""
+    return tmp_path_factory.getbasetemp().parent / "sim-cache"
+
+
 @pytest.fixture(autouse=True)
-def _no_framegate_environment(monkeypatch: pytest.MonkeyPatch) -> None:
+def _no_framegate_environment(monkeypatch: pytest.MonkeyPatch, _sim_cache: Path) -> None:
     """A developer's shell (``FRAMEGATE_CONNECT``, ``FRAMEGATE_LOCAL_PORT``...) must not leak
     into a test or the processes it starts; a test that wants one sets it itself. The suite's
-    own setting (the timeout scale) stays: helpers a test starts read it too."""
+    own setting (the timeout scale) stays: helpers a test starts read it too.
+
+    And the suite's simulated cameras share one frame cache (``FRAMEGATE_SIM_CACHE``): the
+    same few hundred frames of the approach were rendered live by every pipeline test,
+    each at ~50 ms of CPU. A test about rendering itself removes the variable."""
     for name in list(os.environ):
         if name.startswith("FRAMEGATE_") and name != SCALE_VARIABLE:
             monkeypatch.delenv(name)
+    monkeypatch.setenv(FRAME_CACHE_ENV, str(_sim_cache))
 
 
 @pytest.fixture

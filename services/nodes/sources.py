@@ -122,9 +122,10 @@ class FrameSource(_Timeline):
 
     def __init__(self, spec: SourceSpec, stop: threading.Event | None = None) -> None:
         if spec.kind == "sim":
-            from services.lib.sim import Scenario
+            from services.lib.sim import FrameCache, Scenario
 
             self._scenario: Any = Scenario(spec.scenario())
+            self._cache = FrameCache.from_env(self._scenario.config)
             self.camera: CameraModel = self._scenario.camera
             infos = [self._scenario.frame_info(i) for i in range(self._scenario.frame_count)]
             self.description = f"simulated approach, seed {spec.seed}"
@@ -148,7 +149,9 @@ class FrameSource(_Timeline):
 
     def _image(self, index: int) -> npt.NDArray[np.uint8]:
         if self.spec.kind == "sim":
-            return np.asarray(self._scenario.render(index), dtype=np.uint8)
+            render = partial(self._scenario.render, index)
+            image = render() if self._cache is None else self._cache.frame(index, render)
+            return np.asarray(image, dtype=np.uint8)
         return np.asarray(self._scenario.image(index), dtype=np.uint8)
 
     def frames(self, stop: threading.Event) -> Iterator[SourceFrame]:

@@ -17,10 +17,18 @@ from pathlib import Path
 import pytest
 
 from middleware import FramegateError, NetworkConfig, Node
+from services.lib.sim import FRAME_CACHE_ENV
 from tests.conftest import free_port, start_framegate, wait_until
 from tests.helpers.timing import scaled
 
 pytestmark = pytest.mark.integration
+
+
+@pytest.fixture(autouse=True)
+def _render_live(monkeypatch: pytest.MonkeyPatch) -> None:
+    """These stops must reach a camera while it renders: no frame comes from the suite's
+    frame cache."""
+    monkeypatch.delenv(FRAME_CACHE_ENV, raising=False)
 
 
 def _stored(node: Node, target: str) -> bool:
