@@ -16,7 +16,7 @@ from hypothesis import HealthCheck, settings
 
 from middleware import NetworkConfig
 from services.launch import free_port as free_port  # one for tests and tools
-from services.lib.sim import FRAME_CACHE_ENV
+from services.lib.sim import FrameCache
 from tests.helpers.timing import SCALE_VARIABLE, TIMEOUT_SCALE, scaled
 from tests.helpers.timing import wait_until as wait_until
 
@@ -93,7 +93,7 @@ def _no_framegate_environment(monkeypatch: pytest.MonkeyPatch, _sim_cache: Path)
     for name in list(os.environ):
         if name.startswith("FRAMEGATE_") and name != SCALE_VARIABLE:
             monkeypatch.delenv(name)
-    monkeypatch.setenv(FRAME_CACHE_ENV, str(_sim_cache))
+    monkeypatch.setenv(FrameCache.ENV, str(_sim_cache))
 
 
 @pytest.fixture

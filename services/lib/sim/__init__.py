@@ -9,14 +9,13 @@ and ``read_dataset`` reads one back.
 from ._approaches import approach_cache_dir, cached_dataset, scenario_hash
 from ._config import Bump, ScenarioConfig
 from ._dataset import Dataset, DatasetError, DatasetWriter, read_dataset, write_report
-from ._frame_cache import FRAME_CACHE_ENV, FrameCache
+from ._frame_cache import FrameCache
 from ._records import FrameInfo, FrameTruth, GyroTrace, MarkerTruth
 from ._report import BlurBin, MarkerReport, RecognitionReport, recognition_report
 from ._scenario import Scenario
 from ._simulate import RenderStopped, SimulationRun, simulate
 
 __all__ = [
-    "FRAME_CACHE_ENV",
     "BlurBin",
     "Bump",
     "Dataset",

@@ -24,11 +24,11 @@ from ._approaches import scenario_hash
 from ._config import ScenarioConfig
 from ._dataset import _PNG_PARAMS
 
-FRAME_CACHE_ENV = "FRAMEGATE_SIM_CACHE"
-
 
 class FrameCache:
     """Rendered frames of one scenario under ``root/<scenario hash>/``."""
+
+    ENV = "FRAMEGATE_SIM_CACHE"
 
     def __init__(self, root: Path, config: ScenarioConfig) -> None:
         self._dir = root / scenario_hash(config)
@@ -37,7 +37,7 @@ class FrameCache:
     @classmethod
     def from_env(cls, config: ScenarioConfig) -> FrameCache | None:
         """The cache ``FRAMEGATE_SIM_CACHE`` names, or None when it is unset or empty."""
-        root = os.environ.get(FRAME_CACHE_ENV, "").strip()
+        root = os.environ.get(cls.ENV, "").strip()
         return cls(Path(root), config) if root else None
 
     def frame(self, index: int, render: Callable[[], np.ndarray]) -> np.ndarray:

@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from middleware import FramegateError, NetworkConfig, Node
-from services.lib.sim import FRAME_CACHE_ENV
+from services.lib.sim import FrameCache
 from tests.conftest import free_port, start_framegate, wait_until
 from tests.helpers.timing import scaled
 
@@ -28,7 +28,7 @@ pytestmark = pytest.mark.integration
 def _render_live(monkeypatch: pytest.MonkeyPatch) -> None:
     """These stops must reach a camera while it renders: no frame comes from the suite's
     frame cache."""
-    monkeypatch.delenv(FRAME_CACHE_ENV, raising=False)
+    monkeypatch.delenv(FrameCache.ENV, raising=False)
 
 
 def _stored(node: Node, target: str) -> bool:

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from services.lib.sim import FRAME_CACHE_ENV
+from services.lib.sim import FrameCache
 from tests.conftest import wait_until
 from tests.helpers.timing import scaled
 from tests.services.nodes.pipeline import Pipeline
@@ -24,7 +24,7 @@ pytestmark = pytest.mark.integration
 def _render_live(monkeypatch: pytest.MonkeyPatch) -> None:
     """These stops must reach a camera while it renders: no frame comes from the suite's
     frame cache."""
-    monkeypatch.delenv(FRAME_CACHE_ENV, raising=False)
+    monkeypatch.delenv(FrameCache.ENV, raising=False)
 
 
 _CAMERA_ONLY = """\

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.lib.sim import FRAME_CACHE_ENV, FrameCache, Scenario, ScenarioConfig
+from services.lib.sim import FrameCache, Scenario, ScenarioConfig
 
 
 def _count(calls: list[int], scenario: Scenario, index: int) -> np.ndarray:
@@ -52,7 +52,7 @@ def test_a_damaged_or_foreign_entry_is_rendered_again(
 def test_the_variable_names_the_cache_and_unset_means_none(
     monkeypatch: pytest.MonkeyPatch, tmp_path: Path, small_config: Callable[..., ScenarioConfig]
 ) -> None:
-    monkeypatch.setenv(FRAME_CACHE_ENV, " ")
+    monkeypatch.setenv(FrameCache.ENV, " ")
     assert FrameCache.from_env(small_config()) is None
-    monkeypatch.setenv(FRAME_CACHE_ENV, str(tmp_path))
+    monkeypatch.setenv(FrameCache.ENV, str(tmp_path))
     assert FrameCache.from_env(small_config()) is not None
