@@ -198,7 +198,9 @@ def test_gyro_outage_keeps_mediator_running_and_it_recovers(
             r.quality is not None and r.frame_timestamp_ns > outage_end for r in _decisions(pipe)
         ),
         30,
-        lambda: f"quality-based decisions after the gyro restarted: {_reasons(pipe)}",
+        lambda: (
+            f"quality-based decisions after the gyro restarted: {_reasons(pipe)}\n" + pipe.log()
+        ),
     )
     assert pipe.pid("mediator") == mediator_pid
     if "gyro does not cover frame" in pipe.log():
