@@ -81,6 +81,13 @@ def _sim_cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return tmp_path_factory.getbasetemp().parent / "sim-cache"
 
 
+@pytest.fixture
+def live_render(monkeypatch: pytest.MonkeyPatch) -> None:
+    """For a test whose simulated cameras must render (a stop that reaches a render): no
+    frame comes from the suite's frame cache."""
+    monkeypatch.delenv(FrameCache.ENV, raising=False)
+
+
 @pytest.fixture(autouse=True)
 def _no_framegate_environment(monkeypatch: pytest.MonkeyPatch, _sim_cache: Path) -> None:
     """A developer's shell (``FRAMEGATE_CONNECT``, ``FRAMEGATE_LOCAL_PORT``...) must not leak

@@ -11,9 +11,7 @@ atomically, and a damaged or foreign file is rendered again, never trusted.
 
 from __future__ import annotations
 
-import contextlib
 import os
-import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
@@ -23,6 +21,7 @@ import numpy as np
 from ._approaches import scenario_hash
 from ._config import ScenarioConfig
 from ._dataset import _PNG_PARAMS
+from ._scene_cache import store_atomically
 
 
 class FrameCache:
@@ -50,18 +49,10 @@ class FrameCache:
         self._store(path, image)
         return image
 
-    def _store(self, path: Path, image: np.ndarray) -> None:
-        """Write ``image`` atomically (a reader sees no file or the whole one); a cache that
-        cannot be written is skipped: the camera goes on rendering."""
+    @staticmethod
+    def _store(path: Path, image: np.ndarray) -> None:
+        """Write ``image`` as a cache entry; one that cannot be written is skipped: the
+        camera goes on rendering."""
         ok, encoded = cv2.imencode(".png", image, _PNG_PARAMS)
-        if not ok:
-            return
-        with contextlib.suppress(OSError):
-            path.parent.mkdir(parents=True, exist_ok=True)
-            fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
-            try:
-                with os.fdopen(fd, "wb") as stream:
-                    stream.write(encoded.tobytes())
-                os.replace(tmp, path)
-            except OSError:
-                os.unlink(tmp)
+        if ok:
+            store_atomically(path, lambda stream: stream.write(encoded.tobytes()))

@@ -16,9 +16,9 @@ import contextlib
 import hashlib
 import os
 import tempfile
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import numpy as np
 
@@ -56,14 +56,19 @@ def load(
 
 def save(config: ScenarioConfig, kind: str, arrays: dict[str, np.ndarray]) -> None:
     """Store ``arrays`` for ``config``; a cache that cannot be written is simply skipped."""
-    path = _path(config, kind)
+    savez: Any = np.savez  # numpy's stubs take names for keywords only
+    store_atomically(_path(config, kind), lambda stream: savez(stream, **arrays))
+
+
+def store_atomically(path: Path, write: Callable[[BinaryIO], object]) -> None:
+    """``write`` a cache entry to ``path`` so that a reader sees the old entry or the whole
+    new one, never part of it; a cache that cannot be written is skipped."""
     with contextlib.suppress(OSError):
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
         try:
             with os.fdopen(fd, "wb") as stream:
-                savez: Any = np.savez  # numpy's stubs take names for keywords only
-                savez(stream, **arrays)
-            os.replace(tmp, path)  # atomic: a reader sees the old entry or the whole new one
+                write(stream)
+            os.replace(tmp, path)
         except OSError:
             os.unlink(tmp)

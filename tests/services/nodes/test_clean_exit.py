@@ -17,18 +17,11 @@ from pathlib import Path
 import pytest
 
 from middleware import FramegateError, NetworkConfig, Node
-from services.lib.sim import FrameCache
 from tests.conftest import free_port, start_framegate, wait_until
 from tests.helpers.timing import scaled
 
-pytestmark = pytest.mark.integration
-
-
-@pytest.fixture(autouse=True)
-def _render_live(monkeypatch: pytest.MonkeyPatch) -> None:
-    """These stops must reach a camera while it renders: no frame comes from the suite's
-    frame cache."""
-    monkeypatch.delenv(FrameCache.ENV, raising=False)
+# Stops that must reach a camera while it renders.
+pytestmark = [pytest.mark.integration, pytest.mark.usefixtures("live_render")]
 
 
 def _stored(node: Node, target: str) -> bool:

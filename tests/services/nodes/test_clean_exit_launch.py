@@ -14,19 +14,12 @@ from pathlib import Path
 
 import pytest
 
-from services.lib.sim import FrameCache
 from tests.conftest import wait_until
 from tests.helpers.timing import scaled
 from tests.services.nodes.pipeline import Pipeline
 
-pytestmark = pytest.mark.integration
-
-
-@pytest.fixture(autouse=True)
-def _render_live(monkeypatch: pytest.MonkeyPatch) -> None:
-    """These stops must reach a camera while it renders: no frame comes from the suite's
-    frame cache."""
-    monkeypatch.delenv(FrameCache.ENV, raising=False)
+# Stops that must reach a camera while it renders.
+pytestmark = [pytest.mark.integration, pytest.mark.usefixtures("live_render")]
 
 
 _CAMERA_ONLY = """\
