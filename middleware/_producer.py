@@ -111,7 +111,6 @@ class Producer:
         self._counters = _Counters()
         self._closed = False
         self._on_change: Callable[[], object] | None = None
-        executor.add(self)
         self._wake = Wake(self, self._cond, executor, lambda: len(self._acks))
         # Acks are fed by whoever needs credit next (a put, ``info``, the executor before a
         # resend); only a waiting put, or a backlog, wakes anyone (``Wake``).
@@ -127,6 +126,8 @@ class Producer:
         self._lost = (0, 0)  # see ``_feed``
         self._resync: LiveQuery | None = None  # in flight (the executor's)
         self._tokens = TokenInbox(capacity=TOKEN_INBOX, signal=self._signal)
+        # Its deadlines are read on the executor thread from now on: every field is set.
+        executor.add(self)
         self._acks.declare(session, keys.acks(service, buffer))
         # Declared last: its callback (history included) may run at once.
         self._tokens.declare(session, self._token_keys, liveliness=True)

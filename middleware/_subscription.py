@@ -119,7 +119,6 @@ class Subscription:
             keys.ack(service, buffer, self.subscription_id),
             congestion_control=zenoh.CongestionControl.BLOCK,
         )
-        executor.add(self)
         self._wake = Wake(self, self._cond, executor, lambda: len(self._inbox))
         # Until the producer greets it, the producer's answer is the executor's to read: a
         # refusal must be logged and retried even when nobody takes (see ``_refused``).
@@ -129,11 +128,14 @@ class Subscription:
             max_bytes=self._protocol.max_message_bytes(),
             signal=self._wake.signal,
         )
-        self._inbox.declare(session, keys.notify(service, buffer, self.subscription_id))
         self._holder = holder_chunk(holder, socket.gethostname())
         self._token_key = keys.subscription_token(
             service, buffer, self.subscription_id, mode, queue_size, push_max_bytes, self._holder
         )
+        # Its deadlines are read on the executor thread from now on: every field they use
+        # is set (the token is declared only once input can come, below).
+        executor.add(self)
+        self._inbox.declare(session, keys.notify(service, buffer, self.subscription_id))
         # Declared last: once the producer sees it, notifications may flow.
         self._token = session.liveliness().declare_token(self._token_key)
 

@@ -142,3 +142,30 @@ def test_a_handler_may_take_from_another_subscription(listen_net, connect_net) -
             b.put(t, b"y", _meta(t), wait_s=10.0)
         wait_until(lambda: len(pairs) == 3, 20.0, "every pair")
         assert pairs == [(1, 1), (2, 2), (3, 3)]
+
+
+def test_a_buffer_or_subscription_is_whole_when_the_executor_first_reads_its_deadline(
+    listen_net, connect_net, monkeypatch
+) -> None:
+    """Regression: a producer joined the executor before its constructor had set every field,
+    and an executor already running (for another buffer) read its deadline in between: the
+    ``AttributeError`` was logged as "deadline of <Producer> failed" on a live service. Here
+    ``add`` reads the deadline and runs it at once, as the running thread may."""
+    from middleware._executor import Executor
+
+    added: list[str] = []
+    real_add = Executor.add
+
+    def add_and_read_at_once(self: Executor, obj) -> None:
+        real_add(self, obj)
+        obj.next_deadline_ns()
+        obj.on_deadline(time.monotonic_ns())
+        added.append(type(obj).__name__)
+
+    monkeypatch.setattr(Executor, "add", add_and_read_at_once)
+    with Node("cam", listen_net) as service, Node(network=connect_net) as client:
+        images = service.offer("images")
+        sub = client.subscribe("cam/images", queue_size=4)
+        images.put(1, b"x", _meta(1), wait_s=10.0)
+        assert sub.take(timeout_s=10.0) is not None
+    assert added == ["Producer", "Subscription"]
