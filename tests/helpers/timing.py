@@ -57,13 +57,27 @@ def wait_until(
     limit_s = scaled(timeout_s)
     deadline = time.monotonic() + limit_s
     while True:
+        began = time.monotonic()
         value = predicate()
         if value:
             return value
         if time.monotonic() > deadline:
             said = what() if callable(what) else what
             raise AssertionError(f"timed out after {limit_s:g} s waiting for {said}")
-        time.sleep(0.02)
+        time.sleep(_pause_s(time.monotonic() - began))
+
+
+# Between two looks, at least ``POLL_S``, and at least ``LOOK_SHARE`` times what the last look
+# took, up to ``POLL_MAX_S``: a look that queries a service (every decision a mediator
+# stored, parsed) costs the test and the service CPU, and at a fixed 20 ms the suite's
+# pipeline tests spent whole seconds of it on looking.
+POLL_S = 0.02
+LOOK_SHARE = 3.0
+POLL_MAX_S = 0.25
+
+
+def _pause_s(look_s: float) -> float:
+    return min(POLL_MAX_S, max(POLL_S, LOOK_SHARE * look_s))
 
 
 def answered(ask: Callable[[], T], what: str, wait_s: float = LEASE_LAPSE_S) -> T:

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import queue
+import re
 import subprocess
 import sys
 import threading
@@ -237,14 +238,23 @@ def test_ros2_camera_and_imu_through_the_pipeline_back_to_ros2(
                 f"images not received {sorted(accepted_stamps() - image_stamps())}\n"
             )
 
+        def lapsed(buffer: str) -> int:
+            # A bridge starved past its lease (load 10 on 2 cores) lapses; what was stored
+            # meanwhile is never published, and it says how many (an observer's counted loss).
+            said = re.findall(
+                rf"\[ros2 *\] .*subscription to {buffer} had lapsed: (\d+)", pipe.log()
+            )
+            return sum(int(n) for n in said)
+
         # Verdicts and images leave the bridge on two outputs, so an accepted frame's image
         # (768 kB) may reach ROS 2 after its verdict: wait for both.
         puts = wait_until(
             lambda: (
                 (n := stored())
-                and len(listener.received["/framegate/verdicts"]) >= n
+                and len(listener.received["/framegate/verdicts"])
+                >= n - lapsed("mediator/decisions")
                 and listener.received["/framegate/detections"]
-                and accepted_stamps() <= image_stamps()
+                and len(accepted_stamps() - image_stamps()) <= lapsed("mediator/images")
                 and n
             ),
             120,  # eight frames through bridge, mediator and detector: 30 s missed at load 10
@@ -314,9 +324,15 @@ def test_ros2_camera_and_imu_through_the_pipeline_back_to_ros2(
             for p, _ in listener.received["/framegate/verdicts"]
         ]
         stamps = [v["stamp_ns"] for v in verdicts]
-        assert len(stamps) == len(set(stamps)) == puts and set(stamps) <= set(sent), stamps
+        assert len(stamps) == len(set(stamps)) and set(stamps) <= set(sent), stamps
+        assert puts - lapsed("mediator/decisions") <= len(stamps) <= puts, (stamps, puts)
         accepted = {v["stamp_ns"] for v in verdicts if v["accepted"]}
-        assert image_stamps() == accepted
+        if lapsed("mediator/decisions") or lapsed("mediator/images"):
+            assert len(image_stamps() ^ accepted) <= lapsed("mediator/decisions") + lapsed(
+                "mediator/images"
+            )
+        else:
+            assert image_stamps() == accepted
 
         # framegate's side: every image stored; what a busy machine did not store, counted.
         info = pipe.info("ros2/images")
