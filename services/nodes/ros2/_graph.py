@@ -13,7 +13,7 @@ inside, so a test drives them by calling them:
   publisher that was there is never taken for a new one. One that starts in between is
   counted from its first sample seen, as one that was there.
 
-:class:`StartWatch` runs both on the node's executor: one timer every ``LOOK_S`` asks the
+:class:`StartWatch` runs both on the node's executor: a deadline every ``LOOK_S`` asks the
 session how many routers it has (a local count, no round trip) until one is there; each
 look at the graph is a liveliness query whose end Zenoh's thread only hands to the executor
 (``Node.at``), so no handler of the node waits for the ROS 2 router's answer.
@@ -129,12 +129,16 @@ class StartWatch:
         self.router = RouterWatch(link.routers, where, log, time.monotonic_ns())
         self.settle = GraphSettle(watches, link.identity.node_name, log)
         self._closed = False
-        self._timer: _Timer = node.every(LOOK_S, self._tick)
+        self._timer: _Timer = node.at(time.monotonic_ns() + int(LOOK_S * 1e9), self._tick)
 
     def _tick(self, now_ns: int) -> None:
-        if self._closed or not self.router.on_time(now_ns):
+        # One-shot deadlines, each set on the executor by the one before: a tick never needs
+        # the handle that the constructor's thread may not have stored yet.
+        if self._closed:
             return
-        self._timer.cancel()
+        if not self.router.on_time(now_ns):
+            self._timer = self._node.at(now_ns + int(LOOK_S * 1e9), self._tick)
+            return
         self._look(now_ns)
 
     def _look(self, _now_ns: int) -> None:
