@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import _thread
 import argparse
 import json
 import signal
@@ -56,31 +57,21 @@ def stop_on_signals() -> threading.Event:
     session cleanly. Call from the main thread.
     """
     stop = threading.Event()
-    signalled = setting = again = False
+    signalled = False
 
     def handler(_signum: int, _frame: FrameType | None) -> None:
-        # Python runs this in the main thread between bytecodes, possibly inside
-        # ``stop.set()`` itself when a second signal arrives (a supervisor's SIGTERM right
-        # after a parent-death signal): calling ``stop.set()`` again there would wait for
-        # the lock its own frame holds, for ever (seen: a mediator orphaned this way), and
-        # raising there may leave between the acquisition of the event's lock and the
-        # ``with`` that releases it, the lock then held for ever (seen: a router that two
-        # SIGTERMs left running, once in a few thousand). So plain flags decide: only the
-        # first signal touches the event, and a second one that comes meanwhile raises
-        # once ``set`` has returned.
-        nonlocal signalled, setting, again
-        if setting:
-            again = True
-            return
+        # Python runs this in the main thread between bytecodes, wherever that thread is:
+        # also inside ``stop.wait()`` while it holds the event's own lock (in
+        # ``Condition.wait``, before it lets go), where ``stop.set()`` here waits for that
+        # lock for ever (seen: a router that one SIGTERM, in that instant, left running).
+        # So the handler takes no lock: a thread of its own sets the event once the main
+        # thread lets go (a bare ``_thread``: ``threading.Thread.start`` takes the module's
+        # lock and waits on an event of its own). A second signal raises, as a Ctrl-C does.
+        nonlocal signalled
         if signalled:
             raise KeyboardInterrupt
-        signalled = setting = True
-        try:
-            stop.set()
-        finally:
-            setting = False
-        if again:
-            raise KeyboardInterrupt
+        signalled = True
+        _thread.start_new_thread(stop.set, ())
 
     signal.signal(signal.SIGINT, handler)
     signal.signal(signal.SIGTERM, handler)

@@ -18,6 +18,7 @@ result, until stdin closes or SIGTERM. The bridge's loop benchmark and the bridg
 
 from __future__ import annotations
 
+import _thread
 import collections
 import json
 import signal
@@ -82,7 +83,9 @@ def main(params: dict[str, Any]) -> None:
         result_type = str(params.get("result_type", "my_msgs/msg/Done"))
         result_hash = str(params.get("result_hash", "RIHS01_" + "ab" * 32))
     stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    # Set on a thread of its own: the handler may run inside ``stop.wait`` while this thread
+    # holds the event's lock, where ``set`` would wait for that lock for ever.
+    signal.signal(signal.SIGTERM, lambda *_: _thread.start_new_thread(stop.set, ()))
     images: collections.deque[bytes] = collections.deque(maxlen=depth)  # KEEP_LAST
     arrived = threading.Condition()
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import signal
 import subprocess
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -123,31 +124,36 @@ def test_two_signals_at_once_still_stop_the_command() -> None:
             raise AssertionError("two SIGTERMs left the router running") from None
 
 
-def test_a_second_signal_inside_the_first_ones_set_raises_once_set_has_returned(
+def test_a_signal_while_the_main_thread_holds_the_stop_events_lock_stops_it(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    """Raised inside ``Event.set``, the interrupt could leave between the acquisition of the
-    event's lock and the ``with`` that releases it: the lock held for ever, and the router
-    that two SIGTERMs left running (once in a few thousand). The second signal is played
-    here exactly there, by calling the handler from inside ``set``."""
+    """Regression: the handler set the event itself, and a signal that landed inside
+    ``stop.wait()`` while the waiting thread held the event's lock (in ``Condition.wait``,
+    before it lets go) waited in ``set`` for that lock for ever: a router that SIGTERM left
+    running (once in 110 tries, with two busy loops on 2 cores). Played here exactly there:
+    the handler runs on a thread that holds the lock; it must return, and the event is set
+    once the lock is let go. A second signal interrupts."""
     from services.cli._common import stop_on_signals
 
     handlers: dict[int, object] = {}
     monkeypatch.setattr(signal, "signal", lambda signum, fn: handlers.setdefault(signum, fn))
     stop = stop_on_signals()
     handler = handlers[signal.SIGTERM]
-    real_set = stop.set
-    inside: list[bool] = []
+    returned = threading.Event()
+    set_while_held: list[bool] = []
 
-    def set_with_a_second_signal() -> None:
-        handler(signal.SIGTERM, None)  # type: ignore[operator]  # returns: noted for later
-        inside.append(True)
-        real_set()
+    def waiting_thread_signalled() -> None:
+        with stop._cond:  # type: ignore[attr-defined]  # held, as inside Event.wait
+            handler(signal.SIGTERM, None)  # type: ignore[operator]
+            returned.set()
+            set_while_held.append(stop.is_set())
 
-    monkeypatch.setattr(stop, "set", set_with_a_second_signal)
-    with pytest.raises(KeyboardInterrupt):
-        handler(signal.SIGTERM, None)  # type: ignore[operator]
-    assert inside == [True] and stop.is_set()
+    thread = threading.Thread(target=waiting_thread_signalled, daemon=True)
+    thread.start()
+    thread.join(scaled(10.0))
+    assert returned.is_set() and not thread.is_alive(), "the handler waited for the lock"
+    assert set_while_held == [False]  # nobody could set it while the lock was held
+    assert stop.wait(scaled(10.0)), "the event was never set"
     with pytest.raises(KeyboardInterrupt):  # any later one interrupts at once
         handler(signal.SIGINT, None)  # type: ignore[operator]
 
