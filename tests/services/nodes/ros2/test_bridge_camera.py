@@ -23,7 +23,13 @@ from tests.services.nodes.ros2.test_bridge_pipeline import Driver
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
-FRAMES = 8
+# About 1 s of the approach at a quarter speed (4.3 s): a mediator starved past its lease
+# (2.1 s at load 10 on 2 cores, seen in CI) misses the frames stored meanwhile and records
+# them without blur; 8 frames at half speed were all lost that way once. Blur is compared on
+# at least COMMON frames.
+FRAMES = 16
+RATE = 0.25
+COMMON = 4
 
 
 def _deploy(endpoint: str, camera_xml: Path) -> str:
@@ -76,7 +82,7 @@ def test_blur_from_camera_info_and_tf_static_equals_blur_from_the_camera_xml(
             "listen": endpoint,
             "seed": 3,
             "frames": FRAMES,
-            "rate": 0.5,
+            "rate": RATE,
             "frames_path": str(tmp_path / "frames.npy"),
             "camera_path": str(tmp_path / "sim.xml"),
             "camera_info": True,
@@ -108,13 +114,13 @@ def test_blur_from_camera_info_and_tf_static_equals_blur_from_the_camera_xml(
         def both() -> tuple[dict[int, float], dict[int, float]] | None:
             ros, xml_ = _blurs(pipe, "mediator/decisions"), _blurs(pipe, "mediatorxml/decisions")
             # Frames the gyro does not cover (it may lag under load) have no blur in either.
-            return (ros, xml_) if len(set(ros) & set(xml_)) >= FRAMES // 2 else None
+            return (ros, xml_) if len(set(ros) & set(xml_)) >= COMMON else None
 
         ros, from_xml = wait_until(
             both, 60, lambda: "blur estimates from both mediators\n" + pipe.log()
         )
         common = sorted(set(ros) & set(from_xml))
-        assert len(common) >= FRAMES // 2, (ros, from_xml)
+        assert len(common) >= COMMON, (ros, from_xml)
         for stamp in common:
             assert ros[stamp] == pytest.approx(from_xml[stamp], rel=1e-4, abs=1e-6), stamp
         assert max(ros.values()) > 0.1  # real motion blur, not a comparison of zeros
