@@ -79,22 +79,15 @@ def slow_files_first(items: list[pytest.Item]) -> list[pytest.Item]:
 def _bytecode_cache(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
     """The processes the suite starts read compiled modules from one cache of the run.
 
-    Under ``PYTHONDONTWRITEBYTECODE`` (set on some machines, CI's among them) every service a
-    test started compiled each framegate module it imports from source again: ~0.15 s of the
-    ~0.65 s of CPU its start took, in each of hundreds of processes per run. The cache lives
-    beside the run's base directories (``PYTHONPYCACHEPREFIX``): the source tree gets no
-    ``__pycache__``."""
-    saved = {
-        name: os.environ.get(name) for name in ("PYTHONPYCACHEPREFIX", "PYTHONDONTWRITEBYTECODE")
-    }
-    os.environ["PYTHONPYCACHEPREFIX"] = str(tmp_path_factory.getbasetemp().parent / "pycache")
-    os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
-    yield
-    for name, value in saved.items():
-        if value is None:
-            os.environ.pop(name, None)
-        else:
-            os.environ[name] = value
+    Under ``PYTHONDONTWRITEBYTECODE`` (set on some machines, the development VM among them)
+    every service a test started compiled each framegate module it imports from source
+    again: ~0.15 s of the ~0.65 s of CPU its start took, in each of hundreds of processes.
+    The cache lives beside the run's base directories (``PYTHONPYCACHEPREFIX``): the source
+    tree gets no ``__pycache__``."""
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("PYTHONPYCACHEPREFIX", str(tmp_path_factory.getbasetemp().parent / "pycache"))
+        patch.delenv("PYTHONDONTWRITEBYTECODE", raising=False)
+        yield
 
 
 @pytest.fixture(scope="session")
